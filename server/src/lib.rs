@@ -1,0 +1,110 @@
+//! The phone2act server as a library: [`run`] serves the phone2act.v1 API (plus gRPC health and reflection)
+//! for a [`Config`] on a given listener until a shutdown future resolves. The `phone2act` binary is a thin
+//! CLI around it; tests start it in-process on an ephemeral port.
+
+pub mod app;
+pub mod config;
+pub mod services;
+
+use crate::app::App;
+pub use crate::config::Config;
+use phone2act_proto::v1::system_server::SystemServer;
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::TcpListenerStream;
+use tonic::transport::Server;
+
+/// How long in-flight streams get to finish after shutdown is requested.
+pub const SHUTDOWN_GRACE: Duration = Duration::from_millis(700);
+
+/// Errors that stop the server.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error("cannot start: {0}")]
+    Startup(String),
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    #[error("reflection service: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+}
+
+/// Binds `addr` with a one-line error that says what to do when the port is taken.
+pub async fn bind(addr: std::net::SocketAddr) -> Result<TcpListener, ServerError> {
+    TcpListener::bind(addr).await.map_err(|e| {
+        let hint = if e.kind() == std::io::ErrorKind::AddrInUse {
+            " (another phone2act or program is using it; pick another with --listen)"
+        } else {
+            ""
+        };
+        ServerError::Startup(format!("cannot listen on {addr}: {e}{hint}"))
+    })
+}
+
+/// Serves `config` on `listener` until `shutdown` resolves, then gives open streams [`SHUTDOWN_GRACE`] to end.
+pub async fn run(
+    config: Config,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let local = listener
+        .local_addr()
+        .map_err(|e| ServerError::Startup(e.to_string()))?;
+    let app = Arc::new(App::start(config).map_err(|e| ServerError::Startup(e.to_string()))?);
+    tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
+
+    let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    for name in phone2act_proto::SERVICE_NAMES {
+        health_reporter
+            .set_service_status(name, tonic_health::ServingStatus::Serving)
+            .await;
+    }
+    health_reporter
+        .set_service_status("", tonic_health::ServingStatus::Serving)
+        .await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(phone2act_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let reflection_alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(phone2act_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()?;
+
+    let auth = services::auth::TokenCheck::new(app.config.server.token.clone());
+    let system = SystemServer::with_interceptor(services::system::SystemService::new(Arc::clone(&app)), auth);
+
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let app_for_shutdown = Arc::clone(&app);
+    tokio::spawn(async move {
+        shutdown.await;
+        app_for_shutdown.begin_shutdown();
+        let _ = stop_tx.send(());
+    });
+
+    let server = Server::builder()
+        .tcp_nodelay(true)
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(reflection_alpha)
+        .add_service(system)
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+            let _ = stop_rx.await;
+        });
+    tokio::pin!(server);
+    let mut shutdown_seen = app.shutdown_signal();
+    let result = tokio::select! {
+        result = &mut server => result,
+        () = async {
+            let _ = shutdown_seen.wait_for(|stopping| *stopping).await;
+            tokio::time::sleep(SHUTDOWN_GRACE).await;
+        } => {
+            tracing::warn!("streams still open after {SHUTDOWN_GRACE:?}; closing them");
+            Ok(())
+        }
+    };
+    app.stop();
+    tracing::info!("phone2act stopped");
+    result.map_err(ServerError::from)
+}

@@ -1,0 +1,4 @@
+//! Thin tonic adapters: each service translates wire messages to calls on [`crate::app::App`].
+
+pub mod auth;
+pub mod system;

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Runs every phone2act test: formatting and lint gates, the Rust unit, property and end-to-end tests, and
+# the Python conformance tests against the real lerobot library.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+tests/scripts/install-deps.sh test
+export SVT_LOG=1
+cargo fmt --all -- --check
+cargo clippy --workspace --all-targets --quiet -- -D warnings
+set +e
+cargo test --workspace 2>&1 | tee /tmp/phone2act-cargo-test.log
+rc=${PIPESTATUS[0]}
+set -e
+if [[ $rc -ne 0 ]]; then
+  echo "cargo test failed (exit $rc)" >&2
+  exit "$rc"
+fi
+passed=$(grep -Eo 'test result: ok\. [0-9]+ passed' /tmp/phone2act-cargo-test.log | awk '{s+=$4} END {print s+0}')
+echo "rust: ${passed} passed, 0 failed"
+if [[ -x tests/conformance/run.sh ]]; then
+  tests/conformance/run.sh
+fi

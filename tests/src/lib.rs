@@ -1,0 +1,69 @@
+//! Helpers for phone2act's end-to-end tests: start a real server in-process on an ephemeral port and
+//! connect the real SDK to it.
+
+use phone2act_sdk::Client;
+use phone2act_server::Config;
+use std::net::SocketAddr;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+/// A server running in-process on 127.0.0.1 with an ephemeral port.
+pub struct TestServer {
+    pub addr: SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<JoinHandle<Result<(), phone2act_server::ServerError>>>,
+}
+
+impl TestServer {
+    /// Starts `config` (its listen address is ignored).
+    pub async fn start(config: Config) -> anyhow::Result<Self> {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let (stop, stopped) = oneshot::channel::<()>();
+        let task = tokio::spawn(phone2act_server::run(config, listener, async {
+            let _ = stopped.await;
+        }));
+        Ok(Self {
+            addr,
+            stop: Some(stop),
+            task: Some(task),
+        })
+    }
+
+    /// Starts the embedded default configuration with the dataset under `dataset_root`.
+    pub async fn start_default(dataset_root: &std::path::Path) -> anyhow::Result<Self> {
+        let mut config =
+            Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())?;
+        config.recorder.root = dataset_root.to_owned();
+        Self::start(config).await
+    }
+
+    /// The gRPC URL.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// A connected SDK client.
+    pub async fn client(&self) -> anyhow::Result<Client> {
+        Ok(Client::connect(&self.url(), None).await?)
+    }
+
+    /// Requests shutdown and waits for the server to return.
+    pub async fn shutdown(mut self) -> anyhow::Result<()> {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(task) = self.task.take() {
+            task.await??;
+        }
+        Ok(())
+    }
+}
+
+impl Drop for TestServer {
+    fn drop(&mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+    }
+}

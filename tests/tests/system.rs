@@ -1,0 +1,85 @@
+//! The System service end to end: a real server on an ephemeral port, the real SDK over TCP.
+
+use phone2act_tests::TestServer;
+use std::time::{Duration, Instant};
+use tokio_stream::StreamExt;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lists_the_main_arm_and_its_camera_and_streams_status() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start_default(dir.path()).await.unwrap();
+    let client = server.client().await.unwrap();
+    let mut system = client.system();
+
+    let arms = system.list_arms().await.unwrap();
+    assert_eq!(arms.len(), 1);
+    assert_eq!(arms[0].arm, "main");
+    assert_eq!(arms[0].bridge_kind, "sim");
+
+    let cameras = system.list_cameras().await.unwrap();
+    assert_eq!(cameras.len(), 1);
+    assert_eq!(cameras[0].kind, "test_pattern");
+    assert_eq!((cameras[0].width, cameras[0].height), (640, 480));
+
+    let mut watch = system.watch_status(0.02).await.unwrap();
+    let first = watch.next().await.unwrap().unwrap();
+    let second = watch.next().await.unwrap().unwrap();
+    assert_eq!(second.sequence, first.sequence + 1);
+    assert!(
+        second.server_time_ns > first.server_time_ns,
+        "snapshots must advance in time"
+    );
+    assert_eq!(second.arms[0].arm, "main");
+    assert!(
+        second.cameras[0].frames_captured > 0,
+        "the synthetic camera must be running"
+    );
+
+    let started = Instant::now();
+    server.shutdown().await.unwrap();
+    assert!(
+        started.elapsed() < Duration::from_secs(1),
+        "shutdown took {:?}",
+        started.elapsed()
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn token_is_required_when_configured() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = phone2act_server::Config::from_toml_str(
+        phone2act_server::config::EMBEDDED_DEFAULT,
+        "embedded",
+        Vec::new(),
+    )
+    .unwrap();
+    config.recorder.root = dir.path().to_owned();
+    config.server.token = Some("sesame".to_owned());
+    let server = TestServer::start(config).await.unwrap();
+
+    let anonymous = server.client().await.unwrap();
+    let err = anonymous.system().list_arms().await.unwrap_err().to_string();
+    assert!(err.contains("authorization"), "{err}");
+
+    let wrong = phone2act_sdk::Client::connect(&server.url(), Some("nope"))
+        .await
+        .unwrap();
+    let err = wrong.system().list_arms().await.unwrap_err().to_string();
+    assert!(err.contains("wrong token"), "{err}");
+
+    let right = phone2act_sdk::Client::connect(&server.url(), Some("sesame"))
+        .await
+        .unwrap();
+    assert_eq!(right.system().list_arms().await.unwrap().len(), 1);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn port_in_use_is_a_one_line_error() {
+    let taken = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = taken.local_addr().unwrap();
+    let err = phone2act_server::bind(addr).await.unwrap_err().to_string();
+    assert!(err.contains(&addr.to_string()), "{err}");
+    assert!(err.contains("in use"), "{err}");
+    assert!(!err.contains('\n'), "one line: {err}");
+}
