@@ -8,6 +8,8 @@ use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
 use std::time::Duration;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
@@ -28,6 +30,12 @@ pub enum Error {
     /// The token contains characters not allowed in an HTTP header.
     #[error("token is not a valid header value")]
     BadToken,
+    /// The server ended a stream or sent something out of protocol.
+    #[error("protocol: {0}")]
+    Protocol(String),
+    /// The session's stream is closed (the server ended it or the connection dropped).
+    #[error("session closed")]
+    Closed,
     /// The server answered with an error status.
     #[error("{}: {}", .0.code(), .0.message())]
     Status(#[from] tonic::Status),
@@ -125,6 +133,22 @@ impl Client {
         }
     }
 
+    /// The Episodes service: start, stop, discard, list, watch.
+    pub fn episodes(&self) -> EpisodesApi {
+        EpisodesApi { inner: self.episodes_raw() }
+    }
+
+    /// Opens a teleop session bound to `arm`. Samples are sent through a depth-1 queue: if the network is slower
+    /// than the phone, [`TeleopSession::send`] reports the sample as superseded instead of queueing it.
+    pub async fn teleop(&self, arm: &str, options: TeleopOptions) -> Result<TeleopSession> {
+        TeleopSession::open(self.teleop_raw(), arm, options).await
+    }
+
+    /// Opens a policy session with `hello`; returns once the server answered with `SessionReady`.
+    pub async fn policy(&self, hello: v1::PolicyHello) -> Result<PolicySession> {
+        PolicySession::open(self.policy_raw(), hello).await
+    }
+
     /// The raw generated Teleop client.
     pub fn teleop_raw(&self) -> TeleopClient<AuthChannel> {
         TeleopClient::with_interceptor(self.channel.clone(), self.auth.clone())
@@ -189,5 +213,309 @@ impl SystemApi {
             .watch_status(v1::WatchStatusRequest { interval_s })
             .await?
             .into_inner())
+    }
+}
+
+/// Typed access to the Episodes service.
+#[derive(Clone, Debug)]
+pub struct EpisodesApi {
+    inner: EpisodesClient<AuthChannel>,
+}
+
+impl EpisodesApi {
+    /// Starts recording an episode with `task`.
+    pub async fn start(&mut self, task: &str) -> Result<v1::RecordingStatus> {
+        let response = self.inner.start(v1::StartEpisodeRequest { task: task.to_owned() }).await?;
+        response.into_inner().status.ok_or_else(|| Error::Protocol("Start answered without status".into()))
+    }
+
+    /// Stops and saves the episode in progress; returns once it is committed.
+    pub async fn stop(&mut self) -> Result<v1::StopEpisodeResponse> {
+        Ok(self.inner.stop(v1::StopEpisodeRequest {}).await?.into_inner())
+    }
+
+    /// Throws away the episode in progress; returns the number of frames dropped.
+    pub async fn discard(&mut self) -> Result<u64> {
+        Ok(self.inner.discard(v1::DiscardEpisodeRequest {}).await?.into_inner().frames_discarded)
+    }
+
+    /// Discards the episode in progress (if any) and starts again; an empty task keeps the previous one.
+    pub async fn rerecord(&mut self, task: &str) -> Result<v1::RecordingStatus> {
+        let response = self.inner.rerecord(v1::RerecordEpisodeRequest { task: task.to_owned() }).await?;
+        response.into_inner().status.ok_or_else(|| Error::Protocol("Rerecord answered without status".into()))
+    }
+
+    /// Saved episodes.
+    pub async fn list(&mut self) -> Result<v1::ListEpisodesResponse> {
+        Ok(self.inner.list(v1::ListEpisodesRequest {}).await?.into_inner())
+    }
+
+    /// The recorder's state.
+    pub async fn status(&mut self) -> Result<v1::RecordingStatus> {
+        Ok(self.inner.status(v1::EpisodeStatusRequest {}).await?.into_inner())
+    }
+
+    /// Recorder state on every change and at least every `interval_s`.
+    pub async fn watch(&mut self, interval_s: f64) -> Result<tonic::Streaming<v1::RecordingStatus>> {
+        Ok(self.inner.watch(v1::WatchEpisodesRequest { interval_s }).await?.into_inner())
+    }
+}
+
+/// Options for [`Client::teleop`].
+#[derive(Clone, Debug, Default)]
+pub struct TeleopOptions {
+    /// Client name shown in status displays.
+    pub client_name: String,
+    /// Take the arm even if another phone owns it.
+    pub take_over: bool,
+}
+
+/// An open teleop session.
+#[derive(Debug)]
+pub struct TeleopSession {
+    tx: mpsc::Sender<v1::PhoneSample>,
+    feedback: tonic::Streaming<v1::TeleopFeedback>,
+    seq: u64,
+    superseded: u64,
+}
+
+impl TeleopSession {
+    async fn open(
+        mut client: TeleopClient<AuthChannel>,
+        arm: &str,
+        options: TeleopOptions,
+    ) -> Result<Self> {
+        // Depth 1: the phone's newest pose matters, a backlog of old ones does not.
+        let (tx, rx) = mpsc::channel(1);
+        let hello = v1::PhoneSample {
+            seq: 0,
+            arm: arm.to_owned(),
+            client_name: options.client_name,
+            take_over: options.take_over,
+            ..v1::PhoneSample::default()
+        };
+        tx.send(hello).await.map_err(|_| Error::Closed)?;
+        let feedback = client.stream(ReceiverStream::new(rx)).await?.into_inner();
+        Ok(Self { tx, feedback, seq: 0, superseded: 0 })
+    }
+
+    /// Sends one sample (its `seq` is assigned here). Returns false if the previous sample was still waiting
+    /// for the network, in which case this one is dropped in favour of the next (latest wins on the phone side).
+    pub fn send(&mut self, mut sample: v1::PhoneSample) -> Result<bool> {
+        self.seq += 1;
+        sample.seq = self.seq;
+        match self.tx.try_send(sample) {
+            Ok(()) => Ok(true),
+            Err(mpsc::error::TrySendError::Full(_)) => {
+                self.superseded += 1;
+                Ok(false)
+            }
+            Err(mpsc::error::TrySendError::Closed(_)) => Err(Error::Closed),
+        }
+    }
+
+    /// Sends one sample, waiting for room instead of dropping it (for scripted clients that need every event).
+    pub async fn send_wait(&mut self, mut sample: v1::PhoneSample) -> Result<u64> {
+        self.seq += 1;
+        sample.seq = self.seq;
+        self.tx.send(sample).await.map_err(|_| Error::Closed)?;
+        Ok(self.seq)
+    }
+
+    /// Sends a pose with optional button events, waiting for room.
+    pub async fn send_pose(
+        &mut self,
+        tracking_from_phone: v1::Pose,
+        buttons: Vec<v1::ButtonEvent>,
+        capture_time_ns: i64,
+    ) -> Result<u64> {
+        self.send_wait(v1::PhoneSample {
+            tracking_from_phone: Some(tracking_from_phone),
+            tracking: v1::TrackingState::Tracking as i32,
+            buttons,
+            capture_time_ns,
+            ..v1::PhoneSample::default()
+        })
+        .await
+    }
+
+    /// Sends button events without a pose.
+    pub async fn send_buttons(&mut self, buttons: Vec<v1::ButtonEvent>) -> Result<u64> {
+        self.send_wait(v1::PhoneSample { buttons, ..v1::PhoneSample::default() }).await
+    }
+
+    /// The next feedback message; `Ok(None)` when the server ended the stream.
+    pub async fn feedback(&mut self) -> Result<Option<v1::TeleopFeedback>> {
+        Ok(self.feedback.message().await?)
+    }
+
+    /// Waits for the feedback that answers sample `seq` (or a later one).
+    pub async fn feedback_for(&mut self, seq: u64) -> Result<v1::TeleopFeedback> {
+        loop {
+            match self.feedback.message().await? {
+                Some(fb) if fb.echoed_seq >= seq => return Ok(fb),
+                Some(_) => {}
+                None => return Err(Error::Closed),
+            }
+        }
+    }
+
+    /// Samples dropped locally because the previous one was still in flight.
+    pub fn superseded(&self) -> u64 {
+        self.superseded
+    }
+}
+
+/// Button-event constructors.
+pub mod buttons {
+    use super::v1;
+
+    /// Clutch toggle (the Android app's volume key).
+    pub fn clutch_toggle() -> v1::ButtonEvent {
+        clutch(v1::clutch_command::Kind::Toggle)
+    }
+
+    /// Hold-to-move pressed.
+    pub fn clutch_engage() -> v1::ButtonEvent {
+        clutch(v1::clutch_command::Kind::Engage)
+    }
+
+    /// Hold-to-move released.
+    pub fn clutch_disengage() -> v1::ButtonEvent {
+        clutch(v1::clutch_command::Kind::Disengage)
+    }
+
+    fn clutch(kind: v1::clutch_command::Kind) -> v1::ButtonEvent {
+        v1::ButtonEvent {
+            event: Some(v1::button_event::Event::Clutch(v1::ClutchCommand { kind: kind as i32 })),
+        }
+    }
+
+    /// Gripper toggle.
+    pub fn gripper_toggle() -> v1::ButtonEvent {
+        v1::ButtonEvent {
+            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
+                kind: v1::gripper_command::Kind::Toggle as i32,
+                position: 0.0,
+            })),
+        }
+    }
+
+    /// Absolute gripper position, 0 = open, 1 = closed.
+    pub fn gripper_set(position: f64) -> v1::ButtonEvent {
+        v1::ButtonEvent {
+            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
+                kind: v1::gripper_command::Kind::Set as i32,
+                position,
+            })),
+        }
+    }
+
+    /// Start recording with `task`.
+    pub fn record_start(task: &str) -> v1::ButtonEvent {
+        record(v1::record_command::Kind::Start, task)
+    }
+
+    /// Stop and save.
+    pub fn record_stop() -> v1::ButtonEvent {
+        record(v1::record_command::Kind::Stop, "")
+    }
+
+    /// Stop and discard.
+    pub fn record_discard() -> v1::ButtonEvent {
+        record(v1::record_command::Kind::Discard, "")
+    }
+
+    fn record(kind: v1::record_command::Kind, task: &str) -> v1::ButtonEvent {
+        v1::ButtonEvent {
+            event: Some(v1::button_event::Event::Record(v1::RecordCommand {
+                kind: kind as i32,
+                task: task.to_owned(),
+            })),
+        }
+    }
+}
+
+/// An open policy session.
+#[derive(Debug)]
+pub struct PolicySession {
+    tx: mpsc::Sender<v1::PolicyRequest>,
+    events: tonic::Streaming<v1::PolicyEvent>,
+    ready: v1::SessionReady,
+}
+
+impl PolicySession {
+    async fn open(mut client: PolicyClient<AuthChannel>, hello: v1::PolicyHello) -> Result<Self> {
+        // A few slots: chunks are small and rare (a few per second); the bound keeps a stuck server from
+        // growing the queue.
+        let (tx, rx) = mpsc::channel(8);
+        tx.send(v1::PolicyRequest { request: Some(v1::policy_request::Request::Hello(hello)) })
+            .await
+            .map_err(|_| Error::Closed)?;
+        let mut events = client.session(ReceiverStream::new(rx)).await?.into_inner();
+        let ready = match events.message().await? {
+            Some(v1::PolicyEvent { event: Some(v1::policy_event::Event::Ready(ready)) }) => ready,
+            Some(other) => return Err(Error::Protocol(format!("expected SessionReady, got {other:?}"))),
+            None => return Err(Error::Closed),
+        };
+        Ok(Self { tx, events, ready })
+    }
+
+    /// What the server said when the session opened: the session id and each arm's layout.
+    pub fn ready(&self) -> &v1::SessionReady {
+        &self.ready
+    }
+
+    /// The next event (observation, control change, chunk verdict); `Ok(None)` when the stream ended.
+    pub async fn next_event(&mut self) -> Result<Option<v1::policy_event::Event>> {
+        loop {
+            match self.events.message().await? {
+                Some(v1::PolicyEvent { event: Some(event) }) => return Ok(Some(event)),
+                Some(v1::PolicyEvent { event: None }) => {}
+                None => return Ok(None),
+            }
+        }
+    }
+
+    /// The next observation, skipping other events.
+    pub async fn next_observation(&mut self) -> Result<v1::Observation> {
+        loop {
+            match self.next_event().await? {
+                Some(v1::policy_event::Event::Observation(obs)) => return Ok(obs),
+                Some(_) => {}
+                None => return Err(Error::Closed),
+            }
+        }
+    }
+
+    /// Pushes an action chunk.
+    pub async fn push_chunk(&self, chunk: v1::ActionChunk) -> Result<()> {
+        self.request(v1::policy_request::Request::Chunk(chunk)).await
+    }
+
+    /// Asks for one observation now.
+    pub async fn request_observation(&self) -> Result<()> {
+        self.request(v1::policy_request::Request::Observe(v1::ObservationRequest {})).await
+    }
+
+    /// Gives up control; the arms hold.
+    pub async fn release(&self) -> Result<()> {
+        self.request(v1::policy_request::Request::Release(v1::ReleaseControl {})).await
+    }
+
+    async fn request(&self, request: v1::policy_request::Request) -> Result<()> {
+        self.tx.send(v1::PolicyRequest { request: Some(request) }).await.map_err(|_| Error::Closed)
+    }
+}
+
+impl PolicySession {
+    /// Pushes a chunk as a unary call: a bad chunk comes back as an error status instead of an event.
+    pub async fn push_chunk_checked(
+        &self,
+        client: &Client,
+        chunk: v1::ActionChunk,
+    ) -> Result<v1::ChunkAccepted> {
+        let request = v1::PushChunkRequest { session_id: self.ready.session_id.clone(), chunk: Some(chunk) };
+        Ok(client.policy_raw().push_chunk(request).await?.into_inner())
     }
 }
