@@ -1,1 +1,629 @@
 //! Forward and inverse kinematics of the supported arms.
+//!
+//! The SO-101 model is the "new calib" URDF of TheRobotStudio/SO-ARM100 (every joint's zero is the middle of
+//! its range, which is what lerobot's half-turn homing in `DEGREES` mode reports), from `base_link` to the
+//! tool frame `gripper_frame_link`. Each URDF joint is `Trans(xyz)·Rz(yaw)·Ry(pitch)·Rx(roll)·Rz(q)`.
+//!
+//! The inverse is damped least squares with task priority: position is the primary task and orientation is
+//! pursued only inside the null space of the position task. A 5-DoF arm cannot reach every orientation, so
+//! position is never traded away for orientation (unlike a stacked 6-row solve). Joint limits are enforced
+//! with a small active set: a joint that would cross its limit is pinned there and the step is recomputed
+//! without it. The solver is seeded with the current joints, runs a bounded number of iterations and never
+//! returns a non-finite value.
+
+use nalgebra::{Isometry3, Matrix3, SMatrix, Translation3, UnitQuaternion, Vector3};
+
+/// Number of arm joints of the SO-101 (the gripper jaw excluded).
+pub const SO101_ARM_DOF: usize = 5;
+
+/// SO-101 arm joint names, base to tool (lerobot motor names).
+pub const SO101_ARM_JOINT_NAMES: [&str; SO101_ARM_DOF] = [
+    "shoulder_pan",
+    "shoulder_lift",
+    "elbow_flex",
+    "wrist_flex",
+    "wrist_roll",
+];
+
+/// Name of the SO-101 gripper jaw joint.
+pub const SO101_GRIPPER_JOINT_NAME: &str = "gripper";
+
+/// All SO-101 joint names in feedback order: the five arm joints, then the gripper.
+pub const SO101_JOINT_NAMES: [&str; SO101_ARM_DOF + 1] = [
+    "shoulder_pan",
+    "shoulder_lift",
+    "elbow_flex",
+    "wrist_flex",
+    "wrist_roll",
+    "gripper",
+];
+
+/// Arm joint limits `(min, max)` in radians, from the URDF.
+pub const SO101_JOINT_LIMITS_RAD: [(f64, f64); SO101_ARM_DOF] = [
+    (-1.919_86, 1.919_86),
+    (-1.745_33, 1.745_33),
+    (-1.69, 1.69),
+    (-1.658_06, 1.658_06),
+    (-2.743_85, 2.841_21),
+];
+
+/// Gripper jaw limits `(min, max)` in radians, from the URDF.
+pub const SO101_GRIPPER_LIMITS_RAD: (f64, f64) = (-0.174_533, 1.745_33);
+
+/// Joint angles of the five SO-101 arm joints, radians.
+pub type So101Joints = [f64; SO101_ARM_DOF];
+
+/// URDF joint origins `(xyz m, rpy rad)` parent → child, base to wrist_roll. The URDF's 3.14159/1.5708 are kept
+/// as written so that the FK matches tools that read the same file.
+#[allow(clippy::approx_constant)]
+const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
+    (
+        [0.038_835_3, -8.976_57e-9, 0.0624],
+        [3.14159, 4.182_53e-17, -3.14159],
+    ),
+    ([-0.030_399_2, -0.018_277_8, -0.0542], [-1.5708, -1.5708, 0.0]),
+    (
+        [-0.112_57, -0.028, 1.737_63e-16],
+        [-3.636_08e-16, 8.743_01e-16, 1.5708],
+    ),
+    (
+        [-0.1349, 0.0052, 3.623_55e-17],
+        [4.024_56e-15, 8.673_62e-16, -1.5708],
+    ),
+    ([5.551_12e-17, -0.0611, 0.0181], [1.5708, 0.048_679_5, 3.14159]),
+];
+
+/// Fixed joint gripper_link → gripper_frame_link (the tool centre point).
+#[allow(clippy::approx_constant)]
+const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) = ([-0.0079, -0.000_218_121, -0.098_127_4], [0.0, 3.14159, 0.0]);
+
+/// Solver parameters of [`So101Kinematics::inverse`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IkSolverConfig {
+    /// Upper bound on iterations per solve; bounds the worst-case time.
+    pub max_iterations: usize,
+    /// Position residual below which the target counts as reached.
+    pub position_tolerance_m: f64,
+    /// Orientation residual below which orientation counts as reached.
+    pub orientation_tolerance_rad: f64,
+    /// Damping of the least-squares solves (in metres for the position task); keeps steps finite near
+    /// singularities such as the fully stretched arm.
+    pub damping: f64,
+    /// Largest change of any joint in one iteration; keeps the linearisation honest on big errors.
+    pub max_step_rad: f64,
+}
+
+impl Default for IkSolverConfig {
+    fn default() -> Self {
+        Self {
+            max_iterations: 100,
+            position_tolerance_m: 1e-4,
+            orientation_tolerance_rad: 1e-3,
+            damping: 2e-3,
+            max_step_rad: 0.25,
+        }
+    }
+}
+
+/// How much the inverse cares about orientation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IkWeights {
+    /// 0 = position only (wrist joints stay at the seed where position allows); 1 = reach the target
+    /// orientation as closely as the arm can without moving the tool centre point. Values between aim the
+    /// orientation task at the rotation that fraction of the way (slerp) from the seed's tool orientation to
+    /// the target's, so a small weight only nudges the wrist.
+    pub orientation: f64,
+}
+
+impl IkWeights {
+    /// Position only.
+    pub const POSITION_ONLY: Self = Self { orientation: 0.0 };
+    /// Position first, then as much orientation as the arm allows.
+    pub const FULL: Self = Self { orientation: 1.0 };
+}
+
+impl Default for IkWeights {
+    fn default() -> Self {
+        Self::FULL
+    }
+}
+
+/// The result of an inverse-kinematics solve. Always finite and within joint limits.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IkSolution {
+    /// Joint angles, inside [`SO101_JOINT_LIMITS_RAD`].
+    pub joints_rad: So101Joints,
+    /// Forward kinematics of `joints_rad`: the pose actually achieved.
+    pub achieved: Isometry3<f64>,
+    /// Distance from the achieved tool position to the target position.
+    pub position_error_m: f64,
+    /// Angle between the achieved and the target tool orientation (the full target, whatever the weight).
+    pub orientation_error_rad: f64,
+    /// Iterations used.
+    pub iterations: usize,
+    /// True if the position residual is within tolerance. False means the target is out of reach (or blocked
+    /// by joint limits from this seed) and `achieved` is the closest point the solver found.
+    pub position_reached: bool,
+    /// True if the orientation residual is within tolerance as well.
+    pub orientation_reached: bool,
+    /// True if the input target or seed had non-finite values; the seed (sanitised) was returned unchanged.
+    pub invalid_input: bool,
+}
+
+/// World poses of every link frame for one joint configuration (used by FK, the Jacobian and renderers).
+#[derive(Clone, Debug, PartialEq)]
+pub struct So101LinkPoses {
+    /// `base_from_link` of the child link of each arm joint (shoulder, upper arm, lower arm, wrist,
+    /// gripper); each joint rotates about its child frame's z axis through its origin.
+    pub links: [Isometry3<f64>; SO101_ARM_DOF],
+    /// `base_from_tcp` (gripper_frame_link).
+    pub tcp: Isometry3<f64>,
+}
+
+/// SO-101 forward and inverse kinematics.
+#[derive(Clone, Debug)]
+pub struct So101Kinematics {
+    joint_origins: [Isometry3<f64>; SO101_ARM_DOF],
+    gripper_from_tcp: Isometry3<f64>,
+    /// Parameters of [`Self::inverse`].
+    pub solver: IkSolverConfig,
+}
+
+impl Default for So101Kinematics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+fn urdf_origin(xyz: [f64; 3], rpy: [f64; 3]) -> Isometry3<f64> {
+    // Composed explicitly rather than through an Euler helper so the URDF convention Rz·Ry·Rx is visible.
+    let rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), rpy[2])
+        * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), rpy[1])
+        * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), rpy[0]);
+    Isometry3::from_parts(Translation3::new(xyz[0], xyz[1], xyz[2]), rotation)
+}
+
+/// Clamps each joint into its limit; a NaN becomes the middle of the range.
+pub fn clamp_to_limits(joints_rad: &So101Joints) -> So101Joints {
+    let mut out = *joints_rad;
+    for (q, (lo, hi)) in out.iter_mut().zip(SO101_JOINT_LIMITS_RAD) {
+        *q = if q.is_nan() {
+            0.5 * (lo + hi)
+        } else {
+            q.clamp(lo, hi)
+        };
+    }
+    out
+}
+
+/// True if every joint is finite and within its limit.
+pub fn within_limits(joints_rad: &So101Joints) -> bool {
+    joints_rad
+        .iter()
+        .zip(SO101_JOINT_LIMITS_RAD)
+        .all(|(q, (lo, hi))| (lo..=hi).contains(q))
+}
+
+fn is_finite_isometry(pose: &Isometry3<f64>) -> bool {
+    pose.translation.vector.iter().all(|v| v.is_finite())
+        && pose.rotation.coords.iter().all(|v| v.is_finite())
+}
+
+fn clamp_norm(v: Vector3<f64>, max_norm: f64) -> Vector3<f64> {
+    let n = v.norm();
+    if n > max_norm { v * (max_norm / n) } else { v }
+}
+
+/// `Jᵀ (J Jᵀ + λ² I)⁻¹ e` for a 3×5 Jacobian: the damped least-squares step.
+fn dls_step(
+    j: &SMatrix<f64, 3, SO101_ARM_DOF>,
+    e: &Vector3<f64>,
+    damping: f64,
+) -> Option<SMatrix<f64, SO101_ARM_DOF, 1>> {
+    let gram = j * j.transpose() + Matrix3::identity() * (damping * damping);
+    let inv = gram.try_inverse()?;
+    Some(j.transpose() * (inv * e))
+}
+
+/// `Jᵀ (J Jᵀ + λ² I)⁻¹` for a 3×5 Jacobian.
+fn dls_pinv(j: &SMatrix<f64, 3, SO101_ARM_DOF>, damping: f64) -> Option<SMatrix<f64, SO101_ARM_DOF, 3>> {
+    let gram = j * j.transpose() + Matrix3::identity() * (damping * damping);
+    Some(j.transpose() * gram.try_inverse()?)
+}
+
+impl So101Kinematics {
+    /// The SO-101 model with default solver parameters.
+    pub fn new() -> Self {
+        Self {
+            joint_origins: SO101_JOINT_ORIGINS.map(|(xyz, rpy)| urdf_origin(xyz, rpy)),
+            gripper_from_tcp: urdf_origin(SO101_TCP_ORIGIN.0, SO101_TCP_ORIGIN.1),
+            solver: IkSolverConfig::default(),
+        }
+    }
+
+    /// Joint names in order (arm joints only).
+    pub fn joint_names(&self) -> &'static [&'static str; SO101_ARM_DOF] {
+        &SO101_ARM_JOINT_NAMES
+    }
+
+    /// `base_from_tcp` for the given joints. Joint values are used as given (no clamping).
+    pub fn forward(&self, joints_rad: &So101Joints) -> Isometry3<f64> {
+        self.link_poses(joints_rad).tcp
+    }
+
+    /// World poses of every link and the tool for the given joints.
+    pub fn link_poses(&self, joints_rad: &So101Joints) -> So101LinkPoses {
+        let mut pose = Isometry3::identity();
+        let mut links = [Isometry3::identity(); SO101_ARM_DOF];
+        for ((link, origin), q) in links.iter_mut().zip(&self.joint_origins).zip(joints_rad) {
+            pose = pose * origin * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), *q);
+            *link = pose;
+        }
+        let tcp = pose * self.gripper_from_tcp;
+        So101LinkPoses { links, tcp }
+    }
+
+    /// Geometric Jacobian of the tool position (rows 0..3) and orientation (rows 3..6) in the base frame.
+    fn jacobian(poses: &So101LinkPoses) -> (SMatrix<f64, 3, SO101_ARM_DOF>, SMatrix<f64, 3, SO101_ARM_DOF>) {
+        let p_tcp = poses.tcp.translation.vector;
+        let mut jp = SMatrix::<f64, 3, SO101_ARM_DOF>::zeros();
+        let mut jo = SMatrix::<f64, 3, SO101_ARM_DOF>::zeros();
+        for (i, link) in poses.links.iter().enumerate() {
+            let axis = link.rotation * Vector3::z();
+            jp.set_column(i, &axis.cross(&(p_tcp - link.translation.vector)));
+            jo.set_column(i, &axis);
+        }
+        (jp, jo)
+    }
+
+    /// Solves for joints that put the tool at `target` (`base_from_tcp`), starting from `seed` (normally the
+    /// current joints, so the arm stays on its branch and moves little). Position first; orientation inside
+    /// the position null space, scaled by `weights`. Bounded by `solver.max_iterations`; always finite and
+    /// within limits. An unreachable target yields the closest configuration found with
+    /// `position_reached = false`.
+    pub fn inverse(&self, target: &Isometry3<f64>, seed: &So101Joints, weights: IkWeights) -> IkSolution {
+        let mut q = clamp_to_limits(seed);
+        if !is_finite_isometry(target)
+            || !seed.iter().all(|v| v.is_finite())
+            || !weights.orientation.is_finite()
+        {
+            let achieved = self.forward(&q);
+            return IkSolution {
+                joints_rad: q,
+                achieved,
+                position_error_m: f64::INFINITY,
+                orientation_error_rad: f64::INFINITY,
+                iterations: 0,
+                position_reached: false,
+                orientation_reached: false,
+                invalid_input: true,
+            };
+        }
+        let cfg = &self.solver;
+        let w_orientation = weights.orientation.clamp(0.0, 1.0);
+        let p_target = target.translation.vector;
+        // The orientation aimed at is fixed per solve so that a partial weight converges instead of creeping.
+        let r_aim = if w_orientation >= 1.0 {
+            target.rotation
+        } else {
+            let r_seed = self.forward(&q).rotation;
+            r_seed
+                .try_slerp(&target.rotation, w_orientation, 1e-9)
+                .unwrap_or(target.rotation)
+        };
+
+        let mut iterations = 0;
+        let mut poses = self.link_poses(&q);
+        while iterations < cfg.max_iterations {
+            let e_p = p_target - poses.tcp.translation.vector;
+            let e_o = (r_aim * poses.tcp.rotation.inverse()).scaled_axis();
+            let position_done = e_p.norm() <= cfg.position_tolerance_m * 0.1;
+            let orientation_done = w_orientation == 0.0 || e_o.norm() <= cfg.orientation_tolerance_rad * 0.1;
+            if position_done && orientation_done {
+                break;
+            }
+            iterations += 1;
+            let Some(dq) = self.step(
+                &q,
+                &poses,
+                clamp_norm(e_p, 0.05),
+                clamp_norm(e_o, 0.5),
+                w_orientation > 0.0,
+            ) else {
+                break;
+            };
+            let largest = dq.amax();
+            if !largest.is_finite() {
+                break;
+            }
+            let scale = if largest > cfg.max_step_rad {
+                cfg.max_step_rad / largest
+            } else {
+                1.0
+            };
+            let mut next = q;
+            for (qi, dqi) in next.iter_mut().zip(dq.iter()) {
+                *qi += dqi * scale;
+            }
+            next = clamp_to_limits(&next);
+            let moved = next
+                .iter()
+                .zip(&q)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            q = next;
+            poses = self.link_poses(&q);
+            // Stalled: at a limit, at full stretch, or at the best orientation the null space allows.
+            if moved < 1e-9 {
+                break;
+            }
+        }
+
+        let achieved = poses.tcp;
+        let position_error_m = (p_target - achieved.translation.vector).norm();
+        let orientation_error_rad = target.rotation.angle_to(&achieved.rotation);
+        IkSolution {
+            joints_rad: q,
+            achieved,
+            position_error_m,
+            orientation_error_rad,
+            iterations,
+            position_reached: position_error_m <= cfg.position_tolerance_m,
+            orientation_reached: orientation_error_rad <= cfg.orientation_tolerance_rad,
+            invalid_input: false,
+        }
+    }
+
+    /// One task-priority step with a joint-limit active set: joints that the step would push past a limit are
+    /// removed from both tasks and the step is recomputed.
+    fn step(
+        &self,
+        q: &So101Joints,
+        poses: &So101LinkPoses,
+        e_p: Vector3<f64>,
+        e_o: Vector3<f64>,
+        use_orientation: bool,
+    ) -> Option<SMatrix<f64, SO101_ARM_DOF, 1>> {
+        let (jp_full, jo_full) = Self::jacobian(poses);
+        let mut free = [true; SO101_ARM_DOF];
+        let mut dq = SMatrix::<f64, SO101_ARM_DOF, 1>::zeros();
+        for _ in 0..SO101_ARM_DOF {
+            let mut jp = jp_full;
+            let mut jo = jo_full;
+            for (i, is_free) in free.iter().enumerate() {
+                if !is_free {
+                    jp.set_column(i, &Vector3::zeros());
+                    jo.set_column(i, &Vector3::zeros());
+                }
+            }
+            let damping = self.solver.damping;
+            dq = dls_step(&jp, &e_p, damping)?;
+            if use_orientation {
+                let jp_pinv = dls_pinv(&jp, damping)?;
+                let null = SMatrix::<f64, SO101_ARM_DOF, SO101_ARM_DOF>::identity() - jp_pinv * jp;
+                let jo_null = jo * null;
+                // Orientation errors are radians, position metres: the same damping value in radians would
+                // be far too small, so the secondary task gets its own, larger one.
+                let secondary = dls_step(&jo_null, &(e_o - jo * dq), damping * 20.0)?;
+                dq += null * secondary;
+            }
+            let mut newly_pinned = false;
+            for (i, (lo, hi)) in SO101_JOINT_LIMITS_RAD.iter().enumerate() {
+                let next = q[i] + dq[i];
+                if free[i]
+                    && ((next > *hi && dq[i] > 0.0) || (next < *lo && dq[i] < 0.0))
+                    && (q[i] - next).abs() > 1e-12
+                {
+                    let at_limit = (q[i] - hi).abs() < 1e-9 || (q[i] - lo).abs() < 1e-9;
+                    // A joint not yet at its limit may still move up to it; pin only joints already there.
+                    if at_limit {
+                        free[i] = false;
+                        newly_pinned = true;
+                    }
+                }
+            }
+            if !newly_pinned {
+                break;
+            }
+        }
+        Some(dq)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn deg(v: [f64; 5]) -> So101Joints {
+        v.map(f64::to_radians)
+    }
+
+    fn assert_pose(pose: &Isometry3<f64>, p: [f64; 3], rows: [[f64; 3]; 3]) {
+        let t = pose.translation.vector;
+        for k in 0..3 {
+            assert!((t[k] - p[k]).abs() < 2e-5, "position {t:?} vs {p:?}");
+        }
+        let r = pose.rotation.to_rotation_matrix();
+        for (i, row) in rows.iter().enumerate() {
+            for (j, v) in row.iter().enumerate() {
+                assert!((r[(i, j)] - v).abs() < 2e-5, "R[{i},{j}] = {} vs {v}", r[(i, j)]);
+            }
+        }
+    }
+
+    #[test]
+    fn forward_matches_reference_vectors() {
+        let k = So101Kinematics::new();
+        let zero_rows = [
+            [0.00001, -0.00001, 1.0],
+            [0.04866, 0.99882, 0.00001],
+            [-0.99882, 0.04866, 0.00001],
+        ];
+        assert_pose(
+            &k.forward(&deg([0.0; 5])),
+            [0.39136, -0.00001, 0.22647],
+            zero_rows,
+        );
+        assert_pose(
+            &k.forward(&deg([30.0, -20.0, 40.0, 10.0, 45.0])),
+            [0.28005, -0.14579, 0.10615],
+            [
+                [-0.65664, 0.07941, 0.75001],
+                [-0.39669, 0.80941, -0.43300],
+                [-0.64145, -0.58185, -0.49999],
+            ],
+        );
+        assert_pose(
+            &k.forward(&deg([0.0, -90.0, 90.0, 0.0, 0.0])),
+            [0.25079, -0.00001, 0.14190],
+            zero_rows,
+        );
+    }
+
+    #[test]
+    fn positive_pan_turns_toward_negative_y() {
+        let k = So101Kinematics::new();
+        assert!(k.forward(&[0.3, 0.0, 0.0, 0.0, 0.0]).translation.y < -0.05);
+    }
+
+    #[test]
+    fn recovers_a_full_pose_from_a_distant_seed() {
+        let k = So101Kinematics::new();
+        let truth = deg([30.0, -20.0, 40.0, 10.0, 45.0]);
+        let seed = [0.0, 0.1, 0.0, 0.0, 0.0];
+        let sol = k.inverse(&k.forward(&truth), &seed, IkWeights::FULL);
+        assert!(sol.position_reached && sol.orientation_reached, "{sol:?}");
+        assert!(sol.position_error_m < 1e-4 && sol.orientation_error_rad < 1e-3);
+    }
+
+    #[test]
+    fn unreachable_target_gives_closest_point_and_flag() {
+        let k = So101Kinematics::new();
+        let seed = deg([10.0, -30.0, 40.0, 20.0, 0.0]);
+        let target = Isometry3::translation(1.0, 0.3, 0.4);
+        let sol = k.inverse(&target, &seed, IkWeights::POSITION_ONLY);
+        assert!(!sol.position_reached && !sol.invalid_input);
+        assert!(within_limits(&sol.joints_rad));
+        // Fully stretched toward the target: reach is about 0.42 m from the shoulder, so the tool ends well past
+        // where it started and on the line towards the target.
+        let start_err = (k.forward(&seed).translation.vector - target.translation.vector).norm();
+        assert!(
+            sol.position_error_m < start_err - 0.1,
+            "{} vs {start_err}",
+            sol.position_error_m
+        );
+        let dir = sol.achieved.translation.vector.normalize();
+        assert!(dir.dot(&target.translation.vector.normalize()) > 0.95, "{dir:?}");
+    }
+
+    #[test]
+    fn non_finite_input_returns_the_seed_flagged() {
+        let k = So101Kinematics::new();
+        let seed = [0.1, 0.2, 0.3, 0.4, 0.5];
+        let sol = k.inverse(
+            &Isometry3::translation(f64::NAN, 0.0, 0.1),
+            &seed,
+            IkWeights::FULL,
+        );
+        assert!(sol.invalid_input && !sol.position_reached);
+        assert_eq!(sol.joints_rad.map(f64::to_bits), seed.map(f64::to_bits));
+        let sol = k.inverse(
+            &Isometry3::translation(0.2, 0.0, 0.1),
+            &[f64::NAN, 0.0, 0.0, 0.0, 0.0],
+            IkWeights::FULL,
+        );
+        assert!(sol.invalid_input && sol.joints_rad.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn position_only_keeps_the_wrist_roll() {
+        let k = So101Kinematics::new();
+        let seed = deg([0.0, -40.0, 50.0, 60.0, 33.0]);
+        let mut target = k.forward(&seed);
+        target.translation.vector += Vector3::new(0.02, -0.01, 0.015);
+        let sol = k.inverse(&target, &seed, IkWeights::POSITION_ONLY);
+        assert!(sol.position_reached, "{sol:?}");
+        // Wrist roll does not move the tool centre point much, so a minimum-norm step barely touches it.
+        assert!((sol.joints_rad[4] - seed[4]).abs() < 0.05, "{:?}", sol.joints_rad);
+    }
+
+    #[test]
+    fn limits_hold_when_the_target_needs_more() {
+        let k = So101Kinematics::new();
+        // Far behind the robot on the -y side needs more than 110 degrees of pan.
+        let target = Isometry3::translation(-0.2, -0.05, 0.1);
+        let sol = k.inverse(&target, &[0.0; 5], IkWeights::FULL);
+        assert!(within_limits(&sol.joints_rad), "{:?}", sol.joints_rad);
+        assert!(sol.achieved.translation.vector.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn ik_timing() {
+        let k = So101Kinematics::new();
+        let truth = deg([20.0, -30.0, 45.0, 30.0, -20.0]);
+        let target = k.forward(&truth);
+        let seed = deg([15.0, -25.0, 40.0, 25.0, -15.0]);
+        let n = 2000;
+        let start = std::time::Instant::now();
+        let mut iterations = 0;
+        for _ in 0..n {
+            let sol = k.inverse(&target, &seed, IkWeights::FULL);
+            iterations += sol.iterations;
+            assert!(sol.position_reached);
+        }
+        let us = start.elapsed().as_secs_f64() * 1e6 / f64::from(n);
+        println!(
+            "IK: {us:.2} us/solve, {:.1} iterations/solve",
+            iterations as f64 / f64::from(n)
+        );
+    }
+
+    fn joints_strategy() -> impl Strategy<Value = So101Joints> {
+        // Stay a little inside the limits so that a random perturbation of the seed is meaningful.
+        let r = |i: usize| (SO101_JOINT_LIMITS_RAD[i].0 * 0.9)..(SO101_JOINT_LIMITS_RAD[i].1 * 0.9);
+        (r(0), r(1), r(2), r(3), r(4)).prop_map(|(a, b, c, d, e)| [a, b, c, d, e])
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        /// Teleop-like use: the seed is the current joints, the target the FK of a nearby configuration.
+        #[test]
+        fn round_trip_from_nearby_seed(truth in joints_strategy(), noise in prop::array::uniform5(-0.15f64..0.15)) {
+            let k = So101Kinematics::new();
+            let target = k.forward(&truth);
+            let mut seed = truth;
+            for (s, n) in seed.iter_mut().zip(noise) { *s += n; }
+            let sol = k.inverse(&target, &seed, IkWeights::FULL);
+            prop_assert!(within_limits(&sol.joints_rad));
+            prop_assert!(sol.position_reached, "{sol:?}");
+            prop_assert!(sol.orientation_error_rad < 1e-2, "{sol:?}");
+            prop_assert!((k.forward(&sol.joints_rad).translation.vector - sol.achieved.translation.vector).norm() < 1e-12);
+        }
+
+        /// Position only, from a configuration far away: should still land the tool in most cases; whatever
+        /// happens the answer is finite and within limits and the residual reported is the true one.
+        #[test]
+        fn position_only_is_honest(truth in joints_strategy(), seed in joints_strategy()) {
+            let k = So101Kinematics::new();
+            let target = k.forward(&truth);
+            let sol = k.inverse(&target, &seed, IkWeights::POSITION_ONLY);
+            prop_assert!(within_limits(&sol.joints_rad));
+            let err = (k.forward(&sol.joints_rad).translation.vector - target.translation.vector).norm();
+            prop_assert!((err - sol.position_error_m).abs() < 1e-12);
+            prop_assert_eq!(sol.position_reached, err <= k.solver.position_tolerance_m);
+        }
+
+        #[test]
+        fn never_non_finite(x in -2.0f64..2.0, y in -2.0f64..2.0, z in -2.0f64..2.0, seed in joints_strategy(),
+                            rx in -4.0f64..4.0, ry in -4.0f64..4.0, w in -1.0f64..2.0) {
+            let k = So101Kinematics::new();
+            let target = Isometry3::new(Vector3::new(x, y, z), Vector3::new(rx, ry, 0.3));
+            let sol = k.inverse(&target, &seed, IkWeights { orientation: w });
+            prop_assert!(sol.joints_rad.iter().all(|v| v.is_finite()));
+            prop_assert!(within_limits(&sol.joints_rad));
+            prop_assert!(sol.position_error_m.is_finite() && sol.orientation_error_rad.is_finite());
+        }
+    }
+}
