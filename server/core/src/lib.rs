@@ -2,4 +2,21 @@
 //! and the action/state vector layouts. No I/O, no tokio, no clock reads: every time is an argument, so
 //! everything here is deterministic and property-testable.
 
+pub mod chunk;
+pub mod config;
+pub mod gate;
+pub mod gripper;
 pub mod kinematics;
+pub mod layout;
+pub mod planner;
+pub mod pose;
+pub mod teleop;
+
+pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
+pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
+pub use gate::{GateDecision, GateVerdict, SafetyGate};
+pub use gripper::{Gripper, GripperCommand, GripperError};
+pub use layout::{ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, MultiArmLayout};
+pub use planner::{Mapping, Planner, Reference};
+pub use pose::{PoseError, rotation_from_rpy, rpy_from_rotation, validate_pose, wrap_angle_rad};
+pub use teleop::{ClutchKind, TeleopArm, TeleopStep};

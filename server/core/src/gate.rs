@@ -1,0 +1,493 @@
+//! The safety gate every target passes before it reaches a bridge, teleop and policy alike.
+//!
+//! Order of checks for one proposed target:
+//! 1. reject NaN, infinities, non-unit quaternions and a non-finite time (`RejectedInvalid`);
+//! 2. clamp the position into the workspace box;
+//! 3. reject the target if the clamped step from the gate's reference exceeds the position or angle jump
+//!    threshold (`RejectedJump`). The step is measured after clamping so that pushing the phone past a wall
+//!    slowly keeps the target sliding along the wall instead of tripping the jump filter;
+//! 4. shorten the step to the optional linear and angular speed limits;
+//! 5. the output becomes the new reference.
+//!
+//! The reference is the last target that passed, or whatever [`SafetyGate::reset_reference`] set. Callers
+//! reset it at every re-index (clutch release, source change) from the robot's measured pose: a reference
+//! that is never reset is what makes the paper's filter reject every command after the robot moved while
+//! clutched.
+
+use crate::config::{ConfigError, GateConfig};
+use crate::pose::{angle_between_rad, check_pose};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+/// Longest interval the velocity limits credit to one step (s). A sample after a pause must not be allowed
+/// to cover the whole pause at full speed in one jump; this is also the interval assumed right after a reset.
+pub const MAX_VELOCITY_INTERVAL_S: f64 = 0.25;
+
+/// What the gate did with one command (mirrors `phone2act.v1.GateVerdict`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum GateVerdict {
+    Accepted,
+    Clamped,
+    RejectedJump,
+    RejectedInvalid,
+    HeldStale,
+}
+
+impl GateVerdict {
+    /// True if a target was handed on (possibly clamped).
+    pub fn passed(self) -> bool {
+        matches!(self, GateVerdict::Accepted | GateVerdict::Clamped)
+    }
+
+    pub fn rejected(self) -> bool {
+        matches!(self, GateVerdict::RejectedJump | GateVerdict::RejectedInvalid)
+    }
+}
+
+/// The gate's decision on one command, with the reason in words (mirrors `phone2act.v1.GateDecision`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GateDecision {
+    pub verdict: GateVerdict,
+    /// Empty when accepted unchanged.
+    pub reason: String,
+    pub workspace_clamped: bool,
+    pub velocity_limited: bool,
+    /// Step of the output from the reference when passed; the attempted step when rejected (m).
+    pub position_step_m: f64,
+    /// Same for the orientation (rad).
+    pub rotation_step_rad: f64,
+}
+
+impl GateDecision {
+    /// A decision that carries no step: used for events that did not consult the limits.
+    pub fn note(verdict: GateVerdict, reason: impl Into<String>) -> Self {
+        Self {
+            verdict,
+            reason: reason.into(),
+            workspace_clamped: false,
+            velocity_limited: false,
+            position_step_m: 0.0,
+            rotation_step_rad: 0.0,
+        }
+    }
+}
+
+/// Workspace clamp, jump filter, validity check, velocity limits and staleness for one arm.
+#[derive(Debug, Clone)]
+pub struct SafetyGate {
+    config: GateConfig,
+    reference: Isometry3<f64>,
+    reference_time_s: Option<f64>,
+    last_input_s: Option<f64>,
+    stale_reported: bool,
+}
+
+impl SafetyGate {
+    pub fn new(config: &GateConfig, reference: Isometry3<f64>) -> Result<Self, ConfigError> {
+        config.validate()?;
+        Ok(Self {
+            config: config.clone(),
+            reference,
+            reference_time_s: None,
+            last_input_s: None,
+            stale_reported: false,
+        })
+    }
+
+    pub fn config(&self) -> &GateConfig {
+        &self.config
+    }
+
+    /// The pose the next step is measured from.
+    pub fn reference(&self) -> &Isometry3<f64> {
+        &self.reference
+    }
+
+    /// Restarts the jump filter from `pose` (normally the measured end-effector pose) without a time: the
+    /// next step gets the velocity allowance of [`MAX_VELOCITY_INTERVAL_S`] and staleness restarts with the
+    /// next command.
+    pub fn reset_reference(&mut self, pose: Isometry3<f64>) {
+        self.reference = pose;
+        self.reference_time_s = None;
+        self.last_input_s = None;
+        self.stale_reported = false;
+    }
+
+    /// Like [`SafetyGate::reset_reference`], and counts `now_s` as fresh input for the staleness timeout.
+    pub fn reset_reference_at(&mut self, pose: Isometry3<f64>, now_s: f64) {
+        self.reset_reference(pose);
+        if now_s.is_finite() {
+            self.reference_time_s = Some(now_s);
+            self.last_input_s = Some(now_s);
+        }
+    }
+
+    /// Checks one proposed target at time `now_s`. Returns the target to send (`None` when dropped) and the
+    /// decision. A dropped target leaves the reference unchanged.
+    pub fn check(&mut self, proposed: Isometry3<f64>, now_s: f64) -> (Option<Isometry3<f64>>, GateDecision) {
+        if !now_s.is_finite() {
+            return (
+                None,
+                GateDecision::note(
+                    GateVerdict::RejectedInvalid,
+                    format!("command time is not finite: {now_s}"),
+                ),
+            );
+        }
+        if let Err(e) = check_pose(&proposed) {
+            return (
+                None,
+                GateDecision::note(GateVerdict::RejectedInvalid, format!("invalid target: {e}")),
+            );
+        }
+        self.last_input_s = Some(self.last_input_s.map_or(now_s, |t| t.max(now_s)));
+        self.stale_reported = false;
+
+        let cfg = &self.config;
+        let mut position = proposed.translation.vector;
+        let mut clamped_axes = [false; 3];
+        for axis in 0..3 {
+            let (min_m, max_m) = (cfg.workspace_min_m[axis], cfg.workspace_max_m[axis]);
+            clamped_axes[axis] = position[axis] < min_m || position[axis] > max_m;
+            position[axis] = position[axis].clamp(min_m, max_m);
+        }
+        let workspace_clamped = clamped_axes.iter().any(|&c| c);
+
+        let step = position - self.reference.translation.vector;
+        let position_step_m = step.norm();
+        let rotation_step_rad = angle_between_rad(&self.reference.rotation, &proposed.rotation);
+        if let Some(reason) = jump_reason(cfg, position_step_m, rotation_step_rad) {
+            let decision = GateDecision {
+                verdict: GateVerdict::RejectedJump,
+                reason,
+                workspace_clamped,
+                velocity_limited: false,
+                position_step_m,
+                rotation_step_rad,
+            };
+            return (None, decision);
+        }
+
+        let interval_s = self.reference_time_s.map_or(MAX_VELOCITY_INTERVAL_S, |t| {
+            (now_s - t).clamp(0.0, MAX_VELOCITY_INTERVAL_S)
+        });
+        let (out_position, linear_limited) = match cfg.max_linear_speed_m_s {
+            Some(speed) if position_step_m > speed * interval_s => (
+                self.reference.translation.vector + step * (speed * interval_s / position_step_m),
+                true,
+            ),
+            _ => (position, false),
+        };
+        let (out_rotation, angular_limited) = match cfg.max_angular_speed_rad_s {
+            Some(speed) if rotation_step_rad > speed * interval_s => {
+                let delta: UnitQuaternion<f64> = self.reference.rotation.inverse() * proposed.rotation;
+                let fraction = speed * interval_s / rotation_step_rad;
+                (self.reference.rotation * delta.powf(fraction), true)
+            }
+            _ => (proposed.rotation, false),
+        };
+        let velocity_limited = linear_limited || angular_limited;
+        let output = Isometry3::from_parts(Translation3::from(out_position), out_rotation);
+        let out_position_step_m = (out_position - self.reference.translation.vector).norm();
+        let out_rotation_step_rad = if angular_limited {
+            angle_between_rad(&self.reference.rotation, &out_rotation)
+        } else {
+            rotation_step_rad
+        };
+
+        let (verdict, reason) = if workspace_clamped || velocity_limited {
+            (
+                GateVerdict::Clamped,
+                clamp_reason(clamped_axes, linear_limited, angular_limited, cfg),
+            )
+        } else {
+            (GateVerdict::Accepted, String::new())
+        };
+        self.reference = output;
+        self.reference_time_s = Some(now_s);
+        let decision = GateDecision {
+            verdict,
+            reason,
+            workspace_clamped,
+            velocity_limited,
+            position_step_m: out_position_step_m,
+            rotation_step_rad: out_rotation_step_rad,
+        };
+        (Some(output), decision)
+    }
+
+    /// True if no valid command arrived within the staleness timeout (never before the first command).
+    pub fn is_stale(&self, now_s: f64) -> bool {
+        self.last_input_s
+            .is_some_and(|t| now_s - t > self.config.stale_timeout_s)
+    }
+
+    /// Reports the moment the input goes stale: `Some(HeldStale)` once per silence, `None` otherwise. The
+    /// arm holds its last target; nothing here moves it.
+    pub fn check_stale(&mut self, now_s: f64) -> Option<GateDecision> {
+        if self.stale_reported || !self.is_stale(now_s) {
+            return None;
+        }
+        self.stale_reported = true;
+        let silent_s = now_s - self.last_input_s.unwrap_or(now_s);
+        Some(GateDecision::note(
+            GateVerdict::HeldStale,
+            format!(
+                "no valid command for {silent_s:.2} s (timeout {:.2} s): holding",
+                self.config.stale_timeout_s
+            ),
+        ))
+    }
+}
+
+fn jump_reason(cfg: &GateConfig, position_step_m: f64, rotation_step_rad: f64) -> Option<String> {
+    let mut parts = Vec::new();
+    if position_step_m > cfg.jump_position_m {
+        parts.push(format!(
+            "position step {position_step_m:.3} m exceeds jump threshold {:.3} m",
+            cfg.jump_position_m
+        ));
+    }
+    if rotation_step_rad > cfg.jump_rotation_rad {
+        parts.push(format!(
+            "rotation step {rotation_step_rad:.3} rad exceeds jump threshold {:.3} rad",
+            cfg.jump_rotation_rad
+        ));
+    }
+    (!parts.is_empty()).then(|| parts.join("; "))
+}
+
+fn clamp_reason(clamped_axes: [bool; 3], linear: bool, angular: bool, cfg: &GateConfig) -> String {
+    let mut parts = Vec::new();
+    if clamped_axes.iter().any(|&c| c) {
+        let axes: Vec<&str> = ["x", "y", "z"]
+            .into_iter()
+            .zip(clamped_axes)
+            .filter_map(|(n, c)| c.then_some(n))
+            .collect();
+        parts.push(format!("clamped to workspace on {}", axes.join(", ")));
+    }
+    if linear {
+        parts.push(format!(
+            "linear speed limited to {:.3} m/s",
+            cfg.max_linear_speed_m_s.unwrap_or_default()
+        ));
+    }
+    if angular {
+        parts.push(format!(
+            "angular speed limited to {:.3} rad/s",
+            cfg.max_angular_speed_rad_s.unwrap_or_default()
+        ));
+    }
+    parts.join("; ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pose::pose_distance;
+    use nalgebra::{Quaternion, Vector3};
+    use proptest::prelude::*;
+
+    fn at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
+        Isometry3::translation(x, y, z)
+    }
+
+    fn gate(config: &GateConfig) -> SafetyGate {
+        SafetyGate::new(config, at(0.25, 0.0, 0.2)).unwrap()
+    }
+
+    #[test]
+    fn accepts_small_steps_and_reports_them() {
+        let mut g = gate(&GateConfig::default());
+        let (out, d) = g.check(at(0.27, 0.0, 0.2), 0.0);
+        assert_eq!(d.verdict, GateVerdict::Accepted);
+        assert!(d.reason.is_empty());
+        assert!((d.position_step_m - 0.02).abs() < 1e-12);
+        assert_eq!(out.unwrap(), at(0.27, 0.0, 0.2));
+        assert_eq!(*g.reference(), at(0.27, 0.0, 0.2));
+    }
+
+    #[test]
+    fn rejects_jumps_with_a_reason_and_keeps_the_reference() {
+        let mut g = gate(&GateConfig::default());
+        let (out, d) = g.check(at(0.25, 0.081, 0.2), 0.0);
+        assert!(out.is_none());
+        assert_eq!(d.verdict, GateVerdict::RejectedJump);
+        assert_eq!(d.reason, "position step 0.081 m exceeds jump threshold 0.060 m");
+        assert_eq!(*g.reference(), at(0.25, 0.0, 0.2));
+        let turned = Isometry3::from_parts(
+            Translation3::new(0.25, 0.0, 0.2),
+            UnitQuaternion::from_euler_angles(0.6, 0.0, 0.0),
+        );
+        let (out, d) = g.check(turned, 0.01);
+        assert!(out.is_none());
+        assert!(d.reason.starts_with("rotation step 0.600 rad"), "{}", d.reason);
+        // After a reset the same target is a small step again.
+        g.reset_reference(at(0.25, 0.07, 0.2));
+        assert_eq!(
+            g.check(at(0.25, 0.081, 0.2), 0.02).1.verdict,
+            GateVerdict::Accepted
+        );
+    }
+
+    #[test]
+    fn clamps_to_the_workspace_and_slides_along_the_wall() {
+        let mut g = gate(&GateConfig::default());
+        g.reset_reference(at(0.39, 0.0, 0.2));
+        let mut last = None;
+        for i in 0..20 {
+            // The phone keeps pushing 1 cm per sample past the x = 0.40 wall while moving sideways.
+            let (out, d) = g.check(
+                at(0.39 + 0.01 * f64::from(i), 0.005 * f64::from(i), 0.2),
+                f64::from(i) * 0.02,
+            );
+            assert!(d.verdict.passed(), "{d:?}");
+            last = out;
+        }
+        let last = last.unwrap();
+        assert!((last.translation.x - 0.40).abs() < 1e-15);
+        assert!((last.translation.y - 0.095).abs() < 1e-12);
+        let (_, d) = g.check(at(0.6, 0.1, 0.2), 0.5);
+        assert_eq!(d.verdict, GateVerdict::Clamped);
+        assert!(d.workspace_clamped);
+        assert_eq!(d.reason, "clamped to workspace on x");
+    }
+
+    #[test]
+    fn rejects_invalid_targets() {
+        let mut g = gate(&GateConfig::default());
+        let nan = at(f64::NAN, 0.0, 0.2);
+        assert_eq!(g.check(nan, 0.0).1.verdict, GateVerdict::RejectedInvalid);
+        let skewed = Isometry3::from_parts(
+            Translation3::new(0.25, 0.0, 0.2),
+            UnitQuaternion::new_unchecked(Quaternion::new(1.1, 0.0, 0.0, 0.0)),
+        );
+        let (out, d) = g.check(skewed, 0.0);
+        assert!(out.is_none());
+        assert!(d.reason.contains("quaternion norm"), "{}", d.reason);
+        assert_eq!(
+            g.check(at(0.25, 0.0, 0.2), f64::NAN).1.verdict,
+            GateVerdict::RejectedInvalid
+        );
+        assert_eq!(*g.reference(), at(0.25, 0.0, 0.2));
+    }
+
+    #[test]
+    fn velocity_limits_shorten_steps() {
+        let mut g = gate(&GateConfig {
+            max_linear_speed_m_s: Some(0.5),
+            max_angular_speed_rad_s: Some(1.0),
+            ..GateConfig::default()
+        });
+        g.reset_reference_at(at(0.25, 0.0, 0.2), 0.0);
+        let target = Isometry3::from_parts(
+            Translation3::new(0.30, 0.0, 0.2),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3),
+        );
+        let (out, d) = g.check(target, 0.02);
+        let out = out.unwrap();
+        assert_eq!(d.verdict, GateVerdict::Clamped);
+        assert!(d.velocity_limited && !d.workspace_clamped);
+        assert!(
+            (out.translation.x - 0.26).abs() < 1e-12,
+            "0.5 m/s for 20 ms is 1 cm"
+        );
+        assert!((d.rotation_step_rad - 0.02).abs() < 1e-12, "1 rad/s for 20 ms");
+        // No time elapsed: no motion allowed.
+        let (out2, _) = g.check(target, 0.02);
+        assert!(pose_distance(&out2.unwrap(), &out).0 < 1e-15);
+    }
+
+    #[test]
+    fn staleness_is_reported_once_per_silence() {
+        let mut g = gate(&GateConfig::default());
+        assert!(
+            g.check_stale(100.0).is_none(),
+            "nothing is stale before the first command"
+        );
+        g.check(at(0.25, 0.0, 0.2), 1.0);
+        assert!(g.check_stale(1.2).is_none());
+        let d = g.check_stale(1.35).unwrap();
+        assert_eq!(d.verdict, GateVerdict::HeldStale);
+        assert!(d.reason.contains("0.35 s"), "{}", d.reason);
+        assert!(g.check_stale(1.5).is_none());
+        g.check(at(0.25, 0.0, 0.2), 2.0);
+        assert!(!g.is_stale(2.1));
+        assert!(g.check_stale(2.4).is_some());
+    }
+
+    /// One proposal of a random walk: a small move, sometimes a large jump, sometimes garbage.
+    fn any_move() -> impl Strategy<Value = ([f64; 3], [f64; 3], u8)> {
+        (
+            prop::array::uniform3(-0.05..0.05f64),
+            prop::array::uniform3(-0.3..0.3f64),
+            0..30u8,
+        )
+    }
+
+    fn walk(moves: &[([f64; 3], [f64; 3], u8)]) -> Vec<Isometry3<f64>> {
+        let mut pose = at(0.25, 0.0, 0.2);
+        moves
+            .iter()
+            .map(|&(dp, dr, kind)| {
+                let scale = if kind < 4 { 10.0 } else { 1.0 };
+                pose = Isometry3::from_parts(
+                    Translation3::from(pose.translation.vector + Vector3::from(dp) * scale),
+                    UnitQuaternion::from_scaled_axis(Vector3::from(dr) * scale) * pose.rotation,
+                );
+                let mut sent = pose;
+                match kind {
+                    4 => sent.translation.x = f64::NAN,
+                    5 => sent.translation.z = f64::INFINITY,
+                    6 => sent.rotation = UnitQuaternion::new_unchecked(pose.rotation.into_inner() * 1.5),
+                    _ => {}
+                }
+                sent
+            })
+            .collect()
+    }
+
+    proptest! {
+        /// Whatever arrives, every output is finite, inside the box, and within the jump thresholds of the
+        /// previous output (or of the last reset).
+        #[test]
+        fn outputs_stay_inside_and_never_jump(
+            moves in prop::collection::vec(any_move(), 1..80),
+            resets in prop::collection::vec(0..60usize, 0..3),
+            limited in prop::bool::ANY,
+        ) {
+            let config = GateConfig {
+                max_linear_speed_m_s: limited.then_some(0.8),
+                max_angular_speed_rad_s: limited.then_some(3.0),
+                ..GateConfig::default()
+            };
+            let mut g = SafetyGate::new(&config, at(0.25, 0.0, 0.2)).unwrap();
+            let mut previous = *g.reference();
+            for (i, target) in walk(&moves).into_iter().enumerate() {
+                if resets.contains(&i) {
+                    previous = at(0.3, 0.1, 0.1);
+                    g.reset_reference(previous);
+                }
+                let now_s = i as f64 * 0.02;
+                let (out, d) = g.check(target, now_s);
+                prop_assert_eq!(out.is_some(), d.verdict.passed());
+                if let Some(out) = out {
+                    let p = out.translation.vector;
+                    prop_assert!(p.iter().all(|v| v.is_finite()));
+                    prop_assert!(out.rotation.coords.iter().all(|v| v.is_finite()));
+                    for axis in 0..3 {
+                        prop_assert!(p[axis] >= config.workspace_min_m[axis] && p[axis] <= config.workspace_max_m[axis]);
+                    }
+                    let (dp, da) = pose_distance(&out, &previous);
+                    prop_assert!(dp <= config.jump_position_m + 1e-12, "step {} m", dp);
+                    prop_assert!(da <= config.jump_rotation_rad + 1e-12, "step {} rad", da);
+                    if limited {
+                        prop_assert!(dp <= 0.8 * MAX_VELOCITY_INTERVAL_S + 1e-12);
+                    }
+                    previous = out;
+                }
+                prop_assert_eq!(*g.reference(), previous);
+            }
+        }
+    }
+}
