@@ -1,2 +1,79 @@
 //! The phone gateway: each WebSocket client (the Phone2Act Android app over rosbridge v2, roslibjs/roslibpy,
 //! or the zero-install WebXR phone page) becomes a `Teleop.Stream` to the phone2act server.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), phone2act_gateway::GatewayError> {
+//! use phone2act_gateway::{GatewayConfig, serve};
+//! serve(GatewayConfig::default(), "http://127.0.0.1:50051".into(), None, async {
+//!     let _ = tokio::signal::ctrl_c().await;
+//! })
+//! .await
+//! # }
+//! ```
+//!
+//! Tests bind port 0 themselves and use [`Gateway::with_listeners`], which also reports the pairing token.
+
+pub mod config;
+mod conn;
+pub mod feedback;
+pub mod mock_server;
+mod native;
+pub mod rosbridge;
+mod rosbridge_conn;
+mod server;
+pub mod session;
+pub mod tls;
+mod upstream;
+mod web;
+
+pub use config::{GatewayConfig, TopicConfig};
+pub use server::{Gateway, GatewayInfo, Listeners};
+use std::future::Future;
+use std::net::SocketAddr;
+
+/// Errors that stop the gateway from starting or serving.
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("invalid server URL {0}")]
+    ServerUrl(String),
+    #[error("TLS: {0}")]
+    Tls(String),
+    #[error("gateway config: {0}")]
+    Config(String),
+    #[error("gateway server failed: {0}")]
+    Serve(String),
+}
+
+/// Binds the listeners `config` enables and serves until `shutdown` resolves.
+///
+/// `server_url` is the phone2act gRPC server (`http://127.0.0.1:50051`); `grpc_token` its bearer token.
+pub async fn serve(
+    config: GatewayConfig,
+    server_url: String,
+    grpc_token: Option<String>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), GatewayError> {
+    Gateway::bind(config, &server_url, grpc_token.as_deref())
+        .await?
+        .run(shutdown)
+        .await
+}
+
+/// Serves on listeners the caller bound (for tests: port 0); endpoints without a listener are not served.
+pub async fn serve_with_listeners(
+    config: GatewayConfig,
+    server_url: String,
+    grpc_token: Option<String>,
+    listeners: Listeners,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), GatewayError> {
+    Gateway::with_listeners(config, &server_url, grpc_token.as_deref(), listeners)?
+        .run(shutdown)
+        .await
+}

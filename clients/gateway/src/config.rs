@@ -1,0 +1,233 @@
+//! Gateway configuration: the `[gateway]` table of the server config, also used by the standalone binary.
+//!
+//! Every field has a default, so an empty table (or none at all) gives a gateway that a phone on the same
+//! LAN can reach: rosbridge on `0.0.0.0:9090` (what the Phone2Act app expects) and the phone page on
+//! `https://0.0.0.0:8443` with a self-signed certificate and a pairing token.
+
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+/// Messages larger than this close the socket with code 1009 (the WebSocket "message too big" close);
+/// messages between [`GatewayConfig::max_message_bytes`] and this are refused with an error and the
+/// connection stays up.
+pub const HARD_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+/// The `[gateway]` table.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GatewayConfig {
+    /// Run the gateway inside `phone2act serve`.
+    pub enabled: bool,
+    /// Serve rosbridge v2 on plain `ws://` (the Phone2Act Android app, roslibjs, roslibpy).
+    pub rosbridge: bool,
+    /// Where the rosbridge socket listens. The default binds every interface because the phone is another
+    /// machine on the LAN; use `127.0.0.1:9090` to keep it local (e.g. with `adb reverse`).
+    pub rosbridge_listen: SocketAddr,
+    /// Serve the phone page and its `wss://` socket over HTTPS.
+    pub https: bool,
+    /// Where the HTTPS server listens (every interface by default, for the same reason).
+    pub https_listen: SocketAddr,
+    /// Directory that keeps the generated certificate, key and pairing token across restarts, so a phone
+    /// accepts the certificate once. Default: `$XDG_DATA_HOME/phone2act/gateway` (or
+    /// `~/.local/share/phone2act/gateway`).
+    pub cert_dir: Option<PathBuf>,
+    /// A certificate chain (PEM) to use instead of the generated one; needs `key_file`.
+    pub cert_file: Option<PathBuf>,
+    /// The private key (PEM) for `cert_file`.
+    pub key_file: Option<PathBuf>,
+    /// Refuse phone-page sockets that do not carry the pairing token (`?token=`).
+    pub require_token: bool,
+    /// The pairing token. When absent and `require_token` is set, one is generated on first start and kept
+    /// in `cert_dir`. It is printed in the URL and the QR code.
+    pub token: Option<String>,
+    /// Also require the token on the plain rosbridge port (`ws://host:9090/?token=...`). Off by default
+    /// because the Phone2Act app and most rosbridge clients cannot send one.
+    pub rosbridge_require_token: bool,
+    /// Host name or address printed in the URL and QR code. Default: the address of the interface that
+    /// routes to the LAN.
+    pub public_host: Option<String>,
+    /// Messages above this size are refused with an error; the connection stays up.
+    pub max_message_bytes: usize,
+    /// Print the phone URL and a QR code on start.
+    pub print_qr: bool,
+    /// Arm driven by topics without a namespace and by the page until the user picks one.
+    pub default_arm: String,
+    /// rosbridge topic names and their mapping to arms.
+    pub topics: TopicConfig,
+}
+
+impl Default for GatewayConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            rosbridge: true,
+            rosbridge_listen: SocketAddr::from(([0, 0, 0, 0], 9090)),
+            https: true,
+            https_listen: SocketAddr::from(([0, 0, 0, 0], 8443)),
+            cert_dir: None,
+            cert_file: None,
+            key_file: None,
+            require_token: true,
+            token: None,
+            rosbridge_require_token: false,
+            public_host: None,
+            max_message_bytes: 64 * 1024,
+            print_qr: true,
+            default_arm: "main".to_owned(),
+            topics: TopicConfig::default(),
+        }
+    }
+}
+
+/// Topic names (relative to an arm namespace) and the namespace → arm map.
+///
+/// A topic `/<ns>/<rest>` whose first segment is a key of `namespaces` drives that arm; any other topic
+/// drives `default_arm`. `<rest>` is then compared, case-sensitively as ROS does, with the lists below.
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TopicConfig {
+    /// `geometry_msgs/PoseStamped` phone pose topics (tracking frame of the phone).
+    pub pose: Vec<String>,
+    /// `std_msgs/Int32MultiArray` volume-key toggle states `[up, down]`: a change of `up` toggles the
+    /// gripper, a change of `down` toggles the clutch.
+    pub volume: Vec<String>,
+    /// `std_msgs/Float32` absolute gripper position (0 open, 1 closed).
+    pub gripper: Vec<String>,
+    /// `std_msgs/Bool` clutch: true engages (the phone drives the arm), false disengages.
+    pub clutch: Vec<String>,
+    /// Published to subscribers: the measured end effector as `geometry_msgs/PoseStamped` (robot base frame).
+    pub robot_feedback: String,
+    /// Published to subscribers: the target after the safety gate as `geometry_msgs/PoseStamped`.
+    pub target_pose: String,
+    /// Published to subscribers: arm and recording state as JSON text in a `std_msgs/String`.
+    pub status: String,
+    /// First topic segment → arm name.
+    pub namespaces: BTreeMap<String, String>,
+}
+
+impl Default for TopicConfig {
+    fn default() -> Self {
+        Self {
+            // The app's default, its older package name, and a neutral name for hand-written clients.
+            pose: vec![
+                "Phone2Act/ar_pose".into(),
+                "bros2/ar_pose".into(),
+                "phone/pose".into(),
+            ],
+            volume: vec!["Phone2Act/volume".into(), "bros2/volume".into()],
+            gripper: vec!["phone2act/gripper".into()],
+            clutch: vec!["phone2act/clutch".into()],
+            robot_feedback: "phone2act/robot_feedback".into(),
+            target_pose: "phone2act/target_pose".into(),
+            status: "phone2act/status".into(),
+            namespaces: [("left", "left"), ("right", "right")]
+                .into_iter()
+                .map(|(ns, arm)| (ns.to_owned(), arm.to_owned()))
+                .collect(),
+        }
+    }
+}
+
+/// What a topic means once its namespace is resolved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TopicRole {
+    Pose,
+    Volume,
+    Gripper,
+    Clutch,
+    RobotFeedback,
+    TargetPose,
+    Status,
+}
+
+impl TopicRole {
+    /// The normalised (`pkg/Type`) message type of this topic.
+    pub fn msg_type(self) -> &'static str {
+        match self {
+            Self::Pose | Self::RobotFeedback | Self::TargetPose => "geometry_msgs/PoseStamped",
+            Self::Volume => "std_msgs/Int32MultiArray",
+            Self::Gripper => "std_msgs/Float32",
+            Self::Clutch => "std_msgs/Bool",
+            Self::Status => "std_msgs/String",
+        }
+    }
+
+    /// True for topics the gateway publishes (clients subscribe), false for topics clients publish.
+    pub fn is_output(self) -> bool {
+        matches!(self, Self::RobotFeedback | Self::TargetPose | Self::Status)
+    }
+}
+
+impl TopicConfig {
+    /// Splits a normalised absolute topic into (arm, role), or `None` for a topic the gateway does not know.
+    pub fn resolve(&self, topic: &str, default_arm: &str) -> Option<(String, TopicRole)> {
+        let path = topic.strip_prefix('/')?;
+        let (arm, rest) = match path.split_once('/') {
+            Some((first, rest)) if self.namespaces.contains_key(first) => {
+                (self.namespaces[first].clone(), rest)
+            }
+            _ => (default_arm.to_owned(), path),
+        };
+        let any = |list: &[String]| list.iter().any(|t| t.trim_start_matches('/') == rest);
+        let role = if any(&self.pose) {
+            TopicRole::Pose
+        } else if any(&self.volume) {
+            TopicRole::Volume
+        } else if any(&self.gripper) {
+            TopicRole::Gripper
+        } else if any(&self.clutch) {
+            TopicRole::Clutch
+        } else if self.robot_feedback.trim_start_matches('/') == rest {
+            TopicRole::RobotFeedback
+        } else if self.target_pose.trim_start_matches('/') == rest {
+            TopicRole::TargetPose
+        } else if self.status.trim_start_matches('/') == rest {
+            TopicRole::Status
+        } else {
+            return None;
+        };
+        Some((arm, role))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn namespaces_pick_the_arm_and_plain_topics_use_the_default() {
+        let topics = TopicConfig::default();
+        assert_eq!(
+            topics.resolve("/Phone2Act/ar_pose", "main"),
+            Some(("main".into(), TopicRole::Pose))
+        );
+        assert_eq!(
+            topics.resolve("/left/Phone2Act/ar_pose", "main"),
+            Some(("left".into(), TopicRole::Pose))
+        );
+        assert_eq!(
+            topics.resolve("/right/Phone2Act/volume", "main"),
+            Some(("right".into(), TopicRole::Volume))
+        );
+        assert_eq!(
+            topics.resolve("/left/phone2act/robot_feedback", "main"),
+            Some(("left".into(), TopicRole::RobotFeedback))
+        );
+        // ROS names are case-sensitive: the planner's outputs are lower case, the phone's inputs are not.
+        assert_eq!(topics.resolve("/phone2act/ar_pose", "main"), None);
+        assert_eq!(topics.resolve("/middle/Phone2Act/ar_pose", "main"), None);
+    }
+
+    #[test]
+    fn unknown_keys_are_refused() {
+        let err =
+            serde_json::from_str::<GatewayConfig>(r#"{"rosbrige_listen": "0.0.0.0:9090"}"#).unwrap_err();
+        assert!(err.to_string().contains("unknown field"), "{err}");
+        let ok: GatewayConfig =
+            serde_json::from_str(r#"{"topics": {"namespaces": {"a": "arm_a"}}}"#).unwrap();
+        assert_eq!(ok.topics.namespaces.len(), 1);
+        assert_eq!(ok.rosbridge_listen.port(), 9090);
+    }
+}

@@ -1,0 +1,154 @@
+//! The per-socket loop shared by both protocols: read frames, enforce the size limit, hand text to the
+//! protocol handler, relay session events and status snapshots, write through a bounded queue, ping idle
+//! peers, and close on shutdown.
+//!
+//! Writes go through their own task so that a phone that stops reading never stalls the reading side (and
+//! with it the pose path); when the queue is full, messages are dropped rather than buffered.
+
+use crate::session::SessionEvent;
+use axum::extract::ws::{CloseFrame, Message, WebSocket, close_code};
+use futures_util::{SinkExt, StreamExt};
+use phone2act_proto::v1::SystemStatus;
+use std::time::{Duration, Instant};
+use tokio::sync::{mpsc, watch};
+
+/// Outgoing queue depth per socket.
+const OUT_QUEUE: usize = 256;
+/// A peer silent for this long (no message, no pong) is considered gone; the Phone2Act app and the page
+/// both send at 30–60 Hz, so this only fires on a dead Wi-Fi link, and frees the arm for the reconnect.
+const IDLE_TIMEOUT: Duration = Duration::from_secs(15);
+const PING_INTERVAL: Duration = Duration::from_secs(5);
+
+/// The sending half a handler writes to.
+#[derive(Clone, Debug)]
+pub struct Out(mpsc::Sender<Message>);
+
+impl Out {
+    /// Queues a text frame; dropped if the peer is not reading.
+    pub fn text(&self, text: String) {
+        if self.0.try_send(Message::Text(text.into())).is_err() {
+            tracing::debug!("outgoing queue full, message dropped");
+        }
+    }
+
+    /// Queues a close frame.
+    pub fn close(&self, code: u16, reason: &str) {
+        let _ = self.0.try_send(Message::Close(Some(CloseFrame {
+            code,
+            reason: reason.to_owned().into(),
+        })));
+    }
+}
+
+/// What a protocol does with the socket's input.
+pub trait Handler: Send {
+    /// One text message within the size limit.
+    fn on_text(&mut self, text: &str);
+    /// A message larger than the configured limit (refused, connection kept).
+    fn on_oversized(&mut self, len: usize);
+    /// An event from one of this socket's teleop sessions.
+    fn on_session_event(&mut self, event: SessionEvent);
+    /// A status snapshot from the watcher this handler started.
+    fn on_status(&mut self, _status: Box<SystemStatus>) {}
+    /// Set once the handler wants the socket closed (after its close frame is queued).
+    fn wants_close(&self) -> bool {
+        false
+    }
+}
+
+/// Channels a handler needs besides `Out`.
+#[derive(Debug)]
+pub struct Wiring {
+    pub out: Out,
+    pub session_events: mpsc::Sender<SessionEvent>,
+    pub status_events: mpsc::Sender<Box<SystemStatus>>,
+}
+
+/// Runs one socket until the peer leaves, the handler closes it, or shutdown.
+pub async fn run<H, F>(
+    socket: WebSocket,
+    max_message_bytes: usize,
+    mut shutdown: watch::Receiver<bool>,
+    make: F,
+) where
+    H: Handler,
+    F: FnOnce(Wiring) -> H,
+{
+    let (mut sink, mut stream) = socket.split();
+    let (out_tx, mut out_rx) = mpsc::channel::<Message>(OUT_QUEUE);
+    let writer = tokio::spawn(async move {
+        while let Some(msg) = out_rx.recv().await {
+            let closing = matches!(msg, Message::Close(_));
+            if sink.send(msg).await.is_err() || closing {
+                break;
+            }
+        }
+        let _ = sink.close().await;
+    });
+    let (session_tx, mut session_rx) = mpsc::channel(64);
+    let (status_tx, mut status_rx) = mpsc::channel(4);
+    let out = Out(out_tx);
+    let mut handler = make(Wiring {
+        out: out.clone(),
+        session_events: session_tx,
+        status_events: status_tx,
+    });
+    let mut last_heard = Instant::now();
+    let mut ping = tokio::time::interval(PING_INTERVAL);
+    ping.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            frame = stream.next() => {
+                last_heard = Instant::now();
+                match frame {
+                    Some(Ok(Message::Text(text))) => {
+                        if text.len() > max_message_bytes {
+                            handler.on_oversized(text.len());
+                        } else {
+                            handler.on_text(text.as_str());
+                        }
+                    }
+                    Some(Ok(Message::Binary(bytes))) => {
+                        // rosbridge decodes binary frames as UTF-8 JSON; so do we.
+                        if bytes.len() > max_message_bytes {
+                            handler.on_oversized(bytes.len());
+                        } else {
+                            handler.on_text(&String::from_utf8_lossy(&bytes));
+                        }
+                    }
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
+                    Some(Ok(Message::Close(_)) | Err(_)) | None => {
+                        if let Some(Err(e)) = &frame {
+                            tracing::debug!(error = %e, "socket read failed");
+                            if e.to_string().contains("too long") || e.to_string().contains("Space limit") {
+                                out.close(close_code::SIZE, "message too big");
+                            }
+                        }
+                        break;
+                    }
+                }
+                if handler.wants_close() {
+                    break;
+                }
+            }
+            Some(event) = session_rx.recv() => handler.on_session_event(event),
+            Some(status) = status_rx.recv() => handler.on_status(status),
+            _ = ping.tick() => {
+                if last_heard.elapsed() > IDLE_TIMEOUT {
+                    tracing::info!("peer silent for {:?}, closing", IDLE_TIMEOUT);
+                    out.close(close_code::AWAY, "idle");
+                    break;
+                }
+                let _ = out.0.try_send(Message::Ping(Vec::new().into()));
+            }
+            _ = shutdown.wait_for(|stop| *stop) => {
+                out.close(close_code::AWAY, "gateway shutting down");
+                break;
+            }
+        }
+    }
+    // Dropping the handler drops its sessions, which ends their gRPC streams.
+    drop(handler);
+    drop(out);
+    let _ = tokio::time::timeout(Duration::from_secs(1), writer).await;
+}

@@ -1,0 +1,329 @@
+//! The phone page's own JSON protocol over `wss://host:8443/ws`.
+//!
+//! Page → gateway:
+//! - `{"type":"hello","arm":"left","take_over":false}` picks (or switches) the arm;
+//! - `{"type":"sample","seq":1,"t_ns":…,"pose":{"p":[x,y,z],"q":[x,y,z,w]},"tracking":"tracking","buttons":[…]}`
+//!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
+//!   `{"record":"start","task":"…"}`, `{"record":"stop"}`, `{"record":"discard"}`.
+//!
+//! Gateway → page: `welcome` (arms), `session` (open/retrying/refused), `feedback`, `error`.
+
+use crate::conn::{Handler, Wiring};
+use crate::feedback::page_feedback;
+use crate::rosbridge::parse_json;
+use crate::server::Shared;
+use crate::session::{Session, SessionEvent};
+use phone2act_proto::v1::{
+    ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, RecordCommand, TrackingState,
+    button_event, clutch_command, gripper_command, record_command,
+};
+use serde::Deserialize;
+use serde_json::{Value, json};
+use std::sync::Arc;
+
+/// Task text limit of `RecordCommand`.
+const MAX_TASK_BYTES: usize = 4096;
+
+#[derive(Debug, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+enum PageMsg {
+    Hello {
+        arm: String,
+        #[serde(default)]
+        take_over: bool,
+    },
+    Sample {
+        seq: u64,
+        #[serde(default)]
+        t_ns: f64,
+        #[serde(default)]
+        pose: Option<PagePose>,
+        #[serde(default)]
+        tracking: Option<String>,
+        #[serde(default)]
+        buttons: Vec<Value>,
+    },
+}
+
+#[derive(Debug, Deserialize)]
+struct PagePose {
+    p: [Option<f64>; 3],
+    q: [Option<f64>; 4],
+}
+
+fn finite<const N: usize>(values: [Option<f64>; N]) -> Option<[f64; N]> {
+    let mut out = [0.0; N];
+    for (o, v) in out.iter_mut().zip(values) {
+        *o = v.filter(|x| x.is_finite())?;
+    }
+    Some(out)
+}
+
+fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
+    let event = if let Some(c) = v.get("clutch") {
+        let kind = match c.as_str() {
+            Some("engage") => clutch_command::Kind::Engage,
+            Some("disengage") => clutch_command::Kind::Disengage,
+            Some("toggle") => clutch_command::Kind::Toggle,
+            _ => return Err(format!("clutch must be engage, disengage or toggle, got {c}")),
+        };
+        button_event::Event::Clutch(ClutchCommand { kind: kind.into() })
+    } else if let Some(g) = v.get("gripper") {
+        match (g.as_str(), g.as_f64()) {
+            (Some("toggle"), _) => button_event::Event::Gripper(GripperCommand {
+                kind: gripper_command::Kind::Toggle.into(),
+                position: 0.0,
+            }),
+            (_, Some(position)) if (0.0..=1.0).contains(&position) => {
+                button_event::Event::Gripper(GripperCommand {
+                    kind: gripper_command::Kind::Set.into(),
+                    position,
+                })
+            }
+            _ => {
+                return Err(format!(
+                    "gripper must be \"toggle\" or a number in [0, 1], got {g}"
+                ));
+            }
+        }
+    } else if let Some(r) = v.get("record") {
+        let task = v.get("task").and_then(Value::as_str).unwrap_or_default();
+        let kind = match r.as_str() {
+            Some("start") => {
+                if task.trim().is_empty() {
+                    return Err("record start needs a task".into());
+                }
+                if task.len() > MAX_TASK_BYTES {
+                    return Err(format!("task text is longer than {MAX_TASK_BYTES} bytes"));
+                }
+                record_command::Kind::Start
+            }
+            Some("stop") => record_command::Kind::Stop,
+            Some("discard") => record_command::Kind::Discard,
+            _ => return Err(format!("record must be start, stop or discard, got {r}")),
+        };
+        button_event::Event::Record(RecordCommand {
+            kind: kind.into(),
+            task: task.to_owned(),
+        })
+    } else {
+        return Err(format!("unknown button {v}"));
+    };
+    Ok(ButtonEvent { event: Some(event) })
+}
+
+/// Converts a page sample into a wire sample, or says what is wrong with it.
+fn to_sample(
+    seq: u64,
+    t_ns: f64,
+    pose: Option<PagePose>,
+    tracking: Option<&str>,
+    buttons: &[Value],
+) -> Result<PhoneSample, String> {
+    let mut sample = PhoneSample {
+        seq,
+        capture_time_ns: if t_ns.is_finite() { t_ns as i64 } else { 0 },
+        client_name: "phone-web".into(),
+        ..PhoneSample::default()
+    };
+    if let Some(pose) = pose {
+        let p = finite(pose.p).ok_or("pose position contains NaN, infinity or null")?;
+        let q = finite(pose.q).ok_or("pose orientation contains NaN, infinity or null")?;
+        // Raw WebXR viewer pose (+X right, +Y up, -Z forward): the server's planner maps axes.
+        sample.tracking_from_phone = Some(Pose::from_parts(p, q));
+        sample.tracking = match tracking.unwrap_or("tracking") {
+            "tracking" => TrackingState::Tracking,
+            "limited" => TrackingState::Limited,
+            "lost" => TrackingState::Lost,
+            other => return Err(format!("tracking must be tracking, limited or lost, got {other}")),
+        }
+        .into();
+    } else if tracking == Some("lost") {
+        sample.tracking = TrackingState::Lost.into();
+    }
+    sample.buttons = buttons.iter().map(parse_button).collect::<Result<_, _>>()?;
+    Ok(sample)
+}
+
+/// State of one page socket.
+pub struct PageHandler {
+    shared: Arc<Shared>,
+    wiring: Wiring,
+    session: Option<Session>,
+    close: bool,
+}
+
+impl PageHandler {
+    pub fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+        Self {
+            shared,
+            wiring,
+            session: None,
+            close: false,
+        }
+    }
+
+    /// Tells the page which arms exist (for the picker); called once after connecting.
+    pub fn welcome(&self, arms: &[String]) {
+        self.wiring.out.text(
+            json!({"type": "welcome", "arms": arms, "default_arm": self.shared.config.default_arm})
+                .to_string(),
+        );
+    }
+
+    fn error(&self, message: &str, seq: Option<u64>) {
+        self.wiring
+            .out
+            .text(json!({"type": "error", "message": message, "seq": seq}).to_string());
+    }
+
+    fn start(&mut self, arm: String, take_over: bool) {
+        // Ends the old stream first so the server frees that arm before the new one is claimed.
+        self.session = None;
+        let session = Session::start(
+            self.shared.upstream.clone(),
+            arm.clone(),
+            self.wiring.session_events.clone(),
+        );
+        // A first sample without a pose claims the arm right away, so the page learns at once whether the
+        // arm exists and is free.
+        session.send(PhoneSample {
+            take_over,
+            client_name: "phone-web".into(),
+            ..PhoneSample::default()
+        });
+        self.session = Some(session);
+    }
+}
+
+impl Handler for PageHandler {
+    fn on_text(&mut self, text: &str) {
+        let msg = parse_json(text)
+            .map_err(|e| e.0)
+            .and_then(|v| serde_json::from_value::<PageMsg>(v).map_err(|e| format!("bad message: {e}")));
+        match msg {
+            Ok(PageMsg::Hello { arm, take_over }) => {
+                if arm.is_empty() || arm.len() > 64 {
+                    self.error("arm name must be 1 to 64 characters", None);
+                } else {
+                    self.start(arm, take_over);
+                }
+            }
+            Ok(PageMsg::Sample {
+                seq,
+                t_ns,
+                pose,
+                tracking,
+                buttons,
+            }) => match to_sample(seq, t_ns, pose, tracking.as_deref(), &buttons) {
+                Ok(sample) => {
+                    if self.session.as_ref().is_none_or(Session::is_finished) {
+                        let arm = self
+                            .session
+                            .as_ref()
+                            .map_or_else(|| self.shared.config.default_arm.clone(), |s| s.arm.clone());
+                        self.start(arm, false);
+                    }
+                    if let Some(session) = &self.session {
+                        session.send(sample);
+                    }
+                }
+                Err(e) => self.error(&e, Some(seq)),
+            },
+            Err(e) => self.error(&e, None),
+        }
+    }
+
+    fn on_oversized(&mut self, len: usize) {
+        self.error(
+            &format!(
+                "message of {len} bytes exceeds the limit of {} bytes; ignored",
+                self.shared.config.max_message_bytes
+            ),
+            None,
+        );
+    }
+
+    fn on_session_event(&mut self, event: SessionEvent) {
+        let text = match event {
+            SessionEvent::Open { arm } => json!({"type": "session", "state": "open", "arm": arm}),
+            SessionEvent::Feedback { arm, feedback } => {
+                let superseded = self.session.as_ref().map_or(0, Session::superseded);
+                page_feedback(&arm, &feedback, superseded)
+            }
+            SessionEvent::Retrying {
+                arm,
+                message,
+                retry_in,
+            } => json!({
+                "type": "session", "state": "retrying", "arm": arm, "message": message,
+                "retry_in_s": retry_in.as_secs_f64(),
+            }),
+            SessionEvent::Refused { arm, code, message } => {
+                if self.session.as_ref().is_some_and(|s| s.arm == arm) {
+                    self.session = None;
+                }
+                json!({"type": "session", "state": "refused", "arm": arm, "code": format!("{code:?}"), "message": message})
+            }
+        };
+        self.wiring.out.text(text.to_string());
+    }
+
+    fn wants_close(&self) -> bool {
+        self.close
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(text: &str) -> Result<PhoneSample, String> {
+        let PageMsg::Sample {
+            seq,
+            t_ns,
+            pose,
+            tracking,
+            buttons,
+        } = serde_json::from_value(parse_json(text).unwrap()).map_err(|e| e.to_string())?
+        else {
+            panic!("not a sample")
+        };
+        to_sample(seq, t_ns, pose, tracking.as_deref(), &buttons)
+    }
+
+    #[test]
+    fn a_page_sample_becomes_a_phone_sample() {
+        let s = sample(
+            r#"{"type":"sample","seq":4,"t_ns":1.5e9,"pose":{"p":[0.1,1.2,-0.3],"q":[0,0,0,1]},
+                "buttons":[{"clutch":"engage"},{"gripper":"toggle"},{"record":"start","task":"pick the ball"}]}"#,
+        )
+        .unwrap();
+        assert_eq!(s.seq, 4);
+        assert_eq!(s.capture_time_ns, 1_500_000_000);
+        assert_eq!(s.tracking, TrackingState::Tracking as i32);
+        let p = s.tracking_from_phone.unwrap().position_m.unwrap();
+        assert_eq!(
+            [p.x, p.y, p.z],
+            [0.1, 1.2, -0.3],
+            "the gateway must not remap axes"
+        );
+        assert_eq!(s.buttons.len(), 3);
+        let Some(button_event::Event::Record(r)) = &s.buttons[2].event else {
+            panic!()
+        };
+        assert_eq!(r.task, "pick the ball");
+    }
+
+    #[test]
+    fn bad_samples_are_refused_with_a_reason() {
+        let nan = sample(r#"{"type":"sample","seq":1,"pose":{"p":[NaN,0,0],"q":[0,0,0,1]}}"#).unwrap_err();
+        assert!(nan.contains("NaN"), "{nan}");
+        let null = sample(r#"{"type":"sample","seq":1,"pose":{"p":[0,0,0],"q":[null,0,0,1]}}"#).unwrap_err();
+        assert!(null.contains("orientation"), "{null}");
+        assert!(sample(r#"{"type":"sample","seq":1,"buttons":[{"record":"start","task":" "}]}"#).is_err());
+        assert!(sample(r#"{"type":"sample","seq":1,"buttons":[{"gripper":2}]}"#).is_err());
+        assert!(sample(r#"{"type":"sample","seq":1,"buttons":[{"jump":true}]}"#).is_err());
+        assert!(serde_json::from_value::<PageMsg>(json!({"type": "dance"})).is_err());
+    }
+}

@@ -1,0 +1,419 @@
+//! A rosbridge v2 client connection: publishes on mapped topics become teleop samples for the arm the topic's
+//! namespace names; subscriptions to the feedback topics are served from `System.WatchStatus`.
+//!
+//! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`), filtered by the client's
+//! `set_level` (default `error`, so warnings such as an unmapped topic stay quiet, as with rosbridge).
+
+use crate::config::TopicRole;
+use crate::conn::{Handler, Wiring};
+use crate::feedback::{arm_json, pose_parts, recording_json};
+use crate::rosbridge::{self, Op, StatusLevel, WireError};
+use crate::server::Shared;
+use crate::session::{Session, SessionEvent};
+use phone2act_proto::v1::{
+    ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, SystemStatus, TrackingState,
+    WatchStatusRequest, button_event, clutch_command, gripper_command,
+};
+use serde_json::Value;
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::task::JoinHandle;
+
+/// After the server refuses an arm, publishes to it are dropped for this long instead of opening a new
+/// stream per message (the app publishes at 50 Hz).
+const REFUSED_BACKOFF: Duration = Duration::from_secs(2);
+/// Rate of the status watch behind subscriptions.
+const WATCH_INTERVAL_S: f64 = 0.05;
+
+#[derive(Debug)]
+struct Subscription {
+    arm: String,
+    role: TopicRole,
+    ids: HashSet<String>,
+    throttle: Duration,
+    last_sent: Option<Instant>,
+}
+
+/// State of one rosbridge socket.
+pub struct RosbridgeHandler {
+    shared: Arc<Shared>,
+    wiring: Wiring,
+    client_name: &'static str,
+    level: StatusLevel,
+    advertised: HashMap<String, String>,
+    sessions: HashMap<String, Session>,
+    refused_until: HashMap<String, Instant>,
+    volume: HashMap<String, [i64; 2]>,
+    subscriptions: HashMap<String, Subscription>,
+    watcher: Option<JoinHandle<()>>,
+    seq: u64,
+}
+
+impl RosbridgeHandler {
+    pub fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+        Self {
+            shared,
+            wiring,
+            client_name: "rosbridge",
+            level: StatusLevel::Error,
+            advertised: HashMap::new(),
+            sessions: HashMap::new(),
+            refused_until: HashMap::new(),
+            volume: HashMap::new(),
+            subscriptions: HashMap::new(),
+            watcher: None,
+            seq: 0,
+        }
+    }
+
+    fn status(&self, level: StatusLevel, msg: &str, id: Option<&Value>) {
+        if level >= self.level && level != StatusLevel::None {
+            self.wiring.out.text(rosbridge::status(level, msg, id));
+        }
+    }
+
+    fn handle(&mut self, id: Option<&Value>, op: Op) -> Result<(), WireError> {
+        match op {
+            Op::Advertise { topic, msg_type } => {
+                if let Some((_, role)) = self.resolve(&topic) {
+                    check_type(&topic, role, &msg_type)?;
+                }
+                self.advertised.insert(topic, msg_type);
+            }
+            Op::Unadvertise { topic } => {
+                self.advertised.remove(&topic);
+            }
+            Op::Publish { topic, msg_type, msg } => self.publish(id, &topic, msg_type, &msg)?,
+            Op::Subscribe {
+                topic,
+                sub_id,
+                msg_type,
+                throttle_rate_ms,
+            } => {
+                let Some((arm, role)) = self.resolve(&topic).filter(|(_, r)| r.is_output()) else {
+                    self.status(
+                        StatusLevel::Warning,
+                        &format!("no data is published on {topic}"),
+                        id,
+                    );
+                    return Ok(());
+                };
+                if let Some(t) = &msg_type {
+                    check_type(&topic, role, t)?;
+                }
+                let sub = self.subscriptions.entry(topic).or_insert_with(|| Subscription {
+                    arm,
+                    role,
+                    ids: HashSet::new(),
+                    throttle: Duration::ZERO,
+                    last_sent: None,
+                });
+                sub.ids.insert(sub_id.unwrap_or_default());
+                sub.throttle = Duration::from_millis(throttle_rate_ms);
+                self.ensure_watcher();
+            }
+            Op::Unsubscribe { topic, sub_id } => {
+                if let Some(sub) = self.subscriptions.get_mut(&topic) {
+                    match sub_id {
+                        Some(sid) => {
+                            sub.ids.remove(&sid);
+                        }
+                        None => sub.ids.clear(),
+                    }
+                    if sub.ids.is_empty() {
+                        self.subscriptions.remove(&topic);
+                    }
+                }
+                if self.subscriptions.is_empty()
+                    && let Some(w) = self.watcher.take()
+                {
+                    w.abort();
+                }
+            }
+            Op::CallService { service } => {
+                self.wiring.out.text(rosbridge::service_failure(
+                    &service,
+                    &format!("service {service} is not provided by the phone2act gateway"),
+                    id,
+                ));
+            }
+            Op::SetLevel { level } => self.level = level,
+            Op::Ignored => {}
+        }
+        Ok(())
+    }
+
+    fn resolve(&self, topic: &str) -> Option<(String, TopicRole)> {
+        self.shared
+            .config
+            .topics
+            .resolve(topic, &self.shared.config.default_arm)
+    }
+
+    fn publish(
+        &mut self,
+        id: Option<&Value>,
+        topic: &str,
+        msg_type: Option<String>,
+        msg: &Value,
+    ) -> Result<(), WireError> {
+        let Some((arm, role)) = self.resolve(topic) else {
+            // The app also streams IMU and GPS topics; they have no use here and are not errors.
+            self.status(
+                StatusLevel::Warning,
+                &format!("topic {topic} is not mapped to an arm; ignored"),
+                id,
+            );
+            return Ok(());
+        };
+        if role.is_output() {
+            return Err(WireError(format!(
+                "{topic} is published by the gateway, not by clients"
+            )));
+        }
+        if let Some(t) = msg_type.as_ref().or_else(|| self.advertised.get(topic)) {
+            check_type(topic, role, t)?;
+        }
+        self.seq += 1;
+        let mut sample = PhoneSample {
+            seq: self.seq,
+            client_name: self.client_name.to_owned(),
+            ..PhoneSample::default()
+        };
+        match role {
+            TopicRole::Pose => {
+                let pose = rosbridge::parse_pose_stamped(msg)?;
+                if topic.contains("Phone2Act/") || topic.contains("bros2/") {
+                    self.client_name = "phone2act-android";
+                    sample.client_name = self.client_name.to_owned();
+                }
+                sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(|| self.shared.now_ns());
+                // Raw, in the phone's tracking frame: the server's planner owns the axis mapping.
+                sample.tracking_from_phone = Some(Pose::from_parts(pose.position_m, pose.quat_xyzw));
+                sample.tracking = TrackingState::Tracking.into();
+            }
+            TopicRole::Volume => {
+                let now = rosbridge::parse_volume(msg)?;
+                // The app starts with both toggles at 0 and flips one per key press.
+                let before = self.volume.insert(arm.clone(), now).unwrap_or([0, 0]);
+                if now[0] != before[0] {
+                    sample.buttons.push(gripper(gripper_command::Kind::Toggle, 0.0));
+                }
+                if now[1] != before[1] {
+                    sample.buttons.push(clutch(clutch_command::Kind::Toggle));
+                }
+                if sample.buttons.is_empty() {
+                    return Ok(());
+                }
+            }
+            TopicRole::Gripper => {
+                let position = rosbridge::parse_float32(msg)?;
+                if !(0.0..=1.0).contains(&position) {
+                    return Err(WireError(format!("gripper position {position} outside [0, 1]")));
+                }
+                sample.buttons.push(gripper(gripper_command::Kind::Set, position));
+            }
+            TopicRole::Clutch => {
+                let engage = rosbridge::parse_bool(msg)?;
+                sample.buttons.push(clutch(if engage {
+                    clutch_command::Kind::Engage
+                } else {
+                    clutch_command::Kind::Disengage
+                }));
+            }
+            TopicRole::RobotFeedback | TopicRole::TargetPose | TopicRole::Status => {
+                unreachable!("checked above")
+            }
+        }
+        self.send(arm, sample);
+        Ok(())
+    }
+
+    fn send(&mut self, arm: String, sample: PhoneSample) {
+        if self
+            .refused_until
+            .get(&arm)
+            .is_some_and(|until| Instant::now() < *until)
+        {
+            return;
+        }
+        let session = self.sessions.entry(arm.clone()).or_insert_with(|| {
+            Session::start(
+                self.shared.upstream.clone(),
+                arm.clone(),
+                self.wiring.session_events.clone(),
+            )
+        });
+        if session.is_finished() {
+            *session = Session::start(
+                self.shared.upstream.clone(),
+                arm,
+                self.wiring.session_events.clone(),
+            );
+        }
+        session.send(sample);
+    }
+
+    fn ensure_watcher(&mut self) {
+        if self.watcher.as_ref().is_some_and(|w| !w.is_finished()) {
+            return;
+        }
+        let upstream = self.shared.upstream.clone();
+        let tx = self.wiring.status_events.clone();
+        self.watcher = Some(tokio::spawn(async move {
+            loop {
+                match upstream
+                    .system()
+                    .watch_status(WatchStatusRequest {
+                        interval_s: WATCH_INTERVAL_S,
+                    })
+                    .await
+                {
+                    Ok(response) => {
+                        let mut stream = response.into_inner();
+                        while let Ok(Some(status)) = stream.message().await {
+                            if tx.is_closed() {
+                                return;
+                            }
+                            // Snapshots replace each other; a full queue means the socket is behind.
+                            let _ = tx.try_send(Box::new(status));
+                        }
+                    }
+                    Err(status) => tracing::debug!(%status, "status watch failed"),
+                }
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }));
+    }
+}
+
+impl Drop for RosbridgeHandler {
+    fn drop(&mut self) {
+        if let Some(w) = self.watcher.take() {
+            w.abort();
+        }
+    }
+}
+
+fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireError> {
+    if msg_type == role.msg_type() {
+        Ok(())
+    } else {
+        Err(WireError(format!(
+            "{topic} carries {}, not {msg_type}",
+            role.msg_type()
+        )))
+    }
+}
+
+fn gripper(kind: gripper_command::Kind, position: f64) -> ButtonEvent {
+    ButtonEvent {
+        event: Some(button_event::Event::Gripper(GripperCommand {
+            kind: kind.into(),
+            position,
+        })),
+    }
+}
+
+fn clutch(kind: clutch_command::Kind) -> ButtonEvent {
+    ButtonEvent {
+        event: Some(button_event::Event::Clutch(ClutchCommand { kind: kind.into() })),
+    }
+}
+
+impl Handler for RosbridgeHandler {
+    fn on_text(&mut self, text: &str) {
+        match rosbridge::parse(text) {
+            Ok(incoming) => {
+                if let Err(e) = self.handle(incoming.id.as_ref(), incoming.op) {
+                    self.status(StatusLevel::Error, &e.0, incoming.id.as_ref());
+                }
+            }
+            Err((id, e)) => self.status(StatusLevel::Error, &e.0, id.as_ref()),
+        }
+    }
+
+    fn on_oversized(&mut self, len: usize) {
+        self.status(
+            StatusLevel::Error,
+            &format!(
+                "message of {len} bytes exceeds the limit of {} bytes; ignored",
+                self.shared.config.max_message_bytes
+            ),
+            None,
+        );
+    }
+
+    fn on_session_event(&mut self, event: SessionEvent) {
+        match event {
+            SessionEvent::Open { arm } => self.status(StatusLevel::Info, &format!("driving arm {arm}"), None),
+            SessionEvent::Feedback { arm, feedback } => {
+                if !feedback.error.is_empty() {
+                    self.status(
+                        StatusLevel::Error,
+                        &format!("arm {arm}: {}", feedback.error),
+                        None,
+                    );
+                }
+            }
+            SessionEvent::Retrying {
+                arm,
+                message,
+                retry_in,
+            } => self.status(
+                StatusLevel::Warning,
+                &format!("arm {arm}: server unavailable ({message}); retrying in {retry_in:?}"),
+                None,
+            ),
+            SessionEvent::Refused { arm, code, message } => {
+                self.status(
+                    StatusLevel::Error,
+                    &format!("arm {arm}: {code:?}: {message}"),
+                    None,
+                );
+                self.sessions.remove(&arm);
+                self.refused_until.insert(arm, Instant::now() + REFUSED_BACKOFF);
+            }
+        }
+    }
+
+    fn on_status(&mut self, status: Box<SystemStatus>) {
+        let now = Instant::now();
+        for (topic, sub) in &mut self.subscriptions {
+            if sub
+                .last_sent
+                .is_some_and(|t| now.duration_since(t) < sub.throttle)
+            {
+                continue;
+            }
+            let Some(arm) = status.arms.iter().find(|a| a.arm == sub.arm) else {
+                continue;
+            };
+            let text = match sub.role {
+                TopicRole::RobotFeedback | TopicRole::TargetPose => {
+                    let pose = if sub.role == TopicRole::RobotFeedback {
+                        &arm.robot_from_ee
+                    } else {
+                        &arm.robot_from_target
+                    };
+                    let (p, q) = pose_parts(pose.as_ref());
+                    let stamp_ns = if arm.feedback_time_ns > 0 {
+                        arm.feedback_time_ns
+                    } else {
+                        status.server_time_ns
+                    };
+                    rosbridge::publish_pose(topic, "robot_base", stamp_ns, p, q)
+                }
+                TopicRole::Status => {
+                    let mut v = arm_json(arm);
+                    v["recording"] = recording_json(status.recording.as_ref());
+                    rosbridge::publish_string(topic, &v.to_string())
+                }
+                _ => continue,
+            };
+            sub.last_sent = Some(now);
+            self.wiring.out.text(text);
+        }
+    }
+}

@@ -1,0 +1,356 @@
+//! The two listeners and their routes: plain `ws://` rosbridge (default :9090) and HTTPS (default :8443)
+//! serving the phone page, its `wss://…/ws` socket and rosbridge over `wss://…/rosbridge`.
+
+use crate::config::{GatewayConfig, HARD_MAX_MESSAGE_BYTES};
+use crate::conn;
+use crate::native::PageHandler;
+use crate::rosbridge::{self, StatusLevel};
+use crate::rosbridge_conn::RosbridgeHandler;
+use crate::tls;
+use crate::upstream::Upstream;
+use crate::{GatewayError, web};
+use axum::Router;
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
+use axum::extract::ws::{WebSocket, WebSocketUpgrade, close_code};
+use axum::extract::{Query, State};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use phone2act_proto::v1::ListArmsRequest;
+use std::collections::HashMap;
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::watch;
+
+/// State shared by every socket.
+#[derive(Debug)]
+pub struct Shared {
+    pub config: GatewayConfig,
+    pub upstream: Upstream,
+    pub token: Option<String>,
+    shutdown: watch::Receiver<bool>,
+    epoch: Instant,
+}
+
+impl Shared {
+    /// Gateway monotonic time, for samples that carry no capture time.
+    pub fn now_ns(&self) -> i64 {
+        self.epoch.elapsed().as_nanos() as i64
+    }
+}
+
+/// Listeners bound by the caller (tests use port 0). An endpoint without a listener is not served.
+#[derive(Debug, Default)]
+pub struct Listeners {
+    pub rosbridge: Option<tokio::net::TcpListener>,
+    pub https: Option<tokio::net::TcpListener>,
+}
+
+/// Where a started gateway can be reached.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GatewayInfo {
+    pub rosbridge_addr: Option<SocketAddr>,
+    pub https_addr: Option<SocketAddr>,
+    /// The URL to open on the phone (with the pairing token), when HTTPS is served.
+    pub page_url: Option<String>,
+    pub token: Option<String>,
+    /// The certificate the HTTPS server presents.
+    pub cert_path: Option<PathBuf>,
+}
+
+/// A bound, not yet running gateway.
+#[derive(Debug)]
+pub struct Gateway {
+    shared: Arc<Shared>,
+    shutdown_tx: watch::Sender<bool>,
+    rosbridge: Option<tokio::net::TcpListener>,
+    https: Option<(tokio::net::TcpListener, Arc<rustls::ServerConfig>)>,
+    info: GatewayInfo,
+}
+
+impl Gateway {
+    /// Binds the listeners the config enables.
+    pub async fn bind(
+        config: GatewayConfig,
+        server_url: &str,
+        grpc_token: Option<&str>,
+    ) -> Result<Self, GatewayError> {
+        let bind = |addr: SocketAddr| async move {
+            tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(|source| GatewayError::Bind { addr, source })
+        };
+        let rosbridge = if config.rosbridge {
+            Some(bind(config.rosbridge_listen).await?)
+        } else {
+            None
+        };
+        let https = if config.https {
+            Some(bind(config.https_listen).await?)
+        } else {
+            None
+        };
+        Self::with_listeners(config, server_url, grpc_token, Listeners { rosbridge, https })
+    }
+
+    /// Uses listeners bound by the caller; `config`'s listen addresses and enable flags are ignored.
+    pub fn with_listeners(
+        config: GatewayConfig,
+        server_url: &str,
+        grpc_token: Option<&str>,
+        listeners: Listeners,
+    ) -> Result<Self, GatewayError> {
+        if config.max_message_bytes == 0 || config.max_message_bytes > HARD_MAX_MESSAGE_BYTES {
+            return Err(GatewayError::Config(format!(
+                "max_message_bytes must be between 1 and {HARD_MAX_MESSAGE_BYTES}"
+            )));
+        }
+        let upstream = Upstream::new(server_url, grpc_token)?;
+        let cert_dir = config.cert_dir.clone().unwrap_or_else(tls::default_cert_dir);
+        let local =
+            |l: &tokio::net::TcpListener| l.local_addr().map_err(|e| GatewayError::Config(e.to_string()));
+        let rosbridge_addr = listeners.rosbridge.as_ref().map(local).transpose()?;
+        let https_addr = listeners.https.as_ref().map(local).transpose()?;
+        let mut token = None;
+        let mut page_url = None;
+        let mut cert_path = None;
+        let https = match listeners.https {
+            Some(listener) => {
+                let addr = https_addr.expect("bound");
+                let host = config.public_host.clone().unwrap_or_else(|| tls::lan_host(addr));
+                let material = tls::load_or_generate(&config, &cert_dir, std::slice::from_ref(&host))?;
+                cert_path = Some(material.cert_path.clone());
+                token = tls::pairing_token(&config, &cert_dir)?;
+                page_url = Some(tls::page_url(&host, addr.port(), token.as_deref()));
+                Some((listener, tls::server_config(material)?))
+            }
+            None => None,
+        };
+        if token.is_none() && config.rosbridge_require_token {
+            token = tls::pairing_token(&config, &cert_dir)?;
+        }
+        let (shutdown_tx, shutdown) = watch::channel(false);
+        let info = GatewayInfo {
+            rosbridge_addr,
+            https_addr,
+            page_url,
+            token: token.clone(),
+            cert_path,
+        };
+        let shared = Arc::new(Shared {
+            config,
+            upstream,
+            token,
+            shutdown,
+            epoch: Instant::now(),
+        });
+        Ok(Self {
+            shared,
+            shutdown_tx,
+            rosbridge: listeners.rosbridge,
+            https,
+            info,
+        })
+    }
+
+    /// Addresses, URL and token.
+    pub fn info(&self) -> &GatewayInfo {
+        &self.info
+    }
+
+    /// The URL and QR code block printed on start.
+    pub fn banner(&self) -> String {
+        let mut text = String::new();
+        if let Some(url) = &self.info.page_url {
+            text.push_str(
+                "\nphone2act gateway: open this on the phone (Chrome on Android with ARCore):\n\n  ",
+            );
+            text.push_str(url);
+            text.push('\n');
+            if let Ok(qr) = tls::qr_text(url) {
+                text.push('\n');
+                text.push_str(&qr);
+                text.push('\n');
+            }
+            text.push_str(
+                "\nThe certificate is self-signed: on the warning page tap \"Advanced\" then \"Proceed\" (once per \
+                 certificate).\nPhone and computer must be on the same Wi-Fi; guest networks often block it.\n",
+            );
+        }
+        if let Some(addr) = self.info.rosbridge_addr {
+            let host = self
+                .shared
+                .config
+                .public_host
+                .clone()
+                .unwrap_or_else(|| tls::lan_host(addr));
+            text.push_str(&format!(
+                "Phone2Act app / rosbridge clients: ws://{host}:{}\n",
+                addr.port()
+            ));
+        }
+        text
+    }
+
+    /// Serves until `shutdown` resolves, then closes every socket (their teleop streams end with them).
+    pub async fn run(self, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<(), GatewayError> {
+        if self.shared.config.print_qr {
+            println!("{}", self.banner());
+        }
+        let mut tasks = tokio::task::JoinSet::new();
+        if let Some(listener) = self.rosbridge {
+            let app = Router::new()
+                .fallback(get(rosbridge_plain))
+                .with_state(self.shared.clone());
+            let mut stop = self.shared.shutdown.clone();
+            tasks.spawn(async move {
+                axum::serve(listener, app)
+                    .with_graceful_shutdown(async move {
+                        let _ = stop.wait_for(|s| *s).await;
+                    })
+                    .await
+                    .map_err(|e| GatewayError::Serve(e.to_string()))
+            });
+        }
+        let handle = axum_server::Handle::<SocketAddr>::new();
+        if let Some((listener, tls_config)) = self.https {
+            let app = Router::new()
+                .route("/ws", get(page_socket))
+                .route("/rosbridge", get(rosbridge_tls))
+                .route("/healthz", get(|| async { "ok" }))
+                .merge(web::routes())
+                .with_state(self.shared.clone());
+            let std_listener = listener
+                .into_std()
+                .map_err(|e| GatewayError::Serve(e.to_string()))?;
+            let server = axum_server::from_tcp_rustls(
+                std_listener,
+                axum_server::tls_rustls::RustlsConfig::from_config(tls_config),
+            )
+            .map_err(|e| GatewayError::Serve(e.to_string()))?
+            .handle(handle.clone());
+            tasks.spawn(async move {
+                server
+                    .serve(app.into_make_service())
+                    .await
+                    .map_err(|e| GatewayError::Serve(e.to_string()))
+            });
+        }
+        tracing::info!(rosbridge = ?self.info.rosbridge_addr, https = ?self.info.https_addr, "gateway serving");
+        let result = tokio::select! {
+            () = shutdown => Ok(()),
+            Some(done) = tasks.join_next() => done.map_err(|e| GatewayError::Serve(e.to_string())).and_then(|r| r),
+        };
+        let _ = self.shutdown_tx.send(true);
+        handle.graceful_shutdown(Some(Duration::from_secs(2)));
+        let drain = async { while tasks.join_next().await.is_some() {} };
+        if tokio::time::timeout(Duration::from_secs(3), drain).await.is_err() {
+            tracing::warn!("gateway connections did not close in time");
+        }
+        result
+    }
+}
+
+fn token_ok(shared: &Shared, query: &HashMap<String, String>) -> bool {
+    match &shared.token {
+        None => true,
+        Some(expected) => query
+            .get("token")
+            .is_some_and(|got| tls::token_matches(expected, got)),
+    }
+}
+
+fn upgrade(ws: WebSocketUpgrade) -> WebSocketUpgrade {
+    // The hard cap protects memory; the configured (smaller) limit is enforced per message with an error reply.
+    ws.max_message_size(HARD_MAX_MESSAGE_BYTES)
+        .max_frame_size(HARD_MAX_MESSAGE_BYTES)
+}
+
+async fn refuse(socket: WebSocket, first: String) {
+    let mut socket = socket;
+    let _ = socket.send(axum::extract::ws::Message::Text(first.into())).await;
+    let _ = socket
+        .send(axum::extract::ws::Message::Close(Some(
+            axum::extract::ws::CloseFrame {
+                code: close_code::POLICY,
+                reason: "wrong or missing pairing token".into(),
+            },
+        )))
+        .await;
+}
+
+const TOKEN_HELP: &str =
+    "wrong or missing pairing token: open the URL (or scan the QR code) the gateway printed";
+
+async fn serve_rosbridge(socket: WebSocket, shared: Arc<Shared>, authorised: bool) {
+    if !authorised {
+        refuse(socket, rosbridge::status(StatusLevel::Error, TOKEN_HELP, None)).await;
+        return;
+    }
+    let max = shared.config.max_message_bytes;
+    let stop = shared.shutdown.clone();
+    conn::run(socket, max, stop, |wiring| RosbridgeHandler::new(shared, wiring)).await;
+}
+
+async fn rosbridge_plain(
+    State(shared): State<Arc<Shared>>,
+    Query(query): Query<HashMap<String, String>>,
+    ws: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
+) -> Response {
+    let Ok(ws) = ws else {
+        return (
+            axum::http::StatusCode::UPGRADE_REQUIRED,
+            "phone2act gateway: this port speaks rosbridge v2 over WebSocket. The phone page is served over HTTPS \
+             (see the URL printed at start).\n",
+        )
+            .into_response();
+    };
+    let authorised = !shared.config.rosbridge_require_token || token_ok(&shared, &query);
+    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, authorised))
+}
+
+async fn rosbridge_tls(
+    State(shared): State<Arc<Shared>>,
+    Query(query): Query<HashMap<String, String>>,
+    ws: WebSocketUpgrade,
+) -> Response {
+    let authorised = token_ok(&shared, &query);
+    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, authorised))
+}
+
+async fn page_socket(
+    State(shared): State<Arc<Shared>>,
+    Query(query): Query<HashMap<String, String>>,
+    ws: WebSocketUpgrade,
+) -> Response {
+    let authorised = token_ok(&shared, &query);
+    upgrade(ws).on_upgrade(move |socket| async move {
+        if !authorised {
+            refuse(
+                socket,
+                serde_json::json!({"type": "error", "fatal": true, "message": TOKEN_HELP}).to_string(),
+            )
+            .await;
+            return;
+        }
+        let arms = match tokio::time::timeout(
+            Duration::from_secs(2),
+            shared.upstream.system().list_arms(ListArmsRequest {}),
+        )
+        .await
+        {
+            Ok(Ok(response)) => response.into_inner().arms.into_iter().map(|a| a.arm).collect(),
+            _ => vec![shared.config.default_arm.clone()],
+        };
+        let max = shared.config.max_message_bytes;
+        let stop = shared.shutdown.clone();
+        conn::run(socket, max, stop, |wiring| {
+            let handler = PageHandler::new(shared, wiring);
+            handler.welcome(&arms);
+            handler
+        })
+        .await;
+    })
+}
