@@ -6,6 +6,10 @@
 //! latest-only slot (a newer command replaces an unsent older one), and [`Bridge::feedback`] returns the newest
 //! measured state.
 
+pub mod dobot;
+pub mod feetech;
+pub mod so101;
+
 use nalgebra::Isometry3;
 use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::Duration;

@@ -1,0 +1,848 @@
+//! A Dobot CR5 controller on loopback TCP for tests and demos: the dashboard port (and, for V3 firmware, a
+//! separate motion port) answering `ErrorID,{values},Cmd;` as the controller does, a feedback port streaming the
+//! 1440-byte packet every 8 ms, and the HTTP tool-data endpoint that carries Modbus gripper frames.
+//!
+//! The arm is a point that moves toward the newest `ServoP` target so that it arrives `t` seconds after the
+//! command, capped at a maximum speed. There is no CR5 joint model: joints are reported as a fixed linear
+//! function of the tool pose, enough for feedback to move when the arm does. Faults can be injected: a robot
+//! error, dropped connections, and corrupt or truncated feedback packets.
+
+use super::feedback::{EulerConvention, FeedbackPacket};
+use super::gripper::parse_modbus_write_register;
+use super::protocol::{Firmware, RobotMode, split_command, split_top_level};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use std::io::{ErrorKind, Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tracing::debug;
+
+/// Emulator settings. Ports of 0 pick free ephemeral ports.
+#[derive(Clone, Debug)]
+pub struct EmulatorConfig {
+    pub firmware: Firmware,
+    pub bind_host: String,
+    pub dashboard_port: u16,
+    /// Only used with [`Firmware::V3`].
+    pub motion_port: u16,
+    pub feedback_port: u16,
+    pub http_port: u16,
+    /// How the emulated controller composes `rx, ry, rz` (the bridge must detect or be told).
+    pub convention: EulerConvention,
+    /// False leaves the quaternion field zero, as firmware that does not fill it.
+    pub fill_quaternion: bool,
+    pub feedback_period: Duration,
+    pub initial_pose: Isometry3<f64>,
+    pub max_speed_m_s: f64,
+}
+
+impl Default for EmulatorConfig {
+    fn default() -> Self {
+        Self {
+            firmware: Firmware::V4,
+            bind_host: "127.0.0.1".to_owned(),
+            dashboard_port: 0,
+            motion_port: 0,
+            feedback_port: 0,
+            http_port: 0,
+            convention: EulerConvention::ExtrinsicXyz,
+            fill_quaternion: true,
+            feedback_period: Duration::from_millis(8),
+            initial_pose: Isometry3::from_parts(
+                Translation3::new(-0.40, 0.0, 0.35),
+                UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+            ),
+            max_speed_m_s: 1.0,
+        }
+    }
+}
+
+/// A one-shot fault applied to the next feedback packet sent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Corruption {
+    /// Only the first 700 bytes of the packet are sent.
+    Truncate,
+    /// The test value is wrong.
+    BadTestValue,
+    /// The size field is wrong.
+    BadSize,
+}
+
+/// What the emulated controller is doing, as a test sees it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmulatorSnapshot {
+    pub mode: RobotMode,
+    pub enabled: bool,
+    pub pose: Isometry3<f64>,
+    pub target: Isometry3<f64>,
+    pub servo_commands: u64,
+    pub rejected_commands: u64,
+    pub last_servo_command: Option<String>,
+    pub speed_factor: u32,
+    pub digital_outputs: u64,
+    pub tool_outputs: u8,
+    /// Last value written to the Modbus gripper register, if any.
+    pub gripper_register: Option<u16>,
+    pub active_clients: usize,
+}
+
+#[derive(Debug)]
+struct State {
+    mode: RobotMode,
+    enabled: bool,
+    error_ids: Vec<i32>,
+    pose: Isometry3<f64>,
+    target: Isometry3<f64>,
+    remaining_s: f64,
+    last_advance: Instant,
+    servo_commands: u64,
+    rejected_commands: u64,
+    last_servo_command: Option<String>,
+    command_id: u64,
+    speed_factor: u32,
+    digital_outputs: u64,
+    tool_outputs: u8,
+    gripper_register: Option<u16>,
+    corruption: Option<Corruption>,
+}
+
+impl State {
+    fn advance(&mut self, now: Instant, max_speed_m_s: f64) {
+        let dt = now.saturating_duration_since(self.last_advance).as_secs_f64();
+        self.last_advance = now;
+        if dt <= 0.0 || self.remaining_s <= 0.0 && self.pose == self.target {
+            return;
+        }
+        let frac = if self.remaining_s <= dt {
+            1.0
+        } else {
+            dt / self.remaining_s
+        };
+        self.remaining_s = (self.remaining_s - dt).max(0.0);
+        let delta = self.target.translation.vector - self.pose.translation.vector;
+        let mut step = delta * frac;
+        let max_step = max_speed_m_s * dt;
+        if step.norm() > max_step {
+            step *= max_step / step.norm();
+        }
+        let rotation = self
+            .pose
+            .rotation
+            .try_slerp(&self.target.rotation, frac, 1e-9)
+            .unwrap_or(self.target.rotation);
+        self.pose = Isometry3::from_parts(Translation3::from(self.pose.translation.vector + step), rotation);
+        if self.remaining_s <= 0.0 && step.norm() < 1e-12 {
+            self.pose.rotation = self.target.rotation;
+        }
+    }
+
+    fn fault_mode(&self) -> RobotMode {
+        if !self.error_ids.is_empty() {
+            RobotMode::Error
+        } else if self.enabled {
+            RobotMode::Enabled
+        } else {
+            RobotMode::Disabled
+        }
+    }
+}
+
+#[derive(Debug)]
+struct Shared {
+    config: EmulatorConfig,
+    state: Mutex<State>,
+    clients: Mutex<Vec<TcpStream>>,
+    stop: AtomicBool,
+}
+
+impl Shared {
+    fn state(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// The running emulator. Dropping it stops every thread and closes every socket.
+#[derive(Debug)]
+pub struct DobotEmulator {
+    shared: Arc<Shared>,
+    dashboard_addr: SocketAddr,
+    motion_addr: SocketAddr,
+    feedback_addr: SocketAddr,
+    http_addr: SocketAddr,
+    threads: Mutex<Vec<JoinHandle<()>>>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum PortKind {
+    Dashboard,
+    Motion,
+    Feedback,
+    Http,
+}
+
+impl DobotEmulator {
+    /// Binds the listeners and starts serving.
+    pub fn start(config: EmulatorConfig) -> std::io::Result<Self> {
+        let bind = |port: u16| TcpListener::bind((config.bind_host.as_str(), port));
+        let dashboard = bind(config.dashboard_port)?;
+        let motion = if config.firmware == Firmware::V3 {
+            Some(bind(config.motion_port)?)
+        } else {
+            None
+        };
+        let feedback = bind(config.feedback_port)?;
+        let http = bind(config.http_port)?;
+        let dashboard_addr = dashboard.local_addr()?;
+        let motion_addr = motion
+            .as_ref()
+            .map_or(Ok(dashboard_addr), TcpListener::local_addr)?;
+        let feedback_addr = feedback.local_addr()?;
+        let http_addr = http.local_addr()?;
+        let now = Instant::now();
+        let shared = Arc::new(Shared {
+            state: Mutex::new(State {
+                mode: RobotMode::Disabled,
+                enabled: false,
+                error_ids: Vec::new(),
+                pose: config.initial_pose,
+                target: config.initial_pose,
+                remaining_s: 0.0,
+                last_advance: now,
+                servo_commands: 0,
+                rejected_commands: 0,
+                last_servo_command: None,
+                command_id: 0,
+                speed_factor: 100,
+                digital_outputs: 0,
+                tool_outputs: 0,
+                gripper_register: None,
+                corruption: None,
+            }),
+            config,
+            clients: Mutex::new(Vec::new()),
+            stop: AtomicBool::new(false),
+        });
+        let mut threads = Vec::new();
+        let mut listeners = vec![
+            (dashboard, PortKind::Dashboard),
+            (feedback, PortKind::Feedback),
+            (http, PortKind::Http),
+        ];
+        if let Some(m) = motion {
+            listeners.push((m, PortKind::Motion));
+        }
+        for (listener, kind) in listeners {
+            listener.set_nonblocking(true)?;
+            let shared = Arc::clone(&shared);
+            threads.push(
+                std::thread::Builder::new()
+                    .name(format!("dobot-emu-{kind:?}"))
+                    .spawn(move || accept_loop(&shared, &listener, kind))?,
+            );
+        }
+        Ok(Self {
+            shared,
+            dashboard_addr,
+            motion_addr,
+            feedback_addr,
+            http_addr,
+            threads: Mutex::new(threads),
+        })
+    }
+
+    pub fn dashboard_addr(&self) -> SocketAddr {
+        self.dashboard_addr
+    }
+    /// The motion port (the dashboard port on V4).
+    pub fn motion_addr(&self) -> SocketAddr {
+        self.motion_addr
+    }
+    pub fn feedback_addr(&self) -> SocketAddr {
+        self.feedback_addr
+    }
+    pub fn http_addr(&self) -> SocketAddr {
+        self.http_addr
+    }
+
+    /// The current state, advanced to now.
+    pub fn snapshot(&self) -> EmulatorSnapshot {
+        let mut s = self.shared.state();
+        s.advance(Instant::now(), self.shared.config.max_speed_m_s);
+        EmulatorSnapshot {
+            mode: s.mode,
+            enabled: s.enabled,
+            pose: s.pose,
+            target: s.target,
+            servo_commands: s.servo_commands,
+            rejected_commands: s.rejected_commands,
+            last_servo_command: s.last_servo_command.clone(),
+            speed_factor: s.speed_factor,
+            digital_outputs: s.digital_outputs,
+            tool_outputs: s.tool_outputs,
+            gripper_register: s.gripper_register,
+            active_clients: self
+                .shared
+                .clients
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .len(),
+        }
+    }
+
+    /// Puts the robot in the error state (mode 9) with `error_id`, halting it where it is.
+    pub fn inject_error(&self, error_id: i32) {
+        let mut s = self.shared.state();
+        s.advance(Instant::now(), self.shared.config.max_speed_m_s);
+        s.error_ids.push(error_id);
+        s.mode = RobotMode::Error;
+        s.target = s.pose;
+        s.remaining_s = 0.0;
+    }
+
+    /// Closes every client connection; the listeners stay open so clients can reconnect.
+    pub fn drop_connections(&self) {
+        let clients =
+            std::mem::take(&mut *self.shared.clients.lock().unwrap_or_else(PoisonError::into_inner));
+        for c in clients {
+            let _ = c.shutdown(Shutdown::Both);
+        }
+    }
+
+    /// Corrupts the next feedback packet sent.
+    pub fn corrupt_next_feedback(&self, corruption: Corruption) {
+        self.shared.state().corruption = Some(corruption);
+    }
+
+    /// Stops every thread and closes every socket. Idempotent.
+    pub fn shutdown(&self) {
+        self.shared.stop.store(true, Ordering::SeqCst);
+        self.drop_connections();
+        let threads = std::mem::take(&mut *self.threads.lock().unwrap_or_else(PoisonError::into_inner));
+        for t in threads {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for DobotEmulator {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+fn accept_loop(shared: &Arc<Shared>, listener: &TcpListener, kind: PortKind) {
+    let mut sessions: Vec<JoinHandle<()>> = Vec::new();
+    while !shared.stop.load(Ordering::SeqCst) {
+        match listener.accept() {
+            Ok((stream, peer)) => {
+                debug!(?kind, %peer, "emulator: client connected");
+                let _ = stream.set_nodelay(true);
+                if kind != PortKind::Http
+                    && let Ok(clone) = stream.try_clone()
+                {
+                    shared
+                        .clients
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .push(clone);
+                }
+                let shared = Arc::clone(shared);
+                let spawned = std::thread::Builder::new()
+                    .name(format!("dobot-emu-{kind:?}-client"))
+                    .spawn(move || match kind {
+                        PortKind::Dashboard | PortKind::Motion => serve_commands(&shared, stream, kind),
+                        PortKind::Feedback => serve_feedback(&shared, stream),
+                        PortKind::Http => serve_http(&shared, stream),
+                    });
+                if let Ok(handle) = spawned {
+                    sessions.push(handle);
+                }
+                sessions.retain(|h| !h.is_finished());
+            }
+            Err(e) if e.kind() == ErrorKind::WouldBlock => std::thread::sleep(Duration::from_millis(2)),
+            Err(e) => {
+                debug!(error = %e, "emulator: accept failed");
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+    }
+    for s in sessions {
+        let _ = s.join();
+    }
+}
+
+fn forget_client(shared: &Shared, stream: &TcpStream) {
+    let Ok(addr) = stream.peer_addr() else { return };
+    let Ok(local) = stream.local_addr() else { return };
+    shared
+        .clients
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .retain(|c| c.peer_addr().ok() != Some(addr) || c.local_addr().ok() != Some(local));
+}
+
+/// Takes one complete command off the front of `buffer`: the text up to the parenthesis that closes the first
+/// one, or a line without parentheses. Terminators (none, `\n`, `\r\n`) and stray `;` between commands are
+/// skipped, which is how the controller accepts all three.
+fn next_command(buffer: &mut String) -> Option<String> {
+    let start = buffer.find(|c: char| !c.is_whitespace() && c != ';')?;
+    buffer.drain(..start);
+    let mut depth = 0i32;
+    for (i, c) in buffer.char_indices() {
+        match c {
+            '(' => depth += 1,
+            ')' => {
+                depth -= 1;
+                if depth == 0 {
+                    let command: String = buffer.drain(..=i).collect();
+                    return Some(command);
+                }
+            }
+            '\n' if depth == 0 => {
+                let command: String = buffer.drain(..=i).collect();
+                return Some(command.trim().to_owned());
+            }
+            _ => {}
+        }
+    }
+    None
+}
+
+fn serve_commands(shared: &Arc<Shared>, mut stream: TcpStream, kind: PortKind) {
+    let _ = stream.set_read_timeout(Some(Duration::from_millis(20)));
+    let mut text = String::new();
+    let mut chunk = [0u8; 4096];
+    while !shared.stop.load(Ordering::SeqCst) {
+        let n = match stream.read(&mut chunk) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
+            Err(_) => break,
+        };
+        text.push_str(&String::from_utf8_lossy(&chunk[..n]));
+        while let Some(command) = next_command(&mut text) {
+            let reply = execute(shared, &command, kind);
+            if stream.write_all(reply.as_bytes()).is_err() {
+                forget_client(shared, &stream);
+                return;
+            }
+        }
+        if text.len() > 64 * 1024 {
+            // A client streaming text with no command in it: drop it rather than grow without bound.
+            text.clear();
+            let _ = stream.write_all(b"-10000,{},;");
+        }
+    }
+    forget_client(shared, &stream);
+}
+
+fn reply(code: i32, values: &str, echo: &str) -> String {
+    format!("{code},{{{values}}},{echo};")
+}
+
+fn parse_f64(p: &str) -> Option<f64> {
+    p.trim().parse::<f64>().ok().filter(|v| v.is_finite())
+}
+
+fn fmt6(v: &[f64; 6]) -> String {
+    v.iter().map(|x| format!("{x:.4}")).collect::<Vec<_>>().join(",")
+}
+
+fn pose_mm_deg(pose: &Isometry3<f64>, convention: EulerConvention) -> [f64; 6] {
+    let p = pose.translation.vector * 1000.0;
+    let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
+    [p.x, p.y, p.z, rx, ry, rz]
+}
+
+fn fake_joints_deg(pose_mm_deg: &[f64; 6]) -> [f64; 6] {
+    let [x, y, z, rx, ry, rz] = *pose_mm_deg;
+    [x / 10.0, y / 10.0, z / 10.0, rx, ry, rz]
+}
+
+/// Executes one command and returns the reply text.
+#[allow(clippy::too_many_lines)] // one arm per command reads better than a table of closures
+fn execute(shared: &Shared, command: &str, kind: PortKind) -> String {
+    let config = &shared.config;
+    let v3 = config.firmware == Firmware::V3;
+    let Some((name, params)) = split_command(command) else {
+        return reply(-10000, "", command);
+    };
+    let lname = name.to_ascii_lowercase();
+    let mut s = shared.state();
+    s.advance(Instant::now(), config.max_speed_m_s);
+    let is_motion = matches!(lname.as_str(), "servop" | "movl" | "movj");
+    // V3 keeps motion commands on the motion port and settings on the dashboard.
+    if v3 && (is_motion != (kind == PortKind::Motion)) {
+        s.rejected_commands += 1;
+        return reply(-10000, "", command);
+    }
+    let code_and_values: (i32, String) = match lname.as_str() {
+        "enablerobot" => {
+            if params.len() > 5 {
+                (-20000, String::new())
+            } else if !s.error_ids.is_empty() {
+                (-2, String::new())
+            } else {
+                s.enabled = true;
+                s.mode = RobotMode::Enabled;
+                (0, String::new())
+            }
+        }
+        "disablerobot" => {
+            s.enabled = false;
+            s.mode = s.fault_mode();
+            (0, String::new())
+        }
+        "clearerror" => {
+            s.error_ids.clear();
+            s.mode = s.fault_mode();
+            (0, String::new())
+        }
+        "poweron" | "requestcontrol" | "stop" => (0, String::new()),
+        "robotmode" => (0, s.mode.code().to_string()),
+        "geterrorid" => {
+            let ids: Vec<String> = s.error_ids.iter().map(i32::to_string).collect();
+            (0, format!("[[{}]]", ids.join(",")))
+        }
+        "getpose" => (0, fmt6(&pose_mm_deg(&s.pose, config.convention))),
+        "getangle" => (
+            0,
+            fmt6(&fake_joints_deg(&pose_mm_deg(&s.pose, config.convention))),
+        ),
+        "speedfactor" => match params.as_slice() {
+            [r] => match r.trim().parse::<u32>() {
+                Ok(r) if (1..=100).contains(&r) => {
+                    s.speed_factor = r;
+                    (0, String::new())
+                }
+                Ok(_) => (-40001, String::new()),
+                Err(_) => (-30001, String::new()),
+            },
+            _ => (-20000, String::new()),
+        },
+        "servop" => servo_p(&mut s, config, &params),
+        "movl" | "movj" => move_to(&mut s, config, &params),
+        "do" | "doinstant" | "doexecute" | "tooldo" | "tooldoinstant" | "tooldoexecute" => {
+            let v4_only = matches!(lname.as_str(), "doinstant" | "tooldoinstant");
+            let v3_only = matches!(lname.as_str(), "doexecute" | "tooldoexecute");
+            if (v3 && v4_only) || (!v3 && v3_only) {
+                (-10000, String::new())
+            } else {
+                set_output(&mut s, lname.starts_with("tool"), &params)
+            }
+        }
+        "getdo" | "gettooldo" => match params.first().and_then(|p| p.trim().parse::<u32>().ok()) {
+            Some(i) if (1..=64).contains(&i) => {
+                let bits = if lname == "getdo" {
+                    s.digital_outputs
+                } else {
+                    u64::from(s.tool_outputs)
+                };
+                (0, ((bits >> (i - 1)) & 1).to_string())
+            }
+            _ => (-40001, String::new()),
+        },
+        _ => (-10000, String::new()),
+    };
+    if code_and_values.0 != 0 {
+        s.rejected_commands += 1;
+    }
+    reply(code_and_values.0, &code_and_values.1, command.trim())
+}
+
+fn parse_pose(params: &[&str]) -> Result<[f64; 6], i32> {
+    let mut pose = [0.0; 6];
+    for (i, p) in params.iter().take(6).enumerate() {
+        pose[i] = parse_f64(p).ok_or(-30001 - i as i32)?;
+    }
+    Ok(pose)
+}
+
+fn pose_from_mm_deg(v: &[f64; 6], convention: EulerConvention) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(v[0] / 1000.0, v[1] / 1000.0, v[2] / 1000.0),
+        convention.to_rotation(v[3], v[4], v[5]),
+    )
+}
+
+fn servo_p(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
+    let v3 = config.firmware == Firmware::V3;
+    if params.len() < 6 || (v3 && params.len() != 6) || params.len() > 9 {
+        return (-20000, String::new());
+    }
+    let pose = match parse_pose(params) {
+        Ok(p) => p,
+        Err(code) => return (code, String::new()),
+    };
+    let mut t_s = 0.1;
+    for (n, p) in params[6..].iter().enumerate() {
+        let code_base = n as i32 + 1;
+        let Some((key, value)) = p.split_once('=') else {
+            return (-50000 - code_base, String::new());
+        };
+        let Some(value) = parse_f64(value) else {
+            return (-50000 - code_base, String::new());
+        };
+        let ok = match key.trim().to_ascii_lowercase().as_str() {
+            "t" => {
+                t_s = value;
+                (0.004..=3600.0).contains(&value)
+            }
+            "aheadtime" => (20.0..=100.0).contains(&value),
+            "gain" => (200.0..=1000.0).contains(&value),
+            _ => return (-50000 - code_base, String::new()),
+        };
+        if !ok {
+            return (-60000 - code_base, String::new());
+        }
+    }
+    if !s.error_ids.is_empty() {
+        return (-2, String::new());
+    }
+    if !s.enabled {
+        return (-1, String::new());
+    }
+    s.target = pose_from_mm_deg(&pose, config.convention);
+    s.remaining_s = t_s;
+    s.servo_commands += 1;
+    s.command_id += 1;
+    s.mode = RobotMode::Running;
+    s.last_servo_command = Some(format!("ServoP({})", params.join(",")));
+    (0, s.command_id.to_string())
+}
+
+fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
+    // V4: MovL(pose={x,...},...); V3: MovL(x,y,z,rx,ry,rz).
+    let values: Vec<&str> = match params.first().map(|p| p.trim()) {
+        Some(first) if first.to_ascii_lowercase().starts_with("pose=") => {
+            let inner = first[5..].trim().trim_start_matches('{').trim_end_matches('}');
+            split_top_level(inner)
+        }
+        _ => params.to_vec(),
+    };
+    if values.len() < 6 {
+        return (-20000, String::new());
+    }
+    let pose = match parse_pose(&values) {
+        Ok(p) => p,
+        Err(code) => return (code, String::new()),
+    };
+    if !s.error_ids.is_empty() {
+        return (-2, String::new());
+    }
+    if !s.enabled {
+        return (-1, String::new());
+    }
+    let target = pose_from_mm_deg(&pose, config.convention);
+    let distance_m = (target.translation.vector - s.pose.translation.vector).norm();
+    s.target = target;
+    s.remaining_s = (distance_m / (0.25 * f64::from(s.speed_factor) / 100.0)).max(0.05);
+    s.command_id += 1;
+    (0, s.command_id.to_string())
+}
+
+fn set_output(s: &mut State, tool: bool, params: &[&str]) -> (i32, String) {
+    if params.len() < 2 {
+        return (-20000, String::new());
+    }
+    let Ok(index) = params[0].trim().parse::<u32>() else {
+        return (-30001, String::new());
+    };
+    let Ok(status) = params[1].trim().parse::<u8>() else {
+        return (-30002, String::new());
+    };
+    let max_index = if tool { 4 } else { 24 };
+    if !(1..=max_index).contains(&index) {
+        return (-40001, String::new());
+    }
+    if status > 1 {
+        return (-40002, String::new());
+    }
+    if tool {
+        let bit = 1u8 << (index - 1);
+        s.tool_outputs = if status == 1 {
+            s.tool_outputs | bit
+        } else {
+            s.tool_outputs & !bit
+        };
+    } else {
+        let bit = 1u64 << (index - 1);
+        s.digital_outputs = if status == 1 {
+            s.digital_outputs | bit
+        } else {
+            s.digital_outputs & !bit
+        };
+    }
+    (0, String::new())
+}
+
+fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
+    let config = &shared.config;
+    let mut next = Instant::now();
+    while !shared.stop.load(Ordering::SeqCst) {
+        let (packet, corruption) = {
+            let mut s = shared.state();
+            s.advance(Instant::now(), config.max_speed_m_s);
+            if s.mode == RobotMode::Running && s.remaining_s <= 0.0 {
+                s.mode = RobotMode::Enabled;
+            }
+            let tool = pose_mm_deg(&s.pose, config.convention);
+            let target = pose_mm_deg(&s.target, config.convention);
+            let q = s.pose.rotation.into_inner();
+            let packet = FeedbackPacket {
+                digital_outputs: s.digital_outputs,
+                robot_mode: s.mode.code(),
+                timestamp_ms: SystemTime::now()
+                    .duration_since(UNIX_EPOCH)
+                    .map_or(0, |d| d.as_millis() as u64),
+                q_target_deg: fake_joints_deg(&target),
+                q_actual_deg: fake_joints_deg(&tool),
+                tool_vector_actual: tool,
+                tool_vector_target: target,
+                enable_status: u8::from(s.enabled),
+                error_status: u8::from(!s.error_ids.is_empty()),
+                current_command_id: s.command_id,
+                actual_quaternion_wxyz: if config.fill_quaternion {
+                    [q.w, q.i, q.j, q.k]
+                } else {
+                    [0.0; 4]
+                },
+                ..FeedbackPacket::default()
+            };
+            (packet, s.corruption.take())
+        };
+        let mut bytes = packet.encode();
+        match corruption {
+            Some(Corruption::Truncate) => bytes.truncate(700),
+            Some(Corruption::BadTestValue) => bytes[50] ^= 0x5A,
+            Some(Corruption::BadSize) => bytes[0..2].copy_from_slice(&1000u16.to_le_bytes()),
+            None => {}
+        }
+        if stream.write_all(&bytes).is_err() {
+            break;
+        }
+        next += config.feedback_period;
+        let now = Instant::now();
+        if next > now {
+            std::thread::sleep(next - now);
+        } else {
+            next = now;
+        }
+    }
+    forget_client(shared, &stream);
+}
+
+fn serve_http(shared: &Arc<Shared>, mut stream: TcpStream) {
+    let _ = stream.set_read_timeout(Some(Duration::from_secs(2)));
+    let mut request = Vec::new();
+    let mut chunk = [0u8; 1024];
+    let (head_end, content_length) = loop {
+        let n = match stream.read(&mut chunk) {
+            Ok(0) | Err(_) => return,
+            Ok(n) => n,
+        };
+        request.extend_from_slice(&chunk[..n]);
+        if let Some(pos) = request.windows(4).position(|w| w == b"\r\n\r\n") {
+            let head = String::from_utf8_lossy(&request[..pos]).to_ascii_lowercase();
+            let length = head
+                .lines()
+                .find_map(|l| l.strip_prefix("content-length:"))
+                .and_then(|v| v.trim().parse::<usize>().ok())
+                .unwrap_or(0);
+            break (pos + 4, length);
+        }
+        if request.len() > 16 * 1024 {
+            return;
+        }
+    };
+    while request.len() < head_end + content_length {
+        match stream.read(&mut chunk) {
+            Ok(0) | Err(_) => return,
+            Ok(n) => request.extend_from_slice(&chunk[..n]),
+        }
+    }
+    let body = &request[head_end..head_end + content_length];
+    let frame: Option<Vec<u8>> = serde_json::from_slice::<serde_json::Value>(body)
+        .ok()
+        .and_then(|v| {
+            v.get("value")?
+                .as_array()?
+                .iter()
+                .map(|x| x.as_u64().and_then(|x| u8::try_from(x).ok()))
+                .collect()
+        });
+    let accepted = frame.as_deref().and_then(parse_modbus_write_register);
+    let (status, text) = match accepted {
+        Some((_slave, _register, value)) => {
+            shared.state().gripper_register = Some(value);
+            ("200 OK", "{\"status\":\"ok\"}")
+        }
+        None => ("400 Bad Request", "{\"status\":\"bad frame\"}"),
+    };
+    let response = format!(
+        "HTTP/1.1 {status}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{text}",
+        text.len()
+    );
+    let _ = stream.write_all(response.as_bytes());
+}
+
+/// Rotation helper for tests: a tool pointing down (-z) as a CR5 usually holds it.
+pub fn tool_down(x_m: f64, y_m: f64, z_m: f64, yaw_rad: f64) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(x_m, y_m, z_m),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_rad)
+            * UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn commands_are_split_with_any_terminator() {
+        let mut b =
+            String::from("EnableRobot()ServoP(1,2,3,4,5,6,t=0.1)\r\nRobotMode()\nGetPose(user=0, tool=0");
+        assert_eq!(next_command(&mut b).as_deref(), Some("EnableRobot()"));
+        assert_eq!(next_command(&mut b).as_deref(), Some("ServoP(1,2,3,4,5,6,t=0.1)"));
+        assert_eq!(next_command(&mut b).as_deref(), Some("RobotMode()"));
+        assert_eq!(next_command(&mut b), None);
+        b.push(')');
+        assert_eq!(next_command(&mut b).as_deref(), Some("GetPose(user=0, tool=0)"));
+        let mut garbage = String::from("hello\n");
+        assert_eq!(next_command(&mut garbage).as_deref(), Some("hello"));
+    }
+
+    #[test]
+    fn dynamics_reach_the_target_in_t() {
+        let start = Instant::now();
+        let pose = tool_down(-0.4, 0.0, 0.3, 0.0);
+        let mut s = State {
+            mode: RobotMode::Enabled,
+            enabled: true,
+            error_ids: vec![],
+            pose,
+            target: tool_down(-0.35, 0.02, 0.3, 0.2),
+            remaining_s: 0.1,
+            last_advance: start,
+            servo_commands: 0,
+            rejected_commands: 0,
+            last_servo_command: None,
+            command_id: 0,
+            speed_factor: 100,
+            digital_outputs: 0,
+            tool_outputs: 0,
+            gripper_register: None,
+            corruption: None,
+        };
+        s.advance(start + Duration::from_millis(50), 1.0);
+        let halfway = (s.pose.translation.vector - pose.translation.vector).norm();
+        let full = (s.target.translation.vector - pose.translation.vector).norm();
+        assert!((halfway / full - 0.5).abs() < 0.05, "{halfway} of {full}");
+        s.advance(start + Duration::from_millis(120), 1.0);
+        assert!((s.pose.translation.vector - s.target.translation.vector).norm() < 1e-9);
+        assert!(s.pose.rotation.angle_to(&s.target.rotation) < 1e-9);
+    }
+}

@@ -1,0 +1,926 @@
+//! Dobot CR5 bridge over the controller's TCP interface.
+//!
+//! Three sockets: the dashboard port (settings, enable, errors, outputs), the motion port (`ServoP` streaming; the
+//! dashboard port itself on V4 firmware) and the 30004 feedback stream. Targets arrive in metres and unit
+//! quaternions and leave as millimetres and degrees in the controller's Euler convention, which is checked
+//! against the quaternion in the feedback packet before any motion is sent.
+//!
+//! Threads: a command thread takes the newest target from a [`LatestSlot`] and sends it (waiting for each
+//! reply, so a rejected command is seen at once); a feedback thread reads packets and publishes [`Feedback`].
+//! Faults (robot error mode, rejected commands, dropped sockets, silent feedback) show in [`Bridge::health`];
+//! while the bridge is not ready, targets are dropped and the robot holds its last target. Recovery is on
+//! request: [`Control::ClearError`], [`Control::Enable`], [`Control::Reconnect`].
+
+pub mod emulator;
+pub mod feedback;
+pub mod gripper;
+pub mod protocol;
+
+use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
+use gripper::GripperOutput;
+use nalgebra::{Isometry3, Translation3};
+use protocol::{Firmware, Reply, RobotMode, ServoParams, Terminator, error_text, parse_reply};
+use serde::Deserialize;
+use std::io::{ErrorKind, Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use tracing::{debug, info, warn};
+
+/// Configuration of one Dobot arm (`[arms.dobot]` in the server config).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DobotConfig {
+    /// Controller address: 192.168.5.1 wired, 192.168.1.6 wireless by default.
+    pub host: String,
+    #[serde(default)]
+    pub firmware: Firmware,
+    #[serde(default = "default_dashboard_port")]
+    pub dashboard_port: u16,
+    /// Port for `ServoP`; defaults to 30003 on V3 and the dashboard port (29999) on V4.
+    #[serde(default)]
+    pub motion_port: Option<u16>,
+    #[serde(default = "default_feedback_port")]
+    pub feedback_port: u16,
+    #[serde(default)]
+    pub terminator: Terminator,
+    /// `ServoP` `t`: time to reach each target, seconds. About the command period for streaming.
+    #[serde(default = "default_servo_t_s")]
+    pub servo_t_s: f64,
+    /// `ServoP` `aheadtime` (20..100).
+    #[serde(default = "default_aheadtime")]
+    pub aheadtime: f64,
+    /// `ServoP` `gain` (200..1000).
+    #[serde(default = "default_gain")]
+    pub gain: f64,
+    /// Global speed ratio set at start, percent (1..100).
+    #[serde(default = "default_speed_factor")]
+    pub speed_factor: u32,
+    /// The controller's Euler convention; omit to detect it from the feedback packet's quaternion.
+    #[serde(default)]
+    pub euler_convention: Option<EulerConvention>,
+    #[serde(default)]
+    pub gripper: GripperOutput,
+    #[serde(default = "default_connect_timeout_s")]
+    pub connect_timeout_s: f64,
+    #[serde(default = "default_reply_timeout_s")]
+    pub reply_timeout_s: f64,
+    /// Feedback silence after which the link is reported down.
+    #[serde(default = "default_feedback_timeout_s")]
+    pub feedback_timeout_s: f64,
+    #[serde(default = "default_true")]
+    pub clear_error_on_start: bool,
+    #[serde(default = "default_true")]
+    pub enable_on_start: bool,
+}
+
+fn default_dashboard_port() -> u16 {
+    29999
+}
+fn default_feedback_port() -> u16 {
+    30004
+}
+fn default_servo_t_s() -> f64 {
+    0.05
+}
+fn default_aheadtime() -> f64 {
+    50.0
+}
+fn default_gain() -> f64 {
+    500.0
+}
+fn default_speed_factor() -> u32 {
+    30
+}
+fn default_connect_timeout_s() -> f64 {
+    2.0
+}
+fn default_reply_timeout_s() -> f64 {
+    1.0
+}
+fn default_feedback_timeout_s() -> f64 {
+    0.25
+}
+fn default_true() -> bool {
+    true
+}
+
+impl DobotConfig {
+    /// A config with every default, for `host`.
+    pub fn new(host: impl Into<String>) -> Self {
+        Self {
+            host: host.into(),
+            firmware: Firmware::default(),
+            dashboard_port: default_dashboard_port(),
+            motion_port: None,
+            feedback_port: default_feedback_port(),
+            terminator: Terminator::default(),
+            servo_t_s: default_servo_t_s(),
+            aheadtime: default_aheadtime(),
+            gain: default_gain(),
+            speed_factor: default_speed_factor(),
+            euler_convention: None,
+            gripper: GripperOutput::default(),
+            connect_timeout_s: default_connect_timeout_s(),
+            reply_timeout_s: default_reply_timeout_s(),
+            feedback_timeout_s: default_feedback_timeout_s(),
+            clear_error_on_start: true,
+            enable_on_start: true,
+        }
+    }
+
+    /// The motion port after applying the firmware default.
+    pub fn effective_motion_port(&self) -> u16 {
+        self.motion_port.unwrap_or(match self.firmware {
+            Firmware::V3 => Firmware::V3.default_motion_port(),
+            Firmware::V4 => self.dashboard_port,
+        })
+    }
+
+    /// Checks ranges the controller would reject, so a typo fails at start rather than on the first command.
+    pub fn validate(&self) -> Result<(), BridgeError> {
+        let bad = |m: String| Err(BridgeError::Config(format!("dobot: {m}")));
+        if self.host.trim().is_empty() {
+            return bad("host is empty".into());
+        }
+        if !(0.004..=3600.0).contains(&self.servo_t_s) {
+            return bad(format!("servo_t_s {} outside [0.004, 3600]", self.servo_t_s));
+        }
+        if !(20.0..=100.0).contains(&self.aheadtime) {
+            return bad(format!("aheadtime {} outside [20, 100]", self.aheadtime));
+        }
+        if !(200.0..=1000.0).contains(&self.gain) {
+            return bad(format!("gain {} outside [200, 1000]", self.gain));
+        }
+        if !(1..=100).contains(&self.speed_factor) {
+            return bad(format!("speed_factor {} outside [1, 100]", self.speed_factor));
+        }
+        for (name, v) in [
+            ("connect_timeout_s", self.connect_timeout_s),
+            ("reply_timeout_s", self.reply_timeout_s),
+            ("feedback_timeout_s", self.feedback_timeout_s),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 60.0) {
+                return bad(format!("{name} {v} outside (0, 60]"));
+            }
+        }
+        Ok(())
+    }
+
+    fn servo_params(&self) -> Option<ServoParams> {
+        // V3 `ServoP` takes exactly six parameters.
+        (self.firmware == Firmware::V4).then_some(ServoParams {
+            t_s: self.servo_t_s,
+            aheadtime: self.aheadtime,
+            gain: self.gain,
+        })
+    }
+}
+
+/// Counters and last faults, for status pages, tests and benchmarks.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DobotStats {
+    pub servo_sent: u64,
+    pub servo_rejected: u64,
+    /// Targets dropped because the robot was not ready (the arm held).
+    pub targets_held: u64,
+    /// Targets replaced by a newer one before they were sent.
+    pub targets_superseded: u64,
+    pub packets_ok: u64,
+    pub packets_rejected: u64,
+    pub last_packet_error: Option<String>,
+    pub last_command_error: Option<String>,
+    pub convention: EulerConvention,
+    pub convention_verified: bool,
+    pub reconnects: u64,
+}
+
+/// A line-oriented request/reply connection (dashboard or motion port).
+#[derive(Debug)]
+struct CommandConn {
+    stream: TcpStream,
+    pending: Vec<u8>,
+    terminator: Terminator,
+}
+
+impl CommandConn {
+    fn connect(addr: SocketAddr, config: &DobotConfig) -> std::io::Result<Self> {
+        let stream = TcpStream::connect_timeout(&addr, Duration::from_secs_f64(config.connect_timeout_s))?;
+        // Small commands at 125 Hz: Nagle would hold each one for the previous reply's ACK.
+        stream.set_nodelay(true)?;
+        stream.set_read_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
+        stream.set_write_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
+        Ok(Self {
+            stream,
+            pending: Vec::with_capacity(256),
+            terminator: config.terminator,
+        })
+    }
+
+    /// Sends a command and reads its reply (up to the `;` that ends it).
+    fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
+        let mut wire = String::with_capacity(command.len() + 2);
+        wire.push_str(command);
+        wire.push_str(self.terminator.as_str());
+        self.stream.write_all(wire.as_bytes()).map_err(LinkError::Io)?;
+        let mut chunk = [0u8; 512];
+        loop {
+            if let Some(end) = self.pending.iter().position(|&b| b == b';') {
+                let text: Vec<u8> = self.pending.drain(..=end).collect();
+                let text = String::from_utf8_lossy(&text);
+                return parse_reply(&text).map_err(|e| LinkError::Protocol(e.to_string()));
+            }
+            if self.pending.len() > 64 * 1024 {
+                self.pending.clear();
+                return Err(LinkError::Protocol("reply longer than 64 KiB without ';'".into()));
+            }
+            match self.stream.read(&mut chunk) {
+                Ok(0) => {
+                    return Err(LinkError::Io(std::io::Error::new(
+                        ErrorKind::UnexpectedEof,
+                        "closed by robot",
+                    )));
+                }
+                Ok(n) => self.pending.extend_from_slice(&chunk[..n]),
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                    return Err(LinkError::Timeout(command.to_owned()));
+                }
+                Err(e) => return Err(LinkError::Io(e)),
+            }
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+enum LinkError {
+    #[error("{0}")]
+    Io(std::io::Error),
+    #[error("no reply to {0} in time")]
+    Timeout(String),
+    #[error("{0}")]
+    Protocol(String),
+}
+
+#[derive(Debug)]
+enum Link {
+    Connecting,
+    Up,
+    Down(String),
+}
+
+#[derive(Debug)]
+struct Status {
+    link: Link,
+    robot_mode: Option<RobotMode>,
+    last_packet_at: Option<Instant>,
+    last_packet_error: Option<String>,
+    last_command_error: Option<String>,
+    convention: EulerConvention,
+    convention_verified: bool,
+    convention_error: Option<String>,
+    reconnects: u64,
+}
+
+#[derive(Debug)]
+struct Inner {
+    config: DobotConfig,
+    joint_names: Vec<String>,
+    slot: LatestSlot<Command>,
+    feedback: FeedbackCell,
+    status: Mutex<Status>,
+    dashboard: Mutex<Option<CommandConn>>,
+    /// `None` inside when motion shares the dashboard connection.
+    motion: Mutex<Option<CommandConn>>,
+    feedback_socket: Mutex<Option<TcpStream>>,
+    feedback_thread: Mutex<Option<JoinHandle<()>>>,
+    command_thread: Mutex<Option<JoinHandle<()>>>,
+    generation: AtomicU64,
+    stop: AtomicBool,
+    applied_seq: AtomicU64,
+    gripper_sent: Mutex<Option<f64>>,
+    servo_sent: AtomicU64,
+    servo_rejected: AtomicU64,
+    targets_held: AtomicU64,
+    packets_ok: AtomicU64,
+    packets_rejected: AtomicU64,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The Dobot CR5 bridge. Create with [`DobotBridge::start`].
+#[derive(Debug)]
+pub struct DobotBridge {
+    inner: Arc<Inner>,
+}
+
+impl DobotBridge {
+    /// Connects to the controller, clears errors, sets the speed, enables the robot (as configured), waits for
+    /// the first feedback packet and starts streaming.
+    pub fn start(config: DobotConfig) -> Result<Arc<Self>, BridgeError> {
+        config.validate()?;
+        let inner = Arc::new(Inner {
+            joint_names: (1..=6).map(|i| format!("j{i}")).collect(),
+            slot: LatestSlot::default(),
+            feedback: FeedbackCell::default(),
+            status: Mutex::new(Status {
+                link: Link::Connecting,
+                robot_mode: None,
+                last_packet_at: None,
+                last_packet_error: None,
+                last_command_error: None,
+                convention: config.euler_convention.unwrap_or_default(),
+                convention_verified: false,
+                convention_error: None,
+                reconnects: 0,
+            }),
+            dashboard: Mutex::new(None),
+            motion: Mutex::new(None),
+            feedback_socket: Mutex::new(None),
+            feedback_thread: Mutex::new(None),
+            command_thread: Mutex::new(None),
+            generation: AtomicU64::new(0),
+            stop: AtomicBool::new(false),
+            applied_seq: AtomicU64::new(0),
+            gripper_sent: Mutex::new(None),
+            servo_sent: AtomicU64::new(0),
+            servo_rejected: AtomicU64::new(0),
+            targets_held: AtomicU64::new(0),
+            packets_ok: AtomicU64::new(0),
+            packets_rejected: AtomicU64::new(0),
+            config,
+        });
+        if let Err(e) = inner.connect() {
+            inner.close(format!("start failed: {e}"));
+            return Err(e);
+        }
+        let worker = Arc::clone(&inner);
+        let handle = std::thread::Builder::new()
+            .name("dobot-command".into())
+            .spawn(move || worker.command_loop())
+            .map_err(BridgeError::Io)?;
+        *lock(&inner.command_thread) = Some(handle);
+        Ok(Arc::new(Self { inner }))
+    }
+
+    pub fn config(&self) -> &DobotConfig {
+        &self.inner.config
+    }
+
+    /// Counters and the last faults seen.
+    pub fn stats(&self) -> DobotStats {
+        let s = lock(&self.inner.status);
+        DobotStats {
+            servo_sent: self.inner.servo_sent.load(Ordering::Relaxed),
+            servo_rejected: self.inner.servo_rejected.load(Ordering::Relaxed),
+            targets_held: self.inner.targets_held.load(Ordering::Relaxed),
+            targets_superseded: self.inner.slot.superseded(),
+            packets_ok: self.inner.packets_ok.load(Ordering::Relaxed),
+            packets_rejected: self.inner.packets_rejected.load(Ordering::Relaxed),
+            last_packet_error: s.last_packet_error.clone(),
+            last_command_error: s.last_command_error.clone(),
+            convention: s.convention,
+            convention_verified: s.convention_verified,
+            reconnects: s.reconnects,
+        }
+    }
+
+    /// Sends one dashboard command and returns the parsed reply (for tools and diagnostics).
+    pub fn dashboard(&self, command: &str) -> Result<Reply, BridgeError> {
+        self.inner.dashboard_request(command)
+    }
+}
+
+impl Drop for DobotBridge {
+    fn drop(&mut self) {
+        self.inner.shutdown();
+    }
+}
+
+impl Inner {
+    fn resolve(&self, port: u16) -> Result<SocketAddr, BridgeError> {
+        (self.config.host.as_str(), port)
+            .to_socket_addrs()
+            .map_err(|e| BridgeError::Connect {
+                target: format!("{}:{port}", self.config.host),
+                message: e.to_string(),
+            })?
+            .next()
+            .ok_or_else(|| BridgeError::Connect {
+                target: format!("{}:{port}", self.config.host),
+                message: "address did not resolve".into(),
+            })
+    }
+
+    fn connect_error(&self, port: u16, e: &std::io::Error) -> BridgeError {
+        BridgeError::Connect {
+            target: format!("{}:{port}", self.config.host),
+            message: e.to_string(),
+        }
+    }
+
+    /// (Re)opens every socket, runs the start-up commands and waits for feedback.
+    fn connect(self: &Arc<Self>) -> Result<(), BridgeError> {
+        let generation = self.generation.fetch_add(1, Ordering::SeqCst) + 1;
+        self.close_sockets();
+        {
+            let mut s = lock(&self.status);
+            s.link = Link::Connecting;
+            s.last_packet_at = None;
+            s.robot_mode = None;
+        }
+        let cfg = &self.config;
+        let dashboard_addr = self.resolve(cfg.dashboard_port)?;
+        let dashboard = CommandConn::connect(dashboard_addr, cfg)
+            .map_err(|e| self.connect_error(cfg.dashboard_port, &e))?;
+        let motion_port = cfg.effective_motion_port();
+        let motion = if motion_port == cfg.dashboard_port {
+            None
+        } else {
+            let addr = self.resolve(motion_port)?;
+            Some(CommandConn::connect(addr, cfg).map_err(|e| self.connect_error(motion_port, &e))?)
+        };
+        let feedback_addr = self.resolve(cfg.feedback_port)?;
+        let feedback =
+            TcpStream::connect_timeout(&feedback_addr, Duration::from_secs_f64(cfg.connect_timeout_s))
+                .map_err(|e| self.connect_error(cfg.feedback_port, &e))?;
+        feedback.set_read_timeout(Some(Duration::from_millis(50)))?;
+        *lock(&self.feedback_socket) = Some(feedback.try_clone()?);
+        *lock(&self.dashboard) = Some(dashboard);
+        *lock(&self.motion) = motion;
+
+        if let Some(old) = lock(&self.feedback_thread).take() {
+            let _ = old.join();
+        }
+        let reader = Arc::clone(self);
+        let handle = std::thread::Builder::new()
+            .name("dobot-feedback".into())
+            .spawn(move || reader.feedback_loop(feedback, generation))?;
+        *lock(&self.feedback_thread) = Some(handle);
+
+        if cfg.clear_error_on_start {
+            self.dashboard_ok("ClearError()")?;
+        }
+        self.dashboard_ok(&format!("SpeedFactor({})", cfg.speed_factor))?;
+        if cfg.enable_on_start {
+            // An enable refused because the robot is in error is a robot state, not a start failure: it shows
+            // in health and can be retried with Control::ClearError / Control::Enable.
+            if let Err(e) = self.dashboard_ok("EnableRobot()") {
+                warn!(error = %e, "dobot: EnableRobot refused");
+                lock(&self.status).last_command_error = Some(e.to_string());
+            }
+        }
+        // Wait for packets sent after the start-up commands, so health reflects them when this returns. The
+        // first one may have left the controller before the enable took effect, hence two.
+        let deadline = Instant::now() + Duration::from_secs_f64(cfg.connect_timeout_s);
+        let packets_before = self.packets_ok.load(Ordering::SeqCst);
+        while self.packets_ok.load(Ordering::SeqCst) < packets_before + 2 {
+            if Instant::now() > deadline {
+                return Err(BridgeError::Connect {
+                    target: feedback_addr.to_string(),
+                    message: "connected but no valid feedback packet arrived".into(),
+                });
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        let mut s = lock(&self.status);
+        s.link = Link::Up;
+        info!(host = %cfg.host, firmware = ?cfg.firmware, motion_port, "dobot: connected");
+        Ok(())
+    }
+
+    fn close_sockets(&self) {
+        if let Some(s) = lock(&self.feedback_socket).take() {
+            let _ = s.shutdown(Shutdown::Both);
+        }
+        for conn in [&self.dashboard, &self.motion] {
+            if let Some(c) = lock(conn).take() {
+                let _ = c.stream.shutdown(Shutdown::Both);
+            }
+        }
+    }
+
+    fn close(&self, why: String) {
+        self.close_sockets();
+        lock(&self.status).link = Link::Down(why);
+    }
+
+    fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
+        let mut guard = lock(&self.dashboard);
+        let conn = guard
+            .as_mut()
+            .ok_or_else(|| BridgeError::Protocol("dashboard not connected".into()))?;
+        match conn.request(command) {
+            Ok(reply) => Ok(reply),
+            Err(LinkError::Protocol(m)) => Err(BridgeError::Protocol(m)),
+            Err(e) => {
+                drop(guard);
+                let why = format!("dashboard: {e}");
+                self.close(why.clone());
+                Err(BridgeError::Protocol(why))
+            }
+        }
+    }
+
+    /// A dashboard command that must succeed (ErrorID 0).
+    fn dashboard_ok(&self, command: &str) -> Result<Reply, BridgeError> {
+        let reply = self.dashboard_request(command)?;
+        if reply.error_id == 0 {
+            Ok(reply)
+        } else {
+            Err(BridgeError::Protocol(format!(
+                "{command} failed: error {} ({})",
+                reply.error_id,
+                error_text(reply.error_id)
+            )))
+        }
+    }
+
+    fn motion_request(&self, command: &str) -> Result<Reply, LinkError> {
+        let mut motion = lock(&self.motion);
+        if let Some(conn) = motion.as_mut() {
+            return conn.request(command);
+        }
+        drop(motion);
+        let mut dashboard = lock(&self.dashboard);
+        let conn = dashboard
+            .as_mut()
+            .ok_or_else(|| LinkError::Protocol("not connected".into()))?;
+        conn.request(command)
+    }
+
+    fn health(&self) -> Health {
+        let s = lock(&self.status);
+        match &s.link {
+            Link::Connecting => return Health::Connecting,
+            Link::Down(why) => return Health::Disconnected(why.clone()),
+            Link::Up => {}
+        }
+        let timeout = Duration::from_secs_f64(self.config.feedback_timeout_s);
+        match s.last_packet_at {
+            Some(t) if t.elapsed() <= timeout => {}
+            _ => {
+                return Health::Disconnected(format!(
+                    "no feedback packet for more than {} ms",
+                    timeout.as_millis()
+                ));
+            }
+        }
+        if let Some(e) = &s.convention_error {
+            return Health::Error(e.clone());
+        }
+        match s.robot_mode {
+            Some(mode) if mode.is_fault() => {
+                return Health::Error(format!("robot in {mode:?} mode ({})", mode.code()));
+            }
+            Some(mode) if !mode.accepts_motion() => {
+                return Health::Error(format!("robot not enabled: {mode:?} mode ({})", mode.code()));
+            }
+            _ => {}
+        }
+        if let Some(e) = &s.last_command_error {
+            return Health::Error(e.clone());
+        }
+        Health::Ready
+    }
+
+    fn feedback_loop(self: Arc<Self>, mut socket: TcpStream, generation: u64) {
+        let mut reader = FrameReader::default();
+        let mut chunk = vec![0u8; 8192];
+        let current =
+            || self.generation.load(Ordering::SeqCst) == generation && !self.stop.load(Ordering::SeqCst);
+        while current() {
+            match socket.read(&mut chunk) {
+                Ok(0) => {
+                    if current() {
+                        warn!("dobot: feedback connection closed by the robot");
+                        self.close("feedback connection closed by the robot".into());
+                    }
+                    return;
+                }
+                Ok(n) => reader.push(&chunk[..n]),
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
+                Err(e) => {
+                    if current() {
+                        warn!(error = %e, "dobot: feedback connection failed");
+                        self.close(format!("feedback connection: {e}"));
+                    }
+                    return;
+                }
+            }
+            while let Some(result) = reader.next_packet() {
+                match result {
+                    Ok(packet) => self.on_packet(&packet),
+                    Err(e) => {
+                        self.packets_rejected.fetch_add(1, Ordering::Relaxed);
+                        warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
+                        lock(&self.status).last_packet_error = Some(e.to_string());
+                    }
+                }
+            }
+        }
+    }
+
+    fn on_packet(&self, packet: &FeedbackPacket) {
+        self.packets_ok.fetch_add(1, Ordering::Relaxed);
+        let convention = {
+            let mut s = lock(&self.status);
+            s.last_packet_at = Some(Instant::now());
+            let mode = RobotMode::from_code(packet.robot_mode);
+            if s.robot_mode != Some(mode) {
+                debug!(?mode, "dobot: robot mode");
+            }
+            s.robot_mode = Some(mode);
+            if !s.convention_verified && s.convention_error.is_none() {
+                Self::verify_convention(&mut s, packet, self.config.euler_convention);
+            }
+            s.convention
+        };
+        let [x, y, z, rx, ry, rz] = packet.tool_vector_actual;
+        let robot_from_ee = Isometry3::from_parts(
+            Translation3::new(x / 1000.0, y / 1000.0, z / 1000.0),
+            convention.to_rotation(rx, ry, rz),
+        );
+        let gripper_position = match &self.config.gripper {
+            GripperOutput::Do { index, closed_high } if (1..=64).contains(index) => {
+                let high = (packet.digital_outputs >> (index - 1)) & 1 == 1;
+                if high == *closed_high { 1.0 } else { 0.0 }
+            }
+            _ => lock(&self.gripper_sent).unwrap_or(0.0),
+        };
+        let feedback = Feedback {
+            capture_time_ns: crate::dobot::monotonic_ns(),
+            joint_positions_rad: packet.q_actual_deg.iter().map(|d| d.to_radians()).collect(),
+            robot_from_ee,
+            gripper_position,
+            applied_seq: self.applied_seq.load(Ordering::SeqCst),
+            task_success: false,
+        };
+        *lock(&self.feedback) = Some(feedback);
+    }
+
+    fn verify_convention(s: &mut Status, packet: &FeedbackPacket, configured: Option<EulerConvention>) {
+        let assumed = configured.unwrap_or(s.convention);
+        match check_convention(packet, assumed) {
+            ConventionCheck::Confirmed => {
+                s.convention = assumed;
+                s.convention_verified = true;
+                info!(convention = ?assumed, "dobot: Euler convention confirmed by the packet quaternion");
+            }
+            ConventionCheck::Contradicted { fits } => {
+                if configured.is_some() {
+                    let m = format!(
+                        "configured Euler convention {assumed:?} contradicts the robot's quaternion (it fits {fits:?}); \
+                         motion disabled"
+                    );
+                    warn!("dobot: {m}");
+                    s.convention_error = Some(m);
+                } else {
+                    info!(convention = ?fits, "dobot: Euler convention detected from the packet quaternion");
+                    s.convention = fits;
+                    s.convention_verified = true;
+                }
+            }
+            ConventionCheck::NeitherFits => {
+                let m = "the robot's Euler angles and quaternion disagree under both conventions; motion disabled";
+                warn!("dobot: {m}");
+                s.convention_error = Some(m.to_owned());
+            }
+            // Keep checking later packets: a pose with one non-zero angle cannot tell the conventions apart.
+            ConventionCheck::Inconclusive => {}
+        }
+    }
+
+    fn command_loop(self: Arc<Self>) {
+        while !self.stop.load(Ordering::SeqCst) {
+            let Some(command) = self.slot.take_wait(Duration::from_millis(50)) else {
+                continue;
+            };
+            if self.health() != Health::Ready && !self.only_command_error() {
+                self.targets_held.fetch_add(1, Ordering::Relaxed);
+                continue;
+            }
+            self.send_target(&command);
+        }
+    }
+
+    /// True if the only fault is a previously rejected command: the next target may succeed and clear it.
+    fn only_command_error(&self) -> bool {
+        let s = lock(&self.status);
+        s.last_command_error.is_some()
+            && matches!(s.link, Link::Up)
+            && s.convention_error.is_none()
+            && s.robot_mode.is_some_and(RobotMode::accepts_motion)
+    }
+
+    fn send_target(&self, command: &Command) {
+        let pose = &command.robot_from_target;
+        let t = pose.translation.vector;
+        let q = pose.rotation.quaternion();
+        let finite = t.iter().all(|v| v.is_finite())
+            && q.coords.iter().all(|v| v.is_finite())
+            && command.gripper_target.is_finite();
+        if !finite {
+            self.targets_held.fetch_add(1, Ordering::Relaxed);
+            warn!(seq = command.seq, "dobot: non-finite target dropped; arm holds");
+            return;
+        }
+        let convention = lock(&self.status).convention;
+        let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
+        let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
+        let text = protocol::servo_p(&pose_mm_deg, self.config.servo_params());
+        match self.motion_request(&text) {
+            Ok(reply) if reply.error_id == 0 => {
+                self.servo_sent.fetch_add(1, Ordering::Relaxed);
+                self.applied_seq.store(command.seq, Ordering::SeqCst);
+                lock(&self.status).last_command_error = None;
+            }
+            Ok(reply) => {
+                self.servo_rejected.fetch_add(1, Ordering::Relaxed);
+                let m = format!(
+                    "ServoP rejected: error {} ({})",
+                    reply.error_id,
+                    error_text(reply.error_id)
+                );
+                warn!(seq = command.seq, "dobot: {m}");
+                lock(&self.status).last_command_error = Some(m);
+            }
+            Err(LinkError::Protocol(m)) => {
+                self.servo_rejected.fetch_add(1, Ordering::Relaxed);
+                lock(&self.status).last_command_error = Some(format!("ServoP: {m}"));
+            }
+            Err(e) => {
+                warn!(error = %e, "dobot: motion connection failed");
+                self.close(format!("motion connection: {e}"));
+                return;
+            }
+        }
+        self.send_gripper(command.gripper_target.clamp(0.0, 1.0));
+    }
+
+    fn send_gripper(&self, target: f64) {
+        let closed = target >= 0.5;
+        let v3 = self.config.firmware == Firmware::V3;
+        let (command, reported) = match &self.config.gripper {
+            GripperOutput::None => {
+                *lock(&self.gripper_sent) = Some(target);
+                return;
+            }
+            GripperOutput::Do { index, closed_high } => {
+                let name = if v3 { "DOExecute" } else { "DOInstant" };
+                (
+                    format!("{name}({index},{})", u8::from(closed == *closed_high)),
+                    f64::from(u8::from(closed)),
+                )
+            }
+            GripperOutput::ToolDo { index, closed_high } => {
+                let name = if v3 { "ToolDOExecute" } else { "ToolDOInstant" };
+                (
+                    format!("{name}({index},{})", u8::from(closed == *closed_high)),
+                    f64::from(u8::from(closed)),
+                )
+            }
+            GripperOutput::ModbusHttp {
+                port,
+                path,
+                slave,
+                register,
+                open_value,
+                closed_value,
+            } => {
+                let value = (f64::from(*open_value)
+                    + (f64::from(*closed_value) - f64::from(*open_value)) * target)
+                    .round()
+                    .clamp(0.0, f64::from(u16::MAX)) as u16;
+                let reported = if open_value == closed_value {
+                    target
+                } else {
+                    (f64::from(value) - f64::from(*open_value))
+                        / (f64::from(*closed_value) - f64::from(*open_value))
+                };
+                if lock(&self.gripper_sent).is_some_and(|g| (g - reported).abs() < 1e-3) {
+                    return;
+                }
+                let frame = gripper::modbus_write_register(*slave, *register, value);
+                let body = gripper::modbus_http_body(&frame);
+                let timeout = Duration::from_secs_f64(self.config.reply_timeout_s);
+                match gripper::http_post_json(&self.config.host, *port, path, &body, timeout) {
+                    Ok(200) => *lock(&self.gripper_sent) = Some(reported),
+                    Ok(status) => warn!(status, "dobot: gripper endpoint refused the frame"),
+                    Err(e) => warn!(error = %e, "dobot: gripper endpoint unreachable"),
+                }
+                return;
+            }
+        };
+        if lock(&self.gripper_sent).is_some_and(|g| (g - reported).abs() < 1e-9) {
+            return;
+        }
+        match self.dashboard_ok(&command) {
+            Ok(_) => *lock(&self.gripper_sent) = Some(reported),
+            Err(e) => warn!(error = %e, "dobot: gripper output failed"),
+        }
+    }
+
+    fn shutdown(&self) {
+        if self.stop.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        self.generation.fetch_add(1, Ordering::SeqCst);
+        self.close_sockets();
+        lock(&self.status).link = Link::Down("bridge shut down".into());
+        for slot in [&self.command_thread, &self.feedback_thread] {
+            let handle = lock(slot).take();
+            if let Some(h) = handle
+                && h.thread().id() != std::thread::current().id()
+            {
+                let _ = h.join();
+            }
+        }
+    }
+}
+
+impl Bridge for DobotBridge {
+    fn kind(&self) -> &'static str {
+        "dobot"
+    }
+
+    fn joint_names(&self) -> &[String] {
+        &self.inner.joint_names
+    }
+
+    fn send(&self, command: Command) {
+        self.inner.slot.put(command);
+    }
+
+    fn feedback(&self) -> Option<Feedback> {
+        lock(&self.inner.feedback).clone()
+    }
+
+    fn health(&self) -> Health {
+        self.inner.health()
+    }
+
+    fn control(&self, request: Control) -> Result<(), BridgeError> {
+        if self.inner.stop.load(Ordering::SeqCst) {
+            return Err(BridgeError::Protocol("bridge is shut down".into()));
+        }
+        match request {
+            Control::Enable => {
+                self.inner.dashboard_ok("EnableRobot()")?;
+            }
+            Control::Disable => {
+                self.inner.dashboard_ok("DisableRobot()")?;
+            }
+            Control::ClearError => {
+                self.inner.dashboard_ok("ClearError()")?;
+            }
+            Control::Reconnect => {
+                lock(&self.inner.status).reconnects += 1;
+                if let Err(e) = self.inner.connect() {
+                    self.inner.close(format!("reconnect failed: {e}"));
+                    return Err(e);
+                }
+            }
+        }
+        // A fresh start: the next rejected command will set it again.
+        lock(&self.inner.status).last_command_error = None;
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        self.inner.shutdown();
+    }
+}
+
+/// Monotonic nanoseconds since the first call in this process (the bridges' capture clock).
+pub(crate) fn monotonic_ns() -> i64 {
+    static EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    EPOCH.get_or_init(Instant::now).elapsed().as_nanos() as i64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_defaults_and_unknown_fields() {
+        let c: DobotConfig = serde_json::from_str(r#"{"host":"192.168.5.1"}"#).unwrap();
+        assert_eq!(c, DobotConfig::new("192.168.5.1"));
+        assert_eq!(c.effective_motion_port(), 29999);
+        let v3: DobotConfig =
+            serde_json::from_str(r#"{"host":"h","firmware":"v3","terminator":"none"}"#).unwrap();
+        assert_eq!(v3.effective_motion_port(), 30003);
+        assert_eq!(v3.servo_params(), None);
+        assert!(serde_json::from_str::<DobotConfig>(r#"{"host":"h","servo_t":0.1}"#).is_err());
+        let mut bad = DobotConfig::new("h");
+        bad.gain = 50.0;
+        assert!(matches!(bad.validate(), Err(BridgeError::Config(m)) if m.contains("gain")));
+        bad = DobotConfig::new("h");
+        bad.servo_t_s = 0.001;
+        assert!(bad.validate().is_err());
+    }
+}
