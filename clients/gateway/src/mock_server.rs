@@ -38,6 +38,8 @@ struct State {
     arms: HashMap<String, ArmState>,
     recording: RecordingStatus,
     streams_opened: u64,
+    /// Set on drop: open streams fail like a killed process's would, instead of draining gracefully.
+    killed: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -147,6 +149,7 @@ impl MockServer {
 
 impl Drop for MockServer {
     fn drop(&mut self) {
+        self.state.lock().expect("mock poisoned").killed = true;
         if let Some(stop) = self.stop.take() {
             let _ = stop.send(());
         }
@@ -265,6 +268,10 @@ impl Teleop for Mock {
         tokio::spawn(async move {
             let _ = tx.try_send(Ok(mock.apply(&arm, &first, arrival_ns)));
             while let Ok(Some(sample)) = inbound.message().await {
+                if mock.state.lock().expect("mock poisoned").killed {
+                    let _ = tx.try_send(Err(Status::unavailable("mock server stopped")));
+                    return;
+                }
                 let arrival_ns = mock.epoch.elapsed().as_nanos() as i64;
                 let feedback = mock.apply(&arm, &sample, arrival_ns);
                 let _ = tx.try_send(Ok(feedback));
