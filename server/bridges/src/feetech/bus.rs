@@ -222,7 +222,14 @@ impl FeetechBus {
         let deadline = Instant::now() + self.timeout;
         let mut out = Vec::with_capacity(ids.len());
         for &id in ids {
-            let p = self.receive(id, deadline)?;
+            let p = match self.receive(id, deadline) {
+                // Servos answer in list order: an answer from a later servo means this one stayed silent.
+                Err(BusError::WrongId { expected, got }) if ids.contains(&got) => {
+                    self.stats.timeouts += 1;
+                    return Err(BusError::Timeout { id: expected, timeout_ms: self.timeout.as_millis() as u64 });
+                }
+                other => other?,
+            };
             if p.params.len() != usize::from(len) {
                 return Err(BusError::ShortData {
                     id,

@@ -1,0 +1,510 @@
+//! The SO-101 bridge and the Feetech bus against emulated STS3215 servos on a real pseudo-terminal, driven
+//! only through the `Bridge` trait (and the calibration procedure).
+
+use nalgebra::Isometry3;
+use phone2act_bridges::feetech::protocol::register;
+use phone2act_bridges::feetech::{BusError, FeetechBus, FeetechEmulator};
+use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration, run_calibration};
+use phone2act_bridges::so101::{So101Bridge, So101Config};
+use phone2act_bridges::{Bridge, BridgeError, Command, Control, Health};
+use phone2act_core::kinematics::{SO101_JOINT_NAMES, So101Joints, So101Kinematics};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Ranges centred on 2047 (homing done), about ±88° for the body joints.
+fn synthetic_calibration() -> Calibration {
+    let ranges = [
+        (1000, 3094),
+        (1050, 3044),
+        (1080, 3014),
+        (1000, 3094),
+        (0, 4095),
+        (2000, 3400),
+    ];
+    Calibration {
+        motors: SO101_JOINT_NAMES
+            .iter()
+            .zip(ranges)
+            .enumerate()
+            .map(|(i, (name, (range_min, range_max)))| {
+                (
+                    (*name).to_owned(),
+                    MotorCalibration {
+                        id: i as u8 + 1,
+                        drive_mode: 0,
+                        homing_offset: 0,
+                        range_min,
+                        range_max,
+                    },
+                )
+            })
+            .collect(),
+    }
+}
+
+const START_JOINTS: So101Joints = [0.0, -0.8, 0.6, 1.1, 0.0];
+
+fn raw_for(cal: &Calibration, joints: &So101Joints, gripper_raw: u16) -> Vec<(u8, u16)> {
+    let mut out: Vec<(u8, u16)> = cal
+        .motors
+        .iter()
+        .take(5)
+        .zip(joints)
+        .map(|((_, m), q)| (m.id, m.deg_to_raw(q.to_degrees())))
+        .collect();
+    out.push((6, gripper_raw));
+    out
+}
+
+struct Rig {
+    emulator: FeetechEmulator,
+    bridge: Arc<So101Bridge>,
+    _dir: tempfile::TempDir,
+    link: PathBuf,
+}
+
+fn start_rig(configure: impl FnOnce(&mut So101Config)) -> Rig {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = synthetic_calibration();
+    let cal_path = dir.path().join("follower.json");
+    cal.save(&cal_path).unwrap();
+    let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
+    // Configured through a stable link, like /dev/serial/by-id/..., so a "replugged" bus can take its place.
+    let link = dir.path().join("ttySO101");
+    std::os::unix::fs::symlink(emulator.port_path(), &link).unwrap();
+    let mut config = So101Config::new(link.to_str().unwrap(), &cal_path);
+    configure(&mut config);
+    let bridge = So101Bridge::start(config).unwrap();
+    Rig {
+        emulator,
+        bridge,
+        _dir: dir,
+        link,
+    }
+}
+
+fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + timeout;
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+fn command(seq: u64, pose: Isometry3<f64>, gripper: f64) -> Command {
+    Command {
+        seq,
+        robot_from_target: pose,
+        gripper_target: gripper,
+        issue_time_ns: 0,
+    }
+}
+
+fn lerp(a: &So101Joints, b: &So101Joints, s: f64) -> So101Joints {
+    std::array::from_fn(|i| a[i] + (b[i] - a[i]) * s)
+}
+
+/// Streams FK poses along a joint-space path at about 100 Hz; returns the last pose and seq.
+fn stream_path(
+    bridge: &So101Bridge,
+    from: &So101Joints,
+    to: &So101Joints,
+    first_seq: u64,
+    n: u64,
+) -> (u64, Isometry3<f64>) {
+    let kin = So101Kinematics::new();
+    let mut last = kin.forward(from);
+    for i in 1..=n {
+        last = kin.forward(&lerp(from, to, i as f64 / n as f64));
+        bridge.send(command(first_seq + i, last, 0.0));
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    (first_seq + n, last)
+}
+
+fn position_error_m(a: &Isometry3<f64>, b: &Isometry3<f64>) -> f64 {
+    (a.translation.vector - b.translation.vector).norm()
+}
+
+#[test]
+fn teleop_targets_drive_the_emulated_arm_and_feedback_follows() {
+    let rig = start_rig(|_| {});
+    let bridge = &rig.bridge;
+    assert_eq!(bridge.kind(), "so101");
+    assert_eq!(
+        bridge.joint_names(),
+        [
+            "shoulder_pan",
+            "shoulder_lift",
+            "elbow_flex",
+            "wrist_flex",
+            "wrist_roll"
+        ]
+    );
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    // Start-up configured the motors as lerobot does and enabled torque without moving the arm.
+    let s1 = rig.emulator.servo(1).unwrap();
+    assert!(s1.torque_enabled() && s1.locked());
+    assert_eq!(s1.register(register::P_COEFFICIENT), 16);
+    assert_eq!(s1.position_limits(), (1000, 3094));
+    assert_eq!(
+        rig.emulator
+            .servo(6)
+            .unwrap()
+            .register(register::MAX_TORQUE_LIMIT),
+        500
+    );
+    let fb = bridge.feedback().unwrap();
+    let kin = So101Kinematics::new();
+    assert!(position_error_m(&fb.robot_from_ee, &kin.forward(&START_JOINTS)) < 2e-3);
+    for (q, q0) in fb.joint_positions_rad.iter().zip(START_JOINTS) {
+        assert!((q - q0).abs() < 0.01, "{q} vs {q0}");
+    }
+    assert!(
+        fb.gripper_position < 0.25,
+        "gripper starts mostly open: {}",
+        fb.gripper_position
+    );
+
+    let goal = [0.35, -0.4, 0.3, 0.9, 0.4];
+    let (last_seq, last) = stream_path(bridge, &START_JOINTS, &goal, 0, 80);
+    wait_for("the arm to reach the last target", Duration::from_secs(3), || {
+        bridge
+            .feedback()
+            .is_some_and(|f| f.applied_seq == last_seq && position_error_m(&f.robot_from_ee, &last) < 3e-3)
+    });
+    let fb = bridge.feedback().unwrap();
+    assert!(
+        fb.robot_from_ee.rotation.angle_to(&last.rotation) < 0.05,
+        "orientation off"
+    );
+    // The servos themselves are where the bridge says.
+    let present = rig.emulator.servo(1).unwrap().present_position();
+    let cal = synthetic_calibration();
+    let pan_deg = cal.motors[0].1.raw_to_deg(present as u16);
+    assert!((pan_deg.to_radians() - fb.joint_positions_rad[0]).abs() < 0.01);
+    assert!((pan_deg.to_radians() - goal[0]).abs() < 0.05, "pan {pan_deg} deg");
+
+    // Gripper: close, then the feedback reports it closed.
+    bridge.send(command(last_seq + 1, last, 1.0));
+    wait_for("gripper closed", Duration::from_secs(2), || {
+        bridge.feedback().is_some_and(|f| f.gripper_position > 0.95)
+    });
+    assert_eq!(rig.emulator.servo(6).unwrap().goal_position(), 2000);
+
+    let stats = bridge.stats();
+    assert_eq!(stats.failed_cycles, 0);
+    assert!(stats.goals_written >= 40, "{stats:?}");
+}
+
+#[test]
+fn feedback_runs_at_the_configured_rate() {
+    let rig = start_rig(|_| {});
+    wait_for("ready", Duration::from_secs(2), || {
+        rig.bridge.health() == Health::Ready
+    });
+    let start = rig.bridge.stats().cycles;
+    let mut stamps = std::collections::BTreeSet::new();
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_millis(500) {
+        if let Some(f) = rig.bridge.feedback() {
+            stamps.insert(f.capture_time_ns);
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let cycles = rig.bridge.stats().cycles - start;
+    // 100 Hz for 0.5 s is 50; allow scheduling slack on a loaded test machine.
+    assert!(cycles >= 40, "{cycles} cycles in 0.5 s");
+    assert!(
+        stamps.len() >= 35,
+        "{} distinct feedback samples in 0.5 s",
+        stamps.len()
+    );
+}
+
+#[test]
+fn silent_servo_is_reported_the_arm_holds_and_it_recovers() {
+    let rig = start_rig(|c| c.timeout_ms = 10);
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    rig.emulator.with_servo(3, |s| s.mute = true);
+    wait_for(
+        "error health",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("servo 3 did not answer")),
+    );
+    let goal_before = rig.emulator.servo(1).unwrap().goal_position();
+    let goal = [0.4, -0.5, 0.4, 0.9, 0.0];
+    stream_path(bridge, &START_JOINTS, &goal, 0, 20);
+    assert_eq!(
+        rig.emulator.servo(1).unwrap().goal_position(),
+        goal_before,
+        "no goal may be written while a servo is silent"
+    );
+
+    rig.emulator.with_servo(3, |s| s.mute = false);
+    wait_for("ready again", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    let (seq, last) = stream_path(bridge, &START_JOINTS, &goal, 100, 20);
+    wait_for("following again", Duration::from_secs(3), || {
+        bridge
+            .feedback()
+            .is_some_and(|f| f.applied_seq == seq && position_error_m(&f.robot_from_ee, &last) < 3e-3)
+    });
+    assert!(bridge.stats().bus.timeouts >= 1);
+}
+
+#[test]
+fn wrong_checksum_and_servo_alarm_are_clear_statuses() {
+    let rig = start_rig(|_| {});
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    rig.emulator.with_servo(2, |s| s.corrupt_checksums = true);
+    wait_for(
+        "checksum error",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("id 2") && m.contains("checksum")),
+    );
+    rig.emulator.with_servo(2, |s| s.corrupt_checksums = false);
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+
+    rig.emulator.with_servo(4, |s| s.error_byte = 0x20);
+    wait_for(
+        "overload error",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("servo 4") && m.contains("overload")),
+    );
+    rig.emulator.with_servo(4, |s| s.error_byte = 0);
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    assert!(bridge.stats().bus.checksum_errors >= 1);
+}
+
+#[test]
+fn unplugged_bus_is_reported_and_reconnects_when_replugged() {
+    let rig = start_rig(|_| {});
+    let bridge = rig.bridge.clone();
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    let link = rig.link.clone();
+    let servo_positions: Vec<(u8, u16)> = (1..=6)
+        .map(|id| (id, rig.emulator.servo(id).unwrap().present_position() as u16))
+        .collect();
+    let Rig {
+        emulator, _dir: dir, ..
+    } = rig;
+    drop(emulator);
+    wait_for("disconnected", Duration::from_secs(2), || {
+        matches!(bridge.health(), Health::Disconnected(_))
+    });
+    assert!(
+        bridge.control(Control::Reconnect).is_err(),
+        "nothing to reconnect to yet"
+    );
+
+    // "Replug": a new bus behind the same link (homing offsets are 0, so present = actual).
+    let emulator = FeetechEmulator::start(&servo_positions).unwrap();
+    std::fs::remove_file(&link).unwrap();
+    std::os::unix::fs::symlink(emulator.port_path(), &link).unwrap();
+    bridge.control(Control::Reconnect).unwrap();
+    wait_for("ready after reconnect", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    assert!(emulator.servo(1).unwrap().torque_enabled());
+    let goal = [-0.3, -0.6, 0.5, 1.0, 0.0];
+    let (seq, last) = stream_path(&bridge, &START_JOINTS, &goal, 0, 30);
+    wait_for("following after reconnect", Duration::from_secs(3), || {
+        bridge
+            .feedback()
+            .is_some_and(|f| f.applied_seq == seq && position_error_m(&f.robot_from_ee, &last) < 3e-3)
+    });
+    drop(dir);
+}
+
+#[test]
+fn bimanual_arms_on_two_buses_are_independent() {
+    let left = start_rig(|_| {});
+    let right = start_rig(|_| {});
+    wait_for("both ready", Duration::from_secs(2), || {
+        left.bridge.health() == Health::Ready && right.bridge.health() == Health::Ready
+    });
+    let right_before = right.bridge.feedback().unwrap().robot_from_ee;
+    let goal = [0.5, -0.3, 0.2, 0.8, -0.5];
+    let (seq, last) = stream_path(&left.bridge, &START_JOINTS, &goal, 0, 40);
+    wait_for("left follows", Duration::from_secs(3), || {
+        left.bridge
+            .feedback()
+            .is_some_and(|f| f.applied_seq == seq && position_error_m(&f.robot_from_ee, &last) < 3e-3)
+    });
+    let right_after = right.bridge.feedback().unwrap().robot_from_ee;
+    assert!(
+        position_error_m(&right_before, &right_after) < 1e-4,
+        "the right arm moved"
+    );
+}
+
+#[test]
+fn calibration_command_writes_a_lerobot_file_and_the_motors() {
+    // Shafts somewhere arbitrary; the operator puts them at mid-range, then sweeps each joint.
+    let middle: [f64; 6] = [2900.0, 1500.0, 2300.0, 1800.0, 1000.0, 2600.0];
+    let emulator =
+        FeetechEmulator::start(&[(1, 100), (2, 4000), (3, 50), (4, 300), (5, 3000), (6, 2000)]).unwrap();
+    let mut bus = FeetechBus::open(
+        emulator.port_path().to_str().unwrap(),
+        1_000_000,
+        Duration::from_millis(20),
+    )
+    .unwrap();
+    let motors: Vec<(String, u8)> = SO101_JOINT_NAMES
+        .iter()
+        .zip(1u8..)
+        .map(|(n, id)| ((*n).to_owned(), id))
+        .collect();
+    let mut step = 0;
+    let calibration = run_calibration(
+        &mut bus,
+        &motors,
+        || {
+            for (id, m) in (1u8..).zip(middle) {
+                emulator.set_actual_position(id, m);
+            }
+        },
+        || {
+            // Sweep each joint ±600 counts around its middle over 20 samples.
+            step += 1;
+            let s = (f64::from(step) / 20.0 * std::f64::consts::TAU).sin();
+            for (id, m) in (1u8..).zip(middle) {
+                emulator.set_actual_position(id, m + 600.0 * s);
+            }
+            step <= 20
+        },
+    )
+    .unwrap();
+    calibration.validate().unwrap();
+    for (i, (name, m)) in calibration.motors.iter().enumerate() {
+        assert_eq!(m.homing_offset, middle[i] as i32 - 2047, "{name}");
+        if name == "wrist_roll" {
+            assert_eq!((m.range_min, m.range_max), (0, 4095));
+        } else {
+            assert!(
+                (1440..=1460).contains(&m.range_min) && (2640..=2660).contains(&m.range_max),
+                "{name}: {m:?}"
+            );
+        }
+        let servo = emulator.servo(m.id).unwrap();
+        assert_eq!(servo.homing_offset_value(), m.homing_offset);
+        assert_eq!(servo.position_limits(), (m.range_min, m.range_max));
+        assert!(!servo.torque_enabled());
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("robots/so101_follower/my_arm.json");
+    calibration.save(&path).unwrap();
+    assert_eq!(Calibration::load(&path).unwrap(), calibration);
+}
+
+#[test]
+fn bad_configs_and_missing_servos_fail_start_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal_path = dir.path().join("cal.json");
+    synthetic_calibration().save(&cal_path).unwrap();
+
+    let err = So101Bridge::start(So101Config::new("/dev/does-not-exist", &cal_path)).unwrap_err();
+    assert!(
+        matches!(err, BridgeError::Connect { ref target, .. } if target == "/dev/does-not-exist"),
+        "{err}"
+    );
+
+    let broken = dir.path().join("broken.json");
+    std::fs::write(&broken, "{\"shoulder_pan\": {\"id\": 1}}").unwrap();
+    let err = So101Bridge::start(So101Config::new("/dev/null", &broken)).unwrap_err();
+    assert!(
+        matches!(err, BridgeError::Config(ref m) if m.contains("broken.json")),
+        "{err}"
+    );
+
+    // Five servos on the bus; the gripper (id 6) does not answer.
+    let cal = synthetic_calibration();
+    let mut servos = raw_for(&cal, &START_JOINTS, 3300);
+    servos.pop();
+    let emulator = FeetechEmulator::start(&servos).unwrap();
+    let mut config = So101Config::new(emulator.port_path().to_str().unwrap(), &cal_path);
+    config.timeout_ms = 10;
+    let err = So101Bridge::start(config).unwrap_err();
+    assert!(err.to_string().contains("servo 6 did not answer"), "{err}");
+}
+
+#[test]
+fn bus_reads_writes_and_sync_transfers() {
+    let emulator = FeetechEmulator::start(&[(1, 1000), (2, 2000), (3, 3000)]).unwrap();
+    let mut bus = FeetechBus::open(
+        emulator.port_path().to_str().unwrap(),
+        1_000_000,
+        Duration::from_millis(20),
+    )
+    .unwrap();
+    assert_eq!(bus.ping(2).unwrap(), 0);
+    assert_eq!(bus.read_value(1, register::MODEL_NUMBER).unwrap(), 777);
+    let data = bus.sync_read(56, 2, &[1, 2, 3]).unwrap();
+    let positions: Vec<u16> = data.iter().map(|b| u16::from_le_bytes([b[0], b[1]])).collect();
+    assert_eq!(positions, vec![1000, 2000, 3000]);
+    // A goal written with torque off does not move the shaft; with torque on it does.
+    bus.sync_write(
+        42,
+        2,
+        &[
+            (1, 1500u16.to_le_bytes().to_vec()),
+            (2, 2500u16.to_le_bytes().to_vec()),
+        ],
+    )
+    .unwrap();
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(bus.read_value(1, register::PRESENT_POSITION).unwrap(), 1000);
+    bus.write_value(1, register::TORQUE_ENABLE, 1).unwrap();
+    wait_for("servo 1 at its goal", Duration::from_secs(1), || {
+        emulator.servo(1).unwrap().present_position() == 1500
+    });
+    // EPROM is write-protected while locked.
+    bus.write_value(2, register::LOCK, 1).unwrap();
+    bus.write_value(2, register::MIN_POSITION_LIMIT, 123).unwrap();
+    assert_eq!(bus.read_value(2, register::MIN_POSITION_LIMIT).unwrap(), 0);
+    assert!(matches!(bus.ping(9), Err(BusError::Timeout { id: 9, .. })));
+    assert!(matches!(
+        bus.sync_read(56, 2, &[1, 9, 2]),
+        Err(BusError::Timeout { id: 9, .. })
+    ));
+}
+
+#[test]
+fn example_bimanual_config_parses() {
+    #[derive(serde::Deserialize)]
+    struct Arm {
+        name: String,
+        bridge: String,
+        so101: So101Config,
+    }
+    #[derive(serde::Deserialize)]
+    struct File {
+        arms: Vec<Arm>,
+    }
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../config/bimanual-so101.toml");
+    let file: File = toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let names: Vec<&str> = file.arms.iter().map(|a| a.name.as_str()).collect();
+    assert_eq!(names, ["left", "right"]);
+    assert!(file.arms.iter().all(|a| a.bridge == "so101"));
+    assert_ne!(file.arms[0].so101.port, file.arms[1].so101.port);
+    for arm in &file.arms {
+        arm.so101.validate().unwrap();
+    }
+}
