@@ -4,7 +4,9 @@
 //! several timed batches, so one scheduler hiccup does not move the figure.
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use phone2act_core::{ClutchKind, GateConfig, SafetyGate, TeleopArm, TeleopConfig};
+use phone2act_core::{
+    ActionMode, ArmLayout, ClutchKind, GateConfig, Mapping, Planner, SafetyGate, TeleopArm, TeleopConfig,
+};
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -73,18 +75,9 @@ fn main() {
         black_box(passed)
     });
 
-    let targets: Vec<Isometry3<f64>> = path
-        .iter()
-        .map(|p| {
-            Isometry3::from_parts(
-                Translation3::from(
-                    start_pose.translation.vector + p.translation.vector.xzy() * 0.5
-                        - Vector3::new(0.0, 0.6, 0.0),
-                ),
-                p.rotation,
-            )
-        })
-        .collect();
+    let mut planner = Planner::new(Mapping::from_config(&config.mapping).expect("valid mapping"));
+    planner.reindex(path[0], start_pose);
+    let targets: Vec<Isometry3<f64>> = path.iter().map(|p| planner.target(p).expect("indexed")).collect();
     let (gate_ns, gate_passed) = median_ns_per_sample(|| {
         let mut gate = SafetyGate::new(&config.gate, targets[0]).expect("valid config");
         let mut passed = 0;
@@ -94,10 +87,24 @@ fn main() {
         black_box(passed)
     });
 
+    let layout = ArmLayout::new((0..5).map(|i| format!("j{i}")).collect());
+    let (layout_ns, _) = median_ns_per_sample(|| {
+        let mut acc = 0.0;
+        for pair in targets.windows(2) {
+            let action = layout.action_from_target(&pair[0], &pair[1], 0.5, ActionMode::Delta);
+            let (t, g) = layout
+                .target_from_action(&pair[0], black_box(&action), ActionMode::Delta)
+                .expect("width 7");
+            acc += t.translation.x + g;
+        }
+        usize::from(black_box(acc) > 0.0)
+    });
+
     println!(
         "planner + gate (TeleopArm::on_pose): {teleop_ns:.0} ns/sample (median of {BATCHES} batches of {} samples)",
         ROUNDS_PER_BATCH * SAMPLES
     );
     println!("safety gate alone (SafetyGate::check): {gate_ns:.0} ns/sample");
+    println!("action round trip (action_from_target + target_from_action): {layout_ns:.0} ns/sample");
     println!("(samples passed: {passed} / {gate_passed})");
 }

@@ -5,7 +5,7 @@
 //! to round-trip to machine precision everywhere, including at ±90° pitch where the angles themselves are
 //! not unique.
 
-use nalgebra::{Isometry3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use std::f64::consts::{PI, TAU};
 
 /// Largest accepted deviation of a wire quaternion's norm from 1; smaller deviations are renormalised.
@@ -113,11 +113,12 @@ pub fn rpy_from_rotation(rotation: &UnitQuaternion<f64>) -> [f64; 3] {
     let m = m.matrix();
     let pitch = (-m[(2, 0)]).atan2(m[(0, 0)].hypot(m[(1, 0)]));
     let yaw = m[(1, 0)].atan2(m[(0, 0)]);
-    let residual = Rotation3::from_axis_angle(&Vector3::y_axis(), -pitch)
-        * Rotation3::from_axis_angle(&Vector3::z_axis(), -yaw)
-        * rotation.to_rotation_matrix();
-    let r = residual.matrix();
-    let roll = r[(2, 1)].atan2(r[(1, 1)]);
+    // Second column of Ry(−pitch)·Rz(−yaw)·R, written out: only its y and z entries are needed.
+    let (sp, cp) = pitch.sin_cos();
+    let (sy, cy) = yaw.sin_cos();
+    let residual_11 = -sy * m[(0, 1)] + cy * m[(1, 1)];
+    let residual_21 = sp * (cy * m[(0, 1)] + sy * m[(1, 1)]) + cp * m[(2, 1)];
+    let roll = residual_21.atan2(residual_11);
     [roll, pitch, yaw]
 }
 
@@ -138,6 +139,7 @@ pub fn pose_distance(a: &Isometry3<f64>, b: &Isometry3<f64>) -> (f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::{Rotation3, Vector3};
     use proptest::prelude::*;
     use std::f64::consts::FRAC_PI_2;
 
