@@ -170,13 +170,20 @@ impl SafetyGate {
         let interval_s = self.reference_time_s.map_or(MAX_VELOCITY_INTERVAL_S, |t| {
             (now_s - t).clamp(0.0, MAX_VELOCITY_INTERVAL_S)
         });
-        let (out_position, linear_limited) = match cfg.max_linear_speed_m_s {
+        let (mut out_position, linear_limited) = match cfg.max_linear_speed_m_s {
             Some(speed) if position_step_m > speed * interval_s => (
                 self.reference.translation.vector + step * (speed * interval_s / position_step_m),
                 true,
             ),
             _ => (position, false),
         };
+        // A reference outside the box (a reset to a measured pose out there) puts the shortened step
+        // outside too. The box wins over the speed limit; per axis the result still lies between the
+        // reference and the clamped target, so it stays within the jump threshold just checked.
+        for axis in 0..3 {
+            out_position[axis] =
+                out_position[axis].clamp(cfg.workspace_min_m[axis], cfg.workspace_max_m[axis]);
+        }
         let (out_rotation, angular_limited) = match cfg.max_angular_speed_rad_s {
             Some(speed) if rotation_step_rad > speed * interval_s => {
                 let delta: UnitQuaternion<f64> = self.reference.rotation.inverse() * proposed.rotation;
@@ -399,6 +406,21 @@ mod tests {
     }
 
     #[test]
+    fn the_box_wins_over_the_speed_limit_after_a_reset_outside_it() {
+        let mut g = gate(&GateConfig {
+            max_linear_speed_m_s: Some(0.5),
+            ..GateConfig::default()
+        });
+        // Measured 2 cm beyond the x wall; re-indexed there at t = 1 s and checked at the same instant.
+        g.reset_reference_at(at(0.42, 0.0, 0.2), 1.0);
+        let (out, d) = g.check(at(0.42, 0.0, 0.2), 1.0);
+        let out = out.unwrap();
+        assert!((out.translation.x - 0.40).abs() < 1e-15, "{out:?}");
+        assert!(d.workspace_clamped && d.velocity_limited);
+        assert_eq!(d.verdict, GateVerdict::Clamped);
+    }
+
+    #[test]
     fn staleness_is_reported_once_per_silence() {
         let mut g = gate(&GateConfig::default());
         assert!(
@@ -463,12 +485,24 @@ mod tests {
             };
             let mut g = SafetyGate::new(&config, at(0.25, 0.0, 0.2)).unwrap();
             let mut previous = *g.reference();
+            let mut previous_time_s: Option<f64> = None;
+            let mut previous_outside = false;
             for (i, target) in walk(&moves).into_iter().enumerate() {
-                if resets.contains(&i) {
-                    previous = at(0.3, 0.1, 0.1);
-                    g.reset_reference(previous);
-                }
                 let now_s = i as f64 * 0.02;
+                if resets.contains(&i) {
+                    // Every other reset lands outside the box, like a measured pose out there, and is
+                    // timed, so the speed limit allows almost nothing on the next step.
+                    previous_outside = i % 2 == 1;
+                    if previous_outside {
+                        previous = at(0.43, 0.1, 0.1);
+                        previous_time_s = Some(now_s - 0.001);
+                        g.reset_reference_at(previous, now_s - 0.001);
+                    } else {
+                        previous = at(0.3, 0.1, 0.1);
+                        previous_time_s = None;
+                        g.reset_reference(previous);
+                    }
+                }
                 let (out, d) = g.check(target, now_s);
                 prop_assert_eq!(out.is_some(), d.verdict.passed());
                 if let Some(out) = out {
@@ -482,9 +516,14 @@ mod tests {
                     prop_assert!(dp <= config.jump_position_m + 1e-12, "step {} m", dp);
                     prop_assert!(da <= config.jump_rotation_rad + 1e-12, "step {} rad", da);
                     if limited {
-                        prop_assert!(dp <= 0.8 * MAX_VELOCITY_INTERVAL_S + 1e-12);
+                        let interval_s = previous_time_s.map_or(MAX_VELOCITY_INTERVAL_S, |t| (now_s - t).min(MAX_VELOCITY_INTERVAL_S));
+                        // Only a reference outside the box may be left faster than the limit (the box wins).
+                        prop_assert!(previous_outside || dp <= 0.8 * interval_s + 1e-12, "{} m in {} s", dp, interval_s);
+                        prop_assert!(da <= 3.0 * interval_s + 1e-12, "{} rad in {} s", da, interval_s);
                     }
                     previous = out;
+                    previous_time_s = Some(now_s);
+                    previous_outside = false;
                 }
                 prop_assert_eq!(*g.reference(), previous);
             }

@@ -30,7 +30,9 @@ pub enum ClutchKind {
 pub struct TeleopStep {
     /// Target pose (robot base frame) and gripper target to hand to the bridge; `None` = keep holding.
     pub command: Option<(Isometry3<f64>, f64)>,
-    /// What the gate decided, or a note explaining why nothing was sent.
+    /// The gate's decision when a target was proposed. Inputs that propose nothing (a clutch release into
+    /// floating, samples while clutched) carry a note with verdict `Accepted`, zero steps and a reason saying
+    /// what happened; count sent commands from `command`, not from the verdict.
     pub decision: GateDecision,
     pub engaged: bool,
     /// True if this input re-indexed the floating zero.
