@@ -47,7 +47,6 @@ pub struct TeleopArm {
     gripper: Gripper,
     engaged: bool,
     needs_reindex: bool,
-    last_phone: Option<Isometry3<f64>>,
     target: Isometry3<f64>,
 }
 
@@ -61,7 +60,6 @@ impl TeleopArm {
             gripper: Gripper::new(&config.gripper, 0.0),
             engaged: false,
             needs_reindex: true,
-            last_phone: None,
             target: initial_target,
         })
     }
@@ -92,8 +90,8 @@ impl TeleopArm {
         self.needs_reindex = true;
     }
 
-    /// A clutch input. `phone` is the phone's pose at the press if the message carried one; otherwise the
-    /// last tracked pose is used, or the re-index waits for the next tracked pose.
+    /// A clutch input. `phone` is the phone's pose at the press if the message carried one; without it the
+    /// re-index waits for the next tracked pose.
     pub fn clutch(
         &mut self,
         kind: ClutchKind,
@@ -120,16 +118,17 @@ impl TeleopArm {
         }
         self.engaged = true;
         self.needs_reindex = true;
+        // Without a pose from this very press, wait for the next tracked sample rather than re-index from
+        // an older one: the phone may have moved since, and that motion would be replayed on the robot.
         if let Some(p) = phone.filter(|p| check_pose(p).is_ok()) {
-            self.last_phone = Some(p);
+            return self.reindex(p, measured_ee, now_s, "clutch engaged");
         }
-        match self.last_phone {
-            Some(p) => self.reindex(p, measured_ee, now_s, "clutch engaged"),
-            None => self.hold(GateDecision::note(
-                GateVerdict::Accepted,
-                "clutch engaged: waiting for a tracked phone pose",
-            )),
-        }
+        // The staleness clock starts at the press, not at the last sample before the clutch.
+        self.gate.reset_reference_at(self.target, now_s);
+        self.hold(GateDecision::note(
+            GateVerdict::Accepted,
+            "clutch engaged: re-indexing on the next tracked phone pose",
+        ))
     }
 
     /// One phone sample.
@@ -149,13 +148,11 @@ impl TeleopArm {
         if !tracking_ok {
             // The tracking frame may jump when tracking returns (relocalisation): start afresh from there.
             self.needs_reindex = true;
-            self.last_phone = None;
             return self.hold(GateDecision::note(
                 GateVerdict::RejectedInvalid,
                 "phone tracking lost: holding until it returns",
             ));
         }
-        self.last_phone = Some(phone);
         if !self.engaged {
             return self.hold(GateDecision::note(
                 GateVerdict::Accepted,
@@ -276,16 +273,29 @@ mod tests {
         let mut arm = TeleopArm::new(&config(), ee).unwrap();
         assert!(!arm.engaged());
         assert!(arm.on_pose(at(1.0, 1.0, 1.0), true, ee, 0.0).command.is_none());
+        // The volume key carries no pose: engage now, re-index on the next sample, never from an old one.
         let step = arm.clutch(ClutchKind::Toggle, None, ee, 0.01);
-        assert!(step.engaged && step.reindexed);
+        assert!(step.engaged && !step.reindexed && step.command.is_none());
+        assert!(
+            arm.check_stale(0.2).is_none(),
+            "the staleness clock starts at the press"
+        );
+        let step = arm.on_pose(at(1.4, 1.0, 1.0), true, ee, 0.015);
+        assert!(step.reindexed);
         assert_eq!(step.command.unwrap().0, ee);
-        let step = arm.on_pose(at(1.02, 1.0, 1.0), true, ee, 0.02);
+        let step = arm.on_pose(at(1.42, 1.0, 1.0), true, ee, 0.02);
         assert_eq!(step.decision.verdict, GateVerdict::Accepted);
         assert!((step.command.unwrap().0.translation.vector - Vector3::new(0.27, 0.0, 0.2)).norm() < 1e-12);
         let step = arm.clutch(ClutchKind::Toggle, None, ee, 0.03);
         assert!(!step.engaged && step.command.is_none());
         assert!(arm.on_pose(at(1.5, 1.0, 1.0), true, ee, 0.04).command.is_none());
         assert!(arm.check_stale(5.0).is_none(), "a clutched arm is not stale");
+        assert!(arm.clutch(ClutchKind::Toggle, None, ee, 6.0).engaged);
+        assert!(
+            arm.check_stale(6.1).is_none(),
+            "the staleness clock starts at the press"
+        );
+        assert!(arm.check_stale(6.4).is_some(), "no pose since the press");
     }
 
     #[test]
