@@ -8,6 +8,7 @@
 
 pub mod dobot;
 pub mod feetech;
+pub mod sim;
 pub mod so101;
 
 use nalgebra::Isometry3;

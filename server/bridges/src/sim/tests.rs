@@ -1,0 +1,160 @@
+//! Bridge-level tests of the simulated arm: real thread, real time, only the `Bridge` API.
+
+use super::*;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use phone2act_core::kinematics::So101Kinematics;
+
+/// The tool pointing straight down, its jaws across the line from the base.
+fn down_at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
+    let zero = So101Kinematics::new().forward(&[0.0; 5]).rotation;
+    let down = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2) * zero;
+    let yaw = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), y.atan2(x));
+    Isometry3::from_parts(Translation3::new(x, y, z), yaw * down)
+}
+
+/// Streams `target` at 50 Hz for `seconds`, as a teleop session would.
+fn hold(bridge: &SimBridge, seq: &mut u64, target: Isometry3<f64>, gripper: f64, seconds: f64) {
+    let end = Instant::now() + Duration::from_secs_f64(seconds);
+    while Instant::now() < end {
+        *seq += 1;
+        bridge.send(Command {
+            seq: *seq,
+            robot_from_target: target,
+            gripper_target: gripper,
+            issue_time_ns: 0,
+        });
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn follows_a_target_after_settling() {
+    let bridge = SimBridge::start(SimConfig::default()).unwrap();
+    assert_eq!(bridge.health(), Health::Ready);
+    assert_eq!(bridge.kind(), "sim");
+    assert_eq!(bridge.joint_names().len(), 5);
+    let start = bridge.feedback().unwrap();
+    assert_eq!(start.applied_seq, 0);
+    let target = down_at(0.26, 0.05, 0.08);
+    let mut seq = 0;
+    hold(&bridge, &mut seq, target, 0.0, 0.5);
+    let fb = bridge.feedback().unwrap();
+    let error = (fb.robot_from_ee.translation.vector - target.translation.vector).norm();
+    assert!(error < 2e-3, "tool {error} m from target");
+    assert!(fb.applied_seq > 10 && fb.applied_seq <= seq);
+    assert!(fb.capture_time_ns > start.capture_time_ns);
+    assert!(!fb.task_success);
+    bridge.shutdown();
+    assert!(matches!(bridge.health(), Health::Disconnected(_)));
+    bridge.shutdown();
+}
+
+#[test]
+fn disable_holds_the_arm_and_enable_resumes() {
+    let bridge = SimBridge::start(SimConfig::default()).unwrap();
+    std::thread::sleep(Duration::from_millis(30));
+    let home = bridge.feedback().unwrap().robot_from_ee.translation.vector;
+    bridge.control(Control::Disable).unwrap();
+    let mut seq = 0;
+    hold(&bridge, &mut seq, down_at(0.3, -0.1, 0.05), 0.0, 0.3);
+    let held = bridge.feedback().unwrap().robot_from_ee.translation.vector;
+    assert!(
+        (held - home).norm() < 1e-6,
+        "moved {} m while disabled",
+        (held - home).norm()
+    );
+    bridge.control(Control::Enable).unwrap();
+    hold(&bridge, &mut seq, down_at(0.3, -0.1, 0.05), 0.0, 0.4);
+    let moved = bridge.feedback().unwrap().robot_from_ee.translation.vector;
+    assert!((moved - Vector3::new(0.3, -0.1, 0.05)).norm() < 3e-3, "{moved:?}");
+}
+
+#[test]
+fn pick_and_place_through_the_bridge_api() {
+    let config = SimConfig::default();
+    let [bx, by] = config.ball_xy_m;
+    let [kx, ky] = config.basket_xy_m;
+    let bridge = SimBridge::start(config).unwrap();
+    let mut seq = 0;
+    hold(&bridge, &mut seq, down_at(bx, by, 0.10), 0.0, 0.5);
+    hold(&bridge, &mut seq, down_at(bx, by, 0.02), 0.0, 0.5);
+    hold(&bridge, &mut seq, down_at(bx, by, 0.02), 1.0, 0.4);
+    assert!(
+        matches!(bridge.snapshot().ball_state, BallState::Held { .. }),
+        "ball not grasped"
+    );
+    let fb = bridge.feedback().unwrap();
+    assert!(
+        (0.5..0.8).contains(&fb.gripper_position),
+        "gripper stops on the ball: {}",
+        fb.gripper_position
+    );
+    hold(&bridge, &mut seq, down_at(bx, by, 0.12), 1.0, 0.4);
+    hold(&bridge, &mut seq, down_at(kx, ky, 0.13), 1.0, 0.6);
+    let carried = bridge.snapshot().ball_center_m;
+    assert!(
+        (carried.xy() - Vector3::new(kx, ky, 0.0).xy()).norm() < 0.03 && carried.z > 0.08,
+        "{carried:?}"
+    );
+    assert!(
+        !bridge.feedback().unwrap().task_success,
+        "success only once released"
+    );
+    hold(&bridge, &mut seq, down_at(kx, ky, 0.13), 0.0, 0.6);
+    let fb = bridge.feedback().unwrap();
+    assert!(fb.task_success, "ball at {:?}", bridge.snapshot().ball_center_m);
+    assert_eq!(bridge.snapshot().ball_state, BallState::Resting);
+    bridge.reset_scene();
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(!bridge.feedback().unwrap().task_success);
+}
+
+#[test]
+fn releasing_away_from_the_basket_is_not_success() {
+    let config = SimConfig::default();
+    let [bx, by] = config.ball_xy_m;
+    let bridge = SimBridge::start(config).unwrap();
+    let mut seq = 0;
+    hold(&bridge, &mut seq, down_at(bx, by, 0.02), 0.0, 0.5);
+    hold(&bridge, &mut seq, down_at(bx, by, 0.02), 1.0, 0.3);
+    hold(&bridge, &mut seq, down_at(0.3, 0.0, 0.12), 1.0, 0.5);
+    hold(&bridge, &mut seq, down_at(0.3, 0.0, 0.12), 0.0, 0.5);
+    let ball = bridge.snapshot().ball_center_m;
+    assert!(
+        (ball - Vector3::new(0.3, 0.0, 0.02)).norm() < 0.02,
+        "ball fell to the table below: {ball:?}"
+    );
+    assert!(!bridge.feedback().unwrap().task_success);
+}
+
+#[test]
+fn render_is_fast_and_follows_the_arm() {
+    let bridge = SimBridge::start(SimConfig::default()).unwrap();
+    let mut first = Vec::new();
+    bridge.render_rgb(640, 480, &mut first);
+    assert_eq!(first.len(), 640 * 480 * 3);
+    let mut seq = 0;
+    hold(&bridge, &mut seq, down_at(0.3, 0.15, 0.06), 1.0, 0.3);
+    let mut frame = Vec::new();
+    let n = 30;
+    let start = Instant::now();
+    for _ in 0..n {
+        bridge.render_rgb(640, 480, &mut frame);
+    }
+    let ms = start.elapsed().as_secs_f64() * 1e3 / f64::from(n);
+    println!("render 640x480: {ms:.2} ms/frame");
+    let changed = first
+        .chunks(3)
+        .zip(frame.chunks(3))
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(
+        changed > 2000,
+        "only {changed} pixels changed after the arm moved"
+    );
+    if let Some(path) = std::env::var_os("PHONE2ACT_SIM_FRAME") {
+        let mut ppm = b"P6 640 480 255\n".to_vec();
+        ppm.extend_from_slice(&frame);
+        std::fs::write(path, ppm).unwrap();
+    }
+}

@@ -1,0 +1,422 @@
+//! The simulated world, as a pure state machine: SO-101 joints with first-order dynamics toward the IK
+//! solution of the newest command, a first-order gripper, and a ball that can be grasped, carried, dropped
+//! and land in a basket. No threads and no clock: [`SimWorld::step`] advances by an explicit `dt_s`, so
+//! every behaviour is testable deterministically.
+
+use super::config::SimConfig;
+use crate::{BridgeError, Command, Feedback};
+use nalgebra::{Isometry3, Point3, Vector3};
+use phone2act_core::kinematics::{
+    IkSolution, IkWeights, So101Joints, So101Kinematics, So101LinkPoses, clamp_to_limits,
+};
+
+/// Gripper position at which a closing gripper takes hold of a ball within reach.
+const GRASP_CLOSE_THRESHOLD: f64 = 0.5;
+/// Gripper position below which a held ball is released. Lower than the grasp threshold so that noise on
+/// a half-closed gripper does not drop and re-grasp the ball.
+const RELEASE_THRESHOLD: f64 = 0.4;
+/// A gripper closed on the ball stops at the ball's width instead of closing fully.
+const GRIPPER_ON_BALL: f64 = 0.7;
+const GRAVITY_M_S2: f64 = 9.81;
+/// Longest step taken in one go; a stalled thread resumes without the ball tunnelling through the table.
+const MAX_STEP_S: f64 = 0.02;
+/// Thickness of the basket floor.
+pub const BASKET_FLOOR_M: f64 = 0.004;
+
+/// Where the ball is and what it is doing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum BallState {
+    /// On the table or in the basket.
+    Resting,
+    /// In the gripper; the offset is the ball centre in the tool frame at the moment of the grasp.
+    Held { tcp_from_ball: Vector3<f64> },
+    /// In free fall.
+    Falling { velocity_m_s: Vector3<f64> },
+}
+
+/// What the renderer needs of one instant of the world.
+#[derive(Clone, Debug)]
+pub struct SceneSnapshot {
+    pub links: So101LinkPoses,
+    pub gripper_position: f64,
+    pub ball_center_m: Vector3<f64>,
+    pub ball_radius_m: f64,
+    pub ball_state: BallState,
+    pub basket_xy_m: [f64; 2],
+    pub basket_radius_m: f64,
+    pub basket_height_m: f64,
+    pub task_success: bool,
+}
+
+/// Result of handing a command to the world.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CommandOutcome {
+    /// Joint targets updated; the IK solution (residuals, reachability) is attached.
+    Applied(Box<IkSolution>),
+    /// Not finite (pose or gripper); nothing changed.
+    Rejected,
+    /// The arm is disabled; nothing changed.
+    Disabled,
+}
+
+/// The simulated arm and scene.
+#[derive(Clone, Debug)]
+pub struct SimWorld {
+    config: SimConfig,
+    kinematics: So101Kinematics,
+    joints_rad: So101Joints,
+    joint_targets_rad: So101Joints,
+    gripper: f64,
+    gripper_target: f64,
+    ball_center_m: Vector3<f64>,
+    ball_state: BallState,
+    task_success: bool,
+    applied_seq: u64,
+    enabled: bool,
+    time_s: f64,
+}
+
+impl SimWorld {
+    /// A world in its initial state. Fails on an invalid configuration.
+    pub fn new(config: SimConfig) -> Result<Self, BridgeError> {
+        config.validate()?;
+        let joints = clamp_to_limits(&config.initial_joints_rad);
+        let mut world = Self {
+            kinematics: So101Kinematics::new(),
+            joints_rad: joints,
+            joint_targets_rad: joints,
+            gripper: config.initial_gripper,
+            gripper_target: config.initial_gripper,
+            ball_center_m: Vector3::zeros(),
+            ball_state: BallState::Resting,
+            task_success: false,
+            applied_seq: 0,
+            enabled: true,
+            time_s: 0.0,
+            config,
+        };
+        world.reset_scene();
+        Ok(world)
+    }
+
+    /// Puts the ball back at its start position (the arm stays where it is).
+    pub fn reset_scene(&mut self) {
+        let [x, y] = self.config.ball_xy_m;
+        self.ball_center_m = Vector3::new(x, y, self.ball_floor_z(x, y));
+        self.ball_state = BallState::Resting;
+        self.task_success = self.in_basket(x, y);
+    }
+
+    pub fn config(&self) -> &SimConfig {
+        &self.config
+    }
+
+    /// Solves IK for the command's target (seeded with the current joint targets so that consecutive
+    /// commands stay on one branch) and makes the solution the new joint target.
+    pub fn apply_command(&mut self, command: &Command) -> CommandOutcome {
+        if !self.enabled {
+            return CommandOutcome::Disabled;
+        }
+        if !command.gripper_target.is_finite() {
+            return CommandOutcome::Rejected;
+        }
+        let weights = IkWeights {
+            orientation: self.config.ik_orientation_weight,
+        };
+        let solution = self
+            .kinematics
+            .inverse(&command.robot_from_target, &self.joint_targets_rad, weights);
+        if solution.invalid_input {
+            return CommandOutcome::Rejected;
+        }
+        self.joint_targets_rad = solution.joints_rad;
+        self.gripper_target = command.gripper_target.clamp(0.0, 1.0);
+        self.applied_seq = command.seq;
+        CommandOutcome::Applied(Box::new(solution))
+    }
+
+    /// Disabling freezes the arm where it is; commands are ignored until enabled again.
+    pub fn set_enabled(&mut self, enabled: bool) {
+        if !enabled {
+            self.joint_targets_rad = self.joints_rad;
+            self.gripper_target = self.gripper;
+        }
+        self.enabled = enabled;
+    }
+
+    pub fn enabled(&self) -> bool {
+        self.enabled
+    }
+
+    /// Advances the world by `dt_s` seconds (ignored unless finite and positive; long steps are split).
+    pub fn step(&mut self, dt_s: f64) {
+        if !dt_s.is_finite() || dt_s <= 0.0 {
+            return;
+        }
+        let mut remaining = dt_s;
+        while remaining > 0.0 {
+            let dt = remaining.min(MAX_STEP_S);
+            self.substep(dt);
+            remaining -= dt;
+        }
+    }
+
+    fn substep(&mut self, dt_s: f64) {
+        self.time_s += dt_s;
+        // Exact discretisation of a first-order lag: stable for any dt.
+        let joint_alpha = 1.0 - (-dt_s / self.config.joint_time_constant_s).exp();
+        for (q, target) in self.joints_rad.iter_mut().zip(self.joint_targets_rad) {
+            *q += (target - *q) * joint_alpha;
+        }
+        let previous_gripper = self.gripper;
+        let gripper_alpha = 1.0 - (-dt_s / self.config.gripper_time_constant_s).exp();
+        self.gripper += (self.gripper_target - self.gripper) * gripper_alpha;
+
+        let tcp = self.kinematics.forward(&self.joints_rad);
+        match self.ball_state {
+            BallState::Held { tcp_from_ball } => {
+                if self.gripper < RELEASE_THRESHOLD {
+                    self.ball_state = BallState::Falling {
+                        velocity_m_s: Vector3::zeros(),
+                    };
+                } else {
+                    self.gripper = self.gripper.min(GRIPPER_ON_BALL);
+                    self.ball_center_m = (tcp * Point3::from(tcp_from_ball)).coords;
+                }
+            }
+            BallState::Resting | BallState::Falling { .. } => {
+                let closing_through =
+                    previous_gripper < GRASP_CLOSE_THRESHOLD && self.gripper >= GRASP_CLOSE_THRESHOLD;
+                let tcp_to_ball = self.ball_center_m - tcp.translation.vector;
+                if closing_through && tcp_to_ball.norm() <= self.config.grasp_radius_m {
+                    self.ball_state = BallState::Held {
+                        tcp_from_ball: tcp.rotation.inverse() * tcp_to_ball,
+                    };
+                    self.task_success = false;
+                    self.gripper = self.gripper.min(GRIPPER_ON_BALL);
+                }
+            }
+        }
+        if let BallState::Falling { mut velocity_m_s } = self.ball_state {
+            velocity_m_s.z -= GRAVITY_M_S2 * dt_s;
+            self.ball_center_m += velocity_m_s * dt_s;
+            let (x, y) = (self.ball_center_m.x, self.ball_center_m.y);
+            let floor_z = self.ball_floor_z(x, y);
+            if self.ball_center_m.z <= floor_z {
+                self.ball_center_m.z = floor_z;
+                self.ball_state = BallState::Resting;
+                self.task_success = self.in_basket(x, y);
+            } else {
+                self.ball_state = BallState::Falling { velocity_m_s };
+            }
+        }
+    }
+
+    /// True if a ball centred at (x, y) fits inside the basket wall.
+    fn in_basket(&self, x: f64, y: f64) -> bool {
+        let [bx, by] = self.config.basket_xy_m;
+        (x - bx).hypot(y - by) <= self.config.basket_radius_m - self.config.ball_radius_m
+    }
+
+    /// Height of the ball centre when resting at (x, y): on the basket floor or on the table.
+    fn ball_floor_z(&self, x: f64, y: f64) -> f64 {
+        let floor = if self.in_basket(x, y) { BASKET_FLOOR_M } else { 0.0 };
+        floor + self.config.ball_radius_m
+    }
+
+    pub fn joints_rad(&self) -> So101Joints {
+        self.joints_rad
+    }
+
+    pub fn joint_targets_rad(&self) -> So101Joints {
+        self.joint_targets_rad
+    }
+
+    /// `base_from_tcp` of the current joints.
+    pub fn tool_pose(&self) -> Isometry3<f64> {
+        self.kinematics.forward(&self.joints_rad)
+    }
+
+    pub fn gripper_position(&self) -> f64 {
+        self.gripper
+    }
+
+    pub fn ball_center_m(&self) -> Vector3<f64> {
+        self.ball_center_m
+    }
+
+    pub fn ball_state(&self) -> BallState {
+        self.ball_state
+    }
+
+    /// The ball rests in the basket.
+    pub fn task_success(&self) -> bool {
+        self.task_success
+    }
+
+    pub fn applied_seq(&self) -> u64 {
+        self.applied_seq
+    }
+
+    /// Simulated time since creation.
+    pub fn time_s(&self) -> f64 {
+        self.time_s
+    }
+
+    /// The current state as bridge feedback, stamped `capture_time_ns`.
+    pub fn feedback(&self, capture_time_ns: i64) -> Feedback {
+        Feedback {
+            capture_time_ns,
+            joint_positions_rad: self.joints_rad.to_vec(),
+            robot_from_ee: self.tool_pose(),
+            gripper_position: self.gripper,
+            applied_seq: self.applied_seq,
+            task_success: self.task_success,
+        }
+    }
+
+    /// What the renderer draws.
+    pub fn snapshot(&self) -> SceneSnapshot {
+        SceneSnapshot {
+            links: self.kinematics.link_poses(&self.joints_rad),
+            gripper_position: self.gripper,
+            ball_center_m: self.ball_center_m,
+            ball_radius_m: self.config.ball_radius_m,
+            ball_state: self.ball_state,
+            basket_xy_m: self.config.basket_xy_m,
+            basket_radius_m: self.config.basket_radius_m,
+            basket_height_m: self.config.basket_height_m,
+            task_success: self.task_success,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    fn command(seq: u64, target: Isometry3<f64>, gripper: f64) -> Command {
+        Command {
+            seq,
+            robot_from_target: target,
+            gripper_target: gripper,
+            issue_time_ns: 0,
+        }
+    }
+
+    fn world() -> SimWorld {
+        SimWorld::new(SimConfig::default()).unwrap()
+    }
+
+    fn run(world: &mut SimWorld, seconds: f64) {
+        for _ in 0..(seconds * 200.0).round() as usize {
+            world.step(0.005);
+        }
+    }
+
+    #[test]
+    fn home_pose_is_inside_the_teleop_workspace() {
+        let p = world().tool_pose().translation.vector;
+        assert!(
+            (0.10..=0.40).contains(&p.x) && (-0.25..=0.25).contains(&p.y) && (0.02..=0.35).contains(&p.z),
+            "{p:?}"
+        );
+        // Above the table with room to move down toward the ball.
+        assert!(p.z > 0.08, "{p:?}");
+    }
+
+    #[test]
+    fn joints_follow_a_first_order_lag() {
+        let mut w = world();
+        let start = w.joints_rad();
+        let mut target = w.tool_pose();
+        target.translation.vector += Vector3::new(0.03, 0.04, -0.03);
+        let CommandOutcome::Applied(solution) = w.apply_command(&command(1, target, 0.0)) else {
+            panic!()
+        };
+        let goal = solution.joints_rad;
+        // After one time constant a first-order lag has covered 1 - 1/e of every joint's distance.
+        run(&mut w, 0.05);
+        for i in 0..5 {
+            if (goal[i] - start[i]).abs() > 1e-3 {
+                let covered = (w.joints_rad()[i] - start[i]) / (goal[i] - start[i]);
+                assert!(
+                    (covered - (1.0 - (-1.0f64).exp())).abs() < 0.01,
+                    "joint {i}: {covered}"
+                );
+            }
+        }
+        run(&mut w, 0.5);
+        assert!((w.tool_pose().translation.vector - target.translation.vector).norm() < 1e-3);
+        assert_eq!(w.applied_seq(), 1);
+    }
+
+    #[test]
+    fn step_is_independent_of_how_time_is_sliced() {
+        let mut a = world();
+        let mut b = world();
+        let mut target = a.tool_pose();
+        target.translation.vector += Vector3::new(-0.05, 0.02, 0.03);
+        a.apply_command(&command(1, target, 1.0));
+        b.apply_command(&command(1, target, 1.0));
+        for _ in 0..40 {
+            a.step(0.0025);
+        }
+        b.step(0.1);
+        for (qa, qb) in a.joints_rad().iter().zip(b.joints_rad()) {
+            assert!((qa - qb).abs() < 1e-9, "{qa} vs {qb}");
+        }
+        assert!((a.gripper_position() - b.gripper_position()).abs() < 1e-9);
+    }
+
+    #[test]
+    fn non_finite_commands_change_nothing() {
+        let mut w = world();
+        let before = w.joint_targets_rad();
+        let bad = Isometry3::from_parts(Translation3::new(f64::NAN, 0.0, 0.1), UnitQuaternion::identity());
+        assert_eq!(w.apply_command(&command(5, bad, 0.0)), CommandOutcome::Rejected);
+        assert_eq!(
+            w.apply_command(&command(6, w.tool_pose(), f64::NAN)),
+            CommandOutcome::Rejected
+        );
+        assert_eq!(w.joint_targets_rad().map(f64::to_bits), before.map(f64::to_bits));
+        assert_eq!(w.applied_seq(), 0);
+        w.step(f64::NAN);
+        w.step(-1.0);
+        assert!(w.joints_rad().iter().all(|q| q.is_finite()));
+    }
+
+    #[test]
+    fn disabled_arm_holds() {
+        let mut w = world();
+        let start = w.tool_pose();
+        w.set_enabled(false);
+        let mut target = start;
+        target.translation.vector.z -= 0.05;
+        assert_eq!(
+            w.apply_command(&command(1, target, 1.0)),
+            CommandOutcome::Disabled
+        );
+        run(&mut w, 0.3);
+        assert!((w.tool_pose().translation.vector - start.translation.vector).norm() < 1e-9);
+    }
+
+    #[test]
+    fn closing_away_from_the_ball_grasps_nothing_and_a_released_ball_lands() {
+        let mut w = world();
+        w.apply_command(&command(1, w.tool_pose(), 1.0));
+        run(&mut w, 0.5);
+        assert_eq!(w.ball_state(), BallState::Resting);
+        assert!(w.gripper_position() > 0.95, "closes fully on nothing");
+        // A ball dropped from height over the table lands on the table, not in the basket.
+        w.ball_state = BallState::Falling {
+            velocity_m_s: Vector3::zeros(),
+        };
+        w.ball_center_m = Vector3::new(0.3, -0.15, 0.2);
+        run(&mut w, 0.5);
+        assert_eq!(w.ball_state(), BallState::Resting);
+        assert!((w.ball_center_m().z - w.config().ball_radius_m).abs() < 1e-12);
+        assert!(!w.task_success());
+    }
+}
