@@ -8,6 +8,7 @@
 
 pub mod dobot;
 pub mod feetech;
+pub mod remote;
 pub mod sim;
 pub mod so101;
 

@@ -1,0 +1,533 @@
+//! The remote bridge: an arm whose robot link lives in another process, attached over the server's
+//! `Bridge.Attach` stream. This crate knows nothing of gRPC; the server's handler drives an
+//! [`AttachHandle`] with plain blocking calls (from `spawn_blocking` or a dedicated thread):
+//!
+//! ```text
+//! let handle = Arc::new(remote.attach(hello.joint_names, hello.supports_orientation)?);
+//! // downstream thread: loop { match handle.next(timeout) { Ok(Some(msg)) => send msg, Ok(None) => continue,
+//! //                                                       Err(_) => end the stream } }
+//! // upstream task:     feedback => handle.publish_feedback(fb)?, status => handle.report_health(h)?
+//! // stream end:        handle.detach()   (also done when the last handle is dropped)
+//! ```
+//!
+//! Commands are latest-only (a slow remote only ever sees the newest target). Commands sent while no
+//! remote is attached are dropped, not queued: a target from before a reconnect must not move the arm
+//! after it. A new attach replaces the old one; the old handle's waits end with [`RemoteError::Superseded`].
+
+use crate::{Bridge, BridgeError, Command, Control, Feedback, Health};
+use std::collections::VecDeque;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock, PoisonError};
+use std::time::{Duration, Instant};
+
+/// Control requests waiting for the remote beyond this are dropped oldest first; they are rare and a
+/// backlog of stale enable/disable toggles is worse than losing the oldest.
+const MAX_PENDING_CONTROLS: usize = 16;
+
+/// Why a remote-bridge call failed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RemoteError {
+    #[error("a bridge must name at least one joint")]
+    NoJoints,
+    #[error("joint names {got:?} differ from the arm's {expected:?}")]
+    JointNamesMismatch { expected: Vec<String>, got: Vec<String> },
+    #[error("invalid feedback: {0}")]
+    InvalidFeedback(String),
+    #[error("another bridge attached to this arm and replaced this one")]
+    Superseded,
+    #[error("this bridge detached")]
+    Detached,
+    #[error("the arm is shut down")]
+    ShutDown,
+}
+
+/// A message for the remote bridge.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Downstream {
+    Command(Command),
+    Control(Control),
+}
+
+#[derive(Debug)]
+struct State {
+    /// Incremented by every attach; a handle is current while its generation matches and `attached` holds.
+    generation: u64,
+    attached: bool,
+    command: Option<Command>,
+    controls: VecDeque<Control>,
+    feedback: Option<Feedback>,
+    health: Health,
+    supports_orientation: bool,
+    shut_down: bool,
+}
+
+#[derive(Debug)]
+struct Shared {
+    state: Mutex<State>,
+    changed: Condvar,
+    /// Fixed by the first attach (or the constructor): `Bridge::joint_names` returns a borrowed slice.
+    joint_names: OnceLock<Vec<String>>,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Ok if `generation` is the live attachment.
+    fn check(state: &State, generation: u64) -> Result<(), RemoteError> {
+        if state.shut_down {
+            Err(RemoteError::ShutDown)
+        } else if state.generation != generation {
+            Err(RemoteError::Superseded)
+        } else if !state.attached {
+            Err(RemoteError::Detached)
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// An arm driven by an out-of-process bridge.
+#[derive(Debug)]
+pub struct RemoteBridge {
+    arm: String,
+    shared: Arc<Shared>,
+}
+
+impl RemoteBridge {
+    /// A remote arm whose joint names are taken from the first bridge that attaches.
+    pub fn new(arm: impl Into<String>) -> Arc<Self> {
+        Self::build(arm.into(), OnceLock::new())
+    }
+
+    /// A remote arm with known joint names; a bridge naming others is refused.
+    pub fn with_joint_names(arm: impl Into<String>, joint_names: Vec<String>) -> Arc<Self> {
+        Self::build(arm.into(), OnceLock::from(joint_names))
+    }
+
+    fn build(arm: String, joint_names: OnceLock<Vec<String>>) -> Arc<Self> {
+        Arc::new(Self {
+            arm,
+            shared: Arc::new(Shared {
+                state: Mutex::new(State {
+                    generation: 0,
+                    attached: false,
+                    command: None,
+                    controls: VecDeque::new(),
+                    feedback: None,
+                    health: Health::Disconnected("no remote bridge attached".into()),
+                    supports_orientation: true,
+                    shut_down: false,
+                }),
+                changed: Condvar::new(),
+                joint_names,
+            }),
+        })
+    }
+
+    /// The arm name this bridge serves.
+    pub fn arm(&self) -> &str {
+        &self.arm
+    }
+
+    /// Attaches a remote bridge, replacing any attached one. The joint names must match the arm's (the first
+    /// attach defines them unless the constructor did).
+    pub fn attach(
+        &self,
+        joint_names: Vec<String>,
+        supports_orientation: bool,
+    ) -> Result<AttachHandle, RemoteError> {
+        if joint_names.is_empty() {
+            return Err(RemoteError::NoJoints);
+        }
+        let mut state = self.shared.lock();
+        if state.shut_down {
+            return Err(RemoteError::ShutDown);
+        }
+        // Checked and set under the state lock so two racing first attaches cannot both define the names.
+        let expected = self.shared.joint_names.get_or_init(|| joint_names.clone());
+        if *expected != joint_names {
+            return Err(RemoteError::JointNamesMismatch {
+                expected: expected.clone(),
+                got: joint_names,
+            });
+        }
+        let replaced = state.attached;
+        state.generation += 1;
+        state.attached = true;
+        state.command = None;
+        state.controls.clear();
+        state.feedback = None;
+        state.health = Health::Ready;
+        state.supports_orientation = supports_orientation;
+        let generation = state.generation;
+        drop(state);
+        // Wakes the replaced handle's waiter so its stream ends now rather than at its next timeout.
+        self.shared.changed.notify_all();
+        tracing::info!(arm = %self.arm, generation, replaced, "remote bridge attached");
+        Ok(AttachHandle {
+            shared: Arc::clone(&self.shared),
+            generation,
+            arm: self.arm.clone(),
+        })
+    }
+
+    /// True while a remote bridge is attached.
+    pub fn is_attached(&self) -> bool {
+        let state = self.shared.lock();
+        state.attached && !state.shut_down
+    }
+}
+
+impl Bridge for RemoteBridge {
+    fn kind(&self) -> &'static str {
+        "remote"
+    }
+
+    /// Empty until the first bridge attaches (unless given at construction).
+    fn joint_names(&self) -> &[String] {
+        self.shared.joint_names.get().map_or(&[], Vec::as_slice)
+    }
+
+    fn supports_orientation(&self) -> bool {
+        self.shared.lock().supports_orientation
+    }
+
+    fn send(&self, command: Command) {
+        let mut state = self.shared.lock();
+        if !state.attached || state.shut_down {
+            return;
+        }
+        state.command = Some(command);
+        drop(state);
+        self.shared.changed.notify_all();
+    }
+
+    fn feedback(&self) -> Option<Feedback> {
+        self.shared.lock().feedback.clone()
+    }
+
+    fn health(&self) -> Health {
+        self.shared.lock().health.clone()
+    }
+
+    /// Forwards the request to the attached bridge.
+    fn control(&self, request: Control) -> Result<(), BridgeError> {
+        let mut state = self.shared.lock();
+        if !state.attached || state.shut_down {
+            return Err(BridgeError::Connect {
+                target: format!("remote bridge for arm {}", self.arm),
+                message: "no remote bridge attached".into(),
+            });
+        }
+        if state.controls.len() >= MAX_PENDING_CONTROLS {
+            state.controls.pop_front();
+        }
+        state.controls.push_back(request);
+        drop(state);
+        self.shared.changed.notify_all();
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        let mut state = self.shared.lock();
+        if state.shut_down {
+            return;
+        }
+        state.shut_down = true;
+        state.attached = false;
+        state.command = None;
+        state.feedback = None;
+        state.health = Health::Disconnected("shut down".into());
+        drop(state);
+        self.shared.changed.notify_all();
+    }
+}
+
+/// One attachment of a remote bridge. `Send + Sync`: share it in an `Arc` between the thread that waits for
+/// commands and the task that reads feedback. Dropping the last reference detaches (if still current).
+#[derive(Debug)]
+pub struct AttachHandle {
+    shared: Arc<Shared>,
+    generation: u64,
+    arm: String,
+}
+
+impl AttachHandle {
+    /// Waits up to `timeout` for the next message: pending control requests first, then the newest command.
+    /// `Ok(None)` on timeout; an error once this attachment is over (detached, replaced, shut down).
+    pub fn next(&self, timeout: Duration) -> Result<Option<Downstream>, RemoteError> {
+        let deadline = Instant::now() + timeout;
+        let mut state = self.shared.lock();
+        loop {
+            Shared::check(&state, self.generation)?;
+            if let Some(control) = state.controls.pop_front() {
+                return Ok(Some(Downstream::Control(control)));
+            }
+            if let Some(command) = state.command.take() {
+                return Ok(Some(Downstream::Command(command)));
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            state = self
+                .shared
+                .changed
+                .wait_timeout(state, deadline - now)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+    }
+
+    /// Like [`Self::next`] but only commands (control requests stay queued for `next`).
+    pub fn next_command(&self, timeout: Duration) -> Result<Option<Command>, RemoteError> {
+        let deadline = Instant::now() + timeout;
+        let mut state = self.shared.lock();
+        loop {
+            Shared::check(&state, self.generation)?;
+            if let Some(command) = state.command.take() {
+                return Ok(Some(command));
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            state = self
+                .shared
+                .changed
+                .wait_timeout(state, deadline - now)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+    }
+
+    /// Publishes measured state from the remote. Rejects feedback whose joint count differs from the arm's or
+    /// that holds non-finite values (nothing is stored then).
+    pub fn publish_feedback(&self, feedback: Feedback) -> Result<(), RemoteError> {
+        let expected = self.shared.joint_names.get().map_or(0, Vec::len);
+        if feedback.joint_positions_rad.len() != expected {
+            return Err(RemoteError::InvalidFeedback(format!(
+                "{} joint positions, expected {expected}",
+                feedback.joint_positions_rad.len()
+            )));
+        }
+        let pose = &feedback.robot_from_ee;
+        let finite = feedback.joint_positions_rad.iter().all(|v| v.is_finite())
+            && pose.translation.vector.iter().all(|v| v.is_finite())
+            && pose.rotation.coords.iter().all(|v| v.is_finite())
+            && feedback.gripper_position.is_finite();
+        if !finite {
+            return Err(RemoteError::InvalidFeedback("non-finite value".into()));
+        }
+        let mut state = self.shared.lock();
+        Shared::check(&state, self.generation)?;
+        state.feedback = Some(feedback);
+        Ok(())
+    }
+
+    /// Reports the remote robot's health (errors, reconnects to its own robot).
+    pub fn report_health(&self, health: Health) -> Result<(), RemoteError> {
+        let mut state = self.shared.lock();
+        Shared::check(&state, self.generation)?;
+        state.health = health;
+        Ok(())
+    }
+
+    /// Ends this attachment: health becomes Disconnected, feedback is cleared, the arm holds (no further
+    /// commands reach anyone). Does nothing if a newer attach already replaced this one. Idempotent.
+    pub fn detach(&self) {
+        let mut state = self.shared.lock();
+        if state.generation != self.generation || !state.attached || state.shut_down {
+            return;
+        }
+        state.attached = false;
+        state.command = None;
+        state.controls.clear();
+        state.feedback = None;
+        state.health = Health::Disconnected("remote bridge detached".into());
+        drop(state);
+        self.shared.changed.notify_all();
+        tracing::info!(arm = %self.arm, generation = self.generation, "remote bridge detached");
+    }
+
+    /// True while this is the live attachment.
+    pub fn is_current(&self) -> bool {
+        Shared::check(&self.shared.lock(), self.generation).is_ok()
+    }
+}
+
+impl Drop for AttachHandle {
+    fn drop(&mut self) {
+        self.detach();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Isometry3;
+
+    fn names() -> Vec<String> {
+        ["j1", "j2", "j3"].iter().map(|s| (*s).to_owned()).collect()
+    }
+
+    fn command(seq: u64) -> Command {
+        Command {
+            seq,
+            robot_from_target: Isometry3::translation(0.2, 0.0, 0.1),
+            gripper_target: 0.0,
+            issue_time_ns: 0,
+        }
+    }
+
+    fn feedback(joints: Vec<f64>) -> Feedback {
+        Feedback {
+            capture_time_ns: 1,
+            joint_positions_rad: joints,
+            robot_from_ee: Isometry3::translation(0.2, 0.0, 0.1),
+            gripper_position: 0.5,
+            applied_seq: 3,
+            task_success: false,
+        }
+    }
+
+    const SHORT: Duration = Duration::from_millis(10);
+
+    #[test]
+    fn before_attach_the_arm_is_disconnected_and_commands_go_nowhere() {
+        let remote = RemoteBridge::new("main");
+        assert!(matches!(remote.health(), Health::Disconnected(_)));
+        assert!(remote.joint_names().is_empty());
+        remote.send(command(1));
+        assert!(remote.control(Control::Enable).is_err());
+        assert_eq!(remote.feedback(), None);
+        // A command from before the attach must not reach the new bridge.
+        let handle = remote.attach(names(), false).unwrap();
+        assert_eq!(handle.next(SHORT), Ok(None));
+        assert_eq!(remote.health(), Health::Ready);
+        assert_eq!(remote.joint_names(), names().as_slice());
+        assert!(!remote.supports_orientation());
+        assert_eq!(remote.kind(), "remote");
+    }
+
+    #[test]
+    fn latest_command_only_and_controls_first() {
+        let remote = RemoteBridge::new("main");
+        let handle = remote.attach(names(), true).unwrap();
+        for seq in 1..=3 {
+            remote.send(command(seq));
+        }
+        remote.control(Control::Disable).unwrap();
+        assert_eq!(handle.next_command(SHORT), Ok(Some(command(3))));
+        assert_eq!(handle.next_command(SHORT), Ok(None));
+        remote.send(command(4));
+        assert_eq!(
+            handle.next(SHORT),
+            Ok(Some(Downstream::Control(Control::Disable)))
+        );
+        assert_eq!(handle.next(SHORT), Ok(Some(Downstream::Command(command(4)))));
+        assert_eq!(handle.next(SHORT), Ok(None));
+    }
+
+    #[test]
+    fn a_waiting_handle_wakes_on_a_command() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        let waiter = Arc::clone(&handle);
+        let t = std::thread::spawn(move || waiter.next_command(Duration::from_secs(5)));
+        std::thread::sleep(Duration::from_millis(30));
+        let start = Instant::now();
+        remote.send(command(9));
+        assert_eq!(t.join().unwrap(), Ok(Some(command(9))));
+        assert!(start.elapsed() < Duration::from_secs(1));
+    }
+
+    #[test]
+    fn feedback_and_health_flow_up_and_bad_feedback_is_refused() {
+        let remote = RemoteBridge::new("main");
+        let handle = remote.attach(names(), true).unwrap();
+        handle.publish_feedback(feedback(vec![0.1, 0.2, 0.3])).unwrap();
+        assert_eq!(remote.feedback(), Some(feedback(vec![0.1, 0.2, 0.3])));
+        assert!(matches!(
+            handle.publish_feedback(feedback(vec![0.1, 0.2])),
+            Err(RemoteError::InvalidFeedback(_))
+        ));
+        assert!(matches!(
+            handle.publish_feedback(feedback(vec![0.1, f64::NAN, 0.3])),
+            Err(RemoteError::InvalidFeedback(_))
+        ));
+        assert_eq!(
+            remote.feedback(),
+            Some(feedback(vec![0.1, 0.2, 0.3])),
+            "bad feedback changed nothing"
+        );
+        handle.report_health(Health::Error("servo alarm".into())).unwrap();
+        assert_eq!(remote.health(), Health::Error("servo alarm".into()));
+    }
+
+    #[test]
+    fn detach_disconnects_and_holds() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        handle.publish_feedback(feedback(vec![0.0; 3])).unwrap();
+        let waiter = Arc::clone(&handle);
+        let t = std::thread::spawn(move || waiter.next(Duration::from_secs(5)));
+        std::thread::sleep(Duration::from_millis(30));
+        handle.detach();
+        assert_eq!(t.join().unwrap(), Err(RemoteError::Detached));
+        assert!(matches!(remote.health(), Health::Disconnected(_)));
+        assert_eq!(remote.feedback(), None);
+        assert!(!remote.is_attached() && !handle.is_current());
+        assert_eq!(
+            handle.publish_feedback(feedback(vec![0.0; 3])),
+            Err(RemoteError::Detached)
+        );
+        remote.send(command(5));
+        handle.detach();
+        // Re-attach works and does not see the command sent while detached.
+        let again = remote.attach(names(), true).unwrap();
+        assert_eq!(again.next(SHORT), Ok(None));
+    }
+
+    #[test]
+    fn a_new_attach_replaces_the_old_one() {
+        let remote = RemoteBridge::new("main");
+        let old = Arc::new(remote.attach(names(), true).unwrap());
+        let waiter = Arc::clone(&old);
+        let t = std::thread::spawn(move || waiter.next(Duration::from_secs(5)));
+        std::thread::sleep(Duration::from_millis(30));
+        let new = remote.attach(names(), false).unwrap();
+        assert_eq!(t.join().unwrap(), Err(RemoteError::Superseded));
+        assert_eq!(old.report_health(Health::Ready), Err(RemoteError::Superseded));
+        // The replaced handle going away must not disconnect its successor.
+        drop(old);
+        assert!(remote.is_attached() && new.is_current());
+        remote.send(command(7));
+        assert_eq!(new.next_command(SHORT), Ok(Some(command(7))));
+        // Joint names are fixed by the first attach.
+        assert!(matches!(
+            remote.attach(vec!["other".into()], true),
+            Err(RemoteError::JointNamesMismatch { .. })
+        ));
+        assert!(new.is_current(), "a refused attach replaces nothing");
+        assert_eq!(remote.attach(Vec::new(), true).err(), Some(RemoteError::NoJoints));
+    }
+
+    #[test]
+    fn dropping_the_handle_detaches_and_shutdown_ends_everything() {
+        let remote = RemoteBridge::with_joint_names("main", names());
+        assert_eq!(remote.joint_names().len(), 3);
+        drop(remote.attach(names(), true).unwrap());
+        assert!(matches!(remote.health(), Health::Disconnected(_)));
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        let waiter = Arc::clone(&handle);
+        let t = std::thread::spawn(move || waiter.next_command(Duration::from_secs(5)));
+        std::thread::sleep(Duration::from_millis(30));
+        remote.shutdown();
+        remote.shutdown();
+        assert_eq!(t.join().unwrap(), Err(RemoteError::ShutDown));
+        assert_eq!(remote.attach(names(), true).err(), Some(RemoteError::ShutDown));
+        assert!(matches!(remote.health(), Health::Disconnected(m) if m == "shut down"));
+    }
+}
