@@ -725,10 +725,11 @@ fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
         }
         next += config.feedback_period;
         let now = Instant::now();
-        if next > now {
-            std::thread::sleep(next - now);
-        } else {
-            next = now;
+        match next.checked_duration_since(now) {
+            Some(rest) => std::thread::sleep(rest),
+            // The controller keeps its 8 ms grid: late packets are followed by on-time ones, not a burst.
+            None if now.duration_since(next) > config.feedback_period => next = now,
+            None => {}
         }
     }
     forget_client(shared, &stream);

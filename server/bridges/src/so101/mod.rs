@@ -150,8 +150,8 @@ pub struct So101Stats {
     /// Targets whose IK did not reach the position (out of reach); the closest pose was sent.
     pub unreachable_targets: u64,
     pub last_error: Option<String>,
-    /// Mean duration of a cycle's bus traffic (write + read), microseconds.
-    pub mean_bus_us: f64,
+    /// Mean work time of a cycle (IK, sync write, sync read), microseconds.
+    pub mean_cycle_work_us: f64,
     pub bus: BusStats,
 }
 
@@ -279,7 +279,7 @@ impl So101Bridge {
             targets_superseded: self.inner.slot.superseded(),
             unreachable_targets: self.inner.unreachable.load(Ordering::Relaxed),
             last_error: s.last_error.clone(),
-            mean_bus_us: if cycles == 0 {
+            mean_cycle_work_us: if cycles == 0 {
                 0.0
             } else {
                 s.bus_time_total.as_secs_f64() * 1e6 / cycles as f64
@@ -397,11 +397,12 @@ impl Inner {
             self.cycle();
             next += period;
             let now = Instant::now();
-            if next > now {
-                std::thread::sleep(next - now);
-            } else {
-                // Overran: start the next cycle now instead of bursting to catch up.
-                next = now;
+            match next.checked_duration_since(now) {
+                Some(rest) => std::thread::sleep(rest),
+                // A late wake-up is made up by the next cycles; a long stall (more than a period) is not, so
+                // the bus never sees a burst.
+                None if now.duration_since(next) > period => next = now,
+                None => {}
             }
         }
     }
