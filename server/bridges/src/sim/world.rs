@@ -295,6 +295,7 @@ impl SimWorld {
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion};
+    use phone2act_core::kinematics::So101Kinematics;
 
     fn command(seq: u64, target: Isometry3<f64>, gripper: f64) -> Command {
         Command {
@@ -400,6 +401,54 @@ mod tests {
         );
         run(&mut w, 0.3);
         assert!((w.tool_pose().translation.vector - start.translation.vector).norm() < 1e-9);
+    }
+
+    /// The tool pointing straight down at (x, y, z).
+    fn down_at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
+        let zero = So101Kinematics::new().forward(&[0.0; 5]).rotation;
+        let down = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2) * zero;
+        Isometry3::from_parts(Translation3::new(x, y, z), down)
+    }
+
+    #[test]
+    fn deterministic_pick_and_place() {
+        let mut w = world();
+        let [bx, by] = w.config().ball_xy_m;
+        let [kx, ky] = w.config().basket_xy_m;
+        let script = [
+            (down_at(bx, by, 0.10), 0.0),
+            (down_at(bx, by, 0.02), 0.0),
+            (down_at(bx, by, 0.02), 1.0),
+            (down_at(bx, by, 0.12), 1.0),
+            (down_at(kx, ky, 0.13), 1.0),
+        ];
+        for (seq, (target, gripper)) in script.into_iter().enumerate() {
+            // Re-sent every 20 ms like a teleop stream, so IK keeps refining from the current targets.
+            for _ in 0..25 {
+                w.apply_command(&command(seq as u64 + 1, target, gripper));
+                run(&mut w, 0.02);
+            }
+        }
+        assert!(matches!(w.ball_state(), BallState::Held { .. }));
+        let carried = w.ball_center_m();
+        assert!((carried.x - kx).hypot(carried.y - ky) < 0.03, "{carried:?}");
+        assert!(!w.task_success());
+        w.apply_command(&command(9, down_at(kx, ky, 0.13), 0.0));
+        // Gripper opens (tens of ms), then the ball falls about 0.1 m (about 0.15 s).
+        run(&mut w, 0.15);
+        assert!(
+            matches!(w.ball_state(), BallState::Falling { .. }),
+            "{:?}",
+            w.ball_state()
+        );
+        run(&mut w, 0.5);
+        assert_eq!(w.ball_state(), BallState::Resting);
+        assert!(w.task_success());
+        assert!((w.ball_center_m().z - (BASKET_FLOOR_M + w.config().ball_radius_m)).abs() < 1e-12);
+        // A reset puts it back on the table and clears success.
+        w.reset_scene();
+        assert!(!w.task_success());
+        assert_eq!(w.ball_center_m().xy(), Vector3::new(bx, by, 0.0).xy());
     }
 
     #[test]
