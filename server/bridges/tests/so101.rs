@@ -509,3 +509,50 @@ fn example_bimanual_config_parses() {
         arm.so101.validate().unwrap();
     }
 }
+
+#[test]
+fn calibrate_binary_drives_the_procedure_from_the_keyboard() {
+    use std::io::Write as _;
+    let emulator = FeetechEmulator::start(&[(1, 10), (2, 20), (3, 30), (4, 40), (5, 50), (6, 60)]).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("arm.json");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_so101-calibrate"))
+        .args([
+            "--port",
+            emulator.port_path().to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdin = child.stdin.take().unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    for id in 1..=6 {
+        emulator.set_actual_position(id, 2500.0);
+    }
+    stdin.write_all(b"\n").unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    for step in 0..=20 {
+        for id in 1..=6 {
+            emulator.set_actual_position(
+                id,
+                2500.0 + 400.0 * (f64::from(step) / 20.0 * std::f64::consts::TAU).sin(),
+            );
+        }
+        std::thread::sleep(Duration::from_millis(15));
+    }
+    stdin.write_all(b"\n").unwrap();
+    let output = child.wait_with_output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stdout)
+    );
+    let calibration = Calibration::load(&out).unwrap();
+    calibration.validate().unwrap();
+    let pan = calibration.get("shoulder_pan").unwrap();
+    assert_eq!(pan.homing_offset, 2500 - 2047);
+    assert!(pan.range_min < 1750 && pan.range_max > 2350, "{pan:?}");
+}
