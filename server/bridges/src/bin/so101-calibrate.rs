@@ -37,7 +37,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 ids = value()?
                     .split(',')
                     .map(|s| s.trim().parse::<u8>())
-                    .collect::<Result<_, _>>()?
+                    .collect::<Result<_, _>>()?;
             }
             "-h" | "--help" => {
                 println!("{USAGE}");
