@@ -1,36 +1,19 @@
-//! The running server's state: arms, cameras, the recorder and the shutdown signal. Services hold an
-//! `Arc<App>` and read snapshots from it.
+//! The running server's state: arm controllers, cameras, the recorder, open sessions and the shutdown
+//! signal. Services hold an `Arc<App>`.
 
-use crate::config::{CameraKind, Config};
+use crate::arm::ArmController;
+use crate::config::{BridgeKind, CameraKind, Config};
+use crate::services::policy::PolicySessionState;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use phone2act_bridges::Bridge;
 use phone2act_proto::v1;
-use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_test_pattern};
+use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::clock::monotonic_ns;
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
 use tokio::sync::watch;
-
-/// One configured arm.
-#[derive(Debug)]
-pub struct ArmRuntime {
-    pub name: String,
-    pub bridge_kind: &'static str,
-    state: Mutex<v1::ArmState>,
-}
-
-impl ArmRuntime {
-    /// A snapshot of the arm's state.
-    pub fn snapshot(&self) -> v1::ArmState {
-        let mut state = self
-            .state
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .clone();
-        if state.feedback_time_ns > 0 {
-            state.feedback_age_s = (monotonic_ns() - state.feedback_time_ns) as f64 * 1e-9;
-        }
-        state
-    }
-}
 
 /// One configured camera and its capture thread.
 #[derive(Debug)]
@@ -45,9 +28,7 @@ impl CameraRuntime {
     pub fn status(&self) -> v1::CameraStatus {
         let now = monotonic_ns();
         let latest = self.slot.latest();
-        let age_s = latest
-            .as_ref()
-            .map_or(f64::INFINITY, |f| (now - f.capture_time_ns) as f64 * 1e-9);
+        let age_s = latest.as_ref().map_or(f64::INFINITY, |f| (now - f.capture_time_ns) as f64 * 1e-9);
         let freshness_s = 3.0 / self.config.fps;
         v1::CameraStatus {
             camera: self.config.name.clone(),
@@ -65,13 +46,23 @@ impl CameraRuntime {
 }
 
 /// Everything the services share.
-#[derive(Debug)]
 pub struct App {
     pub config: Config,
     pub started: Instant,
-    pub arms: Vec<ArmRuntime>,
+    pub arms: Vec<Arc<ArmController>>,
     pub cameras: Vec<CameraRuntime>,
+    /// Remote bridges by arm name, for `Bridge.Attach`.
+    pub remote_bridges: HashMap<String, Arc<dyn Bridge>>,
+    sessions: AtomicU64,
+    observations: AtomicU64,
+    policies: Mutex<HashMap<u64, Arc<PolicySessionState>>>,
     shutdown_tx: watch::Sender<bool>,
+}
+
+impl std::fmt::Debug for App {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("App").field("arms", &self.arms).field("cameras", &self.cameras).finish_non_exhaustive()
+    }
 }
 
 /// Errors starting the app.
@@ -79,44 +70,79 @@ pub struct App {
 pub enum AppError {
     #[error("camera {camera}: {message}")]
     Camera { camera: String, message: String },
+    #[error("arm {arm}: {message}")]
+    Arm { arm: String, message: String },
+}
+
+/// Where an arm holds before its bridge reports a pose: the SO-101 workspace centre, gripper down.
+fn fallback_pose() -> Isometry3<f64> {
+    Isometry3::from_parts(Translation3::new(0.25, 0.0, 0.15), UnitQuaternion::identity())
 }
 
 impl App {
-    /// Starts camera threads and arm bridges for `config`.
+    /// Starts bridges, arm controllers and camera threads for `config`.
     pub fn start(config: Config) -> Result<Self, AppError> {
-        let arms = config
-            .arms
-            .iter()
-            .map(|arm| ArmRuntime {
-                name: arm.name.clone(),
-                bridge_kind: arm.bridge.as_str(),
-                state: Mutex::new(v1::ArmState {
-                    arm: arm.name.clone(),
-                    bridge_kind: arm.bridge.as_str().to_owned(),
-                    health: v1::BridgeHealth::Connecting as i32,
-                    owner: v1::ControlSource::None as i32,
-                    ..v1::ArmState::default()
-                }),
-            })
-            .collect();
+        let mut arms = Vec::new();
+        let remote_bridges = HashMap::new();
+        let mut sims: HashMap<String, Arc<phone2act_bridges::sim::SimBridge>> = HashMap::new();
+        for arm in &config.arms {
+            let arm_err = |message: String| AppError::Arm { arm: arm.name.clone(), message };
+            let bridge: Arc<dyn Bridge> = match arm.bridge {
+                BridgeKind::Sim => {
+                    let sim = phone2act_bridges::sim::SimBridge::start(arm.sim.clone().unwrap_or_default())
+                        .map_err(|e| arm_err(e.to_string()))?;
+                    sims.insert(arm.name.clone(), Arc::clone(&sim));
+                    sim
+                }
+                BridgeKind::Remote | BridgeKind::Dobot | BridgeKind::So101 => {
+                    return Err(arm_err(format!("bridge {:?} is not wired into the server yet", arm.bridge.as_str())));
+                }
+            };
+            wait_for_feedback(bridge.as_ref(), Duration::from_millis(500));
+            let controller = ArmController::new(
+                &arm.name,
+                arm.bridge.as_str(),
+                bridge,
+                &arm.teleop,
+                &arm.chunk,
+                arm.action_mode,
+                fallback_pose(),
+            )
+            .map_err(|e| arm_err(e.to_string()))?;
+            arms.push(Arc::new(controller));
+        }
         let mut cameras = Vec::new();
         for cam in &config.cameras {
+            let cam_err = |message: String| AppError::Camera { camera: cam.name.clone(), message };
             let slot = Arc::new(FrameSlot::default());
             let capture = match cam.kind {
                 CameraKind::TestPattern => Some(
                     spawn_test_pattern(&cam.name, cam.width, cam.height, cam.fps, Arc::clone(&slot))
-                        .map_err(|e| AppError::Camera {
-                            camera: cam.name.clone(),
-                            message: e.to_string(),
-                        })?,
+                        .map_err(|e| cam_err(e.to_string()))?,
                 ),
-                CameraKind::V4l2 | CameraKind::SimRender | CameraKind::Remote => None,
+                CameraKind::SimRender => {
+                    let sim = match &cam.arm {
+                        Some(name) => sims.get(name).cloned(),
+                        None => sims.values().next().cloned(),
+                    }
+                    .ok_or_else(|| cam_err("kind \"sim_render\" needs a simulated arm (set `arm`)".to_owned()))?;
+                    let (w, h) = (cam.width, cam.height);
+                    Some(
+                        spawn_generated(
+                            &cam.name,
+                            w,
+                            h,
+                            cam.fps,
+                            move |_seq, out| sim.render_rgb(w, h, out),
+                            Arc::clone(&slot),
+                        )
+                        .map_err(|e| cam_err(e.to_string()))?,
+                    )
+                }
+                CameraKind::V4l2 => return Err(cam_err("v4l2 capture is not wired yet".to_owned())),
+                CameraKind::Remote => None,
             };
-            cameras.push(CameraRuntime {
-                config: cam.clone(),
-                slot,
-                capture: Mutex::new(capture),
-            });
+            cameras.push(CameraRuntime { config: cam.clone(), slot, capture: Mutex::new(capture) });
         }
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Self {
@@ -124,13 +150,44 @@ impl App {
             started: Instant::now(),
             arms,
             cameras,
+            remote_bridges,
+            sessions: AtomicU64::new(1),
+            observations: AtomicU64::new(1),
+            policies: Mutex::new(HashMap::new()),
             shutdown_tx,
         })
     }
 
     /// Looks up an arm by name.
-    pub fn arm(&self, name: &str) -> Option<&ArmRuntime> {
-        self.arms.iter().find(|a| a.name == name)
+    pub fn arm(&self, name: &str) -> Option<Arc<ArmController>> {
+        self.arms.iter().find(|a| a.name == name).cloned()
+    }
+
+    /// Configured arm names in order.
+    pub fn arm_names(&self) -> Vec<String> {
+        self.arms.iter().map(|a| a.name.clone()).collect()
+    }
+
+    /// A fresh session id (teleop and policy share the counter).
+    pub fn next_session_id(&self) -> u64 {
+        self.sessions.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// A fresh observation id (never 0: 0 means "no observation" in chunks).
+    pub fn next_observation_id(&self) -> u64 {
+        self.observations.fetch_add(1, Ordering::Relaxed)
+    }
+
+    pub(crate) fn register_policy(&self, session: Arc<PolicySessionState>) {
+        self.policies.lock().unwrap_or_else(PoisonError::into_inner).insert(session.id, session);
+    }
+
+    pub(crate) fn unregister_policy(&self, id: u64) {
+        self.policies.lock().unwrap_or_else(PoisonError::into_inner).remove(&id);
+    }
+
+    pub(crate) fn policy_session(&self, id: u64) -> Option<Arc<PolicySessionState>> {
+        self.policies.lock().unwrap_or_else(PoisonError::into_inner).get(&id).cloned()
     }
 
     /// A full status snapshot.
@@ -139,7 +196,7 @@ impl App {
             version: env!("CARGO_PKG_VERSION").to_owned(),
             server_time_ns: monotonic_ns(),
             uptime_s: self.started.elapsed().as_secs_f64(),
-            arms: self.arms.iter().map(ArmRuntime::snapshot).collect(),
+            arms: self.arms.iter().map(|a| a.snapshot()).collect(),
             cameras: self.cameras.iter().map(CameraRuntime::status).collect(),
             recording: Some(self.recording_status()),
             sequence,
@@ -157,6 +214,16 @@ impl App {
         }
     }
 
+    /// The task of the episode in progress.
+    pub fn current_task(&self) -> String {
+        String::new()
+    }
+
+    /// Applies a record button from a phone.
+    pub fn record_command(&self, command: &v1::RecordCommand) -> Result<(), String> {
+        Err(format!("recording is not available yet (command {})", command.kind))
+    }
+
     /// A receiver that turns `true` when shutdown begins; streaming RPCs end on it.
     pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
         self.shutdown_tx.subscribe()
@@ -171,14 +238,24 @@ impl App {
     pub fn stop(&self) {
         self.begin_shutdown();
         for cam in &self.cameras {
-            if let Some(capture) = cam
-                .capture
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .take()
-            {
+            if let Some(capture) = cam.capture.lock().unwrap_or_else(PoisonError::into_inner).take() {
                 capture.stop();
             }
         }
+        for arm in &self.arms {
+            arm.bridge.shutdown();
+        }
     }
+}
+
+fn wait_for_feedback(bridge: &dyn Bridge, timeout: Duration) {
+    let deadline = Instant::now() + timeout;
+    while bridge.feedback().is_none() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// Resolves once shutdown has begun (a `Send`-friendly wrapper around `watch::Receiver::wait_for`).
+pub async fn stopped(rx: &mut watch::Receiver<bool>) {
+    let _ = rx.wait_for(|s| *s).await;
 }

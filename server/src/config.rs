@@ -112,6 +112,19 @@ pub struct ArmConfig {
     /// Name used in the API and as the dataset prefix when several arms are recorded (`left`, `right`).
     pub name: String,
     pub bridge: BridgeKind,
+    /// Phone mapping, safety gate and gripper behaviour.
+    #[serde(default)]
+    pub teleop: phone2act_core::TeleopConfig,
+    /// Policy chunk execution limits and blending.
+    #[serde(default)]
+    pub chunk: phone2act_core::ChunkConfig,
+    /// Action layout recorded and accepted from policies: "delta" (the paper's end-effector delta) or
+    /// "absolute".
+    #[serde(default)]
+    pub action_mode: phone2act_core::ActionMode,
+    /// Simulated arm settings (bridge = "sim").
+    #[serde(default)]
+    pub sim: Option<phone2act_bridges::sim::SimConfig>,
 }
 
 /// Kinds of camera source.
@@ -156,6 +169,9 @@ pub struct CameraConfig {
     /// V4L2 device path (kind = "v4l2").
     #[serde(default)]
     pub device: Option<String>,
+    /// Which simulated arm a "sim_render" camera shows (default: the first simulated arm).
+    #[serde(default)]
+    pub arm: Option<String>,
 }
 
 fn default_width() -> u32 {

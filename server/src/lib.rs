@@ -3,18 +3,24 @@
 //! CLI around it; tests start it in-process on an ephemeral port.
 
 pub mod app;
+pub mod arm;
 pub mod config;
 pub mod services;
 
 use crate::app::App;
 pub use crate::config::Config;
+use phone2act_proto::v1::policy_server::PolicyServer;
 use phone2act_proto::v1::system_server::SystemServer;
+use phone2act_proto::v1::teleop_server::TeleopServer;
 use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio_stream::wrappers::TcpListenerStream;
 use tonic::transport::Server;
+
+/// Rate of the arm controllers' periodic work (chunk steps, silence and staleness checks).
+pub const ARM_TICK_HZ: f64 = 500.0;
 
 /// How long in-flight streams get to finish after shutdown is requested.
 pub const SHUTDOWN_GRACE: Duration = Duration::from_millis(700);
@@ -48,10 +54,17 @@ pub async fn run(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    let local = listener
-        .local_addr()
-        .map_err(|e| ServerError::Startup(e.to_string()))?;
     let app = Arc::new(App::start(config).map_err(|e| ServerError::Startup(e.to_string()))?);
+    serve_app(app, listener, shutdown).await
+}
+
+/// Serves an already started [`App`] (benchmarks keep a handle on it to read the control-path counters).
+pub async fn serve_app(
+    app: Arc<App>,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let local = listener.local_addr().map_err(|e| ServerError::Startup(e.to_string()))?;
     tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
@@ -73,7 +86,12 @@ pub async fn run(
         .build_v1alpha()?;
 
     let auth = services::auth::TokenCheck::new(app.config.server.token.clone());
-    let system = SystemServer::with_interceptor(services::system::SystemService::new(Arc::clone(&app)), auth);
+    let system =
+        SystemServer::with_interceptor(services::system::SystemService::new(Arc::clone(&app)), auth.clone());
+    let teleop =
+        TeleopServer::with_interceptor(services::teleop::TeleopService::new(Arc::clone(&app)), auth.clone());
+    let policy = PolicyServer::with_interceptor(services::policy::PolicyService::new(Arc::clone(&app)), auth);
+    tokio::spawn(arm::run_ticks(app.arms.clone(), ARM_TICK_HZ, app.shutdown_signal()));
 
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let app_for_shutdown = Arc::clone(&app);
@@ -89,6 +107,8 @@ pub async fn run(
         .add_service(reflection)
         .add_service(reflection_alpha)
         .add_service(system)
+        .add_service(teleop)
+        .add_service(policy)
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
             let _ = stop_rx.await;
         });

@@ -7,6 +7,36 @@ use std::net::SocketAddr;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
+/// The embedded default configuration with its dataset under `dataset_root`.
+pub fn default_config(dataset_root: &std::path::Path) -> Config {
+    let mut config = Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())
+        .expect("embedded default parses");
+    config.recorder.root = dataset_root.to_owned();
+    config
+}
+
+/// The shipped bimanual configuration (two simulated arms `left` and `right`).
+pub fn bimanual_config(dataset_root: &std::path::Path) -> Config {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../server/config/bimanual-sim.toml");
+    let mut config = Config::from_toml_str(&std::fs::read_to_string(path).expect("bimanual config"), path, Vec::new())
+        .expect("bimanual config parses");
+    config.recorder.root = dataset_root.to_owned();
+    config
+}
+
+/// Position of a pose message as an array (metres).
+pub fn pos(pose: &phone2act_proto::v1::Pose) -> [f64; 3] {
+    let p = pose.position_m.as_ref().expect("pose has a position");
+    [p.x, p.y, p.z]
+}
+
+/// The measured end-effector position of `arm`, through System.ListArms.
+pub async fn sim_pose_of(client: &Client, arm: &str) -> [f64; 3] {
+    let arms = client.system().list_arms().await.expect("ListArms");
+    let state = arms.iter().find(|a| a.arm == arm).expect("arm listed");
+    pos(state.robot_from_ee.as_ref().expect("arm has feedback"))
+}
+
 /// A server running in-process on 127.0.0.1 with an ephemeral port.
 pub struct TestServer {
     pub addr: SocketAddr,

@@ -37,7 +37,7 @@ pub enum Error {
     #[error("session closed")]
     Closed,
     /// The server answered with an error status.
-    #[error("{}: {}", .0.code(), .0.message())]
+    #[error("{:?}: {}", .0.code(), .0.message())]
     Status(#[from] tonic::Status),
 }
 

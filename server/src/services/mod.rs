@@ -1,4 +1,6 @@
 //! Thin tonic adapters: each service translates wire messages to calls on [`crate::app::App`].
 
 pub mod auth;
+pub mod policy;
 pub mod system;
+pub mod teleop;

@@ -35,7 +35,7 @@ impl System for SystemService {
                 .app
                 .arms
                 .iter()
-                .map(crate::app::ArmRuntime::snapshot)
+                .map(|a| a.snapshot())
                 .collect(),
         }))
     }
@@ -89,7 +89,7 @@ impl System for SystemService {
             loop {
                 tokio::select! {
                     _ = ticker.tick() => {}
-                    _ = shutdown.wait_for(|s| *s) => break,
+                    () = crate::app::stopped(&mut shutdown) => break,
                     () = tx.closed() => break,
                 }
                 if tx.send(Ok(app.status(sequence))).await.is_err() {

@@ -1,0 +1,644 @@
+//! Arm controllers: one per configured arm, the single place where teleop samples and policy chunks become
+//! bridge commands. Both sources pass the same safety gate and the same bridge; one source drives an arm
+//! at a time, the operator can always take over from the phone, and a source that goes silent leaves the
+//! arm holding.
+//!
+//! The critical section is a `std::sync::Mutex` held for microseconds and never across an `.await`, so the
+//! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
+
+use phone2act_bridges::{Bridge, Command, Feedback, Health};
+use phone2act_core::{
+    ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
+    GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
+};
+use phone2act_proto::v1;
+use phone2act_recorder::clock::monotonic_ns;
+use nalgebra::Isometry3;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use tokio::sync::mpsc;
+use tonic::Status;
+
+/// Seconds on the process monotonic clock.
+pub fn now_s() -> f64 {
+    monotonic_ns() as f64 * 1e-9
+}
+
+/// Who drives the arm right now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Driver {
+    None,
+    Teleop,
+    Policy,
+}
+
+/// The policy session that owns (or may own) the arm.
+#[derive(Debug)]
+struct PolicyOwner {
+    session_id: u64,
+    name: String,
+    events: mpsc::Sender<v1::PolicyEvent>,
+    silence_timeout_s: f64,
+    last_chunk_s: f64,
+}
+
+#[derive(Debug)]
+struct Inner {
+    teleop: TeleopArm,
+    policy_gate: SafetyGate,
+    executor: ChunkExecutor,
+    teleop_session: Option<u64>,
+    driver: Driver,
+    policy: Option<PolicyOwner>,
+    target: Isometry3<f64>,
+    gripper_target: f64,
+    last_decision: GateDecision,
+    last_policy_step: Option<ChunkStep>,
+    seq: u64,
+    commands_sent: u64,
+    commands_rejected: u64,
+    commands_clamped: u64,
+}
+
+/// What one teleop sample did.
+#[derive(Debug, Clone)]
+pub struct TeleopOutcome {
+    /// Per-sample error for the phone (invalid pose, bad gripper value); empty when fine.
+    pub error: String,
+    /// Record button events to forward to the recorder, in order.
+    pub record: Vec<v1::RecordCommand>,
+    /// Server time the command (if any) was handed to the bridge.
+    pub command_time_ns: Option<i64>,
+}
+
+/// The teleop input of one processing round: the newest pose and every button event since the last round.
+#[derive(Debug, Default)]
+pub struct TeleopInput {
+    /// Newest pose (already validated) or the validation error.
+    pub pose: Option<Result<Isometry3<f64>, String>>,
+    pub tracking_ok: bool,
+    pub buttons: Vec<v1::ButtonEvent>,
+}
+
+/// One arm.
+pub struct ArmController {
+    pub name: String,
+    pub kind: &'static str,
+    pub bridge: Arc<dyn Bridge>,
+    pub layout: ArmLayout,
+    pub action_mode: ActionMode,
+    inner: Mutex<Inner>,
+    feedback_count: AtomicU64,
+    /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
+    latencies_ns: Mutex<LatencyRing>,
+    samples_received: AtomicU64,
+}
+
+/// The last [`LatencyRing::CAPACITY`] latencies, for benchmarks and status (bounded memory).
+#[derive(Debug, Default)]
+pub struct LatencyRing {
+    values_ns: Vec<u32>,
+    next: usize,
+    total: u64,
+}
+
+impl LatencyRing {
+    pub const CAPACITY: usize = 1 << 16;
+
+    fn push(&mut self, ns: i64) {
+        let v = u32::try_from(ns.max(0)).unwrap_or(u32::MAX);
+        if self.values_ns.len() < Self::CAPACITY {
+            self.values_ns.push(v);
+        } else {
+            self.values_ns[self.next] = v;
+        }
+        self.next = (self.next + 1) % Self::CAPACITY;
+        self.total += 1;
+    }
+}
+
+impl std::fmt::Debug for ArmController {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ArmController").field("name", &self.name).field("kind", &self.kind).finish_non_exhaustive()
+    }
+}
+
+/// Errors building an arm controller.
+#[derive(Debug, thiserror::Error)]
+pub enum ArmError {
+    #[error("arm {arm}: {source}")]
+    Config {
+        arm: String,
+        #[source]
+        source: phone2act_core::ConfigError,
+    },
+}
+
+impl ArmController {
+    /// A controller for `bridge`, starting from the robot's measured pose (or `fallback` before feedback).
+    pub fn new(
+        name: &str,
+        kind: &'static str,
+        bridge: Arc<dyn Bridge>,
+        teleop: &TeleopConfig,
+        chunk: &ChunkConfig,
+        action_mode: ActionMode,
+        fallback: Isometry3<f64>,
+    ) -> Result<Self, ArmError> {
+        let config_err = |source| ArmError::Config { arm: name.to_owned(), source };
+        let measured = bridge.feedback().map_or(fallback, |f| f.robot_from_ee);
+        let gripper = bridge.feedback().map_or(0.0, |f| f.gripper_position);
+        let layout = ArmLayout::new(bridge.joint_names().to_vec());
+        let inner = Inner {
+            teleop: TeleopArm::new(teleop, measured).map_err(config_err)?,
+            policy_gate: SafetyGate::new(&teleop.gate, measured).map_err(config_err)?,
+            executor: ChunkExecutor::new(chunk.clone()).map_err(config_err)?,
+            teleop_session: None,
+            driver: Driver::None,
+            policy: None,
+            target: measured,
+            gripper_target: gripper,
+            last_decision: GateDecision::note(GateVerdict::Accepted, "idle"),
+            last_policy_step: None,
+            seq: 0,
+            commands_sent: 0,
+            commands_rejected: 0,
+            commands_clamped: 0,
+        };
+        Ok(Self {
+            name: name.to_owned(),
+            kind,
+            bridge,
+            layout,
+            action_mode,
+            inner: Mutex::new(inner),
+            feedback_count: AtomicU64::new(0),
+            latencies_ns: Mutex::new(LatencyRing::default()),
+            samples_received: AtomicU64::new(0),
+        })
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The newest robot feedback.
+    pub fn feedback(&self) -> Option<Feedback> {
+        let fb = self.bridge.feedback();
+        if fb.is_some() {
+            self.feedback_count.fetch_add(1, Ordering::Relaxed);
+        }
+        fb
+    }
+
+    fn measured_or(&self, fallback: Isometry3<f64>) -> Isometry3<f64> {
+        self.bridge.feedback().map_or(fallback, |f| f.robot_from_ee)
+    }
+
+    /// Hands a gated command to the bridge. Called with the lock held so `seq` order equals send order.
+    fn send(&self, inner: &mut Inner, target: Isometry3<f64>, gripper: f64) -> i64 {
+        inner.seq += 1;
+        inner.target = target;
+        inner.gripper_target = gripper;
+        inner.commands_sent += 1;
+        let issue_time_ns = monotonic_ns();
+        self.bridge.send(Command { seq: inner.seq, robot_from_target: target, gripper_target: gripper, issue_time_ns });
+        issue_time_ns
+    }
+
+    fn record_decision(inner: &mut Inner, decision: GateDecision) {
+        match decision.verdict {
+            GateVerdict::RejectedJump | GateVerdict::RejectedInvalid => inner.commands_rejected += 1,
+            GateVerdict::Clamped => inner.commands_clamped += 1,
+            GateVerdict::Accepted | GateVerdict::HeldStale => {}
+        }
+        inner.last_decision = decision;
+    }
+
+    /// Binds a teleop session. A second phone is refused unless it takes over.
+    pub fn bind_teleop(&self, session_id: u64, take_over: bool) -> Result<(), Status> {
+        let mut inner = self.lock();
+        match inner.teleop_session {
+            Some(other) if other != session_id && !take_over => Err(Status::already_exists(format!(
+                "arm {:?} is already bound to another phone; set take_over to replace it",
+                self.name
+            ))),
+            _ => {
+                inner.teleop_session = Some(session_id);
+                if inner.driver == Driver::Teleop {
+                    // The replaced phone was driving: the new one starts disengaged.
+                    inner.driver = Driver::None;
+                    let measured = self.measured_or(inner.target);
+                    let now = now_s();
+                    inner.teleop.clutch(ClutchKind::Disengage, None, measured, now);
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Ends a teleop session; the arm holds if it was driving.
+    pub fn unbind_teleop(&self, session_id: u64) {
+        let mut inner = self.lock();
+        if inner.teleop_session == Some(session_id) {
+            inner.teleop_session = None;
+            if inner.driver == Driver::Teleop {
+                inner.driver = Driver::None;
+                let measured = self.measured_or(inner.target);
+                inner.teleop.clutch(ClutchKind::Disengage, None, measured, now_s());
+                Self::record_decision(
+                    &mut inner,
+                    GateDecision::note(GateVerdict::Accepted, "phone disconnected: the arm holds"),
+                );
+            }
+        }
+    }
+
+    /// Records one control-path latency and the number of samples a round merged.
+    pub fn note_round(&self, samples: u64, latency_ns: Option<i64>) {
+        self.samples_received.fetch_add(samples, Ordering::Relaxed);
+        if let Some(ns) = latency_ns {
+            self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner).push(ns);
+        }
+    }
+
+    /// Recent control-path latencies (ns, unordered) and the count of all latencies ever recorded.
+    pub fn latencies_ns(&self) -> (Vec<u32>, u64) {
+        let ring = self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner);
+        (ring.values_ns.clone(), ring.total)
+    }
+
+    /// Teleop samples received (including those superseded by newer ones) since start.
+    pub fn samples_received(&self) -> u64 {
+        self.samples_received.load(Ordering::Relaxed)
+    }
+
+    /// Clears the latency ring (between benchmark phases).
+    pub fn reset_latencies(&self) {
+        *self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner) = LatencyRing::default();
+    }
+
+    /// True if `session_id` is the bound teleop session.
+    pub fn is_teleop_bound(&self, session_id: u64) -> bool {
+        self.lock().teleop_session == Some(session_id)
+    }
+
+    /// Processes one round of teleop input for the bound session.
+    pub fn teleop_input(&self, session_id: u64, input: TeleopInput) -> Result<TeleopOutcome, Status> {
+        let now = now_s();
+        let mut inner = self.lock();
+        if inner.teleop_session != Some(session_id) {
+            return Err(Status::aborted(format!("another phone took over arm {:?}", self.name)));
+        }
+        let mut outcome = TeleopOutcome { error: String::new(), record: Vec::new(), command_time_ns: None };
+        let pose = match &input.pose {
+            Some(Ok(p)) => Some(*p),
+            Some(Err(e)) => {
+                outcome.error.clone_from(e);
+                None
+            }
+            None => None,
+        };
+        for event in input.buttons {
+            match event.event {
+                Some(v1::button_event::Event::Clutch(c)) => {
+                    let kind = match v1::clutch_command::Kind::try_from(c.kind) {
+                        Ok(v1::clutch_command::Kind::Toggle) => ClutchKind::Toggle,
+                        Ok(v1::clutch_command::Kind::Engage) => ClutchKind::Engage,
+                        Ok(v1::clutch_command::Kind::Disengage) => ClutchKind::Disengage,
+                        _ => {
+                            outcome.error = format!("unknown clutch kind {}", c.kind);
+                            continue;
+                        }
+                    };
+                    self.clutch_locked(&mut inner, kind, pose, now, &mut outcome);
+                }
+                Some(v1::button_event::Event::Gripper(g)) => {
+                    let command = match v1::gripper_command::Kind::try_from(g.kind) {
+                        Ok(v1::gripper_command::Kind::Toggle) => GripperCommand::Toggle,
+                        Ok(v1::gripper_command::Kind::Set) => GripperCommand::Set(g.position),
+                        _ => {
+                            outcome.error = format!("unknown gripper kind {}", g.kind);
+                            continue;
+                        }
+                    };
+                    match inner.teleop.gripper(command) {
+                        Ok(gripper) => {
+                            // The gripper follows the phone only while the phone drives or nobody does.
+                            if inner.driver != Driver::Policy {
+                                let target = inner.target;
+                                outcome.command_time_ns = Some(self.send(&mut inner, target, gripper));
+                            }
+                        }
+                        Err(e) => outcome.error = e.to_string(),
+                    }
+                }
+                Some(v1::button_event::Event::Record(r)) => outcome.record.push(r),
+                None => outcome.error = "empty button event".to_owned(),
+            }
+        }
+        if let Some(phone) = pose {
+            let measured = self.measured_or(inner.target);
+            let step = inner.teleop.on_pose(phone, input.tracking_ok, measured, now);
+            if inner.driver == Driver::Teleop {
+                if let Some((target, gripper)) = step.command {
+                    outcome.command_time_ns = Some(self.send(&mut inner, target, gripper));
+                }
+                Self::record_decision(&mut inner, step.decision);
+            }
+        }
+        Ok(outcome)
+    }
+
+    fn clutch_locked(
+        &self,
+        inner: &mut Inner,
+        kind: ClutchKind,
+        phone: Option<Isometry3<f64>>,
+        now: f64,
+        outcome: &mut TeleopOutcome,
+    ) {
+        let measured = self.measured_or(inner.target);
+        let step = inner.teleop.clutch(kind, phone, measured, now);
+        if step.engaged {
+            if inner.driver == Driver::Policy {
+                self.revoke_policy_locked(inner, "operator took over from phone");
+            }
+            inner.driver = Driver::Teleop;
+            if let Some((target, gripper)) = step.command {
+                outcome.command_time_ns = Some(self.send(inner, target, gripper));
+            } else {
+                // Engaging re-indexes at the measured pose: that is the target now.
+                inner.target = inner.teleop.target();
+            }
+        } else if inner.driver == Driver::Teleop {
+            inner.driver = Driver::None;
+        }
+        Self::record_decision(inner, step.decision);
+    }
+
+    fn revoke_policy_locked(&self, inner: &mut Inner, reason: &str) {
+        inner.executor.clear();
+        inner.last_policy_step = None;
+        if inner.driver == Driver::Policy {
+            inner.driver = Driver::None;
+        }
+        if let Some(owner) = inner.policy.take() {
+            tracing::info!(arm = %self.name, policy = %owner.name, reason, "policy control revoked");
+            // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
+            // ownership on its next chunk.
+            let _ = owner.events.try_send(v1::PolicyEvent {
+                event: Some(v1::policy_event::Event::Revoked(v1::ControlRevoked {
+                    arm: self.name.clone(),
+                    reason: reason.to_owned(),
+                })),
+            });
+        }
+    }
+
+    /// Gives the arm to a policy session. Refused while a phone drives it.
+    pub fn claim_for_policy(
+        &self,
+        session_id: u64,
+        name: &str,
+        events: mpsc::Sender<v1::PolicyEvent>,
+        silence_timeout_s: f64,
+    ) -> Result<(), Status> {
+        let mut inner = self.lock();
+        if inner.driver == Driver::Teleop {
+            return Err(Status::failed_precondition(format!(
+                "arm {:?} is driven by a phone; the operator must disengage first",
+                self.name
+            )));
+        }
+        if let Some(owner) = &inner.policy
+            && owner.session_id != session_id
+        {
+            return Err(Status::failed_precondition(format!(
+                "arm {:?} is already controlled by policy {:?}",
+                self.name, owner.name
+            )));
+        }
+        let measured = self.measured_or(inner.target);
+        let now = now_s();
+        inner.policy_gate.reset_reference_at(measured, now);
+        inner.executor.clear();
+        inner.last_policy_step = None;
+        inner.driver = Driver::Policy;
+        inner.policy = Some(PolicyOwner {
+            session_id,
+            name: name.to_owned(),
+            events,
+            silence_timeout_s,
+            last_chunk_s: now,
+        });
+        // The phone's floating zero is stale once a policy moves the arm.
+        inner.teleop.request_reindex();
+        Self::record_decision(&mut inner, GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control")));
+        Ok(())
+    }
+
+    /// Releases the arm if `session_id` owns it; the arm holds.
+    pub fn release_policy(&self, session_id: u64, reason: &str) {
+        let mut inner = self.lock();
+        if inner.policy.as_ref().is_some_and(|o| o.session_id == session_id) {
+            self.revoke_policy_locked(&mut inner, reason);
+        }
+    }
+
+    /// Schedules a chunk for the owning policy session. `reference` is the measured pose the actions are
+    /// relative to (delta mode) and `anchor_s` the time of step 0.
+    pub fn push_chunk(
+        &self,
+        session_id: u64,
+        actions: &[Vec<f64>],
+        step_period_s: f64,
+        anchor_s: f64,
+        reference: Isometry3<f64>,
+        mode: ActionMode,
+    ) -> Result<ReplaceReport, Status> {
+        let mut steps = Vec::with_capacity(actions.len());
+        for (k, action) in actions.iter().enumerate() {
+            let (robot_from_target, gripper) = self
+                .layout
+                .target_from_action(&reference, action, mode)
+                .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
+            steps.push(ChunkStep { robot_from_target, gripper });
+        }
+        let now = now_s();
+        let mut inner = self.lock();
+        let driving = inner.driver == Driver::Policy;
+        match &mut inner.policy {
+            Some(owner) if owner.session_id == session_id && driving => {
+                owner.last_chunk_s = now;
+            }
+            _ => {
+                return Err(Status::failed_precondition(format!(
+                    "this policy session does not control arm {:?}",
+                    self.name
+                )));
+            }
+        }
+        let report = inner
+            .executor
+            .replace(ActionChunk { steps, anchor_time_s: anchor_s, step_period_s }, now)
+            .map_err(|e| Status::invalid_argument(format!("arm {:?}: {e}", self.name)))?;
+        drop(inner);
+        self.tick(now);
+        Ok(report)
+    }
+
+    /// Periodic work: plays due chunk steps, and applies the silence and staleness rules.
+    pub fn tick(&self, now: f64) {
+        let mut inner = self.lock();
+        match inner.driver {
+            Driver::Policy => {
+                let step = inner.executor.target_at(now);
+                match step {
+                    Some(step) if inner.last_policy_step != Some(step) => {
+                        inner.last_policy_step = Some(step);
+                        let (gated, decision) = inner.policy_gate.check(step.robot_from_target, now);
+                        if let Some(target) = gated {
+                            self.send(&mut inner, target, step.gripper.clamp(0.0, 1.0));
+                        }
+                        Self::record_decision(&mut inner, decision);
+                    }
+                    Some(_) => {}
+                    None => {
+                        let silent = inner.policy.as_ref().map(|o| (now - o.last_chunk_s, o.silence_timeout_s));
+                        if let Some((silent_s, timeout_s)) = silent
+                            && silent_s > timeout_s
+                        {
+                            self.revoke_policy_locked(&mut inner, &format!("silent for {silent_s:.2} s"));
+                            Self::record_decision(
+                                &mut inner,
+                                GateDecision::note(GateVerdict::HeldStale, format!("policy silent for {silent_s:.2} s: holding")),
+                            );
+                        }
+                    }
+                }
+            }
+            Driver::Teleop => {
+                if let Some(decision) = inner.teleop.check_stale(now) {
+                    Self::record_decision(&mut inner, decision);
+                }
+            }
+            Driver::None => {}
+        }
+    }
+
+    /// Who drives the arm.
+    pub fn driver(&self) -> Driver {
+        self.lock().driver
+    }
+
+    /// Last target and gripper target handed to the bridge.
+    pub fn target(&self) -> (Isometry3<f64>, f64) {
+        let inner = self.lock();
+        (inner.target, inner.gripper_target)
+    }
+
+    /// A snapshot for the API.
+    pub fn snapshot(&self) -> v1::ArmState {
+        let feedback = self.bridge.feedback();
+        let health = self.bridge.health();
+        let inner = self.lock();
+        let (owner, owner_id) = match inner.driver {
+            Driver::None => (v1::ControlSource::None, String::new()),
+            Driver::Teleop => (v1::ControlSource::Teleop, inner.teleop_session.map(|s| s.to_string()).unwrap_or_default()),
+            Driver::Policy => (
+                v1::ControlSource::Policy,
+                inner.policy.as_ref().map(|o| format!("{}:{}", o.name, o.session_id)).unwrap_or_default(),
+            ),
+        };
+        let (health, health_message) = match health {
+            Health::Connecting => (v1::BridgeHealth::Connecting, String::new()),
+            Health::Ready => (v1::BridgeHealth::Ready, String::new()),
+            Health::Error(m) => (v1::BridgeHealth::Error, m),
+            Health::Disconnected(m) => (v1::BridgeHealth::Disconnected, m),
+        };
+        let now = monotonic_ns();
+        v1::ArmState {
+            arm: self.name.clone(),
+            bridge_kind: self.kind.to_owned(),
+            health: health as i32,
+            health_message,
+            owner: owner as i32,
+            owner_id,
+            engaged: inner.driver == Driver::Teleop && inner.teleop.engaged(),
+            robot_from_target: Some(pose_to_proto(&inner.target)),
+            robot_from_ee: feedback.as_ref().map(|f| pose_to_proto(&f.robot_from_ee)),
+            joint_positions_rad: feedback.as_ref().map(|f| f.joint_positions_rad.clone()).unwrap_or_default(),
+            joint_names: self.layout.joint_names().to_vec(),
+            gripper_position: feedback.as_ref().map_or(0.0, |f| f.gripper_position),
+            gripper_target: inner.gripper_target,
+            last_decision: Some(decision_to_proto(&inner.last_decision)),
+            feedback_time_ns: feedback.as_ref().map_or(0, |f| f.capture_time_ns),
+            feedback_age_s: feedback.as_ref().map_or(-1.0, |f| (now - f.capture_time_ns) as f64 * 1e-9),
+            commands_sent: inner.commands_sent,
+            commands_rejected: inner.commands_rejected,
+            commands_clamped: inner.commands_clamped,
+            task_success: feedback.as_ref().is_some_and(|f| f.task_success),
+        }
+    }
+
+    /// `observation.state` and the executed `action` for the recorder and for policies: the action is the
+    /// last gated target relative to the same measured pose the state reports.
+    pub fn state_and_action(&self) -> Option<(Vec<f64>, Vec<f64>, Isometry3<f64>, i64)> {
+        let feedback = self.bridge.feedback()?;
+        let (target, gripper) = self.target();
+        let state =
+            self.layout.state_vector(&feedback.joint_positions_rad, &feedback.robot_from_ee, feedback.gripper_position).ok()?;
+        let action = self.layout.action_from_target(&feedback.robot_from_ee, &target, gripper, self.action_mode);
+        Some((state, action, feedback.robot_from_ee, feedback.capture_time_ns))
+    }
+}
+
+/// Proto pose from an isometry.
+pub fn pose_to_proto(pose: &Isometry3<f64>) -> v1::Pose {
+    let t = pose.translation.vector;
+    let q = pose.rotation.quaternion();
+    v1::Pose::from_parts([t.x, t.y, t.z], [q.i, q.j, q.k, q.w])
+}
+
+/// Proto gate decision from the core's.
+pub fn decision_to_proto(d: &GateDecision) -> v1::GateDecision {
+    let verdict = match d.verdict {
+        GateVerdict::Accepted => v1::GateVerdict::Accepted,
+        GateVerdict::Clamped => v1::GateVerdict::Clamped,
+        GateVerdict::RejectedJump => v1::GateVerdict::RejectedJump,
+        GateVerdict::RejectedInvalid => v1::GateVerdict::RejectedInvalid,
+        GateVerdict::HeldStale => v1::GateVerdict::HeldStale,
+    };
+    v1::GateDecision {
+        verdict: verdict as i32,
+        reason: d.reason.clone(),
+        workspace_clamped: d.workspace_clamped,
+        velocity_limited: d.velocity_limited,
+        position_step_m: d.position_step_m,
+        rotation_step_rad: d.rotation_step_rad,
+    }
+}
+
+/// Validates a wire pose into an isometry, with an error the phone can show.
+pub fn pose_from_proto(pose: &v1::Pose) -> Result<Isometry3<f64>, String> {
+    let p = pose.position_m.as_ref().ok_or("pose has no position_m")?;
+    let q = pose.orientation.as_ref().ok_or("pose has no orientation")?;
+    phone2act_core::validate_pose([p.x, p.y, p.z], [q.x, q.y, q.z, q.w]).map_err(|e| e.to_string())
+}
+
+/// Runs `tick` on every arm at `rate_hz` until shutdown.
+pub async fn run_ticks(arms: Vec<Arc<ArmController>>, rate_hz: f64, mut shutdown: tokio::sync::watch::Receiver<bool>) {
+    let mut ticker = tokio::time::interval(std::time::Duration::from_secs_f64(1.0 / rate_hz));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tokio::select! {
+            _ = ticker.tick() => {}
+            () = crate::app::stopped(&mut shutdown) => return,
+        }
+        let now = now_s();
+        for arm in &arms {
+            arm.tick(now);
+        }
+    }
+}

@@ -1,0 +1,386 @@
+//! `phone2act.v1.Policy`: observations out, action chunks in. Chunks go through the arm controller's chunk
+//! executor and the same safety gate and bridge as teleop.
+
+use crate::app::App;
+use crate::arm::{now_s, pose_to_proto};
+use phone2act_core::ActionMode;
+use phone2act_proto::v1;
+use phone2act_proto::v1::policy_server::Policy;
+use phone2act_recorder::clock::monotonic_ns;
+use nalgebra::Isometry3;
+use std::collections::VecDeque;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// Observations a session remembers for anchoring chunks (at 50 Hz, about 2.5 s).
+const OBSERVATION_MEMORY: usize = 128;
+/// Highest observation rate a session may ask for.
+const MAX_OBSERVATION_RATE_HZ: f64 = 200.0;
+
+/// What a chunk needs from the observation it answers.
+#[derive(Debug, Clone)]
+struct ObservationAnchor {
+    id: u64,
+    time_s: f64,
+    poses: Vec<(String, Isometry3<f64>)>,
+}
+
+/// One open policy session.
+#[derive(Debug)]
+pub struct PolicySessionState {
+    pub id: u64,
+    pub name: String,
+    arms: Vec<String>,
+    cameras: Vec<String>,
+    encoding: v1::ImageEncoding,
+    jpeg_quality: u8,
+    events: mpsc::Sender<v1::PolicyEvent>,
+    anchors: Mutex<VecDeque<ObservationAnchor>>,
+}
+
+/// The Policy service adapter.
+#[derive(Debug, Clone)]
+pub struct PolicyService {
+    app: Arc<App>,
+}
+
+impl PolicyService {
+    pub fn new(app: Arc<App>) -> Self {
+        Self { app }
+    }
+}
+
+type EventStream = Pin<Box<dyn Stream<Item = Result<v1::PolicyEvent, Status>> + Send>>;
+
+fn event(e: v1::policy_event::Event) -> v1::PolicyEvent {
+    v1::PolicyEvent { event: Some(e) }
+}
+
+impl App {
+    /// Builds an observation of `arms` with frames of `cameras` and remembers it for `session`.
+    fn observe(
+        &self,
+        arms: &[String],
+        cameras: &[String],
+        encoding: v1::ImageEncoding,
+        jpeg_quality: u8,
+    ) -> Result<(v1::Observation, ObservationAnchor), Status> {
+        let id = self.next_observation_id();
+        let timestamp_ns = monotonic_ns();
+        let mut out = Vec::with_capacity(arms.len());
+        let mut poses = Vec::with_capacity(arms.len());
+        for name in arms {
+            let arm = self.arm(name).ok_or_else(|| Status::not_found(format!("unknown arm {name:?}")))?;
+            let snapshot = arm.snapshot();
+            let (state, pose) = match arm.state_and_action() {
+                Some((state, _action, pose, _)) => (state, pose),
+                None => return Err(Status::unavailable(format!("arm {name:?} has no robot feedback yet"))),
+            };
+            poses.push((name.clone(), pose));
+            out.push(v1::ArmObservation {
+                arm: name.clone(),
+                state,
+                state_names: arm.layout.state_names(),
+                action_names: arm.layout.action_names(arm.action_mode),
+                robot_from_ee: Some(pose_to_proto(&pose)),
+                owner: snapshot.owner,
+            });
+        }
+        let mut frames = Vec::new();
+        if encoding != v1::ImageEncoding::None {
+            for cam in &self.cameras {
+                if !cameras.is_empty() && !cameras.contains(&cam.config.name) {
+                    continue;
+                }
+                if let Some(frame) = cam.slot.latest() {
+                    let data = match encoding {
+                        _ => frame.rgb.as_ref().clone(),
+                    };
+                    frames.push(v1::CameraFrame {
+                        camera: cam.config.name.clone(),
+                        width: frame.width,
+                        height: frame.height,
+                        encoding: v1::ImageEncoding::Rgb8 as i32,
+                        data,
+                        capture_time_ns: frame.capture_time_ns,
+                        frame_seq: frame.seq,
+                    });
+                }
+            }
+        }
+        let observation = v1::Observation {
+            observation_id: id,
+            timestamp_ns,
+            arms: out,
+            frames,
+            task: self.current_task(),
+        };
+        Ok((observation, ObservationAnchor { id, time_s: timestamp_ns as f64 * 1e-9, poses }))
+    }
+
+    /// Schedules `chunk` for `session`.
+    pub(crate) fn push_chunk(&self, session: &PolicySessionState, chunk: &v1::ActionChunk) -> Result<v1::ChunkAccepted, Status> {
+        let arm = self.arm(&chunk.arm).ok_or_else(|| {
+            Status::not_found(format!("unknown arm {:?}; configured arms: {}", chunk.arm, self.arm_names().join(", ")))
+        })?;
+        if !session.arms.contains(&chunk.arm) {
+            return Err(Status::failed_precondition(format!("this session did not open arm {:?}", chunk.arm)));
+        }
+        if chunk.steps.is_empty() {
+            return Err(Status::invalid_argument("chunk has no steps"));
+        }
+        let mode = match v1::ActionMode::try_from(chunk.mode) {
+            Ok(v1::ActionMode::Unspecified | v1::ActionMode::DeltaEe) => ActionMode::Delta,
+            Ok(v1::ActionMode::AbsoluteEe) => ActionMode::Absolute,
+            Err(_) => return Err(Status::invalid_argument(format!("unknown action mode {}", chunk.mode))),
+        };
+        let width = arm.layout.action_names(mode).len();
+        for (k, step) in chunk.steps.iter().enumerate() {
+            if step.values.len() != width {
+                return Err(Status::invalid_argument(format!(
+                    "step {k} has {} values; arm {:?} takes {width} ({})",
+                    step.values.len(),
+                    chunk.arm,
+                    arm.layout.action_names(mode).join(", ")
+                )));
+            }
+            if let Some(i) = step.values.iter().position(|v| !v.is_finite()) {
+                return Err(Status::invalid_argument(format!("step {k} value {i} is not finite")));
+            }
+        }
+        if !chunk.step_period_s.is_finite() || chunk.step_period_s <= 0.0 {
+            return Err(Status::invalid_argument(format!("step_period_s must be > 0, got {}", chunk.step_period_s)));
+        }
+        let (anchor_s, reference) = if chunk.observation_id == 0 {
+            let pose = arm
+                .state_and_action()
+                .map(|(_, _, pose, _)| pose)
+                .ok_or_else(|| Status::unavailable(format!("arm {:?} has no robot feedback yet", chunk.arm)))?;
+            (now_s(), pose)
+        } else {
+            let anchors = session.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+            let anchor = anchors.iter().find(|a| a.id == chunk.observation_id).ok_or_else(|| {
+                Status::invalid_argument(format!(
+                    "observation {} is unknown or too old (this session remembers its last {OBSERVATION_MEMORY})",
+                    chunk.observation_id
+                ))
+            })?;
+            let pose = anchor
+                .poses
+                .iter()
+                .find(|(name, _)| name == &chunk.arm)
+                .map(|(_, p)| *p)
+                .ok_or_else(|| Status::invalid_argument(format!("observation {} has no arm {:?}", anchor.id, chunk.arm)))?;
+            (anchor.time_s, pose)
+        };
+        let actions: Vec<Vec<f64>> = chunk.steps.iter().map(|s| s.values.clone()).collect();
+        let report = arm.push_chunk(session.id, &actions, chunk.step_period_s, anchor_s, reference, mode)?;
+        Ok(v1::ChunkAccepted {
+            arm: chunk.arm.clone(),
+            observation_id: chunk.observation_id,
+            steps_scheduled: report.scheduled as u32,
+            steps_skipped: report.skipped as u32,
+        })
+    }
+}
+
+impl PolicySessionState {
+    fn remember(&self, anchor: ObservationAnchor) {
+        let mut anchors = self.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+        if anchors.len() == OBSERVATION_MEMORY {
+            anchors.pop_front();
+        }
+        anchors.push_back(anchor);
+    }
+}
+
+fn send_observation(app: &App, session: &PolicySessionState) {
+    match app.observe(&session.arms, &session.cameras, session.encoding, session.jpeg_quality) {
+        Ok((obs, anchor)) => {
+            session.remember(anchor);
+            // Latest wins: a policy that is busy inferring misses an observation rather than queueing it.
+            let _ = session.events.try_send(event(v1::policy_event::Event::Observation(obs)));
+        }
+        Err(status) => tracing::debug!(%status, "observation skipped"),
+    }
+}
+
+#[tonic::async_trait]
+impl Policy for PolicyService {
+    type SessionStream = EventStream;
+
+    async fn session(
+        &self,
+        request: Request<Streaming<v1::PolicyRequest>>,
+    ) -> Result<Response<Self::SessionStream>, Status> {
+        let mut inbound = request.into_inner();
+        let hello = match inbound.message().await? {
+            Some(v1::PolicyRequest { request: Some(v1::policy_request::Request::Hello(h)) }) => h,
+            Some(_) => return Err(Status::invalid_argument("the first message of a policy session must be a PolicyHello")),
+            None => return Err(Status::invalid_argument("the stream ended before its PolicyHello")),
+        };
+        let app = Arc::clone(&self.app);
+        let arms = if hello.arms.is_empty() { app.arm_names() } else { hello.arms.clone() };
+        for name in &arms {
+            if app.arm(name).is_none() {
+                return Err(Status::not_found(format!(
+                    "unknown arm {name:?}; configured arms: {}",
+                    app.arm_names().join(", ")
+                )));
+            }
+        }
+        for cam in &hello.cameras {
+            if !app.cameras.iter().any(|c| &c.config.name == cam) {
+                return Err(Status::not_found(format!("unknown camera {cam:?}")));
+            }
+        }
+        if !hello.observation_rate_hz.is_finite() || !(0.0..=MAX_OBSERVATION_RATE_HZ).contains(&hello.observation_rate_hz) {
+            return Err(Status::invalid_argument(format!(
+                "observation_rate_hz must be in 0..={MAX_OBSERVATION_RATE_HZ}, got {}",
+                hello.observation_rate_hz
+            )));
+        }
+        let silence_timeout_s = if hello.silence_timeout_s > 0.0 && hello.silence_timeout_s.is_finite() {
+            hello.silence_timeout_s
+        } else {
+            1.0
+        };
+        let encoding = v1::ImageEncoding::try_from(hello.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
+        let encoding = if encoding == v1::ImageEncoding::Unspecified { v1::ImageEncoding::Jpeg } else { encoding };
+        let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(16);
+        let id = app.next_session_id();
+        let name = if hello.policy_name.is_empty() { format!("policy-{id}") } else { hello.policy_name.clone() };
+        let session = Arc::new(PolicySessionState {
+            id,
+            name: name.clone(),
+            arms: arms.clone(),
+            cameras: hello.cameras.clone(),
+            encoding,
+            jpeg_quality: if hello.jpeg_quality == 0 { 85 } else { hello.jpeg_quality.min(100) as u8 },
+            events: tx.clone(),
+            anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
+        });
+        if hello.request_control {
+            let mut claimed = Vec::new();
+            for name_ in &arms {
+                let arm = app.arm(name_).expect("checked above");
+                if let Err(status) = arm.claim_for_policy(id, &name, tx.clone(), silence_timeout_s) {
+                    for done in &claimed {
+                        let done: &Arc<crate::arm::ArmController> = done;
+                        done.release_policy(id, "session could not take every arm");
+                    }
+                    return Err(status);
+                }
+                claimed.push(arm);
+            }
+        }
+        let ready = v1::SessionReady {
+            session_id: id.to_string(),
+            arms: arms
+                .iter()
+                .filter_map(|n| app.arm(n))
+                .map(|arm| v1::ArmObservation {
+                    arm: arm.name.clone(),
+                    state_names: arm.layout.state_names(),
+                    action_names: arm.layout.action_names(arm.action_mode),
+                    ..v1::ArmObservation::default()
+                })
+                .collect(),
+        };
+        tx.try_send(event(v1::policy_event::Event::Ready(ready))).map_err(|_| Status::internal("event queue"))?;
+        if hello.request_control {
+            let _ = tx.try_send(event(v1::policy_event::Event::Granted(v1::ControlGranted { arms: arms.clone() })));
+        }
+        app.register_policy(Arc::clone(&session));
+        tracing::info!(session = id, policy = %name, ?arms, control = hello.request_control, "policy session opened");
+
+        let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(16);
+        // Forward events; the events channel is shared with the arm controllers (revocations).
+        let forward_tx = out_tx.clone();
+        let mut events_rx = rx;
+        tokio::spawn(async move {
+            while let Some(e) = events_rx.recv().await {
+                if forward_tx.send(Ok(e)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        let rate_hz = hello.observation_rate_hz;
+        let mut shutdown = app.shutdown_signal();
+        tokio::spawn(async move {
+            let mut ticker = tokio::time::interval(Duration::from_secs_f64(if rate_hz > 0.0 { 1.0 / rate_hz } else { 3600.0 }));
+            ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+            loop {
+                tokio::select! {
+                    _ = ticker.tick(), if rate_hz > 0.0 => send_observation(&app, &session),
+                    msg = inbound.message() => match msg {
+                        Ok(Some(v1::PolicyRequest { request: Some(request) })) => match request {
+                            v1::policy_request::Request::Chunk(chunk) => {
+                                let e = match app.push_chunk(&session, &chunk) {
+                                    Ok(accepted) => v1::policy_event::Event::Accepted(accepted),
+                                    Err(status) => v1::policy_event::Event::Rejected(v1::ChunkRejected {
+                                        arm: chunk.arm.clone(),
+                                        observation_id: chunk.observation_id,
+                                        reason: status.message().to_owned(),
+                                    }),
+                                };
+                                let _ = session.events.try_send(event(e));
+                            }
+                            v1::policy_request::Request::Observe(_) => send_observation(&app, &session),
+                            v1::policy_request::Request::Release(_) => {
+                                for arm in &session.arms {
+                                    if let Some(a) = app.arm(arm) { a.release_policy(session.id, "released"); }
+                                }
+                            }
+                            v1::policy_request::Request::Hello(_) => {
+                                let _ = out_tx.send(Err(Status::invalid_argument("PolicyHello sent twice"))).await;
+                                break;
+                            }
+                        },
+                        Ok(Some(_)) => {}
+                        Ok(None) | Err(_) => break,
+                    },
+                    () = crate::app::stopped(&mut shutdown) => break,
+                }
+            }
+            for arm in &session.arms {
+                if let Some(a) = app.arm(arm) {
+                    a.release_policy(session.id, "session ended");
+                }
+            }
+            app.unregister_policy(session.id);
+            tracing::info!(session = session.id, "policy session closed");
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out_rx))))
+    }
+
+    async fn get_observation(
+        &self,
+        request: Request<v1::GetObservationRequest>,
+    ) -> Result<Response<v1::Observation>, Status> {
+        let req = request.into_inner();
+        let arms = if req.arms.is_empty() { self.app.arm_names() } else { req.arms };
+        let encoding = v1::ImageEncoding::try_from(req.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
+        let encoding = if encoding == v1::ImageEncoding::Unspecified { v1::ImageEncoding::Jpeg } else { encoding };
+        let (obs, _) = self.app.observe(&arms, &req.cameras, encoding, 85)?;
+        Ok(Response::new(obs))
+    }
+
+    async fn push_chunk(&self, request: Request<v1::PushChunkRequest>) -> Result<Response<v1::ChunkAccepted>, Status> {
+        let req = request.into_inner();
+        let id: u64 = req
+            .session_id
+            .parse()
+            .map_err(|_| Status::invalid_argument(format!("session_id {:?} is not a session id", req.session_id)))?;
+        let session = self
+            .app
+            .policy_session(id)
+            .ok_or_else(|| Status::not_found(format!("no open policy session {id}")))?;
+        let chunk = req.chunk.ok_or_else(|| Status::invalid_argument("missing chunk"))?;
+        Ok(Response::new(self.app.push_chunk(&session, &chunk)?))
+    }
+}

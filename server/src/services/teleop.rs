@@ -1,0 +1,177 @@
+//! `phone2act.v1.Teleop`: a phone session bound to one arm. Samples are processed latest-wins: every button
+//! event is applied in order, but of the poses that queued up while the previous round ran only the newest
+//! is planned, so a burst from the network never turns into a backlog of stale commands.
+
+use crate::app::App;
+use crate::arm::{TeleopInput, pose_from_proto};
+use futures_util::FutureExt;
+use phone2act_proto::v1;
+use phone2act_proto::v1::teleop_server::Teleop;
+use phone2act_recorder::clock::monotonic_ns;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// Feedback is sent at least this often while the phone is idle.
+const IDLE_FEEDBACK: Duration = Duration::from_millis(100);
+/// Most samples drained in one round before planning the newest.
+const MAX_DRAIN: usize = 256;
+
+/// The Teleop service adapter.
+#[derive(Debug, Clone)]
+pub struct TeleopService {
+    app: Arc<App>,
+}
+
+impl TeleopService {
+    pub fn new(app: Arc<App>) -> Self {
+        Self { app }
+    }
+}
+
+type FeedbackStream = Pin<Box<dyn Stream<Item = Result<v1::TeleopFeedback, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Teleop for TeleopService {
+    type StreamStream = FeedbackStream;
+
+    async fn stream(
+        &self,
+        request: Request<Streaming<v1::PhoneSample>>,
+    ) -> Result<Response<Self::StreamStream>, Status> {
+        let mut inbound = request.into_inner();
+        let first = inbound
+            .message()
+            .await?
+            .ok_or_else(|| Status::invalid_argument("the stream ended before its first sample"))?;
+        if first.arm.is_empty() {
+            return Err(Status::invalid_argument("the first sample must name the arm (field `arm`)"));
+        }
+        let arm = self.app.arm(&first.arm).ok_or_else(|| {
+            Status::not_found(format!(
+                "unknown arm {:?}; configured arms: {}",
+                first.arm,
+                self.app.arm_names().join(", ")
+            ))
+        })?;
+        let session = self.app.next_session_id();
+        arm.bind_teleop(session, first.take_over)?;
+        tracing::info!(arm = %arm.name, session, client = %first.client_name, "teleop session bound");
+
+        // Small bound: feedback is a status display, the newest message is what matters.
+        let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::TeleopFeedback, Status>>(4);
+        let app = Arc::clone(&self.app);
+        let mut shutdown = app.shutdown_signal();
+        tokio::spawn(async move {
+            let mut superseded = 0u64;
+            let mut last = (first.seq, first.capture_time_ns, monotonic_ns());
+            let mut pending = Some(first);
+            loop {
+                let mut batch = Vec::new();
+                if let Some(sample) = pending.take() {
+                    batch.push(sample);
+                } else {
+                    tokio::select! {
+                        msg = inbound.message() => match msg {
+                            Ok(Some(sample)) => batch.push(sample),
+                            Ok(None) => break,
+                            Err(status) => {
+                                tracing::debug!(%status, "teleop stream error");
+                                break;
+                            }
+                        },
+                        () = tokio::time::sleep(IDLE_FEEDBACK) => {
+                            let fb = feedback(&app, &arm, last, String::new(), superseded);
+                            if tx.try_send(Ok(fb)).is_err() && tx.is_closed() { break; }
+                            continue;
+                        }
+                        () = crate::app::stopped(&mut shutdown) => break,
+                    }
+                }
+                let receive_ns = monotonic_ns();
+                // Take whatever else already arrived without waiting.
+                let mut closed = false;
+                while batch.len() < MAX_DRAIN {
+                    match inbound.message().now_or_never() {
+                        Some(Ok(Some(sample))) => batch.push(sample),
+                        Some(Ok(None) | Err(_)) => {
+                            closed = true;
+                            break;
+                        }
+                        None => break,
+                    }
+                }
+                let batch_len = batch.len() as u64;
+                let (input, newest, dropped) = merge(batch);
+                superseded += dropped;
+                let outcome = match arm.teleop_input(session, input) {
+                    Ok(o) => o,
+                    Err(status) => {
+                        let _ = tx.send(Err(status)).await;
+                        break;
+                    }
+                };
+                arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
+                let mut error = outcome.error;
+                for record in outcome.record {
+                    if let Err(e) = app.record_command(&record) {
+                        error = e;
+                    }
+                }
+                last = (newest.0, newest.1, receive_ns);
+                let fb = feedback(&app, &arm, last, error, superseded);
+                if tx.try_send(Ok(fb)).is_err() && tx.is_closed() {
+                    break;
+                }
+                if closed {
+                    break;
+                }
+            }
+            arm.unbind_teleop(session);
+            tracing::info!(arm = %arm.name, session, "teleop session ended");
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+    }
+}
+
+/// Folds a batch of samples into one input: all button events in order, the newest valid pose. Returns the
+/// input, the newest sample's (seq, capture time), and how many poses were superseded.
+fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
+    let mut input = TeleopInput::default();
+    let mut newest = (0, 0);
+    let mut poses = 0u64;
+    for sample in batch {
+        newest = (sample.seq, sample.capture_time_ns);
+        input.buttons.extend(sample.buttons);
+        let tracking = v1::TrackingState::try_from(sample.tracking).unwrap_or(v1::TrackingState::Unspecified);
+        if let Some(pose) = &sample.tracking_from_phone {
+            poses += 1;
+            input.pose = Some(pose_from_proto(pose));
+            input.tracking_ok = matches!(tracking, v1::TrackingState::Tracking | v1::TrackingState::Unspecified);
+        } else if tracking == v1::TrackingState::Lost || tracking == v1::TrackingState::Limited {
+            input.tracking_ok = false;
+        }
+    }
+    (input, newest, poses.saturating_sub(1))
+}
+
+fn feedback(
+    app: &App,
+    arm: &crate::arm::ArmController,
+    last: (u64, i64, i64),
+    error: String,
+    superseded: u64,
+) -> v1::TeleopFeedback {
+    v1::TeleopFeedback {
+        echoed_seq: last.0,
+        echoed_capture_time_ns: last.1,
+        server_receive_time_ns: last.2,
+        arm_state: Some(arm.snapshot()),
+        recording: Some(app.recording_status()),
+        error,
+        superseded_samples: superseded,
+        server_send_time_ns: monotonic_ns(),
+    }
+}

@@ -1,0 +1,185 @@
+//! Control-path benchmark (issue 4): the latency the server adds between receiving a phone sample and
+//! handing the gated command to the bridge, with two arms driven by 60 Hz phone streams and a third arm
+//! driven by a policy session at the same time; then the highest sustained sample rate.
+//!
+//! Run: `cargo run --release -p phone2act-tests --bin control-bench [-- --seconds 10]`
+
+use anyhow::Context as _;
+use phone2act_sdk::proto as v1;
+use phone2act_sdk::{Client, TeleopOptions, buttons};
+use phone2act_server::Config;
+use phone2act_server::app::App;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+const CONFIG: &str = r#"
+[[arms]]
+name = "left"
+bridge = "sim"
+
+[[arms]]
+name = "right"
+bridge = "sim"
+
+[[arms]]
+name = "aux"
+bridge = "sim"
+
+[recorder]
+root = "/tmp/phone2act-control-bench"
+"#;
+
+fn percentile(sorted: &[u32], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    f64::from(sorted[i]) / 1000.0
+}
+
+fn phone_pose(t_s: f64, phase: f64) -> v1::Pose {
+    // A slow 3 cm circle: inside every limit, never a jump.
+    let a = 0.03;
+    let w = 2.0 * std::f64::consts::PI * 0.5;
+    v1::Pose::from_parts([a * (w * t_s + phase).cos() - a, a * (w * t_s + phase).sin(), 0.0], [0.0, 0.0, 0.0, 1.0])
+}
+
+async fn phone(client: Client, arm: &'static str, rate_hz: f64, seconds: f64) -> anyhow::Result<u64> {
+    // Feedback is not read: the server drops feedback a client does not take (latest wins), so an idle
+    // reader never slows the control path.
+    let mut session = client.teleop(arm, TeleopOptions { client_name: "bench".into(), take_over: true }).await?;
+    session.send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0).await?;
+    let start = Instant::now();
+    let period = Duration::from_secs_f64(1.0 / rate_hz);
+    let mut sent = 0u64;
+    let mut next = Instant::now();
+    while start.elapsed().as_secs_f64() < seconds {
+        let t = start.elapsed().as_secs_f64();
+        session.send_pose(phone_pose(t, 0.0), vec![], 0).await?;
+        sent += 1;
+        next += period;
+        tokio::time::sleep_until(next.into()).await;
+    }
+    Ok(sent)
+}
+
+async fn policy(client: Client, seconds: f64) -> anyhow::Result<u64> {
+    let mut session = client
+        .policy(v1::PolicyHello {
+            arms: vec!["aux".into()],
+            observation_rate_hz: 10.0,
+            image_encoding: v1::ImageEncoding::None as i32,
+            request_control: true,
+            policy_name: "bench".into(),
+            silence_timeout_s: 2.0,
+            ..v1::PolicyHello::default()
+        })
+        .await?;
+    let start = Instant::now();
+    let mut chunks = 0u64;
+    while start.elapsed().as_secs_f64() < seconds {
+        let obs = session.next_observation().await?;
+        let steps = (0..16)
+            .map(|k| {
+                let dx = 0.01 * ((k as f64) * 0.3 + chunks as f64).sin();
+                v1::ActionStep { values: vec![dx, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0] }
+            })
+            .collect();
+        session
+            .push_chunk(v1::ActionChunk {
+                arm: "aux".into(),
+                steps,
+                step_period_s: 1.0 / 30.0,
+                observation_id: obs.observation_id,
+                mode: v1::ActionMode::DeltaEe as i32,
+                blend_steps: 0,
+            })
+            .await?;
+        chunks += 1;
+    }
+    Ok(chunks)
+}
+
+fn report(name: &str, app: &App, arms: &[&str]) {
+    let mut all = Vec::new();
+    for arm in arms {
+        let (mut v, _) = app.arm(arm).expect("arm").latencies_ns();
+        all.append(&mut v);
+    }
+    all.sort_unstable();
+    println!(
+        "{name:<44} n={:<7} p50={:>7.1} µs  p99={:>7.1} µs  max={:>8.1} µs",
+        all.len(),
+        percentile(&all, 0.50),
+        percentile(&all, 0.99),
+        all.last().map_or(f64::NAN, |v| f64::from(*v) / 1000.0)
+    );
+}
+
+fn main() -> anyhow::Result<()> {
+    let seconds: f64 = std::env::args()
+        .skip_while(|a| a != "--seconds")
+        .nth(1)
+        .map(|s| s.parse())
+        .transpose()
+        .context("--seconds takes a number")?
+        .unwrap_or(10.0);
+    let config = Config::from_toml_str(CONFIG, "control-bench", Vec::new())?;
+    let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let app = Arc::new(App::start(config)?);
+    let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+    let url = format!("http://{}", listener.local_addr()?);
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server = server_rt.spawn(phone2act_server::serve_app(Arc::clone(&app), listener, async {
+        let _ = stop_rx.await;
+    }));
+
+    // Clients on their own current-thread runtime, as a separate process would be.
+    let client_rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    println!("phone2act control-path benchmark ({seconds} s per phase, release build expected)");
+    let (sent_l, sent_r, chunks) = client_rt.block_on(async {
+        let client = Client::connect(&url, None).await?;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        for arm in ["left", "right", "aux"] {
+            app.arm(arm).expect("arm").reset_latencies();
+        }
+        let (l, r, p) = tokio::join!(
+            phone(client.clone(), "left", 60.0, seconds),
+            phone(client.clone(), "right", 60.0, seconds),
+            policy(client.clone(), seconds)
+        );
+        anyhow::Ok((l?, r?, p?))
+    })?;
+    report("sample → bridge, 2 arms × 60 Hz + 1 policy", &app, &["left", "right"]);
+    println!("  phone samples sent: {sent_l} + {sent_r}; policy chunks pushed: {chunks}");
+
+    // Throughput: one phone streaming as fast as the transport allows.
+    app.arm("left").expect("arm").reset_latencies();
+    let before = app.arm("left").expect("arm").samples_received();
+    let started = Instant::now();
+    let sent = client_rt.block_on(async {
+        let client = Client::connect(&url, None).await?;
+        let mut session = client.teleop("left", TeleopOptions { client_name: "flood".into(), take_over: true }).await?;
+        session.send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0).await?;
+        let mut sent = 0u64;
+        let t0 = Instant::now();
+        while t0.elapsed().as_secs_f64() < seconds.min(5.0) {
+            let t = t0.elapsed().as_secs_f64();
+            session.send_pose(phone_pose(t, 0.0), vec![], 0).await?;
+            sent += 1;
+        }
+        anyhow::Ok(sent)
+    })?;
+    let elapsed = started.elapsed().as_secs_f64();
+    let received = app.arm("left").expect("arm").samples_received() - before;
+    report("sample → bridge under flood (1 phone)", &app, &["left"]);
+    println!(
+        "  sustained: {:.0} samples/s received ({sent} sent), {:.0} planned commands/s",
+        received as f64 / elapsed,
+        app.arm("left").expect("arm").latencies_ns().1 as f64 / elapsed
+    );
+    let _ = stop_tx.send(());
+    let _ = server_rt.block_on(server);
+    app.stop();
+    Ok(())
+}
