@@ -16,6 +16,7 @@ pub mod feedback;
 pub mod gripper;
 pub mod protocol;
 
+use crate::sim::ClockFn;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
 use gripper::GripperOutput;
@@ -306,6 +307,7 @@ struct Inner {
     targets_held: AtomicU64,
     packets_ok: AtomicU64,
     packets_rejected: AtomicU64,
+    clock: ClockFn,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -322,6 +324,11 @@ impl DobotBridge {
     /// Connects to the controller, clears errors, sets the speed, enables the robot (as configured), waits for
     /// the first feedback packet and starts streaming.
     pub fn start(config: DobotConfig) -> Result<Arc<Self>, BridgeError> {
+        Self::start_with_clock(config, monotonic_ns)
+    }
+
+    /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).
+    pub fn start_with_clock(config: DobotConfig, clock: ClockFn) -> Result<Arc<Self>, BridgeError> {
         config.validate()?;
         let inner = Arc::new(Inner {
             joint_names: (1..=6).map(|i| format!("j{i}")).collect(),
@@ -352,6 +359,7 @@ impl DobotBridge {
             targets_held: AtomicU64::new(0),
             packets_ok: AtomicU64::new(0),
             packets_rejected: AtomicU64::new(0),
+            clock,
             config,
         });
         if let Err(e) = inner.connect() {
@@ -504,9 +512,14 @@ impl Inner {
         }
     }
 
+    /// Closes every socket and reports the link down. The first reason wins: closing one socket makes the
+    /// others fail too, and their errors say less.
     fn close(&self, why: String) {
         self.close_sockets();
-        lock(&self.status).link = Link::Down(why);
+        let mut s = lock(&self.status);
+        if !matches!(s.link, Link::Down(_)) {
+            s.link = Link::Down(why);
+        }
     }
 
     fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
@@ -653,7 +666,7 @@ impl Inner {
             _ => lock(&self.gripper_sent).unwrap_or(0.0),
         };
         let feedback = Feedback {
-            capture_time_ns: crate::dobot::monotonic_ns(),
+            capture_time_ns: (self.clock)(),
             joint_positions_rad: packet.q_actual_deg.iter().map(|d| d.to_radians()).collect(),
             robot_from_ee,
             gripper_position,
@@ -896,7 +909,7 @@ impl Bridge for DobotBridge {
     }
 }
 
-/// Monotonic nanoseconds since the first call in this process (the bridges' capture clock).
+/// Monotonic nanoseconds since the first call in this process: the feedback clock when none is supplied.
 pub(crate) fn monotonic_ns() -> i64 {
     static EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
     EPOCH.get_or_init(Instant::now).elapsed().as_nanos() as i64

@@ -14,6 +14,7 @@ pub mod calibration;
 
 use crate::feetech::protocol::{POSITION_SIGN_BIT, decode_sign_magnitude, encode_sign_magnitude, register};
 use crate::feetech::{BusError, BusStats, FeetechBus};
+use crate::sim::ClockFn;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use calibration::{Calibration, MotorCalibration};
 use phone2act_core::kinematics::{
@@ -191,6 +192,7 @@ struct Inner {
     goals_written: AtomicU64,
     failed_cycles: AtomicU64,
     unreachable: AtomicU64,
+    clock: ClockFn,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -217,6 +219,11 @@ impl So101Bridge {
     /// Loads the calibration, opens the bus, checks every servo answers, configures them, sets each goal to
     /// the present position (so enabling torque does not move the arm) and starts the control cycle.
     pub fn start(config: So101Config) -> Result<Arc<Self>, BridgeError> {
+        Self::start_with_clock(config, crate::dobot::monotonic_ns)
+    }
+
+    /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).
+    pub fn start_with_clock(config: So101Config, clock: ClockFn) -> Result<Arc<Self>, BridgeError> {
         config.validate()?;
         let file = Calibration::load(&expand_home(&config.calibration_file))
             .map_err(|e| BridgeError::Config(e.to_string()))?;
@@ -253,6 +260,7 @@ impl So101Bridge {
             goals_written: AtomicU64::new(0),
             failed_cycles: AtomicU64::new(0),
             unreachable: AtomicU64::new(0),
+            clock,
             config,
         });
         inner.prepare().map_err(|e| bus_error(&e))?;
@@ -431,7 +439,7 @@ impl Inner {
             Ok(raw) => {
                 let joints = self.arm_rad(&raw);
                 let feedback = Feedback {
-                    capture_time_ns: crate::dobot::monotonic_ns(),
+                    capture_time_ns: (self.clock)(),
                     joint_positions_rad: joints.to_vec(),
                     robot_from_ee: self.kinematics.forward(&joints),
                     gripper_position: self.gripper_position(raw[MOTORS - 1]),
