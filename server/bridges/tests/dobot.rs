@@ -181,9 +181,9 @@ fn injected_robot_error_is_reported_held_and_cleared() {
 
     emu.inject_error(22);
     wait_for(
-        "error health",
+        "error health naming the controller's error id",
         Duration::from_secs(1),
-        || matches!(bridge.health(), Health::Error(m) if m.contains("Error")),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("Error mode (9)") && m.contains("22")),
     );
     let before = emu.snapshot();
     for i in 0..10 {

@@ -282,6 +282,8 @@ struct Status {
     convention: EulerConvention,
     convention_verified: bool,
     convention_error: Option<String>,
+    /// The controller's error ids for the current fault, fetched once per fault.
+    fault_detail: Option<String>,
     reconnects: u64,
 }
 
@@ -343,6 +345,7 @@ impl DobotBridge {
                 convention: config.euler_convention.unwrap_or_default(),
                 convention_verified: false,
                 convention_error: None,
+                fault_detail: None,
                 reconnects: 0,
             }),
             dashboard: Mutex::new(None),
@@ -588,7 +591,12 @@ impl Inner {
         }
         match s.robot_mode {
             Some(mode) if mode.is_fault() => {
-                return Health::Error(format!("robot in {mode:?} mode ({})", mode.code()));
+                let detail = s
+                    .fault_detail
+                    .as_deref()
+                    .map(|d| format!(": {d}"))
+                    .unwrap_or_default();
+                return Health::Error(format!("robot in {mode:?} mode ({}){detail}", mode.code()));
             }
             Some(mode) if !mode.accepts_motion() => {
                 return Health::Error(format!("robot not enabled: {mode:?} mode ({})", mode.code()));
@@ -646,6 +654,9 @@ impl Inner {
             let mode = RobotMode::from_code(packet.robot_mode);
             if s.robot_mode != Some(mode) {
                 debug!(?mode, "dobot: robot mode");
+            }
+            if !mode.is_fault() {
+                s.fault_detail = None;
             }
             s.robot_mode = Some(mode);
             if !s.convention_verified && s.convention_error.is_none() {
@@ -710,6 +721,7 @@ impl Inner {
 
     fn command_loop(self: Arc<Self>) {
         while !self.stop.load(Ordering::SeqCst) {
+            self.fetch_fault_detail();
             let Some(command) = self.slot.take_wait(Duration::from_millis(50)) else {
                 continue;
             };
@@ -719,6 +731,27 @@ impl Inner {
             }
             self.send_target(&command);
         }
+    }
+
+    /// Asks the controller for its error ids once per fault, so health can say which error it is. Runs on the
+    /// command thread: the feedback thread must never wait on the dashboard.
+    fn fetch_fault_detail(&self) {
+        let needed = {
+            let s = lock(&self.status);
+            matches!(s.link, Link::Up)
+                && s.robot_mode.is_some_and(RobotMode::is_fault)
+                && s.fault_detail.is_none()
+        };
+        if !needed {
+            return;
+        }
+        let detail = match self.dashboard_request("GetErrorID()") {
+            Ok(reply) if reply.error_id == 0 => format!("error ids {}", reply.values.join(",")),
+            Ok(reply) => format!("GetErrorID failed: {}", error_text(reply.error_id)),
+            Err(e) => format!("GetErrorID failed: {e}"),
+        };
+        warn!(%detail, "dobot: robot fault");
+        lock(&self.status).fault_detail = Some(detail);
     }
 
     /// True if the only fault is a previously rejected command: the next target may succeed and clear it.
