@@ -12,7 +12,7 @@ mod world;
 
 pub use config::{SimCameraConfig, SimConfig};
 pub use render::Renderer;
-pub use world::{BallState, CommandOutcome, SceneSnapshot, SimWorld};
+pub use world::{BallState, CommandOutcome, IkRequest, SceneSnapshot, SimWorld};
 
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use phone2act_core::kinematics::SO101_ARM_JOINT_NAMES;
@@ -150,11 +150,24 @@ fn run(shared: &Shared, period: Duration) {
             continue;
         }
         if let Some(command) = shared.commands.take_wait(next_tick - now) {
-            let outcome = shared
+            // IK runs outside the world lock: unoptimised builds take milliseconds per solve, and the
+            // renderer and feedback readers should not wait for it.
+            let request = shared
                 .world
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
-                .apply_command(&command);
+                .ik_request();
+            let outcome = match request {
+                Some(request) => {
+                    let solution = request.solve(&command);
+                    shared
+                        .world
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .apply_solution(&command, solution)
+                }
+                None => CommandOutcome::Disabled,
+            };
             match outcome {
                 CommandOutcome::Applied(solution) if !solution.position_reached => {
                     tracing::debug!(

@@ -59,6 +59,21 @@ pub enum CommandOutcome {
     Disabled,
 }
 
+/// An IK problem detached from the world (see [`SimWorld::ik_request`]).
+#[derive(Clone, Debug)]
+pub struct IkRequest {
+    kinematics: So101Kinematics,
+    seed: So101Joints,
+    weights: IkWeights,
+}
+
+impl IkRequest {
+    pub fn solve(&self, command: &Command) -> IkSolution {
+        self.kinematics
+            .inverse(&command.robot_from_target, &self.seed, self.weights)
+    }
+}
+
 /// The simulated arm and scene.
 #[derive(Clone, Debug)]
 pub struct SimWorld {
@@ -114,19 +129,32 @@ impl SimWorld {
     /// Solves IK for the command's target (seeded with the current joint targets so that consecutive
     /// commands stay on one branch) and makes the solution the new joint target.
     pub fn apply_command(&mut self, command: &Command) -> CommandOutcome {
+        let Some(request) = self.ik_request() else {
+            return CommandOutcome::Disabled;
+        };
+        let solution = request.solve(command);
+        self.apply_solution(command, solution)
+    }
+
+    /// What solving a command needs, so a caller can run the IK without holding a lock on the world.
+    /// `None` while disabled.
+    pub fn ik_request(&self) -> Option<IkRequest> {
+        self.enabled.then(|| IkRequest {
+            kinematics: self.kinematics.clone(),
+            seed: self.joint_targets_rad,
+            weights: IkWeights {
+                orientation: self.config.ik_orientation_weight,
+            },
+        })
+    }
+
+    /// Makes a solution from [`IkRequest::solve`] the new target (unless the arm was disabled meanwhile or
+    /// the command is not finite).
+    pub fn apply_solution(&mut self, command: &Command, solution: IkSolution) -> CommandOutcome {
         if !self.enabled {
             return CommandOutcome::Disabled;
         }
-        if !command.gripper_target.is_finite() {
-            return CommandOutcome::Rejected;
-        }
-        let weights = IkWeights {
-            orientation: self.config.ik_orientation_weight,
-        };
-        let solution = self
-            .kinematics
-            .inverse(&command.robot_from_target, &self.joint_targets_rad, weights);
-        if solution.invalid_input {
+        if !command.gripper_target.is_finite() || solution.invalid_input {
             return CommandOutcome::Rejected;
         }
         self.joint_targets_rad = solution.joints_rad;
