@@ -438,6 +438,7 @@ fn example_config_parses() {
     struct Arm {
         bridge: String,
         dobot: DobotConfig,
+        teleop: phone2act_core::TeleopConfig,
     }
     #[derive(serde::Deserialize)]
     struct File {
@@ -449,5 +450,7 @@ fn example_config_parses() {
     let arm = &file.arms[0];
     assert_eq!(arm.bridge, "dobot");
     arm.dobot.validate().unwrap();
+    arm.teleop.validate().unwrap();
+    assert!(arm.teleop.gate.workspace_max_m[0] <= 0.0, "the CR5 example must not use the SO-101 workspace");
     assert_eq!(arm.dobot.effective_motion_port(), 29999);
 }
