@@ -451,6 +451,9 @@ fn example_config_parses() {
     assert_eq!(arm.bridge, "dobot");
     arm.dobot.validate().unwrap();
     arm.teleop.validate().unwrap();
-    assert!(arm.teleop.gate.workspace_max_m[0] <= 0.0, "the CR5 example must not use the SO-101 workspace");
+    assert!(
+        arm.teleop.gate.workspace_max_m[0] <= 0.0,
+        "the CR5 example must not use the SO-101 workspace"
+    );
     assert_eq!(arm.dobot.effective_motion_port(), 29999);
 }

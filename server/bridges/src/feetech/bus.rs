@@ -226,7 +226,10 @@ impl FeetechBus {
                 // Servos answer in list order: an answer from a later servo means this one stayed silent.
                 Err(BusError::WrongId { expected, got }) if ids.contains(&got) => {
                     self.stats.timeouts += 1;
-                    return Err(BusError::Timeout { id: expected, timeout_ms: self.timeout.as_millis() as u64 });
+                    return Err(BusError::Timeout {
+                        id: expected,
+                        timeout_ms: self.timeout.as_millis() as u64,
+                    });
                 }
                 other => other?,
             };
