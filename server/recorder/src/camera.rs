@@ -121,29 +121,60 @@ pub fn spawn_test_pattern(
     fps: f64,
     slot: Arc<FrameSlot>,
 ) -> std::io::Result<CaptureThread> {
+    spawn_generated(
+        name,
+        width,
+        height,
+        fps,
+        move |seq, buf| draw_test_pattern(width, height, seq, buf),
+        slot,
+    )
+}
+
+/// Starts a camera whose frames are drawn by `generator(seq, &mut rgb)` at `fps` (the simulated arm's
+/// rendered view, test patterns). The generator must fill `width * height * 3` bytes.
+pub fn spawn_generated(
+    name: &str,
+    width: u32,
+    height: u32,
+    fps: f64,
+    mut generator: impl FnMut(u64, &mut Vec<u8>) + Send + 'static,
+    slot: Arc<FrameSlot>,
+) -> std::io::Result<CaptureThread> {
     let stop = Arc::new(AtomicBool::new(false));
     let stop_flag = Arc::clone(&stop);
     let period = Duration::from_secs_f64(1.0 / fps.max(0.1));
+    let expected = width as usize * height as usize * 3;
     let handle = std::thread::Builder::new()
         .name(format!("camera-{name}"))
         .spawn(move || {
             let start = std::time::Instant::now();
             let mut seq = 0u64;
-            let mut buf = Vec::new();
             while !stop_flag.load(Ordering::Relaxed) {
-                draw_test_pattern(width, height, seq, &mut buf);
-                slot.publish(Frame {
-                    width,
-                    height,
-                    rgb: Arc::new(buf.clone()),
-                    capture_time_ns: monotonic_ns(),
-                    seq,
-                });
+                // A fresh buffer per frame: readers may still hold the previous one through its Arc.
+                let mut buf = Vec::with_capacity(expected);
+                generator(seq, &mut buf);
+                // Captured when drawing finished, like a real sensor's exposure end.
+                let capture_time_ns = monotonic_ns();
+                if buf.len() == expected {
+                    slot.publish(Frame {
+                        width,
+                        height,
+                        rgb: Arc::new(buf),
+                        capture_time_ns,
+                        seq,
+                    });
+                }
                 seq += 1;
                 // Pace on absolute deadlines so the rate does not drift with drawing time.
                 let next = start + period.mul_f64(seq as f64);
-                if let Some(wait) = next.checked_duration_since(std::time::Instant::now()) {
-                    std::thread::sleep(wait);
+                let now = std::time::Instant::now();
+                match next.checked_duration_since(now) {
+                    Some(wait) => sleep_unless_stopped(wait, &stop_flag),
+                    // Too slow for this rate: skip the missed deadlines instead of bursting.
+                    None => {
+                        seq = seq.max((now - start).as_secs_f64().div_euclid(period.as_secs_f64()) as u64);
+                    }
                 }
             }
         })?;
@@ -151,6 +182,28 @@ pub fn spawn_test_pattern(
         stop,
         handle: Some(handle),
     })
+}
+
+/// Sleeps in short slices so that a stop request is honoured within ~20 ms even at low rates.
+fn sleep_unless_stopped(total: Duration, stop: &AtomicBool) {
+    let deadline = std::time::Instant::now() + total;
+    while !stop.load(Ordering::Relaxed) {
+        let now = std::time::Instant::now();
+        let Some(left) = deadline.checked_duration_since(now) else {
+            return;
+        };
+        std::thread::sleep(left.min(Duration::from_millis(20)));
+    }
+}
+
+impl CaptureThread {
+    /// Wraps a thread that watches `stop` (for capture sources defined in other modules).
+    pub(crate) fn from_parts(stop: Arc<AtomicBool>, handle: JoinHandle<()>) -> Self {
+        CaptureThread {
+            stop,
+            handle: Some(handle),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -168,6 +221,26 @@ mod tests {
         // Block 0 of frame 1 is white, of frame 2 black.
         assert_eq!(&a[0..3], &[255, 255, 255]);
         assert_eq!(&b[0..3], &[0, 0, 0]);
+    }
+
+    #[test]
+    fn generated_camera_publishes_what_the_generator_draws() {
+        let slot = Arc::new(FrameSlot::default());
+        let cam = spawn_generated(
+            "g",
+            4,
+            2,
+            200.0,
+            |seq, buf| buf.resize(24, seq as u8),
+            Arc::clone(&slot),
+        )
+        .unwrap();
+        std::thread::sleep(Duration::from_millis(60));
+        cam.stop();
+        let f = slot.latest().unwrap();
+        assert_eq!(f.rgb.len(), 24);
+        assert_eq!(u64::from(f.rgb[0]), f.seq % 256);
+        assert!(slot.frames_captured() >= 3);
     }
 
     #[test]

@@ -1,0 +1,556 @@
+//! The recorder: a tick thread at the dataset fps on the monotonic clock that samples the robot and every
+//! camera's latest frame, gates them on freshness, and appends one frame per tick to the episode being
+//! recorded. `timestamp = frame_index / fps` exactly, so a tick that cannot be recorded (a stale source,
+//! an overloaded machine) is skipped and counted, never written as a gap.
+//!
+//! Freshness: a source whose newest sample is not newer than at the previous tick is *held* (its last
+//! value reused, counted in `held_ticks`) as long as the sample is younger than `hold_tolerance_s`; beyond
+//! that the episode is *paused* (ticks not recorded, counted in `paused_ticks`, phase `Paused`, and the
+//! warning names the source) until the source is fresh again.
+
+use crate::camera::FrameSlot;
+use crate::clock::{epoch, monotonic_ns};
+use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
+use crate::error::RecorderError;
+use crate::spec::DatasetSpec;
+use serde::Serialize;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
+use std::thread::JoinHandle;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// The newest measured state and the executed action (after the safety gate), in the dataset's layout.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RobotSample {
+    pub state: Vec<f64>,
+    pub action: Vec<f64>,
+    pub capture_time_ns: i64,
+}
+
+/// Where the recorder reads robot samples from.
+pub trait RobotSource: Send + Sync {
+    /// The newest sample, if any.
+    fn sample(&self) -> Option<RobotSample>;
+}
+
+/// Recorder phase.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum Phase {
+    Idle,
+    Recording,
+    /// Recording, but a source is stale beyond tolerance: ticks are not recorded.
+    Paused,
+    Saving,
+}
+
+/// What the operator sees.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RecorderStatus {
+    pub phase: Phase,
+    /// The episode being recorded, or the index the next one will get.
+    pub episode_index: u64,
+    pub task: String,
+    pub frames_recorded: u64,
+    pub duration_s: f64,
+    pub held_ticks: u64,
+    pub paused_ticks: u64,
+    pub late_ticks: u64,
+    pub dropped_frames: u64,
+    pub episodes_saved: u64,
+    pub warning: Option<String>,
+    pub fps: u32,
+    /// Increases on every change; see [`Recorder::watch`].
+    pub version: u64,
+}
+
+/// Sync gate settings.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SyncConfig {
+    /// A source whose newest sample is older than this pauses the episode.
+    pub hold_tolerance_s: f64,
+    /// Encoder queue length per camera, in frames.
+    pub queue_frames: usize,
+}
+
+impl SyncConfig {
+    /// Defaults for `fps`: hold up to 0.25 s (5 ticks at 20 fps), half a second of encoder queue.
+    pub fn for_fps(fps: u32) -> Self {
+        SyncConfig {
+            hold_tolerance_s: 0.25,
+            queue_frames: (fps as usize / 2).max(4),
+        }
+    }
+}
+
+struct Active {
+    writer: EpisodeWriter,
+    held: u64,
+    paused: u64,
+    late: u64,
+    start_unix_ns: i64,
+    last_robot_ns: Option<i64>,
+    last_seq: Vec<Option<u64>>,
+    error: Option<RecorderError>,
+}
+
+struct TickState {
+    active: Option<Active>,
+    phase: Phase,
+    warning: Option<String>,
+    version: u64,
+    last_task: Option<String>,
+}
+
+struct Shared {
+    dataset: Mutex<Dataset>,
+    tick: Mutex<TickState>,
+    changed: Condvar,
+    stop: AtomicBool,
+    robot: Arc<dyn RobotSource>,
+    cameras: Vec<Arc<FrameSlot>>,
+    camera_names: Vec<String>,
+    fps: u32,
+    sync: SyncConfig,
+}
+
+/// A recorder over one dataset. Dropping it (or [`Recorder::close`]) stops the tick thread; an episode
+/// still being recorded is discarded.
+pub struct Recorder {
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+fn unix_ns() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as i64)
+}
+
+impl Recorder {
+    /// Creates or resumes the dataset at `spec.root` with default sync settings.
+    #[allow(clippy::needless_pass_by_value)]
+    pub fn open(
+        spec: DatasetSpec,
+        robot: Arc<dyn RobotSource>,
+        cameras: Vec<(String, Arc<FrameSlot>)>,
+    ) -> Result<Recorder, RecorderError> {
+        let sync = SyncConfig::for_fps(spec.fps);
+        Self::open_with(spec, robot, cameras, sync)
+    }
+
+    /// Like [`Recorder::open`] with explicit sync settings.
+    #[allow(clippy::needless_pass_by_value)] // the server hands over its camera list; keeps the call simple
+    pub fn open_with(
+        spec: DatasetSpec,
+        robot: Arc<dyn RobotSource>,
+        cameras: Vec<(String, Arc<FrameSlot>)>,
+        sync: SyncConfig,
+    ) -> Result<Recorder, RecorderError> {
+        let mut slots = Vec::new();
+        for c in &spec.cameras {
+            let slot = cameras
+                .iter()
+                .find(|(n, _)| *n == c.name)
+                .map(|(_, s)| Arc::clone(s))
+                .ok_or_else(|| {
+                    RecorderError::InvalidSpec(format!(
+                        "camera {} is in the dataset spec but has no source",
+                        c.name
+                    ))
+                })?;
+            slots.push(slot);
+        }
+        let fps = spec.fps;
+        let camera_names = spec.cameras.iter().map(|c| c.name.clone()).collect();
+        let mut dataset = Dataset::open(spec)?;
+        dataset.set_sync_provenance(serde_json::to_value(&sync).unwrap_or_default());
+        let shared = Arc::new(Shared {
+            dataset: Mutex::new(dataset),
+            tick: Mutex::new(TickState {
+                active: None,
+                phase: Phase::Idle,
+                warning: None,
+                version: 0,
+                last_task: None,
+            }),
+            changed: Condvar::new(),
+            stop: AtomicBool::new(false),
+            robot,
+            cameras: slots,
+            camera_names,
+            fps,
+            sync,
+        });
+        let s2 = Arc::clone(&shared);
+        let thread = std::thread::Builder::new()
+            .name("recorder-tick".into())
+            .spawn(move || tick_loop(&s2))
+            .map_err(|e| RecorderError::io("recorder tick thread", e))?;
+        Ok(Recorder {
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    /// Starts recording an episode of `task`.
+    pub fn start_episode(&self, task: &str) -> Result<RecorderStatus, RecorderError> {
+        let mut ds = lock(&self.shared.dataset);
+        {
+            let t = lock(&self.shared.tick);
+            if let Some(a) = &t.active {
+                return Err(RecorderError::AlreadyRecording(a.writer.index));
+            }
+        }
+        let writer = ds.begin_episode(task, self.shared.sync.queue_frames)?;
+        drop(ds);
+        let mut t = lock(&self.shared.tick);
+        if let Some(a) = &t.active {
+            return Err(RecorderError::AlreadyRecording(a.writer.index));
+        }
+        tracing::info!(episode = writer.index, task = %writer.task, "recording started");
+        t.last_task = Some(writer.task.clone());
+        t.active = Some(Active {
+            last_seq: vec![None; self.shared.cameras.len()],
+            writer,
+            held: 0,
+            paused: 0,
+            late: 0,
+            start_unix_ns: unix_ns(),
+            last_robot_ns: None,
+            error: None,
+        });
+        t.phase = Phase::Recording;
+        t.warning = None;
+        bump(&self.shared, &mut t);
+        drop(t);
+        Ok(self.status())
+    }
+
+    fn take_active(&self) -> Result<Active, RecorderError> {
+        let mut t = lock(&self.shared.tick);
+        let a = t.active.take().ok_or(RecorderError::NotRecording)?;
+        t.phase = Phase::Saving;
+        bump(&self.shared, &mut t);
+        Ok(a)
+    }
+
+    fn set_idle(&self, warning: Option<String>) {
+        let mut t = lock(&self.shared.tick);
+        t.phase = Phase::Idle;
+        t.warning = warning;
+        bump(&self.shared, &mut t);
+    }
+
+    /// Stops recording and saves the episode. Returns when it is committed to disk.
+    pub fn stop_episode(&self) -> Result<EpisodeSummary, RecorderError> {
+        let t0 = std::time::Instant::now();
+        let mut ds = lock(&self.shared.dataset);
+        let active = self.take_active()?;
+        let summary = EpisodeSummary {
+            index: active.writer.index,
+            task: active.writer.task.clone(),
+            held_ticks: active.held,
+            paused_ticks: active.paused,
+            late_ticks: active.late,
+            start_unix_ns: active.start_unix_ns,
+            ..EpisodeSummary::default()
+        };
+        if let Some(e) = active.error {
+            let index = active.writer.index;
+            ds.abort_episode(active.writer);
+            drop(ds);
+            let msg = format!("episode {index} was not saved: {e}");
+            tracing::error!("{msg}");
+            self.set_idle(Some(msg));
+            return Err(e);
+        }
+        if active.writer.frames() == 0 {
+            let index = active.writer.index;
+            ds.abort_episode(active.writer);
+            drop(ds);
+            self.set_idle(Some(format!("episode {index} had no frames and was discarded")));
+            return Err(RecorderError::EmptyEpisode(index));
+        }
+        let r = ds.commit_episode(active.writer, summary);
+        drop(ds);
+        match r {
+            Ok(mut s) => {
+                s.save_latency_s = t0.elapsed().as_secs_f64();
+                tracing::info!(
+                    episode = s.index,
+                    frames = s.length_frames,
+                    save_ms = s.save_latency_s * 1e3,
+                    "episode saved"
+                );
+                let warning = (s.dropped_frames > 0 || s.paused_ticks > 0).then(|| {
+                    format!(
+                        "episode {} saved with {} dropped video frames and {} paused ticks",
+                        s.index, s.dropped_frames, s.paused_ticks
+                    )
+                });
+                self.set_idle(warning);
+                Ok(s)
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "episode not saved");
+                self.set_idle(Some(format!("episode not saved: {e}")));
+                Err(e)
+            }
+        }
+    }
+
+    /// Throws away the episode being recorded; returns its frame count.
+    pub fn discard_episode(&self) -> Result<u64, RecorderError> {
+        let mut ds = lock(&self.shared.dataset);
+        let active = self.take_active()?;
+        let frames = active.writer.frames();
+        ds.abort_episode(active.writer);
+        drop(ds);
+        self.set_idle(None);
+        Ok(frames)
+    }
+
+    /// Re-records: while recording, discards the current take and starts again; when idle, removes the
+    /// last saved episode and records it again. `task` defaults to the previous task.
+    pub fn rerecord(&self, task: Option<&str>) -> Result<RecorderStatus, RecorderError> {
+        let recording = lock(&self.shared.tick).active.is_some();
+        let last_task = lock(&self.shared.tick).last_task.clone();
+        if recording {
+            self.discard_episode()?;
+        } else {
+            let removed = lock(&self.shared.dataset).remove_last_episode()?;
+            tracing::info!(
+                episode = removed.index,
+                "removed the last episode to re-record it"
+            );
+            let task = task.map(str::to_owned).unwrap_or(removed.task);
+            return self.start_episode(&task);
+        }
+        let task = task
+            .map(str::to_owned)
+            .or(last_task)
+            .ok_or(RecorderError::NothingToRerecord)?;
+        self.start_episode(&task)
+    }
+
+    /// Saved episodes.
+    pub fn episodes(&self) -> Vec<EpisodeSummary> {
+        lock(&self.shared.dataset).episodes()
+    }
+
+    /// The current status.
+    pub fn status(&self) -> RecorderStatus {
+        let saved = self.shared.dataset.try_lock().map(|d| d.total_episodes()).ok();
+        let t = lock(&self.shared.tick);
+        status_of(&self.shared, &t, saved)
+    }
+
+    /// Waits until the status version is above `since` (or `timeout` passes) and returns the status.
+    pub fn watch(&self, since: u64, timeout: Duration) -> RecorderStatus {
+        let t = lock(&self.shared.tick);
+        let (t, _) = self
+            .shared
+            .changed
+            .wait_timeout_while(t, timeout, |t| t.version <= since)
+            .unwrap_or_else(PoisonError::into_inner);
+        let v = t.version;
+        drop(t);
+        let mut s = self.status();
+        s.version = s.version.max(v);
+        s
+    }
+
+    /// Stops the tick thread. An episode still being recorded is discarded (call stop_episode to keep it).
+    pub fn close(mut self) -> Result<(), RecorderError> {
+        self.shutdown();
+        Ok(())
+    }
+
+    fn shutdown(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        if let Some(h) = self.thread.take() {
+            let _ = h.join();
+        }
+        let active = lock(&self.shared.tick).active.take();
+        if let Some(a) = active {
+            lock(&self.shared.dataset).abort_episode(a.writer);
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+fn bump(shared: &Shared, t: &mut TickState) {
+    t.version += 1;
+    shared.changed.notify_all();
+}
+
+fn status_of(shared: &Shared, t: &TickState, saved: Option<u64>) -> RecorderStatus {
+    let fps = shared.fps;
+    let (episode_index, task, frames, held, paused, late, dropped) = match &t.active {
+        Some(a) => (
+            a.writer.index,
+            a.writer.task.clone(),
+            a.writer.frames(),
+            a.held,
+            a.paused,
+            a.late,
+            a.writer.dropped(),
+        ),
+        None => (saved.unwrap_or(0), String::new(), 0, 0, 0, 0, 0),
+    };
+    RecorderStatus {
+        phase: t.phase,
+        episode_index,
+        task,
+        frames_recorded: frames,
+        duration_s: frames as f64 / f64::from(fps),
+        held_ticks: held,
+        paused_ticks: paused,
+        late_ticks: late,
+        dropped_frames: dropped,
+        episodes_saved: saved.unwrap_or(episode_index),
+        warning: t.warning.clone(),
+        fps,
+        version: t.version,
+    }
+}
+
+fn tick_loop(shared: &Shared) {
+    let period_ns = 1_000_000_000 / i64::from(shared.fps);
+    let mut next = monotonic_ns() + period_ns;
+    let base = epoch();
+    while !shared.stop.load(Ordering::Relaxed) {
+        let now = monotonic_ns();
+        if now < next {
+            std::thread::sleep(Duration::from_nanos((next - now) as u64).min(Duration::from_millis(50)));
+            continue;
+        }
+        // Woke up more than a period late: those ticks are lost (counted), never written as gaps.
+        let missed = (now - next) / period_ns;
+        next += (missed + 1) * period_ns;
+        let mut t = lock(&shared.tick);
+        if let Some(a) = &mut t.active {
+            a.late += missed as u64;
+        }
+        tick(shared, &mut t, now);
+        drop(t);
+        let _ = base;
+    }
+}
+
+fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
+    let Some(a) = &mut t.active else { return };
+    if a.error.is_some() {
+        return;
+    }
+    let tol_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
+    let dims = (a.writer_state_dims(), a.writer_action_dims());
+    let mut stale: Option<String> = None;
+    let sample = shared.robot.sample();
+    match &sample {
+        None => stale = Some("robot: no sample yet".into()),
+        Some(s) if now_ns - s.capture_time_ns > tol_ns => {
+            stale = Some(format!(
+                "robot sample is {:.2} s old",
+                (now_ns - s.capture_time_ns) as f64 / 1e9
+            ));
+        }
+        Some(s) if (s.state.len(), s.action.len()) != dims => {
+            stale = Some(format!(
+                "robot sample has {} state and {} action values, the dataset expects {} and {}",
+                s.state.len(),
+                s.action.len(),
+                dims.0,
+                dims.1
+            ));
+        }
+        Some(s) if s.state.iter().chain(&s.action).any(|v| !v.is_finite()) => {
+            stale = Some("robot sample contains NaN or infinity".into());
+        }
+        _ => {}
+    }
+    let mut frames = Vec::with_capacity(shared.cameras.len());
+    for (slot, name) in shared.cameras.iter().zip(&shared.camera_names) {
+        let f = slot.latest();
+        match &f {
+            None => stale = stale.or_else(|| Some(format!("camera {name}: no frame yet"))),
+            Some(f) if now_ns - f.capture_time_ns > tol_ns => {
+                stale = stale.or_else(|| {
+                    Some(format!(
+                        "camera {name} has sent nothing for {:.2} s",
+                        (now_ns - f.capture_time_ns) as f64 / 1e9
+                    ))
+                });
+            }
+            _ => {}
+        }
+        frames.push(f);
+    }
+    if let Some(why) = stale {
+        a.paused += 1;
+        let msg = format!("recording paused: {why}");
+        if t.phase != Phase::Paused || t.warning.as_deref() != Some(&msg) {
+            if t.phase != Phase::Paused {
+                tracing::warn!("{msg}");
+            }
+            t.phase = Phase::Paused;
+            t.warning = Some(msg);
+            bump(shared, t);
+        }
+        return;
+    }
+    if t.phase == Phase::Paused {
+        t.phase = Phase::Recording;
+        t.warning = Some(format!("resumed after {} paused ticks", a.paused));
+        tracing::info!("recording resumed");
+        bump(shared, t);
+    }
+    let Some(a) = &mut t.active else { return };
+    let Some(s) = sample else { return };
+    let mut held = a.last_robot_ns == Some(s.capture_time_ns);
+    a.last_robot_ns = Some(s.capture_time_ns);
+    let index = a.writer.frames();
+    for (i, f) in frames.into_iter().enumerate() {
+        let Some(f) = f else { continue };
+        held |= a.last_seq[i] == Some(f.seq);
+        a.last_seq[i] = Some(f.seq);
+        a.writer.encoders[i].push(index, f);
+    }
+    if held {
+        a.held += 1;
+    }
+    if let Err(e) = a.writer.push_row(&s.state, &s.action) {
+        let msg = format!("recording failed, the episode cannot be saved: {e}");
+        tracing::error!("{msg}");
+        a.error = Some(e);
+        t.warning = Some(msg);
+        bump(shared, t);
+        return;
+    }
+    if let Some(cam) = a.writer.failed_camera() {
+        let msg = format!("video encoder for camera {cam} failed, the episode cannot be saved");
+        if t.warning.as_deref() != Some(&msg) {
+            tracing::error!("{msg}");
+            t.warning = Some(msg);
+            bump(shared, t);
+        }
+    }
+}
+
+impl Active {
+    fn writer_state_dims(&self) -> usize {
+        self.writer.state_dims()
+    }
+    fn writer_action_dims(&self) -> usize {
+        self.writer.action_dims()
+    }
+}

@@ -1,0 +1,393 @@
+//! Streaming video encoding: RGB frames in, a constant-frame-rate mp4 out, frame *i* presented at *i/fps*.
+//! Each camera gets its own thread fed through a bounded queue so that encoding never blocks the tick;
+//! a frame that does not fit in the queue is counted as dropped and replaced in the video by a repeat of
+//! the previous frame, so the video keeps exactly one frame per parquet row.
+
+use crate::camera::Frame;
+use crate::error::RecorderError;
+use crate::spec::VideoSettings;
+use crate::stats::ImageStats;
+use ffmpeg_next as ffmpeg;
+use ffmpeg_next::format::Pixel;
+use ffmpeg_next::software::scaling;
+use ffmpeg_next::util::frame::video::Video as VideoFrame;
+use ffmpeg_next::{Dictionary, Packet, Rational, codec, encoder, format};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+use std::sync::{Arc, Once};
+use std::thread::JoinHandle;
+
+/// Initialises FFmpeg once per process and keeps its log to errors. (SVT-AV1 prints its own banner per
+/// encoder unless the process runs with `SVT_LOG=1`; setting it here would race other threads.)
+pub fn init_ffmpeg() {
+    static INIT: Once = Once::new();
+    INIT.call_once(|| {
+        let _ = ffmpeg::init();
+        ffmpeg::util::log::set_level(ffmpeg::util::log::Level::Error);
+    });
+}
+
+/// A synchronous encoder writing one mp4. Opened with the first frame: SVT-AV1 hangs when an encoder that
+/// never received a frame is flushed, so an encoder without frames must never exist.
+pub struct VideoEncoder {
+    octx: format::context::Output,
+    encoder: encoder::Video,
+    scaler: Option<(u32, u32, scaling::Context)>,
+    rgb: VideoFrame,
+    yuv: VideoFrame,
+    encoder_tb: Rational,
+    stream_tb: Rational,
+    frames: u64,
+    width: u32,
+    height: u32,
+    path: PathBuf,
+    packet: Packet,
+}
+
+fn ff_err(path: &Path, what: &str, e: ffmpeg::Error) -> RecorderError {
+    let detail = format!("{what} {}: {e}", path.display());
+    if matches!(e, ffmpeg::Error::Other { errno } if errno == 28) || detail.contains("No space left") {
+        RecorderError::DiskFull {
+            path: path.to_owned(),
+        }
+    } else {
+        RecorderError::Video {
+            camera: path.display().to_string(),
+            detail,
+        }
+    }
+}
+
+impl VideoEncoder {
+    /// Creates `path` and an encoder for `width`x`height` at `fps`.
+    pub fn create(
+        path: &Path,
+        width: u32,
+        height: u32,
+        fps: u32,
+        settings: &VideoSettings,
+    ) -> Result<Self, RecorderError> {
+        init_ffmpeg();
+        let codec_impl = encoder::find_by_name(&settings.encoder).ok_or_else(|| RecorderError::Video {
+            camera: path.display().to_string(),
+            detail: format!(
+                "FFmpeg has no {} encoder (install an FFmpeg built with it)",
+                settings.encoder
+            ),
+        })?;
+        let mut octx = format::output_as(&path, "mp4").map_err(|e| ff_err(path, "cannot create", e))?;
+        let global_header = octx.format().flags().contains(format::Flags::GLOBAL_HEADER);
+        let encoder_tb = Rational::new(1, fps as i32);
+        let mut enc = codec::context::Context::new_with_codec(codec_impl)
+            .encoder()
+            .video()
+            .map_err(|e| ff_err(path, "video encoder for", e))?;
+        enc.set_width(width);
+        enc.set_height(height);
+        enc.set_format(Pixel::YUV420P);
+        enc.set_time_base(encoder_tb);
+        enc.set_frame_rate(Some(Rational::new(fps as i32, 1)));
+        enc.set_gop(settings.gop);
+        if settings.encoder != "libsvtav1" {
+            // With a GOP of 2, B-frames save nothing, and their reordering makes torchcodec's approximate
+            // seek (lerobot's default decoder) fail on an episode's last frame. They also add flush latency.
+            enc.set_max_b_frames(0);
+        }
+        if global_header {
+            enc.set_flags(codec::Flags::GLOBAL_HEADER);
+        }
+        let mut opts = Dictionary::new();
+        opts.set("crf", &settings.crf.to_string());
+        if let Some(p) = &settings.preset {
+            opts.set("preset", p);
+        }
+        for (k, v) in &settings.extra {
+            opts.set(k, v);
+        }
+        let encoder = enc
+            .open_with(opts)
+            .map_err(|e| ff_err(path, "cannot open encoder for", e))?;
+        {
+            let mut ost = octx
+                .add_stream(codec_impl)
+                .map_err(|e| ff_err(path, "cannot add stream to", e))?;
+            ost.set_parameters(&encoder);
+            ost.set_time_base(encoder_tb);
+            ost.set_rate(Rational::new(fps as i32, 1));
+            ost.set_avg_frame_rate(Rational::new(fps as i32, 1));
+        }
+        octx.write_header()
+            .map_err(|e| ff_err(path, "cannot write header of", e))?;
+        // The muxer picks its own time base (mp4: 1/15360 at 30 fps); read it after write_header.
+        let stream_tb = octx.stream(0).map_or(encoder_tb, |s| s.time_base());
+        Ok(VideoEncoder {
+            octx,
+            encoder,
+            scaler: None,
+            rgb: VideoFrame::new(Pixel::RGB24, width, height),
+            yuv: VideoFrame::new(Pixel::YUV420P, width, height),
+            encoder_tb,
+            stream_tb,
+            frames: 0,
+            width,
+            height,
+            path: path.to_owned(),
+            packet: Packet::empty(),
+        })
+    }
+
+    /// Frames encoded so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Encodes one packed RGB frame of `w`x`h` as the next frame (scaled if the size differs).
+    pub fn push_rgb(&mut self, rgb: &[u8], w: u32, h: u32) -> Result<(), RecorderError> {
+        if rgb.len() != (w as usize) * (h as usize) * 3 {
+            return Err(RecorderError::Video {
+                camera: self.path.display().to_string(),
+                detail: format!(
+                    "frame of {w}x{h} has {} bytes, expected {}",
+                    rgb.len(),
+                    w as usize * h as usize * 3
+                ),
+            });
+        }
+        if self.rgb.width() != w || self.rgb.height() != h {
+            self.rgb = VideoFrame::new(Pixel::RGB24, w, h);
+        }
+        let stride = self.rgb.stride(0);
+        let row = w as usize * 3;
+        let data = self.rgb.data_mut(0);
+        for (y, src) in rgb.chunks_exact(row).enumerate() {
+            data[y * stride..y * stride + row].copy_from_slice(src);
+        }
+        let needs_new = !matches!(&self.scaler, Some((sw, sh, _)) if *sw == w && *sh == h);
+        if needs_new {
+            let ctx = scaling::Context::get(
+                Pixel::RGB24,
+                w,
+                h,
+                Pixel::YUV420P,
+                self.width,
+                self.height,
+                scaling::Flags::BILINEAR,
+            )
+            .map_err(|e| ff_err(&self.path, "cannot convert frames for", e))?;
+            self.scaler = Some((w, h, ctx));
+        }
+        if let Some((_, _, scaler)) = &mut self.scaler {
+            scaler
+                .run(&self.rgb, &mut self.yuv)
+                .map_err(|e| ff_err(&self.path, "cannot convert frames for", e))?;
+        }
+        self.yuv.set_pts(Some(self.frames as i64));
+        self.encoder
+            .send_frame(&self.yuv)
+            .map_err(|e| ff_err(&self.path, "cannot encode", e))?;
+        self.frames += 1;
+        self.drain()
+    }
+
+    fn drain(&mut self) -> Result<(), RecorderError> {
+        while self.encoder.receive_packet(&mut self.packet).is_ok() {
+            self.packet.set_stream(0);
+            // Every frame lasts exactly one period; without it the mp4 loses the last frame's duration.
+            self.packet.set_duration(1);
+            self.packet.rescale_ts(self.encoder_tb, self.stream_tb);
+            self.packet
+                .write_interleaved(&mut self.octx)
+                .map_err(|e| ff_err(&self.path, "cannot write", e))?;
+        }
+        Ok(())
+    }
+
+    /// Flushes the encoder and writes the mp4 trailer; returns the number of frames.
+    pub fn finish(mut self) -> Result<u64, RecorderError> {
+        self.encoder
+            .send_eof()
+            .map_err(|e| ff_err(&self.path, "cannot flush", e))?;
+        self.drain()?;
+        self.octx
+            .write_trailer()
+            .map_err(|e| ff_err(&self.path, "cannot finish", e))?;
+        Ok(self.frames)
+    }
+}
+
+/// What an encoder thread reports when it finishes.
+#[derive(Debug)]
+pub struct EncodeReport {
+    pub camera: String,
+    pub path: PathBuf,
+    pub frames: u64,
+    /// Frames that did not fit in the queue and were replaced by a repeat of the previous frame.
+    pub dropped: u64,
+    pub image_stats: ImageStats,
+}
+
+enum Msg {
+    Frame { index: u64, frame: Frame },
+    Finish { total_frames: u64 },
+}
+
+/// A camera's encoder thread and the sending end of its bounded queue.
+pub struct EncoderThread {
+    camera: String,
+    tx: SyncSender<Msg>,
+    dropped: Arc<AtomicU64>,
+    failed: Arc<AtomicBool>,
+    handle: Option<JoinHandle<Result<EncodeReport, RecorderError>>>,
+}
+
+impl EncoderThread {
+    /// Starts a thread that encodes frames for `camera` into `path` at `fps`, scaled to `width`x`height`.
+    pub fn spawn(
+        camera: &str,
+        path: PathBuf,
+        width: u32,
+        height: u32,
+        fps: u32,
+        settings: VideoSettings,
+        queue_frames: usize,
+    ) -> Result<Self, RecorderError> {
+        let (tx, rx) = sync_channel(queue_frames.max(1));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let failed = Arc::new(AtomicBool::new(false));
+        let (cam, drop2, fail2) = (camera.to_owned(), Arc::clone(&dropped), Arc::clone(&failed));
+        let handle = std::thread::Builder::new()
+            .name(format!("encode-{camera}"))
+            .spawn(move || {
+                let r = encode_loop(&cam, &path, width, height, fps, &settings, &rx, &drop2);
+                if r.is_err() {
+                    fail2.store(true, Ordering::Relaxed);
+                    // Keep draining so the tick thread never blocks on a dead encoder, until told to finish.
+                    while let Ok(m) = rx.recv() {
+                        if matches!(m, Msg::Finish { .. }) {
+                            break;
+                        }
+                    }
+                }
+                r
+            })
+            .map_err(|e| RecorderError::io("encoder thread", e))?;
+        Ok(EncoderThread {
+            camera: camera.to_owned(),
+            tx,
+            dropped,
+            failed,
+            handle: Some(handle),
+        })
+    }
+
+    /// Queues frame `index` without blocking; returns false (and counts a drop) when the queue is full.
+    pub fn push(&self, index: u64, frame: Frame) -> bool {
+        match self.tx.try_send(Msg::Frame { index, frame }) {
+            Ok(()) => true,
+            Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+                false
+            }
+        }
+    }
+
+    /// Frames dropped so far.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// True once the encoder hit an error (the episode cannot be saved).
+    pub fn failed(&self) -> bool {
+        self.failed.load(Ordering::Relaxed)
+    }
+
+    /// The camera name.
+    pub fn camera(&self) -> &str {
+        &self.camera
+    }
+
+    /// Pads the video to `total_frames`, flushes it and waits for the thread.
+    pub fn finish(mut self, total_frames: u64) -> Result<EncodeReport, RecorderError> {
+        // A blocking send: the queue drains at encoder speed, and the episode is not saved before it does.
+        let _ = self.tx.send(Msg::Finish { total_frames });
+        let handle = self.handle.take().ok_or(RecorderError::ThreadGone)?;
+        handle.join().map_err(|_| RecorderError::ThreadGone)?
+    }
+}
+
+impl Drop for EncoderThread {
+    fn drop(&mut self) {
+        if let Some(h) = self.handle.take() {
+            // Discarded episode: finish with whatever is queued so SVT-AV1 is flushed only if it has frames.
+            let _ = self.tx.send(Msg::Finish { total_frames: 0 });
+            let _ = h.join();
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn encode_loop(
+    camera: &str,
+    path: &Path,
+    width: u32,
+    height: u32,
+    fps: u32,
+    settings: &VideoSettings,
+    rx: &Receiver<Msg>,
+    dropped: &AtomicU64,
+) -> Result<EncodeReport, RecorderError> {
+    let mut enc: Option<VideoEncoder> = None;
+    let mut last: Option<Frame> = None;
+    let mut stats = ImageStats::new(fps);
+    let with_camera = |e: RecorderError| match e {
+        RecorderError::Video { detail, .. } => RecorderError::Video {
+            camera: camera.to_owned(),
+            detail,
+        },
+        other => other,
+    };
+    let total = loop {
+        let Ok(msg) = rx.recv() else { break 0 };
+        match msg {
+            Msg::Frame { index, frame } => {
+                let e = match &mut enc {
+                    Some(e) => e,
+                    None => enc.insert(
+                        VideoEncoder::create(path, width, height, fps, settings).map_err(with_camera)?,
+                    ),
+                };
+                // Frames lost to a full queue become repeats of the previous one: one video frame per row.
+                while e.frames() < index {
+                    let f = last.as_ref().unwrap_or(&frame);
+                    e.push_rgb(&f.rgb, f.width, f.height).map_err(with_camera)?;
+                }
+                if e.frames() == index {
+                    e.push_rgb(&frame.rgb, frame.width, frame.height)
+                        .map_err(with_camera)?;
+                    stats.observe(index, &frame);
+                }
+                last = Some(frame);
+            }
+            Msg::Finish { total_frames } => break total_frames,
+        }
+    };
+    let frames = match enc {
+        Some(mut e) => {
+            if let Some(f) = &last {
+                while e.frames() < total {
+                    e.push_rgb(&f.rgb, f.width, f.height).map_err(with_camera)?;
+                }
+            }
+            e.finish().map_err(with_camera)?
+        }
+        None => 0,
+    };
+    Ok(EncodeReport {
+        camera: camera.to_owned(),
+        path: path.to_owned(),
+        frames,
+        dropped: dropped.load(Ordering::Relaxed),
+        image_stats: stats,
+    })
+}

@@ -1,0 +1,241 @@
+"""Checks phone2act datasets with the real lerobot reader.
+
+Usage: python check.py DATASET_DIR...   (all of one codebase version: lerobot 0.4.x reads v3.0, 0.3.3 v2.1)
+
+For every dataset: load it with LeRobotDataset (local root, no network), iterate every frame with decoded
+video, and assert timestamps (frame_index / fps), indices, episode lengths, tasks and feature shapes against
+meta/info.json. For v2.1 also run a GR00T-style check of meta/modality.json and meta/stats.json (mean, std,
+min, max, q01, q99 for every parquet column, consistent with the data). A dataset directory may hold
+`phone2act_expect.json` ({"episodes": N, "tasks": [...]}) written by the Rust test that produced it.
+Prints one PASS/FAIL line per dataset and a closing "N passed, M failed" line; exits 1 on any failure.
+"""
+
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+import pyarrow.parquet as pq  # noqa: E402
+
+
+def fail(msg):
+    raise AssertionError(msg)
+
+
+def check_common(root: Path, info: dict, ds, version: str):
+    fps = info["fps"]
+    total_frames = info["total_frames"]
+    total_episodes = info["total_episodes"]
+    features = info["features"]
+    video_keys = [k for k, v in features.items() if v["dtype"] == "video"]
+    if len(ds) != total_frames:
+        fail(f"len(ds)={len(ds)} but info.json total_frames={total_frames}")
+    if ds.num_episodes != total_episodes:
+        fail(f"num_episodes={ds.num_episodes} but info.json says {total_episodes}")
+    expect_path = root / "phone2act_expect.json"
+    expect = json.loads(expect_path.read_text()) if expect_path.exists() else {}
+    if "episodes" in expect and total_episodes != expect["episodes"]:
+        fail(f"dataset has {total_episodes} episodes, the producing test expected {expect['episodes']}")
+    if "min_episodes" in expect and total_episodes < expect["min_episodes"]:
+        fail(f"dataset has {total_episodes} episodes, expected at least {expect['min_episodes']}")
+    ep_len = {}
+    last_ep, last_fi = -1, -1
+    for i in range(len(ds)):
+        item = ds[i]
+        ep = int(item["episode_index"])
+        fi = int(item["frame_index"])
+        ts = float(item["timestamp"])
+        if int(item["index"]) != i:
+            fail(f"row {i}: index={int(item['index'])}")
+        if ep == last_ep:
+            if fi != last_fi + 1:
+                fail(f"row {i}: frame_index {fi} after {last_fi} (gap) in episode {ep}")
+        else:
+            if ep != last_ep + 1 or fi != 0:
+                fail(f"row {i}: episode {ep} frame {fi} follows episode {last_ep}")
+        last_ep, last_fi = ep, fi
+        ep_len[ep] = fi + 1
+        expected_ts = np.float32(fi / fps)
+        if abs(ts - float(expected_ts)) > 1e-6:
+            fail(f"row {i}: timestamp {ts} != frame_index/fps {float(expected_ts)}")
+        task = item.get("task")
+        if not isinstance(task, str) or not task:
+            fail(f"row {i}: task is {task!r}, not the task text")
+        if "tasks" in expect and task not in expect["tasks"]:
+            fail(f"row {i}: task {task!r} not among {expect['tasks']}")
+        for key, spec in features.items():
+            if spec["dtype"] == "video":
+                h, w, c = spec["shape"]
+                t = item[key]
+                if tuple(t.shape) != (c, h, w):
+                    fail(f"row {i}: {key} decoded to shape {tuple(t.shape)}, expected {(c, h, w)}")
+                if float(t.min()) < 0.0 or float(t.max()) > 1.0:
+                    fail(f"row {i}: {key} outside 0..1")
+            elif key in ("observation.state", "action"):
+                if tuple(item[key].shape) != tuple(spec["shape"]):
+                    fail(f"row {i}: {key} shape {tuple(item[key].shape)} != {spec['shape']}")
+                if not np.isfinite(item[key].numpy()).all():
+                    fail(f"row {i}: {key} not finite")
+    if sorted(ep_len) != list(range(total_episodes)):
+        fail(f"episodes in data {sorted(ep_len)} != 0..{total_episodes - 1}")
+    return ep_len, video_keys
+
+
+def check_v30(root: Path, info: dict):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/" + root.name, root=root)
+    ep_len, video_keys = check_common(root, info, ds, "v3.0")
+    eps = ds.meta.episodes
+    for e in range(info["total_episodes"]):
+        row = eps[e]
+        if row["length"] != ep_len[e]:
+            fail(f"episode {e}: metadata length {row['length']} != {ep_len[e]} rows")
+        for vk in video_keys:
+            d = row[f"videos/{vk}/to_timestamp"] - row[f"videos/{vk}/from_timestamp"]
+            if abs(d - ep_len[e] / info["fps"]) > 1e-6:
+                fail(f"episode {e}: {vk} spans {d} s, expected {ep_len[e] / info['fps']}")
+    tasks = pq.read_table(root / "meta/tasks.parquet")
+    if "pandas" not in (tasks.schema.metadata or {}).keys() and b"pandas" not in (tasks.schema.metadata or {}):
+        fail("meta/tasks.parquet lacks pandas metadata")
+    stats = json.loads((root / "meta/stats.json").read_text())
+    for key in ("observation.state", "action", *video_keys):
+        for s in ("min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"):
+            if s not in stats.get(key, {}):
+                fail(f"meta/stats.json: {key} lacks {s}")
+    check_video_files_v30(root, info, ds)
+
+
+def check_video_files_v30(root: Path, info: dict, ds):
+    import av
+
+    for e in range(info["total_episodes"]):
+        row = ds.meta.episodes[e]
+        for vk in [k for k, v in info["features"].items() if v["dtype"] == "video"]:
+            p = root / info["video_path"].format(
+                video_key=vk, chunk_index=row[f"videos/{vk}/chunk_index"], file_index=row[f"videos/{vk}/file_index"]
+            )
+            check_cfr(p, info["fps"], None)
+
+
+def check_cfr(path: Path, fps: int, expected_frames):
+    import av
+
+    with av.open(str(path)) as c:
+        s = c.streams.video[0]
+        pts = [p.pts for p in c.demux(s) if p.pts is not None]
+        tb = s.time_base
+    pts.sort()
+    times = [float(p * tb) for p in pts]
+    for i, t in enumerate(times):
+        if abs(t - i / fps) > 1e-4:
+            fail(f"{path}: frame {i} presented at {t}, expected {i / fps}")
+    if expected_frames is not None and len(times) != expected_frames:
+        fail(f"{path}: {len(times)} frames, expected {expected_frames}")
+
+
+def check_v21(root: Path, info: dict):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset("local/" + root.name, root=root)
+    ep_len, video_keys = check_common(root, info, ds, "v2.1")
+    check_gr00t(root, info, ep_len)
+
+
+def check_gr00t(root: Path, info: dict, ep_len: dict):
+    """What Isaac-GR00T N1.5's LeRobotSingleDataset needs from a v2 layout."""
+    meta = root / "meta"
+    modality = json.loads((meta / "modality.json").read_text())
+    features = info["features"]
+    for part, key in (("state", "observation.state"), ("action", "action")):
+        groups = modality.get(part)
+        if not groups:
+            fail(f"modality.json has no {part} groups")
+        dim = features[key]["shape"][0]
+        covered = []
+        for name, g in groups.items():
+            okey = g.get("original_key", key)
+            if okey not in features:
+                fail(f"modality.json {part}.{name}: original_key {okey} is not a feature")
+            if not (0 <= g["start"] < g["end"] <= dim):
+                fail(f"modality.json {part}.{name}: [{g['start']}, {g['end']}) outside 0..{dim}")
+            covered.extend(range(g["start"], g["end"]))
+        if sorted(covered) != list(range(dim)):
+            fail(f"modality.json {part} groups do not tile 0..{dim}: {sorted(covered)}")
+    for name, v in modality.get("video", {}).items():
+        okey = v.get("original_key", name)
+        spec = features.get(okey)
+        if spec is None or spec["dtype"] != "video":
+            fail(f"modality.json video.{name}: {okey} is not a video feature")
+        names = spec["names"]
+        if not ("height" in names and "width" in names and "channels" in names and "video.fps" in spec["info"]):
+            fail(f"{okey}: GR00T needs names height/width/channels and info.video.fps")
+        if spec["info"]["video.codec"] not in ("h264", "hevc"):
+            fail(f"{okey}: codec {spec['info']['video.codec']} is not decodable by GR00T N1.5's decord")
+    for name, a in modality.get("annotation", {}).items():
+        col = a.get("original_key", f"annotation.{name}")
+        if col not in features:
+            fail(f"modality.json annotation.{name}: column {col} is not a feature")
+    # stats.json: every parquet column, each with exactly the keys GR00T validates, consistent with data.
+    stats = json.loads((meta / "stats.json").read_text())
+    tables = []
+    episodes = [json.loads(l) for l in (meta / "episodes.jsonl").read_text().splitlines() if l.strip()]
+    for ep in episodes:
+        e = ep["episode_index"]
+        p = root / info["data_path"].format(episode_chunk=e // info["chunks_size"], episode_index=e)
+        t = pq.read_table(p)
+        if t.num_rows != ep["length"]:
+            fail(f"{p}: {t.num_rows} rows, episodes.jsonl says {ep['length']}")
+        tables.append(t)
+        for vk in [k for k, v in features.items() if v["dtype"] == "video"]:
+            vp = root / info["video_path"].format(episode_chunk=e // info["chunks_size"], video_key=vk, episode_index=e)
+            check_cfr(vp, info["fps"], ep["length"])
+    columns = tables[0].column_names
+    for col in columns:
+        entry = stats.get(col)
+        if entry is None:
+            fail(f"stats.json lacks column {col} (GR00T would recompute and overwrite it)")
+        for k in ("mean", "std", "min", "max", "q01", "q99"):
+            if k not in entry:
+                fail(f"stats.json {col} lacks {k}")
+        data = np.concatenate([np.asarray(t.column(col).to_pylist(), dtype=np.float64).reshape(t.num_rows, -1) for t in tables])
+        for k, ref in (("mean", data.mean(0)), ("std", data.std(0)), ("min", data.min(0)), ("max", data.max(0))):
+            got = np.asarray(entry[k], dtype=np.float64).reshape(-1)
+            if got.shape != ref.shape or not np.allclose(got, ref, rtol=1e-4, atol=1e-4):
+                fail(f"stats.json {col}.{k} = {got[:4]}... but the data gives {ref[:4]}...")
+        lo, q01, q99, hi = (np.asarray(entry[k]).reshape(-1) for k in ("min", "q01", "q99", "max"))
+        if not (np.all(lo <= q01 + 1e-6) and np.all(q01 <= q99 + 1e-6) and np.all(q99 <= hi + 1e-6)):
+            fail(f"stats.json {col}: quantiles not within min..max")
+
+
+def main(dirs):
+    passed = failed = 0
+    for d in dirs:
+        root = Path(d)
+        try:
+            info = json.loads((root / "meta/info.json").read_text())
+            version = info["codebase_version"]
+            if version == "v3.0":
+                check_v30(root, info)
+            elif version == "v2.1":
+                check_v21(root, info)
+            else:
+                fail(f"unknown codebase_version {version}")
+            print(f"PASS {root} ({version}, {info['total_episodes']} episodes, {info['total_frames']} frames)", flush=True)
+            passed += 1
+        except Exception as e:  # noqa: BLE001 - report every dataset, then fail overall
+            print(f"FAIL {root}: {type(e).__name__}: {e}", flush=True)
+            if os.environ.get("PHONE2ACT_CONFORMANCE_VERBOSE"):
+                traceback.print_exc()
+            failed += 1
+    print(f"{passed} passed, {failed} failed")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
