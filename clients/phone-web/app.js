@@ -1,0 +1,396 @@
+// phone2act phone page: streams the WebXR viewer pose (immersive-ar, ARCore on Android Chrome) to the gateway
+// over wss at the XR frame rate, with on-screen clutch, gripper and recording buttons, and shows what the
+// server did with it. Plain JS, no build step. The pose goes out raw, in WebXR's frame (+X right, +Y up,
+// -Z forward, metres): the server's planner does the axis mapping.
+'use strict';
+
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const params = new URLSearchParams(location.search);
+  // The token comes from the QR code URL; kept so that a reload or a bookmark without it still works.
+  const token = params.get('token') || localStorage.getItem('phone2act.token') || '';
+  if (params.get('token')) localStorage.setItem('phone2act.token', token);
+
+  const state = {
+    ws: null,
+    connected: false,
+    fatal: false,
+    arm: localStorage.getItem('phone2act.arm') || '',
+    arms: [],
+    sessionOpen: false,
+    seq: 0,
+    engaged: false,
+    gripperClosed: false,
+    tracking: 'not started',
+    xrSession: null,
+    refSpace: null,
+    xrFrames: 0,
+    xrFpsSince: performance.now(),
+    xrFps: 0,
+    rtts: [],
+    last: null, // last feedback
+    counters: null, // {rejected, clamped}
+    recPhase: null,
+    lastClampBuzz: 0,
+    feedbackCount: 0,
+    errors: [],
+    wasOpen: false,
+  };
+  // For tests and debugging from the console.
+  window.phone2act = state;
+
+  function nowNs() {
+    return Math.round(performance.now() * 1e6);
+  }
+
+  function buzz(pattern) {
+    if (navigator.vibrate) {
+      try { navigator.vibrate(pattern); } catch (_) { /* vibration is best effort */ }
+    }
+  }
+
+  function setPill(el, text, cls) {
+    el.textContent = text;
+    el.className = 'pill' + (cls ? ' ' + cls : '');
+  }
+
+  function notice(text) {
+    const n = $('notice');
+    n.hidden = !text;
+    n.textContent = text || '';
+  }
+
+  // ---- socket -------------------------------------------------------------------------------------------
+
+  function connect() {
+    if (state.fatal) return;
+    const url = `wss://${location.host}/ws?token=${encodeURIComponent(token)}`;
+    const ws = new WebSocket(url);
+    state.ws = ws;
+    setPill($('st-conn'), 'connecting…', 'warn');
+    ws.onopen = () => {
+      state.connected = true;
+      setPill($('st-conn'), 'gateway ok', 'ok');
+    };
+    ws.onmessage = (ev) => {
+      let msg;
+      try { msg = JSON.parse(ev.data); } catch (_) { return; }
+      onMessage(msg);
+    };
+    ws.onclose = () => {
+      state.connected = false;
+      state.sessionOpen = false;
+      if (state.fatal) return;
+      setPill($('st-conn'), 'reconnecting…', 'bad');
+      setTimeout(connect, 1000);
+    };
+  }
+
+  function send(obj) {
+    if (state.ws && state.ws.readyState === WebSocket.OPEN) {
+      state.ws.send(JSON.stringify(obj));
+      return true;
+    }
+    return false;
+  }
+
+  function hello(takeOver) {
+    if (!state.arm) return;
+    send({ type: 'hello', arm: state.arm, take_over: !!takeOver });
+  }
+
+  function onMessage(msg) {
+    switch (msg.type) {
+      case 'welcome': {
+        state.arms = msg.arms && msg.arms.length ? msg.arms : [msg.default_arm];
+        if (!state.arms.includes(state.arm)) state.arm = state.arms.includes(msg.default_arm) ? msg.default_arm : state.arms[0];
+        const sel = $('arm');
+        sel.innerHTML = '';
+        for (const a of state.arms) {
+          const o = document.createElement('option');
+          o.value = a;
+          o.textContent = a;
+          sel.appendChild(o);
+        }
+        sel.value = state.arm;
+        // After a reconnect this phone takes its arm back: its old stream may not have timed out yet.
+        hello(state.wasOpen);
+        break;
+      }
+      case 'session':
+        if (msg.state === 'open') {
+          state.sessionOpen = true;
+          state.wasOpen = true;
+          $('take-over').hidden = true;
+          notice('');
+          setPill($('st-conn'), `driving ${msg.arm}`, 'ok');
+        } else if (msg.state === 'retrying') {
+          state.sessionOpen = false;
+          setPill($('st-conn'), 'server unavailable, retrying', 'warn');
+        } else if (msg.state === 'refused') {
+          state.sessionOpen = false;
+          state.wasOpen = false;
+          setPill($('st-conn'), `arm ${msg.arm} refused`, 'bad');
+          notice(`Arm "${msg.arm}": ${msg.message}`);
+          $('take-over').hidden = msg.code !== 'AlreadyExists';
+        }
+        break;
+      case 'feedback':
+        onFeedback(msg);
+        break;
+      case 'error':
+        state.errors.push(msg.message);
+        if (msg.fatal) {
+          state.fatal = true;
+          setPill($('st-conn'), 'not paired', 'bad');
+          notice(msg.message);
+        } else {
+          notice(msg.message);
+          setTimeout(() => notice(''), 3000);
+        }
+        break;
+      default:
+        break;
+    }
+  }
+
+  function onFeedback(fb) {
+    state.last = fb;
+    state.feedbackCount += 1;
+    if (fb.t_ns > 0) {
+      const rtt = performance.now() - fb.t_ns / 1e6;
+      if (rtt >= 0 && rtt < 10000) {
+        state.rtts.push(rtt);
+        if (state.rtts.length > 100) state.rtts.shift();
+      }
+    }
+    if (fb.error) notice(fb.error);
+    const s = fb.state;
+    if (s) {
+      state.engaged = !!s.engaged;
+      state.gripperClosed = s.gripper_target > 0.5;
+      // Counters, not verdicts, so a buzz happens once per event even if feedback is dropped or repeated.
+      if (state.counters) {
+        if (s.rejected > state.counters.rejected) buzz(120);
+        else if (s.clamped > state.counters.clamped && performance.now() - state.lastClampBuzz > 500) {
+          state.lastClampBuzz = performance.now();
+          buzz(40);
+        }
+      }
+      state.counters = { rejected: s.rejected, clamped: s.clamped };
+      const gate = $('st-gate');
+      gate.textContent = s.verdict + (s.reason ? ` — ${s.reason}` : '');
+      gate.className = 'verdict-' + s.verdict;
+      $('st-clutch').textContent = s.engaged ? 'ENGAGED (phone drives)' : 'released (robot holds)';
+      $('st-gripper').textContent = state.gripperClosed ? 'closed' : 'open';
+    }
+    const r = fb.recording;
+    if (r) {
+      if (state.recPhase !== null && r.phase !== state.recPhase) buzz([60, 60, 60]);
+      state.recPhase = r.phase;
+      const rec = $('st-rec');
+      rec.className = r.phase === 'recording' ? 'recording' : '';
+      rec.textContent = r.phase === 'recording' || r.phase === 'paused'
+        ? `${r.phase.toUpperCase()} ep ${r.episode} · ${r.frames} frames · ${r.duration_s.toFixed(1)} s · "${r.task}"`
+        : `${r.phase} · ${r.saved} saved`;
+      if (r.warning) rec.textContent += ` · ${r.warning}`;
+    }
+    render();
+  }
+
+  function render() {
+    const c = $('clutch');
+    c.classList.toggle('engaged', state.engaged);
+    c.textContent = $('clutch-toggle').checked ? (state.engaged ? 'ENGAGED — tap to release' : 'TAP TO ENGAGE')
+      : (state.engaged ? 'MOVING' : 'HOLD TO MOVE');
+    c.disabled = !state.xrSession;
+    $('gripper').classList.toggle('closed', state.gripperClosed);
+    $('gripper').textContent = state.gripperClosed ? 'GRIPPER: CLOSED' : 'GRIPPER: OPEN';
+    $('st-track').textContent = state.xrSession ? `${state.tracking} · ${state.xrFps.toFixed(0)} Hz` : state.tracking;
+    if (state.rtts.length) {
+      const min = Math.min(...state.rtts);
+      const max = Math.max(...state.rtts);
+      const avg = state.rtts.reduce((a, b) => a + b, 0) / state.rtts.length;
+      setPill($('st-rtt'), `rtt ${min.toFixed(0)}/${avg.toFixed(0)}/${max.toFixed(0)} ms`,
+        avg < 30 ? 'ok' : avg < 80 ? 'warn' : 'bad');
+    }
+  }
+
+  // ---- buttons ------------------------------------------------------------------------------------------
+
+  // Button events go out at once in a pose-less sample; the gateway merges them into the next pose if needed.
+  function buttons(list) {
+    state.seq += 1;
+    if (!send({ type: 'sample', seq: state.seq, t_ns: nowNs(), buttons: list })) {
+      notice('Not connected to the gateway.');
+    }
+  }
+
+  function bindHold(el, onDown, onUp) {
+    el.addEventListener('pointerdown', (e) => { e.preventDefault(); el.setPointerCapture(e.pointerId); onDown(); });
+    for (const ev of ['pointerup', 'pointercancel', 'lostpointercapture']) {
+      el.addEventListener(ev, (e) => { e.preventDefault(); onUp(); });
+    }
+  }
+
+  let holding = false;
+  bindHold($('clutch'), () => {
+    if ($('clutch-toggle').checked) {
+      buttons([{ clutch: state.engaged ? 'disengage' : 'engage' }]);
+      state.engaged = !state.engaged;
+    } else {
+      holding = true;
+      buttons([{ clutch: 'engage' }]);
+      state.engaged = true;
+    }
+    render();
+  }, () => {
+    if (holding) {
+      holding = false;
+      buttons([{ clutch: 'disengage' }]);
+      state.engaged = false;
+      render();
+    }
+  });
+  $('clutch-toggle').addEventListener('change', () => {
+    if (holding) { holding = false; buttons([{ clutch: 'disengage' }]); state.engaged = false; }
+    render();
+  });
+  $('gripper').addEventListener('click', () => buttons([{ gripper: 'toggle' }]));
+  $('rec-start').addEventListener('click', () => {
+    const task = $('task').value.trim();
+    if (!task) { notice('Type the task first (it is stored with every frame of the episode).'); $('task').focus(); return; }
+    localStorage.setItem('phone2act.task', task);
+    buttons([{ record: 'start', task }]);
+  });
+  $('rec-stop').addEventListener('click', () => buttons([{ record: 'stop' }]));
+  $('rec-discard').addEventListener('click', () => {
+    if (confirm('Discard the episode in progress?')) buttons([{ record: 'discard' }]);
+  });
+  $('task').value = localStorage.getItem('phone2act.task') || '';
+  $('arm').addEventListener('change', (e) => {
+    state.arm = e.target.value;
+    localStorage.setItem('phone2act.arm', state.arm);
+    state.wasOpen = false;
+    state.counters = null;
+    hello(false);
+  });
+  $('take-over').addEventListener('click', () => hello(true));
+
+  // ---- WebXR ---------------------------------------------------------------------------------------------
+
+  async function checkXr() {
+    const isIos = /iPhone|iPad|iPod/.test(navigator.userAgent);
+    let supported = false;
+    if (window.isSecureContext && navigator.xr) {
+      try { supported = await navigator.xr.isSessionSupported('immersive-ar'); } catch (_) { supported = false; }
+    }
+    if (supported) return true;
+    const el = $('no-xr');
+    el.hidden = false;
+    if (!window.isSecureContext) {
+      el.textContent = 'This page must be opened over https:// (WebXR needs a secure context). Use the URL the '
+        + 'gateway printed, or scan its QR code.';
+    } else if (isIos) {
+      el.textContent = 'iPhone and iPad browsers have no WebXR AR, so this page cannot read the phone\'s pose. '
+        + 'Use an Android phone with ARCore in Chrome, or the Phone2Act Android app (rosbridge, port 9090). '
+        + 'The buttons below still control recording.';
+    } else {
+      el.textContent = 'This browser has no WebXR AR (immersive-ar). Use Chrome on an ARCore-supported Android '
+        + 'phone with "Google Play Services for AR" installed, or the Phone2Act Android app (rosbridge, port 9090). '
+        + 'The buttons below still control recording.';
+    }
+    $('start-ar').disabled = true;
+    return false;
+  }
+
+  function onXrFrame(time, frame) {
+    const session = frame.session;
+    session.requestAnimationFrame(onXrFrame);
+    state.xrFrames += 1;
+    const now = performance.now();
+    if (now - state.xrFpsSince >= 1000) {
+      state.xrFps = (state.xrFrames * 1000) / (now - state.xrFpsSince);
+      state.xrFrames = 0;
+      state.xrFpsSince = now;
+      render();
+    }
+    const layer = session.renderState && session.renderState.baseLayer;
+    if (layer && state.gl) {
+      // Transparent clear: the camera image shows through in immersive-ar.
+      state.gl.bindFramebuffer(state.gl.FRAMEBUFFER, layer.framebuffer);
+      state.gl.clearColor(0, 0, 0, 0);
+      state.gl.clear(state.gl.COLOR_BUFFER_BIT);
+    }
+    const pose = frame.getViewerPose(state.refSpace);
+    state.seq += 1;
+    if (!pose) {
+      state.tracking = 'lost';
+      send({ type: 'sample', seq: state.seq, t_ns: nowNs(), tracking: 'lost' });
+      return;
+    }
+    const p = pose.transform.position;
+    const q = pose.transform.orientation;
+    state.tracking = pose.emulatedPosition ? 'limited' : 'tracking';
+    send({
+      type: 'sample',
+      seq: state.seq,
+      t_ns: nowNs(),
+      tracking: state.tracking,
+      pose: { p: [p.x, p.y, p.z], q: [q.x, q.y, q.z, q.w] },
+    });
+  }
+
+  async function startAr() {
+    if (state.xrSession) return;
+    try {
+      const session = await navigator.xr.requestSession('immersive-ar', {
+        requiredFeatures: ['local'],
+        optionalFeatures: ['dom-overlay'],
+        domOverlay: { root: $('overlay') },
+      });
+      state.xrSession = session;
+      document.body.classList.add('in-ar');
+      try {
+        const canvas = document.createElement('canvas');
+        const gl = canvas.getContext('webgl', { xrCompatible: true, alpha: true });
+        if (gl && window.XRWebGLLayer) {
+          state.gl = gl;
+          session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+        }
+      } catch (e) {
+        // Chrome delivers frames only with a base layer; without WebGL it may still work on some builds.
+        console.warn('no WebGL layer', e);
+      }
+      state.refSpace = await session.requestReferenceSpace('local');
+      session.addEventListener('end', () => {
+        state.xrSession = null;
+        state.tracking = 'AR ended';
+        document.body.classList.remove('in-ar');
+        // Never leave the arm engaged without a pose stream.
+        buttons([{ clutch: 'disengage' }]);
+        state.engaged = false;
+        $('start-ar').hidden = false;
+        render();
+      });
+      $('start-ar').hidden = true;
+      session.requestAnimationFrame(onXrFrame);
+      render();
+    } catch (e) {
+      notice(`Could not start AR: ${e.message || e}`);
+    }
+  }
+  $('start-ar').addEventListener('click', startAr);
+
+  document.addEventListener('visibilitychange', () => {
+    if (document.hidden && state.engaged) {
+      buttons([{ clutch: 'disengage' }]);
+      state.engaged = false;
+    }
+  });
+
+  checkXr();
+  if (!token) notice('No pairing token in the URL: open the URL the gateway printed, or scan its QR code.');
+  connect();
+  render();
+})();

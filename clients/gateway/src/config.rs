@@ -15,6 +15,8 @@ use std::path::PathBuf;
 pub const HARD_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 
 /// The `[gateway]` table.
+// Independent on/off switches of a config file, not a state machine.
+#[allow(clippy::struct_excessive_bools)]
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GatewayConfig {

@@ -177,12 +177,12 @@ impl PageHandler {
             .text(json!({"type": "error", "message": message, "seq": seq}).to_string());
     }
 
-    fn start(&mut self, arm: String, take_over: bool) {
+    fn start(&mut self, arm: &str, take_over: bool) {
         // Ends the old stream first so the server frees that arm before the new one is claimed.
         self.session = None;
         let session = Session::start(
             self.shared.upstream.clone(),
-            arm.clone(),
+            arm.to_owned(),
             self.wiring.session_events.clone(),
         );
         // A first sample without a pose claims the arm right away, so the page learns at once whether the
@@ -206,7 +206,7 @@ impl Handler for PageHandler {
                 if arm.is_empty() || arm.len() > 64 {
                     self.error("arm name must be 1 to 64 characters", None);
                 } else {
-                    self.start(arm, take_over);
+                    self.start(&arm, take_over);
                 }
             }
             Ok(PageMsg::Sample {
@@ -222,7 +222,7 @@ impl Handler for PageHandler {
                             .session
                             .as_ref()
                             .map_or_else(|| self.shared.config.default_arm.clone(), |s| s.arm.clone());
-                        self.start(arm, false);
+                        self.start(&arm, false);
                     }
                     if let Some(session) = &self.session {
                         session.send(sample);
@@ -275,6 +275,8 @@ impl Handler for PageHandler {
 }
 
 #[cfg(test)]
+// Values pass through untouched: exact equality is the property under test.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
 

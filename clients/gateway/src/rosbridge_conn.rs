@@ -84,7 +84,7 @@ impl RosbridgeHandler {
             Op::Unadvertise { topic } => {
                 self.advertised.remove(&topic);
             }
-            Op::Publish { topic, msg_type, msg } => self.publish(id, &topic, msg_type, &msg)?,
+            Op::Publish { topic, msg_type, msg } => self.publish(id, &topic, msg_type.as_deref(), &msg)?,
             Op::Subscribe {
                 topic,
                 sub_id,
@@ -155,7 +155,7 @@ impl RosbridgeHandler {
         &mut self,
         id: Option<&Value>,
         topic: &str,
-        msg_type: Option<String>,
+        msg_type: Option<&str>,
         msg: &Value,
     ) -> Result<(), WireError> {
         let Some((arm, role)) = self.resolve(topic) else {
@@ -172,7 +172,7 @@ impl RosbridgeHandler {
                 "{topic} is published by the gateway, not by clients"
             )));
         }
-        if let Some(t) = msg_type.as_ref().or_else(|| self.advertised.get(topic)) {
+        if let Some(t) = msg_type.or_else(|| self.advertised.get(topic).map(String::as_str)) {
             check_type(topic, role, t)?;
         }
         self.seq += 1;
@@ -186,7 +186,7 @@ impl RosbridgeHandler {
                 let pose = rosbridge::parse_pose_stamped(msg)?;
                 if topic.contains("Phone2Act/") || topic.contains("bros2/") {
                     self.client_name = "phone2act-android";
-                    sample.client_name = self.client_name.to_owned();
+                    self.client_name.clone_into(&mut sample.client_name);
                 }
                 sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(|| self.shared.now_ns());
                 // Raw, in the phone's tracking frame: the server's planner owns the axis mapping.

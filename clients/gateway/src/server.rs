@@ -17,6 +17,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use phone2act_proto::v1::ListArmsRequest;
 use std::collections::HashMap;
+use std::fmt::Write as _;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -186,10 +187,11 @@ impl Gateway {
                 .public_host
                 .clone()
                 .unwrap_or_else(|| tls::lan_host(addr));
-            text.push_str(&format!(
-                "Phone2Act app / rosbridge clients: ws://{host}:{}\n",
+            let _ = writeln!(
+                text,
+                "Phone2Act app / rosbridge clients: ws://{host}:{}",
                 addr.port()
-            ));
+            );
         }
         text
     }

@@ -225,6 +225,8 @@ async fn run(upstream: Upstream, arm: String, slot: Arc<Slot>, events: mpsc::Sen
 }
 
 #[cfg(test)]
+// Values pass through untouched: exact equality is the property under test.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use phone2act_proto::v1::{ButtonEvent, ClutchCommand, Pose, button_event, clutch_command};

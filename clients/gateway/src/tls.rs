@@ -114,8 +114,8 @@ pub fn generate_self_signed(hosts: &[String]) -> Result<(String, String), Gatewa
     // Long enough to never bother an operator; browsers do not apply the 398-day rule to certificates the
     // user accepted by hand.
     let now = std::time::SystemTime::now();
-    params.not_before = (now - std::time::Duration::from_secs(86_400)).into();
-    params.not_after = (now + std::time::Duration::from_secs(10 * 365 * 86_400)).into();
+    params.not_before = (now - std::time::Duration::from_hours(24)).into();
+    params.not_after = (now + std::time::Duration::from_hours(10 * 365 * 24)).into();
     let key = rcgen::KeyPair::generate().map_err(|e| GatewayError::Tls(e.to_string()))?;
     let cert = params
         .self_signed(&key)

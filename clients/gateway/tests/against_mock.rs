@@ -1,6 +1,9 @@
 //! The gateway against the mock Teleop/System server over real sockets: what reaches the server for each kind
 //! of client, and what bad input does (and does not) break.
 
+// Poses pass through untouched: exact equality is the property under test.
+#![allow(clippy::float_cmp)]
+
 mod common;
 
 use common::*;

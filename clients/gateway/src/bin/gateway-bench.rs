@@ -1,1 +1,272 @@
-fn main() {}
+//! Measures the gateway's added latency: WebSocket message sent by a phone → sample received by the gRPC
+//! server, for N phones at a fixed rate, over rosbridge (`ws://`) and the page protocol (`wss://`).
+//!
+//! The server is the in-process mock (a real tonic server on a loopback socket) so that arrival times are
+//! read on the same monotonic clock the phones stamp their messages with. A direct gRPC stream (no gateway)
+//! is measured the same way as a baseline, so the gateway's own share can be read off.
+//!
+//! `cargo run --release -p phone2act-gateway --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use futures_util::SinkExt;
+use phone2act_gateway::mock_server::MockServer;
+use phone2act_gateway::{Gateway, GatewayConfig, Listeners};
+use phone2act_proto::v1::{PhoneSample, Pose, TrackingState};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::net::TcpStream;
+use tokio_tungstenite::tungstenite::Message;
+
+#[derive(Parser, Debug)]
+#[command(about = "Gateway latency: WebSocket message in → sample at the gRPC server")]
+struct Args {
+    /// Simultaneous phones (each drives its own arm).
+    #[arg(long, default_value_t = 2)]
+    phones: usize,
+    /// Messages per second per phone.
+    #[arg(long, default_value_t = 60.0)]
+    rate_hz: f64,
+    /// Measured duration per protocol (after a 1 s warm-up).
+    #[arg(long, default_value_t = 20.0)]
+    seconds: f64,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Path {
+    Rosbridge,
+    Page,
+    DirectGrpc,
+}
+
+fn percentile(sorted: &[i64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let idx = ((p * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    sorted[idx] as f64 / 1000.0
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async {
+        println!(
+            "gateway-bench: {} phones x {} Hz, {} s per path, release={}, {} CPUs",
+            args.phones,
+            args.rate_hz,
+            args.seconds,
+            !cfg!(debug_assertions),
+            std::thread::available_parallelism().map_or(0, std::num::NonZero::get)
+        );
+        println!(
+            "{:<28} {:>7} {:>9} {:>9} {:>9} {:>9}",
+            "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
+        );
+        for path in [Path::DirectGrpc, Path::Rosbridge, Path::Page] {
+            let mut lat = run(path, &args).await?;
+            lat.sort_unstable();
+            let name = match path {
+                Path::DirectGrpc => "direct gRPC (no gateway)",
+                Path::Rosbridge => "rosbridge ws → gateway → gRPC",
+                Path::Page => "page wss → gateway → gRPC",
+            };
+            println!(
+                "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+                lat.len(),
+                percentile(&lat, 0.50),
+                percentile(&lat, 0.90),
+                percentile(&lat, 0.99),
+                percentile(&lat, 1.0)
+            );
+        }
+        Ok(())
+    })
+}
+
+async fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
+    let epoch = Instant::now();
+    let arms: Vec<String> = (0..args.phones).map(|i| format!("arm{i}")).collect();
+    let arm_refs: Vec<&str> = arms.iter().map(String::as_str).collect();
+    let mock = MockServer::start(&arm_refs, epoch, true).await?;
+    let dir = std::env::temp_dir().join(format!("phone2act-gateway-bench-{}", std::process::id()));
+    let mut config = GatewayConfig {
+        cert_dir: Some(dir.clone()),
+        print_qr: false,
+        public_host: Some("127.0.0.1".into()),
+        ..GatewayConfig::default()
+    };
+    config.topics.namespaces = arms.iter().map(|a| (a.clone(), a.clone())).collect();
+    let listeners = Listeners {
+        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await?),
+        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await?),
+    };
+    let gateway = Gateway::with_listeners(config, &mock.url(), None, listeners)?;
+    let info = gateway.info().clone();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let gw_task = tokio::spawn(gateway.run(async {
+        let _ = stop_rx.await;
+    }));
+
+    let period = Duration::from_secs_f64(1.0 / args.rate_hz);
+    let warmup_ns = 1_000_000_000_i64;
+    let total = Duration::from_secs_f64(args.seconds + 1.0);
+    let mut phones = tokio::task::JoinSet::new();
+    for (i, arm) in arms.iter().enumerate() {
+        let arm = arm.clone();
+        let info = info.clone();
+        let url = mock.url();
+        phones.spawn(async move {
+            // Stagger phones so they do not always send in the same instant.
+            tokio::time::sleep(period.mul_f64(i as f64 / 2.0)).await;
+            match path {
+                Path::Rosbridge => rosbridge_phone(&info, &arm, epoch, period, total).await,
+                Path::Page => page_phone(&info, &arm, epoch, period, total).await,
+                Path::DirectGrpc => grpc_phone(&url, &arm, epoch, period, total).await,
+            }
+        });
+    }
+    while let Some(done) = phones.join_next().await {
+        done??;
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let _ = stop_tx.send(());
+    let _ = gw_task.await;
+    let _ = std::fs::remove_dir_all(dir);
+    Ok(mock
+        .received()
+        .iter()
+        .filter(|r| r.sample.tracking_from_phone.is_some() && r.sample.capture_time_ns > warmup_ns)
+        .map(|r| r.arrival_ns - r.sample.capture_time_ns)
+        .collect())
+}
+
+fn pose_json(topic: &str, stamp_ns: i64, x: f64) -> String {
+    format!(
+        r#"{{"op":"publish","topic":"{topic}","type":"geometry_msgs/PoseStamped","msg":{{"header":{{"stamp":{{"sec":{},"nanosec":{}}},"frame_id":"phone_ar_frame"}},"pose":{{"position":{{"x":{x},"y":1.2,"z":-0.3}},"orientation":{{"x":0.0,"y":0.0,"z":0.0,"w":1.0}}}}}}}}"#,
+        stamp_ns / 1_000_000_000,
+        stamp_ns % 1_000_000_000
+    )
+}
+
+async fn rosbridge_phone(
+    info: &phone2act_gateway::GatewayInfo,
+    arm: &str,
+    epoch: Instant,
+    period: Duration,
+    total: Duration,
+) -> Result<()> {
+    let addr = info.rosbridge_addr.context("no rosbridge listener")?;
+    let tcp = TcpStream::connect(addr).await?;
+    tcp.set_nodelay(true)?;
+    let (mut ws, _) = tokio_tungstenite::client_async(format!("ws://{addr}/"), tcp).await?;
+    let topic = format!("/{arm}/Phone2Act/ar_pose");
+    ws.send(Message::Text(
+        format!(r#"{{"op":"advertise","topic":"{topic}","type":"geometry_msgs/PoseStamped"}}"#).into(),
+    ))
+    .await?;
+    let mut tick = tokio::time::interval(period);
+    let end = Instant::now() + total;
+    let mut n = 0u64;
+    while Instant::now() < end {
+        tick.tick().await;
+        n += 1;
+        let x = (n as f64 * 0.01).sin() * 0.05;
+        let text = pose_json(&topic, epoch.elapsed().as_nanos() as i64, x);
+        ws.send(Message::Text(text.into())).await?;
+    }
+    Ok(())
+}
+
+async fn page_phone(
+    info: &phone2act_gateway::GatewayInfo,
+    arm: &str,
+    epoch: Instant,
+    period: Duration,
+    total: Duration,
+) -> Result<()> {
+    use futures_util::StreamExt;
+    use rustls::pki_types::pem::PemObject;
+    let addr = info.https_addr.context("no https listener")?;
+    let pem = std::fs::read(info.cert_path.as_ref().context("no cert")?)?;
+    let mut roots = rustls::RootCertStore::empty();
+    for cert in rustls::pki_types::CertificateDer::pem_slice_iter(&pem) {
+        roots.add(cert?)?;
+    }
+    let config =
+        rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
+            .with_safe_default_protocol_versions()?
+            .with_root_certificates(roots)
+            .with_no_client_auth();
+    let tcp = TcpStream::connect(addr).await?;
+    tcp.set_nodelay(true)?;
+    let tls = tokio_rustls::TlsConnector::from(Arc::new(config))
+        .connect("localhost".try_into()?, tcp)
+        .await?;
+    let token = info.token.clone().unwrap_or_default();
+    let (ws, _) =
+        tokio_tungstenite::client_async(format!("wss://localhost:{}/ws?token={token}", addr.port()), tls)
+            .await?;
+    let (mut tx, mut rx) = ws.split();
+    // Feedback flows back like on a phone; read and discard it so the socket never backs up.
+    let reader = tokio::spawn(async move { while let Some(Ok(_)) = rx.next().await {} });
+    tx.send(Message::Text(
+        format!(r#"{{"type":"hello","arm":"{arm}"}}"#).into(),
+    ))
+    .await?;
+    let mut tick = tokio::time::interval(period);
+    let end = Instant::now() + total;
+    let mut seq = 0u64;
+    while Instant::now() < end {
+        tick.tick().await;
+        seq += 1;
+        let x = (seq as f64 * 0.01).sin() * 0.05;
+        let t_ns = epoch.elapsed().as_nanos() as i64;
+        let text = format!(
+            r#"{{"type":"sample","seq":{seq},"t_ns":{t_ns},"tracking":"tracking","pose":{{"p":[{x},1.2,-0.3],"q":[0,0,0,1]}}}}"#
+        );
+        tx.send(Message::Text(text.into())).await?;
+    }
+    reader.abort();
+    Ok(())
+}
+
+async fn grpc_phone(url: &str, arm: &str, epoch: Instant, period: Duration, total: Duration) -> Result<()> {
+    let channel = tonic::transport::Endpoint::from_shared(url.to_owned())?
+        .tcp_nodelay(true)
+        .connect()
+        .await?;
+    let mut client = phone2act_proto::v1::teleop_client::TeleopClient::new(channel);
+    let (tx, rx) = tokio::sync::mpsc::channel::<PhoneSample>(4);
+    let arm = arm.to_owned();
+    tx.send(PhoneSample {
+        arm: arm.clone(),
+        ..PhoneSample::default()
+    })
+    .await?;
+    let response = client
+        .stream(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await?;
+    let mut inbound = response.into_inner();
+    let reader = tokio::spawn(async move { while let Ok(Some(_)) = inbound.message().await {} });
+    let mut tick = tokio::time::interval(period);
+    let end = Instant::now() + total;
+    let mut seq = 0u64;
+    while Instant::now() < end {
+        tick.tick().await;
+        seq += 1;
+        let x = (seq as f64 * 0.01).sin() * 0.05;
+        tx.send(PhoneSample {
+            seq,
+            arm: arm.clone(),
+            capture_time_ns: epoch.elapsed().as_nanos() as i64,
+            tracking_from_phone: Some(Pose::from_parts([x, 1.2, -0.3], [0.0, 0.0, 0.0, 1.0])),
+            tracking: TrackingState::Tracking.into(),
+            ..PhoneSample::default()
+        })
+        .await?;
+    }
+    drop(tx);
+    reader.abort();
+    Ok(())
+}
