@@ -1,0 +1,181 @@
+"""Example out-of-process bridge in Python: a trivial simulated robot attached over `Bridge.Attach`.
+
+The "robot" follows the newest target pose with a first-order lag (time constant `tau_s`) and reports its
+pose, a made-up joint vector and the gripper as `RobotFeedback` at the rate the server asks for. Replace
+`FirstOrderArm` with calls into a real robot SDK to make a real bridge.
+
+    python phone2act_bridge_example.py --server 127.0.0.1:50051 --arm ext \
+        --joint-names j1,j2,j3,j4,j5,j6
+
+The arm must be configured with `bridge = "remote"` and the same joint names:
+
+    [[arms]]
+    name = "ext"
+    bridge = "remote"
+    [arms.remote]
+    joint_names = ["j1", "j2", "j3", "j4", "j5", "j6"]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Iterator, Optional, Sequence
+
+import grpc
+
+from phone2act import make_pose
+from phone2act._common import auth_metadata, channel_options
+from phone2act.poses import rpy_from_quat, slerp
+from phone2act.v1 import bridge_pb2 as pb
+from phone2act.v1 import bridge_pb2_grpc as rpc
+from phone2act.v1 import common_pb2
+
+
+@dataclass
+class FirstOrderArm:
+    """Pose, gripper and joints relaxing towards the target: x += (1 - exp(-dt/tau)) * (target - x)."""
+
+    joint_names: Sequence[str]
+    position_m: list[float] = field(default_factory=lambda: [0.25, 0.0, 0.20])
+    # Tool pointing down (180° about x), inside the default workspace box.
+    orientation_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    gripper: float = 0.0
+    tau_s: float = 0.05
+    target_position_m: Optional[list[float]] = None
+    target_orientation_xyzw: Optional[tuple[float, float, float, float]] = None
+    target_gripper: Optional[float] = None
+    applied_seq: int = 0
+
+    def command(self, cmd: pb.BridgeCommand) -> None:
+        p, q = cmd.robot_from_target.position_m, cmd.robot_from_target.orientation
+        self.target_position_m = [p.x, p.y, p.z]
+        self.target_orientation_xyzw = (q.x, q.y, q.z, q.w)
+        self.target_gripper = cmd.gripper_target
+        self.applied_seq = cmd.seq
+
+    def step(self, dt_s: float) -> None:
+        alpha = 1.0 - math.exp(-dt_s / self.tau_s)
+        if self.target_position_m is not None:
+            self.position_m = [x + alpha * (t - x) for x, t in zip(self.position_m, self.target_position_m)]
+        if self.target_orientation_xyzw is not None:
+            self.orientation_xyzw = slerp(self.orientation_xyzw, self.target_orientation_xyzw, alpha)
+        if self.target_gripper is not None:
+            self.gripper += alpha * (self.target_gripper - self.gripper)
+
+    def joints_rad(self) -> list[float]:
+        # A stand-in joint vector (position and rpy), enough for the dataset's joint columns to move.
+        values = [*self.position_m, *rpy_from_quat(self.orientation_xyzw)]
+        return [values[i % len(values)] for i in range(len(self.joint_names))]
+
+    def feedback(self) -> pb.RobotFeedback:
+        return pb.RobotFeedback(
+            capture_time_ns=time.monotonic_ns(),
+            joint_positions_rad=self.joints_rad(),
+            robot_from_ee=make_pose(self.position_m, self.orientation_xyzw),
+            gripper_position=self.gripper,
+            applied_seq=self.applied_seq,
+        )
+
+
+class ExampleBridge:
+    """Attach `robot` to `arm` on the server and run until `stop()` or the stream ends."""
+
+    def __init__(self, target: str, arm: str, robot: FirstOrderArm, token: Optional[str] = None) -> None:
+        self.target, self.arm, self.robot = target, arm, robot
+        self._token = token
+        self._up: "queue.Queue[Optional[pb.BridgeUpstream]]" = queue.Queue(maxsize=64)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.welcome: Optional[pb.BridgeWelcome] = None
+        self.commands = 0
+        self.error: Optional[grpc.RpcError] = None
+        self.attached = threading.Event()
+
+    def _upstream(self) -> Iterator[pb.BridgeUpstream]:
+        while True:
+            msg = self._up.get()
+            if msg is None:
+                return
+            yield msg
+
+    def _feedback_loop(self, rate_hz: float) -> None:
+        period = 1.0 / rate_hz
+        last = time.monotonic()
+        while not self._stop.wait(period):
+            now = time.monotonic()
+            with self._lock:
+                self.robot.step(now - last)
+                fb = self.robot.feedback()
+            last = now
+            try:
+                self._up.put_nowait(pb.BridgeUpstream(feedback=fb))
+            except queue.Full:  # the stream is not draining; newer feedback will follow
+                pass
+
+    def run(self) -> None:
+        hello = pb.BridgeHello(arm=self.arm, bridge_name="python-example",
+                               joint_names=list(self.robot.joint_names), supports_orientation=True)
+        self._up.put(pb.BridgeUpstream(hello=hello))
+        ready = pb.BridgeStatusReport(health=common_pb2.BRIDGE_HEALTH_READY, message="")
+        with grpc.insecure_channel(self.target, options=channel_options(self.target)) as channel:
+            call = rpc.BridgeStub(channel).Attach(self._upstream(), metadata=auth_metadata(self._token))
+            self._call = call
+            try:
+                for down in call:
+                    kind = down.WhichOneof("message")
+                    if kind == "welcome":
+                        self.welcome = down.welcome
+                        self._up.put(pb.BridgeUpstream(status=ready))
+                        rate = down.welcome.expected_feedback_hz or 50.0
+                        threading.Thread(target=self._feedback_loop, args=(rate,), daemon=True).start()
+                        self.attached.set()
+                    elif kind == "command":
+                        with self._lock:
+                            self.robot.command(down.command)
+                        self.commands += 1
+                    # BridgeControl (enable, disable, clear error, reconnect) means nothing to this robot.
+            except grpc.RpcError as e:
+                if e.code() != grpc.StatusCode.CANCELLED:
+                    self.error = e
+            finally:
+                self._stop.set()
+                self.attached.set()
+
+    def start(self) -> threading.Thread:
+        t = threading.Thread(target=self.run, name="phone2act-bridge", daemon=True)
+        t.start()
+        return t
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._up.put(None)
+        call = getattr(self, "_call", None)
+        if call is not None:
+            call.cancel()
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--server", default="127.0.0.1:50051")
+    p.add_argument("--token", default=None)
+    p.add_argument("--arm", required=True)
+    p.add_argument("--joint-names", required=True, help="comma-separated, as in [arms.remote] joint_names")
+    p.add_argument("--tau", type=float, default=0.05, help="first-order time constant, seconds")
+    args = p.parse_args()
+    robot = FirstOrderArm(joint_names=args.joint_names.split(","), tau_s=args.tau)
+    bridge = ExampleBridge(args.server, args.arm, robot, args.token)
+    try:
+        bridge.run()
+    except KeyboardInterrupt:
+        bridge.stop()
+    if bridge.error is not None:
+        raise SystemExit(f"bridge ended: {bridge.error.code().name}: {bridge.error.details()}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,151 @@
+"""Pieces shared by the sync and asyncio clients: channel options, auth metadata, message builders."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import grpc
+
+from phone2act.v1 import common_pb2, policy_pb2
+
+DEFAULT_TARGET = "127.0.0.1:50051"
+
+# Action modes and image encodings, re-exported under short names.
+DELTA_EE = policy_pb2.ACTION_MODE_DELTA_EE
+ABSOLUTE_EE = policy_pb2.ACTION_MODE_ABSOLUTE_EE
+IMAGE_NONE = common_pb2.IMAGE_ENCODING_NONE
+IMAGE_RGB8 = common_pb2.IMAGE_ENCODING_RGB8
+IMAGE_JPEG = common_pb2.IMAGE_ENCODING_JPEG
+
+
+def channel_options(target: str) -> list[tuple[str, object]]:
+    options: list[tuple[str, object]] = [
+        # Observations with RGB frames are large (640x480x3 = 921 kB per camera).
+        ("grpc.max_receive_message_length", 64 * 1024 * 1024),
+        ("grpc.max_send_message_length", 64 * 1024 * 1024),
+    ]
+    if target.startswith("unix:"):
+        # grpcio sends the socket path as :authority over a Unix socket, which the server's h2 rejects.
+        options.append(("grpc.default_authority", "localhost"))
+    return options
+
+
+def auth_metadata(token: str | None) -> tuple[tuple[str, str], ...]:
+    return (("authorization", f"Bearer {token}"),) if token else ()
+
+
+@dataclass(frozen=True)
+class ArmLayout:
+    """The vector layout of one arm, from `SessionReady`: what observations carry and what chunks must use."""
+
+    arm: str
+    state_names: tuple[str, ...]
+    action_names: tuple[str, ...]
+
+    @property
+    def action_width(self) -> int:
+        return len(self.action_names)
+
+
+def hello_request(
+    arms: Sequence[str],
+    observation_rate_hz: float,
+    request_control: bool,
+    image_encoding: int,
+    cameras: Sequence[str],
+    policy_name: str,
+    silence_timeout_s: float,
+) -> policy_pb2.PolicyRequest:
+    hello = policy_pb2.PolicyHello(
+        arms=list(arms),
+        observation_rate_hz=observation_rate_hz,
+        image_encoding=image_encoding,
+        cameras=list(cameras),
+        request_control=request_control,
+        policy_name=policy_name,
+        silence_timeout_s=silence_timeout_s,
+    )
+    return policy_pb2.PolicyRequest(hello=hello)
+
+
+def make_chunk(
+    arm: str,
+    steps: Iterable[Sequence[float]],
+    step_period_s: float,
+    observation_id: int = 0,
+    mode: int = DELTA_EE,
+    blend_steps: int = 0,
+) -> policy_pb2.ActionChunk:
+    """An ActionChunk from rows of floats (lists, tuples or numpy rows)."""
+    return policy_pb2.ActionChunk(
+        arm=arm,
+        steps=[policy_pb2.ActionStep(values=[float(v) for v in row]) for row in steps],
+        step_period_s=float(step_period_s),
+        observation_id=int(observation_id),
+        mode=mode,
+        blend_steps=blend_steps,
+    )
+
+
+def layouts_from_ready(ready: policy_pb2.SessionReady) -> dict[str, ArmLayout]:
+    return {
+        a.arm: ArmLayout(a.arm, tuple(a.state_names), tuple(a.action_names)) for a in ready.arms
+    }
+
+
+def pose_tuple(pose: common_pb2.Pose) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """(position m, quaternion xyzw) of a Pose message."""
+    p, q = pose.position_m, pose.orientation
+    return (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)
+
+
+def make_pose(position: Sequence[float], orientation_xyzw: Sequence[float]) -> common_pb2.Pose:
+    return common_pb2.Pose(
+        position_m=common_pb2.Vec3(x=position[0], y=position[1], z=position[2]),
+        orientation=common_pb2.Quaternion(
+            x=orientation_xyzw[0], y=orientation_xyzw[1], z=orientation_xyzw[2], w=orientation_xyzw[3]
+        ),
+    )
+
+
+class _AuthInterceptor(
+    grpc.UnaryUnaryClientInterceptor,
+    grpc.UnaryStreamClientInterceptor,
+    grpc.StreamUnaryClientInterceptor,
+    grpc.StreamStreamClientInterceptor,
+):
+    """Adds `authorization: Bearer <token>` to every call, including calls made on the raw stubs."""
+
+    def __init__(self, token: str) -> None:
+        self._md = auth_metadata(token)
+
+    def _details(self, d: grpc.ClientCallDetails) -> grpc.ClientCallDetails:
+        md = tuple(d.metadata or ()) + self._md
+        return _CallDetails(d.method, d.timeout, md, d.credentials, d.wait_for_ready, d.compression)
+
+    def intercept_unary_unary(self, continuation, client_call_details, request):  # type: ignore[no-untyped-def]
+        return continuation(self._details(client_call_details), request)
+
+    def intercept_unary_stream(self, continuation, client_call_details, request):  # type: ignore[no-untyped-def]
+        return continuation(self._details(client_call_details), request)
+
+    def intercept_stream_unary(self, continuation, client_call_details, request_iterator):  # type: ignore[no-untyped-def]
+        return continuation(self._details(client_call_details), request_iterator)
+
+    def intercept_stream_stream(self, continuation, client_call_details, request_iterator):  # type: ignore[no-untyped-def]
+        return continuation(self._details(client_call_details), request_iterator)
+
+
+class _CallDetails(grpc.ClientCallDetails):
+    def __init__(self, method, timeout, metadata, credentials, wait_for_ready, compression):  # type: ignore[no-untyped-def]
+        self.method = method
+        self.timeout = timeout
+        self.metadata = metadata
+        self.credentials = credentials
+        self.wait_for_ready = wait_for_ready
+        self.compression = compression
+
+
+def auth_interceptor(token: str) -> _AuthInterceptor:
+    return _AuthInterceptor(token)
