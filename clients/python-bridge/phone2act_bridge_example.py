@@ -23,11 +23,10 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Iterator, Optional, Sequence
 
 import grpc
-
 from phone2act import make_pose
 from phone2act._common import auth_metadata, channel_options
 from phone2act.poses import rpy_from_quat, slerp
@@ -46,9 +45,9 @@ class FirstOrderArm:
     orientation_xyzw: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     gripper: float = 0.0
     tau_s: float = 0.05
-    target_position_m: Optional[list[float]] = None
-    target_orientation_xyzw: Optional[tuple[float, float, float, float]] = None
-    target_gripper: Optional[float] = None
+    target_position_m: list[float] | None = None
+    target_orientation_xyzw: tuple[float, float, float, float] | None = None
+    target_gripper: float | None = None
     applied_seq: int = 0
 
     def command(self, cmd: pb.BridgeCommand) -> None:
@@ -85,15 +84,15 @@ class FirstOrderArm:
 class ExampleBridge:
     """Attach `robot` to `arm` on the server and run until `stop()` or the stream ends."""
 
-    def __init__(self, target: str, arm: str, robot: FirstOrderArm, token: Optional[str] = None) -> None:
+    def __init__(self, target: str, arm: str, robot: FirstOrderArm, token: str | None = None) -> None:
         self.target, self.arm, self.robot = target, arm, robot
         self._token = token
-        self._up: "queue.Queue[Optional[pb.BridgeUpstream]]" = queue.Queue(maxsize=64)
+        self._up: queue.Queue[pb.BridgeUpstream | None] = queue.Queue(maxsize=64)
         self._stop = threading.Event()
         self._lock = threading.Lock()
-        self.welcome: Optional[pb.BridgeWelcome] = None
+        self.welcome: pb.BridgeWelcome | None = None
         self.commands = 0
-        self.error: Optional[grpc.RpcError] = None
+        self.error: grpc.RpcError | None = None
         self.attached = threading.Event()
 
     def _upstream(self) -> Iterator[pb.BridgeUpstream]:

@@ -8,9 +8,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Optional
 
 import pytest
 
@@ -30,7 +30,7 @@ bridge = "sim"
 
 
 def config_text(root: Path, arms: str = SIM_ARM, cameras: str = "", extra: str = "", token: str = "") -> str:
-    server = f'[server]\nlisten = "127.0.0.1:0"\n' + (f'token = "{token}"\n' if token else "")
+    server = '[server]\nlisten = "127.0.0.1:0"\n' + (f'token = "{token}"\n' if token else "")
     recorder = f'[recorder]\nroot = "{root}"\nformat = "v3.0"\nfps = 20\nrobot_type = "so101_sim"\nvideo_codec = "libx264"\n'
     return server + arms + cameras + recorder + extra
 
@@ -134,4 +134,3 @@ def golden(name: str) -> bytes:
     return path.read_bytes()
 
 
-Position = Optional[tuple[float, float, float]]

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Optional
 
 import msgpack
 import zmq
-
 from conftest import golden
 
 
@@ -16,7 +14,7 @@ class StandIn:
     """Answers `ping` with response_ping, `get_action` with response_get_action (or `action_bytes`), anything
     else with response_error; can sleep `delay_s` before answering to play a late policy."""
 
-    def __init__(self, delay_s: float = 0.0, action_bytes: Optional[bytes] = None) -> None:
+    def __init__(self, delay_s: float = 0.0, action_bytes: bytes | None = None) -> None:
         self.delay_s = delay_s
         self.replies = {
             "ping": golden("response_ping.msgpack"),

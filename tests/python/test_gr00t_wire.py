@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from conftest import golden
 from gr00t_standin import StandIn
-
 from phone2act import ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 from phone2act_gr00t import ChunkShapeError, Embodiment, Gr00tClient, Gr00tError, Gr00tTimeout, ObservationError

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import numpy as np
-
 from phone2act import DELTA_EE, PolicySession
 from phone2act.v1 import policy_pb2
 
@@ -48,7 +47,7 @@ class Gr00tAdapter:
         *,
         arm: str = "main",
         step_period_s: float = 0.05,
-        max_steps: Optional[int] = None,
+        max_steps: int | None = None,
         mode: int = DELTA_EE,
     ) -> None:
         if arm not in session.layouts:
@@ -63,7 +62,7 @@ class Gr00tAdapter:
         self.mode = mode
         self.stats = AdapterStats()
 
-    def step(self, obs: Optional[policy_pb2.Observation] = None) -> StepResult:
+    def step(self, obs: policy_pb2.Observation | None = None) -> StepResult:
         """One inference: the newest observation (or `obs`), GR00T's answer, the chunk pushed.
 
         Raises Gr00tTimeout (late policy), Gr00tError (policy error), ChunkShapeError (answer does not fit the
@@ -85,7 +84,7 @@ class Gr00tAdapter:
     def run(
         self,
         *,
-        max_chunks: Optional[int] = None,
+        max_chunks: int | None = None,
         should_stop: Callable[[], bool] = lambda: False,
         max_consecutive_failures: int = 10,
     ) -> AdapterStats:

@@ -9,11 +9,11 @@ columns are.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any
 
 import numpy as np
-
 from phone2act import ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 
@@ -50,7 +50,7 @@ class Embodiment:
     defaults: Mapping[str, float] = field(default_factory=dict)
 
     @staticmethod
-    def phone2act(layout: ArmLayout, cameras: Sequence[str] = ()) -> "Embodiment":
+    def phone2act(layout: ArmLayout, cameras: Sequence[str] = ()) -> Embodiment:
         """The mapping of a dataset recorded by phone2act (groups `arm` and `gripper`, as in modality.json)."""
         return Embodiment(
             state={"state.arm": layout.state_names[:-1], "state.gripper": layout.state_names[-1:]},
@@ -62,7 +62,7 @@ class Embodiment:
         )
 
     @staticmethod
-    def so100(layout: ArmLayout, camera: str, action_scale: float = 1.0) -> "Embodiment":
+    def so100(layout: ArmLayout, camera: str, action_scale: float = 1.0) -> Embodiment:
         """GR00T's `so100` data config keys (`state.single_arm` 5 joints, `state.gripper`, `video.webcam`).
 
         That config's `action.single_arm` is 5 joint targets, which the phone2act API does not take; here its
@@ -106,11 +106,11 @@ class Embodiment:
 
     # --- GR00T answer -> phone2act chunk ---------------------------------------------------------------
 
-    def chunk_steps(self, answer: Mapping[str, Any], layout: ArmLayout, max_steps: Optional[int] = None) -> np.ndarray:
+    def chunk_steps(self, answer: Mapping[str, Any], layout: ArmLayout, max_steps: int | None = None) -> np.ndarray:
         """(horizon, action_width) action rows in the arm's layout, or ChunkShapeError saying what is off."""
         width = layout.action_width
         column_of = {n: i for i, n in enumerate(layout.action_names)}
-        horizon: Optional[int] = None
+        horizon: int | None = None
         parts: list[tuple[ActionGroup, np.ndarray]] = []
         for group in self.actions:
             if group.key not in answer:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import io
 import time
-from typing import Any, Optional
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -50,7 +50,7 @@ def unpackb(data: bytes) -> Any:
     return msgpack.unpackb(data, object_hook=_decode_obj)
 
 
-def request(endpoint: str, data: Optional[dict[str, Any]] = None, api_token: Optional[str] = None) -> bytes:
+def request(endpoint: str, data: dict[str, Any] | None = None, api_token: str | None = None) -> bytes:
     msg: dict[str, Any] = {"endpoint": endpoint}
     if data is not None:
         msg["data"] = data
@@ -67,12 +67,12 @@ class Gr00tClient:
     """
 
     def __init__(self, endpoint: str = "tcp://127.0.0.1:5555", *, timeout_s: float = 1.0,
-                 api_token: Optional[str] = None) -> None:
+                 api_token: str | None = None) -> None:
         self.endpoint = endpoint
         self.timeout_s = timeout_s
         self.api_token = api_token
         self._ctx = zmq.Context.instance()
-        self._sock: Optional[zmq.Socket] = None
+        self._sock: zmq.Socket | None = None
         self.last_latency_s = 0.0
 
     def _socket(self) -> zmq.Socket:
@@ -88,8 +88,8 @@ class Gr00tClient:
             self._sock.close(linger=0)
             self._sock = None
 
-    def call(self, endpoint: str, data: Optional[dict[str, Any]] = None,
-             timeout_s: Optional[float] = None) -> dict[str, Any]:
+    def call(self, endpoint: str, data: dict[str, Any] | None = None,
+             timeout_s: float | None = None) -> dict[str, Any]:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         sock = self._socket()
         t0 = time.monotonic()
@@ -107,10 +107,10 @@ class Gr00tClient:
             raise Gr00tError(f"GR00T server at {self.endpoint} answered {endpoint!r} with an error: {reply['error']}")
         return reply
 
-    def ping(self, timeout_s: Optional[float] = None) -> bool:
+    def ping(self, timeout_s: float | None = None) -> bool:
         return self.call("ping", timeout_s=timeout_s).get("status") == "ok"
 
-    def get_action(self, observation: dict[str, Any], timeout_s: Optional[float] = None) -> dict[str, np.ndarray]:
+    def get_action(self, observation: dict[str, Any], timeout_s: float | None = None) -> dict[str, np.ndarray]:
         return self.call("get_action", observation, timeout_s)
 
     def close(self) -> None:

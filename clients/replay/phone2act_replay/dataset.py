@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
-
 from phone2act.poses import quat_from_rpy, rpy_from_quat
 
 DELTA_NAMES = ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw", "gripper")

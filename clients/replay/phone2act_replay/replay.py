@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import numpy as np
-
 from phone2act import ABSOLUTE_EE, Client, PolicySession, pose_tuple
 from phone2act.poses import quat_angle, quat_from_rpy, rpy_from_quat
 from phone2act.v1 import policy_pb2
@@ -88,7 +87,7 @@ def replay(
     arm: str = "main",
     dataset_arm: str = "",
     upsample: int = 4,
-    on_start: Optional[Callable[[], None]] = None,
+    on_start: Callable[[], None] | None = None,
     settle_s: float = 0.5,
 ) -> ReplayResult:
     """Replay `episode` on `arm`; `on_start` runs right before the chunk is pushed (e.g. start recording)."""

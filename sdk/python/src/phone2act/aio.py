@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Any, Awaitable, Callable, Iterable, Optional, Sequence, TypeVar
+from collections.abc import Awaitable, Callable, Iterable, Sequence
+from typing import Any, TypeVar
 
 import grpc
 import grpc.aio
@@ -42,7 +43,7 @@ T = TypeVar("T")
 class AsyncClient:
     """asyncio counterpart of `phone2act.Client`. Create with `await AsyncClient.connect(...)`."""
 
-    def __init__(self, target: str, token: Optional[str], timeout_s: float) -> None:
+    def __init__(self, target: str, token: str | None, timeout_s: float) -> None:
         self.target = target
         self.timeout_s = timeout_s
         self._md = auth_metadata(token)
@@ -56,10 +57,10 @@ class AsyncClient:
         cls,
         target: str = DEFAULT_TARGET,
         *,
-        token: Optional[str] = None,
+        token: str | None = None,
         connect_timeout_s: float = 5.0,
         timeout_s: float = 30.0,
-    ) -> "AsyncClient":
+    ) -> AsyncClient:
         self = cls(target, token, timeout_s)
         if connect_timeout_s > 0:
             try:
@@ -110,7 +111,7 @@ class AsyncClient:
         policy_name: str = "phone2act-python-aio",
         silence_timeout_s: float = 1.0,
         ready_timeout_s: float = 10.0,
-    ) -> "AsyncPolicySession":
+    ) -> AsyncPolicySession:
         hello = hello_request(
             arms, observation_rate_hz, request_control, image_encoding, cameras, policy_name, silence_timeout_s
         )
@@ -151,14 +152,14 @@ class AsyncPolicySession:
         self._client = client
         self._hello = hello
         self._call: Any = None
-        self._latest: Optional[policy_pb2.Observation] = None
+        self._latest: policy_pb2.Observation | None = None
         self._returned_id = 0
         self._changed = asyncio.Event()
-        self.events: "asyncio.Queue[policy_pb2.PolicyEvent]" = asyncio.Queue(maxsize=10_000)
-        self.granted: Optional[policy_pb2.ControlGranted] = None
-        self.revoked: Optional[policy_pb2.ControlRevoked] = None
-        self.error: Optional[Phone2ActError] = None
-        self._reader: Optional[asyncio.Task[None]] = None
+        self.events: asyncio.Queue[policy_pb2.PolicyEvent] = asyncio.Queue(maxsize=10_000)
+        self.granted: policy_pb2.ControlGranted | None = None
+        self.revoked: policy_pb2.ControlRevoked | None = None
+        self.error: Phone2ActError | None = None
+        self._reader: asyncio.Task[None] | None = None
         self.session_id = ""
         self.layouts: dict[str, ArmLayout] = {}
 

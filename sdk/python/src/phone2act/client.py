@@ -9,7 +9,8 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from typing import Any, Callable, Iterable, Iterator, Optional, Sequence, TypeVar
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, TypeVar
 
 import grpc
 
@@ -63,7 +64,7 @@ class Client:
         self,
         target: str = DEFAULT_TARGET,
         *,
-        token: Optional[str] = None,
+        token: str | None = None,
         connect_timeout_s: float = 5.0,
         timeout_s: float = 30.0,
     ) -> None:
@@ -90,7 +91,7 @@ class Client:
 
     # --- plumbing -------------------------------------------------------------------------------------
 
-    def _call(self, what: str, fn: Callable[..., T], request: Any, timeout_s: Optional[float] = None) -> T:
+    def _call(self, what: str, fn: Callable[..., T], request: Any, timeout_s: float | None = None) -> T:
         try:
             return fn(request, timeout=timeout_s or self.timeout_s)
         except grpc.RpcError as e:
@@ -148,14 +149,14 @@ class Client:
         policy_name: str = "phone2act-python",
         silence_timeout_s: float = 1.0,
         ready_timeout_s: float = 10.0,
-    ) -> "PolicySession":
+    ) -> PolicySession:
         """Open a Policy.Session; returns once `SessionReady` arrived (and control was granted, if asked)."""
         hello = hello_request(
             arms, observation_rate_hz, request_control, image_encoding, cameras, policy_name, silence_timeout_s
         )
         return PolicySession(self, hello, ready_timeout_s)
 
-    def teleop(self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False) -> "TeleopSession":
+    def teleop(self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False) -> TeleopSession:
         return TeleopSession(self, arm, client_name, take_over)
 
 
@@ -197,8 +198,7 @@ class Episodes:
         """Recorder status on every change (and every `interval_s`), until the caller stops iterating."""
         call = self._stub.Watch(episodes_pb2.WatchEpisodesRequest(interval_s=interval_s))
         try:
-            for status in call:
-                yield status
+            yield from call
         except grpc.RpcError as e:
             if e.code() != grpc.StatusCode.CANCELLED:
                 raise from_rpc_error(e, "Episodes.Watch", self._c.target) from None
@@ -212,8 +212,8 @@ class _Stream:
     def __init__(self, what: str, target: str) -> None:
         self._what = what
         self._target = target
-        self._requests: "queue.Queue[Any]" = queue.Queue()
-        self._error: Optional[Phone2ActError] = None
+        self._requests: queue.Queue[Any] = queue.Queue()
+        self._error: Phone2ActError | None = None
         self._done = threading.Event()
         self._call: Any = None
 
@@ -258,7 +258,7 @@ class _Stream:
         return self._done.is_set()
 
     @property
-    def error(self) -> Optional[Phone2ActError]:
+    def error(self) -> Phone2ActError | None:
         return self._error
 
     def close(self) -> None:
@@ -284,12 +284,12 @@ class PolicySession(_Stream):
         super().__init__("Policy.Session", client.target)
         self._client = client
         self._cond = threading.Condition()
-        self._latest: Optional[policy_pb2.Observation] = None
+        self._latest: policy_pb2.Observation | None = None
         self._returned_id = 0
-        self._ready: Optional[policy_pb2.SessionReady] = None
-        self.granted: Optional[policy_pb2.ControlGranted] = None
-        self.revoked: Optional[policy_pb2.ControlRevoked] = None
-        self.events: "queue.Queue[policy_pb2.PolicyEvent]" = queue.Queue(maxsize=10_000)
+        self._ready: policy_pb2.SessionReady | None = None
+        self.granted: policy_pb2.ControlGranted | None = None
+        self.revoked: policy_pb2.ControlRevoked | None = None
+        self.events: queue.Queue[policy_pb2.PolicyEvent] = queue.Queue(maxsize=10_000)
         self._requests.put(hello)
         self._start(client.policy_stub.Session)
         want_control = hello.hello.request_control
@@ -367,7 +367,7 @@ class PolicySession(_Stream):
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
-        timeout_s: Optional[float] = None,
+        timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
         chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
         req = policy_pb2.PushChunkRequest(session_id=self.session_id, chunk=chunk)
@@ -406,7 +406,7 @@ class TeleopSession(_Stream):
         self._client_name = client_name
         self._seq = 0
         self._cond = threading.Condition()
-        self.feedback: Optional[teleop_pb2.TeleopFeedback] = None
+        self.feedback: teleop_pb2.TeleopFeedback | None = None
         self._first = True
         self._take_over = take_over
         self._start(client.teleop_stub.Stream)
@@ -424,7 +424,7 @@ class TeleopSession(_Stream):
 
     def send(
         self,
-        position: Optional[Sequence[float]] = None,
+        position: Sequence[float] | None = None,
         orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
         *,
         buttons: Sequence[teleop_pb2.ButtonEvent] = (),
@@ -448,7 +448,7 @@ class TeleopSession(_Stream):
         self._send(sample)
         return self._seq
 
-    def clutch(self, engage: bool, position: Optional[Sequence[float]] = None,
+    def clutch(self, engage: bool, position: Sequence[float] | None = None,
                orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0)) -> int:
         kind = teleop_pb2.ClutchCommand.KIND_ENGAGE if engage else teleop_pb2.ClutchCommand.KIND_DISENGAGE
         b = teleop_pb2.ButtonEvent(clutch=teleop_pb2.ClutchCommand(kind=kind))

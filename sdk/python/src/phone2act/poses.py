@@ -7,7 +7,7 @@ server's `observation.state` and action vectors use them.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 Quat = tuple[float, float, float, float]
 

@@ -1,0 +1,212 @@
+"""The typed Python layer against a real server: system, episodes, policy sessions, teleop, asyncio, auth."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import statistics
+import subprocess
+import sys
+import time
+
+import phone2act
+import pytest
+from conftest import REPO, Server, wait_until
+from phone2act import (
+    ABSOLUTE_EE,
+    Client,
+    FailedPrecondition,
+    InvalidArgument,
+    NotFound,
+    Unauthenticated,
+    pose_tuple,
+)
+from phone2act.aio import AsyncClient
+from phone2act.poses import rpy_from_quat
+from phone2act.v1 import common_pb2
+
+EXAMPLE = REPO / "sdk" / "python" / "examples" / "record_episode.py"
+
+
+def ee_position(client: Client, arm: str = "main") -> tuple[float, float, float]:
+    return pose_tuple(client.arm(arm).robot_from_ee)[0]
+
+
+def test_list_arms_names_the_sim_arm(server: Server) -> None:
+    with Client(server.target) as c:
+        arms = c.list_arms()
+        assert [a.arm for a in arms] == ["main"]
+        a = arms[0]
+        assert a.bridge_kind == "sim"
+        assert wait_until(lambda: c.arm("main").health == common_pb2.BRIDGE_HEALTH_READY)
+        assert len(a.joint_names) == 5
+        x, y, z = ee_position(c)
+        assert 0.05 < x < 0.45 and 0.0 < z < 0.4, (x, y, z)
+        assert c.status().version
+        with pytest.raises(NotFound, match="no arm 'nope'"):
+            c.arm("nope")
+
+
+def test_example_script_records_stops_and_lists(server: Server) -> None:
+    lines = [ln for ln in EXAMPLE.read_text().splitlines() if ln.strip()]
+    assert len(lines) < 15, f"the example must stay under 15 lines, has {len(lines)}"
+    out = subprocess.run([sys.executable, str(EXAMPLE), server.target], capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 0, out.stderr
+    assert "saved episode" in out.stdout
+    with Client(server.target) as c:
+        eps = c.episodes.list()
+        assert eps, out.stdout
+        last = eps[-1]
+        assert last.task == "pick up the ball and put it in the basket"
+        assert 15 <= last.length_frames <= 30, last  # 1 s at 20 fps (plus start/stop latency)
+        assert f"{last.episode_index} 'pick up the ball and put it in the basket' {last.length_frames}" in out.stdout
+    assert any((server.root / "data").rglob("*.parquet"))
+
+
+def test_episode_lifecycle_and_errors(server: Server) -> None:
+    with Client(server.target) as c:
+        before = len(c.episodes.list())
+        status = c.episodes.start("stack the cubes")
+        assert status.phase == common_pb2.RECORDING_PHASE_RECORDING and status.task == "stack the cubes"
+        with pytest.raises(FailedPrecondition, match="Episodes.Start failed: FAILED_PRECONDITION"):
+            c.episodes.start("again")
+        time.sleep(0.3)
+        assert c.episodes.discard() > 0
+        assert c.episodes.status().phase == common_pb2.RECORDING_PHASE_IDLE
+        with pytest.raises(InvalidArgument):
+            c.episodes.start("")
+        c.episodes.start("stack the cubes")
+        time.sleep(0.3)
+        ep, latency_s = c.episodes.stop_with_latency()
+        assert ep.task == "stack the cubes" and ep.length_frames > 0
+        assert latency_s < 5.0
+        assert len(c.episodes.list()) == before + 1
+
+
+def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> None:
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20) as s:
+        layout = s.layouts["main"]
+        assert layout.action_names == ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw",
+                                       "gripper")
+        assert layout.state_names[-7:] == ("ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper")
+        obs = s.next_observation()
+        arm = obs.arms[0]
+        assert arm.owner == common_pb2.CONTROL_SOURCE_POLICY
+        start = pose_tuple(arm.robot_from_ee)[0]
+        # State carries the same pose as robot_from_ee, in x y z roll pitch yaw.
+        assert arm.state[5:8] == pytest.approx(start, abs=1e-9)
+        assert list(arm.state[8:11]) == pytest.approx(rpy_from_quat(pose_tuple(arm.robot_from_ee)[1]), abs=1e-6)
+        # 2 cm along +x over 10 steps, relative to this observation's pose.
+        steps = [[0.002 * (k + 1), 0, 0, 0, 0, 0, 0] for k in range(10)]
+        acc = s.push("main", steps, 0.05, observation_id=obs.observation_id)
+        assert acc.steps_scheduled + acc.steps_skipped == 10 and acc.steps_scheduled >= 9
+        assert wait_until(lambda: abs(ee_position(c)[0] - (start[0] + 0.02)) < 1e-3, 3.0), ee_position(c)
+        assert abs(ee_position(c)[1] - start[1]) < 1e-3 and abs(ee_position(c)[2] - start[2]) < 1e-3
+
+        # The same on the stream: answers arrive as events; a bad chunk is a ChunkRejected with the reason.
+        obs = s.next_observation()
+        s.push_on_stream("main", [[0, 0, 0, 0, 0, 0, 0]], 0.05, observation_id=obs.observation_id)
+        s.push_on_stream("main", [[0, 0, 0]], 0.05, observation_id=obs.observation_id)
+        kinds = []
+        while len(kinds) < 2:
+            ev = s.next_event(5.0)
+            if ev.WhichOneof("event") in ("accepted", "rejected"):
+                kinds.append(ev)
+        assert kinds[0].WhichOneof("event") == "accepted"
+        assert kinds[1].WhichOneof("event") == "rejected"
+        assert "3 values" in kinds[1].rejected.reason and "takes 7" in kinds[1].rejected.reason
+
+
+def test_absolute_chunk_and_latency(server: Server) -> None:
+    """ABSOLUTE_EE goes where it says; also measures unary and stream round trips from Python."""
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20) as s:
+        obs = s.next_observation()
+        a = obs.arms[0]
+        goal = list(a.state[5:11]) + [0.5]
+        goal[1] += 0.015
+        s.push("main", [goal] * 10, 0.05, mode=ABSOLUTE_EE)
+        assert wait_until(lambda: abs(ee_position(c)[1] - goal[1]) < 1e-3, 3.0)
+        assert wait_until(lambda: abs(c.arm("main").gripper_position - 0.5) < 0.02, 3.0)
+
+        unary = []
+        for _ in range(200):
+            t0 = time.perf_counter()
+            c.list_arms()
+            unary.append(time.perf_counter() - t0)
+        stream = []
+        for _ in range(100):
+            o = s.next_observation()
+            t0 = time.perf_counter()
+            s.push_on_stream("main", [goal], 0.05, observation_id=o.observation_id, mode=ABSOLUTE_EE)
+            while s.next_event(2.0).WhichOneof("event") != "accepted":
+                pass
+            stream.append(time.perf_counter() - t0)
+        push = []
+        for _ in range(100):
+            t0 = time.perf_counter()
+            s.push("main", [goal], 0.05, mode=ABSOLUTE_EE)
+            push.append(time.perf_counter() - t0)
+        p50 = {k: statistics.median(v) * 1e3 for k, v in [("unary", unary), ("stream", stream), ("push", push)]}
+        print(f"\nPython latency p50: ListArms {p50['unary']:.2f} ms, PushChunk {p50['push']:.2f} ms, "
+              f"stream chunk->accepted {p50['stream']:.2f} ms")
+        assert p50["unary"] < 50 and p50["push"] < 50 and p50["stream"] < 50, p50
+
+
+def test_teleop_drives_the_sim_arm(server: Server) -> None:
+    with Client(server.target) as c, c.teleop("main") as t:
+        phone = [0.0, 1.2, -0.3]
+        seq = t.clutch(True, phone)
+        fb = t.wait_feedback(seq)
+        assert fb.error == ""
+        start = ee_position(c)
+        for k in range(1, 31):  # 3 cm to the phone's right over 0.6 s
+            t.send([phone[0] + 0.001 * k, phone[1], phone[2]])
+            time.sleep(0.02)
+        fb = t.wait_feedback(t.send([phone[0] + 0.03, phone[1], phone[2]]))
+        assert fb.arm_state.engaged and fb.arm_state.owner == common_pb2.CONTROL_SOURCE_TELEOP
+        assert wait_until(lambda: abs(math.dist(ee_position(c), start) - 0.03) < 2e-3, 3.0), (
+            start, ee_position(c))
+        seq = t.clutch(False)
+        assert not t.wait_feedback(seq).arm_state.engaged
+        bad = t.send([float("nan"), 0, 0])
+        assert "nan" in t.wait_feedback(bad).error.lower()
+
+
+def test_asyncio_client(server: Server) -> None:
+    async def main() -> None:
+        async with await AsyncClient.connect(server.target) as c:
+            arms = await c.list_arms()
+            assert arms[0].arm == "main"
+            assert (await c.episodes.status()).phase == common_pb2.RECORDING_PHASE_IDLE
+            session = await c.policy_session(["main"], observation_rate_hz=20)
+            async with session:
+                obs = await session.next_observation()
+                start = pose_tuple(obs.arms[0].robot_from_ee)[0]
+                acc = await session.push("main", [[0, 0, 0.01 * (k + 1) / 5, 0, 0, 0, 0] for k in range(5)],
+                                         0.05, observation_id=obs.observation_id)
+                assert acc.steps_scheduled >= 4
+                with pytest.raises(InvalidArgument, match="takes 7"):
+                    await session.push("main", [[0.0] * 8], 0.05)
+                await asyncio.sleep(0.6)
+                obs = await session.next_observation()
+                z = pose_tuple(obs.arms[0].robot_from_ee)[0][2]
+                assert abs(z - (start[2] + 0.01)) < 1.5e-3, (start, z)
+
+    asyncio.run(main())
+
+
+def test_token_is_required_and_sent(make_server) -> None:  # type: ignore[no-untyped-def]
+    srv = make_server(token="s3cret")
+    with Client(srv.target) as c, pytest.raises(Unauthenticated):
+        c.list_arms()
+    with Client(srv.target, token="wrong") as c, pytest.raises(Unauthenticated):
+        c.list_arms()
+    with Client(srv.target, token="s3cret") as c:
+        assert c.list_arms()[0].arm == "main"
+        with c.policy_session(["main"]) as s:  # the streaming call carries the token too
+            assert s.next_observation().arms[0].arm == "main"
+
+
+def test_package_exports_are_typed() -> None:
+    assert (REPO / "sdk" / "python" / "src" / "phone2act" / "py.typed").exists()
+    assert phone2act.Client is Client
