@@ -83,6 +83,9 @@ def check_common(root: Path, info: dict, ds, version: str):
                     fail(f"row {i}: {key} not finite")
     if sorted(ep_len) != list(range(total_episodes)):
         fail(f"episodes in data {sorted(ep_len)} != 0..{total_episodes - 1}")
+    for e, n in expect.get("lengths", {}).items():
+        if ep_len.get(int(e)) != n:
+            fail(f"episode {e} has {ep_len.get(int(e))} frames, {n} were saved before the kill")
     return ep_len, video_keys
 
 

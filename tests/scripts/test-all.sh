@@ -7,6 +7,10 @@ tests/scripts/install-deps.sh test
 export SVT_LOG=1
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
+# Tests that write LeRobot datasets copy them here; tests/conformance/run.sh then loads each with lerobot.
+export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
+rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
+mkdir -p "$PHONE2ACT_CONFORMANCE_DIR"
 set +e
 cargo test --workspace 2>&1 | tee /tmp/phone2act-cargo-test.log
 rc=${PIPESTATUS[0]}

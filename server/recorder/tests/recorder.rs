@@ -4,7 +4,7 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, read_json, spec, wait_for};
-use phone2act_recorder::camera::{FrameSlot, spawn_test_pattern};
+use phone2act_recorder::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::{Format, Phase, Recorder, RecorderError};
 use serde_json::json;
@@ -52,6 +52,7 @@ fn record(rec: &Recorder, task: &str, frames: u64) -> phone2act_recorder::Episod
 }
 
 /// Checks the data rows of every episode: contiguous index, timestamp = frame_index / fps exactly.
+#[allow(clippy::float_cmp)] // exactness is the point
 fn check_v30_rows(root: &Path, fps: u32) -> u64 {
     let info = read_json(&root.join("meta/info.json"));
     let mut files: Vec<_> = walk(&root.join("data"))
@@ -408,12 +409,18 @@ fn watch_reports_phase_changes() {
 
 #[test]
 fn a_full_disk_fails_the_episode_and_keeps_the_dataset() {
-    // Needs a small filesystem: a 2 MB tmpfs (root only; skipped with a note elsewhere).
+    struct Unmount(std::path::PathBuf);
+    impl Drop for Unmount {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount").arg(&self.0).status();
+        }
+    }
+    // Needs a small filesystem: a 4 MB tmpfs (root only; skipped with a note elsewhere).
     let dir = tempfile::tempdir().unwrap();
     let mnt = dir.path().join("mnt");
     std::fs::create_dir_all(&mnt).unwrap();
     let ok = std::process::Command::new("mount")
-        .args(["-t", "tmpfs", "-o", "size=2m", "tmpfs"])
+        .args(["-t", "tmpfs", "-o", "size=4m", "tmpfs"])
         .arg(&mnt)
         .stderr(std::process::Stdio::null())
         .status()
@@ -422,23 +429,39 @@ fn a_full_disk_fails_the_episode_and_keeps_the_dataset() {
         eprintln!("SKIPPED: cannot mount a tmpfs here (needs root) to simulate a full disk");
         return;
     }
-    struct Unmount(std::path::PathBuf);
-    impl Drop for Unmount {
-        fn drop(&mut self) {
-            let _ = std::process::Command::new("umount").arg(&self.0).status();
-        }
-    }
     let _guard = Unmount(mnt.clone());
     let root = mnt.join("ds");
-    let size = (320, 240);
-    let rig = rig(&["front"], size, 30.0);
+    let size = (160, 120);
+    let mut rig = rig(&[], size, 30.0);
+    // Noise does not compress: lossless H.264 of it fills the disk within a couple of seconds.
+    let slot = Arc::new(FrameSlot::default());
+    let mut x = 0x2545_f491_u32;
+    rig.cams.push(
+        spawn_generated(
+            "front",
+            size.0,
+            size.1,
+            30.0,
+            move |_, buf| {
+                buf.clear();
+                buf.extend((0..size.0 * size.1 * 3).map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 17;
+                    x ^= x << 5;
+                    x as u8
+                }));
+            },
+            Arc::clone(&slot),
+        )
+        .unwrap(),
+    );
+    rig.slots.push(("front".into(), slot));
     let mut s = spec(&root, Format::V30, &["front"], size);
-    // Near-lossless H.264 fills 2 MB within a few seconds.
     s.video_codec = Some("h264:crf=0,preset=ultrafast".into());
     let rec = Recorder::open(s, rig.robot.clone(), rig.slots.clone()).unwrap();
     let good = record(&rec, "fits", 3);
     rec.start_episode("does not fit").unwrap();
-    let st = wait_for(&rec, Duration::from_secs(60), "disk full", |s| {
+    let st = wait_for(&rec, Duration::from_mins(1), "disk full", |s| {
         s.warning.as_deref().is_some_and(|w| w.contains("failed"))
     });
     assert!(st.warning.unwrap().contains("cannot be saved"));

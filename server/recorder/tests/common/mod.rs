@@ -94,6 +94,7 @@ fn copy_dir(src: &Path, dst: &Path) {
 
 /// Copies a finished dataset to `$PHONE2ACT_CONFORMANCE_DIR/<name>` (with what the test expects) so that
 /// tests/conformance/run.sh loads it with the real lerobot. Returns the copy.
+#[allow(clippy::needless_pass_by_value)] // callers build the JSON inline
 pub fn publish_for_conformance(name: &str, root: &Path, expect: serde_json::Value) -> Option<PathBuf> {
     let dir = PathBuf::from(std::env::var_os("PHONE2ACT_CONFORMANCE_DIR")?);
     let dst = dir.join(name);
