@@ -50,6 +50,11 @@ pub struct GatewayConfig {
     /// Host name or address printed in the URL and QR code. Default: the address of the interface that
     /// routes to the LAN.
     pub public_host: Option<String>,
+    /// Lowest level of `{"op":"status"}` messages sent to a rosbridge client until it sends `set_level`:
+    /// "none" (default), "error", "warning" or "info". rosbridge itself never sends status, and some
+    /// clients (roslibpy) fail on messages they do not expect, so errors are reported only to clients that
+    /// ask with `set_level` unless this says otherwise.
+    pub rosbridge_status_level: String,
     /// Messages above this size are refused with an error; the connection stays up.
     pub max_message_bytes: usize,
     /// Print the phone URL and a QR code on start.
@@ -75,6 +80,7 @@ impl Default for GatewayConfig {
             token: None,
             rosbridge_require_token: false,
             public_host: None,
+            rosbridge_status_level: "none".to_owned(),
             max_message_bytes: 64 * 1024,
             print_qr: true,
             default_arm: "main".to_owned(),

@@ -69,7 +69,8 @@ pub enum StatusLevel {
 }
 
 impl StatusLevel {
-    fn parse(text: &str) -> Option<Self> {
+    /// Parses a wire name.
+    pub fn parse(text: &str) -> Option<Self> {
         Some(match text {
             "info" => Self::Info,
             "warning" => Self::Warning,

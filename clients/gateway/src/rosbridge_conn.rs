@@ -1,8 +1,9 @@
 //! A rosbridge v2 client connection: publishes on mapped topics become teleop samples for the arm the topic's
 //! namespace names; subscriptions to the feedback topics are served from `System.WatchStatus`.
 //!
-//! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`), filtered by the client's
-//! `set_level` (default `error`, so warnings such as an unmapped topic stay quiet, as with rosbridge).
+//! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`) to clients that asked for
+//! them with `set_level` (or to every client when `rosbridge_status_level` says so). rosbridge never sends
+//! `status`, and roslibpy raises on an op it has no handler for, so unasked status would break such clients.
 
 use crate::config::TopicRole;
 use crate::conn::{Handler, Wiring};
@@ -52,11 +53,13 @@ pub struct RosbridgeHandler {
 
 impl RosbridgeHandler {
     pub fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+        // Validated when the gateway starts.
+        let level = StatusLevel::parse(&shared.config.rosbridge_status_level).unwrap_or(StatusLevel::None);
         Self {
             shared,
             wiring,
             client_name: "rosbridge",
-            level: StatusLevel::Error,
+            level,
             advertised: HashMap::new(),
             sessions: HashMap::new(),
             refused_until: HashMap::new(),
@@ -367,6 +370,8 @@ impl Handler for RosbridgeHandler {
                 None,
             ),
             SessionEvent::Refused { arm, code, message } => {
+                // The client may not listen to status messages: make sure the operator sees it.
+                tracing::warn!(arm, ?code, message, "rosbridge client refused by the server");
                 self.status(
                     StatusLevel::Error,
                     &format!("arm {arm}: {code:?}: {message}"),

@@ -103,6 +103,12 @@ impl Gateway {
         grpc_token: Option<&str>,
         listeners: Listeners,
     ) -> Result<Self, GatewayError> {
+        if StatusLevel::parse(&config.rosbridge_status_level).is_none() {
+            return Err(GatewayError::Config(format!(
+                "rosbridge_status_level must be none, error, warning or info, not {:?}",
+                config.rosbridge_status_level
+            )));
+        }
         if config.max_message_bytes == 0 || config.max_message_bytes > HARD_MAX_MESSAGE_BYTES {
             return Err(GatewayError::Config(format!(
                 "max_message_bytes must be between 1 and {HARD_MAX_MESSAGE_BYTES}"

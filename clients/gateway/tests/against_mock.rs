@@ -142,6 +142,14 @@ async fn bad_input_is_refused_and_harms_nobody() {
     let h = start(&["main", "left"], |_| {}).await;
     let mut bad = rosbridge(&h).await;
     let mut good = rosbridge(&h).await;
+    // Without set_level a client gets no status messages (rosbridge sends none; roslibpy fails on them).
+    send(&mut good, "{not json").await;
+    assert_eq!(
+        next_json(&mut good, Duration::from_millis(300)).await,
+        None,
+        "unasked status sent"
+    );
+    send(&mut bad, r#"{"op":"set_level","level":"error"}"#).await;
     send(&mut good, &pose_msg("/left/Phone2Act/ar_pose", 0.3)).await;
     assert!(
         h.mock
@@ -214,7 +222,7 @@ async fn bad_input_is_refused_and_harms_nobody() {
     );
 
     // An unknown arm is the server's refusal, relayed once as a status error.
-    let h2 = start(&["main"], |_| {}).await;
+    let h2 = start(&["main"], |c| c.rosbridge_status_level = "error".into()).await;
     let mut ws = rosbridge(&h2).await;
     send(&mut ws, &pose_msg("/left/Phone2Act/ar_pose", 0.0)).await;
     let e = wait_json(&mut ws, T, |v| v["op"] == "status").await.unwrap();
