@@ -171,16 +171,28 @@
       state.gripperClosed = s.gripper_target > 0.5;
       // Counters, not verdicts, so a buzz happens once per event even if feedback is dropped or repeated.
       if (state.counters) {
-        if (s.rejected > state.counters.rejected) buzz(120);
-        else if (s.clamped > state.counters.clamped && performance.now() - state.lastClampBuzz > 500) {
-          state.lastClampBuzz = performance.now();
-          buzz(40);
+        if (s.rejected > state.counters.rejected) {
+          buzz(120);
+          gateEvent('rejected', s.verdict.startsWith('rejected') ? s.reason : 'a step was too large');
+        } else if (s.clamped > state.counters.clamped) {
+          if (performance.now() - state.lastClampBuzz > 500) {
+            state.lastClampBuzz = performance.now();
+            buzz(40);
+          }
+          gateEvent('clamped', s.verdict === 'clamped' ? s.reason : 'workspace limit');
         }
       }
       state.counters = { rejected: s.rejected, clamped: s.clamped };
+      // One frame's verdict is gone by the next frame: a rejection or clamp stays on screen for 4 s.
       const gate = $('st-gate');
-      gate.textContent = s.verdict + (s.reason ? ` — ${s.reason}` : '');
-      gate.className = 'verdict-' + s.verdict;
+      const ev = state.gateEvent;
+      if (ev && performance.now() - ev.at < 4000) {
+        gate.textContent = `${ev.kind}: ${ev.reason} (${s.rejected} rejected, ${s.clamped} clamped)`;
+        gate.className = ev.kind === 'rejected' ? 'verdict-rejected_jump' : 'verdict-clamped';
+      } else {
+        gate.textContent = s.verdict + (s.reason ? ` — ${s.reason}` : '');
+        gate.className = 'verdict-' + s.verdict;
+      }
       $('st-clutch').textContent = s.engaged ? 'ENGAGED (phone drives)' : 'released (robot holds)';
       $('st-gripper').textContent = state.gripperClosed ? 'closed' : 'open';
     }
@@ -196,6 +208,10 @@
       if (r.warning) rec.textContent += ` · ${r.warning}`;
     }
     render();
+  }
+
+  function gateEvent(kind, reason) {
+    state.gateEvent = { kind, reason: reason || '', at: performance.now() };
   }
 
   function render() {

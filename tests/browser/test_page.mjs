@@ -1,0 +1,240 @@
+// The phone page in headless Chromium (Debian's), over HTTPS from the gateway, with WebXR supplied by
+// webxr-shim.js. Presses the page's buttons like an operator and checks the result on the server side through
+// an independent path: a rosbridge subscription to the gateway's status topic (System.WatchStatus) and the
+// dataset on disk. Prints "N passed, M failed".
+import { chromium } from 'playwright-core';
+import { readdirSync, statSync } from 'node:fs';
+import { join, dirname } from 'node:path';
+import { fileURLToPath } from 'node:url';
+
+const here = dirname(fileURLToPath(import.meta.url));
+const { HTTPS_PORT, ROSBRIDGE_PORT, PAIRING_TOKEN, STACK_DIR } = process.env;
+if (!HTTPS_PORT || !ROSBRIDGE_PORT || !PAIRING_TOKEN) throw new Error('run through tests/browser/run.sh');
+const BASE = `https://127.0.0.1:${HTTPS_PORT}`;
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+// ---- server-side view: rosbridge subscription to /phone2act/status ----------------------------------------
+class ServerView {
+  constructor() {
+    this.status = null;
+    this.ws = new WebSocket(`ws://127.0.0.1:${ROSBRIDGE_PORT}/`);
+    this.ready = new Promise((resolve, reject) => {
+      this.ws.onopen = () => {
+        this.ws.send(JSON.stringify({ op: 'subscribe', topic: '/phone2act/status', type: 'std_msgs/msg/String' }));
+        resolve();
+      };
+      this.ws.onerror = (e) => reject(new Error(`rosbridge socket: ${e.message || e.type}`));
+    });
+    this.ws.onmessage = (ev) => {
+      const msg = JSON.parse(ev.data);
+      if (msg.op === 'publish' && msg.topic === '/phone2act/status') this.status = JSON.parse(msg.msg.data);
+    };
+  }
+  async until(pred, what, timeoutMs = 15000) {
+    const deadline = Date.now() + timeoutMs;
+    while (Date.now() < deadline) {
+      if (this.status && pred(this.status)) return this.status;
+      await sleep(25);
+    }
+    throw new Error(`timed out waiting for ${what}; server status: ${JSON.stringify(this.status)}`);
+  }
+  close() { this.ws.close(); }
+}
+
+const dist = (a, b) => Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+
+// ---- harness ---------------------------------------------------------------------------------------------
+const results = [];
+async function check(name, fn) {
+  const t0 = Date.now();
+  try {
+    await fn();
+    results.push([name, true]);
+    console.log(`PASS ${name} (${Date.now() - t0} ms)`);
+  } catch (e) {
+    results.push([name, false]);
+    console.log(`FAIL ${name}: ${e.stack || e}`);
+  }
+}
+function assert(cond, msg) { if (!cond) throw new Error(msg); }
+
+// Playwright starts Chromium with a new, empty profile directory of its own and removes it afterwards.
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
+  headless: true,
+  args: [
+    '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run', '--disable-background-networking',
+    '--disable-component-update', '--disable-sync', '--ignore-certificate-errors',
+  ],
+});
+const server = new ServerView();
+await server.ready;
+
+async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent } = {}) {
+  const context = await browser.newContext({ ignoreHTTPSErrors: true, userAgent, viewport: { width: 412, height: 915 } });
+  if (shim) {
+    await context.addInitScript({ path: join(here, 'webxr-shim.js') });
+  } else {
+    // Like Safari on iOS: no navigator.xr at all (desktop Chromium would otherwise offer one).
+    await context.addInitScript(() => Object.defineProperty(navigator, 'xr', { configurable: true, value: undefined }));
+  }
+  const page = await context.newPage();
+  page.on('dialog', (d) => d.accept());
+  page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
+  await page.goto(token === null ? `${BASE}/` : `${BASE}/?token=${encodeURIComponent(token)}`);
+  return { context, page };
+}
+const pageState = (page, expr) => page.evaluate(expr);
+async function waitPage(page, fn, what, timeoutMs = 15000) {
+  try {
+    await page.waitForFunction(fn, null, { timeout: timeoutMs, polling: 25 });
+  } catch (e) {
+    throw new Error(`page: timed out waiting for ${what}: ${e.message.split('\n')[0]}`);
+  }
+}
+
+const { page } = await phonePage();
+
+await check('the page loads over HTTPS, pairs, and claims the arm', async () => {
+  await waitPage(page, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
+  const arms = await page.$$eval('#arm option', (os) => os.map((o) => o.value));
+  assert(arms.includes('main'), `arm picker lacks main: ${arms}`);
+  assert(await page.isHidden('#no-xr'), 'the no-WebXR notice is shown although the shim provides WebXR');
+  assert(await pageState(page, () => window.isSecureContext), 'not a secure context');
+});
+
+await check('Start AR streams poses at the XR frame rate', async () => {
+  await page.click('#start-ar');
+  await waitPage(page, () => window.__xr.frames > 30 && window.phone2act.feedbackCount > 20, 'frames and feedback');
+  const [frames, fb] = await pageState(page, () => [window.__xr.frames, window.phone2act.feedbackCount]);
+  await sleep(1000);
+  const [frames2, fb2] = await pageState(page, () => [window.__xr.frames, window.phone2act.feedbackCount]);
+  assert(frames2 - frames > 30, `only ${frames2 - frames} XR frames in 1 s`);
+  assert(fb2 - fb > 20, `only ${fb2 - fb} feedback messages in 1 s`);
+  assert((await page.textContent('#st-track')).startsWith('tracking'), 'tracking state not shown');
+  assert(/rtt \d+\/\d+\/\d+ ms/.test(await page.textContent('#st-rtt')), 'latency min/avg/max not shown');
+});
+
+await check('holding the clutch while moving the phone moves the sim arm', async () => {
+  const before = (await server.until((s) => s.arm === 'main', 'status of main')).ee_m;
+  const box = await page.locator('#clutch').boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.down();
+  await server.until((s) => s.engaged, 'clutch engaged on the server');
+  assert((await page.textContent('#st-clutch')).startsWith('ENGAGED'), 'clutch state not shown as engaged');
+  // Phone 8 cm forward (-Z in WebXR's frame) over 1.2 s.
+  await page.evaluate(() => window.__xr.moveTo([0, 1.4, -0.08], 1200));
+  const moved = await server.until((s) => dist(s.ee_m, before) > 0.05, 'the measured end effector to move 5 cm');
+  await page.mouse.up();
+  await server.until((s) => !s.engaged, 'clutch released on the server');
+  // Released: moving the phone back must not move the arm.
+  const held = (await server.until(() => true, 'status')).ee_m;
+  await page.evaluate(() => window.__xr.moveTo([0, 1.4, 0], 600));
+  await sleep(900);
+  assert(dist(server.status.ee_m, held) < 0.01, `arm moved while released: ${held} -> ${server.status.ee_m}`);
+  console.log(`  sim end effector moved ${(dist(moved.ee_m, before) * 100).toFixed(1)} cm`);
+});
+
+await check('the gripper button toggles the gripper', async () => {
+  const before = server.status.gripper_target;
+  await page.click('#gripper');
+  await server.until((s) => Math.abs(s.gripper_target - before) > 0.5, 'gripper target to flip');
+  await waitPage(page, () => /GRIPPER: (OPEN|CLOSED)/.test(document.querySelector('#gripper').textContent), 'label');
+});
+
+await check('a rejected jump buzzes the phone and does not move the arm', async () => {
+  const box = await page.locator('#clutch').boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.down();
+  await server.until((s) => s.engaged, 'engaged');
+  await sleep(300);
+  const held = server.status.ee_m;
+  const rejectedBefore = server.status.rejected;
+  await page.evaluate(() => window.__xr.jump([0.5, 1.4, -0.5]));
+  await server.until((s) => s.rejected > rejectedBefore, 'the gate to reject the jump');
+  await waitPage(page, () => window.__vibrations.includes(120), 'a vibration for the rejected jump');
+  await waitPage(page, () => /rejected/.test(document.querySelector('#st-gate').textContent), 'gate decision shown');
+  await page.mouse.up();
+  await server.until((s) => !s.engaged, 'released');
+  assert(dist(server.status.ee_m, held) < 0.01, `a rejected jump moved the arm: ${held} -> ${server.status.ee_m}`);
+  await page.evaluate(() => window.__xr.jump([0, 1.4, 0]));
+});
+
+function datasetFiles(ext) {
+  const out = [];
+  const walk = (d) => {
+    let entries = [];
+    try { entries = readdirSync(d); } catch { return; }
+    for (const e of entries) {
+      const p = join(d, e);
+      if (statSync(p).isDirectory()) walk(p);
+      else if (p.endsWith(ext)) out.push(p);
+    }
+  };
+  walk(join(STACK_DIR, 'dataset'));
+  return out;
+}
+
+await check('REC with a task, then SAVE, records an episode', async () => {
+  const saved = server.status.recording.saved;
+  await page.fill('#task', 'put the ball in the basket');
+  await page.click('#rec-start');
+  try {
+    await server.until((s) => s.recording.phase === 'recording', 'recording to start');
+  } catch (e) {
+    throw new Error(`${e.message}; page notice: ${await page.textContent('#notice')}; errors: ${await pageState(page, () => JSON.stringify(window.phone2act.errors))}`);
+  }
+  assert(server.status.recording.task === 'put the ball in the basket', `task ${server.status.recording.task}`);
+  await waitPage(page, () => /RECORDING/.test(document.querySelector('#st-rec').textContent), 'recording shown');
+  const box = await page.locator('#clutch').boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.down();
+  await page.evaluate(() => window.__xr.moveTo([0.03, 1.42, -0.03], 1500));
+  await sleep(1700);
+  await page.mouse.up();
+  await page.click('#rec-stop');
+  await server.until((s) => s.recording.saved === saved + 1 && s.recording.phase === 'idle', 'the episode to be saved', 60000);
+  await waitPage(page, () => window.__vibrations.some((v) => Array.isArray(v)), 'a vibration for the recording event');
+  const parquet = datasetFiles('.parquet');
+  assert(parquet.length > 0, `no parquet file under ${STACK_DIR}/dataset`);
+  console.log(`  dataset files: ${parquet.map((p) => p.slice(STACK_DIR.length)).join(', ')}`);
+});
+
+await check('REC then DISCARD throws the episode away', async () => {
+  const saved = server.status.recording.saved;
+  await page.click('#rec-start');
+  await server.until((s) => s.recording.phase === 'recording', 'recording to start');
+  await sleep(500);
+  await page.click('#rec-discard');
+  await server.until((s) => s.recording.phase === 'idle', 'recording to stop', 30000);
+  await sleep(300);
+  assert(server.status.recording.saved === saved, 'a discarded episode was saved');
+});
+
+await check('a wrong token is refused with a clear message', async () => {
+  const { context, page: p } = await phonePage({ token: 'wrong-token' });
+  await waitPage(p, () => /not paired/.test(document.querySelector('#st-conn').textContent), 'refusal');
+  assert(/pairing token/.test(await p.textContent('#notice')), 'the refusal does not say why');
+  await context.close();
+  // The paired phone is unharmed.
+  const n = await pageState(page, () => window.phone2act.feedbackCount);
+  await sleep(400);
+  assert((await pageState(page, () => window.phone2act.feedbackCount)) > n, 'the paired phone stopped getting feedback');
+});
+
+await check('without WebXR (iPhone Safari) the page says what to use', async () => {
+  const ua = 'Mozilla/5.0 (iPhone; CPU iPhone OS 18_0 like Mac OS X) AppleWebKit/605.1.15 (KHTML, like Gecko) Version/18.0 Mobile/15E148 Safari/604.1';
+  const { context, page: p } = await phonePage({ shim: false, userAgent: ua });
+  await waitPage(p, () => !document.querySelector('#no-xr').hidden, 'the no-WebXR notice');
+  const text = await p.textContent('#no-xr');
+  assert(/Android/.test(text) && /Phone2Act Android app/.test(text), `unhelpful message: ${text}`);
+  assert(await p.isDisabled('#start-ar'), 'Start AR stays enabled without WebXR');
+  await context.close();
+});
+
+server.close();
+await browser.close();
+const passed = results.filter(([, ok]) => ok).length;
+const failed = results.length - passed;
+console.log(`browser: ${passed} passed, ${failed} failed`);
+process.exit(failed ? 1 : 0);
