@@ -105,21 +105,22 @@ def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> 
 
         # The same on the stream: answers arrive as events; a bad chunk is a ChunkRejected with the reason.
         obs = s.next_observation()
-        s.push_on_stream("main", [[0, 0, 0, 0, 0, 0, 0]], 0.05, observation_id=obs.observation_id)
+        s.push_on_stream("main", [[0, 0, 0, 0, 0, 0, 0]] * 5, 0.05, observation_id=obs.observation_id)
         s.push_on_stream("main", [[0, 0, 0]], 0.05, observation_id=obs.observation_id)
         kinds = []
         while len(kinds) < 2:
             ev = s.next_event(5.0)
             if ev.WhichOneof("event") in ("accepted", "rejected"):
                 kinds.append(ev)
-        assert kinds[0].WhichOneof("event") == "accepted"
+        assert kinds[0].WhichOneof("event") == "accepted", kinds[0]
         assert kinds[1].WhichOneof("event") == "rejected"
         assert "3 values" in kinds[1].rejected.reason and "takes 7" in kinds[1].rejected.reason
 
 
 def test_absolute_chunk_and_latency(server: Server) -> None:
     """ABSOLUTE_EE goes where it says; also measures unary and stream round trips from Python."""
-    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20) as s:
+    # A long silence timeout: the measuring loops below push nothing for more than the default 1 s.
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20, silence_timeout_s=30) as s:
         obs = s.next_observation()
         a = obs.arms[0]
         goal = list(a.state[5:11]) + [0.5]
@@ -135,12 +136,12 @@ def test_absolute_chunk_and_latency(server: Server) -> None:
             unary.append(time.perf_counter() - t0)
         stream = []
         for _ in range(100):
-            o = s.next_observation()
             t0 = time.perf_counter()
-            s.push_on_stream("main", [goal], 0.05, observation_id=o.observation_id, mode=ABSOLUTE_EE)
-            while s.next_event(2.0).WhichOneof("event") != "accepted":
+            s.push_on_stream("main", [goal], 0.05, mode=ABSOLUTE_EE)  # anchored at its arrival
+            while (ev := s.next_event(2.0)).WhichOneof("event") not in ("accepted", "rejected"):
                 pass
             stream.append(time.perf_counter() - t0)
+            assert ev.WhichOneof("event") == "accepted", ev
         push = []
         for _ in range(100):
             t0 = time.perf_counter()
@@ -149,7 +150,10 @@ def test_absolute_chunk_and_latency(server: Server) -> None:
         p50 = {k: statistics.median(v) * 1e3 for k, v in [("unary", unary), ("stream", stream), ("push", push)]}
         print(f"\nPython latency p50: ListArms {p50['unary']:.2f} ms, PushChunk {p50['push']:.2f} ms, "
               f"stream chunk->accepted {p50['stream']:.2f} ms")
-        assert p50["unary"] < 50 and p50["push"] < 50 and p50["stream"] < 50, p50
+        assert p50["push"] < 20 and p50["stream"] < 20, p50
+        # ListArms answers are a few hundred bytes in two writes: without TCP_NODELAY on the server's accepted
+        # sockets, Nagle + the client's delayed ACK add ~40 ms (seen with tonic's serve_with_incoming).
+        assert p50["unary"] < 20, f"ListArms p50 {p50['unary']:.1f} ms: server sockets lack TCP_NODELAY?"
 
 
 def test_teleop_drives_the_sim_arm(server: Server) -> None:

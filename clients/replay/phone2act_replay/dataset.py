@@ -165,17 +165,19 @@ def _angle(a: tuple[float, ...], b: tuple[float, ...]) -> float:
     return 2.0 * math.acos(min(1.0, dot))
 
 
-def align(ref: np.ndarray, new: np.ndarray, resolution: float = 0.05) -> tuple[float, np.ndarray]:
-    """Best time offset (in frames, fractional) of `ref` inside the longer `new`, and `new` resampled there.
+def align(ref: np.ndarray, new: np.ndarray, resolution: float = 0.05, lead: int = 5) -> tuple[float, np.ndarray]:
+    """Best time offset (in frames, fractional) of `ref` inside `new`, and `new` resampled there.
 
-    Both are trajectories at the same fps; the replay starts at an arbitrary moment of the second recording,
-    so its start is found by least squares on position (orientation follows the same timing).
+    Both are trajectories at the same fps; the replay starts at an arbitrary moment of the second recording
+    (its chunk may even start a fraction of a frame before that recording's first tick), so the start is found
+    by least squares on position, and `new` is extended backwards by `lead` frames of its first pose (the arm
+    was holding there, settled, before the replay began). The offset may therefore be negative.
     """
     n = len(ref)
+    new = np.vstack([np.repeat(new[:1], lead, axis=0), new])
     if len(new) < n:
-        raise ValueError(f"replayed trajectory has {len(new)} frames, fewer than the {n} recorded")
+        raise ValueError(f"replayed trajectory has {len(new) - lead} frames, fewer than the {n} recorded")
     t_new = np.arange(len(new))
-    new = new.copy()
     new[:, 3:6] = np.unwrap(new[:, 3:6], axis=0)  # interpolate angles across the ±pi seam correctly
 
     def sample(offset: float) -> np.ndarray:
@@ -187,4 +189,20 @@ def align(ref: np.ndarray, new: np.ndarray, resolution: float = 0.05) -> tuple[f
     lo, hi = max(0.0, coarse - 1.0), min(float(len(new) - n), coarse + 1.0)
     candidates = np.arange(lo, hi + 1e-9, resolution)
     best = min(candidates, key=lambda o: float(np.sum((sample(o)[:, :3] - ref[:, :3]) ** 2)))
-    return float(best), sample(float(best))
+    return float(best) - lead, sample(float(best))
+
+
+def path_errors(ref: np.ndarray, new: np.ndarray, density: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of `ref`, the distance (m) to the nearest point of `new`'s path (densely interpolated) and
+    the orientation error (rad) there. Independent of when each frame was sampled: a loaded machine can wake
+    the recorder's tick late, which shifts samples along the path without the motion itself changing."""
+    n = len(new)
+    t = np.linspace(0, n - 1, (n - 1) * density + 1)
+    unwrapped = new.copy()
+    unwrapped[:, 3:6] = np.unwrap(unwrapped[:, 3:6], axis=0)
+    dense = np.stack([np.interp(t, np.arange(n), unwrapped[:, c]) for c in range(6)], axis=1)
+    d = np.linalg.norm(ref[:, None, :3] - dense[None, :, :3], axis=2)
+    nearest = d.argmin(axis=1)
+    pos = d[np.arange(len(ref)), nearest]
+    ang = np.array([_angle(quat_from_rpy(*r[3:6]), quat_from_rpy(*dense[k, 3:6])) for r, k in zip(ref, nearest)])
+    return pos, ang

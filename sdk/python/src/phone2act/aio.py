@@ -218,13 +218,16 @@ class AsyncPolicySession:
     async def _wait(self, predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout_s
-        while not predicate():
+        while True:
+            # Clear before checking, so a change that lands between the check and the wait is not lost.
+            self._changed.clear()
+            if predicate():
+                return
             if self.error is not None:
                 raise self.error
             left = deadline - loop.time()
             if left <= 0:
                 raise DeadlineExceeded(f"Policy.Session: no {what} within {timeout_s:.1f} s")
-            self._changed.clear()
             try:
                 await asyncio.wait_for(self._changed.wait(), left)
             except asyncio.TimeoutError:

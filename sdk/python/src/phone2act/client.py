@@ -295,7 +295,7 @@ class PolicySession(_Stream):
         want_control = hello.hello.request_control
         deadline = time.monotonic() + ready_timeout_s
         with self._cond:
-            while not (self._ready and (self.granted or not want_control)) and not self.closed:
+            while not self._is_ready(want_control) and not self.closed:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
@@ -311,6 +311,9 @@ class PolicySession(_Stream):
             )
         self.session_id: str = self._ready.session_id
         self.layouts: dict[str, ArmLayout] = layouts_from_ready(self._ready)
+
+    def _is_ready(self, want_control: bool) -> bool:
+        return self._ready is not None and (self.granted is not None or not want_control)
 
     def _on_response(self, ev: policy_pb2.PolicyEvent) -> None:
         kind = ev.WhichOneof("event")
