@@ -9,11 +9,13 @@ use phone2act_bridges::Bridge;
 use phone2act_proto::v1;
 use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::clock::monotonic_ns;
+use phone2act_recorder::recorder::Recorder;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
+use tonic::Status;
 
 /// One configured camera and its capture thread.
 #[derive(Debug)]
@@ -28,7 +30,9 @@ impl CameraRuntime {
     pub fn status(&self) -> v1::CameraStatus {
         let now = monotonic_ns();
         let latest = self.slot.latest();
-        let age_s = latest.as_ref().map_or(f64::INFINITY, |f| (now - f.capture_time_ns) as f64 * 1e-9);
+        let age_s = latest
+            .as_ref()
+            .map_or(f64::INFINITY, |f| (now - f.capture_time_ns) as f64 * 1e-9);
         let freshness_s = 3.0 / self.config.fps;
         v1::CameraStatus {
             camera: self.config.name.clone(),
@@ -52,16 +56,21 @@ pub struct App {
     pub arms: Vec<Arc<ArmController>>,
     pub cameras: Vec<CameraRuntime>,
     /// Remote bridges by arm name, for `Bridge.Attach`.
-    pub remote_bridges: HashMap<String, Arc<dyn Bridge>>,
+    pub remote_bridges: HashMap<String, Arc<phone2act_bridges::remote::RemoteBridge>>,
     sessions: AtomicU64,
     observations: AtomicU64,
     policies: Mutex<HashMap<u64, Arc<PolicySessionState>>>,
+    /// Read-locked for every use; write-locked only to close it at shutdown.
+    recorder: std::sync::RwLock<Option<Recorder>>,
     shutdown_tx: watch::Sender<bool>,
 }
 
 impl std::fmt::Debug for App {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("App").field("arms", &self.arms).field("cameras", &self.cameras).finish_non_exhaustive()
+        f.debug_struct("App")
+            .field("arms", &self.arms)
+            .field("cameras", &self.cameras)
+            .finish_non_exhaustive()
     }
 }
 
@@ -72,6 +81,8 @@ pub enum AppError {
     Camera { camera: String, message: String },
     #[error("arm {arm}: {message}")]
     Arm { arm: String, message: String },
+    #[error("recorder: {0}")]
+    Recorder(String),
 }
 
 /// Where an arm holds before its bridge reports a pose: the SO-101 workspace centre, gripper down.
@@ -83,19 +94,48 @@ impl App {
     /// Starts bridges, arm controllers and camera threads for `config`.
     pub fn start(config: Config) -> Result<Self, AppError> {
         let mut arms = Vec::new();
-        let remote_bridges = HashMap::new();
+        let mut remote_bridges = HashMap::new();
         let mut sims: HashMap<String, Arc<phone2act_bridges::sim::SimBridge>> = HashMap::new();
         for arm in &config.arms {
-            let arm_err = |message: String| AppError::Arm { arm: arm.name.clone(), message };
+            let arm_err = |message: String| AppError::Arm {
+                arm: arm.name.clone(),
+                message,
+            };
             let bridge: Arc<dyn Bridge> = match arm.bridge {
                 BridgeKind::Sim => {
-                    let sim = phone2act_bridges::sim::SimBridge::start(arm.sim.clone().unwrap_or_default())
-                        .map_err(|e| arm_err(e.to_string()))?;
+                    let sim = phone2act_bridges::sim::SimBridge::start_with_clock(
+                        arm.sim.clone().unwrap_or_default(),
+                        monotonic_ns,
+                    )
+                    .map_err(|e| arm_err(e.to_string()))?;
                     sims.insert(arm.name.clone(), Arc::clone(&sim));
                     sim
                 }
-                BridgeKind::Remote | BridgeKind::Dobot | BridgeKind::So101 => {
-                    return Err(arm_err(format!("bridge {:?} is not wired into the server yet", arm.bridge.as_str())));
+                BridgeKind::Remote => {
+                    let joints = arm
+                        .remote
+                        .as_ref()
+                        .map(|r| r.joint_names.clone())
+                        .unwrap_or_default();
+                    let remote = phone2act_bridges::remote::RemoteBridge::with_joint_names(&arm.name, joints);
+                    remote_bridges.insert(arm.name.clone(), Arc::clone(&remote));
+                    remote
+                }
+                BridgeKind::Dobot => {
+                    let cfg = arm
+                        .dobot
+                        .clone()
+                        .ok_or_else(|| arm_err("bridge \"dobot\" needs an [arms.dobot] table".into()))?;
+                    phone2act_bridges::dobot::DobotBridge::start_with_clock(cfg, monotonic_ns)
+                        .map_err(|e| arm_err(e.to_string()))?
+                }
+                BridgeKind::So101 => {
+                    let cfg = arm
+                        .so101
+                        .clone()
+                        .ok_or_else(|| arm_err("bridge \"so101\" needs an [arms.so101] table".into()))?;
+                    phone2act_bridges::so101::So101Bridge::start_with_clock(cfg, monotonic_ns)
+                        .map_err(|e| arm_err(e.to_string()))?
                 }
             };
             wait_for_feedback(bridge.as_ref(), Duration::from_millis(500));
@@ -113,7 +153,10 @@ impl App {
         }
         let mut cameras = Vec::new();
         for cam in &config.cameras {
-            let cam_err = |message: String| AppError::Camera { camera: cam.name.clone(), message };
+            let cam_err = |message: String| AppError::Camera {
+                camera: cam.name.clone(),
+                message,
+            };
             let slot = Arc::new(FrameSlot::default());
             let capture = match cam.kind {
                 CameraKind::TestPattern => Some(
@@ -125,7 +168,9 @@ impl App {
                         Some(name) => sims.get(name).cloned(),
                         None => sims.values().next().cloned(),
                     }
-                    .ok_or_else(|| cam_err("kind \"sim_render\" needs a simulated arm (set `arm`)".to_owned()))?;
+                    .ok_or_else(|| {
+                        cam_err("kind \"sim_render\" needs a simulated arm (set `arm`)".to_owned())
+                    })?;
                     let (w, h) = (cam.width, cam.height);
                     Some(
                         spawn_generated(
@@ -142,10 +187,22 @@ impl App {
                 CameraKind::V4l2 => return Err(cam_err("v4l2 capture is not wired yet".to_owned())),
                 CameraKind::Remote => None,
             };
-            cameras.push(CameraRuntime { config: cam.clone(), slot, capture: Mutex::new(capture) });
+            cameras.push(CameraRuntime {
+                config: cam.clone(),
+                slot,
+                capture: Mutex::new(capture),
+            });
         }
+        let spec = crate::recording::dataset_spec(&config, &arms).map_err(AppError::Recorder)?;
+        let source = Arc::new(crate::recording::ArmsSource { arms: arms.clone() });
+        let slots = cameras
+            .iter()
+            .map(|c| (c.config.name.clone(), Arc::clone(&c.slot)))
+            .collect();
+        let recorder = Recorder::open(spec, source, slots).map_err(|e| AppError::Recorder(e.to_string()))?;
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Self {
+            recorder: std::sync::RwLock::new(Some(recorder)),
             config,
             started: Instant::now(),
             arms,
@@ -179,15 +236,25 @@ impl App {
     }
 
     pub(crate) fn register_policy(&self, session: Arc<PolicySessionState>) {
-        self.policies.lock().unwrap_or_else(PoisonError::into_inner).insert(session.id, session);
+        self.policies
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .insert(session.id, session);
     }
 
     pub(crate) fn unregister_policy(&self, id: u64) {
-        self.policies.lock().unwrap_or_else(PoisonError::into_inner).remove(&id);
+        self.policies
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .remove(&id);
     }
 
     pub(crate) fn policy_session(&self, id: u64) -> Option<Arc<PolicySessionState>> {
-        self.policies.lock().unwrap_or_else(PoisonError::into_inner).get(&id).cloned()
+        self.policies
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .get(&id)
+            .cloned()
     }
 
     /// A full status snapshot.
@@ -203,25 +270,56 @@ impl App {
         }
     }
 
+    /// Runs `f` on the recorder; `UNAVAILABLE` once it is closed.
+    pub fn with_recorder<R>(&self, f: impl FnOnce(&Recorder) -> Result<R, Status>) -> Result<R, Status> {
+        let guard = self.recorder.read().unwrap_or_else(PoisonError::into_inner);
+        match guard.as_ref() {
+            Some(recorder) => f(recorder),
+            None => Err(Status::unavailable(
+                "the recorder is closed (server shutting down)",
+            )),
+        }
+    }
+
     /// The recorder's state.
     pub fn recording_status(&self) -> v1::RecordingStatus {
-        v1::RecordingStatus {
-            phase: v1::RecordingPhase::Idle as i32,
-            dataset_root: self.config.recorder.root.display().to_string(),
-            dataset_format: self.config.recorder.format.as_str().to_owned(),
-            fps: self.config.recorder.fps,
-            ..v1::RecordingStatus::default()
-        }
+        self.with_recorder(|r| Ok(crate::recording::status_to_proto(&r.status(), &self.config)))
+            .unwrap_or_else(|_| v1::RecordingStatus {
+                phase: v1::RecordingPhase::Idle as i32,
+                dataset_root: self.config.recorder.root.display().to_string(),
+                dataset_format: self.config.recorder.format.as_str().to_owned(),
+                fps: self.config.recorder.fps,
+                warning: "recorder closed".to_owned(),
+                ..v1::RecordingStatus::default()
+            })
     }
 
     /// The task of the episode in progress.
     pub fn current_task(&self) -> String {
-        String::new()
+        self.with_recorder(|r| Ok(r.status().task)).unwrap_or_default()
     }
 
-    /// Applies a record button from a phone.
+    /// Applies a record button from a phone. Saving takes milliseconds (the video is already encoded), so
+    /// it runs inline on a blocking-capable worker.
     pub fn record_command(&self, command: &v1::RecordCommand) -> Result<(), String> {
-        Err(format!("recording is not available yet (command {})", command.kind))
+        let run = || {
+            self.with_recorder(|r| {
+                let result = match v1::record_command::Kind::try_from(command.kind) {
+                    Ok(v1::record_command::Kind::Start) => r.start_episode(&command.task).map(|_| ()),
+                    Ok(v1::record_command::Kind::Stop) => r.stop_episode().map(|_| ()),
+                    Ok(v1::record_command::Kind::Discard) => r.discard_episode().map(|_| ()),
+                    _ => {
+                        return Err(Status::invalid_argument(format!(
+                            "unknown record command {}",
+                            command.kind
+                        )));
+                    }
+                };
+                result.map_err(|e| crate::recording::status_of(&e))
+            })
+            .map_err(|s| s.message().to_owned())
+        };
+        blocking(run)
     }
 
     /// A receiver that turns `true` when shutdown begins; streaming RPCs end on it.
@@ -242,6 +340,30 @@ impl App {
                 capture.stop();
             }
         }
+        if let Some(recorder) = self
+            .recorder
+            .write()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()
+        {
+            // A graceful stop keeps the episode in progress: saving is as cheap as closing files.
+            if matches!(
+                recorder.status().phase,
+                phone2act_recorder::recorder::Phase::Recording | phone2act_recorder::recorder::Phase::Paused
+            ) {
+                match recorder.stop_episode() {
+                    Ok(ep) => tracing::info!(
+                        episode = ep.index,
+                        frames = ep.length_frames,
+                        "episode saved at shutdown"
+                    ),
+                    Err(e) => tracing::warn!("episode in progress not saved at shutdown: {e}"),
+                }
+            }
+            if let Err(e) = recorder.close() {
+                tracing::warn!("closing the recorder: {e}");
+            }
+        }
         for arm in &self.arms {
             arm.bridge.shutdown();
         }
@@ -258,4 +380,14 @@ fn wait_for_feedback(bridge: &dyn Bridge, timeout: Duration) {
 /// Resolves once shutdown has begun (a `Send`-friendly wrapper around `watch::Receiver::wait_for`).
 pub async fn stopped(rx: &mut watch::Receiver<bool>) {
     let _ = rx.wait_for(|s| *s).await;
+}
+
+/// Runs blocking work from async code without stalling the runtime's other tasks where the runtime allows.
+pub fn blocking<R>(f: impl FnOnce() -> R) -> R {
+    match tokio::runtime::Handle::try_current() {
+        Ok(handle) if handle.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
+            tokio::task::block_in_place(f)
+        }
+        _ => f(),
+    }
 }

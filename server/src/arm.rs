@@ -6,6 +6,7 @@
 //! The critical section is a `std::sync::Mutex` held for microseconds and never across an `.await`, so the
 //! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
 
+use nalgebra::Isometry3;
 use phone2act_bridges::{Bridge, Command, Feedback, Health};
 use phone2act_core::{
     ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
@@ -13,7 +14,6 @@ use phone2act_core::{
 };
 use phone2act_proto::v1;
 use phone2act_recorder::clock::monotonic_ns;
-use nalgebra::Isometry3;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::mpsc;
@@ -119,7 +119,10 @@ impl LatencyRing {
 
 impl std::fmt::Debug for ArmController {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ArmController").field("name", &self.name).field("kind", &self.kind).finish_non_exhaustive()
+        f.debug_struct("ArmController")
+            .field("name", &self.name)
+            .field("kind", &self.kind)
+            .finish_non_exhaustive()
     }
 }
 
@@ -145,7 +148,10 @@ impl ArmController {
         action_mode: ActionMode,
         fallback: Isometry3<f64>,
     ) -> Result<Self, ArmError> {
-        let config_err = |source| ArmError::Config { arm: name.to_owned(), source };
+        let config_err = |source| ArmError::Config {
+            arm: name.to_owned(),
+            source,
+        };
         let measured = bridge.feedback().map_or(fallback, |f| f.robot_from_ee);
         let gripper = bridge.feedback().map_or(0.0, |f| f.gripper_position);
         let layout = ArmLayout::new(bridge.joint_names().to_vec());
@@ -202,7 +208,12 @@ impl ArmController {
         inner.gripper_target = gripper;
         inner.commands_sent += 1;
         let issue_time_ns = monotonic_ns();
-        self.bridge.send(Command { seq: inner.seq, robot_from_target: target, gripper_target: gripper, issue_time_ns });
+        self.bridge.send(Command {
+            seq: inner.seq,
+            robot_from_target: target,
+            gripper_target: gripper,
+            issue_time_ns,
+        });
         issue_time_ns
     }
 
@@ -245,7 +256,9 @@ impl ArmController {
             if inner.driver == Driver::Teleop {
                 inner.driver = Driver::None;
                 let measured = self.measured_or(inner.target);
-                inner.teleop.clutch(ClutchKind::Disengage, None, measured, now_s());
+                inner
+                    .teleop
+                    .clutch(ClutchKind::Disengage, None, measured, now_s());
                 Self::record_decision(
                     &mut inner,
                     GateDecision::note(GateVerdict::Accepted, "phone disconnected: the arm holds"),
@@ -258,7 +271,10 @@ impl ArmController {
     pub fn note_round(&self, samples: u64, latency_ns: Option<i64>) {
         self.samples_received.fetch_add(samples, Ordering::Relaxed);
         if let Some(ns) = latency_ns {
-            self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner).push(ns);
+            self.latencies_ns
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .push(ns);
         }
     }
 
@@ -288,9 +304,16 @@ impl ArmController {
         let now = now_s();
         let mut inner = self.lock();
         if inner.teleop_session != Some(session_id) {
-            return Err(Status::aborted(format!("another phone took over arm {:?}", self.name)));
+            return Err(Status::aborted(format!(
+                "another phone took over arm {:?}",
+                self.name
+            )));
         }
-        let mut outcome = TeleopOutcome { error: String::new(), record: Vec::new(), command_time_ns: None };
+        let mut outcome = TeleopOutcome {
+            error: String::new(),
+            record: Vec::new(),
+            command_time_ns: None,
+        };
         let pose = match &input.pose {
             Some(Ok(p)) => Some(*p),
             Some(Err(e)) => {
@@ -334,7 +357,7 @@ impl ArmController {
                     }
                 }
                 Some(v1::button_event::Event::Record(r)) => outcome.record.push(r),
-                None => outcome.error = "empty button event".to_owned(),
+                None => "empty button event".clone_into(&mut outcome.error),
             }
         }
         if let Some(phone) = pose {
@@ -434,7 +457,10 @@ impl ArmController {
         });
         // The phone's floating zero is stale once a policy moves the arm.
         inner.teleop.request_reindex();
-        Self::record_decision(&mut inner, GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control")));
+        Self::record_decision(
+            &mut inner,
+            GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control")),
+        );
         Ok(())
     }
 
@@ -463,7 +489,10 @@ impl ArmController {
                 .layout
                 .target_from_action(&reference, action, mode)
                 .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
-            steps.push(ChunkStep { robot_from_target, gripper });
+            steps.push(ChunkStep {
+                robot_from_target,
+                gripper,
+            });
         }
         let now = now_s();
         let mut inner = self.lock();
@@ -481,7 +510,14 @@ impl ArmController {
         }
         let report = inner
             .executor
-            .replace(ActionChunk { steps, anchor_time_s: anchor_s, step_period_s }, now)
+            .replace(
+                ActionChunk {
+                    steps,
+                    anchor_time_s: anchor_s,
+                    step_period_s,
+                },
+                now,
+            )
             .map_err(|e| Status::invalid_argument(format!("arm {:?}: {e}", self.name)))?;
         drop(inner);
         self.tick(now);
@@ -505,14 +541,20 @@ impl ArmController {
                     }
                     Some(_) => {}
                     None => {
-                        let silent = inner.policy.as_ref().map(|o| (now - o.last_chunk_s, o.silence_timeout_s));
+                        let silent = inner
+                            .policy
+                            .as_ref()
+                            .map(|o| (now - o.last_chunk_s, o.silence_timeout_s));
                         if let Some((silent_s, timeout_s)) = silent
                             && silent_s > timeout_s
                         {
                             self.revoke_policy_locked(&mut inner, &format!("silent for {silent_s:.2} s"));
                             Self::record_decision(
                                 &mut inner,
-                                GateDecision::note(GateVerdict::HeldStale, format!("policy silent for {silent_s:.2} s: holding")),
+                                GateDecision::note(
+                                    GateVerdict::HeldStale,
+                                    format!("policy silent for {silent_s:.2} s: holding"),
+                                ),
                             );
                         }
                     }
@@ -545,10 +587,17 @@ impl ArmController {
         let inner = self.lock();
         let (owner, owner_id) = match inner.driver {
             Driver::None => (v1::ControlSource::None, String::new()),
-            Driver::Teleop => (v1::ControlSource::Teleop, inner.teleop_session.map(|s| s.to_string()).unwrap_or_default()),
+            Driver::Teleop => (
+                v1::ControlSource::Teleop,
+                inner.teleop_session.map(|s| s.to_string()).unwrap_or_default(),
+            ),
             Driver::Policy => (
                 v1::ControlSource::Policy,
-                inner.policy.as_ref().map(|o| format!("{}:{}", o.name, o.session_id)).unwrap_or_default(),
+                inner
+                    .policy
+                    .as_ref()
+                    .map(|o| format!("{}:{}", o.name, o.session_id))
+                    .unwrap_or_default(),
             ),
         };
         let (health, health_message) = match health {
@@ -568,13 +617,18 @@ impl ArmController {
             engaged: inner.driver == Driver::Teleop && inner.teleop.engaged(),
             robot_from_target: Some(pose_to_proto(&inner.target)),
             robot_from_ee: feedback.as_ref().map(|f| pose_to_proto(&f.robot_from_ee)),
-            joint_positions_rad: feedback.as_ref().map(|f| f.joint_positions_rad.clone()).unwrap_or_default(),
+            joint_positions_rad: feedback
+                .as_ref()
+                .map(|f| f.joint_positions_rad.clone())
+                .unwrap_or_default(),
             joint_names: self.layout.joint_names().to_vec(),
             gripper_position: feedback.as_ref().map_or(0.0, |f| f.gripper_position),
             gripper_target: inner.gripper_target,
             last_decision: Some(decision_to_proto(&inner.last_decision)),
             feedback_time_ns: feedback.as_ref().map_or(0, |f| f.capture_time_ns),
-            feedback_age_s: feedback.as_ref().map_or(-1.0, |f| (now - f.capture_time_ns) as f64 * 1e-9),
+            feedback_age_s: feedback
+                .as_ref()
+                .map_or(-1.0, |f| (now - f.capture_time_ns) as f64 * 1e-9),
             commands_sent: inner.commands_sent,
             commands_rejected: inner.commands_rejected,
             commands_clamped: inner.commands_clamped,
@@ -584,14 +638,40 @@ impl ArmController {
 
     /// `observation.state` and the executed `action` for the recorder and for policies: the action is the
     /// last gated target relative to the same measured pose the state reports.
-    pub fn state_and_action(&self) -> Option<(Vec<f64>, Vec<f64>, Isometry3<f64>, i64)> {
+    pub fn state_and_action(&self) -> Option<ArmSample> {
         let feedback = self.bridge.feedback()?;
         let (target, gripper) = self.target();
-        let state =
-            self.layout.state_vector(&feedback.joint_positions_rad, &feedback.robot_from_ee, feedback.gripper_position).ok()?;
-        let action = self.layout.action_from_target(&feedback.robot_from_ee, &target, gripper, self.action_mode);
-        Some((state, action, feedback.robot_from_ee, feedback.capture_time_ns))
+        let state = self
+            .layout
+            .state_vector(
+                &feedback.joint_positions_rad,
+                &feedback.robot_from_ee,
+                feedback.gripper_position,
+            )
+            .ok()?;
+        let action =
+            self.layout
+                .action_from_target(&feedback.robot_from_ee, &target, gripper, self.action_mode);
+        Some(ArmSample {
+            state,
+            action,
+            robot_from_ee: feedback.robot_from_ee,
+            capture_time_ns: feedback.capture_time_ns,
+        })
     }
+}
+
+/// One arm's recorded quantities at one instant.
+#[derive(Debug, Clone)]
+pub struct ArmSample {
+    /// `observation.state` in the core layout.
+    pub state: Vec<f64>,
+    /// The executed action: last gated target relative to `robot_from_ee`.
+    pub action: Vec<f64>,
+    /// The measured pose both are taken at.
+    pub robot_from_ee: Isometry3<f64>,
+    /// Server monotonic time of the feedback.
+    pub capture_time_ns: i64,
 }
 
 /// Proto pose from an isometry.
@@ -628,7 +708,11 @@ pub fn pose_from_proto(pose: &v1::Pose) -> Result<Isometry3<f64>, String> {
 }
 
 /// Runs `tick` on every arm at `rate_hz` until shutdown.
-pub async fn run_ticks(arms: Vec<Arc<ArmController>>, rate_hz: f64, mut shutdown: tokio::sync::watch::Receiver<bool>) {
+pub async fn run_ticks(
+    arms: Vec<Arc<ArmController>>,
+    rate_hz: f64,
+    mut shutdown: tokio::sync::watch::Receiver<bool>,
+) {
     let mut ticker = tokio::time::interval(std::time::Duration::from_secs_f64(1.0 / rate_hz));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {

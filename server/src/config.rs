@@ -125,6 +125,23 @@ pub struct ArmConfig {
     /// Simulated arm settings (bridge = "sim").
     #[serde(default)]
     pub sim: Option<phone2act_bridges::sim::SimConfig>,
+    /// Dobot CR5 connection and ServoP settings (bridge = "dobot").
+    #[serde(default)]
+    pub dobot: Option<phone2act_bridges::dobot::DobotConfig>,
+    /// SO-101 serial bus and calibration (bridge = "so101").
+    #[serde(default)]
+    pub so101: Option<phone2act_bridges::so101::So101Config>,
+    /// Out-of-process bridge settings (bridge = "remote").
+    #[serde(default)]
+    pub remote: Option<RemoteArmConfig>,
+}
+
+/// A remote arm: the joints its bridge will report, so the dataset layout is known before it attaches.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RemoteArmConfig {
+    /// Joint names in feedback order; a bridge that attaches with other names is refused.
+    pub joint_names: Vec<String>,
 }
 
 /// Kinds of camera source.
@@ -315,6 +332,14 @@ impl Config {
             if !names.insert(arm.name.as_str()) {
                 return Err(invalid(format!("arm name {:?} appears twice", arm.name)));
             }
+            if arm.bridge == BridgeKind::Remote
+                && arm.remote.as_ref().is_none_or(|r| r.joint_names.is_empty())
+            {
+                return Err(invalid(format!(
+                    "arm {:?}: bridge \"remote\" needs [arms.remote] joint_names = [...] (the joints its bridge reports)",
+                    arm.name
+                )));
+            }
         }
         let mut cams = std::collections::HashSet::new();
         for cam in &self.cameras {
@@ -474,6 +499,37 @@ mod tests {
                 .unwrap_err()
                 .to_string();
         assert!(err.contains("appears twice"), "{err}");
+    }
+
+    #[test]
+    fn every_shipped_config_parses() {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/config");
+        let mut seen = 0;
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let text = std::fs::read_to_string(&path).unwrap();
+                Config::from_toml_str(&text, &path.display().to_string(), Vec::new())
+                    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                seen += 1;
+            }
+        }
+        assert!(
+            seen >= 4,
+            "expected the default, reference, bimanual and hardware configs, saw {seen}"
+        );
+    }
+
+    #[test]
+    fn a_remote_arm_needs_its_joint_names() {
+        let err = parse("[[arms]]\nname = \"r\"\nbridge = \"remote\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("joint_names"), "{err}");
+        let ok = parse(
+            "[[arms]]\nname = \"r\"\nbridge = \"remote\"\n[arms.remote]\njoint_names = [\"j1\", \"j2\"]\n",
+        );
+        assert!(ok.is_ok(), "{ok:?}");
     }
 
     #[test]

@@ -5,10 +5,14 @@
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod recording;
 pub mod services;
 
 use crate::app::App;
 pub use crate::config::Config;
+use phone2act_proto::v1::bridge_server::BridgeServer;
+use phone2act_proto::v1::cameras_server::CamerasServer;
+use phone2act_proto::v1::episodes_server::EpisodesServer;
 use phone2act_proto::v1::policy_server::PolicyServer;
 use phone2act_proto::v1::system_server::SystemServer;
 use phone2act_proto::v1::teleop_server::TeleopServer;
@@ -21,6 +25,9 @@ use tonic::transport::Server;
 
 /// Rate of the arm controllers' periodic work (chunk steps, silence and staleness checks).
 pub const ARM_TICK_HZ: f64 = 500.0;
+
+/// Largest camera frame accepted over Cameras.Push (a 1920x1080 RGB8 frame is 6.2 MB).
+pub const MAX_FRAME_BYTES: usize = 8 << 20;
 
 /// How long in-flight streams get to finish after shutdown is requested.
 pub const SHUTDOWN_GRACE: Duration = Duration::from_millis(700);
@@ -64,7 +71,9 @@ pub async fn serve_app(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    let local = listener.local_addr().map_err(|e| ServerError::Startup(e.to_string()))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| ServerError::Startup(e.to_string()))?;
     tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
@@ -86,12 +95,36 @@ pub async fn serve_app(
         .build_v1alpha()?;
 
     let auth = services::auth::TokenCheck::new(app.config.server.token.clone());
-    let system =
-        SystemServer::with_interceptor(services::system::SystemService::new(Arc::clone(&app)), auth.clone());
-    let teleop =
-        TeleopServer::with_interceptor(services::teleop::TeleopService::new(Arc::clone(&app)), auth.clone());
-    let policy = PolicyServer::with_interceptor(services::policy::PolicyService::new(Arc::clone(&app)), auth);
-    tokio::spawn(arm::run_ticks(app.arms.clone(), ARM_TICK_HZ, app.shutdown_signal()));
+    let system = SystemServer::with_interceptor(
+        services::system::SystemService::new(Arc::clone(&app)),
+        auth.clone(),
+    );
+    let teleop = TeleopServer::with_interceptor(
+        services::teleop::TeleopService::new(Arc::clone(&app)),
+        auth.clone(),
+    );
+    let policy = PolicyServer::with_interceptor(
+        services::policy::PolicyService::new(Arc::clone(&app)),
+        auth.clone(),
+    );
+    let episodes = EpisodesServer::with_interceptor(
+        services::episodes::EpisodesService::new(Arc::clone(&app)),
+        auth.clone(),
+    );
+    let bridge = BridgeServer::with_interceptor(
+        services::bridge::BridgeService::new(Arc::clone(&app)),
+        auth.clone(),
+    );
+    let cameras = tonic::service::interceptor::InterceptedService::new(
+        CamerasServer::new(services::cameras::CamerasService::new(Arc::clone(&app)))
+            .max_decoding_message_size(MAX_FRAME_BYTES),
+        auth,
+    );
+    tokio::spawn(arm::run_ticks(
+        app.arms.clone(),
+        ARM_TICK_HZ,
+        app.shutdown_signal(),
+    ));
 
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let app_for_shutdown = Arc::clone(&app);
@@ -109,6 +142,9 @@ pub async fn serve_app(
         .add_service(system)
         .add_service(teleop)
         .add_service(policy)
+        .add_service(episodes)
+        .add_service(bridge)
+        .add_service(cameras)
         .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
             let _ = stop_rx.await;
         });

@@ -9,18 +9,23 @@ use tokio::task::JoinHandle;
 
 /// The embedded default configuration with its dataset under `dataset_root`.
 pub fn default_config(dataset_root: &std::path::Path) -> Config {
-    let mut config = Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())
-        .expect("embedded default parses");
-    config.recorder.root = dataset_root.to_owned();
+    let mut config =
+        Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())
+            .expect("embedded default parses");
+    dataset_root.clone_into(&mut config.recorder.root);
     config
 }
 
 /// The shipped bimanual configuration (two simulated arms `left` and `right`).
 pub fn bimanual_config(dataset_root: &std::path::Path) -> Config {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../server/config/bimanual-sim.toml");
-    let mut config = Config::from_toml_str(&std::fs::read_to_string(path).expect("bimanual config"), path, Vec::new())
-        .expect("bimanual config parses");
-    config.recorder.root = dataset_root.to_owned();
+    let mut config = Config::from_toml_str(
+        &std::fs::read_to_string(path).expect("bimanual config"),
+        path,
+        Vec::new(),
+    )
+    .expect("bimanual config parses");
+    dataset_root.clone_into(&mut config.recorder.root);
     config
 }
 
@@ -37,6 +42,31 @@ pub async fn sim_pose_of(client: &Client, arm: &str) -> [f64; 3] {
     pos(state.robot_from_ee.as_ref().expect("arm has feedback"))
 }
 
+/// Copies a dataset a test produced to `$PHONE2ACT_CONFORMANCE_DIR/<name>` so the conformance suite loads
+/// it with the real lerobot library. Does nothing when the variable is unset.
+pub fn keep_for_conformance(name: &str, dataset: &std::path::Path) {
+    let Some(root) = std::env::var_os("PHONE2ACT_CONFORMANCE_DIR") else {
+        return;
+    };
+    let dest = std::path::Path::new(&root).join(name);
+    let _ = std::fs::remove_dir_all(&dest);
+    copy_dir(dataset, &dest).expect("copy dataset for conformance");
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(to)?;
+    for entry in std::fs::read_dir(from)? {
+        let entry = entry?;
+        let target = to.join(entry.file_name());
+        if entry.file_type()?.is_dir() {
+            copy_dir(&entry.path(), &target)?;
+        } else {
+            std::fs::copy(entry.path(), target)?;
+        }
+    }
+    Ok(())
+}
+
 /// A server running in-process on 127.0.0.1 with an ephemeral port.
 pub struct TestServer {
     pub addr: SocketAddr,
@@ -50,7 +80,9 @@ impl TestServer {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         let (stop, stopped) = oneshot::channel::<()>();
-        let task = tokio::spawn(phone2act_server::run(config, listener, async {
+        // Start the app here, not inside the spawned server, so a bad config fails the test with its message.
+        let app = std::sync::Arc::new(phone2act_server::app::App::start(config)?);
+        let task = tokio::spawn(phone2act_server::serve_app(app, listener, async {
             let _ = stopped.await;
         }));
         Ok(Self {
@@ -64,7 +96,7 @@ impl TestServer {
     pub async fn start_default(dataset_root: &std::path::Path) -> anyhow::Result<Self> {
         let mut config =
             Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())?;
-        config.recorder.root = dataset_root.to_owned();
+        dataset_root.clone_into(&mut config.recorder.root);
         Self::start(config).await
     }
 

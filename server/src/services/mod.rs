@@ -1,6 +1,9 @@
 //! Thin tonic adapters: each service translates wire messages to calls on [`crate::app::App`].
 
 pub mod auth;
+pub mod bridge;
+pub mod cameras;
+pub mod episodes;
 pub mod policy;
 pub mod system;
 pub mod teleop;

@@ -3,11 +3,11 @@
 
 use crate::app::App;
 use crate::arm::{now_s, pose_to_proto};
+use nalgebra::Isometry3;
 use phone2act_core::ActionMode;
 use phone2act_proto::v1;
 use phone2act_proto::v1::policy_server::Policy;
 use phone2act_recorder::clock::monotonic_ns;
-use nalgebra::Isometry3;
 use std::collections::VecDeque;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -74,12 +74,16 @@ impl App {
         let mut out = Vec::with_capacity(arms.len());
         let mut poses = Vec::with_capacity(arms.len());
         for name in arms {
-            let arm = self.arm(name).ok_or_else(|| Status::not_found(format!("unknown arm {name:?}")))?;
+            let arm = self
+                .arm(name)
+                .ok_or_else(|| Status::not_found(format!("unknown arm {name:?}")))?;
             let snapshot = arm.snapshot();
-            let (state, pose) = match arm.state_and_action() {
-                Some((state, _action, pose, _)) => (state, pose),
-                None => return Err(Status::unavailable(format!("arm {name:?} has no robot feedback yet"))),
+            let Some(sample) = arm.state_and_action() else {
+                return Err(Status::unavailable(format!(
+                    "arm {name:?} has no robot feedback yet"
+                )));
             };
+            let (state, pose) = (sample.state, sample.robot_from_ee);
             poses.push((name.clone(), pose));
             out.push(v1::ArmObservation {
                 arm: name.clone(),
@@ -97,9 +101,9 @@ impl App {
                     continue;
                 }
                 if let Some(frame) = cam.slot.latest() {
-                    let data = match encoding {
-                        _ => frame.rgb.as_ref().clone(),
-                    };
+                    // JPEG is produced once the recorder's encoder helper lands; until then frames go raw.
+                    let _ = jpeg_quality;
+                    let data = frame.rgb.as_ref().clone();
                     frames.push(v1::CameraFrame {
                         camera: cam.config.name.clone(),
                         width: frame.width,
@@ -119,16 +123,34 @@ impl App {
             frames,
             task: self.current_task(),
         };
-        Ok((observation, ObservationAnchor { id, time_s: timestamp_ns as f64 * 1e-9, poses }))
+        Ok((
+            observation,
+            ObservationAnchor {
+                id,
+                time_s: timestamp_ns as f64 * 1e-9,
+                poses,
+            },
+        ))
     }
 
     /// Schedules `chunk` for `session`.
-    pub(crate) fn push_chunk(&self, session: &PolicySessionState, chunk: &v1::ActionChunk) -> Result<v1::ChunkAccepted, Status> {
+    pub(crate) fn push_chunk(
+        &self,
+        session: &PolicySessionState,
+        chunk: &v1::ActionChunk,
+    ) -> Result<v1::ChunkAccepted, Status> {
         let arm = self.arm(&chunk.arm).ok_or_else(|| {
-            Status::not_found(format!("unknown arm {:?}; configured arms: {}", chunk.arm, self.arm_names().join(", ")))
+            Status::not_found(format!(
+                "unknown arm {:?}; configured arms: {}",
+                chunk.arm,
+                self.arm_names().join(", ")
+            ))
         })?;
         if !session.arms.contains(&chunk.arm) {
-            return Err(Status::failed_precondition(format!("this session did not open arm {:?}", chunk.arm)));
+            return Err(Status::failed_precondition(format!(
+                "this session did not open arm {:?}",
+                chunk.arm
+            )));
         }
         if chunk.steps.is_empty() {
             return Err(Status::invalid_argument("chunk has no steps"));
@@ -136,7 +158,12 @@ impl App {
         let mode = match v1::ActionMode::try_from(chunk.mode) {
             Ok(v1::ActionMode::Unspecified | v1::ActionMode::DeltaEe) => ActionMode::Delta,
             Ok(v1::ActionMode::AbsoluteEe) => ActionMode::Absolute,
-            Err(_) => return Err(Status::invalid_argument(format!("unknown action mode {}", chunk.mode))),
+            Err(_) => {
+                return Err(Status::invalid_argument(format!(
+                    "unknown action mode {}",
+                    chunk.mode
+                )));
+            }
         };
         let width = arm.layout.action_names(mode).len();
         for (k, step) in chunk.steps.iter().enumerate() {
@@ -149,17 +176,24 @@ impl App {
                 )));
             }
             if let Some(i) = step.values.iter().position(|v| !v.is_finite()) {
-                return Err(Status::invalid_argument(format!("step {k} value {i} is not finite")));
+                return Err(Status::invalid_argument(format!(
+                    "step {k} value {i} is not finite"
+                )));
             }
         }
         if !chunk.step_period_s.is_finite() || chunk.step_period_s <= 0.0 {
-            return Err(Status::invalid_argument(format!("step_period_s must be > 0, got {}", chunk.step_period_s)));
+            return Err(Status::invalid_argument(format!(
+                "step_period_s must be > 0, got {}",
+                chunk.step_period_s
+            )));
         }
         let (anchor_s, reference) = if chunk.observation_id == 0 {
             let pose = arm
                 .state_and_action()
-                .map(|(_, _, pose, _)| pose)
-                .ok_or_else(|| Status::unavailable(format!("arm {:?} has no robot feedback yet", chunk.arm)))?;
+                .map(|sample| sample.robot_from_ee)
+                .ok_or_else(|| {
+                    Status::unavailable(format!("arm {:?} has no robot feedback yet", chunk.arm))
+                })?;
             (now_s(), pose)
         } else {
             let anchors = session.anchors.lock().unwrap_or_else(PoisonError::into_inner);
@@ -174,11 +208,20 @@ impl App {
                 .iter()
                 .find(|(name, _)| name == &chunk.arm)
                 .map(|(_, p)| *p)
-                .ok_or_else(|| Status::invalid_argument(format!("observation {} has no arm {:?}", anchor.id, chunk.arm)))?;
+                .ok_or_else(|| {
+                    Status::invalid_argument(format!("observation {} has no arm {:?}", anchor.id, chunk.arm))
+                })?;
             (anchor.time_s, pose)
         };
         let actions: Vec<Vec<f64>> = chunk.steps.iter().map(|s| s.values.clone()).collect();
-        let report = arm.push_chunk(session.id, &actions, chunk.step_period_s, anchor_s, reference, mode)?;
+        let report = arm.push_chunk(
+            session.id,
+            &actions,
+            chunk.step_period_s,
+            anchor_s,
+            reference,
+            mode,
+        )?;
         Ok(v1::ChunkAccepted {
             arm: chunk.arm.clone(),
             observation_id: chunk.observation_id,
@@ -199,11 +242,18 @@ impl PolicySessionState {
 }
 
 fn send_observation(app: &App, session: &PolicySessionState) {
-    match app.observe(&session.arms, &session.cameras, session.encoding, session.jpeg_quality) {
+    match app.observe(
+        &session.arms,
+        &session.cameras,
+        session.encoding,
+        session.jpeg_quality,
+    ) {
         Ok((obs, anchor)) => {
             session.remember(anchor);
             // Latest wins: a policy that is busy inferring misses an observation rather than queueing it.
-            let _ = session.events.try_send(event(v1::policy_event::Event::Observation(obs)));
+            let _ = session
+                .events
+                .try_send(event(v1::policy_event::Event::Observation(obs)));
         }
         Err(status) => tracing::debug!(%status, "observation skipped"),
     }
@@ -219,12 +269,26 @@ impl Policy for PolicyService {
     ) -> Result<Response<Self::SessionStream>, Status> {
         let mut inbound = request.into_inner();
         let hello = match inbound.message().await? {
-            Some(v1::PolicyRequest { request: Some(v1::policy_request::Request::Hello(h)) }) => h,
-            Some(_) => return Err(Status::invalid_argument("the first message of a policy session must be a PolicyHello")),
-            None => return Err(Status::invalid_argument("the stream ended before its PolicyHello")),
+            Some(v1::PolicyRequest {
+                request: Some(v1::policy_request::Request::Hello(h)),
+            }) => h,
+            Some(_) => {
+                return Err(Status::invalid_argument(
+                    "the first message of a policy session must be a PolicyHello",
+                ));
+            }
+            None => {
+                return Err(Status::invalid_argument(
+                    "the stream ended before its PolicyHello",
+                ));
+            }
         };
         let app = Arc::clone(&self.app);
-        let arms = if hello.arms.is_empty() { app.arm_names() } else { hello.arms.clone() };
+        let arms = if hello.arms.is_empty() {
+            app.arm_names()
+        } else {
+            hello.arms.clone()
+        };
         for name in &arms {
             if app.arm(name).is_none() {
                 return Err(Status::not_found(format!(
@@ -238,7 +302,9 @@ impl Policy for PolicyService {
                 return Err(Status::not_found(format!("unknown camera {cam:?}")));
             }
         }
-        if !hello.observation_rate_hz.is_finite() || !(0.0..=MAX_OBSERVATION_RATE_HZ).contains(&hello.observation_rate_hz) {
+        if !hello.observation_rate_hz.is_finite()
+            || !(0.0..=MAX_OBSERVATION_RATE_HZ).contains(&hello.observation_rate_hz)
+        {
             return Err(Status::invalid_argument(format!(
                 "observation_rate_hz must be in 0..={MAX_OBSERVATION_RATE_HZ}, got {}",
                 hello.observation_rate_hz
@@ -249,18 +315,31 @@ impl Policy for PolicyService {
         } else {
             1.0
         };
-        let encoding = v1::ImageEncoding::try_from(hello.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
-        let encoding = if encoding == v1::ImageEncoding::Unspecified { v1::ImageEncoding::Jpeg } else { encoding };
+        let encoding =
+            v1::ImageEncoding::try_from(hello.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
+        let encoding = if encoding == v1::ImageEncoding::Unspecified {
+            v1::ImageEncoding::Jpeg
+        } else {
+            encoding
+        };
         let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(16);
         let id = app.next_session_id();
-        let name = if hello.policy_name.is_empty() { format!("policy-{id}") } else { hello.policy_name.clone() };
+        let name = if hello.policy_name.is_empty() {
+            format!("policy-{id}")
+        } else {
+            hello.policy_name.clone()
+        };
         let session = Arc::new(PolicySessionState {
             id,
             name: name.clone(),
             arms: arms.clone(),
             cameras: hello.cameras.clone(),
             encoding,
-            jpeg_quality: if hello.jpeg_quality == 0 { 85 } else { hello.jpeg_quality.min(100) as u8 },
+            jpeg_quality: if hello.jpeg_quality == 0 {
+                85
+            } else {
+                hello.jpeg_quality.min(100) as u8
+            },
             events: tx.clone(),
             anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
         });
@@ -291,9 +370,12 @@ impl Policy for PolicyService {
                 })
                 .collect(),
         };
-        tx.try_send(event(v1::policy_event::Event::Ready(ready))).map_err(|_| Status::internal("event queue"))?;
+        tx.try_send(event(v1::policy_event::Event::Ready(ready)))
+            .map_err(|_| Status::internal("event queue"))?;
         if hello.request_control {
-            let _ = tx.try_send(event(v1::policy_event::Event::Granted(v1::ControlGranted { arms: arms.clone() })));
+            let _ = tx.try_send(event(v1::policy_event::Event::Granted(v1::ControlGranted {
+                arms: arms.clone(),
+            })));
         }
         app.register_policy(Arc::clone(&session));
         tracing::info!(session = id, policy = %name, ?arms, control = hello.request_control, "policy session opened");
@@ -312,7 +394,11 @@ impl Policy for PolicyService {
         let rate_hz = hello.observation_rate_hz;
         let mut shutdown = app.shutdown_signal();
         tokio::spawn(async move {
-            let mut ticker = tokio::time::interval(Duration::from_secs_f64(if rate_hz > 0.0 { 1.0 / rate_hz } else { 3600.0 }));
+            let mut ticker = tokio::time::interval(Duration::from_secs_f64(if rate_hz > 0.0 {
+                1.0 / rate_hz
+            } else {
+                3600.0
+            }));
             ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             loop {
                 tokio::select! {
@@ -355,7 +441,9 @@ impl Policy for PolicyService {
             app.unregister_policy(session.id);
             tracing::info!(session = session.id, "policy session closed");
         });
-        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out_rx))))
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(out_rx),
+        )))
     }
 
     async fn get_observation(
@@ -363,24 +451,37 @@ impl Policy for PolicyService {
         request: Request<v1::GetObservationRequest>,
     ) -> Result<Response<v1::Observation>, Status> {
         let req = request.into_inner();
-        let arms = if req.arms.is_empty() { self.app.arm_names() } else { req.arms };
-        let encoding = v1::ImageEncoding::try_from(req.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
-        let encoding = if encoding == v1::ImageEncoding::Unspecified { v1::ImageEncoding::Jpeg } else { encoding };
+        let arms = if req.arms.is_empty() {
+            self.app.arm_names()
+        } else {
+            req.arms
+        };
+        let encoding =
+            v1::ImageEncoding::try_from(req.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
+        let encoding = if encoding == v1::ImageEncoding::Unspecified {
+            v1::ImageEncoding::Jpeg
+        } else {
+            encoding
+        };
         let (obs, _) = self.app.observe(&arms, &req.cameras, encoding, 85)?;
         Ok(Response::new(obs))
     }
 
-    async fn push_chunk(&self, request: Request<v1::PushChunkRequest>) -> Result<Response<v1::ChunkAccepted>, Status> {
+    async fn push_chunk(
+        &self,
+        request: Request<v1::PushChunkRequest>,
+    ) -> Result<Response<v1::ChunkAccepted>, Status> {
         let req = request.into_inner();
-        let id: u64 = req
-            .session_id
-            .parse()
-            .map_err(|_| Status::invalid_argument(format!("session_id {:?} is not a session id", req.session_id)))?;
+        let id: u64 = req.session_id.parse().map_err(|_| {
+            Status::invalid_argument(format!("session_id {:?} is not a session id", req.session_id))
+        })?;
         let session = self
             .app
             .policy_session(id)
             .ok_or_else(|| Status::not_found(format!("no open policy session {id}")))?;
-        let chunk = req.chunk.ok_or_else(|| Status::invalid_argument("missing chunk"))?;
+        let chunk = req
+            .chunk
+            .ok_or_else(|| Status::invalid_argument("missing chunk"))?;
         Ok(Response::new(self.app.push_chunk(&session, &chunk)?))
     }
 }

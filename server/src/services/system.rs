@@ -31,12 +31,7 @@ impl System for SystemService {
         _: Request<v1::ListArmsRequest>,
     ) -> Result<Response<v1::ListArmsResponse>, Status> {
         Ok(Response::new(v1::ListArmsResponse {
-            arms: self
-                .app
-                .arms
-                .iter()
-                .map(|a| a.snapshot())
-                .collect(),
+            arms: self.app.arms.iter().map(|a| a.snapshot()).collect(),
         }))
     }
 

@@ -47,7 +47,9 @@ impl Teleop for TeleopService {
             .await?
             .ok_or_else(|| Status::invalid_argument("the stream ended before its first sample"))?;
         if first.arm.is_empty() {
-            return Err(Status::invalid_argument("the first sample must name the arm (field `arm`)"));
+            return Err(Status::invalid_argument(
+                "the first sample must name the arm (field `arm`)",
+            ));
         }
         let arm = self.app.arm(&first.arm).ok_or_else(|| {
             Status::not_found(format!(
@@ -132,7 +134,9 @@ impl Teleop for TeleopService {
             arm.unbind_teleop(session);
             tracing::info!(arm = %arm.name, session, "teleop session ended");
         });
-        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))))
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
     }
 }
 
@@ -149,7 +153,10 @@ fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
         if let Some(pose) = &sample.tracking_from_phone {
             poses += 1;
             input.pose = Some(pose_from_proto(pose));
-            input.tracking_ok = matches!(tracking, v1::TrackingState::Tracking | v1::TrackingState::Unspecified);
+            input.tracking_ok = matches!(
+                tracking,
+                v1::TrackingState::Tracking | v1::TrackingState::Unspecified
+            );
         } else if tracking == v1::TrackingState::Lost || tracking == v1::TrackingState::Limited {
             input.tracking_ok = false;
         }

@@ -41,14 +41,27 @@ fn phone_pose(t_s: f64, phase: f64) -> v1::Pose {
     // A slow 3 cm circle: inside every limit, never a jump.
     let a = 0.03;
     let w = 2.0 * std::f64::consts::PI * 0.5;
-    v1::Pose::from_parts([a * (w * t_s + phase).cos() - a, a * (w * t_s + phase).sin(), 0.0], [0.0, 0.0, 0.0, 1.0])
+    v1::Pose::from_parts(
+        [a * (w * t_s + phase).cos() - a, a * (w * t_s + phase).sin(), 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    )
 }
 
 async fn phone(client: Client, arm: &'static str, rate_hz: f64, seconds: f64) -> anyhow::Result<u64> {
     // Feedback is not read: the server drops feedback a client does not take (latest wins), so an idle
     // reader never slows the control path.
-    let mut session = client.teleop(arm, TeleopOptions { client_name: "bench".into(), take_over: true }).await?;
-    session.send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0).await?;
+    let mut session = client
+        .teleop(
+            arm,
+            TeleopOptions {
+                client_name: "bench".into(),
+                take_over: true,
+            },
+        )
+        .await?;
+    session
+        .send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0)
+        .await?;
     let start = Instant::now();
     let period = Duration::from_secs_f64(1.0 / rate_hz);
     let mut sent = 0u64;
@@ -81,8 +94,10 @@ async fn policy(client: Client, seconds: f64) -> anyhow::Result<u64> {
         let obs = session.next_observation().await?;
         let steps = (0..16)
             .map(|k| {
-                let dx = 0.01 * ((k as f64) * 0.3 + chunks as f64).sin();
-                v1::ActionStep { values: vec![dx, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0] }
+                let dx = 0.01 * (f64::from(k) * 0.3 + chunks as f64).sin();
+                v1::ActionStep {
+                    values: vec![dx, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                }
             })
             .collect();
         session
@@ -125,7 +140,10 @@ fn main() -> anyhow::Result<()> {
         .context("--seconds takes a number")?
         .unwrap_or(10.0);
     let config = Config::from_toml_str(CONFIG, "control-bench", Vec::new())?;
-    let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let server_rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
     let app = Arc::new(App::start(config)?);
     let listener = server_rt.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
     let url = format!("http://{}", listener.local_addr()?);
@@ -135,7 +153,9 @@ fn main() -> anyhow::Result<()> {
     }));
 
     // Clients on their own current-thread runtime, as a separate process would be.
-    let client_rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let client_rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
     println!("phone2act control-path benchmark ({seconds} s per phase, release build expected)");
     let (sent_l, sent_r, chunks) = client_rt.block_on(async {
         let client = Client::connect(&url, None).await?;
@@ -150,7 +170,11 @@ fn main() -> anyhow::Result<()> {
         );
         anyhow::Ok((l?, r?, p?))
     })?;
-    report("sample → bridge, 2 arms × 60 Hz + 1 policy", &app, &["left", "right"]);
+    report(
+        "sample → bridge, 2 arms × 60 Hz + 1 policy",
+        &app,
+        &["left", "right"],
+    );
     println!("  phone samples sent: {sent_l} + {sent_r}; policy chunks pushed: {chunks}");
 
     // Throughput: one phone streaming as fast as the transport allows.
@@ -159,8 +183,18 @@ fn main() -> anyhow::Result<()> {
     let started = Instant::now();
     let sent = client_rt.block_on(async {
         let client = Client::connect(&url, None).await?;
-        let mut session = client.teleop("left", TeleopOptions { client_name: "flood".into(), take_over: true }).await?;
-        session.send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0).await?;
+        let mut session = client
+            .teleop(
+                "left",
+                TeleopOptions {
+                    client_name: "flood".into(),
+                    take_over: true,
+                },
+            )
+            .await?;
+        session
+            .send_pose(phone_pose(0.0, 0.0), vec![buttons::clutch_engage()], 0)
+            .await?;
         let mut sent = 0u64;
         let t0 = Instant::now();
         while t0.elapsed().as_secs_f64() < seconds.min(5.0) {

@@ -1,0 +1,181 @@
+//! `phone2act.v1.Bridge`: out-of-process bridges. The stream is a thin adapter over
+//! [`phone2act_bridges::remote::RemoteBridge`]: commands (latest wins) and control requests go down, feedback
+//! and health reports come up. A dedicated thread waits on the remote bridge's condition variable so the
+//! async runtime never blocks.
+
+use crate::app::App;
+use crate::arm::pose_from_proto;
+use phone2act_bridges::remote::Downstream;
+use phone2act_bridges::{Control, Feedback, Health};
+use phone2act_proto::v1;
+use phone2act_proto::v1::bridge_server::Bridge;
+use phone2act_recorder::clock::monotonic_ns;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// The Bridge service adapter.
+#[derive(Debug, Clone)]
+pub struct BridgeService {
+    app: Arc<App>,
+}
+
+impl BridgeService {
+    pub fn new(app: Arc<App>) -> Self {
+        Self { app }
+    }
+}
+
+type DownStream = Pin<Box<dyn Stream<Item = Result<v1::BridgeDownstream, Status>> + Send>>;
+
+fn down(message: v1::bridge_downstream::Message) -> v1::BridgeDownstream {
+    v1::BridgeDownstream {
+        message: Some(message),
+    }
+}
+
+fn feedback_from_proto(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
+    let pose = fb.robot_from_ee.as_ref().ok_or("feedback has no robot_from_ee")?;
+    Ok(Feedback {
+        // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
+        capture_time_ns: monotonic_ns(),
+        joint_positions_rad: fb.joint_positions_rad.clone(),
+        robot_from_ee: pose_from_proto(pose)?,
+        gripper_position: fb.gripper_position,
+        applied_seq: fb.applied_seq,
+        task_success: false,
+    })
+}
+
+#[tonic::async_trait]
+impl Bridge for BridgeService {
+    type AttachStream = DownStream;
+
+    async fn attach(
+        &self,
+        request: Request<Streaming<v1::BridgeUpstream>>,
+    ) -> Result<Response<Self::AttachStream>, Status> {
+        let mut inbound = request.into_inner();
+        let hello = match inbound.message().await? {
+            Some(v1::BridgeUpstream {
+                message: Some(v1::bridge_upstream::Message::Hello(h)),
+            }) => h,
+            Some(_) => return Err(Status::invalid_argument("the first message must be BridgeHello")),
+            None => return Err(Status::invalid_argument("the stream ended before BridgeHello")),
+        };
+        let remote = self.app.remote_bridges.get(&hello.arm).cloned().ok_or_else(|| {
+            let remote_arms: Vec<_> = self.app.remote_bridges.keys().cloned().collect();
+            Status::not_found(format!(
+                "arm {:?} is not configured with bridge = \"remote\" (remote arms: {})",
+                hello.arm,
+                if remote_arms.is_empty() {
+                    "none".to_owned()
+                } else {
+                    remote_arms.join(", ")
+                }
+            ))
+        })?;
+        let handle = Arc::new(
+            remote
+                .attach(hello.joint_names.clone(), hello.supports_orientation)
+                .map_err(|e| Status::invalid_argument(e.to_string()))?,
+        );
+        tracing::info!(arm = %hello.arm, bridge = %hello.bridge_name, "remote bridge attached");
+        let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::BridgeDownstream, Status>>(4);
+        tx.try_send(Ok(down(v1::bridge_downstream::Message::Welcome(
+            v1::BridgeWelcome {
+                arm: hello.arm.clone(),
+                expected_feedback_hz: 50.0,
+            },
+        ))))
+        .map_err(|_| Status::internal("stream queue"))?;
+
+        let down_handle = Arc::clone(&handle);
+        let down_tx = tx.clone();
+        std::thread::Builder::new()
+            .name(format!("bridge-attach-{}", hello.arm))
+            .spawn(move || {
+                loop {
+                    if down_tx.is_closed() {
+                        break;
+                    }
+                    let message = match down_handle.next(Duration::from_millis(100)) {
+                        Ok(Some(Downstream::Command(c))) => {
+                            v1::bridge_downstream::Message::Command(v1::BridgeCommand {
+                                seq: c.seq,
+                                robot_from_target: Some(crate::arm::pose_to_proto(&c.robot_from_target)),
+                                gripper_target: c.gripper_target,
+                                issue_time_ns: c.issue_time_ns,
+                            })
+                        }
+                        Ok(Some(Downstream::Control(c))) => {
+                            let kind = match c {
+                                Control::Enable => v1::bridge_control::Kind::Enable,
+                                Control::Disable => v1::bridge_control::Kind::Disable,
+                                Control::ClearError => v1::bridge_control::Kind::ClearError,
+                                Control::Reconnect => v1::bridge_control::Kind::Reconnect,
+                            };
+                            v1::bridge_downstream::Message::Control(v1::BridgeControl { kind: kind as i32 })
+                        }
+                        Ok(None) => continue,
+                        Err(e) => {
+                            let _ = down_tx.blocking_send(Err(Status::aborted(e.to_string())));
+                            break;
+                        }
+                    };
+                    if down_tx.blocking_send(Ok(down(message))).is_err() {
+                        break;
+                    }
+                }
+            })
+            .map_err(|e| Status::internal(format!("cannot start bridge thread: {e}")))?;
+
+        let mut shutdown = self.app.shutdown_signal();
+        tokio::spawn(async move {
+            loop {
+                let msg = tokio::select! {
+                    msg = inbound.message() => msg,
+                    () = crate::app::stopped(&mut shutdown) => break,
+                };
+                match msg {
+                    Ok(Some(v1::BridgeUpstream {
+                        message: Some(message),
+                    })) => {
+                        let result = match message {
+                            v1::bridge_upstream::Message::Feedback(fb) => feedback_from_proto(&fb)
+                                .and_then(|f| handle.publish_feedback(f).map_err(|e| e.to_string())),
+                            v1::bridge_upstream::Message::Status(report) => {
+                                let health = match v1::BridgeHealth::try_from(report.health) {
+                                    Ok(v1::BridgeHealth::Ready) => Health::Ready,
+                                    Ok(v1::BridgeHealth::Connecting) => Health::Connecting,
+                                    Ok(v1::BridgeHealth::Error) => Health::Error(report.message),
+                                    _ => Health::Disconnected(report.message),
+                                };
+                                handle.report_health(health).map_err(|e| e.to_string())
+                            }
+                            v1::bridge_upstream::Message::Hello(_) => {
+                                Err("BridgeHello sent twice".to_owned())
+                            }
+                        };
+                        if let Err(e) = result {
+                            // Bad feedback is refused without ending the stream: the arm keeps its last good state.
+                            tracing::warn!(error = %e, "remote bridge message refused");
+                            if !handle.is_current() {
+                                break;
+                            }
+                        }
+                    }
+                    Ok(Some(_)) => {}
+                    Ok(None) | Err(_) => break,
+                }
+            }
+            handle.detach();
+            tracing::info!("remote bridge detached");
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
+    }
+}

@@ -1,0 +1,147 @@
+//! `phone2act.v1.Episodes`: start, stop (save), discard, re-record, list, status and watch. The recorder
+//! does file I/O, so calls run on blocking-capable workers.
+
+use crate::app::{App, blocking};
+use crate::recording::{episode_to_proto, status_of, status_to_proto};
+use phone2act_proto::v1;
+use phone2act_proto::v1::episodes_server::Episodes;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
+
+/// The Episodes service adapter.
+#[derive(Debug, Clone)]
+pub struct EpisodesService {
+    app: Arc<App>,
+}
+
+impl EpisodesService {
+    pub fn new(app: Arc<App>) -> Self {
+        Self { app }
+    }
+}
+
+type StatusStream = Pin<Box<dyn Stream<Item = Result<v1::RecordingStatus, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl Episodes for EpisodesService {
+    async fn start(
+        &self,
+        request: Request<v1::StartEpisodeRequest>,
+    ) -> Result<Response<v1::StartEpisodeResponse>, Status> {
+        let task = request.into_inner().task;
+        let app = &self.app;
+        let status = blocking(|| app.with_recorder(|r| r.start_episode(&task).map_err(|e| status_of(&e))))?;
+        Ok(Response::new(v1::StartEpisodeResponse {
+            status: Some(status_to_proto(&status, &app.config)),
+        }))
+    }
+
+    async fn stop(
+        &self,
+        _: Request<v1::StopEpisodeRequest>,
+    ) -> Result<Response<v1::StopEpisodeResponse>, Status> {
+        let started = Instant::now();
+        let app = &self.app;
+        let summary = blocking(|| app.with_recorder(|r| r.stop_episode().map_err(|e| status_of(&e))))?;
+        Ok(Response::new(v1::StopEpisodeResponse {
+            episode: Some(episode_to_proto(&summary)),
+            save_latency_s: started.elapsed().as_secs_f64(),
+        }))
+    }
+
+    async fn discard(
+        &self,
+        _: Request<v1::DiscardEpisodeRequest>,
+    ) -> Result<Response<v1::DiscardEpisodeResponse>, Status> {
+        let app = &self.app;
+        let frames = blocking(|| app.with_recorder(|r| r.discard_episode().map_err(|e| status_of(&e))))?;
+        Ok(Response::new(v1::DiscardEpisodeResponse {
+            frames_discarded: frames,
+        }))
+    }
+
+    async fn rerecord(
+        &self,
+        request: Request<v1::RerecordEpisodeRequest>,
+    ) -> Result<Response<v1::StartEpisodeResponse>, Status> {
+        let task = request.into_inner().task;
+        let app = &self.app;
+        let task = if task.is_empty() {
+            None
+        } else {
+            Some(task.as_str())
+        };
+        let status = blocking(|| app.with_recorder(|r| r.rerecord(task).map_err(|e| status_of(&e))))?;
+        Ok(Response::new(v1::StartEpisodeResponse {
+            status: Some(status_to_proto(&status, &app.config)),
+        }))
+    }
+
+    async fn list(
+        &self,
+        _: Request<v1::ListEpisodesRequest>,
+    ) -> Result<Response<v1::ListEpisodesResponse>, Status> {
+        let episodes = self.app.with_recorder(|r| Ok(r.episodes()))?;
+        Ok(Response::new(v1::ListEpisodesResponse {
+            episodes: episodes.iter().map(episode_to_proto).collect(),
+            dataset_root: self.app.config.recorder.root.display().to_string(),
+        }))
+    }
+
+    async fn status(
+        &self,
+        _: Request<v1::EpisodeStatusRequest>,
+    ) -> Result<Response<v1::RecordingStatus>, Status> {
+        Ok(Response::new(self.app.recording_status()))
+    }
+
+    type WatchStream = StatusStream;
+
+    async fn watch(
+        &self,
+        request: Request<v1::WatchEpisodesRequest>,
+    ) -> Result<Response<Self::WatchStream>, Status> {
+        let interval_s = request.into_inner().interval_s;
+        if !interval_s.is_finite() || interval_s < 0.0 {
+            return Err(Status::invalid_argument(format!(
+                "interval_s must be >= 0, got {interval_s}"
+            )));
+        }
+        let interval = Duration::from_secs_f64(if interval_s == 0.0 {
+            0.5
+        } else {
+            interval_s.clamp(0.01, 3600.0)
+        });
+        let (tx, rx) = tokio::sync::mpsc::channel(1);
+        let app = Arc::clone(&self.app);
+        let mut shutdown = app.shutdown_signal();
+        // The recorder's watch blocks on a condition variable: give it a thread of its own per stream, waking at
+        // least every `interval` to notice a closed client or shutdown.
+        std::thread::Builder::new()
+            .name("episodes-watch".into())
+            .spawn(move || {
+                let mut since = 0u64;
+                loop {
+                    if *shutdown.borrow_and_update() || tx.is_closed() {
+                        break;
+                    }
+                    let status = app.with_recorder(|r| Ok(r.watch(since, interval)));
+                    let Ok(status) = status else { break };
+                    since = status.version;
+                    if tx
+                        .blocking_send(Ok(status_to_proto(&status, &app.config)))
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+            })
+            .map_err(|e| Status::internal(format!("cannot start watch thread: {e}")))?;
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(rx),
+        )))
+    }
+}

@@ -1,0 +1,286 @@
+//! Out-of-process bridges (Bridge.Attach) and pushed cameras (Cameras.Push) end to end.
+
+use phone2act_proto::v1::bridge_client::BridgeClient;
+use phone2act_proto::v1::cameras_client::CamerasClient;
+use phone2act_sdk::proto as v1;
+use phone2act_sdk::{TeleopOptions, buttons};
+use phone2act_server::Config;
+use phone2act_tests::{TestServer, pos};
+use std::time::Duration;
+use tokio_stream::StreamExt;
+
+const CONFIG: &str = r#"
+[[arms]]
+name = "ext"
+bridge = "remote"
+[arms.remote]
+joint_names = ["a", "b", "c"]
+
+[[arms]]
+name = "sim"
+bridge = "sim"
+
+[[cameras]]
+name = "pushed"
+kind = "remote"
+width = 64
+height = 64
+fps = 30
+"#;
+
+fn config(dir: &std::path::Path) -> Config {
+    let mut c = Config::from_toml_str(CONFIG, "remote-test", Vec::new()).unwrap();
+    dir.clone_into(&mut c.recorder.root);
+    c
+}
+
+fn upstream(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
+    v1::BridgeUpstream {
+        message: Some(message),
+    }
+}
+
+fn feedback(pose: v1::Pose, applied_seq: u64) -> v1::BridgeUpstream {
+    upstream(v1::bridge_upstream::Message::Feedback(v1::RobotFeedback {
+        capture_time_ns: 0,
+        joint_positions_rad: vec![0.1, 0.2, 0.3],
+        robot_from_ee: Some(pose),
+        gripper_position: 0.0,
+        applied_seq,
+    }))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(config(dir.path())).await.unwrap();
+    let channel = tonic::transport::Endpoint::from_shared(server.url())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut bridge = BridgeClient::new(channel.clone());
+
+    // Wrong arm and wrong joints are refused with clear statuses.
+    let (tx, rx) = tokio::sync::mpsc::channel(8);
+    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+        arm: "sim".into(),
+        joint_names: vec!["a".into()],
+        ..v1::BridgeHello::default()
+    })))
+    .await
+    .unwrap();
+    let err = bridge
+        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), tonic::Code::NotFound, "{err}");
+    assert!(err.message().contains("ext"), "{err}");
+    let (tx, rx) = tokio::sync::mpsc::channel(8);
+    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+        arm: "ext".into(),
+        joint_names: vec!["x".into(), "y".into()],
+        ..v1::BridgeHello::default()
+    })))
+    .await
+    .unwrap();
+    let err = bridge
+        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err}");
+
+    // A well-behaved bridge: hello, then feedback at a start pose.
+    let (tx, rx) = tokio::sync::mpsc::channel(8);
+    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+        arm: "ext".into(),
+        bridge_name: "test".into(),
+        joint_names: vec!["a".into(), "b".into(), "c".into()],
+        supports_orientation: true,
+    })))
+    .await
+    .unwrap();
+    let mut down = bridge
+        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    match down.next().await.unwrap().unwrap().message {
+        Some(v1::bridge_downstream::Message::Welcome(w)) => assert_eq!(w.arm, "ext"),
+        other => panic!("expected welcome, got {other:?}"),
+    }
+    let start = v1::Pose::from_parts([0.2, 0.05, 0.1], [0.0, 0.0, 0.0, 1.0]);
+    tx.send(feedback(start, 0)).await.unwrap();
+    // The bridge follows every command at once and reports it back.
+    let echo_tx = tx.clone();
+    let last_seq = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let seen = std::sync::Arc::clone(&last_seq);
+    let echo = tokio::spawn(async move {
+        while let Some(Ok(msg)) = down.next().await {
+            if let Some(v1::bridge_downstream::Message::Command(c)) = msg.message {
+                let _ = echo_tx
+                    .send(feedback(c.robot_from_target.unwrap(), c.seq))
+                    .await;
+                seen.store(c.seq, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+    });
+    let client = server.client().await.unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let arm = client
+        .system()
+        .list_arms()
+        .await
+        .unwrap()
+        .into_iter()
+        .find(|a| a.arm == "ext")
+        .unwrap();
+    assert_eq!(arm.joint_names, ["a", "b", "c"]);
+    assert!((pos(arm.robot_from_ee.as_ref().unwrap())[1] - 0.05).abs() < 1e-9);
+
+    let mut phone = client.teleop("ext", TeleopOptions::default()).await.unwrap();
+    let seq = phone
+        .send_pose(
+            v1::Pose::from_parts([0.0; 3], [0.0, 0.0, 0.0, 1.0]),
+            vec![buttons::clutch_engage()],
+            0,
+        )
+        .await
+        .unwrap();
+    phone.feedback_for(seq).await.unwrap();
+    for i in 1..=4 {
+        // Phone forward (-Z) 1 cm per sample.
+        let seq = phone
+            .send_pose(
+                v1::Pose::from_parts([0.0, 0.0, -0.01 * f64::from(i)], [0.0, 0.0, 0.0, 1.0]),
+                vec![],
+                0,
+            )
+            .await
+            .unwrap();
+        phone.feedback_for(seq).await.unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let arm = client
+        .system()
+        .list_arms()
+        .await
+        .unwrap()
+        .into_iter()
+        .find(|a| a.arm == "ext")
+        .unwrap();
+    let ee = pos(arm.robot_from_ee.as_ref().unwrap());
+    assert!(
+        (ee[0] - 0.24).abs() < 1e-6,
+        "the remote robot should be 4 cm forward: {ee:?}"
+    );
+    assert!(arm.commands_sent >= 4);
+
+    // Bad feedback (NaN pose) is refused and changes nothing.
+    tx.send(feedback(
+        v1::Pose::from_parts([f64::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]),
+        99,
+    ))
+    .await
+    .unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let arm = client
+        .system()
+        .list_arms()
+        .await
+        .unwrap()
+        .into_iter()
+        .find(|a| a.arm == "ext")
+        .unwrap();
+    assert!((pos(arm.robot_from_ee.as_ref().unwrap())[0] - 0.24).abs() < 1e-6);
+
+    // Detaching (the bridge process goes away) leaves the arm reported disconnected.
+    assert!(last_seq.load(std::sync::atomic::Ordering::Relaxed) >= 4);
+    echo.abort();
+    let _ = echo.await;
+    drop(tx);
+    drop(phone);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let arm = client
+        .system()
+        .list_arms()
+        .await
+        .unwrap()
+        .into_iter()
+        .find(|a| a.arm == "ext")
+        .unwrap();
+    assert_eq!(arm.health(), v1::BridgeHealth::Disconnected, "{arm:?}");
+    server.shutdown().await.unwrap();
+}
+
+fn frame(camera: &str, w: u32, h: u32, seq: u64) -> v1::CameraFrame {
+    v1::CameraFrame {
+        camera: camera.into(),
+        width: w,
+        height: h,
+        encoding: v1::ImageEncoding::Rgb8 as i32,
+        data: vec![(seq % 255) as u8; (w * h * 3) as usize],
+        capture_time_ns: 0,
+        frame_seq: seq,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pushed_frames_fill_a_remote_camera_and_bad_frames_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(config(dir.path())).await.unwrap();
+    let channel = tonic::transport::Endpoint::from_shared(server.url())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut cameras = CamerasClient::new(channel).max_encoding_message_size(64 << 20);
+
+    let frames: Vec<_> = (0..10).map(|i| frame("pushed", 64, 64, i)).collect();
+    let summary = cameras
+        .push(tokio_stream::iter(frames))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (
+            summary.camera.as_str(),
+            summary.frames_accepted,
+            summary.frames_rejected
+        ),
+        ("pushed", 10, 0)
+    );
+    let client = server.client().await.unwrap();
+    let cams = client.system().list_cameras().await.unwrap();
+    assert_eq!(cams[0].frames_captured, 10);
+
+    let err = cameras
+        .push(tokio_stream::iter(vec![frame("pushed", 32, 64, 0)]))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), tonic::Code::InvalidArgument);
+    assert!(err.message().contains("64x64"), "{err}");
+    let err = cameras
+        .push(tokio_stream::iter(vec![frame("nope", 64, 64, 0)]))
+        .await
+        .unwrap_err();
+    assert_eq!(err.code(), tonic::Code::NotFound, "{err}");
+    // A 10 MB frame is refused by the transport limit, and the camera keeps working afterwards.
+    let mut huge = frame("pushed", 64, 64, 0);
+    huge.data = vec![0; 10 << 20];
+    let err = cameras.push(tokio_stream::iter(vec![huge])).await.unwrap_err();
+    assert!(
+        matches!(
+            err.code(),
+            tonic::Code::OutOfRange | tonic::Code::ResourceExhausted | tonic::Code::Internal
+        ),
+        "{err}"
+    );
+    let summary = cameras
+        .push(tokio_stream::iter(vec![frame("pushed", 64, 64, 11)]))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(summary.frames_accepted, 1);
+    server.shutdown().await.unwrap();
+}
