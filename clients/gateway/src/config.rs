@@ -20,7 +20,7 @@ pub const HARD_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GatewayConfig {
-    /// Run the gateway inside `phone2act serve`.
+    /// Run the gateway inside `phone2act serve` ([`crate::serve`] only waits for shutdown when false).
     pub enabled: bool,
     /// Serve rosbridge v2 on plain `ws://` (the Phone2Act Android app, roslibjs, roslibpy).
     pub rosbridge: bool,

@@ -53,12 +53,18 @@ pub enum GatewayError {
 /// Binds the listeners `config` enables and serves until `shutdown` resolves.
 ///
 /// `server_url` is the phone2act gRPC server (`http://127.0.0.1:50051`); `grpc_token` its bearer token.
+/// With `enabled = false` nothing is bound and this just waits for `shutdown`, so a caller can run it
+/// unconditionally next to the gRPC server.
 pub async fn serve(
     config: GatewayConfig,
     server_url: String,
     grpc_token: Option<String>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), GatewayError> {
+    if !config.enabled {
+        shutdown.await;
+        return Ok(());
+    }
     Gateway::bind(config, &server_url, grpc_token.as_deref())
         .await?
         .run(shutdown)
