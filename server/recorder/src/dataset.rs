@@ -43,7 +43,8 @@ pub struct EpisodeSummary {
     pub held_ticks: u64,
     /// Ticks not recorded because a source was stale beyond tolerance (the episode was paused).
     pub paused_ticks: u64,
-    /// Ticks the tick thread woke up too late for (machine overloaded); not recorded, never a gap.
+    /// Ticks skipped because the recorder stalled longer than the hold tolerance (machine overloaded);
+    /// not recorded, never a gap. Shorter stalls are caught up and counted in `held_ticks`.
     pub late_ticks: u64,
     /// Video frames that did not fit in an encoder queue (replaced by a repeat of the previous frame).
     pub dropped_frames: u64,
@@ -555,11 +556,16 @@ impl Dataset {
             return Err(RecorderError::EmptyEpisode(index));
         }
         // Finish the encoders first (they run in parallel with the parquet close).
-        let mut reports: Vec<Result<EncodeReport, RecorderError>> = Vec::new();
-        let rows = data.finish()?;
-        for e in encoders {
-            reports.push(e.finish(frames));
+        let t0 = std::time::Instant::now();
+        for e in &encoders {
+            e.request_finish(frames);
         }
+        let rows = data.finish()?;
+        let mut reports: Vec<Result<EncodeReport, RecorderError>> = Vec::new();
+        for e in encoders {
+            reports.push(e.join());
+        }
+        let flush_ms = t0.elapsed().as_secs_f64() * 1e3;
         let reports: Vec<EncodeReport> = reports.into_iter().collect::<Result<_, _>>()?;
         for r in &reports {
             if r.frames != frames {
@@ -755,6 +761,12 @@ impl Dataset {
             (self.total_episodes, self.total_frames, self.tasks) = old;
             return Err(e);
         }
+        tracing::debug!(
+            episode = index,
+            flush_ms,
+            commit_ms = t0.elapsed().as_secs_f64() * 1e3 - flush_ms,
+            "episode committed"
+        );
         let _ = fs::remove_dir_all(&staging);
         if self.spec.format == Format::V30 {
             self.next_data_file += 1;

@@ -9,7 +9,7 @@
 //! warning names the source) until the source is fresh again.
 
 use crate::camera::FrameSlot;
-use crate::clock::{epoch, monotonic_ns};
+use crate::clock::monotonic_ns;
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
 use crate::spec::DatasetSpec;
@@ -426,24 +426,29 @@ fn status_of(shared: &Shared, t: &TickState, saved: Option<u64>) -> RecorderStat
 
 fn tick_loop(shared: &Shared) {
     let period_ns = 1_000_000_000 / i64::from(shared.fps);
+    let tol_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
     let mut next = monotonic_ns() + period_ns;
-    let base = epoch();
     while !shared.stop.load(Ordering::Relaxed) {
         let now = monotonic_ns();
         if now < next {
             std::thread::sleep(Duration::from_nanos((next - now) as u64).min(Duration::from_millis(50)));
             continue;
         }
-        // Woke up more than a period late: those ticks are lost (counted), never written as gaps.
+        // Woke up late (an overloaded machine). Within the hold tolerance the missed ticks are recorded
+        // now, holding the newest samples (counted as held), so recorded time keeps pace with wall time;
+        // a longer stall is skipped and counted as late ticks, never written as a gap.
         let missed = (now - next) / period_ns;
         next += (missed + 1) * period_ns;
         let mut t = lock(&shared.tick);
-        if let Some(a) = &mut t.active {
+        if missed * period_ns <= tol_ns {
+            for _ in 0..missed {
+                tick(shared, &mut t, now);
+            }
+        } else if let Some(a) = &mut t.active {
             a.late += missed as u64;
         }
         tick(shared, &mut t, now);
         drop(t);
-        let _ = base;
     }
 }
 

@@ -308,9 +308,20 @@ impl EncoderThread {
     }
 
     /// Pads the video to `total_frames`, flushes it and waits for the thread.
-    pub fn finish(mut self, total_frames: u64) -> Result<EncodeReport, RecorderError> {
+    pub fn finish(self, total_frames: u64) -> Result<EncodeReport, RecorderError> {
+        self.request_finish(total_frames);
+        self.join()
+    }
+
+    /// Tells the thread the episode has `total_frames` frames; it pads, flushes and closes the file.
+    /// Separate from [`EncoderThread::join`] so that all cameras flush in parallel.
+    pub fn request_finish(&self, total_frames: u64) {
         // A blocking send: the queue drains at encoder speed, and the episode is not saved before it does.
         let _ = self.tx.send(Msg::Finish { total_frames });
+    }
+
+    /// Waits for the thread after [`EncoderThread::request_finish`].
+    pub fn join(mut self) -> Result<EncodeReport, RecorderError> {
         let handle = self.handle.take().ok_or(RecorderError::ThreadGone)?;
         handle.join().map_err(|_| RecorderError::ThreadGone)?
     }

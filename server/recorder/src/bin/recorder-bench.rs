@@ -1,0 +1,371 @@
+//! Recorder benchmark: the camera load recorded with zero dropped frames on this machine, peak RSS and
+//! save latency for long episodes, and encode speed side by side with lerobot's own encoder.
+//!
+//! Run in release: `cargo run --release -p phone2act-recorder --bin recorder-bench -- [--quick]
+//! [--long-s 600] [--load-s 10]`. Cameras are FFmpeg `testsrc2` through libavdevice (the V4L2 capture
+//! path), the robot is synthetic. Each memory run is a child process so its peak RSS is its own.
+
+use phone2act_recorder::avcapture::{AvCaptureConfig, spawn_av_capture};
+use phone2act_recorder::camera::{CaptureThread, FrameSlot};
+use phone2act_recorder::synthetic::SyntheticRobot;
+use phone2act_recorder::video::VideoEncoder;
+use phone2act_recorder::{CameraSpec, DatasetSpec, Format, Recorder, VideoSettings};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+type Res<T> = Result<T, Box<dyn std::error::Error>>;
+
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("recorder-bench: {e}");
+        std::process::exit(1);
+    }
+}
+
+struct Opts {
+    quick: bool,
+    long_s: u64,
+    load_s: f64,
+}
+
+fn run() -> Res<()> {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(i) = args.iter().position(|a| a == "--rss-episode") {
+        let secs: f64 = args.get(i + 1).ok_or("--rss-episode SECONDS")?.parse()?;
+        return rss_child(secs);
+    }
+    let quick = args.iter().any(|a| a == "--quick");
+    let val = |flag: &str| {
+        args.iter()
+            .position(|a| a == flag)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
+    let opts = Opts {
+        quick,
+        long_s: val("--long-s").map_or(Ok(if quick { 30 } else { 600 }), |v| v.parse())?,
+        load_s: val("--load-s").map_or(Ok(if quick { 4.0 } else { 10.0 }), |v| v.parse())?,
+    };
+    println!(
+        "# phone2act recorder benchmark ({} cores, release build)",
+        std::thread::available_parallelism()?
+    );
+    load_ladder(&opts)?;
+    memory_and_save(&opts)?;
+    encode_speed(&opts)?;
+    Ok(())
+}
+
+type Cameras = (Vec<(String, Arc<FrameSlot>)>, Vec<CameraSpec>, Vec<CaptureThread>);
+
+fn cameras(n: usize, w: u32, h: u32, fps: u32) -> Res<Cameras> {
+    let mut slots = Vec::new();
+    let mut specs = Vec::new();
+    let mut threads = Vec::new();
+    for i in 0..n {
+        let name = format!("cam{i}");
+        let slot = Arc::new(FrameSlot::default());
+        threads.push(spawn_av_capture(
+            &name,
+            AvCaptureConfig::lavfi_testsrc(w, h, fps),
+            Arc::clone(&slot),
+        )?);
+        slots.push((name.clone(), slot));
+        specs.push(CameraSpec {
+            name,
+            width: w,
+            height: h,
+        });
+    }
+    Ok((slots, specs, threads))
+}
+
+struct Outcome {
+    frames: u64,
+    expected: u64,
+    dropped: u64,
+    late: u64,
+    paused: u64,
+    save_ms: f64,
+}
+
+/// One recording: `ncams` cameras of `size` at `fps` for `secs`.
+struct Load<'a> {
+    codec: &'a str,
+    format: Format,
+    ncams: usize,
+    size: (u32, u32),
+    fps: u32,
+    secs: f64,
+}
+
+fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
+    let (format, codec, fps, secs) = (l.format, l.codec, l.fps, l.secs);
+    let (slots, specs, threads) = cameras(l.ncams, l.size.0, l.size.1, fps)?;
+    let spec = DatasetSpec {
+        root: root.to_owned(),
+        format,
+        fps,
+        robot_type: "bench".into(),
+        video_codec: Some(codec.into()),
+        state_names: SyntheticRobot::state_names(),
+        action_names: SyntheticRobot::action_names(),
+        cameras: specs,
+        modality: SyntheticRobot::modality(),
+        provenance: serde_json::json!({"bench": true}),
+    };
+    let rec = Recorder::open(spec, Arc::new(SyntheticRobot), slots)?;
+    // Let the cameras deliver a first frame.
+    std::thread::sleep(Duration::from_millis(300));
+    rec.start_episode("benchmark")?;
+    let t0 = Instant::now();
+    std::thread::sleep(Duration::from_secs_f64(secs));
+    let elapsed = t0.elapsed().as_secs_f64();
+    let s = rec.stop_episode()?;
+    rec.close()?;
+    drop(threads);
+    Ok(Outcome {
+        frames: s.length_frames,
+        expected: (elapsed * f64::from(fps)) as u64,
+        dropped: s.dropped_frames,
+        late: s.late_ticks,
+        paused: s.paused_ticks,
+        save_ms: s.save_latency_s * 1e3,
+    })
+}
+
+fn load_ladder(o: &Opts) -> Res<()> {
+    println!(
+        "\n## camera load (640x480, {:.0} s per step; zero drops = every tick recorded, every frame encoded)",
+        o.load_s
+    );
+    println!("| codec | cameras | fps | frames | dropped | late ticks | paused | save ms | zero drops |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let dir = tempfile_dir("load")?;
+    for (codec, format, ladder) in [
+        ("h264", Format::V21, vec![(1, 30), (2, 30), (3, 30), (4, 30)]),
+        ("av1", Format::V30, vec![(1, 20), (2, 20), (3, 20), (3, 30)]),
+    ] {
+        let mut best = None;
+        for (n, fps) in ladder {
+            let root = dir.join(format!("{codec}-{n}x{fps}"));
+            let load = Load {
+                codec,
+                format,
+                ncams: n,
+                size: (640, 480),
+                fps,
+                secs: o.load_s,
+            };
+            let r = record_once(&root, &load)?;
+            let ok = r.dropped == 0 && r.late == 0 && r.paused == 0 && r.frames + 2 >= r.expected;
+            println!(
+                "| {codec} | {n} | {fps} | {}/{} | {} | {} | {} | {:.0} | {} |",
+                r.frames,
+                r.expected,
+                r.dropped,
+                r.late,
+                r.paused,
+                r.save_ms,
+                if ok { "yes" } else { "no" }
+            );
+            if ok {
+                best = Some((n, fps));
+            }
+            let _ = std::fs::remove_dir_all(&root);
+        }
+        match best {
+            Some((n, fps)) => println!("largest zero-drop load, {codec}: {n} cameras x 640x480 @ {fps} fps"),
+            None => println!("largest zero-drop load, {codec}: none of the steps"),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+fn tempfile_dir(label: &str) -> Res<PathBuf> {
+    let d = std::env::temp_dir().join(format!("phone2act-bench-{label}-{}", std::process::id()));
+    std::fs::create_dir_all(&d)?;
+    Ok(d)
+}
+
+fn peak_rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find(|l| l.starts_with("VmHWM:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|kb| kb.parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// Child process: one episode of `secs` with 3 cameras 640x480 @ 20 fps AV1 (v3.0 defaults).
+fn rss_child(secs: f64) -> Res<()> {
+    let dir = tempfile_dir("rss")?;
+    let load = Load {
+        codec: "av1",
+        format: Format::V30,
+        ncams: 3,
+        size: (640, 480),
+        fps: 20,
+        secs,
+    };
+    let r = record_once(&dir.join("ds"), &load)?;
+    println!(
+        "{}",
+        serde_json::json!({"peak_rss_mb": peak_rss_mb(), "save_ms": r.save_ms, "frames": r.frames,
+            "dropped": r.dropped, "late": r.late, "paused": r.paused})
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+fn memory_and_save(o: &Opts) -> Res<()> {
+    println!("\n## memory and save latency (3 cameras 640x480 @ 20 fps, AV1, v3.0; one process per episode)");
+    println!("| episode | frames | dropped | peak RSS MB | save (stop -> committed) ms |");
+    println!("|---|---|---|---|---|");
+    let exe = std::env::current_exe()?;
+    let mut lengths = vec![10, 60, o.long_s];
+    lengths.dedup();
+    if o.quick {
+        lengths = vec![10, o.long_s];
+    }
+    for secs in lengths {
+        let out = Command::new(&exe)
+            .args(["--rss-episode", &secs.to_string()])
+            .env("SVT_LOG", "1")
+            .output()?;
+        let text = String::from_utf8_lossy(&out.stdout);
+        let Some(v) = text
+            .lines()
+            .last()
+            .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        else {
+            println!(
+                "| {secs} s | failed: {} |",
+                String::from_utf8_lossy(&out.stderr).trim()
+            );
+            continue;
+        };
+        println!(
+            "| {secs} s | {} | {} | {:.0} | {:.0} |",
+            v["frames"],
+            v["dropped"],
+            v["peak_rss_mb"].as_f64().unwrap_or(0.0),
+            v["save_ms"].as_f64().unwrap_or(0.0)
+        );
+    }
+    Ok(())
+}
+
+fn encode_speed(o: &Opts) -> Res<()> {
+    let (w, h, fps) = (640u32, 480u32, 30u32);
+    let n = if o.quick { 90 } else { 300 };
+    println!(
+        "\n## encode speed, same {n} frames (640x480 testsrc2), same settings (g=2, crf=30, yuv420p; SVT-AV1 preset 12; x264 default preset, B-frames as lerobot)"
+    );
+    // Capture the frames once from testsrc2 through the capture path.
+    let slot = Arc::new(FrameSlot::default());
+    let cam = spawn_av_capture(
+        "src",
+        AvCaptureConfig {
+            pace_by_pts: false,
+            ..AvCaptureConfig::lavfi_testsrc(w, h, fps)
+        },
+        Arc::clone(&slot),
+    )?;
+    let mut frames: Vec<Arc<Vec<u8>>> = Vec::new();
+    let mut last_seq = None;
+    let t0 = Instant::now();
+    while frames.len() < n && t0.elapsed() < Duration::from_secs(30) {
+        if let Some(f) = slot.latest()
+            && last_seq != Some(f.seq)
+        {
+            last_seq = Some(f.seq);
+            frames.push(Arc::clone(&f.rgb));
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    cam.stop();
+    let dir = tempfile_dir("encode")?;
+    let raw = dir.join("frames.rgb");
+    {
+        use std::io::Write;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(&raw)?);
+        for fr in &frames {
+            f.write_all(fr)?;
+        }
+    }
+    let python = lerobot_python();
+    println!(
+        "| settings | phone2act fps (flush ms) | lerobot StreamingVideoEncoder fps | lerobot encode_video_frames (PNG dir) fps |"
+    );
+    println!("|---|---|---|---|");
+    let rows = [
+        ("av1, lerobot's settings", "av1:svtav1-params=", Some("libsvtav1")),
+        (
+            "h264, lerobot's settings (medium, B-frames)",
+            "h264:preset=medium,bf=-1",
+            Some("h264"),
+        ),
+        ("av1, phone2act default (+pred-struct=1)", "av1", None),
+        ("h264, phone2act default (veryfast, no B-frames)", "h264", None),
+    ];
+    for (label, ours, theirs) in rows {
+        let settings = VideoSettings::parse(Some(ours), Format::V30)?;
+        let t = Instant::now();
+        let mut enc = VideoEncoder::create(&dir.join("ours.mp4"), w, h, fps, &settings)?;
+        for f in &frames {
+            enc.push_rgb(f, w, h)?;
+        }
+        let tf = Instant::now();
+        enc.finish()?;
+        let flush_ms = tf.elapsed().as_secs_f64() * 1e3;
+        let ours_fps = frames.len() as f64 / t.elapsed().as_secs_f64();
+        let (s_fps, p_fps) = match (&python, theirs) {
+            (_, None) => ("-".to_owned(), "-".to_owned()),
+            (None, Some(_)) => ("(lerobot venv not installed)".to_owned(), String::new()),
+            (Some(py), Some(theirs)) => lerobot_encode(py, &raw, (w, h, fps), theirs)?,
+        };
+        println!("| {label} | {ours_fps:.0} ({flush_ms:.0}) | {s_fps} | {p_fps} |");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+/// Runs bench/lerobot_encode.py in the conformance venv; returns (streaming fps, PNG-path fps).
+fn lerobot_encode(
+    py: &Path,
+    raw: &Path,
+    (w, h, fps): (u32, u32, u32),
+    vcodec: &str,
+) -> Res<(String, String)> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/lerobot_encode.py");
+    let out = Command::new(py)
+        .arg(script)
+        .arg(raw)
+        .args([w.to_string(), h.to_string(), fps.to_string(), vcodec.to_owned()])
+        .env("HF_HUB_OFFLINE", "1")
+        .env("SVT_LOG", "1")
+        .output()?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let v: serde_json::Value = text
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str(l).ok())
+        .unwrap_or_default();
+    let fmt = |k: &str| {
+        v[k].as_f64()
+            .map_or_else(|| "n/a".to_owned(), |x| format!("{x:.0}"))
+    };
+    Ok((fmt("streaming_fps"), fmt("png_path_fps")))
+}
+
+fn lerobot_python() -> Option<PathBuf> {
+    let cache = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))?;
+    let py = cache.join("phone2act/lerobot-venv/bin/python");
+    py.exists().then_some(py)
+}
