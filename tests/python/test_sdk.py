@@ -81,6 +81,9 @@ def test_episode_lifecycle_and_errors(server: Server) -> None:
         assert ep.task == "stack the cubes" and ep.length_frames > 0
         assert latency_s < 5.0
         assert len(c.episodes.list()) == before + 1
+        statuses = c.episodes.watch(0.1)
+        assert next(statuses).phase == common_pb2.RECORDING_PHASE_IDLE
+        statuses.close()
 
 
 def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> None:
@@ -182,6 +185,10 @@ def test_asyncio_client(server: Server) -> None:
             arms = await c.list_arms()
             assert arms[0].arm == "main"
             assert (await c.episodes.status()).phase == common_pb2.RECORDING_PHASE_IDLE
+            watch = c.episodes.watch(0.1)
+            first = await watch.__anext__()
+            assert first.phase == common_pb2.RECORDING_PHASE_IDLE and first.dataset_format == "v3.0"
+            await watch.aclose()
             session = await c.policy_session(["main"], observation_rate_hz=20)
             async with session:
                 obs = await session.next_observation()

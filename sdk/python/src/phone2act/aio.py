@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable, Iterable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Sequence
 from typing import Any, TypeVar
 
 import grpc
@@ -136,6 +136,22 @@ class AsyncEpisodes:
     async def discard(self) -> int:
         r = await self._c._call("Episodes.Discard", self._stub.Discard, episodes_pb2.DiscardEpisodeRequest())
         return int(r.frames_discarded)
+
+    async def rerecord(self, task: str = "") -> common_pb2.RecordingStatus:
+        req = episodes_pb2.RerecordEpisodeRequest(task=task)
+        return (await self._c._call("Episodes.Rerecord", self._stub.Rerecord, req)).status
+
+    async def watch(self, interval_s: float = 0.5) -> AsyncIterator[common_pb2.RecordingStatus]:
+        """Recorder status on every change (and every `interval_s`), until the caller stops iterating."""
+        call = self._stub.Watch(episodes_pb2.WatchEpisodesRequest(interval_s=interval_s), metadata=self._c._md)
+        try:
+            async for status in call:
+                yield status
+        except grpc.aio.AioRpcError as e:
+            if e.code() != grpc.StatusCode.CANCELLED:
+                raise from_rpc_error(e, "Episodes.Watch", self._c.target) from None
+        finally:
+            call.cancel()
 
     async def list(self) -> list[episodes_pb2.EpisodeInfo]:
         r = await self._c._call("Episodes.List", self._stub.List, episodes_pb2.ListEpisodesRequest())
