@@ -35,7 +35,7 @@ def teleop_loop(c: Client, seconds: float = 5.0) -> None:
 
 
 FPS = 20.0
-ATTEMPTS = 3
+ATTEMPTS = 4
 
 
 def lost_ticks(frames: int, elapsed_s: float) -> int:
