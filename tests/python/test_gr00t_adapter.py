@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
-from conftest import SIM_ARM, Server, wait_until
+from conftest import REPO, SIM_ARM, Server, free_port, wait_until
 from gr00t_standin import StandIn
 from phone2act import IMAGE_RGB8, Client, pose_tuple
 from phone2act_gr00t import ChunkShapeError, Embodiment, Gr00tAdapter, Gr00tClient, Gr00tTimeout, packb
@@ -106,3 +109,21 @@ def test_wrong_shape_answer_is_refused_before_anything_moves(gserver: Server) ->
                 adapter.step()
             time.sleep(0.2)
             assert c.arm("main").commands_sent == before
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "clients" / "gr00t"), os.environ.get("PYTHONPATH", "")]))
+    return subprocess.run([sys.executable, "-m", "phone2act_gr00t", *args], capture_output=True, text=True,
+                          timeout=60, env=env, check=False)
+
+
+def test_command_line_adapter(gserver: Server) -> None:
+    with StandIn() as standin:
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--config", "so100",
+                      "--camera", "webcam", "--so100-action-scale", "0.0002", "--step-period", "0.15", "--chunks", "2")
+        assert out.returncode == 0, out.stderr
+        assert "chunks 2, timeouts 0, errors 0" in out.stdout, out.stdout + out.stderr
+        assert sum(1 for r in standin.requests if b"get_action" in r) == 2
+    dead = f"tcp://127.0.0.1:{free_port()}"
+    out = run_cli("--server", gserver.target, "--gr00t", dead, "--timeout", "0.3")
+    assert out.returncode == 2 and f"GR00T server at {dead} did not answer 'ping' within 300 ms" in out.stderr

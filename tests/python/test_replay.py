@@ -7,11 +7,15 @@ second episode, and the two `observation.state` end-effector tracks are compared
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
-from conftest import Server
+from conftest import REPO, Server
 from phone2act import Client
 from phone2act.poses import quat_from_rpy
 from phone2act_replay import align, load_episode, path_errors, pose_errors, replay
@@ -107,3 +111,14 @@ def test_replay_reproduces_the_recorded_trajectory(server: Server, recorded: int
     print(f"executed targets: path error max {tpos.max() * 1e3:.3f} mm / {math.degrees(tang.max()):.3f}°")
     assert tpos.max() < 1e-3 and math.degrees(tang.max()) < 1.0
 
+
+
+def test_command_line_replay(server: Server, recorded: int) -> None:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "clients" / "replay"), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-m", "phone2act_replay", str(server.root), str(recorded), "--server",
+                          server.target, "--record", "cli replay"], capture_output=True, text=True, timeout=120,
+                         env=env, check=False)
+    assert out.returncode == 0, out.stderr
+    m = re.search(r"max path error ([0-9.]+) mm, ([0-9.]+)°", out.stdout)
+    assert m, out.stdout
+    assert float(m.group(1)) < 1.0 and float(m.group(2)) < 1.0, out.stdout

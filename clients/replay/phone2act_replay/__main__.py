@@ -12,7 +12,7 @@ import sys
 
 from phone2act import Client, Phone2ActError
 
-from phone2act_replay import align, load_episode, pose_errors, replay
+from phone2act_replay import align, load_episode, path_errors, pose_errors, replay
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,8 +42,10 @@ def main(argv: list[str] | None = None) -> int:
                 ref = episode.ee_pose(args.dataset_arm)
                 offset, aligned = align(ref, new.ee_pose(args.dataset_arm))
                 pos, ang = pose_errors(ref, aligned)
-                print(f"recorded as episode {saved.episode_index}; offset {offset:.2f} frames; "
-                      f"max error {pos.max() * 1e3:.3f} mm, {math.degrees(ang.max()):.3f}°")
+                path_pos, path_ang = path_errors(ref, new.ee_pose(args.dataset_arm))
+                print(f"recorded as episode {saved.episode_index}; max path error {path_pos.max() * 1e3:.3f} mm, "
+                      f"{math.degrees(path_ang.max()):.3f}°; time-aligned (offset {offset:.2f} frames) max error "
+                      f"{pos.max() * 1e3:.3f} mm, {math.degrees(ang.max()):.3f}°")
     except Phone2ActError as e:
         print(f"phone2act_replay: {e}", file=sys.stderr)
         return 1
