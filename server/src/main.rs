@@ -33,6 +33,71 @@ enum Command {
         #[arg(long)]
         check: bool,
     },
+    /// Manage episodes on a running server.
+    Episode {
+        #[command(flatten)]
+        conn: Conn,
+        #[command(subcommand)]
+        action: EpisodeAction,
+    },
+    /// Print the server's status: arms, cameras, recorder.
+    Status {
+        #[command(flatten)]
+        conn: Conn,
+        /// Keep printing every INTERVAL seconds.
+        #[arg(long)]
+        watch: Option<f64>,
+    },
+    /// Inspect a dataset on disk.
+    Dataset {
+        #[command(subcommand)]
+        action: DatasetAction,
+    },
+}
+
+#[derive(clap::Args, Debug)]
+struct Conn {
+    /// Server URL.
+    #[arg(
+        long,
+        env = "PHONE2ACT_URL",
+        default_value = "http://127.0.0.1:50051",
+        global = true
+    )]
+    url: String,
+    /// Bearer token, if the server requires one.
+    #[arg(long, env = "PHONE2ACT_TOKEN", global = true)]
+    token: Option<String>,
+}
+
+#[derive(Subcommand, Debug)]
+enum EpisodeAction {
+    /// Start recording an episode.
+    Start {
+        /// Task text stored with every frame.
+        #[arg(long)]
+        task: String,
+    },
+    /// Stop and save the episode in progress.
+    Stop,
+    /// Stop and throw away the episode in progress.
+    Discard,
+    /// Throw away the episode in progress and start again (same task unless --task).
+    Rerecord {
+        #[arg(long, default_value = "")]
+        task: String,
+    },
+    /// List saved episodes.
+    List,
+}
+
+#[derive(Subcommand, Debug)]
+enum DatasetAction {
+    /// Summarise a dataset: format, fps, episodes, frames, features.
+    Info {
+        /// Dataset root directory.
+        path: PathBuf,
+    },
 }
 
 fn main() -> std::process::ExitCode {
@@ -52,9 +117,162 @@ fn main() -> std::process::ExitCode {
     }
 }
 
+fn client_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
+}
+
+async fn connect(conn: &Conn) -> anyhow::Result<phone2act_sdk::Client> {
+    phone2act_sdk::Client::connect(&conn.url, conn.token.as_deref())
+        .await
+        .with_context(|| format!("is `phone2act serve` running at {}?", conn.url))
+}
+
+fn phase_name(phase: i32) -> &'static str {
+    match phone2act_sdk::proto::RecordingPhase::try_from(phase) {
+        Ok(phone2act_sdk::proto::RecordingPhase::Recording) => "recording",
+        Ok(phone2act_sdk::proto::RecordingPhase::Paused) => "paused",
+        Ok(phone2act_sdk::proto::RecordingPhase::Saving) => "saving",
+        _ => "idle",
+    }
+}
+
+fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
+    println!("phone2act {}  uptime {:.1} s", status.version, status.uptime_s);
+    for arm in &status.arms {
+        let pose = arm.robot_from_ee.as_ref().and_then(|p| p.position_m.as_ref());
+        let at = pose.map_or_else(
+            || "no feedback".to_owned(),
+            |p| format!("ee ({:.3}, {:.3}, {:.3}) m", p.x, p.y, p.z),
+        );
+        let decision = arm.last_decision.as_ref().map_or("", |d| d.reason.as_str());
+        println!(
+            "  arm {:<8} {:<6} {:?} owner {:?} {}  {at}  gripper {:.2}  {decision}",
+            arm.arm,
+            arm.bridge_kind,
+            arm.health(),
+            arm.owner(),
+            if arm.engaged { "engaged" } else { "" },
+            arm.gripper_position,
+        );
+    }
+    for cam in &status.cameras {
+        println!(
+            "  camera {:<8} {:<12} {}x{} @ {} fps  {} frames  {}",
+            cam.camera,
+            cam.kind,
+            cam.width,
+            cam.height,
+            cam.fps,
+            cam.frames_captured,
+            if cam.live { "live" } else { "STALE" }
+        );
+    }
+    if let Some(rec) = &status.recording {
+        println!(
+            "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  saved {}  {}",
+            rec.dataset_root,
+            rec.dataset_format,
+            phase_name(rec.phase),
+            rec.episode_index,
+            rec.frames_recorded,
+            rec.duration_s,
+            rec.episodes_saved,
+            rec.warning
+        );
+    }
+}
+
+fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
+    let info_path = path.join("meta/info.json");
+    let text = std::fs::read_to_string(&info_path)
+        .with_context(|| format!("{} is not a LeRobot dataset (no meta/info.json)", path.display()))?;
+    let info: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{} is not valid JSON", info_path.display()))?;
+    let get = |k: &str| info.get(k).map_or_else(|| "?".to_owned(), ToString::to_string);
+    println!("dataset   {}", path.display());
+    println!("format    LeRobot {}", get("codebase_version").trim_matches('"'));
+    println!("robot     {}", get("robot_type").trim_matches('"'));
+    println!("fps       {}", get("fps"));
+    println!("episodes  {}", get("total_episodes"));
+    println!("frames    {}", get("total_frames"));
+    println!("tasks     {}", get("total_tasks"));
+    if let Some(features) = info.get("features").and_then(|f| f.as_object()) {
+        println!("features");
+        for (key, f) in features {
+            let dtype = f.get("dtype").and_then(|d| d.as_str()).unwrap_or("?");
+            let shape = f.get("shape").map(ToString::to_string).unwrap_or_default();
+            println!("  {key:<32} {dtype:<8} {shape}");
+        }
+    }
+    Ok(())
+}
+
 fn real_main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        Command::Episode { conn, action } => client_runtime()?.block_on(async {
+            let client = connect(&conn).await?;
+            let mut episodes = client.episodes();
+            match action {
+                EpisodeAction::Start { task } => {
+                    let s = episodes.start(&task).await?;
+                    println!("recording episode {} ({:?})", s.episode_index, s.task);
+                }
+                EpisodeAction::Stop => {
+                    let r = episodes.stop().await?;
+                    let ep = r.episode.unwrap_or_default();
+                    println!(
+                        "saved episode {}: {} frames, {:.2} s, task {:?} (save took {:.0} ms)",
+                        ep.episode_index,
+                        ep.length_frames,
+                        ep.duration_s,
+                        ep.task,
+                        r.save_latency_s * 1000.0
+                    );
+                }
+                EpisodeAction::Discard => println!("discarded {} frames", episodes.discard().await?),
+                EpisodeAction::Rerecord { task } => {
+                    let s = episodes.rerecord(&task).await?;
+                    println!("re-recording episode {} ({:?})", s.episode_index, s.task);
+                }
+                EpisodeAction::List => {
+                    let list = episodes.list().await?;
+                    println!("{} episodes in {}", list.episodes.len(), list.dataset_root);
+                    for ep in list.episodes {
+                        println!(
+                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3}  {}",
+                            ep.episode_index,
+                            ep.length_frames,
+                            ep.duration_s,
+                            ep.held_ticks,
+                            ep.paused_ticks,
+                            ep.task
+                        );
+                    }
+                }
+            }
+            anyhow::Ok(())
+        }),
+        Command::Status { conn, watch } => client_runtime()?.block_on(async {
+            let client = connect(&conn).await?;
+            let mut system = client.system();
+            match watch {
+                None => print_status(&system.status().await?),
+                Some(interval_s) => {
+                    let mut stream = system.watch_status(interval_s).await?;
+                    while let Some(status) = stream.message().await? {
+                        print_status(&status);
+                    }
+                }
+            }
+            anyhow::Ok(())
+        }),
+        Command::Dataset {
+            action: DatasetAction::Info { path },
+        } => dataset_info(&path),
         Command::Serve {
             config,
             listen,
