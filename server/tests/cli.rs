@@ -38,7 +38,7 @@ fn serve(config: &std::path::Path) -> Served {
         }
     });
     let addr = rx
-        .recv_timeout(Duration::from_secs(60))
+        .recv_timeout(Duration::from_mins(1))
         .expect("server printed its address");
     Served {
         child,
