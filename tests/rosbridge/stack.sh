@@ -24,18 +24,29 @@ SERVER_PID=""
 GATEWAY_PID=""
 
 stack_stop() {
+  local rc=$?
   # Only the two processes this script started, by pid.
   [[ -n "$GATEWAY_PID" ]] && kill "$GATEWAY_PID" 2>/dev/null || true
   [[ -n "$SERVER_PID" ]] && kill "$SERVER_PID" 2>/dev/null || true
   [[ -n "$GATEWAY_PID" ]] && wait "$GATEWAY_PID" 2>/dev/null || true
   [[ -n "$SERVER_PID" ]] && wait "$SERVER_PID" 2>/dev/null || true
+  if [[ $rc -ne 0 ]]; then
+    # Keep the logs of a failed run where they can be read after the temporary directory is gone.
+    local keep="${TMPDIR:-/tmp}/phone2act-stack-logs"
+    mkdir -p "$keep" && cp "$STACK_DIR"/*.log "$keep"/ 2>/dev/null && echo "server and gateway logs kept in $keep" >&2
+  fi
   rm -rf "$STACK_DIR"
 }
 trap stack_stop EXIT
 
 config_args=()
 [[ -n "${STACK_CONFIG:-}" ]] && config_args=(--config "$STACK_CONFIG")
-SVT_LOG=1 PHONE2ACT_RECORDER__ROOT="$STACK_DIR/dataset" RUST_LOG="${RUST_LOG:-warn}" \
+# This stack runs the standalone gateway on free ports; a server that embeds one would also bind the default
+# 9090/8443, so turn that off when the server knows the key.
+if PHONE2ACT_GATEWAY__ENABLED=false "$BIN/phone2act" serve "${config_args[@]}" --check >/dev/null 2>&1; then
+  export PHONE2ACT_GATEWAY__ENABLED=false
+fi
+SVT_LOG=1 PHONE2ACT_RECORDER__ROOT="$STACK_DIR/dataset" RUST_LOG="${RUST_LOG:-info}" \
   "$BIN/phone2act" serve "${config_args[@]}" --listen "127.0.0.1:$GRPC_PORT" >"$STACK_DIR/server.log" 2>&1 &
 SERVER_PID=$!
 
@@ -47,7 +58,7 @@ else
   gateway_args+=(--no-https)
 fi
 [[ -n "${STACK_DEFAULT_ARM:-}" ]] && gateway_args+=(--default-arm "$STACK_DEFAULT_ARM")
-RUST_LOG="${RUST_LOG:-warn}" "$BIN/phone2act-gateway" "${gateway_args[@]}" >"$STACK_DIR/gateway.log" 2>&1 &
+RUST_LOG="${RUST_LOG:-info}" "$BIN/phone2act-gateway" "${gateway_args[@]}" >"$STACK_DIR/gateway.log" 2>&1 &
 GATEWAY_PID=$!
 
 wait_port() {

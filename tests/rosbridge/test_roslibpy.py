@@ -110,28 +110,38 @@ class Suite:
             assert st["arm"] == arm, st
             assert st["recording"]["phase"] in ("idle", "recording"), st
 
-    def test_left_and_right_publish_drive_their_own_arms(self):
-        for arm in ("left", "right"):
-            for _ in range(3):
-                self.pose[arm].publish(pose_msg(0.0, 0.0, 0.0))
-                time.sleep(0.02)
-            self.press(arm, 1)
-        for arm in ("left", "right"):
-            deadline = time.monotonic() + 10
-            while not self.state(arm)["engaged"]:
-                assert time.monotonic() < deadline, f"{arm} did not engage on the clutch toggle"
-                time.sleep(0.05)
-        start = {arm: position(self.target[arm].wait(lambda m: True, what="a target")) for arm in ("left", "right")}
-        # Left phone 5 cm forward (-Z), right phone 5 cm up (+Y), 5 mm per message at 50 Hz.
-        for i in range(1, 11):
-            d = 0.005 * i
-            self.pose["left"].publish(pose_msg(0.0, 0.0, -d))
-            self.pose["right"].publish(pose_msg(0.0, d, 0.0))
+    def stream(self, poses, seconds):
+        """Publishes fixed poses for both phones at the app's 50 Hz; a phone that goes quiet lets the server
+        treat its next pose as a fresh start (staleness), as a real phone would never do mid-motion."""
+        end = time.monotonic() + seconds
+        while True:
+            for arm, p in poses.items():
+                self.pose[arm].publish(pose_msg(*p))
             time.sleep(0.02)
+            if time.monotonic() >= end:
+                return
+
+    def test_left_and_right_publish_drive_their_own_arms(self):
+        origin = {"left": (0.0, 0.0, 0.0), "right": (0.0, 0.0, 0.0)}
+        self.stream(origin, 0.1)
+        for arm in ("left", "right"):
+            self.press(arm, 1)
+        deadline = time.monotonic() + 10
+        while not (self.state("left")["engaged"] and self.state("right")["engaged"]):
+            assert time.monotonic() < deadline, "the clutch toggle did not engage both arms"
+            self.stream(origin, 0.05)
+        self.stream(origin, 0.2)
+        start = {arm: position(self.target[arm].wait(lambda m: True, what="a target")) for arm in ("left", "right")}
+        # Left phone 5 cm forward (-Z), right phone 5 cm up (+Y), 2 mm per message at 50 Hz, then held.
+        for i in range(1, 26):
+            d = 0.002 * i
+            self.stream({"left": (0.0, 0.0, -d), "right": (0.0, d, 0.0)}, 0.0)
+        self.stream({"left": (0.0, 0.0, -0.05), "right": (0.0, 0.05, 0.0)}, 0.3)
         moved = {}
         for arm in ("left", "right"):
             msg = self.target[arm].wait(
-                lambda m, a=arm: abs(dist(position(m), start[a]) - 0.05) < 0.006, what=f"{arm} target 5 cm away"
+                lambda m, a=arm: abs(dist(position(m), start[a]) - 0.05) < 0.006,
+                what=f"{arm} target 5 cm away from {start[arm]} (server state {self.state(arm)})",
             )
             moved[arm] = [b - a for a, b in zip(start[arm], position(msg))]
         dl, dr = moved["left"], moved["right"]
