@@ -142,6 +142,9 @@ fn capture(
     if let Some(p) = &cfg.input_format {
         opts.set("input_format", p);
     }
+    let guard = crate::video::CODEC_LOCK
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let ctx =
         format::open_with(&cfg.url, &fmt, opts).map_err(|e| err(&format!("cannot open {}", cfg.url), &e))?;
     let format::context::Context::Input(mut input) = ctx else {
@@ -156,6 +159,7 @@ fn capture(
     let mut decoder = codec::context::Context::from_parameters(stream.parameters())
         .and_then(|c| c.decoder().video())
         .map_err(|e| err("no decoder", &e))?;
+    drop(guard);
     let _ = ready.try_send(Ok(()));
     tracing::info!(camera = name, url = %cfg.url, "camera opened");
     let mut scaler: Option<(Pixel, u32, u32, scaling::Context)> = None;

@@ -18,6 +18,12 @@ use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
 use std::sync::{Arc, Once};
 use std::thread::JoinHandle;
 
+/// Serialises opening and closing FFmpeg codecs and devices across threads. Encoder libraries set up
+/// process-wide tables when an instance is created (SVT-AV1 1.4 among them) and are not safe to initialise
+/// from several threads at once; a heap corruption was seen with three cameras starting together. Opening
+/// takes milliseconds, once per episode and camera, so the lock costs nothing measurable.
+pub static CODEC_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Initialises FFmpeg once per process and keeps its log to errors. (SVT-AV1 prints its own banner per
 /// encoder unless the process runs with `SVT_LOG=1`; setting it here would race other threads.)
 pub fn init_ffmpeg() {
@@ -105,9 +111,14 @@ impl VideoEncoder {
         for (k, v) in &settings.extra {
             opts.set(k, v);
         }
+        let guard = CODEC_LOCK
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let encoder = enc
             .open_with(opts)
-            .map_err(|e| ff_err(path, "cannot open encoder for", e))?;
+            .map_err(|e| ff_err(path, "cannot open encoder for", e));
+        drop(guard);
+        let encoder = encoder?;
         {
             let mut ost = octx
                 .add_stream(codec_impl)
@@ -177,6 +188,8 @@ impl VideoEncoder {
             .map_err(|e| ff_err(&self.path, "cannot convert frames for", e))?;
             self.scaler = Some((w, h, ctx));
         }
+        // A fresh output frame each time: the encoder may still hold a reference to the previous one.
+        self.yuv = VideoFrame::new(Pixel::YUV420P, self.width, self.height);
         if let Some((_, _, scaler)) = &mut self.scaler {
             scaler
                 .run(&self.rgb, &mut self.yuv)
@@ -212,7 +225,14 @@ impl VideoEncoder {
         self.octx
             .write_trailer()
             .map_err(|e| ff_err(&self.path, "cannot finish", e))?;
-        Ok(self.frames)
+        let frames = self.frames;
+        // Encoder teardown frees what creation set up: same lock.
+        let guard = CODEC_LOCK
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        drop(self);
+        drop(guard);
+        Ok(frames)
     }
 }
 
