@@ -33,8 +33,9 @@ struct Opts {
 fn run() -> Res<()> {
     let args: Vec<String> = std::env::args().collect();
     if let Some(i) = args.iter().position(|a| a == "--rss-episode") {
-        let secs: f64 = args.get(i + 1).ok_or("--rss-episode SECONDS")?.parse()?;
-        return rss_child(secs);
+        let usage = "--rss-episode SECONDS CODEC CAMERAS FPS";
+        let arg = |k: usize| args.get(i + k).ok_or(usage);
+        return rss_child(arg(1)?.parse()?, arg(2)?, arg(3)?.parse()?, arg(4)?.parse()?);
     }
     let quick = args.iter().any(|a| a == "--quick");
     let val = |flag: &str| {
@@ -201,14 +202,16 @@ fn peak_rss_mb() -> f64 {
 }
 
 /// Child process: one episode of `secs` with 3 cameras 640x480 @ 20 fps AV1 (v3.0 defaults).
-fn rss_child(secs: f64) -> Res<()> {
+/// Child process: one episode of `secs` with `ncams` cameras 640x480 at `fps`.
+fn rss_child(secs: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     let dir = tempfile_dir("rss")?;
+    let format = if codec == "av1" { Format::V30 } else { Format::V21 };
     let load = Load {
-        codec: "av1",
-        format: Format::V30,
-        ncams: 3,
+        codec,
+        format,
+        ncams,
         size: (640, 480),
-        fps: 20,
+        fps,
         secs,
     };
     let r = record_once(&dir.join("ds"), &load)?;
@@ -222,39 +225,48 @@ fn rss_child(secs: f64) -> Res<()> {
 }
 
 fn memory_and_save(o: &Opts) -> Res<()> {
-    println!("\n## memory and save latency (3 cameras 640x480 @ 20 fps, AV1, v3.0; one process per episode)");
-    println!("| episode | frames | dropped | peak RSS MB | save (stop -> committed) ms |");
-    println!("|---|---|---|---|---|");
+    println!(
+        "\n## memory and save latency (640x480 cameras; one process per episode, peak RSS of that process)"
+    );
+    println!("| load | episode | frames | dropped | peak RSS MB | save (stop -> committed) ms |");
+    println!("|---|---|---|---|---|---|");
     let exe = std::env::current_exe()?;
-    let mut lengths = vec![10, 60, o.long_s];
-    lengths.dedup();
+    let long = o.long_s.to_string();
+    let mut runs: Vec<(&str, usize, u32, Vec<&str>)> = vec![
+        ("av1", 2, 20, vec!["10", "60", &long]),
+        ("av1", 3, 20, vec!["60"]),
+        ("h264", 3, 30, vec!["10", "60"]),
+    ];
     if o.quick {
-        lengths = vec![10, o.long_s];
+        runs = vec![("av1", 2, 20, vec!["10", &long]), ("h264", 3, 30, vec!["10"])];
     }
-    for secs in lengths {
-        let out = Command::new(&exe)
-            .args(["--rss-episode", &secs.to_string()])
-            .env("SVT_LOG", "1")
-            .output()?;
-        let text = String::from_utf8_lossy(&out.stdout);
-        let Some(v) = text
-            .lines()
-            .last()
-            .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        else {
+    for (codec, ncams, fps, lengths) in runs {
+        for secs in lengths {
+            let out = Command::new(&exe)
+                .args(["--rss-episode", secs, codec, &ncams.to_string(), &fps.to_string()])
+                .env("SVT_LOG", "1")
+                .output()?;
+            let text = String::from_utf8_lossy(&out.stdout);
+            let load = format!("{ncams} x {codec} @ {fps} fps");
+            let Some(v) = text
+                .lines()
+                .last()
+                .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            else {
+                println!(
+                    "| {load} | {secs} s | failed: {} |",
+                    String::from_utf8_lossy(&out.stderr).trim()
+                );
+                continue;
+            };
             println!(
-                "| {secs} s | failed: {} |",
-                String::from_utf8_lossy(&out.stderr).trim()
+                "| {load} | {secs} s | {} | {} | {:.0} | {:.0} |",
+                v["frames"],
+                v["dropped"],
+                v["peak_rss_mb"].as_f64().unwrap_or(0.0),
+                v["save_ms"].as_f64().unwrap_or(0.0)
             );
-            continue;
-        };
-        println!(
-            "| {secs} s | {} | {} | {:.0} | {:.0} |",
-            v["frames"],
-            v["dropped"],
-            v["peak_rss_mb"].as_f64().unwrap_or(0.0),
-            v["save_ms"].as_f64().unwrap_or(0.0)
-        );
+        }
     }
     Ok(())
 }
