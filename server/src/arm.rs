@@ -533,13 +533,21 @@ impl ArmController {
                 match step {
                     Some(step) if inner.last_policy_step != Some(step) => {
                         inner.last_policy_step = Some(step);
+                        // Silence counts from when the policy's plan runs out, not from the chunk's arrival.
+                        if let Some(owner) = inner.policy.as_mut() {
+                            owner.last_chunk_s = owner.last_chunk_s.max(now);
+                        }
                         let (gated, decision) = inner.policy_gate.check(step.robot_from_target, now);
                         if let Some(target) = gated {
                             self.send(&mut inner, target, step.gripper.clamp(0.0, 1.0));
                         }
                         Self::record_decision(&mut inner, decision);
                     }
-                    Some(_) => {}
+                    Some(_) => {
+                        if let Some(owner) = inner.policy.as_mut() {
+                            owner.last_chunk_s = owner.last_chunk_s.max(now);
+                        }
+                    }
                     None => {
                         let silent = inner
                             .policy

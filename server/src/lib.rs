@@ -20,8 +20,8 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
-use tokio_stream::wrappers::TcpListenerStream;
 use tonic::transport::Server;
+use tonic::transport::server::TcpIncoming;
 
 /// Rate of the arm controllers' periodic work (chunk steps, silence and staleness checks).
 pub const ARM_TICK_HZ: f64 = 500.0;
@@ -145,7 +145,9 @@ pub async fn serve_app(
         .add_service(episodes)
         .add_service(bridge)
         .add_service(cameras)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async {
+        // `Server::tcp_nodelay` only applies to listeners tonic binds itself; without NODELAY on accepted
+        // sockets a reply written in two parts waits ~40 ms for the peer's delayed ACK.
+        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), async {
             let _ = stop_rx.await;
         });
     tokio::pin!(server);

@@ -22,7 +22,10 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
 
 /// Engages the clutch at the phone origin and returns the arm's target right after.
 async fn engage(session: &mut phone2act_sdk::TeleopSession) -> v1::TeleopFeedback {
-    let seq = session.send_pose(phone_pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0).await.unwrap();
+    let seq = session
+        .send_pose(phone_pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
     let fb = session.feedback_for(seq).await.unwrap();
     assert!(fb.error.is_empty(), "{}", fb.error);
     assert!(fb.arm_state.as_ref().unwrap().engaged, "engage must engage");
@@ -30,13 +33,21 @@ async fn engage(session: &mut phone2act_sdk::TeleopSession) -> v1::TeleopFeedbac
 }
 
 /// Walks the phone from its origin along `direction` in 1 cm steps to `distance_m`.
-async fn walk(session: &mut phone2act_sdk::TeleopSession, direction: [f64; 3], distance_m: f64) -> v1::TeleopFeedback {
+async fn walk(
+    session: &mut phone2act_sdk::TeleopSession,
+    direction: [f64; 3],
+    distance_m: f64,
+) -> v1::TeleopFeedback {
     let steps = (distance_m / 0.01).round() as usize;
     let mut last = None;
     for i in 1..=steps {
         let d = i as f64 * 0.01;
         let seq = session
-            .send_pose(phone_pose(direction[0] * d, direction[1] * d, direction[2] * d), vec![], 0)
+            .send_pose(
+                phone_pose(direction[0] * d, direction[1] * d, direction[2] * d),
+                vec![],
+                0,
+            )
             .await
             .unwrap();
         last = Some(session.feedback_for(seq).await.unwrap());
@@ -54,8 +65,17 @@ async fn a_phone_stream_moves_the_sim_arm() {
 
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
     let engaged = engage(&mut phone).await;
-    let start_target = pos(engaged.arm_state.as_ref().unwrap().robot_from_target.as_ref().unwrap());
-    assert!(dist(start_target, before) < 0.01, "engaging must not move the target: {start_target:?} vs {before:?}");
+    let start_target = pos(engaged
+        .arm_state
+        .as_ref()
+        .unwrap()
+        .robot_from_target
+        .as_ref()
+        .unwrap());
+    assert!(
+        dist(start_target, before) < 0.01,
+        "engaging must not move the target: {start_target:?} vs {before:?}"
+    );
 
     // Phone moves 8 cm forward (-Z in the WebXR frame).
     let fb = walk(&mut phone, [0.0, 0.0, -1.0], 0.08).await;
@@ -64,12 +84,21 @@ async fn a_phone_stream_moves_the_sim_arm() {
     assert!(fb.server_receive_time_ns > 0 && fb.server_send_time_ns >= fb.server_receive_time_ns);
     let target = pos(state.robot_from_target.as_ref().unwrap());
     let moved = dist(target, start_target);
-    assert!((moved - 0.08).abs() < 0.005, "target moved {moved} m for an 8 cm phone move");
+    assert!(
+        (moved - 0.08).abs() < 0.005,
+        "target moved {moved} m for an 8 cm phone move"
+    );
 
     settle().await;
     let after = sim_pose_of(&client, "main").await;
-    assert!(dist(after, target) < 0.01, "sim arm at {after:?}, target {target:?}");
-    assert!(dist(after, before) > 0.06, "sim arm did not move: {before:?} -> {after:?}");
+    assert!(
+        dist(after, target) < 0.01,
+        "sim arm at {after:?}, target {target:?}"
+    );
+    assert!(
+        dist(after, before) > 0.06,
+        "sim arm did not move: {before:?} -> {after:?}"
+    );
     server.shutdown().await.unwrap();
 }
 
@@ -85,26 +114,49 @@ async fn a_clutch_cycle_re_indexes_without_moving_the_arm() {
     let held = pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap());
 
     // Disengage, carry the phone back 30 cm (robot must hold), re-engage there.
-    let seq = phone.send_pose(phone_pose(0.0, 0.0, -0.05), vec![buttons::clutch_disengage()], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, -0.05), vec![buttons::clutch_disengage()], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     assert!(!fb.arm_state.unwrap().engaged);
-    let seq = phone.send_pose(phone_pose(0.0, 0.0, 0.25), vec![], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, 0.25), vec![], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
-    assert!(dist(pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap()), held) < 1e-9);
+    assert!(
+        dist(
+            pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap()),
+            held
+        ) < 1e-9
+    );
     settle().await;
     let measured = sim_pose_of(&client, "main").await;
 
-    let seq = phone.send_pose(phone_pose(0.0, 0.0, 0.25), vec![buttons::clutch_engage()], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, 0.25), vec![buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     let state = fb.arm_state.unwrap();
     assert!(state.engaged);
     let re_indexed = pos(state.robot_from_target.as_ref().unwrap());
-    assert!(dist(re_indexed, measured) < 1e-3, "re-index must start from the measured pose");
+    assert!(
+        dist(re_indexed, measured) < 1e-3,
+        "re-index must start from the measured pose"
+    );
     // The next move is relative to the new phone origin: 3 cm, not 33 cm.
-    let seq = phone.send_pose(phone_pose(0.0, 0.0, 0.22), vec![], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, 0.22), vec![], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     let state = fb.arm_state.unwrap();
-    assert_eq!(state.last_decision.as_ref().unwrap().verdict(), v1::GateVerdict::Accepted);
+    assert_eq!(
+        state.last_decision.as_ref().unwrap().verdict(),
+        v1::GateVerdict::Accepted
+    );
     let moved = dist(pos(state.robot_from_target.as_ref().unwrap()), re_indexed);
     assert!((moved - 0.03).abs() < 0.003, "moved {moved}");
     server.shutdown().await.unwrap();
@@ -120,13 +172,19 @@ async fn a_jump_is_rejected_and_the_arm_stays() {
     let fb = engage(&mut phone).await;
     let start = pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap());
     // 12 cm in one sample: over the 60 mm jump threshold.
-    let seq = phone.send_pose(phone_pose(0.0, 0.0, -0.12), vec![], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, -0.12), vec![], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     let state = fb.arm_state.unwrap();
     let decision = state.last_decision.as_ref().unwrap();
     assert_eq!(decision.verdict(), v1::GateVerdict::RejectedJump, "{decision:?}");
     assert!(decision.reason.contains("jump"), "{}", decision.reason);
-    assert!(dist(pos(state.robot_from_target.as_ref().unwrap()), start) < 1e-9, "a rejected jump must not move");
+    assert!(
+        dist(pos(state.robot_from_target.as_ref().unwrap()), start) < 1e-9,
+        "a rejected jump must not move"
+    );
     assert!(state.commands_rejected >= 1);
     server.shutdown().await.unwrap();
 }
@@ -139,7 +197,11 @@ async fn bad_teleop_input_gets_clear_errors() {
     settle().await;
 
     // Unknown arm: the stream ends with NOT_FOUND naming the arm and the known ones.
-    let err = client.teleop("ghost", TeleopOptions::default()).await.unwrap_err().to_string();
+    let err = client
+        .teleop("ghost", TeleopOptions::default())
+        .await
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("NotFound") || err.contains("not found"), "{err}");
     assert!(err.contains("ghost") && err.contains("main"), "{err}");
 
@@ -147,21 +209,37 @@ async fn bad_teleop_input_gets_clear_errors() {
     let fb = engage(&mut phone).await;
     let start = pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap());
     // NaN pose: a per-sample error, the stream and the arm unharmed.
-    let seq = phone.send_pose(phone_pose(f64::NAN, 0.0, 0.0), vec![], 0).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(f64::NAN, 0.0, 0.0), vec![], 0)
+        .await
+        .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
-    assert!(fb.error.contains("NaN") || fb.error.contains("finite"), "{}", fb.error);
+    assert!(
+        fb.error.contains("NaN") || fb.error.contains("finite"),
+        "{}",
+        fb.error
+    );
     // Non-unit quaternion.
     let bad_q = v1::Pose::from_parts([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0]);
     let seq = phone.send_pose(bad_q, vec![], 0).await.unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     assert!(fb.error.contains("quaternion"), "{}", fb.error);
-    assert!(dist(pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap()), start) < 1e-9);
+    assert!(
+        dist(
+            pos(fb.arm_state.unwrap().robot_from_target.as_ref().unwrap()),
+            start
+        ) < 1e-9
+    );
     // Still works afterwards.
     let fb = walk(&mut phone, [0.0, 0.0, -1.0], 0.02).await;
     assert!(fb.error.is_empty());
 
     // A second phone on the same arm is refused unless it takes over.
-    let err = client.teleop("main", TeleopOptions::default()).await.unwrap_err().to_string();
+    let err = client
+        .teleop("main", TeleopOptions::default())
+        .await
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("AlreadyExists") || err.contains("already"), "{err}");
     server.shutdown().await.unwrap();
 }
@@ -178,14 +256,33 @@ async fn two_phones_drive_left_and_right_independently() {
     let mut right = client.teleop("right", TeleopOptions::default()).await.unwrap();
     engage(&mut left).await;
     engage(&mut right).await;
-    let (l, r) = tokio::join!(walk(&mut left, [0.0, 0.0, -1.0], 0.06), walk(&mut right, [0.0, 1.0, 0.0], 0.04));
+    let (l, r) = tokio::join!(
+        walk(&mut left, [0.0, 0.0, -1.0], 0.06),
+        walk(&mut right, [0.0, 1.0, 0.0], 0.04)
+    );
     let l = pos(l.arm_state.unwrap().robot_from_target.as_ref().unwrap());
     let r = pos(r.arm_state.unwrap().robot_from_target.as_ref().unwrap());
-    assert!((dist(l, left_before) - 0.06).abs() < 0.006, "left moved {}", dist(l, left_before));
-    assert!((dist(r, right_before) - 0.04).abs() < 0.006, "right moved {}", dist(r, right_before));
+    assert!(
+        (dist(l, left_before) - 0.06).abs() < 0.006,
+        "left moved {}",
+        dist(l, left_before)
+    );
+    assert!(
+        (dist(r, right_before) - 0.04).abs() < 0.006,
+        "right moved {}",
+        dist(r, right_before)
+    );
     // Different phone motions give different directions: no cross-talk.
-    let dl = [l[0] - left_before[0], l[1] - left_before[1], l[2] - left_before[2]];
-    let dr = [r[0] - right_before[0], r[1] - right_before[1], r[2] - right_before[2]];
+    let dl = [
+        l[0] - left_before[0],
+        l[1] - left_before[1],
+        l[2] - left_before[2],
+    ];
+    let dr = [
+        r[0] - right_before[0],
+        r[1] - right_before[1],
+        r[2] - right_before[2],
+    ];
     let cos = (dl[0] * dr[0] + dl[1] * dr[1] + dl[2] * dr[2]) / (0.06 * 0.04);
     assert!(cos.abs() < 0.2, "left and right moved alike: {dl:?} {dr:?}");
     server.shutdown().await.unwrap();
@@ -207,14 +304,19 @@ async fn a_silent_phone_leaves_the_arm_holding() {
     assert_eq!(decision.verdict(), v1::GateVerdict::HeldStale, "{decision:?}");
     let held = sim_pose_of(&client, "main").await;
     tokio::time::sleep(Duration::from_millis(300)).await;
-    assert!(dist(sim_pose_of(&client, "main").await, held) < 1e-4, "the arm must hold still");
+    assert!(
+        dist(sim_pose_of(&client, "main").await, held) < 1e-4,
+        "the arm must hold still"
+    );
     server.shutdown().await.unwrap();
 }
 
 fn chunk_steps(n: usize, dx_total: f64) -> Vec<v1::ActionStep> {
     // Delta-EE actions relative to the observation's pose: walk +x linearly, gripper open.
     (1..=n)
-        .map(|k| v1::ActionStep { values: vec![dx_total * k as f64 / n as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0] })
+        .map(|k| v1::ActionStep {
+            values: vec![dx_total * k as f64 / n as f64, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        })
         .collect()
 }
 
@@ -257,7 +359,11 @@ async fn a_policy_chunk_executes_through_the_gate() {
     assert!(accepted.steps_scheduled >= 8, "{accepted:?}");
     tokio::time::sleep(Duration::from_millis(900)).await;
     let end = sim_pose_of(&client, "main").await;
-    assert!((end[0] - start[0] - 0.05).abs() < 0.008, "x moved {} (start {start:?}, end {end:?})", end[0] - start[0]);
+    assert!(
+        (end[0] - start[0] - 0.05).abs() < 0.008,
+        "x moved {} (start {start:?}, end {end:?})",
+        end[0] - start[0]
+    );
     assert!((end[1] - start[1]).abs() < 0.005 && (end[2] - start[2]).abs() < 0.005);
 
     // Bad chunks: wrong width, NaN, unknown arm, each a clear status; the session lives on.
@@ -269,13 +375,30 @@ async fn a_policy_chunk_executes_through_the_gate() {
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
     };
-    let err = policy.push_chunk_checked(&client, bad.clone()).await.unwrap_err().to_string();
-    assert!(err.contains("InvalidArgument") && err.contains('7') && err.contains('5'), "{err}");
-    bad.steps = vec![v1::ActionStep { values: vec![f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0] }];
-    let err = policy.push_chunk_checked(&client, bad.clone()).await.unwrap_err().to_string();
+    let err = policy
+        .push_chunk_checked(&client, bad.clone())
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("InvalidArgument") && err.contains('7') && err.contains('5'),
+        "{err}"
+    );
+    bad.steps = vec![v1::ActionStep {
+        values: vec![f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    }];
+    let err = policy
+        .push_chunk_checked(&client, bad.clone())
+        .await
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("InvalidArgument"), "{err}");
     bad.arm = "ghost".into();
-    let err = policy.push_chunk_checked(&client, bad).await.unwrap_err().to_string();
+    let err = policy
+        .push_chunk_checked(&client, bad)
+        .await
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("NotFound"), "{err}");
     policy.next_observation().await.unwrap();
     server.shutdown().await.unwrap();
@@ -303,11 +426,18 @@ async fn the_operator_takes_over_from_a_running_policy() {
 
     // A second policy cannot take the arm.
     let err = client
-        .policy(v1::PolicyHello { arms: vec!["main".into()], request_control: true, ..v1::PolicyHello::default() })
+        .policy(v1::PolicyHello {
+            arms: vec!["main".into()],
+            request_control: true,
+            ..v1::PolicyHello::default()
+        })
         .await
         .unwrap_err()
         .to_string();
-    assert!(err.contains("FailedPrecondition") || err.contains("AlreadyExists"), "{err}");
+    assert!(
+        err.contains("FailedPrecondition") || err.contains("AlreadyExists"),
+        "{err}"
+    );
 
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
     let fb = engage(&mut phone).await;
@@ -326,7 +456,10 @@ async fn the_operator_takes_over_from_a_running_policy() {
     // The chunk no longer drives the arm: it holds where the operator took over.
     let taken = sim_pose_of(&client, "main").await;
     tokio::time::sleep(Duration::from_millis(500)).await;
-    assert!(dist(sim_pose_of(&client, "main").await, taken) < 0.003, "the policy still moves the arm");
+    assert!(
+        dist(sim_pose_of(&client, "main").await, taken) < 0.003,
+        "the policy still moves the arm"
+    );
     server.shutdown().await.unwrap();
 }
 
