@@ -21,6 +21,10 @@ if [[ $rc -ne 0 ]]; then
 fi
 passed=$(grep -Eo 'test result: ok\. [0-9]+ passed' /tmp/phone2act-cargo-test.log | awk '{s+=$4} END {print s+0}')
 echo "rust: ${passed} passed, 0 failed"
+# The Python, rosbridge and browser suites drive the release binary as a user would.
+cargo build --release -p phone2act-server --bin phone2act
+export PHONE2ACT_BIN="$PWD/target/release/phone2act"
+tests/python/run.sh
 if [[ -x tests/conformance/run.sh ]]; then
   tests/conformance/run.sh
 fi
