@@ -49,8 +49,7 @@ fn percentile(sorted: &[i64], p: f64) -> f64 {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-    runtime.block_on(async {
+    {
         println!(
             "gateway-bench: {} phones x {} Hz, {} s per path, release={}, {} CPUs",
             args.phones,
@@ -64,7 +63,7 @@ fn main() -> Result<()> {
             "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
         );
         for path in [Path::DirectGrpc, Path::Rosbridge, Path::Page] {
-            let mut lat = run(path, &args).await?;
+            let mut lat = run(path, &args)?;
             lat.sort_unstable();
             let name = match path {
                 Path::DirectGrpc => "direct gRPC (no gateway)",
@@ -81,14 +80,47 @@ fn main() -> Result<()> {
             );
         }
         Ok(())
-    })
+    }
 }
 
-async fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
+/// Runs `f` on a new thread with its own single-threaded runtime, like a separate process would have (the
+/// standalone gateway binary runs on one thread too).
+fn on_thread<T: Send + 'static>(
+    name: &str,
+    f: impl FnOnce() -> std::pin::Pin<Box<dyn std::future::Future<Output = T>>> + Send + 'static,
+) -> std::thread::JoinHandle<T> {
+    std::thread::Builder::new()
+        .name(name.to_owned())
+        .spawn(move || {
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .expect("runtime");
+            rt.block_on(f())
+        })
+        .expect("thread")
+}
+
+/// One measurement: the mock server, the gateway and the phones each on their own thread and runtime.
+fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
     let epoch = Instant::now();
     let arms: Vec<String> = (0..args.phones).map(|i| format!("arm{i}")).collect();
-    let arm_refs: Vec<&str> = arms.iter().map(String::as_str).collect();
-    let mock = MockServer::start(&arm_refs, epoch, true).await?;
+
+    // "Server process".
+    let (mock_tx, mock_rx) = std::sync::mpsc::channel();
+    let (server_stop_tx, server_stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server_arms = arms.clone();
+    let server = on_thread("server", move || {
+        Box::pin(async move {
+            let refs: Vec<&str> = server_arms.iter().map(String::as_str).collect();
+            let mock = MockServer::start(&refs, epoch, true).await.expect("mock server");
+            mock_tx.send(mock).expect("main thread gone");
+            let _ = server_stop_rx.await;
+        })
+    });
+    let mock = mock_rx.recv()?;
+
+    // "Gateway process".
     let dir = std::env::temp_dir().join(format!("phone2act-gateway-bench-{}", std::process::id()));
     let mut config = GatewayConfig {
         cert_dir: Some(dir.clone()),
@@ -97,48 +129,79 @@ async fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
         ..GatewayConfig::default()
     };
     config.topics.namespaces = arms.iter().map(|a| (a.clone(), a.clone())).collect();
-    let listeners = Listeners {
-        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await?),
-        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await?),
-    };
-    let gateway = Gateway::with_listeners(config, &mock.url(), None, listeners)?;
-    let info = gateway.info().clone();
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let gw_task = tokio::spawn(gateway.run(async {
-        let _ = stop_rx.await;
-    }));
+    let (info_tx, info_rx) = std::sync::mpsc::channel();
+    let (gw_stop_tx, gw_stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let url = mock.url();
+    let gateway = on_thread("gateway", move || {
+        Box::pin(async move {
+            let listeners = Listeners {
+                rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
+                https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
+            };
+            let gateway = Gateway::with_listeners(config, &url, None, listeners).expect("gateway");
+            info_tx.send(gateway.info().clone()).expect("main thread gone");
+            let _ = gateway
+                .run(async {
+                    let _ = gw_stop_rx.await;
+                })
+                .await;
+        })
+    });
+    let info = info_rx.recv()?;
 
+    // "Phones".
     let period = Duration::from_secs_f64(1.0 / args.rate_hz);
-    let warmup_ns = 1_000_000_000_i64;
     let total = Duration::from_secs_f64(args.seconds + 1.0);
-    let mut phones = tokio::task::JoinSet::new();
-    for (i, arm) in arms.iter().enumerate() {
-        let arm = arm.clone();
-        let info = info.clone();
-        let url = mock.url();
-        phones.spawn(async move {
-            // Stagger phones so they do not always send in the same instant.
-            tokio::time::sleep(period.mul_f64(i as f64 / 2.0)).await;
-            match path {
-                Path::Rosbridge => rosbridge_phone(&info, &arm, epoch, period, total).await,
-                Path::Page => page_phone(&info, &arm, epoch, period, total).await,
-                Path::DirectGrpc => grpc_phone(&url, &arm, epoch, period, total).await,
+    let url = mock.url();
+    let phone_arms = arms.clone();
+    let phones = on_thread("phones", move || {
+        Box::pin(async move {
+            let mut phones = tokio::task::JoinSet::new();
+            for (i, arm) in phone_arms.into_iter().enumerate() {
+                let info = info.clone();
+                let url = url.clone();
+                phones.spawn(async move {
+                    // Stagger phones so they do not always send in the same instant.
+                    tokio::time::sleep(period.mul_f64(i as f64 / 2.0)).await;
+                    match path {
+                        Path::Rosbridge => rosbridge_phone(&info, &arm, epoch, period, total).await,
+                        Path::Page => page_phone(&info, &arm, epoch, period, total).await,
+                        Path::DirectGrpc => grpc_phone(&url, &arm, epoch, period, total).await,
+                    }
+                });
             }
-        });
-    }
-    while let Some(done) = phones.join_next().await {
-        done??;
-    }
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    let _ = stop_tx.send(());
-    let _ = gw_task.await;
-    let _ = std::fs::remove_dir_all(dir);
-    Ok(mock
+            while let Some(done) = phones.join_next().await {
+                done??;
+            }
+            anyhow::Ok(())
+        })
+    });
+    phones
+        .join()
+        .map_err(|_| anyhow::anyhow!("phones thread panicked"))??;
+    std::thread::sleep(Duration::from_millis(100));
+    let _ = gw_stop_tx.send(());
+    let _ = gateway.join();
+    let warmup_ns = 1_000_000_000_i64;
+    let latencies = mock
         .received()
         .iter()
         .filter(|r| r.sample.tracking_from_phone.is_some() && r.sample.capture_time_ns > warmup_ns)
         .map(|r| r.arrival_ns - r.sample.capture_time_ns)
-        .collect())
+        .collect();
+    drop(mock);
+    let _ = server_stop_tx.send(());
+    let _ = server.join();
+    let _ = std::fs::remove_dir_all(dir);
+    Ok(latencies)
+}
+
+/// A phone's frame clock: after a stall it carries on from now instead of bursting to catch up, as an XR
+/// frame loop does.
+fn phone_clock(period: Duration) -> tokio::time::Interval {
+    let mut tick = tokio::time::interval(period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick
 }
 
 fn pose_json(topic: &str, stamp_ns: i64, x: f64) -> String {
@@ -165,7 +228,7 @@ async fn rosbridge_phone(
         format!(r#"{{"op":"advertise","topic":"{topic}","type":"geometry_msgs/PoseStamped"}}"#).into(),
     ))
     .await?;
-    let mut tick = tokio::time::interval(period);
+    let mut tick = phone_clock(period);
     let end = Instant::now() + total;
     let mut n = 0u64;
     while Instant::now() < end {
@@ -214,7 +277,7 @@ async fn page_phone(
         format!(r#"{{"type":"hello","arm":"{arm}"}}"#).into(),
     ))
     .await?;
-    let mut tick = tokio::time::interval(period);
+    let mut tick = phone_clock(period);
     let end = Instant::now() + total;
     let mut seq = 0u64;
     while Instant::now() < end {
@@ -249,7 +312,7 @@ async fn grpc_phone(url: &str, arm: &str, epoch: Instant, period: Duration, tota
         .await?;
     let mut inbound = response.into_inner();
     let reader = tokio::spawn(async move { while let Ok(Some(_)) = inbound.message().await {} });
-    let mut tick = tokio::time::interval(period);
+    let mut tick = phone_clock(period);
     let end = Instant::now() + total;
     let mut seq = 0u64;
     while Instant::now() < end {

@@ -120,7 +120,12 @@ fn main() -> Result<()> {
         .init();
     let args = Args::parse();
     let config = load(&args)?;
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    // One thread: the gateway is light I/O for a handful of phones, and keeping a message's whole path
+    // (socket read → slot → HTTP/2 write) on one thread avoids cross-thread wake-ups, which cost more
+    // latency than anything the gateway computes.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
     runtime.block_on(async {
         phone2act_gateway::serve(
             config,
