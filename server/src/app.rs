@@ -184,7 +184,20 @@ impl App {
                         .map_err(|e| cam_err(e.to_string()))?,
                     )
                 }
-                CameraKind::V4l2 => return Err(cam_err("v4l2 capture is not wired yet".to_owned())),
+                CameraKind::V4l2 => {
+                    let device = cam.device.as_deref().unwrap_or_default();
+                    let av = phone2act_recorder::avcapture::AvCaptureConfig::v4l2(
+                        device,
+                        cam.width,
+                        cam.height,
+                        cam.fps.round() as u32,
+                        cam.mjpeg,
+                    );
+                    Some(
+                        phone2act_recorder::avcapture::spawn_av_capture(&cam.name, av, Arc::clone(&slot))
+                            .map_err(|e| cam_err(format!("{device}: {e}")))?,
+                    )
+                }
                 CameraKind::Remote => None,
             };
             cameras.push(CameraRuntime {

@@ -186,11 +186,17 @@ pub struct CameraConfig {
     /// V4L2 device path (kind = "v4l2").
     #[serde(default)]
     pub device: Option<String>,
+    /// Ask a V4L2 webcam for MJPEG (most reach 30 fps at 640x480 only in MJPEG); false asks for raw frames.
+    #[serde(default = "default_true")]
+    pub mjpeg: bool,
     /// Which simulated arm a "sim_render" camera shows (default: the first simulated arm).
     #[serde(default)]
     pub arm: Option<String>,
 }
 
+fn default_true() -> bool {
+    true
+}
 fn default_width() -> u32 {
     640
 }

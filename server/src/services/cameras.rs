@@ -39,7 +39,16 @@ fn decode(frame: &v1::CameraFrame, width: u32, height: u32) -> Result<Vec<u8>, S
             }
             Ok(frame.data.clone())
         }
-        Ok(v1::ImageEncoding::Jpeg) => Err("JPEG push is not wired yet; send RGB8".to_owned()),
+        Ok(v1::ImageEncoding::Jpeg) => {
+            let decoded = phone2act_recorder::jpeg::decode_jpeg(&frame.data).map_err(|e| e.to_string())?;
+            if decoded.width != width || decoded.height != height {
+                return Err(format!(
+                    "JPEG is {}x{}, camera {:?} is configured for {width}x{height}",
+                    decoded.width, decoded.height, frame.camera
+                ));
+            }
+            Ok(Arc::try_unwrap(decoded.rgb).unwrap_or_else(|shared| shared.as_ref().clone()))
+        }
         _ => Err(format!("unsupported image encoding {}", frame.encoding)),
     }
 }

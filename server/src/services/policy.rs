@@ -101,14 +101,21 @@ impl App {
                     continue;
                 }
                 if let Some(frame) = cam.slot.latest() {
-                    // JPEG is produced once the recorder's encoder helper lands; until then frames go raw.
-                    let _ = jpeg_quality;
-                    let data = frame.rgb.as_ref().clone();
+                    let data = if encoding == v1::ImageEncoding::Jpeg {
+                        phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, jpeg_quality)
+                            .map_err(|e| Status::internal(format!("camera {}: {e}", cam.config.name)))?
+                    } else {
+                        frame.rgb.as_ref().clone()
+                    };
                     frames.push(v1::CameraFrame {
                         camera: cam.config.name.clone(),
                         width: frame.width,
                         height: frame.height,
-                        encoding: v1::ImageEncoding::Rgb8 as i32,
+                        encoding: if encoding == v1::ImageEncoding::Jpeg {
+                            v1::ImageEncoding::Jpeg as i32
+                        } else {
+                            v1::ImageEncoding::Rgb8 as i32
+                        },
                         data,
                         capture_time_ns: frame.capture_time_ns,
                         frame_seq: frame.seq,
