@@ -99,6 +99,8 @@ struct TickState {
     warning: Option<String>,
     version: u64,
     last_task: Option<String>,
+    /// Committed episodes, cached so that status never waits for a save in progress.
+    saved: u64,
 }
 
 struct Shared {
@@ -168,6 +170,7 @@ impl Recorder {
         let camera_names = spec.cameras.iter().map(|c| c.name.clone()).collect();
         let mut dataset = Dataset::open(spec)?;
         dataset.set_sync_provenance(serde_json::to_value(&sync).unwrap_or_default());
+        let saved = dataset.total_episodes();
         let shared = Arc::new(Shared {
             dataset: Mutex::new(dataset),
             tick: Mutex::new(TickState {
@@ -176,6 +179,7 @@ impl Recorder {
                 warning: None,
                 version: 0,
                 last_task: None,
+                saved,
             }),
             changed: Condvar::new(),
             stop: AtomicBool::new(false),
@@ -206,8 +210,10 @@ impl Recorder {
             }
         }
         let writer = ds.begin_episode(task, self.shared.sync.queue_frames)?;
+        let saved = ds.total_episodes();
         drop(ds);
         let mut t = lock(&self.shared.tick);
+        t.saved = saved;
         if let Some(a) = &t.active {
             return Err(RecorderError::AlreadyRecording(a.writer.index));
         }
@@ -239,7 +245,9 @@ impl Recorder {
     }
 
     fn set_idle(&self, warning: Option<String>) {
+        let saved = lock(&self.shared.dataset).total_episodes();
         let mut t = lock(&self.shared.tick);
+        t.saved = saved;
         t.phase = Phase::Idle;
         t.warning = warning;
         bump(&self.shared, &mut t);
@@ -344,9 +352,8 @@ impl Recorder {
 
     /// The current status.
     pub fn status(&self) -> RecorderStatus {
-        let saved = self.shared.dataset.try_lock().map(|d| d.total_episodes()).ok();
         let t = lock(&self.shared.tick);
-        status_of(&self.shared, &t, saved)
+        status_of(&self.shared, &t)
     }
 
     /// Waits until the status version is above `since` (or `timeout` passes) and returns the status.
@@ -393,7 +400,7 @@ fn bump(shared: &Shared, t: &mut TickState) {
     shared.changed.notify_all();
 }
 
-fn status_of(shared: &Shared, t: &TickState, saved: Option<u64>) -> RecorderStatus {
+fn status_of(shared: &Shared, t: &TickState) -> RecorderStatus {
     let fps = shared.fps;
     let (episode_index, task, frames, held, paused, late, dropped) = match &t.active {
         Some(a) => (
@@ -405,7 +412,7 @@ fn status_of(shared: &Shared, t: &TickState, saved: Option<u64>) -> RecorderStat
             a.late,
             a.writer.dropped(),
         ),
-        None => (saved.unwrap_or(0), String::new(), 0, 0, 0, 0, 0),
+        None => (t.saved, String::new(), 0, 0, 0, 0, 0),
     };
     RecorderStatus {
         phase: t.phase,
@@ -417,7 +424,7 @@ fn status_of(shared: &Shared, t: &TickState, saved: Option<u64>) -> RecorderStat
         paused_ticks: paused,
         late_ticks: late,
         dropped_frames: dropped,
-        episodes_saved: saved.unwrap_or(episode_index),
+        episodes_saved: t.saved,
         warning: t.warning.clone(),
         fps,
         version: t.version,

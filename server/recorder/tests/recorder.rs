@@ -109,6 +109,11 @@ fn v30_records_resumes_and_appends() {
     assert!(a.length_frames >= 12 && b.length_frames >= 9);
     assert_eq!(a.dropped_frames + b.dropped_frames, 0);
     assert!((a.duration_s - a.length_frames as f64 / 30.0).abs() < 1e-12);
+    let st = rec.status();
+    assert_eq!(
+        (st.phase, st.episodes_saved, st.episode_index),
+        (Phase::Idle, 2, 2)
+    );
     rec.close().unwrap();
 
     // Resume: same spec appends.
