@@ -386,8 +386,7 @@ async fn the_page_socket_records_an_episode() {
             .episodes()
             .list()
             .await
-            .map(|l| l.episodes.len() == 1)
-            .unwrap_or(false)
+            .is_ok_and(|l| l.episodes.len() == 1)
     })
     .await;
     assert!(saved, "no episode saved");
