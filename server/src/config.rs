@@ -52,6 +52,10 @@ pub struct Config {
     pub cameras: Vec<CameraConfig>,
     #[serde(default)]
     pub recorder: RecorderConfig,
+    /// The phone gateway `phone2act serve` embeds: rosbridge v2 on ws://:9090 (the Phone2Act Android app,
+    /// roslibjs/roslibpy) and the zero-install phone page over HTTPS on :8443.
+    #[serde(default)]
+    pub gateway: phone2act_gateway::GatewayConfig,
 }
 
 /// gRPC listener and access.

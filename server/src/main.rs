@@ -296,8 +296,45 @@ fn real_main() -> anyhow::Result<()> {
                 .context("cannot start the async runtime")?;
             runtime.block_on(async move {
                 let listener = bind(config.server.listen).await?;
-                eprintln!("phone2act: gRPC on {}", listener.local_addr()?);
-                run(config, listener, shutdown_signal()).await?;
+                let local = listener.local_addr()?;
+                eprintln!("phone2act: gRPC on {local}");
+                // One signal, two servers: the gRPC server and the embedded phone gateway.
+                let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+                tokio::spawn(async move {
+                    shutdown_signal().await;
+                    stop_tx.send_replace(true);
+                });
+                let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+                    let _ = rx.wait_for(|s| *s).await;
+                };
+                let gateway = if config.gateway.enabled {
+                    // The gateway is a gRPC client of this server, over loopback when bound to all interfaces.
+                    let grpc_url = if local.ip().is_unspecified() {
+                        format!("http://127.0.0.1:{}", local.port())
+                    } else {
+                        format!("http://{local}")
+                    };
+                    let gateway = phone2act_gateway::Gateway::bind(
+                        config.gateway.clone(),
+                        &grpc_url,
+                        config.server.token.as_deref(),
+                    )
+                    .await
+                    .context(
+                        "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
+                    )?;
+                    Some(tokio::spawn(gateway.run(stopped(stop_rx.clone()))))
+                } else {
+                    None
+                };
+                run(config, listener, stopped(stop_rx)).await?;
+                if let Some(gateway) = gateway {
+                    match tokio::time::timeout(std::time::Duration::from_millis(300), gateway).await {
+                        Ok(Ok(Err(e))) => tracing::warn!("phone gateway: {e}"),
+                        Ok(_) => {}
+                        Err(_) => tracing::warn!("phone gateway still closing connections; exiting anyway"),
+                    }
+                }
                 anyhow::Ok(())
             })
         }

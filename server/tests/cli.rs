@@ -24,6 +24,8 @@ fn serve(config: &std::path::Path) -> Served {
         .args(["serve", "--listen", "127.0.0.1:0", "--config"])
         .arg(config)
         .env("SVT_LOG", "1")
+        // Phone ports are fixed (9090, 8443); other tests and servers may hold them.
+        .env("PHONE2ACT_GATEWAY__ENABLED", "false")
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()
@@ -171,6 +173,7 @@ fn a_taken_port_is_a_one_line_error() {
     let addr = taken.local_addr().unwrap().to_string();
     let dir = tempfile::tempdir().unwrap();
     let out = Command::new(BIN)
+        .env("PHONE2ACT_GATEWAY__ENABLED", "false")
         .args(["serve", "--listen", &addr, "--config"])
         .arg(write_config(dir.path()))
         .output()

@@ -7,12 +7,24 @@ use std::net::SocketAddr;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
-/// The embedded default configuration with its dataset under `dataset_root`.
+/// The embedded default configuration with its dataset under `dataset_root`, its camera shrunk to
+/// 320x240 at 15 fps so that a dozen servers in unoptimised test builds fit on two cores.
 pub fn default_config(dataset_root: &std::path::Path) -> Config {
+    let mut config = embedded_default(dataset_root);
+    for cam in &mut config.cameras {
+        (cam.width, cam.height, cam.fps) = (320, 240, 15.0);
+    }
+    config
+}
+
+/// The embedded default configuration exactly as shipped, with its dataset under `dataset_root`.
+/// In-process servers never start the phone gateway (only the binary does).
+pub fn embedded_default(dataset_root: &std::path::Path) -> Config {
     let mut config =
         Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())
             .expect("embedded default parses");
     dataset_root.clone_into(&mut config.recorder.root);
+    config.gateway.enabled = false;
     config
 }
 
@@ -94,10 +106,7 @@ impl TestServer {
 
     /// Starts the embedded default configuration with the dataset under `dataset_root`.
     pub async fn start_default(dataset_root: &std::path::Path) -> anyhow::Result<Self> {
-        let mut config =
-            Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())?;
-        dataset_root.clone_into(&mut config.recorder.root);
-        Self::start(config).await
+        Self::start(embedded_default(dataset_root)).await
     }
 
     /// The gRPC URL.

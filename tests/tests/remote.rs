@@ -118,9 +118,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
     let echo = tokio::spawn(async move {
         while let Some(Ok(msg)) = down.next().await {
             if let Some(v1::bridge_downstream::Message::Command(c)) = msg.message {
-                let _ = echo_tx
-                    .send(feedback(c.robot_from_target.unwrap(), c.seq))
-                    .await;
+                let _ = echo_tx.send(feedback(c.robot_from_target.unwrap(), c.seq)).await;
                 seen.store(c.seq, std::sync::atomic::Ordering::Relaxed);
             }
         }

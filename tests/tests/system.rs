@@ -37,7 +37,10 @@ async fn lists_the_main_arm_and_its_camera_and_streams_status() {
         if status.cameras[0].frames_captured >= 2 {
             break;
         }
-        assert!(Instant::now() < deadline, "the synthetic camera produced no frames");
+        assert!(
+            Instant::now() < deadline,
+            "the synthetic camera produced no frames"
+        );
     }
 
     let started = Instant::now();

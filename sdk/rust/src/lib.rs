@@ -135,7 +135,9 @@ impl Client {
 
     /// The Episodes service: start, stop, discard, list, watch.
     pub fn episodes(&self) -> EpisodesApi {
-        EpisodesApi { inner: self.episodes_raw() }
+        EpisodesApi {
+            inner: self.episodes_raw(),
+        }
     }
 
     /// Opens a teleop session bound to `arm`. Samples are sent through a depth-1 queue: if the network is slower
@@ -225,8 +227,16 @@ pub struct EpisodesApi {
 impl EpisodesApi {
     /// Starts recording an episode with `task`.
     pub async fn start(&mut self, task: &str) -> Result<v1::RecordingStatus> {
-        let response = self.inner.start(v1::StartEpisodeRequest { task: task.to_owned() }).await?;
-        response.into_inner().status.ok_or_else(|| Error::Protocol("Start answered without status".into()))
+        let response = self
+            .inner
+            .start(v1::StartEpisodeRequest {
+                task: task.to_owned(),
+            })
+            .await?;
+        response
+            .into_inner()
+            .status
+            .ok_or_else(|| Error::Protocol("Start answered without status".into()))
     }
 
     /// Stops and saves the episode in progress; returns once it is committed.
@@ -236,13 +246,26 @@ impl EpisodesApi {
 
     /// Throws away the episode in progress; returns the number of frames dropped.
     pub async fn discard(&mut self) -> Result<u64> {
-        Ok(self.inner.discard(v1::DiscardEpisodeRequest {}).await?.into_inner().frames_discarded)
+        Ok(self
+            .inner
+            .discard(v1::DiscardEpisodeRequest {})
+            .await?
+            .into_inner()
+            .frames_discarded)
     }
 
     /// Discards the episode in progress (if any) and starts again; an empty task keeps the previous one.
     pub async fn rerecord(&mut self, task: &str) -> Result<v1::RecordingStatus> {
-        let response = self.inner.rerecord(v1::RerecordEpisodeRequest { task: task.to_owned() }).await?;
-        response.into_inner().status.ok_or_else(|| Error::Protocol("Rerecord answered without status".into()))
+        let response = self
+            .inner
+            .rerecord(v1::RerecordEpisodeRequest {
+                task: task.to_owned(),
+            })
+            .await?;
+        response
+            .into_inner()
+            .status
+            .ok_or_else(|| Error::Protocol("Rerecord answered without status".into()))
     }
 
     /// Saved episodes.
@@ -257,7 +280,11 @@ impl EpisodesApi {
 
     /// Recorder state on every change and at least every `interval_s`.
     pub async fn watch(&mut self, interval_s: f64) -> Result<tonic::Streaming<v1::RecordingStatus>> {
-        Ok(self.inner.watch(v1::WatchEpisodesRequest { interval_s }).await?.into_inner())
+        Ok(self
+            .inner
+            .watch(v1::WatchEpisodesRequest { interval_s })
+            .await?
+            .into_inner())
     }
 }
 
@@ -280,11 +307,7 @@ pub struct TeleopSession {
 }
 
 impl TeleopSession {
-    async fn open(
-        mut client: TeleopClient<AuthChannel>,
-        arm: &str,
-        options: TeleopOptions,
-    ) -> Result<Self> {
+    async fn open(mut client: TeleopClient<AuthChannel>, arm: &str, options: TeleopOptions) -> Result<Self> {
         // Depth 1: the phone's newest pose matters, a backlog of old ones does not.
         let (tx, rx) = mpsc::channel(1);
         let hello = v1::PhoneSample {
@@ -296,7 +319,12 @@ impl TeleopSession {
         };
         tx.send(hello).await.map_err(|_| Error::Closed)?;
         let feedback = client.stream(ReceiverStream::new(rx)).await?.into_inner();
-        Ok(Self { tx, feedback, seq: 0, superseded: 0 })
+        Ok(Self {
+            tx,
+            feedback,
+            seq: 0,
+            superseded: 0,
+        })
     }
 
     /// Sends one sample (its `seq` is assigned here). Returns false if the previous sample was still waiting
@@ -341,7 +369,11 @@ impl TeleopSession {
 
     /// Sends button events without a pose.
     pub async fn send_buttons(&mut self, buttons: Vec<v1::ButtonEvent>) -> Result<u64> {
-        self.send_wait(v1::PhoneSample { buttons, ..v1::PhoneSample::default() }).await
+        self.send_wait(v1::PhoneSample {
+            buttons,
+            ..v1::PhoneSample::default()
+        })
+        .await
     }
 
     /// The next feedback message; `Ok(None)` when the server ended the stream.
@@ -387,7 +419,9 @@ pub mod buttons {
 
     fn clutch(kind: v1::clutch_command::Kind) -> v1::ButtonEvent {
         v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Clutch(v1::ClutchCommand { kind: kind as i32 })),
+            event: Some(v1::button_event::Event::Clutch(v1::ClutchCommand {
+                kind: kind as i32,
+            })),
         }
     }
 
@@ -449,12 +483,16 @@ impl PolicySession {
         // A few slots: chunks are small and rare (a few per second); the bound keeps a stuck server from
         // growing the queue.
         let (tx, rx) = mpsc::channel(8);
-        tx.send(v1::PolicyRequest { request: Some(v1::policy_request::Request::Hello(hello)) })
-            .await
-            .map_err(|_| Error::Closed)?;
+        tx.send(v1::PolicyRequest {
+            request: Some(v1::policy_request::Request::Hello(hello)),
+        })
+        .await
+        .map_err(|_| Error::Closed)?;
         let mut events = client.session(ReceiverStream::new(rx)).await?.into_inner();
         let ready = match events.message().await? {
-            Some(v1::PolicyEvent { event: Some(v1::policy_event::Event::Ready(ready)) }) => ready,
+            Some(v1::PolicyEvent {
+                event: Some(v1::policy_event::Event::Ready(ready)),
+            }) => ready,
             Some(other) => return Err(Error::Protocol(format!("expected SessionReady, got {other:?}"))),
             None => return Err(Error::Closed),
         };
@@ -495,16 +533,23 @@ impl PolicySession {
 
     /// Asks for one observation now.
     pub async fn request_observation(&self) -> Result<()> {
-        self.request(v1::policy_request::Request::Observe(v1::ObservationRequest {})).await
+        self.request(v1::policy_request::Request::Observe(v1::ObservationRequest {}))
+            .await
     }
 
     /// Gives up control; the arms hold.
     pub async fn release(&self) -> Result<()> {
-        self.request(v1::policy_request::Request::Release(v1::ReleaseControl {})).await
+        self.request(v1::policy_request::Request::Release(v1::ReleaseControl {}))
+            .await
     }
 
     async fn request(&self, request: v1::policy_request::Request) -> Result<()> {
-        self.tx.send(v1::PolicyRequest { request: Some(request) }).await.map_err(|_| Error::Closed)
+        self.tx
+            .send(v1::PolicyRequest {
+                request: Some(request),
+            })
+            .await
+            .map_err(|_| Error::Closed)
     }
 }
 
@@ -515,7 +560,10 @@ impl PolicySession {
         client: &Client,
         chunk: v1::ActionChunk,
     ) -> Result<v1::ChunkAccepted> {
-        let request = v1::PushChunkRequest { session_id: self.ready.session_id.clone(), chunk: Some(chunk) };
+        let request = v1::PushChunkRequest {
+            session_id: self.ready.session_id.clone(),
+            chunk: Some(chunk),
+        };
         Ok(client.policy_raw().push_chunk(request).await?.into_inner())
     }
 }

@@ -102,8 +102,13 @@ impl App {
                 }
                 if let Some(frame) = cam.slot.latest() {
                     let data = if encoding == v1::ImageEncoding::Jpeg {
-                        phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, jpeg_quality)
-                            .map_err(|e| Status::internal(format!("camera {}: {e}", cam.config.name)))?
+                        phone2act_recorder::jpeg::encode_jpeg(
+                            &frame.rgb,
+                            frame.width,
+                            frame.height,
+                            jpeg_quality,
+                        )
+                        .map_err(|e| Status::internal(format!("camera {}: {e}", cam.config.name)))?
                     } else {
                         frame.rgb.as_ref().clone()
                     };
