@@ -98,6 +98,11 @@ enum DatasetAction {
         /// Dataset root directory.
         path: PathBuf,
     },
+    /// Check a dataset against the LeRobot format rules and say what is wrong; exit 1 if anything is.
+    Verify {
+        /// Dataset root directory.
+        path: PathBuf,
+    },
 }
 
 fn main() -> std::process::ExitCode {
@@ -273,6 +278,26 @@ fn real_main() -> anyhow::Result<()> {
         Command::Dataset {
             action: DatasetAction::Info { path },
         } => dataset_info(&path),
+        Command::Dataset {
+            action: DatasetAction::Verify { path },
+        } => {
+            let report = phone2act_recorder::verify::verify(&path);
+            if report.ok() {
+                println!(
+                    "{}: valid LeRobot {} dataset, {} episodes, {} frames",
+                    path.display(),
+                    report.version,
+                    report.episodes,
+                    report.frames
+                );
+                Ok(())
+            } else {
+                for problem in &report.problems {
+                    println!("problem: {problem}");
+                }
+                anyhow::bail!("{}: {} problem(s) found", path.display(), report.problems.len())
+            }
+        }
         Command::Serve {
             config,
             listen,

@@ -106,6 +106,18 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         text.contains("LeRobot v3.0") && text.contains("observation.state"),
         "{text}"
     );
+    let out = Command::new(BIN)
+        .args(["dataset", "verify"])
+        .arg(dir.path().join("ds"))
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("valid LeRobot v3.0 dataset, 1 episodes"), "{text}");
 
     // SIGTERM: gone within a second.
     let mut server = server;

@@ -25,6 +25,8 @@ echo "rust: ${passed} passed, 0 failed"
 cargo build --release -p phone2act-server --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
 tests/python/run.sh
+tests/rosbridge/run.sh
+tests/browser/run.sh
 if [[ -x tests/conformance/run.sh ]]; then
   tests/conformance/run.sh
 fi

@@ -400,7 +400,9 @@ async fn the_page_socket_records_an_episode() {
 
     // The page saw its own round trips and the recording state.
     let mut phases = Vec::new();
-    while let Ok(Some(Ok(msg))) = tokio::time::timeout(Duration::from_millis(300), page.next()).await {
+    // The server sends idle feedback every 100 ms, so drain for a bounded time rather than until silence.
+    let drain_until = tokio::time::Instant::now() + Duration::from_secs(1);
+    while let Ok(Some(Ok(msg))) = tokio::time::timeout_at(drain_until, page.next()).await {
         if let Message::Text(t) = msg {
             let v: Value = serde_json::from_str(t.as_str()).unwrap();
             if v["type"] == "feedback" {

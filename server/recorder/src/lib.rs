@@ -14,6 +14,7 @@ pub mod recorder;
 pub mod spec;
 pub mod stats;
 pub mod synthetic;
+pub mod verify;
 pub mod video;
 
 pub use dataset::{Dataset, EpisodeSummary};

@@ -1,0 +1,456 @@
+//! Read-only dataset verification: checks a LeRobot v3.0 or v2.1 dataset against the rules its loaders
+//! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
+//! an interrupted episode), so it is safe on a dataset another process is writing.
+
+use arrow_array::cast::AsArray;
+use arrow_array::types::{Float32Type, Int64Type};
+use arrow_array::RecordBatch;
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use serde_json::Value;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// What verification found.
+#[derive(Debug, Default, Clone)]
+pub struct Report {
+    /// `codebase_version` from info.json.
+    pub version: String,
+    pub episodes: u64,
+    pub frames: u64,
+    /// Problems, each a sentence; empty when the dataset is valid.
+    pub problems: Vec<String>,
+}
+
+impl Report {
+    pub fn ok(&self) -> bool {
+        self.problems.is_empty()
+    }
+}
+
+/// Per video key: the file holding an episode and the episode's time span in it.
+type EpisodeVideos = BTreeMap<String, (PathBuf, f64, f64)>;
+
+/// Columns the data parquet must carry besides the declared vector features.
+const INDEX_COLUMNS: [&str; 5] = ["timestamp", "frame_index", "episode_index", "index", "task_index"];
+
+fn files_with_ext(dir: &Path, ext: &str, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let mut entries: Vec<_> = entries.filter_map(Result::ok).map(|e| e.path()).collect();
+    entries.sort();
+    for path in entries {
+        if path.is_dir() {
+            // Staging folders of an episode in progress are not part of the dataset.
+            if path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with('.'))
+            {
+                continue;
+            }
+            files_with_ext(&path, ext, out);
+        } else if path.extension().is_some_and(|e| e == ext) {
+            out.push(path);
+        }
+    }
+}
+
+fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>, String> {
+    let file = std::fs::File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let reader = ParquetRecordBatchReaderBuilder::try_new(file)
+        .and_then(parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::build)
+        .map_err(|e| format!("{} is not a readable parquet file: {e}", path.display()))?;
+    reader
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+fn int_column(batch: &RecordBatch, name: &str) -> Option<Vec<i64>> {
+    let col = batch.column_by_name(name)?;
+    let ints = col.as_primitive_opt::<Int64Type>()?;
+    Some(ints.iter().map(|v| v.unwrap_or(-1)).collect())
+}
+
+fn float_column(batch: &RecordBatch, name: &str) -> Option<Vec<f64>> {
+    let col = batch.column_by_name(name)?;
+    if let Some(f) = col.as_primitive_opt::<Float32Type>() {
+        return Some(f.iter().map(|v| f64::from(v.unwrap_or(f32::NAN))).collect());
+    }
+    col.as_primitive_opt::<arrow_array::types::Float64Type>()
+        .map(|f| f.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
+}
+
+/// Duration of the first video stream in seconds, and its frame count when the container knows it.
+fn video_duration_s(path: &Path) -> Result<(f64, i64), String> {
+    crate::video::init_ffmpeg();
+    let input =
+        ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
+    let stream = input
+        .streams()
+        .best(ffmpeg_next::media::Type::Video)
+        .ok_or_else(|| format!("{} has no video stream", path.display()))?;
+    let tb = stream.time_base();
+    let duration_s = stream.duration() as f64 * f64::from(tb.numerator()) / f64::from(tb.denominator());
+    Ok((duration_s, stream.frames()))
+}
+
+/// Verifies the dataset at `root`.
+pub fn verify(root: &Path) -> Report {
+    let mut report = Report::default();
+    let info_path = root.join("meta/info.json");
+    let info: Value = match std::fs::read_to_string(&info_path).map(|t| serde_json::from_str(&t)) {
+        Ok(Ok(v)) => v,
+        Ok(Err(e)) => {
+            report
+                .problems
+                .push(format!("meta/info.json is not valid JSON: {e}"));
+            return report;
+        }
+        Err(e) => {
+            report.problems.push(format!(
+                "{} cannot be read ({e}): not a LeRobot dataset",
+                info_path.display()
+            ));
+            return report;
+        }
+    };
+    info["codebase_version"].as_str().unwrap_or("").clone_into(&mut report.version);
+    let v30 = match report.version.as_str() {
+        "v3.0" => true,
+        "v2.1" | "v2.0" => false,
+        other => {
+            report
+                .problems
+                .push(format!("codebase_version {other:?} is neither v3.0 nor v2.1"));
+            return report;
+        }
+    };
+    let fps = info["fps"].as_f64().unwrap_or(0.0);
+    if fps <= 0.0 {
+        report.problems.push("info.json has no positive fps".to_owned());
+        return report;
+    }
+    let Some(features) = info["features"].as_object() else {
+        report.problems.push("info.json has no features".to_owned());
+        return report;
+    };
+    let video_keys: Vec<String> = features
+        .iter()
+        .filter(|(_, f)| f["dtype"] == "video")
+        .map(|(k, _)| k.clone())
+        .collect();
+    let column_keys: BTreeSet<String> = features
+        .iter()
+        .filter(|(_, f)| f["dtype"] != "video")
+        .map(|(k, _)| k.clone())
+        .collect();
+    for col in INDEX_COLUMNS {
+        if !column_keys.contains(col) {
+            report
+                .problems
+                .push(format!("info.json does not declare the {col:?} feature"));
+        }
+    }
+
+    // Data files: columns, per-episode frame and timestamp continuity, global index.
+    let mut data_files = Vec::new();
+    files_with_ext(&root.join("data"), "parquet", &mut data_files);
+    if data_files.is_empty() && info["total_episodes"].as_u64().unwrap_or(0) > 0 {
+        report.problems.push("no parquet files under data/".to_owned());
+    }
+    let mut lengths: BTreeMap<i64, u64> = BTreeMap::new();
+    let mut indices = Vec::new();
+    for path in &data_files {
+        let rel = path.strip_prefix(root).unwrap_or(path).display().to_string();
+        let batches = match read_parquet(path) {
+            Ok(b) => b,
+            Err(e) => {
+                report.problems.push(e);
+                continue;
+            }
+        };
+        if let Some(first) = batches.first() {
+            let names: BTreeSet<String> = first.schema().fields().iter().map(|f| f.name().clone()).collect();
+            for missing in column_keys.difference(&names) {
+                report
+                    .problems
+                    .push(format!("{rel} lacks the declared column {missing:?}"));
+            }
+            for extra in names.difference(&column_keys) {
+                report.problems.push(format!("{rel} has column {extra:?} that info.json does not declare (the v3.0 loader refuses this)"));
+            }
+        }
+        let mut last_frame: BTreeMap<i64, i64> = BTreeMap::new();
+        for batch in &batches {
+            let (Some(ts), Some(fi), Some(ep), Some(ix)) = (
+                float_column(batch, "timestamp"),
+                int_column(batch, "frame_index"),
+                int_column(batch, "episode_index"),
+                int_column(batch, "index"),
+            ) else {
+                report.problems.push(format!(
+                    "{rel}: timestamp/frame_index/episode_index/index columns unreadable"
+                ));
+                break;
+            };
+            for row in 0..batch.num_rows() {
+                let expected = last_frame.get(&ep[row]).map_or(0, |f| f + 1);
+                if fi[row] != expected && report.problems.len() < 50 {
+                    report.problems.push(format!(
+                        "{rel}: episode {} jumps from frame {} to {} (a gap the loader rejects)",
+                        ep[row],
+                        expected - 1,
+                        fi[row]
+                    ));
+                }
+                last_frame.insert(ep[row], fi[row]);
+                let want_ts = fi[row] as f64 / fps;
+                if (ts[row] - want_ts).abs() > 1e-4 && report.problems.len() < 50 {
+                    report.problems.push(format!(
+                        "{rel}: episode {} frame {} has timestamp {:.6}, expected frame_index/fps = {want_ts:.6}",
+                        ep[row], fi[row], ts[row]
+                    ));
+                }
+                *lengths.entry(ep[row]).or_default() += 1;
+                indices.push(ix[row]);
+            }
+        }
+    }
+    indices.sort_unstable();
+    if indices.iter().enumerate().any(|(i, &ix)| ix != i as i64) {
+        report
+            .problems
+            .push("the global `index` column is not 0..total_frames without gaps or repeats".to_owned());
+    }
+    report.frames = lengths.values().sum();
+    report.episodes = lengths.len() as u64;
+    let total_frames = info["total_frames"].as_u64().unwrap_or(u64::MAX);
+    let total_episodes = info["total_episodes"].as_u64().unwrap_or(u64::MAX);
+    if total_frames != report.frames {
+        report.problems.push(format!(
+            "info.json says {total_frames} frames, the data files hold {}",
+            report.frames
+        ));
+    }
+    if total_episodes != report.episodes {
+        report.problems.push(format!(
+            "info.json says {total_episodes} episodes, the data files hold {}",
+            report.episodes
+        ));
+    }
+
+    // Episode metadata and videos.
+    let mut episode_meta: BTreeMap<i64, (u64, EpisodeVideos)> = BTreeMap::new();
+    if v30 {
+        let mut meta_files = Vec::new();
+        files_with_ext(&root.join("meta/episodes"), "parquet", &mut meta_files);
+        for path in &meta_files {
+            match read_parquet(path) {
+                Ok(batches) => {
+                    for batch in &batches {
+                        let (Some(ep), Some(len)) =
+                            (int_column(batch, "episode_index"), int_column(batch, "length"))
+                        else {
+                            report
+                                .problems
+                                .push(format!("{} lacks episode_index/length", path.display()));
+                            continue;
+                        };
+                        for row in 0..batch.num_rows() {
+                            let mut videos = BTreeMap::new();
+                            for key in &video_keys {
+                                let col = |s: &str| format!("videos/{key}/{s}");
+                                let chunk = int_column(batch, &col("chunk_index")).map(|v| v[row]);
+                                let file = int_column(batch, &col("file_index")).map(|v| v[row]);
+                                let from = float_column(batch, &col("from_timestamp")).map(|v| v[row]);
+                                let to = float_column(batch, &col("to_timestamp")).map(|v| v[row]);
+                                if let (Some(c), Some(f), Some(from), Some(to)) = (chunk, file, from, to) {
+                                    let rel = format!("videos/{key}/chunk-{c:03}/file-{f:03}.mp4");
+                                    videos.insert(key.clone(), (root.join(rel), from, to));
+                                } else {
+                                    report
+                                        .problems
+                                        .push(format!("episode {} has no video location for {key}", ep[row]));
+                                }
+                            }
+                            episode_meta.insert(ep[row], (len[row].max(0) as u64, videos));
+                        }
+                    }
+                }
+                Err(e) => report.problems.push(e),
+            }
+        }
+        if !root.join("meta/tasks.parquet").exists() {
+            report.problems.push("meta/tasks.parquet is missing".to_owned());
+        }
+    } else {
+        let text = std::fs::read_to_string(root.join("meta/episodes.jsonl")).unwrap_or_default();
+        let chunks_size = info["chunks_size"].as_i64().unwrap_or(1000).max(1);
+        let video_path = info["video_path"].as_str().unwrap_or("");
+        for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+            let Ok(v) = serde_json::from_str::<Value>(line) else {
+                report
+                    .problems
+                    .push(format!("meta/episodes.jsonl line {} is not JSON", n + 1));
+                continue;
+            };
+            let ep = v["episode_index"].as_i64().unwrap_or(-1);
+            let mut videos = BTreeMap::new();
+            for key in &video_keys {
+                let rel = video_path
+                    .replace("{episode_chunk:03d}", &format!("{:03}", ep / chunks_size))
+                    .replace("{video_key}", key)
+                    .replace("{episode_index:06d}", &format!("{ep:06}"));
+                let len = v["length"].as_u64().unwrap_or(0);
+                videos.insert(key.clone(), (root.join(rel), 0.0, len as f64 / fps));
+            }
+            episode_meta.insert(ep, (v["length"].as_u64().unwrap_or(0), videos));
+        }
+        if !root.join("meta/tasks.jsonl").exists() {
+            report.problems.push("meta/tasks.jsonl is missing".to_owned());
+        }
+        if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
+            check_modality(&text, features, &mut report);
+        }
+    }
+    if episode_meta.len() as u64 != report.episodes {
+        report.problems.push(format!(
+            "episode metadata lists {} episodes, the data files hold {}",
+            episode_meta.len(),
+            report.episodes
+        ));
+    }
+    let mut durations: BTreeMap<PathBuf, Result<(f64, i64), String>> = BTreeMap::new();
+    for (ep, (len, videos)) in &episode_meta {
+        match lengths.get(ep) {
+            Some(rows) if rows != len => {
+                report.problems.push(format!(
+                    "episode {ep}: metadata says {len} frames, the data holds {rows}"
+                ));
+            }
+            None => report
+                .problems
+                .push(format!("episode {ep} is in the metadata but has no data rows")),
+            _ => {}
+        }
+        for (key, (path, _from, to)) in videos {
+            let probe = durations
+                .entry(path.clone())
+                .or_insert_with(|| video_duration_s(path));
+            match probe {
+                Ok((duration_s, _)) => {
+                    // The last frame starts at to - 1/fps; its presentation must exist in the file.
+                    if *duration_s + 1e-3 < to - 1.0 / fps {
+                        report.problems.push(format!(
+                            "episode {ep} {key}: video {} lasts {duration_s:.3} s, the episode needs {to:.3} s",
+                            path.strip_prefix(root).unwrap_or(path).display()
+                        ));
+                    }
+                }
+                Err(e) => report.problems.push(format!("episode {ep} {key}: {e}")),
+            }
+        }
+    }
+    report
+}
+
+fn check_modality(text: &str, features: &serde_json::Map<String, Value>, report: &mut Report) {
+    let Ok(modality) = serde_json::from_str::<Value>(text) else {
+        report
+            .problems
+            .push("meta/modality.json is not valid JSON".to_owned());
+        return;
+    };
+    for (group, key) in [("state", "observation.state"), ("action", "action")] {
+        let width = features
+            .get(key)
+            .and_then(|f| f["shape"][0].as_u64())
+            .unwrap_or(0);
+        let Some(entries) = modality[group].as_object() else {
+            report
+                .problems
+                .push(format!("meta/modality.json has no {group:?} block"));
+            continue;
+        };
+        for (name, range) in entries {
+            let (start, end) = (
+                range["start"].as_u64().unwrap_or(u64::MAX),
+                range["end"].as_u64().unwrap_or(0),
+            );
+            if start >= end || end > width {
+                report.problems.push(format!(
+                    "meta/modality.json {group}.{name} = [{start}, {end}) does not fit {key} of width {width}"
+                ));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn golden(name: &str) -> Option<PathBuf> {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../../shared/reference")
+            .join(name);
+        p.exists().then_some(p)
+    }
+
+    fn copy_dir(from: &Path, to: &Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_dir() {
+                copy_dir(&e.path(), &to.join(e.file_name()));
+            } else {
+                std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+            }
+        }
+    }
+
+    #[test]
+    fn golden_datasets_written_by_lerobot_verify_clean() {
+        for name in ["lerobot_sample_v30", "lerobot_sample_v21"] {
+            let Some(root) = golden(name) else { continue };
+            let report = verify(&root);
+            assert!(report.ok(), "{name}: {:?}", report.problems);
+            assert_eq!((report.episodes, report.frames), (3, 30), "{name}");
+        }
+    }
+
+    #[test]
+    fn broken_copies_are_described_in_words() {
+        let Some(root) = golden("lerobot_sample_v21") else {
+            return;
+        };
+        let dir = tempfile::tempdir().unwrap();
+        copy_dir(&root, dir.path());
+        std::fs::remove_file(
+            dir.path()
+                .join("videos/chunk-000/observation.images.front/episode_000001.mp4"),
+        )
+        .unwrap();
+        let info_path = dir.path().join("meta/info.json");
+        let info = std::fs::read_to_string(&info_path)
+            .unwrap()
+            .replace("\"total_frames\": 30", "\"total_frames\": 31");
+        std::fs::write(&info_path, info).unwrap();
+        let report = verify(dir.path());
+        let text = report.problems.join("\n");
+        assert!(text.contains("episode 1 observation.images.front"), "{text}");
+        assert!(
+            text.contains("info.json says 31 frames, the data files hold 30"),
+            "{text}"
+        );
+
+        let empty = tempfile::tempdir().unwrap();
+        let report = verify(empty.path());
+        assert!(
+            report.problems[0].contains("not a LeRobot dataset"),
+            "{:?}",
+            report.problems
+        );
+    }
+}
