@@ -111,7 +111,10 @@ pub struct LatestSlot<T> {
 
 impl<T> Default for LatestSlot<T> {
     fn default() -> Self {
-        Self { value: Mutex::new((None, 0)), ready: Condvar::new() }
+        Self {
+            value: Mutex::new((None, 0)),
+            ready: Condvar::new(),
+        }
     }
 }
 
