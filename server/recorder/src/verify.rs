@@ -2,9 +2,9 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
+use arrow_array::RecordBatch;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Int64Type};
-use arrow_array::RecordBatch;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -115,7 +115,10 @@ pub fn verify(root: &Path) -> Report {
             return report;
         }
     };
-    info["codebase_version"].as_str().unwrap_or("").clone_into(&mut report.version);
+    info["codebase_version"]
+        .as_str()
+        .unwrap_or("")
+        .clone_into(&mut report.version);
     let v30 = match report.version.as_str() {
         "v3.0" => true,
         "v2.1" | "v2.0" => false,
