@@ -35,8 +35,8 @@ async fn a_phone_drives_the_emulated_cr5_and_an_episode_records_it() {
     let mut start = None;
     for _ in 0..100 {
         let arm = client.system().list_arms().await.unwrap().remove(0);
-        if arm.health() == v1::BridgeHealth::Ready && arm.robot_from_ee.is_some() {
-            start = Some(pos(arm.robot_from_ee.as_ref().unwrap()));
+        if let (v1::BridgeHealth::Ready, Some(pose)) = (arm.health(), arm.robot_from_ee.as_ref()) {
+            start = Some(pos(pose));
             break;
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
