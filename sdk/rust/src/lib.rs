@@ -72,6 +72,11 @@ pub struct ConnectOptions {
     pub token: Option<String>,
     /// Time allowed for the TCP and HTTP/2 handshake.
     pub connect_timeout_s: f64,
+    /// PEM certificate authority to trust for `https://` URLs (e.g. a self-signed deployment); without it
+    /// the system's root certificates are used.
+    pub ca_pem: Option<Vec<u8>>,
+    /// Server name to verify in the certificate when it differs from the URL's host.
+    pub tls_domain: Option<String>,
 }
 
 impl Default for ConnectOptions {
@@ -79,6 +84,8 @@ impl Default for ConnectOptions {
         Self {
             token: None,
             connect_timeout_s: 5.0,
+            ca_pem: None,
+            tls_domain: None,
         }
     }
 }
@@ -113,6 +120,18 @@ impl Client {
             .map_err(to_connect_error)?
             .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
             .tcp_nodelay(true);
+        let endpoint = if url.starts_with("https://") {
+            let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
+            if let Some(pem) = &options.ca_pem {
+                tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+            }
+            if let Some(domain) = &options.tls_domain {
+                tls = tls.domain_name(domain.clone());
+            }
+            endpoint.tls_config(tls).map_err(to_connect_error)?
+        } else {
+            endpoint
+        };
         let channel = endpoint.connect().await.map_err(to_connect_error)?;
         let header = match options.token {
             Some(token) => {
