@@ -63,7 +63,8 @@ def start_server(tmp: Path, config: str, startup_timeout_s: float = 60.0) -> Ser
     tmp.mkdir(parents=True, exist_ok=True)
     cfg = tmp / "config.toml"
     cfg.write_text(config)
-    env = dict(os.environ, SVT_LOG="1", RUST_LOG=os.environ.get("RUST_LOG", "warn"))
+    # The embedded phone gateway listens on fixed ports (9090, 8443); tests start several servers at once.
+    env = dict(os.environ, SVT_LOG="1", RUST_LOG=os.environ.get("RUST_LOG", "warn"), PHONE2ACT_GATEWAY__ENABLED="false")
     proc = subprocess.Popen(
         [str(phone2act_bin()), "serve", "--config", str(cfg), "--listen", "127.0.0.1:0"],
         stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env,
