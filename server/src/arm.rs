@@ -7,7 +7,7 @@
 //! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
 
 use nalgebra::Isometry3;
-use phone2act_bridges::{Bridge, Command, Feedback, Health};
+use phone2act_bridges::{Bridge, Command, Health};
 use phone2act_core::{
     ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
     GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
@@ -88,7 +88,6 @@ pub struct ArmController {
     pub layout: ArmLayout,
     pub action_mode: ActionMode,
     inner: Mutex<Inner>,
-    feedback_count: AtomicU64,
     /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
     latencies_ns: Mutex<LatencyRing>,
     samples_received: AtomicU64,
@@ -178,7 +177,6 @@ impl ArmController {
             layout,
             action_mode,
             inner: Mutex::new(inner),
-            feedback_count: AtomicU64::new(0),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
         })
@@ -186,15 +184,6 @@ impl ArmController {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
         self.inner.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
-    /// The newest robot feedback.
-    pub fn feedback(&self) -> Option<Feedback> {
-        let fb = self.bridge.feedback();
-        if fb.is_some() {
-            self.feedback_count.fetch_add(1, Ordering::Relaxed);
-        }
-        fb
     }
 
     fn measured_or(&self, fallback: Isometry3<f64>) -> Isometry3<f64> {
