@@ -177,13 +177,17 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
     }
     if let Some(rec) = &status.recording {
         println!(
-            "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  saved {}  {}",
+            "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  held {} paused {} late {} dropped {}  saved {}  {}",
             rec.dataset_root,
             rec.dataset_format,
             phase_name(rec.phase),
             rec.episode_index,
             rec.frames_recorded,
             rec.duration_s,
+            rec.held_ticks,
+            rec.paused_ticks,
+            rec.late_ticks,
+            rec.dropped_frames,
             rec.episodes_saved,
             rec.warning
         );
@@ -248,12 +252,14 @@ fn real_main() -> anyhow::Result<()> {
                     println!("{} episodes in {}", list.episodes.len(), list.dataset_root);
                     for ep in list.episodes {
                         println!(
-                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3}  {}",
+                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}",
                             ep.episode_index,
                             ep.length_frames,
                             ep.duration_s,
                             ep.held_ticks,
                             ep.paused_ticks,
+                            ep.late_ticks,
+                            ep.dropped_frames,
                             ep.task
                         );
                     }

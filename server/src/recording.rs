@@ -149,6 +149,7 @@ pub fn status_to_proto(s: &RecorderStatus, config: &Config) -> v1::RecordingStat
         episodes_saved: s.episodes_saved,
         warning: s.warning.clone().unwrap_or_default(),
         fps: f64::from(s.fps),
+        late_ticks: s.late_ticks,
     }
 }
 
@@ -162,5 +163,54 @@ pub fn episode_to_proto(e: &EpisodeSummary) -> v1::EpisodeInfo {
         held_ticks: e.held_ticks,
         paused_ticks: e.paused_ticks,
         start_unix_ns: e.start_unix_ns,
+        late_ticks: e.late_ticks,
+        dropped_frames: e.dropped_frames,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sync_counters_reach_the_wire() {
+        let config = Config::embedded_default().unwrap();
+        let status = RecorderStatus {
+            phase: Phase::Recording,
+            episode_index: 4,
+            task: "pick".into(),
+            frames_recorded: 120,
+            duration_s: 6.0,
+            held_ticks: 3,
+            paused_ticks: 2,
+            late_ticks: 7,
+            dropped_frames: 1,
+            episodes_saved: 4,
+            warning: None,
+            fps: 20,
+            version: 9,
+        };
+        let wire = status_to_proto(&status, &config);
+        assert_eq!(
+            (
+                wire.held_ticks,
+                wire.paused_ticks,
+                wire.late_ticks,
+                wire.dropped_frames
+            ),
+            (3, 2, 7, 1)
+        );
+        let episode = EpisodeSummary {
+            index: 4,
+            late_ticks: 5,
+            dropped_frames: 6,
+            paused_ticks: 2,
+            ..EpisodeSummary::default()
+        };
+        let wire = episode_to_proto(&episode);
+        assert_eq!(
+            (wire.paused_ticks, wire.late_ticks, wire.dropped_frames),
+            (2, 5, 6)
+        );
     }
 }

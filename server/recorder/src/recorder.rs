@@ -294,10 +294,10 @@ impl Recorder {
                     save_ms = s.save_latency_s * 1e3,
                     "episode saved"
                 );
-                let warning = (s.dropped_frames > 0 || s.paused_ticks > 0).then(|| {
+                let warning = (s.dropped_frames > 0 || s.paused_ticks > 0 || s.late_ticks > 0).then(|| {
                     format!(
-                        "episode {} saved with {} dropped video frames and {} paused ticks",
-                        s.index, s.dropped_frames, s.paused_ticks
+                        "episode {} saved with {} dropped video frames, {} paused and {} late ticks",
+                        s.index, s.dropped_frames, s.paused_ticks, s.late_ticks
                     )
                 });
                 self.set_idle(warning);
