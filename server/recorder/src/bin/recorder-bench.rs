@@ -2,8 +2,9 @@
 //! save latency for long episodes, and encode speed side by side with lerobot's own encoder.
 //!
 //! Run in release: `cargo run --release -p phone2act-recorder --bin recorder-bench -- [--quick]
-//! [--long-s 600] [--load-s 10]`. Cameras are FFmpeg `testsrc2` through libavdevice (the V4L2 capture
-//! path), the robot is synthetic. Each memory run is a child process so its peak RSS is its own.
+//! [--long-s 600] [--load-s 10] [--only load,memory,encode]`. Cameras are FFmpeg `testsrc2` through
+//! libavdevice (the V4L2 capture path), the robot is synthetic. Each memory run is a child process so its
+//! peak RSS is its own.
 
 use phone2act_recorder::avcapture::{AvCaptureConfig, spawn_av_capture};
 use phone2act_recorder::camera::{CaptureThread, FrameSlot};
@@ -28,6 +29,16 @@ struct Opts {
     quick: bool,
     long_s: u64,
     load_s: f64,
+    /// Sections to run: `load`, `memory`, `encode` (all by default).
+    only: Vec<String>,
+    /// Busy threads at normal priority during the load steps: other work sharing the machine.
+    contend: usize,
+}
+
+impl Opts {
+    fn runs(&self, section: &str) -> bool {
+        self.only.is_empty() || self.only.iter().any(|s| s == section)
+    }
 }
 
 fn run() -> Res<()> {
@@ -48,14 +59,31 @@ fn run() -> Res<()> {
         quick,
         long_s: val("--long-s").map_or(Ok(if quick { 30 } else { 600 }), |v| v.parse())?,
         load_s: val("--load-s").map_or(Ok(if quick { 4.0 } else { 10.0 }), |v| v.parse())?,
+        contend: val("--contend").map_or(Ok(0), |v| v.parse())?,
+        only: val("--only")
+            .map(|v| v.split(',').map(str::to_owned).collect())
+            .unwrap_or_default(),
     };
+    if let Some(bad) = opts
+        .only
+        .iter()
+        .find(|s| !["load", "memory", "encode"].contains(&s.as_str()))
+    {
+        return Err(format!("--only takes load, memory, encode (comma-separated), not {bad:?}").into());
+    }
     println!(
         "# phone2act recorder benchmark ({} cores, release build)",
         std::thread::available_parallelism()?
     );
-    load_ladder(&opts)?;
-    memory_and_save(&opts)?;
-    encode_speed(&opts)?;
+    if opts.runs("load") {
+        load_ladder(&opts)?;
+    }
+    if opts.runs("memory") {
+        memory_and_save(&opts)?;
+    }
+    if opts.runs("encode") {
+        encode_speed(&opts)?;
+    }
     Ok(())
 }
 
@@ -142,12 +170,33 @@ fn load_ladder(o: &Opts) -> Res<()> {
         "\n## camera load (640x480, {:.0} s per step; zero drops = every tick recorded, every frame encoded)",
         o.load_s
     );
+    println!("competing busy threads: {}", o.contend);
+    let _hogs = Hogs::start(o.contend);
     println!("| codec | cameras | fps | frames | dropped | late ticks | paused | save ms | zero drops |");
     println!("|---|---|---|---|---|---|---|---|---|");
     let dir = tempfile_dir("load")?;
     for (codec, format, ladder) in [
-        ("h264", Format::V21, vec![(1, 30), (2, 30), (3, 30), (4, 30)]),
-        ("av1", Format::V30, vec![(1, 20), (2, 20), (3, 20), (3, 30)]),
+        // Steps in order of total frame rate; climbs until one loses a frame or a tick, so the last
+        // zero-drop step is the machine's capacity.
+        (
+            "h264",
+            Format::V21,
+            vec![
+                (1, 30),
+                (2, 30),
+                (3, 30),
+                (4, 30),
+                (6, 30),
+                (8, 30),
+                (10, 30),
+                (12, 30),
+            ],
+        ),
+        (
+            "av1",
+            Format::V30,
+            vec![(1, 20), (2, 20), (3, 20), (4, 20), (3, 30), (4, 30), (5, 30)],
+        ),
     ] {
         let mut best = None;
         for (n, fps) in ladder {
@@ -172,10 +221,11 @@ fn load_ladder(o: &Opts) -> Res<()> {
                 r.save_ms,
                 if ok { "yes" } else { "no" }
             );
-            if ok {
-                best = Some((n, fps));
-            }
             let _ = std::fs::remove_dir_all(&root);
+            if !ok {
+                break;
+            }
+            best = Some((n, fps));
         }
         match best {
             Some((n, fps)) => println!("largest zero-drop load, {codec}: {n} cameras x 640x480 @ {fps} fps"),
@@ -184,6 +234,39 @@ fn load_ladder(o: &Opts) -> Res<()> {
     }
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+/// Threads that spin until dropped, standing in for other work on the machine (a policy, a browser).
+struct Hogs {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl Hogs {
+    fn start(n: usize) -> Self {
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let threads = (0..n)
+            .map(|_| {
+                let stop = Arc::clone(&stop);
+                std::thread::spawn(move || {
+                    let mut x = 0u64;
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        x = std::hint::black_box(x.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1));
+                    }
+                })
+            })
+            .collect();
+        Hogs { stop, threads }
+    }
+}
+
+impl Drop for Hogs {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
 }
 
 fn tempfile_dir(label: &str) -> Res<PathBuf> {
