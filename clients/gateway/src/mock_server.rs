@@ -92,10 +92,11 @@ impl MockServer {
             record_samples,
         };
         let (stop, stopped) = oneshot::channel::<()>();
-        let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+        // As in the real server: `Server::tcp_nodelay` does not reach a listener the caller bound, and without
+        // NODELAY each feedback message waits for the client's next packet to carry the ACK.
+        let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
         tokio::spawn(
             tonic::transport::Server::builder()
-                .tcp_nodelay(true)
                 .add_service(TeleopServer::new(mock.clone()))
                 .add_service(SystemServer::new(mock))
                 .serve_with_incoming_shutdown(incoming, async {

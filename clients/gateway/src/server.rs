@@ -15,6 +15,7 @@ use axum::extract::ws::{WebSocket, WebSocketUpgrade, close_code};
 use axum::extract::{Query, State};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
+use axum::serve::ListenerExt;
 use phone2act_proto::v1::ListArmsRequest;
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -213,6 +214,13 @@ impl Gateway {
                 .fallback(get(rosbridge_plain))
                 .with_state(self.shared.clone());
             let mut stop = self.shared.shutdown.clone();
+            // Feedback goes out one small frame per sample: with Nagle on, each waits for the phone's next
+            // packet to carry the ACK (measured: 9 ms median round trip at 60 Hz instead of under 1 ms).
+            let listener = listener.tap_io(|tcp| {
+                if let Err(e) = tcp.set_nodelay(true) {
+                    tracing::debug!(error = %e, "cannot set TCP_NODELAY");
+                }
+            });
             tasks.spawn(async move {
                 axum::serve(listener, app)
                     .with_graceful_shutdown(async move {
@@ -233,12 +241,14 @@ impl Gateway {
             let std_listener = listener
                 .into_std()
                 .map_err(|e| GatewayError::Serve(e.to_string()))?;
-            let server = axum_server::from_tcp_rustls(
-                std_listener,
+            let acceptor = axum_server::tls_rustls::RustlsAcceptor::new(
                 axum_server::tls_rustls::RustlsConfig::from_config(tls_config),
             )
-            .map_err(|e| GatewayError::Serve(e.to_string()))?
-            .handle(handle.clone());
+            .acceptor(axum_server::accept::NoDelayAcceptor::new());
+            let server = axum_server::from_tcp(std_listener)
+                .map_err(|e| GatewayError::Serve(e.to_string()))?
+                .acceptor(acceptor)
+                .handle(handle.clone());
             tasks.spawn(async move {
                 server
                     .serve(app.into_make_service())

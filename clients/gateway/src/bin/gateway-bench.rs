@@ -62,8 +62,14 @@ fn main() -> Result<()> {
             "{:<28} {:>7} {:>9} {:>9} {:>9} {:>9}",
             "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
         );
+        let mut round_trips = Vec::new();
         for path in [Path::DirectGrpc, Path::Rosbridge, Path::Page] {
-            let mut lat = run(path, &args)?;
+            let (mut lat, rtt) = run(path, &args)?;
+            match path {
+                Path::DirectGrpc => round_trips.insert(0, ("direct gRPC round trip", rtt)),
+                Path::Page => round_trips.push(("page round trip (feedback)", rtt)),
+                Path::Rosbridge => {}
+            }
             lat.sort_unstable();
             let name = match path {
                 Path::DirectGrpc => "direct gRPC (no gateway)",
@@ -77,6 +83,18 @@ fn main() -> Result<()> {
                 percentile(&lat, 0.90),
                 percentile(&lat, 0.99),
                 percentile(&lat, 1.0)
+            );
+        }
+        // What the phone page shows as its latency: sample sent → its feedback back at the phone.
+        for (name, mut rtt) in round_trips {
+            rtt.sort_unstable();
+            println!(
+                "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+                rtt.len(),
+                percentile(&rtt, 0.50),
+                percentile(&rtt, 0.90),
+                percentile(&rtt, 0.99),
+                percentile(&rtt, 1.0)
             );
         }
         Ok(())
@@ -102,7 +120,9 @@ fn on_thread<T: Send + 'static>(
 }
 
 /// One measurement: the mock server, the gateway and the phones each on their own thread and runtime.
-fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
+/// Returns the one-way latencies (phone send → sample at the server) and, for the page, the round trips
+/// (phone send → feedback for that sample back at the phone), both after a 1 s warm-up.
+fn run(path: Path, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
     let epoch = Instant::now();
     let arms: Vec<String> = (0..args.phones).map(|i| format!("arm{i}")).collect();
 
@@ -157,6 +177,7 @@ fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
     let phones = on_thread("phones", move || {
         Box::pin(async move {
             let mut phones = tokio::task::JoinSet::new();
+            let mut round_trips = Vec::new();
             for (i, arm) in phone_arms.into_iter().enumerate() {
                 let info = info.clone();
                 let url = url.clone();
@@ -164,19 +185,21 @@ fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
                     // Stagger phones so they do not always send in the same instant.
                     tokio::time::sleep(period.mul_f64(i as f64 / 2.0)).await;
                     match path {
-                        Path::Rosbridge => rosbridge_phone(&info, &arm, epoch, period, total).await,
+                        Path::Rosbridge => rosbridge_phone(&info, &arm, epoch, period, total)
+                            .await
+                            .map(|()| Vec::new()),
                         Path::Page => page_phone(&info, &arm, epoch, period, total).await,
                         Path::DirectGrpc => grpc_phone(&url, &arm, epoch, period, total).await,
                     }
                 });
             }
             while let Some(done) = phones.join_next().await {
-                done??;
+                round_trips.extend(done??);
             }
-            anyhow::Ok(())
+            anyhow::Ok(round_trips)
         })
     });
-    phones
+    let round_trips = phones
         .join()
         .map_err(|_| anyhow::anyhow!("phones thread panicked"))??;
     std::thread::sleep(Duration::from_millis(100));
@@ -193,7 +216,7 @@ fn run(path: Path, args: &Args) -> Result<Vec<i64>> {
     let _ = server_stop_tx.send(());
     let _ = server.join();
     let _ = std::fs::remove_dir_all(dir);
-    Ok(latencies)
+    Ok((latencies, round_trips))
 }
 
 /// A phone's frame clock: after a stall it carries on from now instead of bursting to catch up, as an XR
@@ -247,7 +270,7 @@ async fn page_phone(
     epoch: Instant,
     period: Duration,
     total: Duration,
-) -> Result<()> {
+) -> Result<Vec<i64>> {
     use futures_util::StreamExt;
     use rustls::pki_types::pem::PemObject;
     let addr = info.https_addr.context("no https listener")?;
@@ -271,8 +294,26 @@ async fn page_phone(
         tokio_tungstenite::client_async(format!("wss://localhost:{}/ws?token={token}", addr.port()), tls)
             .await?;
     let (mut tx, mut rx) = ws.split();
-    // Feedback flows back like on a phone; read and discard it so the socket never backs up.
-    let reader = tokio::spawn(async move { while let Some(Ok(_)) = rx.next().await {} });
+    // Feedback flows back like on a phone: each one echoes the sample's t_ns, which gives the round trip the
+    // page displays. Reading it also keeps the socket from backing up.
+    let (rtt_tx, rtt_rx) = tokio::sync::oneshot::channel();
+    let reader = tokio::spawn(async move {
+        let mut round_trips = Vec::new();
+        let deadline = tokio::time::Instant::now() + total + Duration::from_millis(200);
+        while let Ok(Some(Ok(msg))) = tokio::time::timeout_at(deadline, rx.next()).await {
+            let now_ns = epoch.elapsed().as_nanos() as i64;
+            let Message::Text(text) = msg else { continue };
+            let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+                continue;
+            };
+            if let Some(t_ns) = v.get("t_ns").and_then(serde_json::Value::as_i64)
+                && t_ns > 1_000_000_000
+            {
+                round_trips.push(now_ns - t_ns);
+            }
+        }
+        let _ = rtt_tx.send(round_trips);
+    });
     tx.send(Message::Text(
         format!(r#"{{"type":"hello","arm":"{arm}"}}"#).into(),
     ))
@@ -290,11 +331,18 @@ async fn page_phone(
         );
         tx.send(Message::Text(text.into())).await?;
     }
+    let round_trips = rtt_rx.await.unwrap_or_default();
     reader.abort();
-    Ok(())
+    Ok(round_trips)
 }
 
-async fn grpc_phone(url: &str, arm: &str, epoch: Instant, period: Duration, total: Duration) -> Result<()> {
+async fn grpc_phone(
+    url: &str,
+    arm: &str,
+    epoch: Instant,
+    period: Duration,
+    total: Duration,
+) -> Result<Vec<i64>> {
     let channel = tonic::transport::Endpoint::from_shared(url.to_owned())?
         .tcp_nodelay(true)
         .connect()
@@ -311,7 +359,15 @@ async fn grpc_phone(url: &str, arm: &str, epoch: Instant, period: Duration, tota
         .stream(tokio_stream::wrappers::ReceiverStream::new(rx))
         .await?;
     let mut inbound = response.into_inner();
-    let reader = tokio::spawn(async move { while let Ok(Some(_)) = inbound.message().await {} });
+    let reader = tokio::spawn(async move {
+        let mut round_trips = Vec::new();
+        while let Ok(Some(fb)) = inbound.message().await {
+            if fb.echoed_capture_time_ns > 1_000_000_000 {
+                round_trips.push(epoch.elapsed().as_nanos() as i64 - fb.echoed_capture_time_ns);
+            }
+        }
+        round_trips
+    });
     let mut tick = phone_clock(period);
     let end = Instant::now() + total;
     let mut seq = 0u64;
@@ -330,6 +386,9 @@ async fn grpc_phone(url: &str, arm: &str, epoch: Instant, period: Duration, tota
         .await?;
     }
     drop(tx);
-    reader.abort();
-    Ok(())
+    // The stream ends once the server has answered the last sample.
+    let round_trips = tokio::time::timeout(Duration::from_secs(2), reader)
+        .await
+        .map_or_else(|_| Vec::new(), Result::unwrap_or_default);
+    Ok(round_trips)
 }
