@@ -47,6 +47,19 @@ fn percentile(sorted: &[i64], p: f64) -> f64 {
     sorted[idx] as f64 / 1000.0
 }
 
+/// One table row: count and p50/p90/p99/max of `ns` in microseconds.
+fn print_row(name: &str, mut ns: Vec<i64>) {
+    ns.sort_unstable();
+    println!(
+        "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
+        ns.len(),
+        percentile(&ns, 0.50),
+        percentile(&ns, 0.90),
+        percentile(&ns, 0.99),
+        percentile(&ns, 1.0)
+    );
+}
+
 fn main() -> Result<()> {
     let args = Args::parse();
     {
@@ -64,38 +77,22 @@ fn main() -> Result<()> {
         );
         let mut round_trips = Vec::new();
         for path in [Path::DirectGrpc, Path::Rosbridge, Path::Page] {
-            let (mut lat, rtt) = run(path, &args)?;
+            let (lat, rtt) = run(path, &args)?;
             match path {
                 Path::DirectGrpc => round_trips.insert(0, ("direct gRPC round trip", rtt)),
                 Path::Page => round_trips.push(("page round trip (feedback)", rtt)),
                 Path::Rosbridge => {}
             }
-            lat.sort_unstable();
             let name = match path {
                 Path::DirectGrpc => "direct gRPC (no gateway)",
                 Path::Rosbridge => "rosbridge ws → gateway → gRPC",
                 Path::Page => "page wss → gateway → gRPC",
             };
-            println!(
-                "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
-                lat.len(),
-                percentile(&lat, 0.50),
-                percentile(&lat, 0.90),
-                percentile(&lat, 0.99),
-                percentile(&lat, 1.0)
-            );
+            print_row(name, lat);
         }
         // What the phone page shows as its latency: sample sent → its feedback back at the phone.
-        for (name, mut rtt) in round_trips {
-            rtt.sort_unstable();
-            println!(
-                "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
-                rtt.len(),
-                percentile(&rtt, 0.50),
-                percentile(&rtt, 0.90),
-                percentile(&rtt, 0.99),
-                percentile(&rtt, 1.0)
-            );
+        for (name, rtt) in round_trips {
+            print_row(name, rtt);
         }
         Ok(())
     }
