@@ -683,6 +683,18 @@ impl Dataset {
                 let tp = staging.join("tasks.jsonl");
                 write_synced(&tp, tasks_jsonl.as_bytes())?;
                 renames.push((tp, root.join("meta/tasks.jsonl")));
+                let mut el = self.episodes_jsonl.clone();
+                el.push_str(&json!({"episode_index": index, "tasks": [task], "length": frames}).to_string());
+                el.push('\n');
+                let elp = staging.join("episodes.jsonl");
+                write_synced(&elp, el.as_bytes())?;
+                // The data file and its episodes.jsonl line must appear together: back to back, and before the
+                // stats files, so that stats.json never counts an episode whose data is not on disk yet.
+                renames.push((
+                    staging.join("data.parquet"),
+                    root.join(format!("data/chunk-{chunk:03}/episode_{index:06}.parquet")),
+                ));
+                renames.push((elp, root.join("meta/episodes.jsonl")));
                 let ep_stats: Vec<(String, Value)> =
                     stats.iter().map(|(k, s)| (k.clone(), s.to_json_v21())).collect();
                 let mut es = self.episodes_stats_jsonl.clone();
@@ -706,17 +718,6 @@ impl Dataset {
                 let mp = staging.join("modality.json");
                 write_synced(&mp, &pretty(&self.modality_json()))?;
                 renames.push((mp, root.join("meta/modality.json")));
-                let mut el = self.episodes_jsonl.clone();
-                el.push_str(&json!({"episode_index": index, "tasks": [task], "length": frames}).to_string());
-                el.push('\n');
-                let elp = staging.join("episodes.jsonl");
-                write_synced(&elp, el.as_bytes())?;
-                // The data file and its episodes.jsonl line must appear together: back to back.
-                renames.push((
-                    staging.join("data.parquet"),
-                    root.join(format!("data/chunk-{chunk:03}/episode_{index:06}.parquet")),
-                ));
-                renames.push((elp, root.join("meta/episodes.jsonl")));
                 self.episodes_jsonl = el;
                 self.episodes_stats_jsonl = es;
             }
