@@ -106,14 +106,14 @@ def check_common(root: Path, info: dict, ds, version: str):
     for e, n in expect.get("lengths", {}).items():
         if ep_len.get(int(e)) != n:
             fail(f"episode {e} has {ep_len.get(int(e))} frames, {n} were saved before the kill")
-    return ep_len, video_keys
+    return ep_len, video_keys, in_window
 
 
 def check_v30(root: Path, info: dict):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("local/" + root.name, root=root)
-    ep_len, video_keys = check_common(root, info, ds, "v3.0")
+    ep_len, video_keys, _ = check_common(root, info, ds, "v3.0")
     eps = ds.meta.episodes
     for e in range(info["total_episodes"]):
         row = eps[e]
@@ -166,8 +166,8 @@ def check_v21(root: Path, info: dict):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("local/" + root.name, root=root)
-    ep_len, video_keys = check_common(root, info, ds, "v2.1")
-    check_gr00t(root, info, ep_len)
+    ep_len, _, in_window = check_common(root, info, ds, "v2.1")
+    check_gr00t(root, info, ep_len, in_window)
 
 
 def stats_mismatch(entry: dict, col: str, tables) -> str | None:
@@ -180,7 +180,7 @@ def stats_mismatch(entry: dict, col: str, tables) -> str | None:
     return None
 
 
-def check_gr00t(root: Path, info: dict, ep_len: dict):
+def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
     """What Isaac-GR00T N1.5's LeRobotSingleDataset needs from a v2 layout."""
     meta = root / "meta"
     modality = json.loads((meta / "modality.json").read_text())
@@ -228,11 +228,9 @@ def check_gr00t(root: Path, info: dict, ep_len: dict):
         for vk in [k for k, v in features.items() if v["dtype"] == "video"]:
             vp = root / info["video_path"].format(episode_chunk=e // info["chunks_size"], video_key=vk, episode_index=e)
             check_cfr(vp, info["fps"], ep["length"])
-    # Inside a v2.1 commit window (one episode in episodes.jsonl beyond info.json), the save was killed after
-    # the data went in: stats.json is then either the old aggregate or the new one, exactly.
-    candidates = [tables]
-    if len(episodes) == info["total_episodes"] + 1:
-        candidates.append(tables[:-1])
+    # Inside the v2.1 commit window (see v21_commit_window) the save was killed after the data went in:
+    # stats.json is then either the old aggregate or the new one, exactly.
+    candidates = [tables, tables[:-1]] if in_window else [tables]
     columns = tables[0].column_names
     for col in columns:
         entry = stats.get(col)

@@ -214,8 +214,8 @@ impl Gateway {
                 .fallback(get(rosbridge_plain))
                 .with_state(self.shared.clone());
             let mut stop = self.shared.shutdown.clone();
-            // Feedback goes out one small frame per sample: with Nagle on, each waits for the phone's next
-            // packet to carry the ACK (measured: 9 ms median round trip at 60 Hz instead of under 1 ms).
+            // Feedback goes out one small frame per sample: with Nagle on, a frame often waits for the phone's
+            // next packet to carry the ACK (gateway-bench page round trip at 60 Hz: p90 16.4 ms, 0.7 ms with it).
             let listener = listener.tap_io(|tcp| {
                 if let Err(e) = tcp.set_nodelay(true) {
                     tracing::debug!(error = %e, "cannot set TCP_NODELAY");
