@@ -10,6 +10,8 @@
     `{"video": {k: (B, T, H, W, 3) uint8}, "state": {k: (B, T, D) float32}, "language": {key: [[text]]}}`,
     checked as strictly as N1.6's Gr00tPolicy does, and answers `[{k: float32 (B, horizon, D)}, {}]`;
     `ModalityConfig.as_json` is a map; there is a `reset` endpoint;
+  - "n1.6-sim": N1.6 started with `--use-sim-policy-wrapper`: the same, but `observation` holds flat
+    `video.<k>`/`state.<k>` keys and the language key -> [text], and the answer's keys are `action.<k>`;
   - "pickle" (2025-06-11 .. 2025-09-10): every message is `torch.save` output; a msgpack request cannot be loaded,
     so every answer is `torch.save({"error": ...})`, a zip archive holding `archive/data.pkl`. Built here with
     zipfile + pickle in torch's archive layout (no torch needed); `stream=True` sends a bare pickle instead (the
@@ -135,8 +137,8 @@ class PolicyStandIn(_RepServer):
         }
         if modality_endpoint:
             self.endpoints["get_modality_config"] = (self._modality_config, False)
-        if wire == "n1.6":
-            self.endpoints["get_action"] = (self._get_action_n16, True)
+        if wire in ("n1.6", "n1.6-sim"):
+            self.endpoints["get_action"] = (self._get_action_n16 if wire == "n1.6" else self._get_action_sim, True)
             self.endpoints["reset"] = (lambda options=None: {}, True)
         else:
             self.endpoints["get_action"] = (self._get_action_n15, True)
@@ -161,7 +163,7 @@ class PolicyStandIn(_RepServer):
                 return packb(handler())
             data = req.get("data", {})
             # N1.5 hands the data map over as one argument; N1.6 spreads it into keyword arguments.
-            return packb(handler(**data) if self.wire == "n1.6" else handler(data))
+            return packb(handler(**data) if self.wire.startswith("n1.6") else handler(data))
         except Exception as e:  # noqa: BLE001 - as upstream: every failure becomes an error map
             return packb({"error": str(e)})
 
@@ -169,7 +171,7 @@ class PolicyStandIn(_RepServer):
         prefix = {"video": "video.", "state": "state.", "action": "action."} if self.wire == "n1.5" else {}
         delta = {"action": tuple(range(self.horizon))}
         return {
-            m: ModalityConfig(delta.get(m, (0,)), tuple(prefix.get(m, "") + k for k in keys), self.wire)
+            m: ModalityConfig(delta.get(m, (0,)), tuple(prefix.get(m, "") + k for k in keys), self.wire[:4])
             for m, keys in self.keys.items()
         }
 
@@ -221,3 +223,21 @@ class PolicyStandIn(_RepServer):
             f"Language key '{lang}' must be [[str]], got {text!r}")
         actions = self._run_policy(state, text[0][0])
         return [{k: v[None] for k, v in actions.items()}, {}]
+
+    # --- N1.6 behind Gr00tSimPolicyWrapper: flat keys inside `observation` --------------------------------------
+
+    def _get_action_sim(self, observation: dict[str, Any], options: dict[str, Any] | None = None) -> list[Any]:
+        for k in self.keys["video"]:
+            assert f"video.{k}" in observation, f"Video key 'video.{k}' must be in observation"
+        state = {}
+        for k in self.keys["state"]:
+            assert f"state.{k}" in observation, f"State key 'state.{k}' must be in observation"
+            s = observation[f"state.{k}"]
+            assert s.dtype == np.float32 and s.ndim == 3, f"State key '{k}' must be (B, T, D) float32"
+            state[k] = s[0, -1].astype(np.float64)
+        (lang,) = self.keys["language"]
+        assert lang in observation, f"Language key '{lang}' must be in observation"
+        text = observation[lang]
+        assert isinstance(text, list) and isinstance(text[0], str), "Language batch item must be a string"
+        actions = self._run_policy(state, text[0])
+        return [{f"action.{k}": v[None] for k, v in actions.items()}, {}]

@@ -259,6 +259,19 @@ def test_wrong_dialect_stops_with_advice_and_nothing_moves(gserver: Server) -> N
             assert c.arm("main").commands_sent == before
 
 
+def test_n16_sim_wrapper_server_gets_advice(gserver: Server) -> None:
+    with PolicyStandIn("n1.6-sim", video=("webcam",), state=("single_arm", "gripper"),
+                       action=("single_arm", "gripper")) as standin, Client(gserver.target) as c:
+        session, adapter = open_adapter(c, standin)
+        adapter.wire = N16
+        with session, pytest.raises(Gr00tProtocolError, match="run with --gr00t-version n1.6-sim"):
+            adapter.step()
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--gr00t-version", "n1.6-sim",
+                      "--config", "so100", "--camera", "webcam", "--so100-action-scale", "0.0002",
+                      "--step-period", "0.15", "--chunks", "1", "--task", TASK)
+        assert out.returncode == 0 and "chunks 1, timeouts 0, errors 0" in out.stdout, out.stdout + out.stderr
+
+
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "clients" / "gr00t"), os.environ.get("PYTHONPATH", "")]))
     return subprocess.run([sys.executable, "-m", "phone2act_gr00t", *args], capture_output=True, text=True,

@@ -19,6 +19,7 @@ from phone2act.v1 import common_pb2, policy_pb2
 from phone2act_gr00t import (
     N15,
     N16,
+    N16_SIM,
     ActionModeError,
     ChunkShapeError,
     Embodiment,
@@ -171,6 +172,9 @@ def test_action_mode_follows_what_the_server_reports() -> None:
     explicit = types.SimpleNamespace(arm="main", action_mode=ABSOLUTE_EE, action_names=DELTA_NAMES,
                                      state_names=STATE)
     assert action_mode_of(explicit) == ABSOLUTE_EE
+    listed = types.SimpleNamespace(arm="main", action_mode=ABSOLUTE_EE)  # or on the arm's System.ListArms entry
+    assert action_mode_of(arm_obs(actions=DELTA_NAMES), listed) == ABSOLUTE_EE
+    assert action_mode_of(arm_obs(actions=DELTA_NAMES), types.SimpleNamespace(arm="main")) == DELTA_EE
     # Joint targets: the arm's joint names. Pushed as the SDK's joint mode, or refused if it has none.
     joints = arm_obs(actions=JOINTS + ("gripper",))
     joint_modes = [v for n, v in policy_pb2.ActionMode.items() if "JOINT" in n]
@@ -225,6 +229,25 @@ def test_dialect_is_detected_from_the_modality_config(wire: str) -> None:
         assert emb.chunk_steps(answer, LAYOUT, wire=wire).shape == (16, 7)
         assert standin.observations[-1][1] == "pick"
         np.testing.assert_allclose(standin.observations[-1][0]["single_arm"], [0.1, 0.2, 0.3, 0.4, 0.5], rtol=1e-6)
+        c.close()
+
+
+def test_n16_sim_wrapper_server_wants_flat_keys() -> None:
+    """N1.6 behind `--use-sim-policy-wrapper`: same envelope and config, flat keys inside `observation`."""
+    with PolicyStandIn(N16_SIM, video=("webcam",), state=("single_arm", "gripper"),
+                       action=("single_arm", "gripper")) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        wire, config = c.detect_wire()
+        assert wire == N16  # indistinguishable from its config; the nested request says so
+        emb = Embodiment.so100(LAYOUT, "webcam").check_against(config, wire)
+        with pytest.raises(Gr00tError, match="Video key 'video.webcam' must be in observation"):
+            c.get_action(emb.request_data(observation_like_golden(), "t", N16))
+        data = emb.request_data(observation_like_golden(), "t", N16_SIM)
+        assert set(data["observation"]) == {"video.webcam", "state.single_arm", "state.gripper",
+                                            "annotation.human.task_description"}
+        answer = c.get_action(data)
+        assert set(answer[0]) == {"action.single_arm", "action.gripper"}
+        assert emb.chunk_steps(answer, LAYOUT, wire=N16_SIM).shape == (16, 7)
         c.close()
 
 

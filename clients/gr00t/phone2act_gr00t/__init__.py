@@ -13,6 +13,7 @@ from phone2act_gr00t.modes import ActionModeError, action_mode_of
 from phone2act_gr00t.wire import (
     N15,
     N16,
+    N16_SIM,
     Gr00tClient,
     Gr00tError,
     Gr00tProtocolError,
@@ -25,6 +26,7 @@ from phone2act_gr00t.wire import (
 __all__ = [
     "N15",
     "N16",
+    "N16_SIM",
     "ActionGroup",
     "ActionModeError",
     "AdapterStats",

@@ -11,6 +11,7 @@ from phone2act import IMAGE_NONE, IMAGE_RGB8, Client, Phone2ActError
 from phone2act_gr00t import (
     N15,
     N16,
+    N16_SIM,
     ActionModeError,
     Embodiment,
     EmbodimentMismatch,
@@ -29,8 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--token", default=None, help="phone2act bearer token")
     p.add_argument("--gr00t", default="tcp://127.0.0.1:5555", help="GR00T inference server (ZeroMQ)")
     p.add_argument("--gr00t-token", default=None, help="api_token of the GR00T server")
-    p.add_argument("--gr00t-version", choices=["auto", N15, N16], default="auto",
-                   help="GR00T wire dialect; auto asks the server's get_modality_config")
+    p.add_argument("--gr00t-version", choices=["auto", N15, N16, N16_SIM], default="auto",
+                   help="GR00T wire dialect; auto asks the server's get_modality_config (n1.6-sim: an N1.6 server "
+                        "started with --use-sim-policy-wrapper)")
     p.add_argument("--arm", action="append", default=[],
                    help="arm to drive (repeat for bimanual, in the dataset's order: --arm left --arm right)")
     p.add_argument("--camera", action="append", default=[], help="camera to send as video <camera> (repeat)")
@@ -74,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                 emb = Embodiment.phone2act([session.layouts[a] for a in arms], args.camera)
             emb = emb.check_against(modality, wire)
             adapter = Gr00tAdapter(session, gr00t, emb, wire=wire, task=args.task, step_period_s=args.step_period,
-                                   max_steps=args.max_steps)
+                                   max_steps=args.max_steps, arm_states={a.arm: a for a in client.list_arms()})
             stats = adapter.run(max_chunks=args.chunks)
             print(f"chunks {stats.chunks}, timeouts {stats.timeouts}, errors {stats.errors}")
             if stats.chunks == 0 and stats.last_error:

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from phone2act import PolicySession
@@ -20,7 +21,16 @@ from phone2act.v1 import policy_pb2
 
 from phone2act_gr00t.embodiment import Embodiment, ObservationError
 from phone2act_gr00t.modes import action_mode_of
-from phone2act_gr00t.wire import CHECKED_AGAINST, N15, N16, Gr00tClient, Gr00tError, Gr00tProtocolError, Gr00tTimeout
+from phone2act_gr00t.wire import (
+    CHECKED_AGAINST,
+    N15,
+    N16,
+    WIRE_VERSIONS,
+    Gr00tClient,
+    Gr00tError,
+    Gr00tProtocolError,
+    Gr00tTimeout,
+)
 
 log = logging.getLogger("phone2act_gr00t")
 
@@ -63,12 +73,13 @@ class Gr00tAdapter:
         task: str | None = None,
         step_period_s: float = 0.05,
         max_steps: int | None = None,
+        arm_states: Mapping[str, Any] | None = None,
     ) -> None:
         missing = [a for a in embodiment.arms if a not in session.layouts]
         if missing:
             raise ValueError(f"the policy session does not hold arm(s) {missing} (it has {sorted(session.layouts)})")
-        if wire not in (N15, N16):
-            raise ValueError(f"unknown GR00T wire version {wire!r} (n1.5 or n1.6)")
+        if wire not in WIRE_VERSIONS:
+            raise ValueError(f"unknown GR00T wire version {wire!r} ({', '.join(WIRE_VERSIONS)})")
         self.session = session
         self.gr00t = gr00t
         self.embodiment = embodiment
@@ -78,6 +89,8 @@ class Gr00tAdapter:
         self.layouts = {a: session.layouts[a] for a in self.arms}
         self.step_period_s = step_period_s
         self.max_steps = max_steps
+        # `System.ListArms` snapshots, for an action mode the server reports there rather than per observation.
+        self.arm_states = dict(arm_states or {})
         self.stats = AdapterStats()
 
     def instruction(self, obs: policy_pb2.Observation) -> str:
@@ -102,10 +115,10 @@ class Gr00tAdapter:
                     f"{e}. This GR00T server speaks N1.6 ({CHECKED_AGAINST[N16]}): run with --gr00t-version n1.6 "
                     f"(or auto)"
                 ) from None
-            if self.wire == N16 and any(s in str(e) for s in ("'observation'", "'options'")):
+            if self.wire == N16 and "must be in observation" in str(e) and ("'video." in str(e) or "'state." in str(e)):
                 raise Gr00tProtocolError(
-                    f"{e}. This GR00T server speaks N1.5 ({CHECKED_AGAINST[N15]}): run with --gr00t-version n1.5 "
-                    f"(or auto)"
+                    f"{e}. This GR00T N1.6 server runs with --use-sim-policy-wrapper (flat keys): run with "
+                    f"--gr00t-version n1.6-sim"
                 ) from None
             raise
 
@@ -120,7 +133,7 @@ class Gr00tAdapter:
         if obs is None:
             obs = self.session.next_observation()
         arm_obs = {a.arm: a for a in obs.arms}
-        modes = {arm: action_mode_of(arm_obs[arm]) for arm in self.arms if arm in arm_obs}
+        modes = {arm: action_mode_of(arm_obs[arm], self.arm_states.get(arm)) for arm in self.arms if arm in arm_obs}
         data = self.embodiment.request_data(obs, self.instruction(obs), self.wire)
         t0 = time.monotonic()
         answer = self._get_action(data)

@@ -21,8 +21,8 @@ import numpy as np
 from phone2act import ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 
-from phone2act_gr00t.modes import DELTA, kind_of_mode
-from phone2act_gr00t.wire import N15, N16, ModalityConfig
+from phone2act_gr00t.modes import DELTA, is_gripper, kind_of_mode
+from phone2act_gr00t.wire import N15, N16, N16_SIM, ModalityConfig
 
 LANGUAGE_KEY = "annotation.human.task_description"
 
@@ -99,11 +99,11 @@ class Embodiment:
         the arm's five joints; on an end-effector delta arm they drive the first five delta axes scaled by
         `action_scale` (to run the protocol against so100-shaped servers and the golden messages).
         """
-        joints = tuple(n for n in layout.state_names if not n.startswith("ee_") and n != "gripper")
+        joints = tuple(n for n in layout.state_names if not n.startswith("ee_") and not is_gripper(n))
         if len(joints) != 5:
             raise ObservationError(f"so100 wants 5 joints; arm {layout.arm!r} has {list(joints)}")
         return Embodiment(
-            state=(Group("single_arm", layout.arm, joints), Group("gripper", layout.arm, ("gripper",))),
+            state=(Group("single_arm", layout.arm, joints), Group("gripper", layout.arm, layout.state_names[-1:])),
             video={"webcam": camera},
             actions=(Group("single_arm", layout.arm, layout.action_names[:5], action_scale),
                      Group("gripper", layout.arm, layout.action_names[-1:])),
@@ -178,13 +178,19 @@ class Embodiment:
                 },
                 "options": None,
             }
+        if wire == N16_SIM:
+            # Gr00tSimPolicyWrapper: flat keys, still batched (B, T, ...), language (B,) strings.
+            flat: dict[str, Any] = {f"video.{k}": v[None, None] for k, v in video.items()}
+            flat.update({f"state.{k}": v.astype(np.float32)[None, None] for k, v in state.items()})
+            flat[self.language_key] = [task]
+            return {"observation": flat, "options": None}
         raise ValueError(f"unknown GR00T wire version {wire!r}")
 
     # --- GR00T answer -> phone2act chunks -------------------------------------------------------------------
 
     def answer_groups(self, answer: Any, wire: str = N15) -> dict[str, np.ndarray]:
         """The answer's action arrays by bare group key, each (horizon, D)."""
-        if wire == N16:
+        if wire in (N16, N16_SIM):
             if not isinstance(answer, (list, tuple)) or len(answer) != 2 or not isinstance(answer[0], Mapping):
                 raise ChunkShapeError(f"a GR00T N1.6 answer is [action, info]; got {type(answer).__name__}")
             answer = answer[0]

@@ -79,10 +79,12 @@ def kind_from_names(arm: str, action_names: Sequence[str], state_names: Sequence
     )
 
 
-def action_mode_of(arm_obs: Any) -> int:
-    """The `ActionMode` to push for this arm, from an `ArmObservation` (what the server reports)."""
-    explicit = int(getattr(arm_obs, "action_mode", 0) or 0)
-    if explicit:
-        return explicit
+def action_mode_of(arm_obs: Any, arm_state: Any = None) -> int:
+    """The `ActionMode` to push for this arm, from what the server reports: an explicit mode on its
+    `ArmObservation` or (from `System.ListArms`) its `ArmState`, else its action names."""
+    for reported in (arm_obs, arm_state):
+        explicit = int(getattr(reported, "action_mode", 0) or 0)
+        if explicit:
+            return explicit
     kind = kind_from_names(arm_obs.arm, tuple(arm_obs.action_names), tuple(arm_obs.state_names))
     return _enum_value(kind)

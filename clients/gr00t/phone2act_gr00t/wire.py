@@ -12,7 +12,8 @@ Both dialects share the transport and the codec (`MsgSerializer` since 2025-09-1
   `data` is `{"observation": {"video": {...}, "state": {...}, "language": {...}}, "options": ...}` with batched
   arrays; the answer is the list `[action, info]` with `action = {"<group>": (B, horizon, D)}`. `ModalityConfig`
   objects carry `as_json` as a map. Sending an N1.5 map to N1.6 fails with "unexpected keyword argument
-  'video.webcam'".
+  'video.webcam'". A server started with `--use-sim-policy-wrapper` wants flat keys inside `observation` and
+  answers `action.<group>` keys (`N16_SIM`); its modality config looks the same, so that one is chosen by flag.
 
 Servers from 2025-06-11 to 2025-09-10 serialized with `torch.save` (a zip archive holding a pickle); their bytes
 are recognised and refused with a readable error instead of being handed to msgpack (or, worse, to pickle).
@@ -37,7 +38,10 @@ NDARRAY_TAG = "__ndarray_class__"
 MODALITY_CONFIG_TAG = "__ModalityConfig_class__"
 N15 = "n1.5"
 N16 = "n1.6"
-WIRE_VERSIONS = (N15, N16)
+# N1.6 served with `--use-sim-policy-wrapper` (`Gr00tSimPolicyWrapper`, meant for GR00T's simulation envs): the
+# same envelope, but `observation` holds flat `video.<k>`/`state.<k>` keys and the language key -> [text].
+N16_SIM = "n1.6-sim"
+WIRE_VERSIONS = (N15, N16, N16_SIM)
 # What the README and errors tell users to run (the commits this adapter was checked against).
 CHECKED_AGAINST = {N15: "tag n1.5-release, 4af2b62", N16: "release commit 4e62473"}
 
