@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from conftest import REPO, SIM_ARM, Server, free_port, wait_until
 from gr00t_standin import PolicyStandIn, StandIn
-from phone2act import ABSOLUTE_EE, DELTA_EE, IMAGE_RGB8, Client, pose_tuple
+from phone2act import ABSOLUTE_EE, DELTA_EE, IMAGE_RGB8, Client, Phone2ActError, pose_tuple
+from phone2act.v1 import common_pb2
 from phone2act_gr00t import (
     N15,
     N16,
@@ -189,6 +190,37 @@ def test_bimanual_embodiment_drives_each_arm_with_its_own_groups(make_server) ->
             for arm, final in targets.items():
                 assert wait_until(lambda a=arm, f=final: math.dist(position(c, a), f) < 2e-3, 16 * PERIOD + 3.0), (
                     arm, position(c, arm), final)
+
+
+def test_operator_taking_one_arm_stops_the_other_arm_too(make_server) -> None:  # type: ignore[no-untyped-def]
+    """A bimanual chunk refused for one arm (the operator took it from a phone) releases the other arm as well."""
+    server = make_server(arms=TWO_ARMS)
+    keys = ("left_arm", "left_gripper", "right_arm", "right_gripper")
+
+    def policy(state: dict[str, np.ndarray], task: str) -> dict[str, np.ndarray]:
+        walk = np.zeros((16, 6))
+        walk[:, 0] = STEP_M * np.arange(1, 17)
+        return {"left_arm": walk, "right_arm": walk, "left_gripper": np.zeros((16, 1)),
+                "right_gripper": np.zeros((16, 1))}
+
+    with PolicyStandIn(N15, state=keys, action=keys, policy=policy) as standin, Client(server.target) as c:
+        with c.policy_session(["left", "right"], observation_rate_hz=20, policy_name="gr00t-n1.5") as session:
+            emb = Embodiment.phone2act([session.layouts["left"], session.layouts["right"]])
+            adapter = Gr00tAdapter(session, Gr00tClient(standin.endpoint, timeout_s=2.0), emb, task="hand over",
+                                   step_period_s=PERIOD)
+            with c.teleop("right", take_over=True) as phone:
+                phone.wait_feedback(phone.clutch(True, (0.0, 0.0, 0.0)))
+                assert wait_until(lambda: session.revoked is not None, 3.0)
+                obs = session.next_observation()
+                left0 = np.array(pose_tuple({a.arm: a for a in obs.arms}["left"].robot_from_ee)[0])
+                with pytest.raises(Phone2ActError):
+                    adapter.step(obs)
+                # Left was given its chunk just before right's was refused; the release follows within one gRPC
+                # round trip (ms, under 100 ms loaded), so at most the first 1 mm step of 150 ms can have played.
+                time.sleep(16 * PERIOD + 0.5)
+                moved_mm = math.dist(position(c, "left"), left0) * 1e3
+                assert moved_mm < 2.5, f"left arm moved {moved_mm:.1f} mm of its 16 mm chunk"
+                assert c.arm("left").owner != common_pb2.CONTROL_SOURCE_POLICY
 
 
 def test_instruction_is_the_task_flag_else_the_episode_task(gserver: Server) -> None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from phone2act import PolicySession
+from phone2act import Phone2ActError, PolicySession
 from phone2act.v1 import policy_pb2
 
 from phone2act_gr00t.embodiment import Embodiment, ObservationError
@@ -141,9 +141,17 @@ class Gr00tAdapter:
         steps = self.embodiment.chunk_steps(answer, self.layouts, self.max_steps, wire=self.wire, modes=modes)
         accepted = {}
         for arm, rows in steps.items():
-            accepted[arm] = self.session.push(
-                arm, rows, self.step_period_s, observation_id=obs.observation_id, mode=modes[arm]
-            )
+            try:
+                accepted[arm] = self.session.push(
+                    arm, rows, self.step_period_s, observation_id=obs.observation_id, mode=modes[arm]
+                )
+            except Phone2ActError:
+                if accepted:
+                    # A bimanual plan half executed is not the plan: the arms already given their part hold too.
+                    log.error("arm %s refused its chunk after %s accepted theirs; releasing every arm", arm,
+                              sorted(accepted))
+                    self.session.release()
+                raise
             self.stats.per_arm[arm] = self.stats.per_arm.get(arm, 0) + 1
         self.stats.chunks += 1
         return StepResult(obs.observation_id, steps, modes, inference_s, accepted)
