@@ -170,10 +170,19 @@ class PolicyStandIn(_RepServer):
     def _modality_config(self) -> dict[str, ModalityConfig]:
         prefix = {"video": "video.", "state": "state.", "action": "action."} if self.wire == "n1.5" else {}
         delta = {"action": tuple(range(self.horizon))}
-        return {
-            m: ModalityConfig(delta.get(m, (0,)), tuple(prefix.get(m, "") + k for k in keys), self.wire[:4])
-            for m, keys in self.keys.items()
-        }
+        wire = self.wire[:4]  # "n1.6-sim" encodes its config as n1.6 does
+        configs = {}
+        for m, keys in self.keys.items():
+            extra: dict[str, Any] = {}
+            if wire == "n1.6":
+                # N1.6 sends every ModalityConfig field (dataclass -> dict, enums by name).
+                extra = {"sin_cos_embedding_keys": None, "mean_std_embedding_keys": None, "action_configs": None}
+                if m == "action":
+                    extra["action_configs"] = [
+                        {"rep": "ABSOLUTE", "type": "NON_EEF", "format": "DEFAULT", "state_key": None} for _ in keys
+                    ]
+            configs[m] = ModalityConfig(delta.get(m, (0,)), tuple(prefix.get(m, "") + k for k in keys), wire, extra)
+        return configs
 
     def _run_policy(self, state: dict[str, np.ndarray], task: str) -> dict[str, np.ndarray]:
         self.observations.append((state, task))
