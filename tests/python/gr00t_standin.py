@@ -1,16 +1,78 @@
-"""A stand-in GR00T N1.5 inference server: a ZeroMQ REP socket answering with the golden messages' exact bytes."""
+"""Stand-in GR00T inference servers, written from GR00T's wire facts (not from its code), for the adapter tests.
+
+- `StandIn`: an N1.5 server that answers with the golden messages' exact bytes (written by GR00T N1.5's own
+  `MsgSerializer`, see tests/fixtures/gr00t_wire/NOTE.md).
+- `PolicyStandIn(wire=...)`: a server that runs a test-supplied policy function, speaking
+  - "n1.5" (tag n1.5-release, 4af2b62): the endpoint handler is called with the request's `data` map itself;
+    `get_action` takes flat `video.<k>` (T, H, W, 3) uint8, `state.<k>` (T, D), the language key -> [text], and
+    answers `{"action.<k>": float32 (horizon, D)}`; `ModalityConfig.as_json` is a JSON string;
+  - "n1.6" (4e62473): the handler is called as `handler(**data)`, so `get_action(observation, options)` takes
+    `{"video": {k: (B, T, H, W, 3) uint8}, "state": {k: (B, T, D) float32}, "language": {key: [[text]]}}`,
+    checked as strictly as N1.6's Gr00tPolicy does, and answers `[{k: float32 (B, horizon, D)}, {}]`;
+    `ModalityConfig.as_json` is a map; there is a `reset` endpoint;
+  - "n1.6-sim": N1.6 started with `--use-sim-policy-wrapper`: the same, but `observation` holds flat
+    `video.<k>`/`state.<k>` keys and the language key -> [text], and the answer's keys are `action.<k>`;
+  - "pickle" (2025-06-11 .. 2025-09-10): every message is `torch.save` output; a msgpack request cannot be loaded,
+    so every answer is `torch.save({"error": ...})`, a zip archive holding `archive/data.pkl`. Built here with
+    zipfile + pickle in torch's archive layout (no torch needed); `stream=True` sends a bare pickle instead (the
+    pre-1.6 torch.save format).
+  Any handler exception becomes `{"error": str(e)}`, the token check and the unknown-endpoint error are as upstream.
+"""
 
 from __future__ import annotations
 
+import io
+import pickle
 import threading
 import time
+import zipfile
+from collections.abc import Callable
+from typing import Any
 
 import msgpack
+import numpy as np
 import zmq
 from conftest import golden
+from phone2act_gr00t.wire import ModalityConfig, packb, unpackb
 
 
-class StandIn:
+class _RepServer:
+    def __init__(self) -> None:
+        self._ctx = zmq.Context()
+        self._sock = self._ctx.socket(zmq.REP)
+        self._sock.setsockopt(zmq.LINGER, 0)
+        port = self._sock.bind_to_random_port("tcp://127.0.0.1")
+        self.endpoint = f"tcp://127.0.0.1:{port}"
+        self.requests: list[bytes] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def answer(self, raw: bytes) -> bytes:
+        raise NotImplementedError
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            if not self._sock.poll(50, zmq.POLLIN):
+                continue
+            raw = self._sock.recv()
+            self.requests.append(raw)
+            self._sock.send(self.answer(raw))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self._sock.close(linger=0)
+        self._ctx.term()
+
+    def __enter__(self):  # type: ignore[no-untyped-def]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class StandIn(_RepServer):
     """Answers `ping` with response_ping, `get_action` with response_get_action (or `action_bytes`), anything
     else with response_error; can sleep `delay_s` before answering to play a late policy."""
 
@@ -21,35 +83,170 @@ class StandIn:
             "get_action": action_bytes if action_bytes is not None else golden("response_get_action.msgpack"),
         }
         self.error_reply = golden("response_error.msgpack")
-        self.requests: list[bytes] = []
-        self._ctx = zmq.Context()
-        self._sock = self._ctx.socket(zmq.REP)
-        self._sock.setsockopt(zmq.LINGER, 0)
-        port = self._sock.bind_to_random_port("tcp://127.0.0.1")
-        self.endpoint = f"tcp://127.0.0.1:{port}"
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
+        super().__init__()
 
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            if not self._sock.poll(50, zmq.POLLIN):
-                continue
-            raw = self._sock.recv()
-            self.requests.append(raw)
-            endpoint = msgpack.unpackb(raw).get("endpoint", "get_action")
-            if self.delay_s and endpoint == "get_action":
-                time.sleep(self.delay_s)
-            self._sock.send(self.replies.get(endpoint, self.error_reply))
+    def answer(self, raw: bytes) -> bytes:
+        endpoint = msgpack.unpackb(raw).get("endpoint", "get_action")
+        if self.delay_s and endpoint == "get_action":
+            time.sleep(self.delay_s)
+        return self.replies.get(endpoint, self.error_reply)
 
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self._sock.close(linger=0)
-        self._ctx.term()
 
-    def __enter__(self) -> "StandIn":
-        return self
+# A policy: (state by bare group key -> (D,) float64 of the newest step, task text) -> action by bare key (H, D).
+Policy = Callable[[dict[str, np.ndarray], str], dict[str, np.ndarray]]
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+
+def torch_save_like(obj: Any, stream: bool = False) -> bytes:
+    """Bytes shaped like `torch.save(obj)`: a zip archive `archive/{data.pkl,byteorder,version}`, or a bare pickle."""
+    if stream:
+        return pickle.dumps(obj, protocol=2)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+        z.writestr("archive/data.pkl", pickle.dumps(obj, protocol=2))
+        z.writestr("archive/byteorder", "little")
+        z.writestr("archive/version", "3\n")
+    return buf.getvalue()
+
+
+class PolicyStandIn(_RepServer):
+    def __init__(
+        self,
+        wire: str,
+        *,
+        video: tuple[str, ...] = (),
+        state: tuple[str, ...] = ("arm", "gripper"),
+        action: tuple[str, ...] = ("arm", "gripper"),
+        language_key: str = "annotation.human.task_description",
+        horizon: int = 16,
+        policy: Policy | None = None,
+        api_token: str | None = None,
+        modality_endpoint: bool = True,
+        stream: bool = False,
+    ) -> None:
+        self.wire = wire
+        self.horizon = horizon
+        self.policy = policy
+        self.api_token = api_token
+        self.stream = stream
+        self.keys = {"video": video, "state": state, "action": action, "language": (language_key,)}
+        self.decoded: list[dict[str, Any]] = []
+        self.observations: list[tuple[dict[str, np.ndarray], str]] = []
+        self.endpoints: dict[str, tuple[Callable[..., Any], bool]] = {
+            "ping": (lambda: {"status": "ok", "message": "Server is running"}, False),
+            "kill": (lambda: {}, False),
+        }
+        if modality_endpoint:
+            self.endpoints["get_modality_config"] = (self._modality_config, False)
+        if wire in ("n1.6", "n1.6-sim"):
+            self.endpoints["get_action"] = (self._get_action_n16 if wire == "n1.6" else self._get_action_sim, True)
+            self.endpoints["reset"] = (lambda options=None: {}, True)
+        else:
+            self.endpoints["get_action"] = (self._get_action_n15, True)
+        super().__init__()
+
+    # --- transport and dispatch, as both dialects' servers do it ---------------------------------------------
+
+    def answer(self, raw: bytes) -> bytes:
+        if self.wire == "pickle":
+            # torch.load cannot read a msgpack request; the server's except-branch answers with its own format.
+            return torch_save_like({"error": "invalid load key, '\\x82'."}, self.stream)
+        try:
+            req = unpackb(raw)
+            self.decoded.append(req)
+            if self.api_token is not None and req.get("api_token") != self.api_token:
+                return packb({"error": "Unauthorized: Invalid API token"})
+            endpoint = req.get("endpoint", "get_action")
+            if endpoint not in self.endpoints:
+                raise ValueError(f"Unknown endpoint: {endpoint}")
+            handler, takes_input = self.endpoints[endpoint]
+            if not takes_input:
+                return packb(handler())
+            data = req.get("data", {})
+            # N1.5 hands the data map over as one argument; N1.6 spreads it into keyword arguments.
+            return packb(handler(**data) if self.wire.startswith("n1.6") else handler(data))
+        except Exception as e:  # noqa: BLE001 - as upstream: every failure becomes an error map
+            return packb({"error": str(e)})
+
+    def _modality_config(self) -> dict[str, ModalityConfig]:
+        prefix = {"video": "video.", "state": "state.", "action": "action."} if self.wire == "n1.5" else {}
+        delta = {"action": tuple(range(self.horizon))}
+        wire = self.wire[:4]  # "n1.6-sim" encodes its config as n1.6 does
+        configs = {}
+        for m, keys in self.keys.items():
+            extra: dict[str, Any] = {}
+            if wire == "n1.6":
+                # N1.6 sends every ModalityConfig field (dataclass -> dict, enums by name).
+                extra = {"sin_cos_embedding_keys": None, "mean_std_embedding_keys": None, "action_configs": None}
+                if m == "action":
+                    extra["action_configs"] = [
+                        {"rep": "ABSOLUTE", "type": "NON_EEF", "format": "DEFAULT", "state_key": None} for _ in keys
+                    ]
+            configs[m] = ModalityConfig(delta.get(m, (0,)), tuple(prefix.get(m, "") + k for k in keys), wire, extra)
+        return configs
+
+    def _run_policy(self, state: dict[str, np.ndarray], task: str) -> dict[str, np.ndarray]:
+        self.observations.append((state, task))
+        if self.policy is None:  # a model that says "stay": zero deltas (1 column for grippers, 5 for so100's arm)
+            width = {k: 1 if k.endswith("gripper") else 5 if k == "single_arm" else 6 for k in self.keys["action"]}
+            return {k: np.zeros((self.horizon, w), np.float32) for k, w in width.items()}
+        out = self.policy(state, task)
+        return {k: np.asarray(out[k], np.float32).reshape(self.horizon, -1) for k in self.keys["action"]}
+
+    # --- N1.5: flat keys, unbatched ---------------------------------------------------------------------------
+
+    def _get_action_n15(self, obs: dict[str, Any]) -> dict[str, np.ndarray]:
+        for k in self.keys["video"]:
+            v = obs[f"video.{k}"]
+            if v.dtype != np.uint8 or v.ndim != 4 or v.shape[-1] != 3:
+                raise ValueError(f"video.{k} must be (T, H, W, 3) uint8, got {v.shape} {v.dtype}")
+        state = {}
+        for k in self.keys["state"]:
+            s = obs[f"state.{k}"]
+            if s.ndim != 2:
+                raise ValueError(f"state.{k} must be (T, D), got {s.shape}")
+            state[k] = s[-1].astype(np.float64)
+        (lang,) = self.keys["language"]
+        text = obs[lang]
+        if not isinstance(text, list) or not all(isinstance(t, str) for t in text):
+            raise ValueError(f"{lang} must be a list of str")
+        return {f"action.{k}": v for k, v in self._run_policy(state, text[0]).items()}
+
+    # --- N1.6: nested, batched, float32 state ------------------------------------------------------------------
+
+    def _get_action_n16(self, observation: dict[str, Any], options: dict[str, Any] | None = None) -> list[Any]:
+        for modality in ("video", "state", "language"):
+            assert isinstance(observation.get(modality), dict), f"Observation must contain a '{modality}' key"
+        for k in self.keys["video"]:
+            v = observation["video"][k]
+            assert v.dtype == np.uint8 and v.ndim == 5 and v.shape[1] == 1 and v.shape[-1] == 3, (
+                f"Video key '{k}' must be a numpy array of shape (B, T, H, W, C) uint8, got {v.shape} {v.dtype}")
+        state = {}
+        for k in self.keys["state"]:
+            s = observation["state"][k]
+            assert s.dtype == np.float32, f"State key '{k}' must be a numpy array of type np.float32. Got {s.dtype}"
+            assert s.ndim == 3 and s.shape[1] == 1, f"State key '{k}' must be (B, T, D), got {s.shape}"
+            state[k] = s[0, -1].astype(np.float64)
+        (lang,) = self.keys["language"]
+        text = observation["language"][lang]
+        assert isinstance(text, list) and len(text) == 1 and isinstance(text[0], list) and len(text[0]) == 1, (
+            f"Language key '{lang}' must be [[str]], got {text!r}")
+        actions = self._run_policy(state, text[0][0])
+        return [{k: v[None] for k, v in actions.items()}, {}]
+
+    # --- N1.6 behind Gr00tSimPolicyWrapper: flat keys inside `observation` --------------------------------------
+
+    def _get_action_sim(self, observation: dict[str, Any], options: dict[str, Any] | None = None) -> list[Any]:
+        for k in self.keys["video"]:
+            assert f"video.{k}" in observation, f"Video key 'video.{k}' must be in observation"
+        state = {}
+        for k in self.keys["state"]:
+            assert f"state.{k}" in observation, f"State key 'state.{k}' must be in observation"
+            s = observation[f"state.{k}"]
+            assert s.dtype == np.float32 and s.ndim == 3, f"State key '{k}' must be (B, T, D) float32"
+            state[k] = s[0, -1].astype(np.float64)
+        (lang,) = self.keys["language"]
+        assert lang in observation, f"Language key '{lang}' must be in observation"
+        text = observation[lang]
+        assert isinstance(text, list) and isinstance(text[0], str), "Language batch item must be a string"
+        actions = self._run_policy(state, text[0])
+        return [{f"action.{k}": v[None] for k, v in actions.items()}, {}]

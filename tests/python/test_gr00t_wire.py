@@ -1,25 +1,43 @@
-"""The GR00T wire codec and embodiment mapping against the golden messages (no phone2act server needed)."""
+"""The GR00T wire codec, dialect detection and embodiment mapping (no phone2act server needed).
+
+N1.5 against the golden bytes GR00T N1.5 wrote; N1.5 and N1.6 against the stand-in servers; the pickle-era
+server's bytes refused with a message naming it.
+"""
 
 from __future__ import annotations
 
 import io
+import types
 
 import msgpack
 import numpy as np
 import pytest
 from conftest import golden
-from gr00t_standin import StandIn
-from phone2act import ArmLayout
+from gr00t_standin import PolicyStandIn, StandIn, torch_save_like
+from phone2act import ABSOLUTE_EE, DELTA_EE, ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
-from phone2act_gr00t import ChunkShapeError, Embodiment, Gr00tClient, Gr00tError, Gr00tTimeout, ObservationError
-from phone2act_gr00t.wire import packb, request, unpackb
+from phone2act_gr00t import (
+    N15,
+    N16,
+    N16_SIM,
+    ActionModeError,
+    ChunkShapeError,
+    Embodiment,
+    EmbodimentMismatch,
+    Gr00tClient,
+    Gr00tError,
+    Gr00tProtocolError,
+    Gr00tTimeout,
+    ObservationError,
+    action_mode_of,
+)
+from phone2act_gr00t.wire import decode_reply, packb, request, unpackb
 
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll")
-LAYOUT = ArmLayout(
-    "main",
-    JOINTS + ("ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper"),
-    ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw", "gripper"),
-)
+STATE = JOINTS + ("ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper")
+DELTA_NAMES = ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw", "gripper")
+ABS_NAMES = ("x", "y", "z", "roll", "pitch", "yaw", "gripper")
+LAYOUT = ArmLayout("main", STATE, DELTA_NAMES)
 NAMES = ["request_ping", "response_ping", "request_get_action", "response_get_action", "response_error"]
 
 
@@ -35,29 +53,48 @@ def test_ping_request_is_golden() -> None:
     assert request("ping") == golden("request_ping.msgpack")
 
 
+def arm_obs(arm: str = "main", state: list[float] | None = None, actions: tuple[str, ...] = DELTA_NAMES,
+            ) -> policy_pb2.ArmObservation:
+    state = state or [0.1, 0.2, 0.3, 0.4, 0.5, 0.2, 0.0, 0.15, 3.1, 0.2, 0.0, 0.9]
+    return policy_pb2.ArmObservation(arm=arm, state=state, state_names=STATE, action_names=actions)
+
+
 def observation_like_golden() -> policy_pb2.Observation:
     """The phone2act observation that, mapped with GR00T's so100 keys, is the golden get_action request."""
-    state = [0.1, 0.2, 0.3, 0.4, 0.5, 0.2, 0.0, 0.15, 3.1, 0.2, 0.0, 0.9]
-    arm = policy_pb2.ArmObservation(arm="main", state=state, state_names=LAYOUT.state_names,
-                                    action_names=LAYOUT.action_names)
     frame = common_pb2.CameraFrame(camera="webcam", width=2, height=2,
                                    encoding=common_pb2.IMAGE_ENCODING_RGB8, data=bytes(12))
-    return policy_pb2.Observation(observation_id=7, arms=[arm], frames=[frame], task="pick the red cube")
+    return policy_pb2.Observation(observation_id=7, arms=[arm_obs()], frames=[frame], task="pick the red cube")
 
 
 def test_request_built_from_an_observation_is_the_golden_request() -> None:
     emb = Embodiment.so100(LAYOUT, camera="webcam")
-    data = emb.request_data(observation_like_golden(), "main")
+    obs = observation_like_golden()
+    data = emb.request_data(obs, obs.task, N15)
     assert request("get_action", data) == golden("request_get_action.msgpack")
+
+
+def test_n16_request_is_nested_batched_and_float32() -> None:
+    emb = Embodiment.so100(LAYOUT, camera="webcam")
+    data = emb.request_data(observation_like_golden(), "pick the red cube", N16)
+    assert set(data) == {"observation", "options"}
+    o = data["observation"]
+    assert set(o) == {"video", "state", "language"}
+    assert o["video"]["webcam"].shape == (1, 1, 2, 2, 3) and o["video"]["webcam"].dtype == np.uint8
+    assert o["state"]["single_arm"].shape == (1, 1, 5) and o["state"]["single_arm"].dtype == np.float32
+    np.testing.assert_allclose(o["state"]["single_arm"][0, 0], [0.1, 0.2, 0.3, 0.4, 0.5], rtol=1e-6)
+    assert o["language"] == {"annotation.human.task_description": [["pick the red cube"]]}
+    # It survives the wire unchanged.
+    back = unpackb(request("get_action", data))["data"]["observation"]
+    np.testing.assert_array_equal(back["state"]["gripper"], o["state"]["gripper"])
 
 
 def test_request_needs_rgb8_frames_and_known_state() -> None:
     obs = observation_like_golden()
     obs.frames[0].encoding = common_pb2.IMAGE_ENCODING_JPEG
     with pytest.raises(ObservationError, match="IMAGE_ENCODING_JPEG"):
-        Embodiment.so100(LAYOUT, camera="webcam").request_data(obs, "main")
+        Embodiment.so100(LAYOUT, camera="webcam").request_data(obs, "t")
     with pytest.raises(ObservationError, match="camera 'front'"):
-        Embodiment.so100(LAYOUT, camera="front").request_data(observation_like_golden(), "main")
+        Embodiment.so100(LAYOUT, camera="front").request_data(observation_like_golden(), "t")
 
 
 def test_golden_answer_becomes_a_full_chunk() -> None:
@@ -68,6 +105,17 @@ def test_golden_answer_becomes_a_full_chunk() -> None:
     np.testing.assert_allclose(steps[:, :5], expected, atol=1e-9)
     assert np.all(steps[:, 5] == 0) and np.all(steps[:, 6] == 0)
     assert Embodiment.so100(LAYOUT, "webcam").chunk_steps(answer, LAYOUT, max_steps=8).shape == (8, 7)
+
+
+def test_n16_answer_is_action_info_pair_with_bare_batched_keys() -> None:
+    emb = Embodiment.phone2act(LAYOUT)
+    arm = np.arange(96, dtype=np.float32).reshape(1, 16, 6)
+    answer = [{"arm": arm, "gripper": np.ones((1, 16, 1), np.float32)}, {}]
+    steps = emb.chunk_steps(answer, LAYOUT, wire=N16)
+    np.testing.assert_array_equal(steps[:, :6], arm[0])
+    assert np.all(steps[:, 6] == 1)
+    with pytest.raises(ChunkShapeError, match=r"N1.6 answer is \[action, info\]"):
+        emb.chunk_steps({"action.arm": arm}, LAYOUT, wire=N16)
 
 
 def _answer_with(**arrays: np.ndarray) -> dict:
@@ -81,10 +129,10 @@ def test_wrong_shapes_are_refused_with_the_shapes_named() -> None:
     squeezed = _answer_with(arm=np.zeros((16, 6), np.float32), gripper=np.zeros(16, np.float32))
     assert emb.chunk_steps(squeezed, LAYOUT).shape == (16, 7)
     cases = {
-        "action.arm has shape (16, 5); expected (horizon, 6)":
+        "action arm has shape (16, 5); expected (horizon, 6)":
             _answer_with(arm=np.zeros((16, 5)), gripper=np.zeros((16, 1))),
         "has horizon 8, other groups 16": _answer_with(arm=np.zeros((16, 6)), gripper=np.zeros((8, 1))),
-        "has no 'action.gripper'": _answer_with(arm=np.zeros((16, 6))),
+        "has no 'gripper' action": _answer_with(arm=np.zeros((16, 6))),
         "non-finite": _answer_with(arm=np.full((16, 6), np.nan), gripper=np.zeros((16, 1))),
     }
     for message, answer in cases.items():
@@ -92,7 +140,65 @@ def test_wrong_shapes_are_refused_with_the_shapes_named() -> None:
             emb.chunk_steps(answer, LAYOUT)
 
 
-def test_client_against_the_stand_in() -> None:
+def test_bimanual_groups_are_named_per_arm_and_split_back_per_arm() -> None:
+    left, right = ArmLayout("left", STATE, DELTA_NAMES), ArmLayout("right", STATE, ABS_NAMES)
+    emb = Embodiment.phone2act([left, right], ["front"])
+    assert [g.key for g in emb.state] == ["left_arm", "left_gripper", "right_arm", "right_gripper"]
+    assert [g.key for g in emb.actions] == ["left_arm", "left_gripper", "right_arm", "right_gripper"]
+    assert emb.arms == ("left", "right")
+    frame = common_pb2.CameraFrame(camera="front", width=1, height=1, encoding=common_pb2.IMAGE_ENCODING_RGB8,
+                                   data=bytes(3))
+    obs = policy_pb2.Observation(
+        observation_id=3, frames=[frame],
+        arms=[arm_obs("left", [float(i) for i in range(12)]),
+              arm_obs("right", [float(10 + i) for i in range(12)], ABS_NAMES)])
+    data = emb.request_data(obs, "hand over", N15)
+    assert list(data) == ["video.front", "state.left_arm", "state.left_gripper", "state.right_arm",
+                          "state.right_gripper", "annotation.human.task_description"]
+    np.testing.assert_array_equal(data["state.right_arm"][0], np.arange(10, 21))
+    np.testing.assert_array_equal(data["state.left_gripper"][0], [11])
+    answer = _answer_with(left_arm=np.full((16, 6), 1.0), left_gripper=np.full((16, 1), 2.0),
+                          right_arm=np.full((16, 6), 3.0), right_gripper=np.full((16, 1), 4.0))
+    steps = emb.chunk_steps(answer, {"left": left, "right": right})
+    assert set(steps) == {"left", "right"}
+    assert np.all(steps["left"][:, :6] == 1) and np.all(steps["left"][:, 6] == 2)
+    assert np.all(steps["right"][:, :6] == 3) and np.all(steps["right"][:, 6] == 4)
+
+
+def test_action_mode_follows_what_the_server_reports() -> None:
+    assert action_mode_of(arm_obs(actions=DELTA_NAMES)) == DELTA_EE
+    assert action_mode_of(arm_obs(actions=ABS_NAMES)) == ABSOLUTE_EE
+    # An explicit mode (when the server sends one) wins over the names.
+    explicit = types.SimpleNamespace(arm="main", action_mode=ABSOLUTE_EE, action_names=DELTA_NAMES,
+                                     state_names=STATE)
+    assert action_mode_of(explicit) == ABSOLUTE_EE
+    listed = types.SimpleNamespace(arm="main", action_mode=ABSOLUTE_EE)  # or on the arm's System.ListArms entry
+    assert action_mode_of(arm_obs(actions=DELTA_NAMES), listed) == ABSOLUTE_EE
+    assert action_mode_of(arm_obs(actions=DELTA_NAMES), types.SimpleNamespace(arm="main")) == DELTA_EE
+    # Joint targets: the arm's joint names. Pushed as the SDK's joint mode, or refused if it has none.
+    joints = arm_obs(actions=JOINTS + ("gripper",))
+    joint_modes = [v for n, v in policy_pb2.ActionMode.items() if "JOINT" in n]
+    if joint_modes:
+        assert action_mode_of(joints) == joint_modes[0]
+    else:
+        with pytest.raises(ActionModeError, match="joint actions, but this phone2act SDK has no such ActionMode"):
+            action_mode_of(joints)
+    with pytest.raises(ActionModeError, match=r"cannot tell the action representation of arm 'main'"):
+        action_mode_of(arm_obs(actions=("a", "b", "gripper")))
+
+
+def test_absolute_arm_refuses_an_answer_that_leaves_axes_unset() -> None:
+    layout = ArmLayout("main", STATE, ABS_NAMES)
+    answer = unpackb(golden("response_get_action.msgpack"))
+    emb = Embodiment.so100(layout, "webcam")
+    with pytest.raises(ChunkShapeError, match=r"takes absolute actions and the model gives no \['yaw'\]"):
+        emb.chunk_steps(answer, layout, modes={"main": ABSOLUTE_EE})
+    # The same answer on a delta arm leaves yaw at 0, which means "no rotation".
+    delta = Embodiment.so100(LAYOUT, "webcam")
+    assert delta.chunk_steps(answer, LAYOUT, modes={"main": DELTA_EE}).shape == (16, 7)
+
+
+def test_client_against_the_golden_stand_in() -> None:
     with StandIn() as standin:
         c = Gr00tClient(standin.endpoint, timeout_s=2.0)
         assert c.ping()
@@ -105,6 +211,94 @@ def test_client_against_the_stand_in() -> None:
         assert standin.requests[0] == golden("request_ping.msgpack")
         assert standin.requests[1] == golden("request_get_action.msgpack")
         c.close()
+
+
+@pytest.mark.parametrize("wire", [N15, N16])
+def test_dialect_is_detected_from_the_modality_config(wire: str) -> None:
+    with PolicyStandIn(wire, video=("webcam",), state=("single_arm", "gripper"),
+                       action=("single_arm", "gripper")) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        found, config = c.detect_wire()
+        assert found == wire
+        assert config is not None and set(config) == {"video", "state", "action", "language"}
+        assert len(config["action"].delta_indices) == 16
+        emb = Embodiment.so100(LAYOUT, "webcam").check_against(config, wire)
+        assert emb.language_key == "annotation.human.task_description"
+        # The mapped request is what that server accepts, and its answer maps back to a chunk.
+        answer = c.get_action(emb.request_data(observation_like_golden(), "pick", wire))
+        assert emb.chunk_steps(answer, LAYOUT, wire=wire).shape == (16, 7)
+        assert standin.observations[-1][1] == "pick"
+        np.testing.assert_allclose(standin.observations[-1][0]["single_arm"], [0.1, 0.2, 0.3, 0.4, 0.5], rtol=1e-6)
+        c.close()
+
+
+def test_n16_sim_wrapper_server_wants_flat_keys() -> None:
+    """N1.6 behind `--use-sim-policy-wrapper`: same envelope and config, flat keys inside `observation`."""
+    with PolicyStandIn(N16_SIM, video=("webcam",), state=("single_arm", "gripper"),
+                       action=("single_arm", "gripper")) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        wire, config = c.detect_wire()
+        assert wire == N16  # indistinguishable from its config; the nested request says so
+        emb = Embodiment.so100(LAYOUT, "webcam").check_against(config, wire)
+        with pytest.raises(Gr00tError, match="Video key 'video.webcam' must be in observation"):
+            c.get_action(emb.request_data(observation_like_golden(), "t", N16))
+        data = emb.request_data(observation_like_golden(), "t", N16_SIM)
+        assert set(data["observation"]) == {"video.webcam", "state.single_arm", "state.gripper",
+                                            "annotation.human.task_description"}
+        answer = c.get_action(data)
+        assert set(answer[0]) == {"action.single_arm", "action.gripper"}
+        assert emb.chunk_steps(answer, LAYOUT, wire=N16_SIM).shape == (16, 7)
+        c.close()
+
+
+def test_server_without_modality_config_is_taken_for_n15() -> None:
+    with PolicyStandIn(N15, modality_endpoint=False) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        assert c.detect_wire() == (N15, None)
+        c.close()
+
+
+def test_wrong_dialect_is_named_by_the_server() -> None:
+    """What each server says to the other dialect's request (the adapter turns these into advice)."""
+    with PolicyStandIn(N16, video=("webcam",), state=("single_arm", "gripper")) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        flat = Embodiment.so100(LAYOUT, "webcam").request_data(observation_like_golden(), "t", N15)
+        with pytest.raises(Gr00tError, match="unexpected keyword argument 'video.webcam'"):
+            c.get_action(flat)
+        c.close()
+
+
+def test_mismatched_keys_are_named() -> None:
+    with PolicyStandIn(N16, video=("ego_view",), state=("left_arm", "right_arm"),
+                       action=("left_arm", "right_arm")) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        wire, config = c.detect_wire()
+        with pytest.raises(EmbodimentMismatch, match=r"state keys \['left_arm', 'right_arm'\] \(the adapter sends "
+                                                     r"\['arm', 'gripper'\]\)"):
+            Embodiment.phone2act(LAYOUT, ["front"]).check_against(config, wire)
+        c.close()
+
+
+@pytest.mark.parametrize("stream", [False, True])
+def test_pickle_era_server_is_named_not_a_msgpack_traceback(stream: bool) -> None:
+    with PolicyStandIn("pickle", stream=stream) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        with pytest.raises(Gr00tProtocolError) as err:
+            c.detect_wire()
+        msg = str(err.value)
+        assert "pre-2025-09-10 pickle wire format" in msg
+        assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in msg
+        assert "ExtraData" not in msg
+        c.close()
+    # What msgpack alone makes of these bytes: the bare traceback this replaces.
+    with pytest.raises((msgpack.ExtraData, ValueError)):
+        msgpack.unpackb(torch_save_like({"error": "x"}, stream))
+
+
+def test_bytes_of_no_known_format_are_refused_readably() -> None:
+    with pytest.raises(Gr00tProtocolError, match=r"not a GR00T msgpack message .*first bytes 93 4e 55 4d"):
+        decode_reply(b"\x93NUMPY-not-a-reply", "ping", "tcp://x:1")
+    assert decode_reply(packb({}), "reset", "tcp://x:1") == {}  # an empty map (0x80) is msgpack, not pickle
 
 
 def test_late_answer_times_out_and_the_next_call_works() -> None:

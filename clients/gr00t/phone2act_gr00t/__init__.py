@@ -1,20 +1,49 @@
-"""GR00T N1.5 adapter for phone2act: observations out to a GR00T inference server, action chunks back in."""
+"""GR00T adapter for phone2act (N1.5 and N1.6 wire): observations out to a GR00T server, action chunks back in."""
 
-from phone2act_gr00t.adapter import AdapterStats, Gr00tAdapter, StepResult
-from phone2act_gr00t.embodiment import ActionGroup, ChunkShapeError, Embodiment, ObservationError
-from phone2act_gr00t.wire import Gr00tClient, Gr00tError, Gr00tTimeout, packb, unpackb
+from phone2act_gr00t.adapter import AdapterStats, Gr00tAdapter, MissingTaskError, StepResult
+from phone2act_gr00t.embodiment import (
+    ActionGroup,
+    ChunkShapeError,
+    Embodiment,
+    EmbodimentMismatch,
+    Group,
+    ObservationError,
+)
+from phone2act_gr00t.modes import ActionModeError, action_mode_of
+from phone2act_gr00t.wire import (
+    N15,
+    N16,
+    N16_SIM,
+    Gr00tClient,
+    Gr00tError,
+    Gr00tProtocolError,
+    Gr00tTimeout,
+    ModalityConfig,
+    packb,
+    unpackb,
+)
 
 __all__ = [
+    "N15",
+    "N16",
+    "N16_SIM",
     "ActionGroup",
+    "ActionModeError",
     "AdapterStats",
     "ChunkShapeError",
     "Embodiment",
+    "EmbodimentMismatch",
     "Gr00tAdapter",
     "Gr00tClient",
     "Gr00tError",
+    "Gr00tProtocolError",
     "Gr00tTimeout",
+    "Group",
+    "MissingTaskError",
+    "ModalityConfig",
     "ObservationError",
     "StepResult",
+    "action_mode_of",
     "packb",
     "unpackb",
 ]
