@@ -1,9 +1,11 @@
 //! The typed server configuration, read from TOML. Every table denies unknown keys so a typo fails at start
 //! with the file, the line and what was expected. `PHONE2ACT_<SECTION>__<KEY>=value` environment variables
 //! override single values (`PHONE2ACT_SERVER__LISTEN=0.0.0.0:50051`); values are parsed as TOML when they
-//! parse, else taken as strings.
+//! parse, else taken as strings. Entries of the `arms` and `cameras` arrays are addressed by their index in
+//! the file (`PHONE2ACT_ARMS__0__TELEOP__GATE__JUMP_POSITION_M=0.05`); an override changes an entry the
+//! file has, it cannot add one.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
@@ -39,7 +41,7 @@ pub enum ConfigError {
 }
 
 /// The whole configuration.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
     #[serde(default)]
@@ -59,7 +61,7 @@ pub struct Config {
 }
 
 /// gRPC listener and access.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ServerConfig {
     /// gRPC listen address.
@@ -84,7 +86,7 @@ fn default_listen() -> SocketAddr {
 }
 
 /// Which bridge drives an arm.
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
 pub enum BridgeKind {
     /// The simulated SO-101 arm with its pick-and-place scene.
@@ -110,7 +112,7 @@ impl BridgeKind {
 }
 
 /// One arm.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ArmConfig {
     /// Name used in the API and as the dataset prefix when several arms are recorded (`left`, `right`).
@@ -141,7 +143,7 @@ pub struct ArmConfig {
 }
 
 /// A remote arm: the joints its bridge will report, so the dataset layout is known before it attaches.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct RemoteArmConfig {
     /// Joint names in feedback order; a bridge that attaches with other names is refused.
@@ -149,7 +151,7 @@ pub struct RemoteArmConfig {
 }
 
 /// Kinds of camera source.
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
 pub enum CameraKind {
     /// Synthetic colour bars with a moving bar and an encoded frame number.
@@ -175,7 +177,7 @@ impl CameraKind {
 }
 
 /// One camera.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct CameraConfig {
     /// Dataset key suffix: `observation.images.<name>`.
@@ -212,7 +214,7 @@ fn default_camera_fps() -> f64 {
 }
 
 /// Dataset format written by the recorder.
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, PartialEq, Eq)]
 pub enum DatasetFormat {
     /// LeRobot v3.0 (lerobot >= 0.4).
     #[serde(rename = "v3.0")]
@@ -233,7 +235,7 @@ impl DatasetFormat {
 }
 
 /// The recorder.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct RecorderConfig {
     /// Dataset directory (created on first save).
@@ -288,6 +290,25 @@ fn default_robot_type() -> String {
     "so101_sim".to_owned()
 }
 
+/// Largest camera frame side accepted, in pixels (8K UHD). A frame is allocated as `width * height * 3`
+/// bytes in every queue slot, so an unbounded size aborts the process instead of failing with a message.
+pub const MAX_CAMERA_WIDTH: u32 = 7680;
+/// Largest camera frame height, in pixels (8K UHD).
+pub const MAX_CAMERA_HEIGHT: u32 = 4320;
+/// Most arms and cameras one server drives; each costs threads and a dataset feature.
+pub const MAX_ARMS: usize = 16;
+/// Most cameras one server records.
+pub const MAX_CAMERAS: usize = 16;
+/// Most joints a remote arm may declare (the dataset's state vector grows with each).
+pub const MAX_REMOTE_JOINTS: usize = 64;
+/// Most steps a policy chunk may be configured to accept.
+pub const MAX_CHUNK_STEPS: usize = 100_000;
+/// Fastest simulated arm step rate, Hz: the simulation runs on its own thread at this rate.
+pub const MAX_SIM_STEP_HZ: f64 = 10_000.0;
+
+/// What replaces a secret (server token, gateway pairing token, ...) in printed or recorded configuration.
+pub const REDACTED: &str = "<redacted>";
+
 impl Config {
     /// The embedded default, with environment overrides applied.
     pub fn embedded_default() -> Result<Self, ConfigError> {
@@ -304,26 +325,57 @@ impl Config {
     }
 
     /// Parses TOML text; `origin` names it in errors; `env` supplies `PHONE2ACT_*` overrides.
+    ///
+    /// Errors in the text carry the line and column in the text; an error that only an override causes
+    /// names the environment variable instead (the merged table has no lines a user could look up).
     pub fn from_toml_str(
         text: &str,
         origin: &str,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        let mut table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
-        apply_env_overrides(&mut table, env)?;
-        // Re-serialise so that spans in type errors point at the file when no override touched it.
-        let config: Config = if table_equals_text(&table, text) {
-            toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?
-        } else {
-            let merged = toml::to_string(&table).map_err(|e| ConfigError::Invalid {
-                origin: origin.to_owned(),
-                message: e.to_string(),
-            })?;
-            toml::from_str(&merged)
-                .map_err(|e| parse_error(&e, &merged, &format!("{origin} (with PHONE2ACT_* overrides)")))?
+        let file_table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
+        let mut overrides: Vec<(String, String)> = env
+            .into_iter()
+            .filter(|(k, _)| k.starts_with(ENV_PREFIX) && k.contains("__"))
+            .collect();
+        overrides.sort();
+        if overrides.is_empty() {
+            let config: Config = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
+            config.validate(origin)?;
+            return Ok(config);
+        }
+        let mut table = file_table.clone();
+        for (var, raw) in &overrides {
+            apply_override(&mut table, var, raw)?;
+        }
+        let config = match Config::deserialize(toml::Value::Table(table)) {
+            Ok(config) => config,
+            Err(merged) => return Err(blame(text, origin, &file_table, &overrides, &merged)),
         };
-        config.validate(origin)?;
+        if let Err(ConfigError::Invalid { message, .. }) = config.validate(origin) {
+            // Name the overrides only when they are part of the problem: the file alone may be fine.
+            let file_alone = toml::from_str::<Config>(text).map(|c| c.validate(origin));
+            let same_in_file =
+                matches!(&file_alone, Ok(Err(ConfigError::Invalid { message: m, .. })) if *m == message);
+            let names: Vec<&str> = overrides.iter().map(|(k, _)| k.as_str()).collect();
+            return Err(ConfigError::Invalid {
+                origin: if same_in_file {
+                    origin.to_owned()
+                } else {
+                    format!("{origin} (with {})", names.join(", "))
+                },
+                message,
+            });
+        }
         Ok(config)
+    }
+
+    /// The configuration as TOML, every default filled in and every secret replaced by [`REDACTED`]: what
+    /// `serve --check` prints and what a dataset records as its provenance.
+    pub fn to_redacted_toml(&self) -> Result<String, toml::ser::Error> {
+        let mut value = toml::Value::try_from(self)?;
+        redact_secrets(&mut value);
+        toml::to_string(&value)
     }
 
     fn validate(&self, origin: &str) -> Result<(), ConfigError> {
@@ -331,6 +383,20 @@ impl Config {
             origin: origin.to_owned(),
             message,
         };
+        if self.arms.is_empty() {
+            return Err(invalid(
+                "no arms: add one, e.g. `[[arms]]` with `name = \"main\"` and `bridge = \"sim\"` \
+                 (server/config/reference.toml lists every key)"
+                    .to_owned(),
+            ));
+        }
+        if self.arms.len() > MAX_ARMS || self.cameras.len() > MAX_CAMERAS {
+            return Err(invalid(format!(
+                "{} arms and {} cameras configured; at most {MAX_ARMS} arms and {MAX_CAMERAS} cameras",
+                self.arms.len(),
+                self.cameras.len()
+            )));
+        }
         let mut names = std::collections::HashSet::new();
         for arm in &self.arms {
             if arm.name.is_empty() || !arm.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
@@ -342,14 +408,8 @@ impl Config {
             if !names.insert(arm.name.as_str()) {
                 return Err(invalid(format!("arm name {:?} appears twice", arm.name)));
             }
-            if arm.bridge == BridgeKind::Remote
-                && arm.remote.as_ref().is_none_or(|r| r.joint_names.is_empty())
-            {
-                return Err(invalid(format!(
-                    "arm {:?}: bridge \"remote\" needs [arms.remote] joint_names = [...] (the joints its bridge reports)",
-                    arm.name
-                )));
-            }
+            arm.validate()
+                .map_err(|message| invalid(format!("arm {:?}: {message}", arm.name)))?;
         }
         let mut cams = std::collections::HashSet::new();
         for cam in &self.cameras {
@@ -365,6 +425,12 @@ impl Config {
             if cam.width == 0 || cam.height == 0 || cam.width % 2 == 1 || cam.height % 2 == 1 {
                 return Err(invalid(format!(
                     "camera {:?}: width and height must be even and non-zero (yuv420p), got {}x{}",
+                    cam.name, cam.width, cam.height
+                )));
+            }
+            if cam.width > MAX_CAMERA_WIDTH || cam.height > MAX_CAMERA_HEIGHT {
+                return Err(invalid(format!(
+                    "camera {:?}: {}x{} is larger than {MAX_CAMERA_WIDTH}x{MAX_CAMERA_HEIGHT}",
                     cam.name, cam.width, cam.height
                 )));
             }
@@ -387,12 +453,122 @@ impl Config {
                 self.recorder.fps
             )));
         }
+        let max_message_bytes = self.gateway.max_message_bytes;
+        if !(1024..=phone2act_gateway::config::HARD_MAX_MESSAGE_BYTES).contains(&max_message_bytes) {
+            return Err(invalid(format!(
+                "gateway.max_message_bytes must be in 1024..={}, got {max_message_bytes}",
+                phone2act_gateway::config::HARD_MAX_MESSAGE_BYTES
+            )));
+        }
         Ok(())
     }
 }
 
-fn table_equals_text(table: &toml::Table, text: &str) -> bool {
-    toml::from_str::<toml::Table>(text).is_ok_and(|t| &t == table)
+impl ArmConfig {
+    /// Ranges serde cannot check, for this arm and the bridge section it uses.
+    fn validate(&self) -> Result<(), String> {
+        self.teleop.validate().map_err(|e| format!("teleop: {e}"))?;
+        self.chunk.validate().map_err(|e| format!("chunk: {e}"))?;
+        if self.chunk.max_steps == 0 || self.chunk.max_steps > MAX_CHUNK_STEPS {
+            return Err(format!(
+                "chunk.max_steps must be in 1..={MAX_CHUNK_STEPS}, got {}",
+                self.chunk.max_steps
+            ));
+        }
+        if self.chunk.blend_steps > self.chunk.max_steps {
+            return Err(format!(
+                "chunk.blend_steps ({}) must not exceed chunk.max_steps ({})",
+                self.chunk.blend_steps, self.chunk.max_steps
+            ));
+        }
+        if let Some(sim) = &self.sim {
+            sim.validate().map_err(|e| format!("sim: {e}"))?;
+            if sim.step_hz > MAX_SIM_STEP_HZ {
+                return Err(format!(
+                    "sim.step_hz must be at most {MAX_SIM_STEP_HZ}, got {}",
+                    sim.step_hz
+                ));
+            }
+        }
+        if let Some(dobot) = &self.dobot {
+            dobot.validate().map_err(|e| format!("dobot: {e}"))?;
+        }
+        if let Some(so101) = &self.so101 {
+            so101.validate().map_err(|e| format!("so101: {e}"))?;
+        }
+        if self.bridge == BridgeKind::Remote {
+            let joints = self.remote.as_ref().map_or(0, |r| r.joint_names.len());
+            if joints == 0 {
+                return Err(
+                    "bridge \"remote\" needs [arms.remote] joint_names = [...] (the joints its bridge reports)"
+                        .to_owned(),
+                );
+            }
+            if joints > MAX_REMOTE_JOINTS {
+                return Err(format!(
+                    "remote.joint_names has {joints} names; at most {MAX_REMOTE_JOINTS}"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Names the input that caused `merged`, the error of the configuration with overrides applied: the file
+/// (with its line) when the file alone fails the same way, else the first override that breaks a file that
+/// parses on its own.
+fn blame(
+    text: &str,
+    origin: &str,
+    file_table: &toml::Table,
+    overrides: &[(String, String)],
+    merged: &toml::de::Error,
+) -> ConfigError {
+    match toml::from_str::<Config>(text) {
+        Err(e) if e.message() == merged.message() => return parse_error(&e, text, origin),
+        Ok(_) => {
+            for (var, raw) in overrides {
+                let mut table = file_table.clone();
+                if apply_override(&mut table, var, raw).is_ok()
+                    && let Err(e) = Config::deserialize(toml::Value::Table(table))
+                {
+                    return ConfigError::Env {
+                        var: var.clone(),
+                        message: e.message().to_owned(),
+                    };
+                }
+            }
+        }
+        Err(_) => {}
+    }
+    let names: Vec<&str> = overrides.iter().map(|(k, _)| k.as_str()).collect();
+    ConfigError::Env {
+        var: names.join(", "),
+        message: format!("{} (in {origin} with these overrides applied)", merged.message()),
+    }
+}
+
+/// Keys whose values are credentials.
+fn is_secret_key(key: &str) -> bool {
+    let key = key.to_ascii_lowercase();
+    key == "token" || key.ends_with("_token") || key.contains("password") || key.contains("secret")
+}
+
+fn redact_secrets(value: &mut toml::Value) {
+    match value {
+        toml::Value::Table(table) => {
+            for (key, v) in table.iter_mut() {
+                // Only strings hold credentials; `require_token = true` is a switch, shown as it is.
+                if is_secret_key(key) && v.is_str() {
+                    *v = toml::Value::String(REDACTED.to_owned());
+                } else {
+                    redact_secrets(v);
+                }
+            }
+        }
+        toml::Value::Array(items) => items.iter_mut().for_each(redact_secrets),
+        _ => {}
+    }
 }
 
 fn parse_error(e: &toml::de::Error, text: &str, origin: &str) -> ConfigError {
@@ -406,7 +582,7 @@ fn parse_error(e: &toml::de::Error, text: &str, origin: &str) -> ConfigError {
 }
 
 fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let before = &text[..offset.min(text.len())];
+    let before = text.get(..offset.min(text.len())).unwrap_or(text);
     let line = before.matches('\n').count() + 1;
     let column = before
         .rfind('\n')
@@ -415,46 +591,64 @@ fn line_col(text: &str, offset: usize) -> (usize, usize) {
     (line, column)
 }
 
-fn apply_env_overrides(
-    table: &mut toml::Table,
-    env: impl IntoIterator<Item = (String, String)>,
-) -> Result<(), ConfigError> {
-    let mut vars: Vec<(String, String)> = env
-        .into_iter()
-        .filter(|(k, _)| k.starts_with(ENV_PREFIX) && k.contains("__"))
+/// Applies one `PHONE2ACT_A__B__C=value` override: `A`, `B` name table keys (lower-cased) or, inside an
+/// array such as `arms`, the index of an existing entry.
+fn apply_override(table: &mut toml::Table, var: &str, raw: &str) -> Result<(), ConfigError> {
+    let err = |message: String| ConfigError::Env {
+        var: var.to_owned(),
+        message,
+    };
+    let path: Vec<String> = var[ENV_PREFIX.len()..]
+        .split("__")
+        .map(str::to_ascii_lowercase)
         .collect();
-    vars.sort();
-    for (var, raw) in vars {
-        let path: Vec<String> = var[ENV_PREFIX.len()..]
-            .split("__")
-            .map(str::to_ascii_lowercase)
-            .collect();
-        if path.iter().any(String::is_empty) {
-            return Err(ConfigError::Env {
-                var,
-                message: "empty path segment".to_owned(),
-            });
-        }
-        let value = parse_env_value(&raw);
-        let mut cursor = &mut *table;
-        for key in &path[..path.len() - 1] {
-            let entry = cursor
-                .entry(key.clone())
-                .or_insert_with(|| toml::Value::Table(toml::Table::new()));
-            cursor = match entry {
-                toml::Value::Table(t) => t,
-                _ => {
-                    return Err(ConfigError::Env {
-                        var,
-                        message: format!(
-                            "`{key}` is not a table (arrays of arms/cameras cannot be overridden)"
-                        ),
-                    });
-                }
-            };
-        }
-        cursor.insert(path[path.len() - 1].clone(), value);
+    if path.iter().any(String::is_empty) {
+        return Err(err("empty path segment".to_owned()));
     }
+    let (last, parents) = path.split_last().ok_or_else(|| err("empty path".to_owned()))?;
+    let mut cursor = table;
+    let mut walked = String::new();
+    let mut segments = parents.iter();
+    while let Some(key) = segments.next() {
+        let entry = cursor
+            .entry(key.clone())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        walked = if walked.is_empty() {
+            key.clone()
+        } else {
+            format!("{walked}.{key}")
+        };
+        cursor = match entry {
+            toml::Value::Table(t) => t,
+            toml::Value::Array(items) => {
+                let count = items.len();
+                let index = segments.next().ok_or_else(|| {
+                    err(format!(
+                        "`{walked}` is an array of {count}: name an entry by its index, e.g. {}{}__0__...",
+                        ENV_PREFIX,
+                        walked.to_ascii_uppercase().replace('.', "__")
+                    ))
+                })?;
+                let item = index
+                    .parse::<usize>()
+                    .ok()
+                    .and_then(|i| items.get_mut(i))
+                    .ok_or_else(|| {
+                        err(format!(
+                            "`{walked}` has {count} entries (0..{count}); `{index}` is not one of them \
+                             (an override changes an entry the file has, it cannot add one)"
+                        ))
+                    })?;
+                walked = format!("{walked}[{index}]");
+                match item {
+                    toml::Value::Table(t) => t,
+                    _ => return Err(err(format!("`{walked}` is not a table"))),
+                }
+            }
+            _ => return Err(err(format!("`{walked}` is a value, not a table"))),
+        };
+    }
+    cursor.insert(last.clone(), parse_env_value(raw));
     Ok(())
 }
 
@@ -554,6 +748,155 @@ mod tests {
         assert!((config.recorder.fps - 30.0).abs() < f64::EPSILON);
     }
 
+    const SIM: &str = "[[arms]]\nname = \"main\"\nbridge = \"sim\"\n";
+
+    fn with_env(text: &str, env: &[(&str, &str)]) -> Result<Config, ConfigError> {
+        let env = env.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned()));
+        Config::from_toml_str(text, "test.toml", env)
+    }
+
+    #[test]
+    fn huge_cameras_and_sizes_are_refused_with_the_limit() {
+        let cam = |w: u32, h: u32| {
+            format!("{SIM}[[cameras]]\nname = \"c\"\nkind = \"test_pattern\"\nwidth = {w}\nheight = {h}\n")
+        };
+        let err = parse(&cam(100_000, 100_000)).unwrap_err().to_string();
+        assert!(
+            err.starts_with("test.toml: camera \"c\": 100000x100000 is larger than 7680x4320"),
+            "{err}"
+        );
+        assert!(parse(&cam(7680, 4320)).is_ok());
+        for (extra, needle) in [
+            ("[arms.chunk]\nmax_steps = 100000000\n", "chunk.max_steps"),
+            ("[arms.chunk]\nblend_steps = 20000\n", "blend_steps"),
+            ("[arms.sim]\nstep_hz = 1e9\n", "sim.step_hz"),
+            ("[arms.teleop.gate]\nstale_timeout_s = -1\n", "stale_timeout_s"),
+        ] {
+            let err = parse(&format!("{SIM}{extra}")).unwrap_err().to_string();
+            assert!(
+                err.starts_with("test.toml: arm \"main\": ") && err.contains(needle),
+                "{err}"
+            );
+        }
+        let err = parse(&format!("{SIM}[gateway]\nmax_message_bytes = 1000000000000\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("gateway.max_message_bytes must be in 1024..=16777216"),
+            "{err}"
+        );
+        let joints = (0..65)
+            .map(|i| format!("\"j{i}\""))
+            .collect::<Vec<_>>()
+            .join(", ");
+        let remote =
+            format!("[[arms]]\nname = \"r\"\nbridge = \"remote\"\n[arms.remote]\njoint_names = [{joints}]\n");
+        assert!(parse(&remote).unwrap_err().to_string().contains("at most 64"));
+        let many = (0..17)
+            .map(|i| format!("[[arms]]\nname = \"a{i}\"\nbridge = \"sim\"\n"))
+            .collect::<Vec<_>>()
+            .concat();
+        assert!(parse(&many).unwrap_err().to_string().contains("at most 16 arms"));
+    }
+
+    #[test]
+    fn no_arms_names_the_file_and_what_to_add() {
+        let err = parse("[server]\nlisten = \"127.0.0.1:1\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml: no arms"), "{err}");
+        assert!(
+            err.contains("[[arms]]") && err.contains("bridge = \"sim\""),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn file_errors_keep_their_line_when_overrides_are_set() {
+        // Line 5 is the typo; the override is unrelated and must not move the reported line.
+        let text = format!("{SIM}\n[recorder]\nfsp = 20\n");
+        let err = with_env(&text, &[("PHONE2ACT_SERVER__LISTEN", "127.0.0.1:7")])
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml:6:1: unknown field `fsp`"), "{err}");
+        let text = format!("[recorder]\nfps = \"x\"\n{SIM}");
+        let err = with_env(&text, &[("PHONE2ACT_RECORDER__ROOT", "/tmp/x")])
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml:2:7:"), "{err}");
+    }
+
+    #[test]
+    fn an_override_that_breaks_a_good_file_is_named() {
+        let err = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_RECORDER__FPS", "fast"),
+                ("PHONE2ACT_SERVER__LISTEN", "127.0.0.1:7"),
+            ],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.starts_with("environment override PHONE2ACT_RECORDER__FPS: "),
+            "{err}"
+        );
+        let err = with_env(SIM, &[("PHONE2ACT_RECORDER__FPS", "500")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("test.toml (with PHONE2ACT_RECORDER__FPS): recorder.fps"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn arms_and_cameras_are_overridden_by_index() {
+        let text = format!("{SIM}[[arms]]\nname = \"second\"\nbridge = \"sim\"\n");
+        let config = with_env(
+            &text,
+            &[
+                ("PHONE2ACT_ARMS__1__TELEOP__GATE__JUMP_POSITION_M", "0.01"),
+                ("PHONE2ACT_ARMS__0__ACTION_MODE", "absolute"),
+                (
+                    "PHONE2ACT_ARMS__1__TELEOP__GATE__WORKSPACE_MAX_M",
+                    "[0.3, 0.2, 0.3]",
+                ),
+            ],
+        )
+        .unwrap();
+        assert_eq!(config.arms[0].action_mode, phone2act_core::ActionMode::Absolute);
+        assert!((config.arms[1].teleop.gate.jump_position_m - 0.01).abs() < 1e-12);
+        assert!((config.arms[0].teleop.gate.jump_position_m - 0.06).abs() < 1e-12);
+        assert!(
+            config.arms[1]
+                .teleop
+                .gate
+                .workspace_max_m
+                .iter()
+                .zip([0.3, 0.2, 0.3])
+                .all(|(a, b)| (a - b).abs() < 1e-12)
+        );
+        let err = with_env(&text, &[("PHONE2ACT_ARMS__2__NAME", "x")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("PHONE2ACT_ARMS__2__NAME") && err.contains("`arms` has 2 entries"),
+            "{err}"
+        );
+        let err = with_env(&text, &[("PHONE2ACT_ARMS__NAME", "x")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("name an entry by its index, e.g. PHONE2ACT_ARMS__0__"),
+            "{err}"
+        );
+        let err = with_env(&text, &[("PHONE2ACT_ARMS__first__NAME", "x")])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("`first` is not one of them"), "{err}");
+    }
+
     #[test]
     fn env_override_with_bad_type_is_an_error() {
         let env = vec![("PHONE2ACT_RECORDER__FPS".to_owned(), "fast".to_owned())];
@@ -561,5 +904,179 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("PHONE2ACT_"), "{err}");
+    }
+}
+
+#[cfg(test)]
+mod reference_tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    /// A configuration in which every optional key and every bridge section is set, so that serialising
+    /// it shows every key the config types accept. The two Dobot arms cover the gripper variants' keys.
+    pub(super) const FULLY_POPULATED: &str = r#"
+[server]
+token = "server-secret-1"
+[[arms]]
+name = "a"
+bridge = "sim"
+[arms.teleop.mapping]
+matrix = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+[arms.teleop.gate]
+max_linear_speed_m_s = 0.5
+max_angular_speed_rad_s = 2.0
+[arms.sim]
+[arms.dobot]
+host = "192.168.5.1"
+motion_port = 30003
+euler_convention = "extrinsic_xyz"
+gripper = { kind = "modbus_http" }
+[arms.so101]
+port = "/dev/ttyACM0"
+calibration_file = "cal.json"
+ids = [1, 2, 3, 4, 5, 6]
+[arms.remote]
+joint_names = ["j1"]
+[[arms]]
+name = "b"
+bridge = "dobot"
+[arms.dobot]
+host = "h"
+gripper = { kind = "do", index = 1 }
+[[cameras]]
+name = "c"
+kind = "v4l2"
+device = "/dev/video0"
+arm = "a"
+[recorder]
+video_codec = "libx264"
+[gateway]
+cert_dir = "d"
+cert_file = "c.pem"
+key_file = "k.pem"
+token = "pairing-secret-2"
+public_host = "h"
+"#;
+
+    /// Dotted key paths of every leaf, array entries merged; `namespaces` is a map of user data.
+    fn key_paths(value: &toml::Value, prefix: &str, out: &mut BTreeSet<String>) {
+        match value {
+            toml::Value::Table(table) if !prefix.ends_with(".namespaces") => {
+                for (key, v) in table {
+                    let path = if prefix.is_empty() {
+                        key.clone()
+                    } else {
+                        format!("{prefix}.{key}")
+                    };
+                    key_paths(v, &path, out);
+                }
+            }
+            toml::Value::Array(items) if items.iter().all(toml::Value::is_table) && !items.is_empty() => {
+                for item in items {
+                    key_paths(item, prefix, out);
+                }
+            }
+            _ => {
+                out.insert(prefix.to_owned());
+            }
+        }
+    }
+
+    /// Tables and keys the reference shows, commented out or not (`# token = ...` documents `token`).
+    fn reference_keys(text: &str) -> (BTreeSet<String>, BTreeSet<String>) {
+        let (mut tables, mut keys) = (BTreeSet::new(), BTreeSet::new());
+        let mut prefix = String::new();
+        for line in text.lines() {
+            let line = line
+                .strip_prefix('#')
+                .map_or(line, |l| l.strip_prefix(' ').unwrap_or(l));
+            if let Some(header) = line.strip_prefix('[') {
+                let name = header.trim_start_matches('[').trim_end().trim_end_matches(']');
+                if !name.is_empty()
+                    && name
+                        .chars()
+                        .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == '.')
+                {
+                    prefix = name.to_owned();
+                    tables.insert(prefix.clone());
+                }
+            } else if let Some((key, _)) = line.split_once(" = ")
+                && key.chars().next().is_some_and(|c| c.is_ascii_lowercase())
+                && key
+                    .chars()
+                    .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
+            {
+                keys.insert(if prefix.is_empty() {
+                    key.to_owned()
+                } else {
+                    format!("{prefix}.{key}")
+                });
+            }
+        }
+        (tables, keys)
+    }
+
+    fn all_keys() -> BTreeSet<String> {
+        let config = Config::from_toml_str(FULLY_POPULATED, "populated", Vec::new()).unwrap();
+        let mut keys = BTreeSet::new();
+        key_paths(&toml::Value::try_from(&config).unwrap(), "", &mut keys);
+        keys
+    }
+
+    #[test]
+    fn reference_shows_every_key_and_no_other() {
+        let reference = include_str!("../config/reference.toml");
+        let (tables, shown) = reference_keys(reference);
+        let keys = all_keys();
+        assert!(
+            keys.len() > 100,
+            "the populated config should reach every key, got {}",
+            keys.len()
+        );
+        let missing: Vec<_> = keys
+            .iter()
+            .filter(|k| !shown.contains(*k) && !tables.contains(*k))
+            .collect();
+        assert!(
+            missing.is_empty(),
+            "server/config/reference.toml does not show {missing:?}"
+        );
+        let unknown: Vec<_> = shown
+            .iter()
+            .filter(|k| !keys.contains(*k) && !k.starts_with("gateway.topics.namespaces."))
+            .collect();
+        assert!(
+            unknown.is_empty(),
+            "server/config/reference.toml shows keys that do not exist: {unknown:?}"
+        );
+    }
+
+    #[test]
+    fn the_key_walk_sees_a_key_the_reference_lacks() {
+        // The check above must be able to fail: a reference without one key is caught.
+        let reference = include_str!("../config/reference.toml").replace("stale_timeout_s = 0.3\n", "");
+        let (tables, shown) = reference_keys(&reference);
+        assert!(
+            all_keys()
+                .iter()
+                .any(|k| !shown.contains(k) && !tables.contains(k))
+        );
+    }
+
+    #[test]
+    fn redacted_toml_has_every_value_but_no_secret() {
+        let config = Config::from_toml_str(FULLY_POPULATED, "populated", Vec::new()).unwrap();
+        let text = config.to_redacted_toml().unwrap();
+        for secret in ["server-secret-1", "pairing-secret-2"] {
+            assert!(!text.contains(secret), "{secret} leaked:\n{text}");
+        }
+        // Everything else survives: read back, with the secrets put back, it is the same configuration.
+        let back = Config::from_toml_str(&text, "redacted", Vec::new()).unwrap();
+        assert_eq!(back.server.token.as_deref(), Some(REDACTED));
+        assert_eq!(back.gateway.token.as_deref(), Some(REDACTED));
+        let mut restored = back;
+        restored.server.token.clone_from(&config.server.token);
+        restored.gateway.token.clone_from(&config.gateway.token);
+        assert_eq!(restored, config);
     }
 }

@@ -105,12 +105,47 @@ enum DatasetAction {
     },
 }
 
+/// Writes one line to stdout. A reader that went away (`phone2act dataset info X | head`) ends the process
+/// quietly with success, as other Unix tools do, instead of the panic `println!` gives.
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        write_stdout_line(format_args!($($arg)*))
+    };
+}
+
+fn write_stdout_line(args: std::fmt::Arguments<'_>) {
+    use std::io::Write as _;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_fmt(args).and_then(|()| out.write_all(b"\n")) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("phone2act: error: cannot write to stdout: {e}");
+        std::process::exit(1);
+    }
+}
+
+/// The log filter: `PHONE2ACT_LOG` first, then the usual `RUST_LOG`, else `info`. Both take
+/// `tracing_subscriber` filter directives (`warn`, `phone2act_server=debug,info`).
+fn log_filter() -> tracing_subscriber::EnvFilter {
+    ["PHONE2ACT_LOG", "RUST_LOG"]
+        .into_iter()
+        .find_map(|var| {
+            let value = std::env::var(var).ok().filter(|v| !v.trim().is_empty())?;
+            match tracing_subscriber::EnvFilter::try_new(&value) {
+                Ok(filter) => Some(filter),
+                Err(e) => {
+                    eprintln!("phone2act: ignoring {var}={value:?}: {e}");
+                    None
+                }
+            }
+        })
+        .unwrap_or_else(|| tracing_subscriber::EnvFilter::new("info"))
+}
+
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("PHONE2ACT_LOG")
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
+        .with_env_filter(log_filter())
         .with_writer(std::io::stderr)
         .init();
     match real_main() {
@@ -145,7 +180,7 @@ fn phase_name(phase: i32) -> &'static str {
 }
 
 fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
-    println!("phone2act {}  uptime {:.1} s", status.version, status.uptime_s);
+    outln!("phone2act {}  uptime {:.1} s", status.version, status.uptime_s);
     for arm in &status.arms {
         let pose = arm.robot_from_ee.as_ref().and_then(|p| p.position_m.as_ref());
         let at = pose.map_or_else(
@@ -153,7 +188,7 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             |p| format!("ee ({:.3}, {:.3}, {:.3}) m", p.x, p.y, p.z),
         );
         let decision = arm.last_decision.as_ref().map_or("", |d| d.reason.as_str());
-        println!(
+        outln!(
             "  arm {:<8} {:<6} {:?} owner {:?} {}  {at}  gripper {:.2}  {decision}",
             arm.arm,
             arm.bridge_kind,
@@ -164,7 +199,7 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
         );
     }
     for cam in &status.cameras {
-        println!(
+        outln!(
             "  camera {:<8} {:<12} {}x{} @ {} fps  {} frames  {}",
             cam.camera,
             cam.kind,
@@ -176,7 +211,7 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
         );
     }
     if let Some(rec) = &status.recording {
-        println!(
+        outln!(
             "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  held {} paused {} late {} dropped {}  saved {}  {}",
             rec.dataset_root,
             rec.dataset_format,
@@ -201,19 +236,19 @@ fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
     let info: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{} is not valid JSON", info_path.display()))?;
     let get = |k: &str| info.get(k).map_or_else(|| "?".to_owned(), ToString::to_string);
-    println!("dataset   {}", path.display());
-    println!("format    LeRobot {}", get("codebase_version").trim_matches('"'));
-    println!("robot     {}", get("robot_type").trim_matches('"'));
-    println!("fps       {}", get("fps"));
-    println!("episodes  {}", get("total_episodes"));
-    println!("frames    {}", get("total_frames"));
-    println!("tasks     {}", get("total_tasks"));
+    outln!("dataset   {}", path.display());
+    outln!("format    LeRobot {}", get("codebase_version").trim_matches('"'));
+    outln!("robot     {}", get("robot_type").trim_matches('"'));
+    outln!("fps       {}", get("fps"));
+    outln!("episodes  {}", get("total_episodes"));
+    outln!("frames    {}", get("total_frames"));
+    outln!("tasks     {}", get("total_tasks"));
     if let Some(features) = info.get("features").and_then(|f| f.as_object()) {
-        println!("features");
+        outln!("features");
         for (key, f) in features {
             let dtype = f.get("dtype").and_then(|d| d.as_str()).unwrap_or("?");
             let shape = f.get("shape").map(ToString::to_string).unwrap_or_default();
-            println!("  {key:<32} {dtype:<8} {shape}");
+            outln!("  {key:<32} {dtype:<8} {shape}");
         }
     }
     Ok(())
@@ -228,12 +263,12 @@ fn real_main() -> anyhow::Result<()> {
             match action {
                 EpisodeAction::Start { task } => {
                     let s = episodes.start(&task).await?;
-                    println!("recording episode {} ({:?})", s.episode_index, s.task);
+                    outln!("recording episode {} ({:?})", s.episode_index, s.task);
                 }
                 EpisodeAction::Stop => {
                     let r = episodes.stop().await?;
                     let ep = r.episode.unwrap_or_default();
-                    println!(
+                    outln!(
                         "saved episode {}: {} frames, {:.2} s, task {:?} (save took {:.0} ms)",
                         ep.episode_index,
                         ep.length_frames,
@@ -242,16 +277,16 @@ fn real_main() -> anyhow::Result<()> {
                         r.save_latency_s * 1000.0
                     );
                 }
-                EpisodeAction::Discard => println!("discarded {} frames", episodes.discard().await?),
+                EpisodeAction::Discard => outln!("discarded {} frames", episodes.discard().await?),
                 EpisodeAction::Rerecord { task } => {
                     let s = episodes.rerecord(&task).await?;
-                    println!("re-recording episode {} ({:?})", s.episode_index, s.task);
+                    outln!("re-recording episode {} ({:?})", s.episode_index, s.task);
                 }
                 EpisodeAction::List => {
                     let list = episodes.list().await?;
-                    println!("{} episodes in {}", list.episodes.len(), list.dataset_root);
+                    outln!("{} episodes in {}", list.episodes.len(), list.dataset_root);
                     for ep in list.episodes {
-                        println!(
+                        outln!(
                             "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}",
                             ep.episode_index,
                             ep.length_frames,
@@ -289,7 +324,7 @@ fn real_main() -> anyhow::Result<()> {
         } => {
             let report = phone2act_recorder::verify::verify(&path);
             if report.ok() {
-                println!(
+                outln!(
                     "{}: valid LeRobot {} dataset, {} episodes, {} frames",
                     path.display(),
                     report.version,
@@ -299,7 +334,7 @@ fn real_main() -> anyhow::Result<()> {
                 Ok(())
             } else {
                 for problem in &report.problems {
-                    println!("problem: {problem}");
+                    outln!("problem: {problem}");
                 }
                 anyhow::bail!("{}: {} problem(s) found", path.display(), report.problems.len())
             }
@@ -309,6 +344,9 @@ fn real_main() -> anyhow::Result<()> {
             listen,
             check,
         } => {
+            let origin = config
+                .as_ref()
+                .map_or_else(|| "<embedded default>".to_owned(), |p| p.display().to_string());
             let mut config = match &config {
                 Some(path) => Config::load(path)?,
                 None => Config::embedded_default()?,
@@ -317,7 +355,12 @@ fn real_main() -> anyhow::Result<()> {
                 config.server.listen = listen;
             }
             if check {
-                println!("{config:#?}");
+                let text = config
+                    .to_redacted_toml()
+                    .context("cannot print the configuration as TOML")?;
+                outln!("# phone2act {} effective configuration of {origin}", env!("CARGO_PKG_VERSION"));
+                outln!("# (defaults filled in, PHONE2ACT_* overrides applied, secrets shown as \"{}\")", phone2act_server::config::REDACTED);
+                outln!("{text}");
                 return Ok(());
             }
             let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -358,7 +401,9 @@ fn real_main() -> anyhow::Result<()> {
                 } else {
                     None
                 };
-                run(config, listener, stopped(stop_rx)).await?;
+                run(config, listener, stopped(stop_rx))
+                    .await
+                    .with_context(|| format!("serving with the configuration {origin}"))?;
                 if let Some(gateway) = gateway {
                     match tokio::time::timeout(std::time::Duration::from_millis(300), gateway).await {
                         Ok(Ok(Err(e))) => tracing::warn!("phone gateway: {e}"),

@@ -104,7 +104,7 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         provenance: serde_json::json!({
             "software": "phone2act",
             "version": env!("CARGO_PKG_VERSION"),
-            "config": format!("{config:?}"),
+            "config": config.to_redacted_toml().unwrap_or_else(|e| format!("<not serialisable: {e}>")),
         }),
     })
 }

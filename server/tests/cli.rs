@@ -19,10 +19,14 @@ impl Drop for Served {
     }
 }
 
+/// A token the server requires in the end-to-end test; it must never reach a dataset or stdout.
+const SECRET_TOKEN: &str = "tok-3f9a1c77e2";
+
 fn serve(config: &std::path::Path) -> Served {
     let mut child = Command::new(BIN)
         .args(["serve", "--listen", "127.0.0.1:0", "--config"])
         .arg(config)
+        .env("PHONE2ACT_SERVER__TOKEN", SECRET_TOKEN)
         .env("SVT_LOG", "1")
         // Phone ports are fixed (9090, 8443); other tests and servers may hold them.
         .env("PHONE2ACT_GATEWAY__ENABLED", "false")
@@ -52,6 +56,7 @@ fn run(args: &[&str], url: &str) -> (bool, String, String) {
     let out = Command::new(BIN)
         .args(args)
         .args(["--url", url])
+        .env("PHONE2ACT_TOKEN", SECRET_TOKEN)
         .output()
         .unwrap();
     (
@@ -91,9 +96,26 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         ok && out.contains("1 episodes") && out.contains("stack the cube"),
         "{out}"
     );
-    // Stopping twice is a clear error, not a crash.
+    // Stopping twice is a clear error, not a crash, said once (no "code: ..., message: ..." echo).
     let (ok, _, err) = run(&["episode", "stop"], &server.url);
     assert!(!ok && err.contains("no episode is being recorded"), "{err}");
+    assert_eq!(err.matches("no episode is being recorded").count(), 1, "{err}");
+    assert!(!err.contains("code:") && !err.contains("message:"), "{err}");
+
+    // The same server under every URL form a user may type; only the scheme-less one is new to tonic.
+    let host_port = server.url.strip_prefix("http://").unwrap().to_owned();
+    for url in [host_port.as_str(), server.url.as_str()] {
+        let (ok, out, err) = run(&["status"], url);
+        assert!(ok && out.contains("arm main"), "--url {url}: {out}{err}");
+    }
+    // https:// to this plaintext port fails in the TLS handshake: an error about TLS, not about the URL.
+    let (ok, _, err) = run(&["status"], &format!("https://{host_port}"));
+    assert!(!ok && !err.contains("scheme"), "{err}");
+
+    // The dataset records the configuration, and not the token.
+    let provenance = std::fs::read_to_string(dir.path().join("ds/meta/phone2act_provenance.json")).unwrap();
+    assert!(provenance.contains("<redacted>"), "{provenance}");
+    assert!(!provenance.contains(SECRET_TOKEN), "{provenance}");
 
     let out = Command::new(BIN)
         .args(["dataset", "info"])
@@ -150,6 +172,21 @@ fn a_server_that_is_down_is_a_one_line_hint() {
     assert!(err.contains("is `phone2act serve` running"), "{err}");
 }
 
+/// `serve --check` on `config` with extra environment: the exit code and stderr. `--check` loads and
+/// validates exactly as `serve` does but never starts a server, so a config that wrongly passes cannot hang.
+fn check_config(config: &std::path::Path, env: &[(&str, &str)]) -> (Option<i32>, String) {
+    let out = Command::new(BIN)
+        .args(["serve", "--check", "--config"])
+        .arg(config)
+        .envs(env.iter().copied())
+        .output()
+        .unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
 #[test]
 fn bad_config_files_name_file_line_and_expectation() {
     let dir = tempfile::tempdir().unwrap();
@@ -159,23 +196,13 @@ fn bad_config_files_name_file_line_and_expectation() {
         "[server]\nlisten = \"127.0.0.1:0\"\n\n[[arms]]\nname = \"main\"\nbridge = \"sim\"\nspeed = 3\n",
     )
     .unwrap();
-    let out = Command::new(BIN)
-        .args(["serve", "--config"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
+    let (code, err) = check_config(&path, &[]);
+    assert_eq!(code, Some(1));
     assert!(err.contains(&format!("{}:7:", path.display())), "{err}");
     assert!(err.contains("unknown field `speed`"), "{err}");
 
     std::fs::write(&path, "[recorder]\nfps = \"twenty\"\n").unwrap();
-    let out = Command::new(BIN)
-        .args(["serve", "--config"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
+    let (_, err) = check_config(&path, &[]);
     assert!(err.contains(":2:") && err.contains("expected"), "{err}");
 }
 
@@ -198,5 +225,95 @@ fn a_taken_port_is_a_one_line_error() {
         error_lines[0].contains(&addr) && error_lines[0].contains("in use"),
         "{err}"
     );
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn check_prints_the_effective_configuration_as_toml_without_secrets() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_config(dir.path());
+    let text = std::fs::read_to_string(&path).unwrap() + "\n[gateway]\ntoken = \"pairing-9d2e41\"\n";
+    std::fs::write(&path, text).unwrap();
+    let out = Command::new(BIN)
+        .args(["serve", "--check", "--config"])
+        .arg(&path)
+        .env("PHONE2ACT_SERVER__TOKEN", SECRET_TOKEN)
+        .env("PHONE2ACT_ARMS__0__TELEOP__GATE__JUMP_POSITION_M", "0.02")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for secret in [SECRET_TOKEN, "pairing-9d2e41"] {
+        assert!(!stdout.contains(secret) && !String::from_utf8_lossy(&out.stderr).contains(secret));
+    }
+    // It is TOML a user can save and run: same values, defaults filled in, the override applied.
+    let back: toml::Table = toml::from_str(&stdout).unwrap_or_else(|e| panic!("{e}\n{stdout}"));
+    assert_eq!(back["server"]["token"].as_str(), Some("<redacted>"));
+    assert_eq!(
+        back["arms"][0]["teleop"]["gate"]["jump_position_m"].as_float(),
+        Some(0.02)
+    );
+    assert_eq!(back["arms"][0]["chunk"]["max_steps"].as_integer(), Some(10_000));
+}
+
+#[test]
+fn start_up_config_errors_name_the_file_and_never_abort() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cam.toml");
+    std::fs::write(
+        &path,
+        "[[arms]]\nname = \"main\"\nbridge = \"sim\"\n[[cameras]]\nname = \"big\"\nkind = \"test_pattern\"\nwidth = 100000\nheight = 100000\n",
+    )
+    .unwrap();
+    let (code, err) = check_config(&path, &[]);
+    // Exit code 1, not a signal: a 30 GB frame allocation used to abort the process.
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "{}: camera \"big\": 100000x100000 is larger than",
+            path.display()
+        )),
+        "{err}"
+    );
+
+    std::fs::write(&path, "[server]\nlisten = \"127.0.0.1:0\"\n").unwrap();
+    let (code, err) = check_config(&path, &[]);
+    assert_eq!(code, Some(1));
+    assert!(
+        err.contains(&format!("{}: no arms", path.display())) && err.contains("[[arms]]"),
+        "{err}"
+    );
+
+    // A bad value from the environment names the variable, not a line of a file the user never wrote.
+    let (code, err) = check_config(&write_config(dir.path()), &[("PHONE2ACT_RECORDER__FPS", "fast")]);
+    assert!(
+        code == Some(1) && err.contains("environment override PHONE2ACT_RECORDER__FPS"),
+        "{err}"
+    );
+}
+
+#[test]
+fn output_into_a_closed_pipe_ends_quietly() {
+    // `phone2act dataset info X | head -1`: the reader is gone before the first line is written, so every
+    // write fails with EPIPE; the reader end is closed before the process starts, so this is not a race.
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("ds");
+    std::fs::create_dir_all(root.join("meta")).unwrap();
+    std::fs::write(
+        root.join("meta/info.json"),
+        r#"{"codebase_version": "v3.0", "fps": 20, "features": {"action": {"dtype": "float32", "shape": [7]}}}"#,
+    )
+    .unwrap();
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let out = Command::new(BIN)
+        .args(["dataset", "info"])
+        .arg(&root)
+        .stdout(writer)
+        .stderr(Stdio::piped())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{:?} {err}", out.status);
     assert!(!err.contains("panicked"), "{err}");
 }

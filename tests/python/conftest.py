@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = REPO.parent / "shared"
-# Bytes GR00T N1.5 wrote, committed with a NOTE.md saying how to regenerate them.
-GOLDEN = REPO / "tests" / "fixtures" / "gr00t_wire"
+# Test data written by other software (GR00T's MsgSerializer, lerobot): see tests/fixtures/README.md.
+FIXTURES = REPO / "tests" / "fixtures"
+GOLDEN = FIXTURES / "gr00t_wire"
 
 # The clients are plain directories in the repo; test them from source.
 for sub in ("clients/gr00t", "clients/replay", "clients/python-bridge"):
@@ -132,7 +132,7 @@ def free_port() -> int:
 def golden(name: str) -> bytes:
     path = GOLDEN / name
     if not path.exists():
-        pytest.fail(f"golden message {path} is missing")
+        pytest.fail(f"golden message {path} is missing (see tests/fixtures/README.md)")
     return path.read_bytes()
 
 

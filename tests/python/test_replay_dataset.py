@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
-from conftest import SHARED
+from conftest import FIXTURES
 from phone2act.poses import quat_angle, quat_from_rpy, rpy_from_quat
 from phone2act_replay import Episode, align, load_episode, path_errors, pose_errors, resample
 
-REF = SHARED / "reference"
+REF = FIXTURES
 
 
 @pytest.mark.parametrize("name", ["lerobot_sample_v30", "lerobot_sample_v21"])

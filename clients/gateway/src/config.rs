@@ -4,7 +4,7 @@
 //! LAN can reach: rosbridge on `0.0.0.0:9090` (what the Phone2Act app expects) and the phone page on
 //! `https://0.0.0.0:8443` with a self-signed certificate and a pairing token.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -17,7 +17,7 @@ pub const HARD_MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 /// The `[gateway]` table.
 // Independent on/off switches of a config file, not a state machine.
 #[allow(clippy::struct_excessive_bools)]
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GatewayConfig {
     /// Run the gateway inside `phone2act serve` ([`crate::serve`] only waits for shutdown when false).
@@ -93,7 +93,7 @@ impl Default for GatewayConfig {
 ///
 /// A topic `/<ns>/<rest>` whose first segment is a key of `namespaces` drives that arm; any other topic
 /// drives `default_arm`. `<rest>` is then compared, case-sensitively as ROS does, with the lists below.
-#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TopicConfig {
     /// `geometry_msgs/PoseStamped` phone pose topics (tracking frame of the phone).

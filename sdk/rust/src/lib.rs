@@ -36,9 +36,27 @@ pub enum Error {
     /// The session's stream is closed (the server ended it or the connection dropped).
     #[error("session closed")]
     Closed,
-    /// The server answered with an error status.
+    /// The server answered with an error status. Displayed as `Code: message` once; the status is not
+    /// also chained as a source, which would print the same message a second time in `{:#}` chains.
     #[error("{:?}: {}", .0.code(), .0.message())]
-    Status(#[from] tonic::Status),
+    Status(tonic::Status),
+}
+
+impl From<tonic::Status> for Error {
+    fn from(status: tonic::Status) -> Self {
+        Self::Status(status)
+    }
+}
+
+/// The URL to dial for a target given as `host:port`, `http://host:port` or `https://host:port`: a target
+/// without a scheme means plaintext HTTP/2, the server's default.
+pub fn normalize_url(target: &str) -> String {
+    let target = target.trim();
+    if target.contains("://") {
+        target.to_owned()
+    } else {
+        format!("http://{target}")
+    }
 }
 
 /// Result alias for this crate.
@@ -98,7 +116,8 @@ pub struct Client {
 }
 
 impl Client {
-    /// Connects to `url` (e.g. `http://127.0.0.1:50051`) with an optional bearer token.
+    /// Connects to `url` (`127.0.0.1:50051`, `http://127.0.0.1:50051` or `https://host:port`) with an
+    /// optional bearer token.
     pub async fn connect(url: &str, token: Option<&str>) -> Result<Self> {
         Self::connect_with(
             url,
@@ -116,11 +135,12 @@ impl Client {
             url: url.to_owned(),
             source,
         };
-        let endpoint = Endpoint::from_shared(url.to_owned())
+        let dial = normalize_url(url);
+        let endpoint = Endpoint::from_shared(dial.clone())
             .map_err(to_connect_error)?
             .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
             .tcp_nodelay(true);
-        let endpoint = if url.starts_with("https://") {
+        let endpoint = if dial.starts_with("https://") {
             let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
             if let Some(pem) = &options.ca_pem {
                 tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));

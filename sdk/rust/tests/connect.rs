@@ -38,3 +38,23 @@ async fn a_malformed_url_is_refused() {
         .to_string();
     assert!(err.contains("cannot connect to not a url"), "{err}");
 }
+
+#[test]
+fn every_url_form_a_user_types_is_dialable() {
+    use phone2act_sdk::normalize_url;
+    assert_eq!(normalize_url("127.0.0.1:50051"), "http://127.0.0.1:50051");
+    assert_eq!(normalize_url(" localhost:1 "), "http://localhost:1");
+    assert_eq!(normalize_url("http://h:1"), "http://h:1");
+    assert_eq!(normalize_url("https://h:1"), "https://h:1");
+}
+
+#[tokio::test]
+async fn a_target_without_scheme_is_dialed_not_refused_as_a_url() {
+    // Port 9 (discard) is closed here: the error must be the connection, not "scheme is missing".
+    let err = phone2act_sdk::Client::connect("127.0.0.1:9", None)
+        .await
+        .unwrap_err();
+    let text = format!("{err:#}");
+    assert!(text.contains("cannot connect to 127.0.0.1:9"), "{text}");
+    assert!(!text.contains("scheme"), "{text}");
+}

@@ -12,7 +12,7 @@
 use crate::config::ConfigError;
 use crate::pose::{PoseError, check_pose};
 use nalgebra::{Isometry3, Translation3};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 const TIME_EPSILON_S: f64 = 1e-9;
 
@@ -33,7 +33,7 @@ pub struct ActionChunk {
 }
 
 /// Limits and blending of the chunk executor.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ChunkConfig {
     /// Number of live steps over which a new chunk is blended in from the old plan (0 = switch at once).

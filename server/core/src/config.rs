@@ -5,7 +5,7 @@
 //! error rather than a silently ignored setting. Defaults suit the simulated SO-101 arm.
 
 use nalgebra::{Matrix3, Rotation3};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// A configuration value that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -25,7 +25,7 @@ pub enum ConfigError {
 /// How the phone's tracking frame is turned to the robot frame when no explicit matrix is given.
 ///
 /// The robot frame is x forward, y left, z up; the operator stands behind the robot facing its +x.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AxisPreset {
     /// Tracking frame with +X right, +Y up, −Z forward (WebXR, ARCore display-oriented poses, the phone held
@@ -52,7 +52,7 @@ impl AxisPreset {
 
 /// Phone-to-robot mapping: `p_target = p_ref_robot + M·(Δp_phone·S)` and the phone's rotation since the
 /// reference, turned into the robot frame by `M`, scaled and composed onto the robot's reference orientation.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MappingConfig {
     /// Axis alignment used when `matrix` is absent.
@@ -112,7 +112,7 @@ impl MappingConfig {
 }
 
 /// Safety gate limits, all in the robot base frame.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct GateConfig {
     /// Workspace box (m); targets are clamped into it axis by axis.
@@ -173,7 +173,7 @@ impl GateConfig {
 }
 
 /// Gripper behaviour.
-#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct GripperConfig {
     /// Snap every command to fully open (0) or fully closed (1).
@@ -181,7 +181,7 @@ pub struct GripperConfig {
 }
 
 /// Everything one arm's teleop path needs.
-#[derive(Debug, Clone, PartialEq, Default, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TeleopConfig {
     pub mapping: MappingConfig,

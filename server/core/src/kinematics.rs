@@ -328,6 +328,30 @@ impl So101Kinematics {
         } else {
             (q, poses)
         };
+        // Position has priority, but orientation steps can walk the arm into a corner of its joint limits
+        // from which the position task cannot get back (seen: shoulder and elbow both pinned, 0.11 mm
+        // short of a target the seed reached in two steps). Then the position-only answer from the seed
+        // is the better one: it meets the position the caller asked for first.
+        let (q, poses) = if w_orientation > 0.0
+            && (p_target - poses.tcp.translation.vector).norm() > cfg.position_tolerance_m
+        {
+            let (q_p, poses_p, fallback) = self.iterate(
+                clamp_to_limits(seed),
+                &p_target,
+                &r_aim,
+                false,
+                cfg.max_iterations,
+            );
+            iterations += fallback;
+            let error_of = |p: &So101LinkPoses| (p_target - p.tcp.translation.vector).norm();
+            if error_of(&poses_p) < error_of(&poses) {
+                (q_p, poses_p)
+            } else {
+                (q, poses)
+            }
+        } else {
+            (q, poses)
+        };
         let achieved = poses.tcp;
         let position_error_m = (p_target - achieved.translation.vector).norm();
         let orientation_error_rad = target.rotation.angle_to(&achieved.rotation);
@@ -720,6 +744,28 @@ mod tests {
         // Stay a little inside the limits so that a random perturbation of the seed is meaningful.
         let r = |i: usize| (SO101_JOINT_LIMITS_RAD[i].0 * 0.9)..(SO101_JOINT_LIMITS_RAD[i].1 * 0.9);
         (r(0), r(1), r(2), r(3), r(4)).prop_map(|(a, b, c, d, e)| [a, b, c, d, e])
+    }
+
+    /// The case `arbitrary_orientation_keeps_position` once shrank to (issue 14): orientation steps pinned
+    /// shoulder and elbow at their limits 0.11 mm short of a position the seed reaches in two steps.
+    #[test]
+    fn orientation_never_costs_a_reachable_position() {
+        let k = So101Kinematics::new();
+        let truth = [
+            0.0,
+            1.302_231_757_667_329_5,
+            1.266_444_477_557_736_4,
+            0.325_021_580_908_506_9,
+            -1.297_051_603_875_753_1,
+        ];
+        let mut target = k.forward(&truth);
+        target.rotation =
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, 2.568_924_153_371_135)) * target.rotation;
+        let mut seed = truth;
+        seed[3] -= 0.060_503_843_662_268_776;
+        let sol = k.inverse(&target, &seed, IkWeights::FULL);
+        assert!(within_limits(&sol.joints_rad));
+        assert!(sol.position_reached, "{sol:?}");
     }
 
     proptest! {

@@ -14,7 +14,7 @@
 
 use crate::pose::{rotation_from_rpy, rpy_from_rotation, wrap_angle_rad};
 use nalgebra::{Isometry3, Translation3};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// Width of one arm's action vector.
@@ -33,7 +33,7 @@ const DELTA_ACTION_NAMES: [&str; 7] = [
 const ABSOLUTE_ACTION_NAMES: [&str; 7] = ["x", "y", "z", "roll", "pitch", "yaw", "gripper"];
 
 /// How an action vector encodes the end-effector target.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ActionMode {
     /// 6-DoF delta from the measured pose, plus gripper.

@@ -394,11 +394,11 @@ fn check_modality(text: &str, features: &serde_json::Map<String, Value>, report:
 mod tests {
     use super::*;
 
-    fn golden(name: &str) -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../../shared/reference")
-            .join(name);
-        p.exists().then_some(p)
+    /// Datasets written by the real lerobot library, committed with the repository (tests/fixtures/README.md).
+    fn golden(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../tests/fixtures")
+            .join(name)
     }
 
     fn copy_dir(from: &Path, to: &Path) {
@@ -416,7 +416,7 @@ mod tests {
     #[test]
     fn golden_datasets_written_by_lerobot_verify_clean() {
         for name in ["lerobot_sample_v30", "lerobot_sample_v21"] {
-            let Some(root) = golden(name) else { continue };
+            let root = golden(name);
             let report = verify(&root);
             assert!(report.ok(), "{name}: {:?}", report.problems);
             assert_eq!((report.episodes, report.frames), (3, 30), "{name}");
@@ -425,9 +425,7 @@ mod tests {
 
     #[test]
     fn broken_copies_are_described_in_words() {
-        let Some(root) = golden("lerobot_sample_v21") else {
-            return;
-        };
+        let root = golden("lerobot_sample_v21");
         let dir = tempfile::tempdir().unwrap();
         copy_dir(&root, dir.path());
         std::fs::remove_file(

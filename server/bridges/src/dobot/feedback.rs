@@ -6,7 +6,7 @@
 //! fields instead of trusting that every read starts a packet.
 
 use nalgebra::{Rotation3, UnitQuaternion, Vector3};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// Size of one packet; the first `u16` must say so.
 pub const PACKET_LEN: usize = 1440;
@@ -243,7 +243,7 @@ impl FrameReader {
 }
 
 /// How the controller's `rx, ry, rz` angles compose into a rotation.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum EulerConvention {
     /// Fixed axes X, Y, Z: `R = Rz(rz)·Ry(ry)·Rx(rx)` (what Phone2Act's working CR5 bridge assumes).

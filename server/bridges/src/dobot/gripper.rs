@@ -1,13 +1,13 @@
 //! Dobot gripper outputs: a controller or tool digital output, or a Modbus-RTU register write tunnelled over the
 //! controller's HTTP tool-data endpoint (the route Phone2Act's CR5 uses for a DH-Robotics-style gripper).
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::time::Duration;
 
 /// How the gripper is driven.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum GripperOutput {
     /// No gripper: the gripper target is ignored and reported back as commanded.

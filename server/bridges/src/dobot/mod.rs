@@ -22,7 +22,7 @@ use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, ch
 use gripper::GripperOutput;
 use nalgebra::{Isometry3, Translation3};
 use protocol::{Firmware, Reply, RobotMode, ServoParams, Terminator, error_text, parse_reply};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -32,7 +32,7 @@ use std::time::{Duration, Instant};
 use tracing::{debug, info, warn};
 
 /// Configuration of one Dobot arm (`[arms.dobot]` in the server config).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct DobotConfig {
     /// Controller address: 192.168.5.1 wired, 192.168.1.6 wireless by default.

@@ -3,11 +3,11 @@
 //! Both the bridge and the emulator use these helpers, so the emulator's replies are checked by the same parser
 //! that reads the real controller. The shapes follow the Dobot V4 protocol document (V3 differences noted).
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
 /// Which firmware generation the controller runs; sets the default motion port and command names.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Firmware {
     /// CR firmware 3.5.x: motion commands on their own port (30003), `ServoP` without optional parameters,
@@ -30,7 +30,7 @@ impl Firmware {
 }
 
 /// What ends a command on the wire. The controller accepts all three; Dobot's SDK sends none, Phone2Act `\r\n`.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Terminator {
     None,

@@ -3,10 +3,10 @@
 
 use crate::BridgeError;
 use phone2act_core::kinematics::{SO101_JOINT_LIMITS_RAD, So101Joints};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// Simulated arm and scene parameters.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimConfig {
     /// Time constant of the first-order joint response to a new target. 0.05 s is close to a Feetech
@@ -58,7 +58,7 @@ impl Default for SimConfig {
 }
 
 /// A fixed pinhole camera looking at the scene.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimCameraConfig {
     /// Camera position in the robot base frame.

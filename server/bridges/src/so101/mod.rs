@@ -20,7 +20,7 @@ use calibration::{Calibration, MotorCalibration};
 use phone2act_core::kinematics::{
     IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, SO101_JOINT_NAMES, So101Joints, So101Kinematics,
 };
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -32,7 +32,7 @@ use tracing::{info, warn};
 pub const MOTORS: usize = SO101_ARM_DOF + 1;
 
 /// Configuration of one SO-101 follower arm (`[arms.so101]` in the server config).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct So101Config {
     /// Serial device of the bus adapter, e.g. `/dev/ttyACM0` (or a `/dev/serial/by-id/...` link).
