@@ -123,7 +123,6 @@ async fn the_android_apps_bytes_move_the_sim_arm_and_toggle_the_gripper() {
     let gw = start_gateway(&server).await;
     tokio::time::sleep(Duration::from_millis(400)).await;
     let before = sim_pose_of(&client, "main").await;
-    let gripper_before = arm_state(&client, "main").await.gripper_target;
 
     let mut app = rosbridge(&gw).await;
     // Exactly what the app sends on connect: one advertise per topic, no id, no latch.
@@ -144,12 +143,14 @@ async fn the_android_apps_bytes_move_the_sim_arm_and_toggle_the_gripper() {
         nanosec += 20_000_000;
         send(&mut app, &app_pose(sec, nanosec, [0.0, 0.0, 0.0])).await;
     }
-    // Volume down flips the clutch toggle state: the phone now drives the arm.
-    send(&mut app, &app_volume(0, 1)).await;
+    // The volume monitor starts and reports the app's state [0, 0]: follow (and gripper closed), as the
+    // original planner reads it.
+    send(&mut app, &app_volume(0, 0)).await;
     assert!(
         wait_until(|| async { arm_state(&client, "main").await.engaged }).await,
-        "volume-down did not engage"
+        "[0, 0] did not engage"
     );
+    let gripper_before = arm_state(&client, "main").await.gripper_target;
     let engaged_target = pos(arm_state(&client, "main")
         .await
         .robot_from_target
@@ -201,8 +202,8 @@ async fn the_android_apps_bytes_move_the_sim_arm_and_toggle_the_gripper() {
         "sim arm did not move: {before:?} -> {after:?}"
     );
 
-    // Volume up flips the gripper toggle.
-    send(&mut app, &app_volume(1, 1)).await;
+    // Volume up flips the gripper toggle state: [1, 0] opens it.
+    send(&mut app, &app_volume(1, 0)).await;
     assert!(
         wait_until(|| async {
             (arm_state(&client, "main").await.gripper_target - gripper_before).abs() > 0.5
