@@ -281,6 +281,14 @@ impl Gateway {
             });
         }
         tracing::info!(rosbridge = ?self.info.rosbridge_addr, https = ?self.info.https_addr, "gateway serving");
+        if self.shared.token.is_none()
+            && let Some(addr) = self.info.rosbridge_addr.filter(|a| !a.ip().is_loopback())
+        {
+            tracing::warn!(
+                "rosbridge on {addr} has no pairing token (require_token = false): every address that can reach \
+                 it can drive the arms"
+            );
+        }
         let result = tokio::select! {
             () = shutdown => Ok(()),
             Some(done) = tasks.join_next() => done.map_err(|e| GatewayError::Serve(e.to_string())).and_then(|r| r),
