@@ -307,6 +307,14 @@ impl ArmController {
             Some(Ok(p)) => Some(*p),
             Some(Err(e)) => {
                 outcome.error.clone_from(e);
+                // A malformed pose (non-unit quaternion, NaN) is a refused command like any other: counted and
+                // shown as the verdict, unless a policy drives and the verdict on display is its own.
+                if inner.driver != Driver::Policy {
+                    Self::record_decision(
+                        &mut inner,
+                        GateDecision::note(GateVerdict::RejectedInvalid, format!("invalid phone pose: {e}")),
+                    );
+                }
                 None
             }
             None => None,

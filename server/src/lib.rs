@@ -75,6 +75,9 @@ pub async fn serve_app(
         .local_addr()
         .map_err(|e| ServerError::Startup(e.to_string()))?;
     tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
+    if let Some(warning) = services::auth::exposure_warning(local, app.config.server.token.is_some()) {
+        tracing::warn!("{warning}");
+    }
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
     for name in phone2act_proto::SERVICE_NAMES {

@@ -99,6 +99,11 @@ class Suite:
     def press(self, arm, key):
         """Flips a volume-key toggle like the Phone2Act app does (0 = up/gripper, 1 = down/clutch)."""
         self.toggles[arm][key] ^= 1
+        self.report(arm)
+
+    def report(self, arm):
+        """Publishes the toggle state, as the app does when its volume monitor starts. The gateway reads it as
+        the original planner does: down 0 follows, 1 holds; up 0 closes the gripper, 1 opens it."""
         self.volume[arm].publish(
             roslibpy.Message({"layout": {"dim": [], "data_offset": 0}, "data": list(self.toggles[arm])})
         )
@@ -125,10 +130,10 @@ class Suite:
         origin = {"left": (0.0, 0.0, 0.0), "right": (0.0, 0.0, 0.0)}
         self.stream(origin, 0.1)
         for arm in ("left", "right"):
-            self.press(arm, 1)
+            self.report(arm)
         deadline = time.monotonic() + 10
         while not (self.state("left")["engaged"] and self.state("right")["engaged"]):
-            assert time.monotonic() < deadline, "the clutch toggle did not engage both arms"
+            assert time.monotonic() < deadline, "the app's [0, 0] (follow) did not engage both arms"
             self.stream(origin, 0.05)
         self.stream(origin, 0.2)
         start = {arm: position(self.target[arm].wait(lambda m: True, what="a target")) for arm in ("left", "right")}

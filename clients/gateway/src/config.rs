@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 
 /// Messages larger than this close the socket with code 1009 (the WebSocket "message too big" close);
@@ -63,6 +63,19 @@ pub struct GatewayConfig {
     pub default_arm: String,
     /// rosbridge topic names and their mapping to arms.
     pub topics: TopicConfig,
+    /// How long opening the phone page with the pairing token lets that phone's address use rosbridge
+    /// (the Phone2Act app cannot send a token). 0 disables pairing by address.
+    pub pair_for_s: u64,
+    /// Addresses always let in on rosbridge without a token or pairing (a robot PC's own tablet, a lab
+    /// machine running roslibpy). Exact addresses, IPv4 or IPv6.
+    pub allow: Vec<IpAddr>,
+    /// Addresses that count as this machine and are always let in. Default (absent): every loopback
+    /// address. Tests narrow it to `["127.0.0.1"]` so that a client bound to 127.0.0.2 plays a phone.
+    pub local_addresses: Option<Vec<IpAddr>>,
+    /// A rosbridge connection from the same address as the one holding an arm takes the arm over once
+    /// the holder has sent nothing for this long (the app's second tap on "connect" leaves the old socket
+    /// open and silent). Match the arms' `stale_timeout_s`.
+    pub takeover_silence_ms: u64,
 }
 
 impl Default for GatewayConfig {
@@ -85,6 +98,11 @@ impl Default for GatewayConfig {
             print_qr: true,
             default_arm: "main".to_owned(),
             topics: TopicConfig::default(),
+            // A working day: pair in the morning, work until evening.
+            pair_for_s: 8 * 3600,
+            allow: Vec::new(),
+            local_addresses: None,
+            takeover_silence_ms: 300,
         }
     }
 }
@@ -98,8 +116,8 @@ impl Default for GatewayConfig {
 pub struct TopicConfig {
     /// `geometry_msgs/PoseStamped` phone pose topics (tracking frame of the phone).
     pub pose: Vec<String>,
-    /// `std_msgs/Int32MultiArray` volume-key toggle states `[up, down]`: a change of `up` toggles the
-    /// gripper, a change of `down` toggles the clutch.
+    /// `std_msgs/Int32MultiArray` volume-key toggle states `[up, down]`, read as the app's state like the
+    /// original planner: `down` 1 holds the arm, 0 lets the phone drive; `up` 0 closes the gripper, 1 opens it.
     pub volume: Vec<String>,
     /// `std_msgs/Float32` absolute gripper position (0 open, 1 closed).
     pub gripper: Vec<String>,

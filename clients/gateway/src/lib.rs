@@ -13,15 +13,20 @@
 //!
 //! Tests bind port 0 themselves and use [`Gateway::with_listeners`], which also reports the pairing token.
 
+// Every byte here comes from the network: slicing a `str` by byte index panics on a multi-byte character.
+#![deny(clippy::string_slice)]
+
 pub mod config;
 mod conn;
 pub mod feedback;
 pub mod mock_server;
 mod native;
+pub mod pairing;
 pub mod rosbridge;
 mod rosbridge_conn;
 mod server;
 pub mod session;
+pub mod takeover;
 pub mod tls;
 mod upstream;
 mod web;

@@ -147,9 +147,11 @@ fn replace_non_finite_tokens(text: &str) -> Cow<'_, str> {
             i += 1;
             continue;
         }
-        if let Some(token) = TOKENS.iter().find(|t| text[i..].starts_with(**t)) {
+        // Compared as bytes: `i` may sit inside a multi-byte character (a stray emoji outside a string).
+        // A match starts with an ASCII byte, so `copied_to` and `i` are char boundaries whenever text is cut.
+        if let Some(token) = TOKENS.iter().find(|t| bytes[i..].starts_with(t.as_bytes())) {
             let o = out.get_or_insert_with(|| String::with_capacity(text.len()));
-            o.push_str(&text[copied_to..i]);
+            o.push_str(text.get(copied_to..i).unwrap_or_default());
             o.push_str("null");
             i += token.len();
             copied_to = i;
@@ -159,7 +161,7 @@ fn replace_non_finite_tokens(text: &str) -> Cow<'_, str> {
     }
     match out {
         Some(mut o) => {
-            o.push_str(&text[copied_to..]);
+            o.push_str(text.get(copied_to..).unwrap_or_default());
             Cow::Owned(o)
         }
         None => Cow::Borrowed(text),
@@ -508,6 +510,20 @@ mod tests {
             replace_non_finite_tokens(r#"[NaN,-Infinity,"x\"NaN"]"#),
             r#"[null,null,"x\"NaN"]"#
         );
+    }
+
+    #[test]
+    fn non_ascii_outside_strings_is_malformed_json_not_a_panic() {
+        for text in [
+            "{\"op\":\"x\"} 😀",
+            "😀NaN",
+            "é",
+            "[NaN,\u{e9}Infinity]",
+            "{\"a\":1}\u{ff}-Infinity",
+        ] {
+            assert!(parse(text).is_err(), "{text:?} accepted");
+        }
+        assert_eq!(replace_non_finite_tokens("[\u{e9},NaN]"), "[\u{e9},null]");
     }
 
     #[test]

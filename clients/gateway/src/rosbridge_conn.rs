@@ -11,12 +11,14 @@ use crate::feedback::{arm_json, pose_parts, recording_json};
 use crate::rosbridge::{self, Op, StatusLevel, WireError};
 use crate::server::Shared;
 use crate::session::{Session, SessionEvent};
+use crate::takeover::Claim;
 use phone2act_proto::v1::{
     ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, SystemStatus, TrackingState,
     WatchStatusRequest, button_event, clutch_command, gripper_command,
 };
 use serde_json::Value;
 use std::collections::{HashMap, HashSet};
+use std::net::IpAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::task::JoinHandle;
@@ -40,6 +42,9 @@ struct Subscription {
 pub struct RosbridgeHandler {
     shared: Arc<Shared>,
     wiring: Wiring,
+    /// This socket's id in the gateway's arm-holder registry, and the address it came from.
+    conn: u64,
+    peer: IpAddr,
     client_name: &'static str,
     level: StatusLevel,
     advertised: HashMap<String, String>,
@@ -52,12 +57,15 @@ pub struct RosbridgeHandler {
 }
 
 impl RosbridgeHandler {
-    pub fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+    pub fn new(shared: Arc<Shared>, wiring: Wiring, peer: IpAddr) -> Self {
         // Validated when the gateway starts.
         let level = StatusLevel::parse(&shared.config.rosbridge_status_level).unwrap_or(StatusLevel::None);
+        let conn = shared.next_connection();
         Self {
             shared,
             wiring,
+            conn,
+            peer,
             client_name: "rosbridge",
             level,
             advertised: HashMap::new(),
@@ -197,18 +205,16 @@ impl RosbridgeHandler {
                 sample.tracking = TrackingState::Tracking.into();
             }
             TopicRole::Volume => {
-                let now = rosbridge::parse_volume(msg)?;
-                // The app starts with both toggles at 0 and flips one per key press.
-                let before = self.volume.insert(arm.clone(), now).unwrap_or([0, 0]);
-                if now[0] != before[0] {
-                    sample.buttons.push(gripper(gripper_command::Kind::Toggle, 0.0));
+                // The app's toggle *states*, read as the original planner reads them: the app is the source
+                // of truth, so a reconnect or a lost message cannot desynchronise anything.
+                let state = rosbridge::parse_volume(msg)?;
+                if let Some(bad) = state.iter().find(|v| !matches!(v, 0 | 1)) {
+                    return Err(WireError(format!(
+                        "volume toggle states must be 0 or 1, got {bad}"
+                    )));
                 }
-                if now[1] != before[1] {
-                    sample.buttons.push(clutch(clutch_command::Kind::Toggle));
-                }
-                if sample.buttons.is_empty() {
-                    return Ok(());
-                }
+                self.volume.insert(arm.clone(), state);
+                sample.buttons.extend(volume_buttons(state));
             }
             TopicRole::Gripper => {
                 let position = rosbridge::parse_float32(msg)?;
@@ -233,29 +239,62 @@ impl RosbridgeHandler {
         Ok(())
     }
 
-    fn send(&mut self, arm: String, sample: PhoneSample) {
-        if self
-            .refused_until
-            .get(&arm)
-            .is_some_and(|until| Instant::now() < *until)
-        {
+    fn send(&mut self, arm: String, mut sample: PhoneSample) {
+        let now = Instant::now();
+        if self.refused_until.get(&arm).is_some_and(|until| now < *until) {
             return;
         }
-        let session = self.sessions.entry(arm.clone()).or_insert_with(|| {
-            Session::start(
+        let live = self.sessions.get(&arm).is_some_and(|s| !s.is_finished());
+        if !live {
+            let silence = self.shared.takeover_silence();
+            match self
+                .shared
+                .holders
+                .claim(&arm, self.conn, self.peer, now, silence)
+            {
+                Claim::Bind => {}
+                Claim::TakeOver { volume } => {
+                    tracing::info!(
+                        arm,
+                        peer = %self.peer,
+                        "rosbridge: a new connection from the arm's own address takes it over from its silent one"
+                    );
+                    sample.take_over = true;
+                    // Continue from the app's state unless this message states it already.
+                    if let Some(state) = volume
+                        && !self.volume.contains_key(&arm)
+                    {
+                        self.volume.insert(arm.clone(), state);
+                        let mut buttons = volume_buttons(state);
+                        buttons.append(&mut sample.buttons);
+                        sample.buttons = buttons;
+                    }
+                }
+                // The holder spoke less than a staleness timeout ago; the next message asks again.
+                Claim::Wait => return,
+                Claim::Held { by } => {
+                    let message = format!(
+                        "arm {arm} is driven by another phone ({by}); it is free once that phone disconnects"
+                    );
+                    tracing::warn!(arm, peer = %self.peer, holder = %by, "rosbridge client refused: arm held by another address");
+                    self.status(StatusLevel::Error, &message, None);
+                    self.refused_until.insert(arm, now + REFUSED_BACKOFF);
+                    return;
+                }
+            }
+            let session = Session::start(
                 self.shared.upstream.clone(),
                 arm.clone(),
                 self.wiring.session_events.clone(),
-            )
-        });
-        if session.is_finished() {
-            *session = Session::start(
-                self.shared.upstream.clone(),
-                arm,
-                self.wiring.session_events.clone(),
             );
+            self.sessions.insert(arm.clone(), session);
         }
-        session.send(sample);
+        self.shared
+            .holders
+            .heard(&arm, self.conn, now, self.volume.get(&arm).copied());
+        if let Some(session) = self.sessions.get(&arm) {
+            session.send(sample);
+        }
     }
 
     fn ensure_watcher(&mut self) {
@@ -293,6 +332,7 @@ impl RosbridgeHandler {
 
 impl Drop for RosbridgeHandler {
     fn drop(&mut self) {
+        self.shared.holders.release_all(self.conn);
         if let Some(w) = self.watcher.take() {
             w.abort();
         }
@@ -308,6 +348,21 @@ fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireEr
             role.msg_type()
         )))
     }
+}
+
+/// The app's `[up, down]` state as commands, as the original planner reads it: `down` 1 holds (clutch
+/// disengaged), 0 follows (engage: a re-index from the measured pose, so it never moves the arm; the server
+/// ignores an engage while engaged); `up` 0 closes the gripper (1.0), 1 opens it (0.0).
+fn volume_buttons(state: [i64; 2]) -> Vec<ButtonEvent> {
+    let [up, down] = state;
+    vec![
+        gripper(gripper_command::Kind::Set, if up == 0 { 1.0 } else { 0.0 }),
+        clutch(if down == 1 {
+            clutch_command::Kind::Disengage
+        } else {
+            clutch_command::Kind::Engage
+        }),
+    ]
 }
 
 fn gripper(kind: gripper_command::Kind, position: f64) -> ButtonEvent {
@@ -350,7 +405,13 @@ impl Handler for RosbridgeHandler {
 
     fn on_session_event(&mut self, event: SessionEvent) {
         match event {
-            SessionEvent::Open { arm } => self.status(StatusLevel::Info, &format!("driving arm {arm}"), None),
+            SessionEvent::Open { arm } => {
+                let volume = self.volume.get(&arm).copied();
+                self.shared
+                    .holders
+                    .hold(&arm, self.conn, self.peer, Instant::now(), volume);
+                self.status(StatusLevel::Info, &format!("driving arm {arm}"), None);
+            }
             SessionEvent::Feedback { arm, feedback } => {
                 if !feedback.error.is_empty() {
                     self.status(
@@ -378,6 +439,7 @@ impl Handler for RosbridgeHandler {
                     None,
                 );
                 self.sessions.remove(&arm);
+                self.shared.holders.release(&arm, self.conn);
                 self.refused_until.insert(arm, Instant::now() + REFUSED_BACKOFF);
             }
         }

@@ -4,15 +4,17 @@
 use crate::config::{GatewayConfig, HARD_MAX_MESSAGE_BYTES};
 use crate::conn;
 use crate::native::PageHandler;
+use crate::pairing::{Admission, Pairing};
 use crate::rosbridge::{self, StatusLevel};
 use crate::rosbridge_conn::RosbridgeHandler;
+use crate::takeover::Holders;
 use crate::tls;
 use crate::upstream::Upstream;
 use crate::{GatewayError, web};
 use axum::Router;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{WebSocket, WebSocketUpgrade, close_code};
-use axum::extract::{Query, State};
+use axum::extract::{ConnectInfo, Query, State};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::serve::ListenerExt;
@@ -23,6 +25,7 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
@@ -32,6 +35,9 @@ pub struct Shared {
     pub config: GatewayConfig,
     pub upstream: Upstream,
     pub token: Option<String>,
+    pub pairing: Pairing,
+    pub holders: Holders,
+    connections: AtomicU64,
     shutdown: watch::Receiver<bool>,
     epoch: Instant,
 }
@@ -40,6 +46,16 @@ impl Shared {
     /// Gateway monotonic time, for samples that carry no capture time.
     pub fn now_ns(&self) -> i64 {
         self.epoch.elapsed().as_nanos() as i64
+    }
+
+    /// A fresh id for a socket.
+    pub fn next_connection(&self) -> u64 {
+        self.connections.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// How long a rosbridge arm holder must be silent before its own address may take the arm over.
+    pub fn takeover_silence(&self) -> Duration {
+        Duration::from_millis(self.config.takeover_silence_ms)
     }
 }
 
@@ -147,10 +163,18 @@ impl Gateway {
             token: token.clone(),
             cert_path,
         };
+        let pairing = Pairing::new(
+            config.local_addresses.clone(),
+            config.allow.clone(),
+            Duration::from_secs(config.pair_for_s),
+        );
         let shared = Arc::new(Shared {
             config,
             upstream,
             token,
+            pairing,
+            holders: Holders::default(),
+            connections: AtomicU64::new(1),
             shutdown,
             epoch: Instant::now(),
         });
@@ -222,7 +246,7 @@ impl Gateway {
                 }
             });
             tasks.spawn(async move {
-                axum::serve(listener, app)
+                axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
                     .with_graceful_shutdown(async move {
                         let _ = stop.wait_for(|s| *s).await;
                     })
@@ -251,12 +275,20 @@ impl Gateway {
                 .handle(handle.clone());
             tasks.spawn(async move {
                 server
-                    .serve(app.into_make_service())
+                    .serve(app.into_make_service_with_connect_info::<SocketAddr>())
                     .await
                     .map_err(|e| GatewayError::Serve(e.to_string()))
             });
         }
         tracing::info!(rosbridge = ?self.info.rosbridge_addr, https = ?self.info.https_addr, "gateway serving");
+        if self.shared.token.is_none()
+            && let Some(addr) = self.info.rosbridge_addr.filter(|a| !a.ip().is_loopback())
+        {
+            tracing::warn!(
+                "rosbridge on {addr} has no pairing token (require_token = false): every address that can reach \
+                 it can drive the arms"
+            );
+        }
         let result = tokio::select! {
             () = shutdown => Ok(()),
             Some(done) = tasks.join_next() => done.map_err(|e| GatewayError::Serve(e.to_string())).and_then(|r| r),
@@ -286,14 +318,14 @@ fn upgrade(ws: WebSocketUpgrade) -> WebSocketUpgrade {
         .max_frame_size(HARD_MAX_MESSAGE_BYTES)
 }
 
-async fn refuse(socket: WebSocket, first: String) {
+async fn refuse(socket: WebSocket, first: String, reason: &'static str) {
     let mut socket = socket;
     let _ = socket.send(axum::extract::ws::Message::Text(first.into())).await;
     let _ = socket
         .send(axum::extract::ws::Message::Close(Some(
             axum::extract::ws::CloseFrame {
                 code: close_code::POLICY,
-                reason: "wrong or missing pairing token".into(),
+                reason: reason.into(),
             },
         )))
         .await;
@@ -301,19 +333,65 @@ async fn refuse(socket: WebSocket, first: String) {
 
 const TOKEN_HELP: &str =
     "wrong or missing pairing token: open the URL (or scan the QR code) the gateway printed";
+const PAIR_HELP: &str = "this address is not paired with the phone2act gateway: open the phone page URL the \
+     gateway printed (scan its QR code) on this phone to pair it, or add the address to [gateway] allow";
 
-async fn serve_rosbridge(socket: WebSocket, shared: Arc<Shared>, authorised: bool) {
-    if !authorised {
-        refuse(socket, rosbridge::status(StatusLevel::Error, TOKEN_HELP, None)).await;
+/// Decides a rosbridge connection; a refusal is logged (with the address and how to pair) and answered.
+fn admit_rosbridge(shared: &Shared, peer: SocketAddr, query: &HashMap<String, String>) -> Admission {
+    let now = Instant::now();
+    let has_token = shared.token.is_some();
+    let token_ok = has_token && token_ok(shared, query);
+    let admission = if shared.config.rosbridge_require_token {
+        // The operator asked for the token on rosbridge: neither address nor pairing is enough.
+        if token_ok {
+            Admission::Token
+        } else {
+            Admission::Refused
+        }
+    } else {
+        shared.pairing.admit(peer.ip(), token_ok, has_token, now)
+    };
+    if admission.admitted() {
+        tracing::debug!(%peer, ?admission, "rosbridge connection admitted");
+    } else if shared.pairing.should_log_refusal(peer.ip(), now) {
+        let pair_for_h = shared.config.pair_for_s as f64 / 3600.0;
+        tracing::warn!(
+            %peer,
+            "rosbridge connection from {} refused: not paired. To pair it, open the phone page URL printed at \
+             start (scan the QR code) on that phone; the address may then use rosbridge for {pair_for_h:.1} h. \
+             Or add it to [gateway] allow.",
+            peer.ip()
+        );
+    }
+    admission
+}
+
+async fn serve_rosbridge(socket: WebSocket, shared: Arc<Shared>, peer: SocketAddr, admission: Admission) {
+    if !admission.admitted() {
+        let help = if shared.config.rosbridge_require_token {
+            TOKEN_HELP
+        } else {
+            PAIR_HELP
+        };
+        refuse(
+            socket,
+            rosbridge::status(StatusLevel::Error, help, None),
+            "not paired",
+        )
+        .await;
         return;
     }
     let max = shared.config.max_message_bytes;
     let stop = shared.shutdown.clone();
-    conn::run(socket, max, stop, |wiring| RosbridgeHandler::new(shared, wiring)).await;
+    conn::run(socket, max, stop, |wiring| {
+        RosbridgeHandler::new(shared, wiring, peer.ip())
+    })
+    .await;
 }
 
 async fn rosbridge_plain(
     State(shared): State<Arc<Shared>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Query(query): Query<HashMap<String, String>>,
     ws: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Response {
@@ -325,33 +403,50 @@ async fn rosbridge_plain(
         )
             .into_response();
     };
-    let authorised = !shared.config.rosbridge_require_token || token_ok(&shared, &query);
-    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, authorised))
+    let admission = admit_rosbridge(&shared, peer, &query);
+    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, peer, admission))
 }
 
 async fn rosbridge_tls(
     State(shared): State<Arc<Shared>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Query(query): Query<HashMap<String, String>>,
     ws: WebSocketUpgrade,
 ) -> Response {
-    let authorised = token_ok(&shared, &query);
-    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, authorised))
+    let admission = admit_rosbridge(&shared, peer, &query);
+    upgrade(ws).on_upgrade(move |socket| serve_rosbridge(socket, shared, peer, admission))
 }
 
 async fn page_socket(
     State(shared): State<Arc<Shared>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
     Query(query): Query<HashMap<String, String>>,
     ws: WebSocketUpgrade,
 ) -> Response {
     let authorised = token_ok(&shared, &query);
     upgrade(ws).on_upgrade(move |socket| async move {
         if !authorised {
+            if shared.pairing.should_log_refusal(peer.ip(), Instant::now()) {
+                tracing::warn!(%peer, "phone page socket refused: wrong or missing pairing token");
+            }
             refuse(
                 socket,
                 serde_json::json!({"type": "error", "fatal": true, "message": TOKEN_HELP}).to_string(),
+                "wrong or missing pairing token",
             )
             .await;
             return;
+        }
+        // The page proved the token: the same phone's rosbridge app may now connect from this address.
+        if shared.token.is_some()
+            && let Some(until) = shared.pairing.pair(peer.ip(), Instant::now())
+        {
+            tracing::info!(
+                %peer,
+                "paired {} for rosbridge for {:.1} h",
+                peer.ip(),
+                until.saturating_duration_since(Instant::now()).as_secs_f64() / 3600.0
+            );
         }
         let arms = match tokio::time::timeout(
             Duration::from_secs(2),

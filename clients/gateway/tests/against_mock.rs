@@ -19,11 +19,29 @@ const APP_ADVERTISE_POSE: &str =
     r#"{"op":"advertise","topic":"/Phone2Act/ar_pose","type":"geometry_msgs/PoseStamped"}"#;
 const APP_ADVERTISE_VOLUME: &str =
     r#"{"op":"advertise","topic":"/Phone2Act/volume","type":"std_msgs/msg/Int32MultiArray"}"#;
-const APP_VOLUME_DOWN: &str = r#"{"op":"publish","topic":"/Phone2Act/volume","type":"std_msgs/msg/Int32MultiArray","msg":{"layout":{"dim":[],"data_offset":0},"data":[0,1]}}"#;
-const APP_VOLUME_UP: &str = r#"{"op":"publish","topic":"/Phone2Act/volume","type":"std_msgs/msg/Int32MultiArray","msg":{"layout":{"dim":[],"data_offset":0},"data":[1,1]}}"#;
+/// The app's volume publish for toggle states `[up, down]`.
+fn app_volume(up: i32, down: i32) -> String {
+    format!(
+        r#"{{"op":"publish","topic":"/Phone2Act/volume","type":"std_msgs/msg/Int32MultiArray","msg":{{"layout":{{"dim":[],"data_offset":0}},"data":[{up},{down}]}}}}"#
+    )
+}
+
+fn gripper_set(b: &phone2act_proto::v1::ButtonEvent) -> Option<f64> {
+    match &b.event {
+        Some(button_event::Event::Gripper(g)) if g.kind() == gripper_command::Kind::Set => Some(g.position),
+        _ => None,
+    }
+}
+
+fn clutch_kind(b: &phone2act_proto::v1::ButtonEvent) -> Option<clutch_command::Kind> {
+    match &b.event {
+        Some(button_event::Event::Clutch(c)) => Some(c.kind()),
+        _ => None,
+    }
+}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn android_app_messages_reach_the_server_raw_with_toggles() {
+async fn android_app_volume_states_are_read_as_the_original_planner_reads_them() {
     let h = start(&["main"], |_| {}).await;
     let mut ws = rosbridge(&h).await;
     send(&mut ws, APP_ADVERTISE_POSE).await;
@@ -33,19 +51,37 @@ async fn android_app_messages_reach_the_server_raw_with_toggles() {
         h.mock.wait_for(T, |m| !m.received().is_empty()).await,
         "no sample arrived"
     );
-    send(&mut ws, APP_VOLUME_DOWN).await;
-    assert!(
-        h.mock.wait_for(T, |m| m.arm("main").unwrap().engaged).await,
-        "clutch toggle did not arrive"
-    );
-    send(&mut ws, &pose_msg("/Phone2Act/ar_pose", 0.05)).await;
-    send(&mut ws, APP_VOLUME_UP).await;
+    // The volume monitor starts: the app reports its state [0, 0]: follow, gripper closed (1.0).
+    send(&mut ws, &app_volume(0, 0)).await;
     assert!(
         h.mock
-            .wait_for(T, |m| m.arm("main").unwrap().gripper_target > 0.5)
+            .wait_for(T, |m| {
+                let a = m.arm("main").unwrap();
+                a.engaged && a.gripper_target > 0.99
+            })
             .await,
-        "gripper toggle lost"
+        "[0, 0] did not follow with the gripper closed"
     );
+    send(&mut ws, &pose_msg("/Phone2Act/ar_pose", 0.05)).await;
+    // Volume up: [1, 0]: still following, gripper open.
+    send(&mut ws, &app_volume(1, 0)).await;
+    assert!(
+        h.mock
+            .wait_for(T, |m| {
+                let a = m.arm("main").unwrap();
+                a.engaged && a.gripper_target < 0.01
+            })
+            .await,
+        "[1, 0] did not open the gripper"
+    );
+    // Volume down: [1, 1]: hold.
+    send(&mut ws, &app_volume(1, 1)).await;
+    assert!(
+        h.mock.wait_for(T, |m| !m.arm("main").unwrap().engaged).await,
+        "[1, 1] did not hold"
+    );
+    // A repeated state changes nothing (the server ignores a disengage while disengaged).
+    send(&mut ws, &app_volume(1, 1)).await;
 
     let received = h.mock.received();
     assert!(received.iter().all(|r| r.arm == "main"));
@@ -65,20 +101,42 @@ async fn android_app_messages_reach_the_server_raw_with_toggles() {
         })
         .collect();
     assert!(poses.contains(&0.05), "second pose missing: {poses:?}");
-    let buttons: Vec<_> = received.iter().flat_map(|r| r.sample.buttons.clone()).collect();
+    assert!(
+        h.mock
+            .wait_for(T, |m| m
+                .received()
+                .iter()
+                .map(|r| r.sample.buttons.len())
+                .sum::<usize>()
+                == 8)
+            .await
+    );
+    let buttons: Vec<_> = h
+        .mock
+        .received()
+        .iter()
+        .flat_map(|r| r.sample.buttons.clone())
+        .collect();
+    let gripper: Vec<_> = buttons.iter().filter_map(gripper_set).collect();
+    let clutch: Vec<_> = buttons.iter().filter_map(clutch_kind).collect();
+    assert_eq!(gripper, vec![1.0, 0.0, 0.0, 0.0], "{buttons:?}");
     assert_eq!(
-        buttons.len(),
-        2,
-        "expected exactly one clutch and one gripper toggle: {buttons:?}"
-    );
-    assert!(
-        matches!(&buttons[0].event, Some(button_event::Event::Clutch(c)) if c.kind() == clutch_command::Kind::Toggle)
-    );
-    assert!(
-        matches!(&buttons[1].event, Some(button_event::Event::Gripper(g)) if g.kind() == gripper_command::Kind::Toggle)
+        clutch,
+        vec![
+            clutch_command::Kind::Engage,
+            clutch_command::Kind::Engage,
+            clutch_command::Kind::Disengage,
+            clutch_command::Kind::Disengage
+        ]
     );
     // The app's messages are valid: no status errors came back.
     assert_eq!(next_json(&mut ws, Duration::from_millis(200)).await, None);
+    // A state other than 0/1 is refused and changes nothing.
+    send(&mut ws, r#"{"op":"set_level","level":"error"}"#).await;
+    send(&mut ws, &app_volume(2, 0)).await;
+    let e = wait_json(&mut ws, T, |v| v["op"] == "status").await.unwrap();
+    assert!(e["msg"].as_str().unwrap().contains("0 or 1"), "{e}");
+    assert!(!h.mock.arm("main").unwrap().engaged);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

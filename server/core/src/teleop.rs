@@ -47,6 +47,10 @@ pub struct TeleopArm {
     gripper: Gripper,
     engaged: bool,
     needs_reindex: bool,
+    /// Set by a refused jump while engaged: the pending re-index anchors at the last commanded target, not
+    /// at the measured pose, which lags it by the bridge's tracking error and would shift the mapping for
+    /// good. Cleared when the clutch is released (a fresh engage always starts from the measured pose).
+    reindex_at_target: bool,
     target: Isometry3<f64>,
 }
 
@@ -60,6 +64,7 @@ impl TeleopArm {
             gripper: Gripper::new(&config.gripper, 0.0),
             engaged: false,
             needs_reindex: true,
+            reindex_at_target: false,
             target: initial_target,
         })
     }
@@ -88,6 +93,7 @@ impl TeleopArm {
     /// Makes the next tracked pose re-index, e.g. after another source (a policy) moved the arm.
     pub fn request_reindex(&mut self) {
         self.needs_reindex = true;
+        self.reindex_at_target = false;
     }
 
     /// A clutch input. `phone` is the phone's pose at the press if the message carried one; without it the
@@ -107,6 +113,7 @@ impl TeleopArm {
         if !engage {
             self.engaged = false;
             self.needs_reindex = true;
+            self.reindex_at_target = false;
             self.planner.clear();
             return self.hold(GateDecision::note(
                 GateVerdict::Accepted,
@@ -176,8 +183,10 @@ impl TeleopArm {
             };
         }
         if decision.verdict == GateVerdict::RejectedJump {
-            // Recover without the operator: the next sample becomes the new floating zero.
+            // Recover without the operator: the next sample becomes the new floating zero, anchored where
+            // the arm was last commanded to be.
             self.needs_reindex = true;
+            self.reindex_at_target = true;
             decision.reason.push_str("; re-indexing on the next sample");
         }
         self.hold(decision)
@@ -196,6 +205,7 @@ impl TeleopArm {
         }
         let decision = self.gate.check_stale(now_s)?;
         self.needs_reindex = true;
+        self.reindex_at_target = false;
         Some(decision)
     }
 
@@ -206,26 +216,32 @@ impl TeleopArm {
         now_s: f64,
         what: &str,
     ) -> TeleopStep {
-        if let Err(e) = check_pose(&measured_ee) {
+        let (anchor, at) = if self.reindex_at_target {
+            (self.target, "the last commanded target")
+        } else {
+            (measured_ee, "the measured pose")
+        };
+        if let Err(e) = check_pose(&anchor) {
             return self.hold(GateDecision::note(
                 GateVerdict::RejectedInvalid,
-                format!("{what}: measured pose invalid ({e}), holding"),
+                format!("{what}: {at} is invalid ({e}), holding"),
             ));
         }
-        self.planner.reindex(phone, measured_ee);
-        self.gate.reset_reference_at(measured_ee, now_s);
-        // The measured pose normally passes unchanged; outside the workspace it is clamped back in, and the
-        // jump filter refuses that if it is far.
-        let (out, mut decision) = self.gate.check(measured_ee, now_s);
+        self.planner.reindex(phone, anchor);
+        self.gate.reset_reference_at(anchor, now_s);
+        // The anchor normally passes unchanged; outside the workspace it is clamped back in, and the jump
+        // filter refuses that if it is far.
+        let (out, mut decision) = self.gate.check(anchor, now_s);
         let Some(target) = out else {
             return self.hold(decision);
         };
         self.needs_reindex = false;
+        self.reindex_at_target = false;
         self.target = target;
         if decision.reason.is_empty() {
-            decision.reason = format!("{what} at the measured pose");
+            decision.reason = format!("{what} at {at}");
         } else {
-            decision.reason = format!("{what} at the measured pose; {}", decision.reason);
+            decision.reason = format!("{what} at {at}; {}", decision.reason);
         }
         TeleopStep {
             command: Some((target, self.gripper.target())),
@@ -265,6 +281,32 @@ mod tests {
 
     fn at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
         Isometry3::translation(x, y, z)
+    }
+
+    #[test]
+    fn after_a_refused_jump_the_mapping_continues_from_the_commanded_target_not_the_lagging_measurement() {
+        let ee = at(0.25, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
+        let step = arm.on_pose(at(0.02, 0.0, 0.0), true, ee, 0.02);
+        let commanded = step.command.unwrap().0;
+        // The robot lags its target by 2 mm when the tracking frame jumps 30 cm.
+        let lagging = at(0.268, 0.0, 0.2);
+        let step = arm.on_pose(at(0.32, 0.0, 0.0), true, lagging, 0.04);
+        assert_eq!(step.decision.verdict, GateVerdict::RejectedJump);
+        let step = arm.on_pose(at(0.33, 0.0, 0.0), true, lagging, 0.06);
+        assert!(step.reindexed, "{:?}", step.decision);
+        assert_eq!(step.command.unwrap().0, commanded, "{}", step.decision.reason);
+        assert!(step.decision.reason.contains("last commanded target"));
+        // A further 1 cm of phone motion is 1 cm from the commanded target: no 2 mm shift for good.
+        let step = arm.on_pose(at(0.34, 0.0, 0.0), true, lagging, 0.08);
+        assert!((step.command.unwrap().0.translation.x - 0.28).abs() < 1e-12);
+
+        // Once the clutch is released, engaging again starts from the measured pose.
+        arm.on_pose(at(0.9, 0.0, 0.0), true, lagging, 0.10);
+        arm.clutch(ClutchKind::Disengage, None, lagging, 0.12);
+        let step = arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), lagging, 0.14);
+        assert_eq!(step.command.unwrap().0, lagging);
     }
 
     #[test]
@@ -413,8 +455,8 @@ mod tests {
 
     proptest! {
         /// Random sessions: targets stay inside the workspace and finite, every step that passes is within
-        /// the jump thresholds of the previous target, and every re-index (clutch release included) commands
-        /// exactly the measured pose.
+        /// the jump thresholds of the previous target, and every re-index commands exactly the measured pose,
+        /// except the one after a refused jump with the clutch held, which commands the last target exactly.
         #[test]
         fn sessions_are_safe(inputs in prop::collection::vec(any_input(), 1..120), preset in 0..3u8, scale in 0.5..2.0f64) {
             let preset = [AxisPreset::Landscape, AxisPreset::Portrait, AxisPreset::Identity][preset as usize];
@@ -428,6 +470,7 @@ mod tests {
             let mut phone = Isometry3::from_parts(Translation3::new(0.0, 1.3, 0.0), UnitQuaternion::identity());
             let mut measured = start;
             let mut previous_target = start;
+            let mut after_jump = false;
             for (i, input) in inputs.into_iter().enumerate() {
                 let now_s = i as f64 * 0.02;
                 let step = match input {
@@ -464,8 +507,9 @@ mod tests {
                         prop_assert!(p[axis] >= gate_cfg.workspace_min_m[axis] && p[axis] <= gate_cfg.workspace_max_m[axis]);
                     }
                     if step.reindexed {
-                        // Release never moves the robot: the command is the measured pose, bit for bit.
-                        prop_assert_eq!(target, measured);
+                        // Engaging never moves the robot: the command is the measured pose, bit for bit; after
+                        // a refused jump it is the pose the robot was already commanded to.
+                        prop_assert_eq!(target, if after_jump { previous_target } else { measured });
                     } else {
                         let (dp, da) = pose_distance(&target, &previous_target);
                         prop_assert!(dp <= gate_cfg.jump_position_m + 1e-12, "step {} m", dp);
@@ -475,6 +519,12 @@ mod tests {
                     measured = target;
                 } else {
                     prop_assert!(!step.reindexed);
+                }
+                if step.decision.verdict == GateVerdict::RejectedJump {
+                    after_jump = true;
+                }
+                if step.reindexed || !arm.engaged() {
+                    after_jump = false;
                 }
             }
         }

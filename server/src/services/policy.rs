@@ -40,6 +40,26 @@ pub struct PolicySessionState {
     jpeg_quality: u8,
     events: mpsc::Sender<v1::PolicyEvent>,
     anchors: Mutex<VecDeque<ObservationAnchor>>,
+    /// 128 random bits in `SessionReady.session_id`: `PushChunk` must name them, so a session id is a
+    /// capability that only the session's own client holds, not a small integer anyone can guess.
+    secret: String,
+}
+
+/// `"<id>.<32 hex digits>"`: the sequential id keeps logs readable, the random part makes it unguessable.
+fn session_capability(id: u64, secret: &str) -> String {
+    format!("{id}.{secret}")
+}
+
+fn random_secret() -> Result<String, Status> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes)
+        .map_err(|e| Status::internal(format!("no randomness for a session id: {e}")))?;
+    Ok(format!("{:032x}", u128::from_le_bytes(bytes)))
+}
+
+/// Compares in time independent of where the first difference is, so timing does not reveal a prefix.
+fn same_secret(a: &str, b: &str) -> bool {
+    a.len() == b.len() && a.bytes().zip(b.bytes()).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 /// The Policy service adapter.
@@ -354,6 +374,7 @@ impl Policy for PolicyService {
             },
             events: tx.clone(),
             anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
+            secret: random_secret()?,
         });
         if hello.request_control {
             let mut claimed = Vec::new();
@@ -370,7 +391,7 @@ impl Policy for PolicyService {
             }
         }
         let ready = v1::SessionReady {
-            session_id: id.to_string(),
+            session_id: session_capability(id, &session.secret),
             arms: arms
                 .iter()
                 .filter_map(|n| app.arm(n))
@@ -484,13 +505,16 @@ impl Policy for PolicyService {
         request: Request<v1::PushChunkRequest>,
     ) -> Result<Response<v1::ChunkAccepted>, Status> {
         let req = request.into_inner();
-        let id: u64 = req.session_id.parse().map_err(|_| {
-            Status::invalid_argument(format!("session_id {:?} is not a session id", req.session_id))
-        })?;
+        // One answer for a malformed, unknown or wrongly keyed id, so guessing learns nothing.
+        let unknown =
+            || Status::not_found("no open policy session with this session_id (use SessionReady.session_id)");
+        let (id, secret) = req.session_id.split_once('.').ok_or_else(unknown)?;
+        let id: u64 = id.parse().map_err(|_| unknown())?;
         let session = self
             .app
             .policy_session(id)
-            .ok_or_else(|| Status::not_found(format!("no open policy session {id}")))?;
+            .filter(|s| same_secret(&s.secret, secret))
+            .ok_or_else(unknown)?;
         let chunk = req
             .chunk
             .ok_or_else(|| Status::invalid_argument("missing chunk"))?;
