@@ -608,6 +608,7 @@ impl Dataset {
         let root = self.spec.root.clone();
         let (old_es_len, old_el_len) = (self.episodes_stats_jsonl.len(), self.episodes_jsonl.len());
         let mut renames: Vec<(PathBuf, PathBuf)> = Vec::new();
+        let mut new_jsonl: Option<(String, String)> = None;
         let mut agg = self.provenance.stats.clone();
         for (name, s) in &stats {
             agg.entry(name.clone()).or_default().add(s);
@@ -718,8 +719,9 @@ impl Dataset {
                 let mp = staging.join("modality.json");
                 write_synced(&mp, &pretty(&self.modality_json()))?;
                 renames.push((mp, root.join("meta/modality.json")));
-                self.episodes_jsonl = el;
-                self.episodes_stats_jsonl = es;
+                // Kept in memory only once the save succeeds: a line left over from a failed save would be
+                // written again by the next one and give its episode index twice.
+                new_jsonl = Some((el, es));
             }
         }
         // Sidecar and info.json last: info.json is what makes the episode count official.
@@ -775,6 +777,10 @@ impl Dataset {
             for v in &mut self.next_video_file {
                 *v += 1;
             }
+        }
+        if let Some((el, es)) = new_jsonl {
+            self.episodes_jsonl = el;
+            self.episodes_stats_jsonl = es;
         }
         self.provenance = prov;
         Ok(())
