@@ -465,16 +465,7 @@ impl Dataset {
 
     /// Starts writing episode `total_episodes` into staging.
     pub fn begin_episode(&mut self, task: &str, queue_frames: usize) -> Result<EpisodeWriter, RecorderError> {
-        let task = task.trim();
-        if task.is_empty() {
-            return Err(RecorderError::EmptyTask);
-        }
-        if task.len() > MAX_TASK_BYTES {
-            return Err(RecorderError::TaskTooLong {
-                len: task.len(),
-                max: MAX_TASK_BYTES,
-            });
-        }
+        let task = check_task(task)?;
         let staging = self.spec.root.join(STAGING_DIR);
         if staging.exists() {
             fs::remove_dir_all(&staging).map_err(|e| RecorderError::io(&staging, e))?;
@@ -960,6 +951,21 @@ fn default_feature_stats(
 }
 
 /// `frame_index / fps` as float32, computed in f64 first so it is the nearest float32 to the exact value.
+/// The task text as recorded (trimmed), or why it cannot be.
+pub fn check_task(task: &str) -> Result<&str, RecorderError> {
+    let task = task.trim();
+    if task.is_empty() {
+        return Err(RecorderError::EmptyTask);
+    }
+    if task.len() > MAX_TASK_BYTES {
+        return Err(RecorderError::TaskTooLong {
+            len: task.len(),
+            max: MAX_TASK_BYTES,
+        });
+    }
+    Ok(task)
+}
+
 pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
     (frame_index as f64 / f64::from(fps)) as f32
 }
