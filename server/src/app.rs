@@ -63,6 +63,8 @@ pub struct App {
     /// Read-locked for every use; write-locked only to close it at shutdown.
     recorder: std::sync::RwLock<Option<Recorder>>,
     shutdown_tx: watch::Sender<bool>,
+    /// The recorder's status version, published by one thread for every `Episodes.Watch` stream.
+    recorder_version: std::sync::OnceLock<watch::Receiver<u64>>,
 }
 
 impl std::fmt::Debug for App {
@@ -225,6 +227,7 @@ impl App {
             observations: AtomicU64::new(1),
             policies: Mutex::new(HashMap::new()),
             shutdown_tx,
+            recorder_version: std::sync::OnceLock::new(),
         })
     }
 
@@ -338,6 +341,40 @@ impl App {
     /// A receiver that turns `true` when shutdown begins; streaming RPCs end on it.
     pub fn shutdown_signal(&self) -> watch::Receiver<bool> {
         self.shutdown_tx.subscribe()
+    }
+
+    /// Changes whenever the recorder's status does. One thread waits on the recorder's condition variable
+    /// for all watchers (started with the first), so a watch stream costs a task, not an OS thread.
+    pub fn recorder_changes(self: &Arc<Self>) -> Result<watch::Receiver<u64>, Status> {
+        if let Some(rx) = self.recorder_version.get() {
+            return Ok(rx.clone());
+        }
+        let (tx, rx) = watch::channel(0u64);
+        let mut spawned = Ok(());
+        let rx = self.recorder_version.get_or_init(|| {
+            let app = Arc::clone(self);
+            spawned = std::thread::Builder::new()
+                .name("recorder-watch".into())
+                .spawn(move || {
+                    let mut since = 0u64;
+                    // Ends at shutdown (the recorder closes) or when no watcher is left to tell.
+                    while !*app.shutdown_tx.borrow() && !tx.is_closed() {
+                        let Ok(status) =
+                            app.with_recorder(|r| Ok(r.watch(since, Duration::from_millis(500))))
+                        else {
+                            break;
+                        };
+                        if status.version != since {
+                            since = status.version;
+                            tx.send_replace(since);
+                        }
+                    }
+                })
+                .map(drop);
+            rx
+        });
+        spawned.map_err(|e| Status::internal(format!("cannot start the recorder watch thread: {e}")))?;
+        Ok(rx.clone())
     }
 
     /// Tells every stream to end.

@@ -465,16 +465,7 @@ impl Dataset {
 
     /// Starts writing episode `total_episodes` into staging.
     pub fn begin_episode(&mut self, task: &str, queue_frames: usize) -> Result<EpisodeWriter, RecorderError> {
-        let task = task.trim();
-        if task.is_empty() {
-            return Err(RecorderError::EmptyTask);
-        }
-        if task.len() > MAX_TASK_BYTES {
-            return Err(RecorderError::TaskTooLong {
-                len: task.len(),
-                max: MAX_TASK_BYTES,
-            });
-        }
+        let task = check_task(task)?;
         let staging = self.spec.root.join(STAGING_DIR);
         if staging.exists() {
             fs::remove_dir_all(&staging).map_err(|e| RecorderError::io(&staging, e))?;
@@ -608,6 +599,7 @@ impl Dataset {
         let root = self.spec.root.clone();
         let (old_es_len, old_el_len) = (self.episodes_stats_jsonl.len(), self.episodes_jsonl.len());
         let mut renames: Vec<(PathBuf, PathBuf)> = Vec::new();
+        let mut new_jsonl: Option<(String, String)> = None;
         let mut agg = self.provenance.stats.clone();
         for (name, s) in &stats {
             agg.entry(name.clone()).or_default().add(s);
@@ -718,8 +710,9 @@ impl Dataset {
                 let mp = staging.join("modality.json");
                 write_synced(&mp, &pretty(&self.modality_json()))?;
                 renames.push((mp, root.join("meta/modality.json")));
-                self.episodes_jsonl = el;
-                self.episodes_stats_jsonl = es;
+                // Kept in memory only once the save succeeds: a line left over from a failed save would be
+                // written again by the next one and give its episode index twice.
+                new_jsonl = Some((el, es));
             }
         }
         // Sidecar and info.json last: info.json is what makes the episode count official.
@@ -775,6 +768,10 @@ impl Dataset {
             for v in &mut self.next_video_file {
                 *v += 1;
             }
+        }
+        if let Some((el, es)) = new_jsonl {
+            self.episodes_jsonl = el;
+            self.episodes_stats_jsonl = es;
         }
         self.provenance = prov;
         Ok(())
@@ -954,6 +951,21 @@ fn default_feature_stats(
 }
 
 /// `frame_index / fps` as float32, computed in f64 first so it is the nearest float32 to the exact value.
+/// The task text as recorded (trimmed), or why it cannot be.
+pub fn check_task(task: &str) -> Result<&str, RecorderError> {
+    let task = task.trim();
+    if task.is_empty() {
+        return Err(RecorderError::EmptyTask);
+    }
+    if task.len() > MAX_TASK_BYTES {
+        return Err(RecorderError::TaskTooLong {
+            len: task.len(),
+            max: MAX_TASK_BYTES,
+        });
+    }
+    Ok(task)
+}
+
 pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
     (frame_index as f64 / f64::from(fps)) as f32
 }

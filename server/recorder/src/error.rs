@@ -30,7 +30,9 @@ pub enum RecorderError {
     TaskTooLong { len: usize, max: usize },
     #[error("the task text is empty")]
     EmptyTask,
-    #[error("no saved episode to re-record")]
+    #[error(
+        "no episode is being recorded, so there is nothing to re-record (saved episodes are never deleted by a re-record; use Start)"
+    )]
     NothingToRerecord,
     #[error("video encoder for camera {camera}: {detail}")]
     Video { camera: String, detail: String },

@@ -98,7 +98,6 @@ struct TickState {
     phase: Phase,
     warning: Option<String>,
     version: u64,
-    last_task: Option<String>,
     /// Committed episodes, cached so that status never waits for a save in progress.
     saved: u64,
 }
@@ -178,7 +177,6 @@ impl Recorder {
                 phase: Phase::Idle,
                 warning: None,
                 version: 0,
-                last_task: None,
                 saved,
             }),
             changed: Condvar::new(),
@@ -218,7 +216,6 @@ impl Recorder {
             return Err(RecorderError::AlreadyRecording(a.writer.index));
         }
         tracing::info!(episode = writer.index, task = %writer.task, "recording started");
-        t.last_task = Some(writer.task.clone());
         t.active = Some(Active {
             last_seq: vec![None; self.shared.cameras.len()],
             writer,
@@ -322,27 +319,21 @@ impl Recorder {
         Ok(frames)
     }
 
-    /// Re-records: while recording, discards the current take and starts again; when idle, removes the
-    /// last saved episode and records it again. `task` defaults to the previous task.
+    /// Re-records: discards the take in progress and starts it again, with `task` or the same task.
+    /// Refused when nothing is being recorded (saved episodes are never deleted here), and refused before
+    /// anything is discarded when `task` is not a valid task.
     pub fn rerecord(&self, task: Option<&str>) -> Result<RecorderStatus, RecorderError> {
-        let recording = lock(&self.shared.tick).active.is_some();
-        let last_task = lock(&self.shared.tick).last_task.clone();
-        if recording {
-            self.discard_episode()?;
-        } else {
-            let removed = lock(&self.shared.dataset).remove_last_episode()?;
-            tracing::info!(
-                episode = removed.index,
-                "removed the last episode to re-record it"
-            );
-            let task = task.map(str::to_owned).unwrap_or(removed.task);
-            return self.start_episode(&task);
-        }
         let task = task
-            .map(str::to_owned)
-            .or(last_task)
+            .map(crate::dataset::check_task)
+            .transpose()?
+            .map(str::to_owned);
+        let current = lock(&self.shared.tick)
+            .active
+            .as_ref()
+            .map(|a| a.writer.task.clone())
             .ok_or(RecorderError::NothingToRerecord)?;
-        self.start_episode(&task)
+        self.discard_episode()?;
+        self.start_episode(&task.unwrap_or(current))
     }
 
     /// Saved episodes.

@@ -38,7 +38,9 @@ pub fn init_ffmpeg() {
 /// never received a frame is flushed, so an encoder without frames must never exist.
 pub struct VideoEncoder {
     octx: format::context::Output,
-    encoder: encoder::Video,
+    /// Always `Some` until dropped; an `Option` so that [`Drop`] can free it under [`CODEC_LOCK`].
+    encoder: Option<encoder::Video>,
+    eof_sent: bool,
     scaler: Option<(u32, u32, scaling::Context)>,
     rgb: VideoFrame,
     yuv: VideoFrame,
@@ -119,7 +121,7 @@ impl VideoEncoder {
             .map_err(|e| ff_err(path, "cannot open encoder for", e));
         drop(guard);
         let encoder = encoder?;
-        {
+        let header = (|| {
             let mut ost = octx
                 .add_stream(codec_impl)
                 .map_err(|e| ff_err(path, "cannot add stream to", e))?;
@@ -127,14 +129,20 @@ impl VideoEncoder {
             ost.set_time_base(encoder_tb);
             ost.set_rate(Rational::new(fps as i32, 1));
             ost.set_avg_frame_rate(Rational::new(fps as i32, 1));
+            octx.write_header()
+                .map_err(|e| ff_err(path, "cannot write header of", e))
+        })();
+        if let Err(e) = header {
+            // A full disk at the first frame: the encoder has no frame yet and must not be freed as is.
+            discard_encoder(encoder, 0, width, height);
+            return Err(e);
         }
-        octx.write_header()
-            .map_err(|e| ff_err(path, "cannot write header of", e))?;
         // The muxer picks its own time base (mp4: 1/15360 at 30 fps); read it after write_header.
         let stream_tb = octx.stream(0).map_or(encoder_tb, |s| s.time_base());
         Ok(VideoEncoder {
             octx,
-            encoder,
+            encoder: Some(encoder),
+            eof_sent: false,
             scaler: None,
             rgb: VideoFrame::new(Pixel::RGB24, width, height),
             yuv: VideoFrame::new(Pixel::YUV420P, width, height),
@@ -197,14 +205,23 @@ impl VideoEncoder {
         }
         self.yuv.set_pts(Some(self.frames as i64));
         self.encoder
+            .as_mut()
+            .expect("the encoder lives until drop")
             .send_frame(&self.yuv)
             .map_err(|e| ff_err(&self.path, "cannot encode", e))?;
         self.frames += 1;
         self.drain()
     }
 
+    fn enc(&mut self) -> &mut encoder::Video {
+        self.encoder.as_mut().expect("the encoder lives until drop")
+    }
+
     fn drain(&mut self) -> Result<(), RecorderError> {
-        while self.encoder.receive_packet(&mut self.packet).is_ok() {
+        let Some(encoder) = self.encoder.as_mut() else {
+            return Ok(());
+        };
+        while encoder.receive_packet(&mut self.packet).is_ok() {
             self.packet.set_stream(0);
             // Every frame lasts exactly one period; without it the mp4 loses the last frame's duration.
             self.packet.set_duration(1);
@@ -218,22 +235,54 @@ impl VideoEncoder {
 
     /// Flushes the encoder and writes the mp4 trailer; returns the number of frames.
     pub fn finish(mut self) -> Result<u64, RecorderError> {
-        self.encoder
+        self.eof_sent = true;
+        self.enc()
             .send_eof()
             .map_err(|e| ff_err(&self.path, "cannot flush", e))?;
         self.drain()?;
         self.octx
             .write_trailer()
             .map_err(|e| ff_err(&self.path, "cannot finish", e))?;
-        let frames = self.frames;
-        // Encoder teardown frees what creation set up: same lock.
-        let guard = CODEC_LOCK
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        drop(self);
-        drop(guard);
-        Ok(frames)
+        Ok(self.frames)
     }
+}
+
+impl Drop for VideoEncoder {
+    fn drop(&mut self) {
+        if let Some(encoder) = self.encoder.take() {
+            if self.eof_sent {
+                // Encoder teardown frees what creation set up: same lock.
+                let guard = CODEC_LOCK
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                drop(encoder);
+                drop(guard);
+            } else {
+                // Failed part way (a write error): quiesce it before it is freed.
+                discard_encoder(encoder, self.frames, self.width, self.height);
+            }
+        }
+    }
+}
+
+/// Frees an encoder whose output failed, without writing anything. SVT-AV1 1.4 waits forever in its
+/// teardown for a packet from an encoder that never received a frame, and complains about one that was
+/// never sent the end of stream; so it gets a blank frame if it has none, the end of stream, and its
+/// remaining packets are thrown away.
+fn discard_encoder(mut encoder: encoder::Video, frames: u64, width: u32, height: u32) {
+    if frames == 0 {
+        let mut blank = VideoFrame::new(Pixel::YUV420P, width, height);
+        blank.set_pts(Some(0));
+        let _ = encoder.send_frame(&blank);
+    }
+    let _ = encoder.send_eof();
+    let mut packet = Packet::empty();
+    while encoder.receive_packet(&mut packet).is_ok() {}
+    let guard = CODEC_LOCK
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    drop(encoder);
+    drop(guard);
 }
 
 /// What an encoder thread reports when it finishes.
@@ -279,13 +328,27 @@ impl EncoderThread {
         let handle = std::thread::Builder::new()
             .name(format!("encode-{camera}"))
             .spawn(move || {
-                let r = encode_loop(&cam, &path, width, height, fps, &settings, &rx, &drop2);
+                let mut finish_seen = false;
+                let r = encode_loop(
+                    &cam,
+                    &path,
+                    width,
+                    height,
+                    fps,
+                    &settings,
+                    &rx,
+                    &drop2,
+                    &mut finish_seen,
+                );
                 if r.is_err() {
                     fail2.store(true, Ordering::Relaxed);
                     // Keep draining so the tick thread never blocks on a dead encoder, until told to finish.
-                    while let Ok(m) = rx.recv() {
-                        if matches!(m, Msg::Finish { .. }) {
-                            break;
+                    // A failure while flushing came after the Finish: waiting for another would never end
+                    // (a full disk at Stop hung the recorder that way).
+                    while !finish_seen {
+                        match rx.recv() {
+                            Ok(Msg::Finish { .. }) | Err(_) => finish_seen = true,
+                            Ok(Msg::Frame { .. }) => {}
                         }
                     }
                 }
@@ -367,6 +430,7 @@ fn encode_loop(
     settings: &VideoSettings,
     rx: &Receiver<Msg>,
     dropped: &AtomicU64,
+    finish_seen: &mut bool,
 ) -> Result<EncodeReport, RecorderError> {
     let mut enc: Option<VideoEncoder> = None;
     let mut last: Option<Frame> = None;
@@ -379,7 +443,10 @@ fn encode_loop(
         other => other,
     };
     let total = loop {
-        let Ok(msg) = rx.recv() else { break 0 };
+        let Ok(msg) = rx.recv() else {
+            *finish_seen = true;
+            break 0;
+        };
         match msg {
             Msg::Frame { index, frame } => {
                 let e = match &mut enc {
@@ -400,7 +467,10 @@ fn encode_loop(
                 }
                 last = Some(frame);
             }
-            Msg::Finish { total_frames } => break total_frames,
+            Msg::Finish { total_frames } => {
+                *finish_seen = true;
+                break total_frames;
+            }
         }
     };
     let frames = match enc {

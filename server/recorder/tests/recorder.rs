@@ -353,7 +353,7 @@ fn a_stale_robot_is_held_then_pauses() {
 }
 
 #[test]
-fn rerecord_replaces_the_last_episode() {
+fn rerecord_restarts_the_take_and_never_deletes_saved_work() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("rr");
     let size = (64, 64);
@@ -363,31 +363,41 @@ fn rerecord_replaces_the_last_episode() {
         let rec = open(&root, format, &rig, size);
         record(&rec, "first", 4);
         record(&rec, "second", 8);
-        // While idle: removes episode 1 and records it again.
-        let st = rec.rerecord(None).unwrap();
-        assert_eq!((st.episode_index, st.task.as_str()), (1, "second"));
+        // While idle: refused, and both saved episodes stay.
+        let e = rec.rerecord(None).unwrap_err();
+        assert!(matches!(e, RecorderError::NothingToRerecord), "{e}");
+        assert_eq!(rec.episodes().len(), 2);
+        rec.start_episode("third").unwrap();
         wait_for(&rec, T, "frames", |s| s.frames_recorded >= 3);
-        // While recording: restarts the take.
-        let st = rec.rerecord(Some("second, take 3")).unwrap();
-        assert_eq!(st.episode_index, 1);
+        // A task that is refused discards nothing.
+        let e = rec.rerecord(Some(&"x".repeat(1 << 20))).unwrap_err();
+        assert!(matches!(e, RecorderError::TaskTooLong { .. }), "{e}");
+        let st = rec.status();
+        assert_eq!((st.phase, st.task.as_str()), (Phase::Recording, "third"));
+        assert!(st.frames_recorded >= 3);
+        // While recording: restarts the take, same index, same task unless given.
+        let st = rec.rerecord(None).unwrap();
+        assert_eq!((st.episode_index, st.task.as_str()), (2, "third"));
+        let st = rec.rerecord(Some("third, take 3")).unwrap();
+        assert_eq!(st.episode_index, 2);
         wait_for(&rec, T, "frames", |s| s.frames_recorded >= 5);
         let s = rec.stop_episode().unwrap();
-        assert_eq!((s.index, s.task.as_str()), (1, "second, take 3"));
-        assert_eq!(rec.episodes().len(), 2);
+        assert_eq!((s.index, s.task.as_str()), (2, "third, take 3"));
+        assert_eq!(rec.episodes().len(), 3);
         rec.close().unwrap();
         let info = read_json(&root.join("meta/info.json"));
-        assert_eq!(info["total_episodes"], 2);
+        assert_eq!(info["total_episodes"], 3);
         if format == Format::V30 {
             check_v30_rows(&root, 30);
         } else {
             let lines = std::fs::read_to_string(root.join("meta/episodes.jsonl")).unwrap();
-            assert_eq!(lines.lines().count(), 2);
-            assert!(lines.contains("second, take 3") && !lines.contains("\"second\""));
+            assert_eq!(lines.lines().count(), 3);
+            assert!(lines.contains("third, take 3") && !lines.contains("\"third\""));
         }
         publish_for_conformance(
             &format!("recorder-rerecord-{}", format.codebase_version()),
             &root,
-            json!({"episodes": 2, "tasks": ["first", "second, take 3"]}),
+            json!({"episodes": 3, "tasks": ["first", "second", "third, take 3"]}),
         );
     }
 }

@@ -118,28 +118,21 @@ impl Episodes for EpisodesService {
         let (tx, rx) = tokio::sync::mpsc::channel(1);
         let app = Arc::clone(&self.app);
         let mut shutdown = app.shutdown_signal();
-        // The recorder's watch blocks on a condition variable: give it a thread of its own per stream, waking at
-        // least every `interval` to notice a closed client or shutdown.
-        std::thread::Builder::new()
-            .name("episodes-watch".into())
-            .spawn(move || {
-                let mut since = 0u64;
-                loop {
-                    if *shutdown.borrow_and_update() || tx.is_closed() {
-                        break;
-                    }
-                    let status = app.with_recorder(|r| Ok(r.watch(since, interval)));
-                    let Ok(status) = status else { break };
-                    since = status.version;
-                    if tx
-                        .blocking_send(Ok(status_to_proto(&status, &app.config)))
-                        .is_err()
-                    {
-                        break;
-                    }
+        let mut changes = app.recorder_changes()?;
+        tokio::spawn(async move {
+            loop {
+                let status = app.recording_status();
+                if tx.send(Ok(status)).await.is_err() {
+                    break;
                 }
-            })
-            .map_err(|e| Status::internal(format!("cannot start watch thread: {e}")))?;
+                tokio::select! {
+                    changed = changes.changed() => if changed.is_err() { break },
+                    () = tokio::time::sleep(interval) => {}
+                    () = tx.closed() => break,
+                    () = crate::app::stopped(&mut shutdown) => break,
+                }
+            }
+        });
         Ok(Response::new(Box::pin(
             tokio_stream::wrappers::ReceiverStream::new(rx),
         )))
