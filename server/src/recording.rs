@@ -4,6 +4,7 @@
 
 use crate::arm::ArmController;
 use crate::config::{Config, DatasetFormat};
+use phone2act_core::ActionMode;
 use phone2act_proto::v1;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::error::RecorderError;
@@ -67,15 +68,19 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
             String::new()
         };
         // GR00T groups: the arm (joints + end effector in the state, 6-DoF in the action) and the gripper.
+        // A delta pose is relative to the observed pose (GR00T pads it with zero past the end); the
+        // gripper target is absolute in every mode.
         modality.push(ModalityGroup {
             name: format!("{prefix}arm"),
             state_range: s0..s0 + s.len() - 1,
             action_range: a0..a0 + a.len() - 1,
+            action_absolute: arm.action_mode != ActionMode::Delta,
         });
         modality.push(ModalityGroup {
             name: format!("{prefix}gripper"),
             state_range: s0 + s.len() - 1..s0 + s.len(),
             action_range: a0 + a.len() - 1..a0 + a.len(),
+            action_absolute: true,
         });
         state_names.extend(s);
         action_names.extend(a);

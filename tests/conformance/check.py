@@ -5,7 +5,10 @@ Usage: python check.py DATASET_DIR...   (all of one codebase version: lerobot 0.
 For every dataset: load it with LeRobotDataset (local root, no network), iterate every frame with decoded
 video, and assert timestamps (frame_index / fps), indices, episode lengths, tasks and feature shapes against
 meta/info.json. For v2.1 also run a GR00T-style check of meta/modality.json and meta/stats.json (mean, std,
-min, max, q01, q99 for every parquet column, consistent with the data). A dataset directory may hold
+min, max, q01, q99 for every parquet column, consistent with the data). Statistics of the numeric columns
+(both formats) are checked against numpy over every frame read with pyarrow: quantiles are numpy's default
+(linear) quantiles of the whole dataset, exactly while a column has at most SKETCH_EXACT_ROWS rows and
+within the recorder's stated rank error (0.5 % of the rows) beyond. A dataset directory may hold
 `phone2act_expect.json` ({"episodes": N, "tasks": [...]}) written by the Rust test that produced it.
 Prints one PASS/FAIL line per dataset and a closing "N passed, M failed" line; exits 1 on any failure.
 """
@@ -25,6 +28,13 @@ import pyarrow.parquet as pq  # noqa: E402
 
 def fail(msg):
     raise AssertionError(msg)
+
+
+# The recorder's quantile sketch keeps every value up to this many per column (SKETCH_LEVEL_CAPACITY in
+# server/recorder/src/stats.rs) and guarantees a rank error of at most RANK_ERROR of the rows beyond.
+SKETCH_EXACT_ROWS = 4096
+RANK_ERROR = 0.005
+QUANTILE_KEYS = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
 
 
 def v21_commit_window(root: Path, info: dict, n_frames: int, version: str) -> bool:
@@ -131,6 +141,7 @@ def check_v30(root: Path, info: dict):
         for s in ("min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"):
             if s not in stats.get(key, {}):
                 fail(f"meta/stats.json: {key} lacks {s}")
+    check_v30_stats(root, info, stats)
     check_video_files_v30(root, info, ds)
 
 
@@ -170,14 +181,88 @@ def check_v21(root: Path, info: dict):
     check_gr00t(root, info, ep_len, in_window)
 
 
+def column_array(tables, col: str) -> np.ndarray:
+    return np.concatenate(
+        [np.asarray(t.column(col).to_pylist(), dtype=np.float64).reshape(t.num_rows, -1) for t in tables]
+    )
+
+
+def quantile_mismatch(got, data: np.ndarray, q: float) -> str | None:
+    """Why `got` is not the q-quantile of every column of `data` (numpy's linear method), or None."""
+    got = np.asarray(got, dtype=np.float64).reshape(-1)
+    n = data.shape[0]
+    exact = np.quantile(data, q, axis=0)
+    if got.shape != exact.shape:
+        return f"shape {got.shape}, data has {exact.shape}"
+    if n <= SKETCH_EXACT_ROWS:
+        if not np.allclose(got, exact, rtol=1e-5, atol=1e-6):
+            return f"{got[:4]}... but numpy over all {n} frames gives {exact[:4]}..."
+        return None
+    # Beyond the exact range: between the order statistics RANK_ERROR * n ranks either side.
+    srt = np.sort(data, axis=0)
+    b = int(np.floor(RANK_ERROR * n))
+    pos = q * (n - 1)
+    lo, hi = srt[max(int(np.floor(pos)) - b, 0)], srt[min(int(np.ceil(pos)) + b, n - 1)]
+    tol = 1e-6 * np.maximum(np.abs(lo), np.abs(hi)) + 1e-9
+    bad = (got < lo - tol) | (got > hi + tol)
+    if bad.any():
+        i = int(np.argmax(bad))
+        return f"[{i}] = {got[i]} outside [{lo[i]}, {hi[i]}] ({RANK_ERROR:.1%} rank error of {n} frames)"
+    return None
+
+
 def stats_mismatch(entry: dict, col: str, tables) -> str | None:
-    """Why `entry` (one stats.json column) is not the mean/std/min/max of `col` over `tables`, or None."""
-    data = np.concatenate([np.asarray(t.column(col).to_pylist(), dtype=np.float64).reshape(t.num_rows, -1) for t in tables])
+    """Why `entry` (one stats.json column) is not the mean/std/min/max/quantiles of `col` over `tables`, or
+    None."""
+    data = column_array(tables, col)
     for k, ref in (("mean", data.mean(0)), ("std", data.std(0)), ("min", data.min(0)), ("max", data.max(0))):
         got = np.asarray(entry[k], dtype=np.float64).reshape(-1)
         if got.shape != ref.shape or not np.allclose(got, ref, rtol=1e-4, atol=1e-4):
             return f"stats.json {col}.{k} = {got[:4]}... but the data gives {ref[:4]}..."
+    if "count" in entry and int(np.asarray(entry["count"]).reshape(-1)[0]) != data.shape[0]:
+        return f"stats.json {col}.count = {entry['count']} but the data has {data.shape[0]} frames"
+    for k, q in QUANTILE_KEYS.items():
+        if k in entry:
+            why = quantile_mismatch(entry[k], data, q)
+            if why:
+                return f"stats.json {col}.{k}: {why}"
     return None
+
+
+def check_v30_stats(root: Path, info: dict, stats: dict):
+    """meta/stats.json of every parquet column against numpy over the data files. A kill between the data
+    commit and the info.json update may leave one episode's data (and stats.json) ahead of info.json:
+    then the stats are those with or without that episode, exactly."""
+    files = sorted((root / "data").glob("*/*.parquet"))
+    tables = [pq.read_table(f) for f in files]
+    if not tables:
+        fail("no data files")
+    all_rows = pa_concat(tables)
+    n_eps = info["total_episodes"]
+    ep = np.asarray(all_rows.column("episode_index").to_pylist())
+    committed = all_rows.filter(pa_mask(ep < n_eps))
+    candidates = [[committed]]
+    if ep.max() >= n_eps:
+        candidates.append([all_rows])
+    for col in committed.column_names:
+        entry = stats.get(col)
+        if entry is None:
+            fail(f"meta/stats.json lacks column {col}")
+        mismatches = [m for m in (stats_mismatch(entry, col, ts) for ts in candidates) if m]
+        if len(mismatches) == len(candidates):
+            fail(mismatches[0])
+
+
+def pa_concat(tables):
+    import pyarrow as pa
+
+    return pa.concat_tables(tables)
+
+
+def pa_mask(mask: np.ndarray):
+    import pyarrow as pa
+
+    return pa.array(mask)
 
 
 def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
@@ -198,6 +283,19 @@ def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
             if not (0 <= g["start"] < g["end"] <= dim):
                 fail(f"modality.json {part}.{name}: [{g['start']}, {g['end']}) outside 0..{dim}")
             covered.extend(range(g["start"], g["end"]))
+            if part == "action":
+                # GR00T pads past an episode's end with the last value of an absolute group and zero for a
+                # relative one: a group of deltas (names delta_*) must say "absolute": false, and any other
+                # group must not (absent means true).
+                names = features[okey].get("names") or []
+                deltas = [n.startswith("delta_") for n in names[g["start"]:g["end"]]]
+                absolute = g.get("absolute", True)
+                if not isinstance(absolute, bool):
+                    fail(f"modality.json action.{name}.absolute is {absolute!r}, not a bool")
+                if deltas and all(deltas) and absolute:
+                    fail(f"modality.json action.{name} holds deltas but is not marked \"absolute\": false")
+                if deltas and not any(deltas) and not absolute:
+                    fail(f"modality.json action.{name} holds absolute targets but is marked \"absolute\": false")
         if sorted(covered) != list(range(dim)):
             fail(f"modality.json {part} groups do not tile 0..{dim}: {sorted(covered)}")
     for name, v in modality.get("video", {}).items():

@@ -14,6 +14,7 @@
 use crate::error::RecorderError;
 use crate::fsutil::{Journal, sync_dir, write_atomic, write_synced};
 use crate::parquet_io::{self, DataWriter, EpisodeMetaRow, Row};
+use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
 use crate::video::{EncodeReport, EncoderThread};
@@ -92,6 +93,8 @@ pub struct Dataset {
     provenance: Provenance,
     episodes_jsonl: String,
     episodes_stats_jsonl: String,
+    /// Dataset quantiles of the numeric columns (see [`crate::quantiles`]).
+    quantiles: QuantileStore,
 }
 
 /// An episode being recorded into staging files.
@@ -194,6 +197,7 @@ impl Dataset {
             provenance: Provenance::default(),
             episodes_jsonl: String::new(),
             episodes_stats_jsonl: String::new(),
+            quantiles: QuantileStore::default(),
         };
         let info_path = root.join("meta/info.json");
         if info_path.exists() {
@@ -206,7 +210,21 @@ impl Dataset {
         ds.provenance.format = ds.spec.format.codebase_version().into();
         ds.provenance.video = serde_json::to_value(&ds.video).unwrap_or(Value::Null);
         ds.provenance.config = ds.spec.provenance.clone();
+        ds.load_quantiles()?;
         Ok(ds)
+    }
+
+    /// Loads the persisted quantile sketches, or rebuilds them from the data when they are missing or do not
+    /// describe exactly the committed episodes (a dataset from another writer or an older phone2act).
+    fn load_quantiles(&mut self) -> Result<(), RecorderError> {
+        let root = &self.spec.root;
+        if let Some(q) = QuantileStore::load(root, self.total_episodes, self.total_frames) {
+            self.quantiles = q;
+        } else if self.total_episodes > 0 {
+            tracing::warn!(root = %root.display(), "rebuilding the dataset quantiles from the data");
+            self.quantiles = QuantileStore::rebuild(root, self.total_episodes)?;
+        }
+        Ok(())
     }
 
     fn corrupt(&self, detail: impl Into<String>) -> RecorderError {
@@ -583,13 +601,12 @@ impl Dataset {
         for (c, r) in self.spec.cameras.iter().zip(&reports) {
             stats.push((c.key(), r.image_stats.finish()));
         }
-        stats.extend(default_feature_stats(
-            frames,
-            fps,
-            index,
-            first_global_index,
-            task_index,
-        ));
+        let defaults = default_feature_columns(frames, fps, index, first_global_index, task_index);
+        stats.extend(defaults.iter().map(|(k, c)| ((*k).to_owned(), c.finish())));
+        let mut quantiles = self.quantiles.clone();
+        let mut columns = vec![("observation.state", &state_stats), ("action", &action_stats)];
+        columns.extend(defaults.iter().map(|(k, c)| (*k, c)));
+        quantiles.add_episode(frames, &columns);
 
         let (_, new_task) = self.task_index(&task);
         let mut tasks = self.tasks.clone();
@@ -648,12 +665,8 @@ impl Dataset {
                     staging.join("data.parquet"),
                     file_path(&root, "data", dfile, "parquet"),
                 ));
-                let stats_json: serde_json::Map<String, Value> = agg
-                    .iter()
-                    .filter_map(|(k, a)| a.finish().map(|s| (k.clone(), s.to_json_v30())))
-                    .collect();
                 let sp = staging.join("stats.json");
-                write_synced(&sp, &pretty(&Value::Object(stats_json)))?;
+                write_synced(&sp, &pretty(&stats_json(&agg, &quantiles, Format::V30)))?;
                 renames.push((sp, root.join("meta/stats.json")));
             }
             Format::V21 => {
@@ -698,14 +711,8 @@ impl Dataset {
                 let esp = staging.join("episodes_stats.jsonl");
                 write_synced(&esp, es.as_bytes())?;
                 renames.push((esp, root.join("meta/episodes_stats.jsonl")));
-                // GR00T: stats.json with exactly mean/std/min/max/q01/q99 for the parquet columns.
-                let gr00t: serde_json::Map<String, Value> = agg
-                    .iter()
-                    .filter(|(k, _)| !k.starts_with("observation.images."))
-                    .filter_map(|(k, a)| a.finish().map(|s| (k.clone(), s.to_json_gr00t())))
-                    .collect();
                 let sp = staging.join("stats.json");
-                write_synced(&sp, &pretty(&Value::Object(gr00t)))?;
+                write_synced(&sp, &pretty(&stats_json(&agg, &quantiles, Format::V21)))?;
                 renames.push((sp, root.join("meta/stats.json")));
                 let mp = staging.join("modality.json");
                 write_synced(&mp, &pretty(&self.modality_json()))?;
@@ -733,6 +740,9 @@ impl Dataset {
         });
         prov.stats = agg;
         prov.episodes.push(summary.clone());
+        let qp = staging.join("quantiles.bin");
+        write_synced(&qp, &quantiles.encode())?;
+        renames.push((qp, root.join(QUANTILES_FILE)));
         let pp = staging.join("provenance.json");
         write_synced(&pp, &pretty(&serde_json::to_value(&prov).unwrap_or(Value::Null)))?;
         renames.push((pp, root.join(PROVENANCE_FILE)));
@@ -774,6 +784,7 @@ impl Dataset {
             self.episodes_stats_jsonl = es;
         }
         self.provenance = prov;
+        self.quantiles = quantiles;
         Ok(())
     }
 
@@ -792,6 +803,10 @@ impl Dataset {
         }
         let trash = staging.join("removed");
         fs::create_dir_all(&trash).map_err(|e| RecorderError::io(&trash, e))?;
+        let mut quantiles = self.quantiles.clone();
+        if !quantiles.remove_last() {
+            quantiles = QuantileStore::rebuild(&root, undo.episode_index)?;
+        }
         let old = (self.total_episodes, self.total_frames);
         self.total_episodes -= 1;
         self.total_frames -= undo.length;
@@ -810,13 +825,8 @@ impl Dataset {
             let mut el = None;
             match self.spec.format {
                 Format::V30 => {
-                    let sj: serde_json::Map<String, Value> = prov
-                        .stats
-                        .iter()
-                        .filter_map(|(k, a)| a.finish().map(|s| (k.clone(), s.to_json_v30())))
-                        .collect();
                     let sp = staging.join("stats.json");
-                    write_synced(&sp, &pretty(&Value::Object(sj)))?;
+                    write_synced(&sp, &pretty(&stats_json(&prov.stats, &quantiles, Format::V30)))?;
                     renames.push((sp, root.join("meta/stats.json")));
                     for (i, f) in undo.files.iter().enumerate() {
                         renames.push((root.join(f), trash.join(i.to_string())));
@@ -833,6 +843,9 @@ impl Dataset {
                     let elp = staging.join("episodes.jsonl");
                     write_synced(&elp, elv.as_bytes())?;
                     renames.push((esp, root.join("meta/episodes_stats.jsonl")));
+                    let sp = staging.join("stats.json");
+                    write_synced(&sp, &pretty(&stats_json(&prov.stats, &quantiles, Format::V21)))?;
+                    renames.push((sp, root.join("meta/stats.json")));
                     // The episodes.jsonl line and the data file disappear together: back to back.
                     renames.push((elp, root.join("meta/episodes.jsonl")));
                     for (i, f) in undo.files.iter().enumerate() {
@@ -842,6 +855,9 @@ impl Dataset {
                     el = Some(elv);
                 }
             }
+            let qp = staging.join("quantiles.bin");
+            write_synced(&qp, &quantiles.encode())?;
+            renames.push((qp, root.join(QUANTILES_FILE)));
             let pp = staging.join("provenance.json");
             write_synced(&pp, &pretty(&serde_json::to_value(&prov).unwrap_or(Value::Null)))?;
             renames.push((pp, root.join(PROVENANCE_FILE)));
@@ -862,6 +878,7 @@ impl Dataset {
                     self.episodes_jsonl = el;
                 }
                 self.provenance = prov;
+                self.quantiles = quantiles;
                 if self.spec.format == Format::V30 {
                     // The removed episode owned the newest files: reuse their numbers.
                     self.next_data_file = self.next_data_file.saturating_sub(1);
@@ -889,6 +906,7 @@ impl Dataset {
                 name: "arm".into(),
                 state_range: 0..self.spec.state_names.len(),
                 action_range: 0..self.spec.action_names.len(),
+                action_absolute: true,
             }]
         } else {
             self.spec.modality.clone()
@@ -903,7 +921,11 @@ impl Dataset {
             if !g.action_range.is_empty() {
                 action.insert(
                     g.name.clone(),
-                    json!({"start": g.action_range.start, "end": g.action_range.end}),
+                    json!({
+                        "start": g.action_range.start,
+                        "end": g.action_range.end,
+                        "absolute": g.action_absolute,
+                    }),
                 );
             }
         }
@@ -922,13 +944,36 @@ impl Dataset {
     }
 }
 
-fn default_feature_stats(
+/// The dataset's `meta/stats.json`: the running aggregates, with the numeric columns' quantiles taken from
+/// the dataset's sketches. v3.0: lerobot's keys for every feature; v2.1: GR00T's six keys for every parquet
+/// column (lerobot 0.3 ignores the file).
+fn stats_json(agg: &BTreeMap<String, Aggregate>, quantiles: &QuantileStore, format: Format) -> Value {
+    let map: serde_json::Map<String, Value> = agg
+        .iter()
+        .filter(|(k, _)| format == Format::V30 || !k.starts_with("observation.images."))
+        .filter_map(|(k, a)| {
+            let mut s = a.finish()?;
+            quantiles.apply(k, &mut s);
+            Some((
+                k.clone(),
+                match format {
+                    Format::V30 => s.to_json_v30(),
+                    Format::V21 => s.to_json_gr00t(),
+                },
+            ))
+        })
+        .collect();
+    Value::Object(map)
+}
+
+/// The default features' values over one episode, as the parquet holds them.
+fn default_feature_columns(
     frames: u64,
     fps: u32,
     episode: u64,
     first_index: u64,
     task_index: i64,
-) -> Vec<(String, FeatureStats)> {
+) -> [(&'static str, ColumnStats); 5] {
     let mut ts = ColumnStats::new(StatKind::Float, 1);
     let mut fi = ColumnStats::new(StatKind::Int, 1);
     let mut ei = ColumnStats::new(StatKind::Int, 1);
@@ -941,12 +986,12 @@ fn default_feature_stats(
         ix.push(&[(first_index + i) as f64]);
         ti.push(&[task_index as f64]);
     }
-    vec![
-        ("timestamp".into(), ts.finish()),
-        ("frame_index".into(), fi.finish()),
-        ("episode_index".into(), ei.finish()),
-        ("index".into(), ix.finish()),
-        ("task_index".into(), ti.finish()),
+    [
+        ("timestamp", ts),
+        ("frame_index", fi),
+        ("episode_index", ei),
+        ("index", ix),
+        ("task_index", ti),
     ]
 }
 

@@ -10,6 +10,7 @@ pub mod error;
 pub mod fsutil;
 pub mod jpeg;
 pub mod parquet_io;
+pub mod quantiles;
 pub mod recorder;
 pub mod spec;
 pub mod stats;

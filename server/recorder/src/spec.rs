@@ -47,6 +47,15 @@ pub struct ModalityGroup {
     pub name: String,
     pub state_range: Range<usize>,
     pub action_range: Range<usize>,
+    /// Whether the action slice is an absolute target (true) or relative to the observed state (false).
+    /// GR00T pads past an episode's end with the last value of an absolute group and with zero for a
+    /// relative one, so a delta group marked absolute would keep moving after the episode ends.
+    #[serde(default = "absolute_default")]
+    pub action_absolute: bool,
+}
+
+fn absolute_default() -> bool {
+    true
 }
 
 /// Everything needed to create or resume a dataset.

@@ -36,18 +36,20 @@ impl SyntheticRobot {
         .collect()
     }
 
-    /// GR00T modality groups for this layout.
+    /// GR00T modality groups for this layout: the pose delta is relative, the gripper target absolute.
     pub fn modality() -> Vec<crate::spec::ModalityGroup> {
         vec![
             crate::spec::ModalityGroup {
                 name: "main_arm".into(),
                 state_range: 0..12,
                 action_range: 0..6,
+                action_absolute: false,
             },
             crate::spec::ModalityGroup {
                 name: "main_gripper".into(),
                 state_range: 12..13,
                 action_range: 6..7,
+                action_absolute: true,
             },
         ]
     }

@@ -171,7 +171,15 @@ fn v21_gr00t_dataset_has_modality_and_stats() {
     );
     let modality = read_json(&root.join("meta/modality.json"));
     assert_eq!(modality["state"]["main_arm"], json!({"start": 0, "end": 12}));
-    assert_eq!(modality["action"]["main_gripper"], json!({"start": 6, "end": 7}));
+    assert_eq!(
+        modality["action"]["main_gripper"],
+        json!({"start": 6, "end": 7, "absolute": true})
+    );
+    assert_eq!(
+        modality["action"]["main_arm"],
+        json!({"start": 0, "end": 6, "absolute": false}),
+        "a delta group is relative: GR00T pads it with zero past the episode's end"
+    );
     assert_eq!(
         modality["video"]["webcam"]["original_key"],
         "observation.images.webcam"
