@@ -469,8 +469,8 @@ impl ArmController {
         }
     }
 
-    /// Schedules a chunk for the owning policy session. `reference` is the measured pose the actions are
-    /// relative to (delta mode) and `anchor_s` the time of step 0.
+    /// Schedules a chunk for the owning policy session. `reference` is the measured pose of the observation
+    /// the chunk answers (relative steps are composed onto it) and `anchor_s` the time of step 0.
     pub fn push_chunk(
         &self,
         session_id: u64,
@@ -482,9 +482,7 @@ impl ArmController {
     ) -> Result<ReplaceReport, Status> {
         let mut steps = Vec::with_capacity(actions.len());
         for (k, action) in actions.iter().enumerate() {
-            let (robot_from_target, gripper) = self
-                .layout
-                .target_from_action(&reference, action, mode)
+            let (robot_from_target, gripper) = phone2act_core::target_from_step(&reference, action, mode)
                 .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
             steps.push(ChunkStep {
                 robot_from_target,
@@ -642,7 +640,7 @@ impl ArmController {
     }
 
     /// `observation.state` and the executed `action` for the recorder and for policies: the action is the
-    /// last gated target relative to the same measured pose the state reports.
+    /// last gated target, absolute (see `phone2act_core::layout`), so it means the same from any frame.
     pub fn state_and_action(&self) -> Option<ArmSample> {
         let feedback = self.bridge.feedback()?;
         let (target, gripper) = self.target();
@@ -654,9 +652,7 @@ impl ArmController {
                 feedback.gripper_position,
             )
             .ok()?;
-        let action =
-            self.layout
-                .action_from_target(&feedback.robot_from_ee, &target, gripper, self.action_mode);
+        let action = phone2act_core::absolute_action(&target, gripper);
         Some(ArmSample {
             state,
             action,
@@ -671,7 +667,7 @@ impl ArmController {
 pub struct ArmSample {
     /// `observation.state` in the core layout.
     pub state: Vec<f64>,
-    /// The executed action: last gated target relative to `robot_from_ee`.
+    /// The executed action: the last gated target and gripper target, absolute.
     pub action: Vec<f64>,
     /// The measured pose both are taken at.
     pub robot_from_ee: Isometry3<f64>,

@@ -124,8 +124,9 @@ pub struct ArmConfig {
     /// Policy chunk execution limits and blending.
     #[serde(default)]
     pub chunk: phone2act_core::ChunkConfig,
-    /// Action layout recorded and accepted from policies: "delta" (the paper's end-effector delta) or
-    /// "absolute".
+    /// Action representation policies are told to push (and trained with): "relative" (to the chunk's
+    /// observation; "delta" is accepted as its old name) or "absolute". Datasets always record absolute
+    /// targets, from which a trainer derives relative chunks.
     #[serde(default)]
     pub action_mode: phone2act_core::ActionMode,
     /// Simulated arm settings (bridge = "sim").

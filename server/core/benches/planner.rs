@@ -5,7 +5,7 @@
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use phone2act_core::{
-    ActionMode, ArmLayout, ClutchKind, GateConfig, Mapping, Planner, SafetyGate, TeleopArm, TeleopConfig,
+    ActionMode, ClutchKind, GateConfig, Mapping, Planner, SafetyGate, TeleopArm, TeleopConfig,
 };
 use std::hint::black_box;
 use std::time::Instant;
@@ -87,13 +87,11 @@ fn main() {
         black_box(passed)
     });
 
-    let layout = ArmLayout::new((0..5).map(|i| format!("j{i}")).collect());
     let (layout_ns, _) = median_ns_per_sample(|| {
         let mut acc = 0.0;
         for pair in targets.windows(2) {
-            let action = layout.action_from_target(&pair[0], &pair[1], 0.5, ActionMode::Delta);
-            let (t, g) = layout
-                .target_from_action(&pair[0], black_box(&action), ActionMode::Delta)
+            let action = phone2act_core::step_from_target(&pair[0], &pair[1], 0.5, ActionMode::Relative);
+            let (t, g) = phone2act_core::target_from_step(&pair[0], black_box(&action), ActionMode::Relative)
                 .expect("width 7");
             acc += t.translation.x + g;
         }
@@ -105,6 +103,6 @@ fn main() {
         ROUNDS_PER_BATCH * SAMPLES
     );
     println!("safety gate alone (SafetyGate::check): {gate_ns:.0} ns/sample");
-    println!("action round trip (action_from_target + target_from_action): {layout_ns:.0} ns/sample");
+    println!("action round trip (step_from_target + target_from_step, relative): {layout_ns:.0} ns/sample");
     println!("(samples passed: {passed} / {gate_passed})");
 }

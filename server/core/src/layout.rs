@@ -1,45 +1,55 @@
-//! Layout of the `observation.state` and `action` vectors, and conversions between a target pose and an
-//! action.
+//! The one definition of the `observation.state` and `action` vectors: what a dataset records, what a policy
+//! is trained on and what the chunk executor does with a pushed step.
 //!
-//! - `observation.state`: joint positions (rad) in bridge order, then `ee_x ee_y ee_z` (m), `ee_roll
-//!   ee_pitch ee_yaw` (rad, `R = Rz(yaw)·Ry(pitch)·Rx(roll)`, robot base frame), then `gripper` (0 open, 1
-//!   closed).
-//! - `action`, delta mode (the paper's action space): `delta_x delta_y delta_z` = target − measured position
-//!   (m, base frame); `delta_roll delta_pitch delta_yaw` = target − measured roll/pitch/yaw, each wrapped to
-//!   (−π, π]; then the gripper target. Absolute mode: the target's `x y z roll pitch yaw` and the gripper.
+//! - `observation.state`: joint positions (rad) in bridge order, then `ee_x ee_y ee_z` (m, robot base frame),
+//!   then the end effector's orientation as a 6D rotation, `ee_r00 ee_r10 ee_r20 ee_r01 ee_r11 ee_r21` (the
+//!   first two columns of the `robot_from_ee` rotation matrix, Zhou et al. 2019, GR00T's `rotation_6d`), then
+//!   `gripper` (0 open, 1 closed).
+//! - `action` as recorded: the **absolute** end-effector target the operator commanded at that frame (after
+//!   the safety gate): `x y z` (m, base frame), `r00 r10 r20 r01 r11 r21` (6D, as in the state) and the gripper
+//!   target. A target does not depend on where the arm was, so frame t's action means the same thing
+//!   whichever earlier frame a chunk's observation came from.
+//! - A pushed chunk step is read according to its [`ActionMode`]: absolute steps are the recorded layout;
+//!   relative steps (GR00T's "relative" actions) are `delta_x delta_y delta_z` = target − observation position
+//!   (m, base frame), `delta_rx delta_ry delta_rz` = rotation vector of `R_target·R_obsᵀ` (rad, base frame)
+//!   and the gripper target, taken against the pose of the observation the chunk answers. A trainer or
+//!   adapter turns recorded absolute targets into relative steps per chunk with [`relative_step`]; the
+//!   executor composes them back with [`target_from_step`]; the two are exact inverses.
 //!
-//! The delta is taken against the measured end-effector pose of the same frame, so a policy that outputs
-//! the recorded action from the recorded observation reproduces the recorded target exactly (to rounding),
-//! including at ±90° pitch where roll and yaw are not unique individually.
+//! Why 6D and not roll-pitch-yaw or a rotation vector: every 3-number orientation has a seam somewhere (RPY
+//! wraps at ±π and flips at ±90° pitch; a rotation vector flips at 180° from its reference), and an arm with a
+//! wrist roll reaches both sides of any seam. The 6D form is a continuous function of the rotation, so no
+//! recorded dimension jumps unless the gripper does. Relative steps keep a rotation vector: it is 3 numbers,
+//! zero means "stay", and a chunk's rotation relative to its own observation is far from 180°.
 
-use crate::pose::{rotation_from_rpy, rpy_from_rotation, wrap_angle_rad};
-use nalgebra::{Isometry3, Translation3};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
-/// Width of one arm's action vector.
-pub const ACTION_WIDTH: usize = 7;
+/// Width of one arm's recorded action (and of an absolute chunk step): position, 6D rotation, gripper.
+pub const ACTION_WIDTH: usize = 10;
+/// Width of one arm's relative chunk step: position delta, rotation vector, gripper.
+pub const RELATIVE_STEP_WIDTH: usize = 7;
 
-const EE_STATE_NAMES: [&str; 7] = ["ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper"];
-const DELTA_ACTION_NAMES: [&str; 7] = [
-    "delta_x",
-    "delta_y",
-    "delta_z",
-    "delta_roll",
-    "delta_pitch",
-    "delta_yaw",
-    "gripper",
+const EE_STATE_NAMES: [&str; 10] = [
+    "ee_x", "ee_y", "ee_z", "ee_r00", "ee_r10", "ee_r20", "ee_r01", "ee_r11", "ee_r21", "gripper",
 ];
-const ABSOLUTE_ACTION_NAMES: [&str; 7] = ["x", "y", "z", "roll", "pitch", "yaw", "gripper"];
+const ABSOLUTE_ACTION_NAMES: [&str; ACTION_WIDTH] =
+    ["x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21", "gripper"];
+const RELATIVE_ACTION_NAMES: [&str; RELATIVE_STEP_WIDTH] = [
+    "delta_x", "delta_y", "delta_z", "delta_rx", "delta_ry", "delta_rz", "gripper",
+];
 
-/// How an action vector encodes the end-effector target.
+/// How a pushed chunk step encodes its end-effector target. Datasets always record absolute targets; the
+/// arm's configured mode is what policies are told to push (and how they should be trained).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ActionMode {
-    /// 6-DoF delta from the measured pose, plus gripper.
+    /// Relative to the pose of the chunk's observation (GR00T "relative"); zero holds that pose.
     #[default]
-    Delta,
-    /// Absolute target pose in the base frame, plus gripper.
+    #[serde(alias = "delta")]
+    Relative,
+    /// Absolute target pose in the base frame (lerobot's habit).
     Absolute,
 }
 
@@ -57,8 +67,138 @@ pub enum LayoutError {
         index: usize,
         value: f64,
     },
+    #[error("the 6D rotation's columns are {what} (norms {norm_a:.3e}, {norm_b:.3e}): not a rotation")]
+    DegenerateRotation {
+        what: &'static str,
+        norm_a: f64,
+        norm_b: f64,
+    },
     #[error("unknown arm {0:?}")]
     UnknownArm(String),
+}
+
+/// Columns shorter than this, or this close to parallel (sine of their angle), are not a rotation: they
+/// would make Gram-Schmidt amplify noise into an arbitrary orientation.
+const MIN_6D_COLUMN: f64 = 1e-3;
+
+/// The 6D form of a rotation: its matrix's first two columns, `[r00 r10 r20 r01 r11 r21]`.
+pub fn rot6d_from_rotation(rotation: &UnitQuaternion<f64>) -> [f64; 6] {
+    let m = rotation.to_rotation_matrix();
+    let m = m.matrix();
+    [m[(0, 0)], m[(1, 0)], m[(2, 0)], m[(0, 1)], m[(1, 1)], m[(2, 1)]]
+}
+
+/// The rotation nearest a 6D value (Gram-Schmidt: the first column's direction is kept, the second is made
+/// orthogonal to it), so a policy's slightly non-orthonormal output still commands a rotation.
+pub fn rotation_from_rot6d(v: [f64; 6]) -> Result<UnitQuaternion<f64>, LayoutError> {
+    let a = Vector3::new(v[0], v[1], v[2]);
+    let b = Vector3::new(v[3], v[4], v[5]);
+    let (norm_a, norm_b) = (a.norm(), b.norm());
+    let degenerate = |what| LayoutError::DegenerateRotation { what, norm_a, norm_b };
+    if !(norm_a >= MIN_6D_COLUMN && norm_b >= MIN_6D_COLUMN) {
+        return Err(degenerate("too short"));
+    }
+    let x = a / norm_a;
+    let b_perp = b - x * x.dot(&b);
+    if b_perp.norm() < MIN_6D_COLUMN * norm_b {
+        return Err(degenerate("parallel"));
+    }
+    let y = b_perp.normalize();
+    let z = x.cross(&y);
+    let m = Matrix3::from_columns(&[x, y, z]);
+    Ok(UnitQuaternion::from_rotation_matrix(
+        &Rotation3::from_matrix_unchecked(m),
+    ))
+}
+
+/// The step of a relative chunk that commands `robot_from_target` from an observation at
+/// `robot_from_observation`: what a trainer computes per chunk from recorded absolute targets.
+pub fn relative_step(
+    robot_from_observation: &Isometry3<f64>,
+    robot_from_target: &Isometry3<f64>,
+    gripper_target: f64,
+) -> Vec<f64> {
+    let dp = robot_from_target.translation.vector - robot_from_observation.translation.vector;
+    let dr = (robot_from_target.rotation * robot_from_observation.rotation.inverse()).scaled_axis();
+    vec![dp.x, dp.y, dp.z, dr.x, dr.y, dr.z, gripper_target]
+}
+
+/// The chunk step in `mode` that commands `robot_from_target` from an observation at
+/// `robot_from_observation`: the inverse of [`target_from_step`].
+pub fn step_from_target(
+    robot_from_observation: &Isometry3<f64>,
+    robot_from_target: &Isometry3<f64>,
+    gripper_target: f64,
+    mode: ActionMode,
+) -> Vec<f64> {
+    match mode {
+        ActionMode::Absolute => absolute_action(robot_from_target, gripper_target),
+        ActionMode::Relative => relative_step(robot_from_observation, robot_from_target, gripper_target),
+    }
+}
+
+/// The absolute action (recorded layout) of a target.
+pub fn absolute_action(robot_from_target: &Isometry3<f64>, gripper_target: f64) -> Vec<f64> {
+    let t = robot_from_target.translation.vector;
+    let r = rot6d_from_rotation(&robot_from_target.rotation);
+    let mut v = Vec::with_capacity(ACTION_WIDTH);
+    v.extend_from_slice(&[t.x, t.y, t.z]);
+    v.extend_from_slice(&r);
+    v.push(gripper_target);
+    v
+}
+
+/// The target pose and gripper target (clamped to [0, 1]) a chunk step commands, given the pose of the
+/// observation the chunk answers (used by relative steps only).
+pub fn target_from_step(
+    robot_from_observation: &Isometry3<f64>,
+    step: &[f64],
+    mode: ActionMode,
+) -> Result<(Isometry3<f64>, f64), LayoutError> {
+    let (pose, gripper) = match mode {
+        ActionMode::Absolute => {
+            check_values("action", step, ACTION_WIDTH)?;
+            let rotation = rotation_from_rot6d([step[3], step[4], step[5], step[6], step[7], step[8]])?;
+            (
+                Isometry3::from_parts(Translation3::new(step[0], step[1], step[2]), rotation),
+                step[9],
+            )
+        }
+        ActionMode::Relative => {
+            check_values("action", step, RELATIVE_STEP_WIDTH)?;
+            let p = robot_from_observation.translation.vector + Vector3::new(step[0], step[1], step[2]);
+            let dr = UnitQuaternion::from_scaled_axis(Vector3::new(step[3], step[4], step[5]));
+            (
+                Isometry3::from_parts(Translation3::from(p), dr * robot_from_observation.rotation),
+                step[6],
+            )
+        }
+    };
+    Ok((pose, gripper.clamp(0.0, 1.0)))
+}
+
+/// The end-effector pose an `observation.state` row (or its end-effector part) reports, and the gripper.
+pub fn pose_from_state_tail(ee: &[f64]) -> Result<(Isometry3<f64>, f64), LayoutError> {
+    check_values("end-effector state", ee, EE_STATE_NAMES.len())?;
+    let rotation = rotation_from_rot6d([ee[3], ee[4], ee[5], ee[6], ee[7], ee[8]])?;
+    Ok((
+        Isometry3::from_parts(Translation3::new(ee[0], ee[1], ee[2]), rotation),
+        ee[9],
+    ))
+}
+
+fn check_values(what: &'static str, values: &[f64], expected: usize) -> Result<(), LayoutError> {
+    if values.len() != expected {
+        return Err(LayoutError::WrongWidth {
+            what,
+            expected,
+            got: values.len(),
+        });
+    }
+    if let Some((index, &value)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(LayoutError::NonFinite { what, index, value });
+    }
+    Ok(())
 }
 
 /// Vector layout of one arm.
@@ -88,12 +228,22 @@ impl ArmLayout {
             .collect()
     }
 
+    /// Names of the recorded `action` (always absolute targets).
+    pub fn recorded_action_names(&self) -> Vec<String> {
+        ABSOLUTE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect()
+    }
+
+    /// Names of a chunk step's values in `mode`.
     pub fn action_names(&self, mode: ActionMode) -> Vec<String> {
-        let names = match mode {
-            ActionMode::Delta => DELTA_ACTION_NAMES,
-            ActionMode::Absolute => ABSOLUTE_ACTION_NAMES,
-        };
-        names.iter().map(|s| (*s).to_owned()).collect()
+        match mode {
+            ActionMode::Absolute => self.recorded_action_names(),
+            ActionMode::Relative => RELATIVE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect(),
+        }
+    }
+
+    /// Where the end-effector part (`ee_x` … `gripper`) sits in this arm's state vector.
+    pub fn ee_state_range(&self) -> Range<usize> {
+        self.joint_names.len()..self.state_width()
     }
 
     /// The `observation.state` row for one frame.
@@ -110,179 +260,21 @@ impl ArmLayout {
                 got: joints_rad.len(),
             });
         }
-        let p = robot_from_ee.translation.vector;
-        let [roll, pitch, yaw] = rpy_from_rotation(&robot_from_ee.rotation);
         let mut v = Vec::with_capacity(self.state_width());
         v.extend_from_slice(joints_rad);
-        v.extend_from_slice(&[p.x, p.y, p.z, roll, pitch, yaw, gripper]);
+        v.extend(absolute_action(robot_from_ee, gripper));
         Ok(v)
-    }
-
-    /// The action that, applied to `robot_from_ee_measured`, gives `robot_from_target` and `gripper_target`.
-    pub fn action_from_target(
-        &self,
-        robot_from_ee_measured: &Isometry3<f64>,
-        robot_from_target: &Isometry3<f64>,
-        gripper_target: f64,
-        mode: ActionMode,
-    ) -> Vec<f64> {
-        let t = robot_from_target.translation.vector;
-        let rpy_t = rpy_from_rotation(&robot_from_target.rotation);
-        match mode {
-            ActionMode::Absolute => vec![t.x, t.y, t.z, rpy_t[0], rpy_t[1], rpy_t[2], gripper_target],
-            ActionMode::Delta => {
-                let m = robot_from_ee_measured.translation.vector;
-                let rpy_m = rpy_from_rotation(&robot_from_ee_measured.rotation);
-                vec![
-                    t.x - m.x,
-                    t.y - m.y,
-                    t.z - m.z,
-                    wrap_angle_rad(rpy_t[0] - rpy_m[0]),
-                    wrap_angle_rad(rpy_t[1] - rpy_m[1]),
-                    wrap_angle_rad(rpy_t[2] - rpy_m[2]),
-                    gripper_target,
-                ]
-            }
-        }
-    }
-
-    /// The target pose and gripper target an action asks for. The gripper is clamped to [0, 1].
-    pub fn target_from_action(
-        &self,
-        robot_from_ee_measured: &Isometry3<f64>,
-        action: &[f64],
-        mode: ActionMode,
-    ) -> Result<(Isometry3<f64>, f64), LayoutError> {
-        check_action(action)?;
-        let a = action;
-        let (position, rpy) = match mode {
-            ActionMode::Absolute => ([a[0], a[1], a[2]], [a[3], a[4], a[5]]),
-            ActionMode::Delta => {
-                let m = robot_from_ee_measured.translation.vector;
-                let rpy_m = rpy_from_rotation(&robot_from_ee_measured.rotation);
-                (
-                    [m.x + a[0], m.y + a[1], m.z + a[2]],
-                    [rpy_m[0] + a[3], rpy_m[1] + a[4], rpy_m[2] + a[5]],
-                )
-            }
-        };
-        let pose = Isometry3::from_parts(
-            Translation3::new(position[0], position[1], position[2]),
-            rotation_from_rpy(rpy),
-        );
-        Ok((pose, a[6].clamp(0.0, 1.0)))
-    }
-}
-
-fn check_action(action: &[f64]) -> Result<(), LayoutError> {
-    if action.len() != ACTION_WIDTH {
-        return Err(LayoutError::WrongWidth {
-            what: "action",
-            expected: ACTION_WIDTH,
-            got: action.len(),
-        });
-    }
-    if let Some((index, &value)) = action.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(LayoutError::NonFinite {
-            what: "action",
-            index,
-            value,
-        });
-    }
-    Ok(())
-}
-
-/// Layouts of several arms concatenated in a fixed order. Names get an `{arm}_` prefix only when there is
-/// more than one arm, so a single-arm dataset keeps the plain LeRobot names.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct MultiArmLayout {
-    arms: Vec<(String, ArmLayout)>,
-}
-
-impl MultiArmLayout {
-    pub fn new(arms: Vec<(String, ArmLayout)>) -> Self {
-        Self { arms }
-    }
-
-    pub fn arms(&self) -> impl Iterator<Item = (&str, &ArmLayout)> {
-        self.arms.iter().map(|(n, l)| (n.as_str(), l))
-    }
-
-    fn prefixed(&self, arm: &str, names: Vec<String>) -> Vec<String> {
-        if self.arms.len() > 1 {
-            names.into_iter().map(|n| format!("{arm}_{n}")).collect()
-        } else {
-            names
-        }
-    }
-
-    pub fn state_names(&self) -> Vec<String> {
-        self.arms
-            .iter()
-            .flat_map(|(arm, l)| self.prefixed(arm, l.state_names()))
-            .collect()
-    }
-
-    pub fn action_names(&self, mode: ActionMode) -> Vec<String> {
-        self.arms
-            .iter()
-            .flat_map(|(arm, l)| self.prefixed(arm, l.action_names(mode)))
-            .collect()
-    }
-
-    pub fn state_width(&self) -> usize {
-        self.arms.iter().map(|(_, l)| l.state_width()).sum()
-    }
-
-    pub fn action_width(&self) -> usize {
-        self.arms.len() * ACTION_WIDTH
-    }
-
-    fn index(&self, arm: &str) -> Result<usize, LayoutError> {
-        self.arms
-            .iter()
-            .position(|(n, _)| n == arm)
-            .ok_or_else(|| LayoutError::UnknownArm(arm.to_owned()))
-    }
-
-    /// Where an arm's values sit in the concatenated state vector.
-    pub fn state_range(&self, arm: &str) -> Result<Range<usize>, LayoutError> {
-        let i = self.index(arm)?;
-        let start: usize = self.arms[..i].iter().map(|(_, l)| l.state_width()).sum();
-        Ok(start..start + self.arms[i].1.state_width())
-    }
-
-    /// Where an arm's values sit in the concatenated action vector.
-    pub fn action_range(&self, arm: &str) -> Result<Range<usize>, LayoutError> {
-        let i = self.index(arm)?;
-        Ok(i * ACTION_WIDTH..(i + 1) * ACTION_WIDTH)
-    }
-
-    /// Splits a concatenated action into per-arm slices.
-    pub fn split_action<'a>(&self, action: &'a [f64]) -> Result<Vec<(&str, &'a [f64])>, LayoutError> {
-        if action.len() != self.action_width() {
-            return Err(LayoutError::WrongWidth {
-                what: "action",
-                expected: self.action_width(),
-                got: action.len(),
-            });
-        }
-        Ok(self
-            .arms
-            .iter()
-            .zip(action.chunks_exact(ACTION_WIDTH))
-            .map(|((n, _), a)| (n.as_str(), a))
-            .collect())
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pose::pose_distance;
-    use nalgebra::{Quaternion, UnitQuaternion};
+    use crate::kinematics::{SO101_JOINT_LIMITS_RAD, So101Kinematics};
+    use crate::pose::{angle_between_rad, pose_distance, rotation_from_rpy};
+    use nalgebra::Quaternion;
     use proptest::prelude::*;
-    use std::f64::consts::FRAC_PI_2;
+    use std::f64::consts::{FRAC_PI_2, PI};
 
     fn so101() -> ArmLayout {
         ArmLayout::new(
@@ -302,21 +294,27 @@ mod tests {
     #[test]
     fn names_and_state_vector() {
         let l = so101();
-        assert_eq!(l.state_names().len(), 12);
+        assert_eq!(l.state_names().len(), 15);
         assert_eq!(&l.state_names()[5..], &EE_STATE_NAMES.map(str::to_owned));
-        assert_eq!(l.action_names(ActionMode::Delta)[3], "delta_roll");
-        assert_eq!(l.action_names(ActionMode::Absolute)[5], "yaw");
+        assert_eq!(l.ee_state_range(), 5..15);
+        assert_eq!(l.recorded_action_names()[3], "r00");
+        assert_eq!(l.action_names(ActionMode::Absolute), l.recorded_action_names());
+        assert_eq!(l.action_names(ActionMode::Relative)[5], "delta_rz");
         let ee = Isometry3::from_parts(
             Translation3::new(0.2, -0.1, 0.3),
-            rotation_from_rpy([0.1, 0.2, 0.3]),
+            rotation_from_rpy([0.0, 0.0, FRAC_PI_2]),
         );
         let v = l.state_vector(&[1.0, 2.0, 3.0, 4.0, 5.0], &ee, 0.5).unwrap();
-        assert_eq!(v.len(), 12);
-        let expected = [1.0, 2.0, 3.0, 4.0, 5.0, 0.2, -0.1, 0.3, 0.1, 0.2, 0.3, 0.5];
+        // A quarter turn about z: the x axis points along +y, the y axis along −x.
+        let expected = [
+            1.0, 2.0, 3.0, 4.0, 5.0, 0.2, -0.1, 0.3, 0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.5,
+        ];
         assert!(
             v.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
             "{v:?}"
         );
+        let (back, g) = pose_from_state_tail(&v[l.ee_state_range()]).unwrap();
+        assert!(pose_distance(&back, &ee).0 < 1e-15 && (g - 0.5).abs() < 1e-15);
         assert!(matches!(
             l.state_vector(&[1.0], &ee, 0.5),
             Err(LayoutError::WrongWidth {
@@ -328,91 +326,232 @@ mod tests {
     }
 
     #[test]
-    fn delta_action_wraps_across_pi() {
-        let l = so101();
-        let m = Isometry3::from_parts(
-            Translation3::new(0.2, 0.0, 0.2),
-            rotation_from_rpy([0.0, 0.0, 3.1]),
-        );
-        let t = Isometry3::from_parts(
-            Translation3::new(0.21, 0.0, 0.2),
-            rotation_from_rpy([0.0, 0.0, -3.1]),
-        );
-        let a = l.action_from_target(&m, &t, 1.0, ActionMode::Delta);
-        assert!((a[0] - 0.01).abs() < 1e-12);
-        assert!(
-            (a[5] - (2.0 * std::f64::consts::PI - 6.2)).abs() < 1e-12,
-            "yaw delta goes the short way: {}",
-            a[5]
-        );
-        assert!(matches!(
-            l.target_from_action(&m, &a[..6], ActionMode::Delta),
-            Err(LayoutError::WrongWidth { .. })
-        ));
-        let mut bad = a.clone();
-        bad[2] = f64::NAN;
-        assert!(matches!(
-            l.target_from_action(&m, &bad, ActionMode::Delta),
-            Err(LayoutError::NonFinite { index: 2, .. })
-        ));
+    fn bad_steps_are_refused() {
+        let obs = Isometry3::translation(0.2, 0.0, 0.2);
+        let wrong: [(&[f64], ActionMode); 5] = [
+            (&[0.0; 7], ActionMode::Absolute),
+            (&[0.0; 10], ActionMode::Relative),
+            (
+                &[0.2, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                ActionMode::Absolute,
+            ),
+            (
+                &[0.2, 0.0, 0.2, 1.0, 0.0, 0.0, 2.0, 0.0, 0.0, 1.0],
+                ActionMode::Absolute,
+            ),
+            (&[0.0, 0.0, f64::NAN, 0.0, 0.0, 0.0, 0.0], ActionMode::Relative),
+        ];
+        for (step, mode) in wrong {
+            let err = target_from_step(&obs, step, mode).unwrap_err();
+            assert!(!err.to_string().is_empty(), "{step:?}");
+        }
+        // Zero relative step: hold the observation's pose.
+        let (hold, g) =
+            target_from_step(&obs, &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0], ActionMode::Relative).unwrap();
+        assert_eq!(hold, obs);
+        assert!((g - 1.0).abs() < 1e-15, "gripper clamped to [0, 1]");
+        // A slightly non-orthonormal 6D (a policy's output) still gives the nearest rotation.
+        let (p, _) = target_from_step(
+            &obs,
+            &[0.2, 0.0, 0.2, 1.01, 0.0, 0.02, 0.01, 0.98, 0.0, 0.0],
+            ActionMode::Absolute,
+        )
+        .unwrap();
+        assert!(angle_between_rad(&p.rotation, &UnitQuaternion::identity()) < 0.03);
     }
 
-    #[test]
-    fn multi_arm_names_are_prefixed() {
-        let single = MultiArmLayout::new(vec![("main".into(), so101())]);
-        assert_eq!(single.state_names(), so101().state_names());
-        let two = MultiArmLayout::new(vec![("left".into(), so101()), ("right".into(), so101())]);
-        assert_eq!(two.state_names()[0], "left_shoulder_pan");
-        assert_eq!(two.action_names(ActionMode::Delta)[7], "right_delta_x");
-        assert_eq!(two.state_range("right").unwrap(), 12..24);
-        assert_eq!(two.action_range("right").unwrap(), 7..14);
-        let action: Vec<f64> = (0..14).map(f64::from).collect();
-        let split = two.split_action(&action).unwrap();
-        assert_eq!(split[1].0, "right");
-        assert!((split[1].1[0] - 7.0).abs() < 1e-15);
-        assert!(two.split_action(&action[..13]).is_err());
-        assert!(matches!(
-            two.action_range("middle"),
-            Err(LayoutError::UnknownArm(_))
-        ));
-    }
-
-    fn any_pose() -> impl Strategy<Value = Isometry3<f64>> {
+    fn any_rotation() -> impl Strategy<Value = UnitQuaternion<f64>> {
         (
-            prop::array::uniform3(-1.0..1.0f64),
             prop::array::uniform4(-1.0..1.0f64),
             0..4u8,
             -1e-7..1e-7f64,
-            -3.2..3.2f64,
+            -PI..PI,
         )
-            .prop_map(|(p, q, kind, dp, angle)| {
+            .prop_map(|(q, kind, dp, angle)| {
                 let quat = Quaternion::new(q[3], q[0], q[1], q[2]);
-                let rotation = match kind {
-                    // A quarter of the poses sit at or next to ±90° pitch.
+                match kind {
+                    // A quarter of the rotations sit at or next to ±90° pitch, and at ±π about some axis.
                     0 => rotation_from_rpy([angle, FRAC_PI_2 + dp, q[0] * 3.0]),
-                    1 => rotation_from_rpy([q[1] * 3.0, -FRAC_PI_2 + dp, angle]),
+                    1 => UnitQuaternion::from_scaled_axis(
+                        Vector3::new(q[0], q[1], q[2]).normalize() * (PI - dp.abs()),
+                    ),
                     _ if quat.norm() < 1e-3 => UnitQuaternion::identity(),
                     _ => UnitQuaternion::new_normalize(quat),
-                };
-                Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), rotation)
+                }
             })
+    }
+
+    fn any_pose() -> impl Strategy<Value = Isometry3<f64>> {
+        (prop::array::uniform3(-1.0..1.0f64), any_rotation())
+            .prop_map(|(p, r)| Isometry3::from_parts(Translation3::new(p[0], p[1], p[2]), r))
+    }
+
+    /// Largest change of the 6D form per radian of rotation: each column is a unit vector turned by at most
+    /// the rotation's angle, so it moves by at most that angle (chord ≤ arc).
+    const ROT6D_PER_RAD: f64 = std::f64::consts::SQRT_2;
+
+    /// A lagging arm following a sequence of targets, sampled at frame times (for the invariant tests).
+    fn lagging(targets: &[Isometry3<f64>], alpha: f64) -> Vec<Isometry3<f64>> {
+        let mut measured = Vec::with_capacity(targets.len());
+        let mut m = targets[0];
+        for t in targets {
+            measured.push(m);
+            m = m.lerp_slerp(t, alpha);
+        }
+        measured
     }
 
     proptest! {
         #[test]
-        fn action_round_trip_is_exact(measured in any_pose(), target in any_pose(), gripper in 0.0..=1.0f64, absolute in prop::bool::ANY) {
-            let l = so101();
-            let mode = if absolute { ActionMode::Absolute } else { ActionMode::Delta };
-            let action = l.action_from_target(&measured, &target, gripper, mode);
-            prop_assert_eq!(action.len(), ACTION_WIDTH);
-            prop_assert!(action.iter().all(|v| v.is_finite()));
-            if !absolute {
-                prop_assert!(action[3..6].iter().all(|a| *a > -std::f64::consts::PI && *a <= std::f64::consts::PI));
-            }
-            let (back, g) = l.target_from_action(&measured, &action, mode).unwrap();
-            let (dp, da) = pose_distance(&back, &target);
-            prop_assert!(dp < 1e-9 && da < 1e-9, "position error {} m, angle error {} rad", dp, da);
-            prop_assert!((g - gripper).abs() < 1e-15);
+        fn rot6d_round_trip_is_exact(q in any_rotation()) {
+            let back = rotation_from_rot6d(rot6d_from_rotation(&q)).unwrap();
+            prop_assert!(angle_between_rad(&q, &back) < 1e-12);
         }
+
+        #[test]
+        fn absolute_and_relative_steps_round_trip(obs in any_pose(), target in any_pose(), gripper in 0.0..=1.0f64) {
+            let a = absolute_action(&target, gripper);
+            prop_assert_eq!(a.len(), ACTION_WIDTH);
+            let (back, g) = target_from_step(&obs, &a, ActionMode::Absolute).unwrap();
+            let (dp, da) = pose_distance(&back, &target);
+            prop_assert!(dp < 1e-12 && da < 1e-9 && (g - gripper).abs() < 1e-15, "{} {}", dp, da);
+            let r = relative_step(&obs, &target, gripper);
+            prop_assert_eq!(r.len(), RELATIVE_STEP_WIDTH);
+            let (back, g) = target_from_step(&obs, &r, ActionMode::Relative).unwrap();
+            let (dp, da) = pose_distance(&back, &target);
+            prop_assert!(dp < 1e-12 && da < 1e-9 && (g - gripper).abs() < 1e-15, "{} {}", dp, da);
+        }
+
+        /// The invariant, without the network: along an operator's target path followed by a lagging arm,
+        /// the recorded action of frame t, pushed as step t − t0 of a chunk observed at any earlier frame t0
+        /// (absolute as recorded, relative as a trainer converts it from the recorded state), commands the
+        /// target of frame t. The per-frame delta the recorder used to write (target(t) − measured(t)),
+        /// composed onto the observation of t0, misses by centimetres on the same path.
+        #[test]
+        fn recorded_actions_command_the_recorded_targets(
+            start in any_pose(),
+            velocity in prop::array::uniform3(-0.2..0.2f64),
+            spin in prop::array::uniform3(-3.0..3.0f64),
+            t0 in 0..16usize,
+            k in 0..16usize,
+        ) {
+            let fps = 20.0;
+            let targets: Vec<Isometry3<f64>> = (0..32).map(|i| {
+                let s = f64::from(i) / fps;
+                Isometry3::from_parts(
+                    Translation3::from(start.translation.vector + Vector3::from(velocity) * s),
+                    UnitQuaternion::from_scaled_axis(Vector3::from(spin) * s) * start.rotation,
+                )
+            }).collect();
+            let measured = lagging(&targets, 0.6);
+            let layout = so101();
+            let states: Vec<Vec<f64>> = measured.iter().map(|m| layout.state_vector(&[0.0; 5], m, 0.0).unwrap()).collect();
+            let actions: Vec<Vec<f64>> = targets.iter().map(|t| absolute_action(t, 1.0)).collect();
+            let t = t0 + k;
+            let (obs, _) = pose_from_state_tail(&states[t0][layout.ee_state_range()]).unwrap();
+            let (abs, _) = target_from_step(&obs, &actions[t], ActionMode::Absolute).unwrap();
+            // What a trainer does per chunk: recorded absolute target ⊖ recorded state of the chunk's frame.
+            let (target, _) = pose_from_state_tail(&actions[t]).unwrap();
+            let relative = relative_step(&obs, &target, 1.0);
+            let (rel, _) = target_from_step(&obs, &relative, ActionMode::Relative).unwrap();
+            for got in [abs, rel] {
+                let (dp, da) = pose_distance(&got, &target);
+                prop_assert!(dp < 1e-9 && da < 1e-9, "{} m {} rad", dp, da);
+            }
+        }
+
+        /// No state or action dimension jumps where the pose does not: along any path of small rotation steps
+        /// (through ±π about any axis, through ±90° pitch), each step of the 6D values is bounded by the
+        /// rotation's own step, and positions by the position step.
+        #[test]
+        fn orientation_dimensions_are_continuous(
+            start in any_rotation(),
+            axis in prop::array::uniform3(-1.0..1.0f64),
+            turn_rad in -7.0..7.0f64,
+        ) {
+            let axis = Vector3::from(axis);
+            prop_assume!(axis.norm() > 1e-3);
+            let steps = 400;
+            let layout = so101();
+            let mut previous: Option<(UnitQuaternion<f64>, Vec<f64>)> = None;
+            for i in 0..=steps {
+                let q = UnitQuaternion::from_scaled_axis(axis.normalize() * turn_rad * f64::from(i) / f64::from(steps)) * start;
+                let pose = Isometry3::from_parts(Translation3::new(0.2, 0.0, 0.2), q);
+                let row = layout.state_vector(&[0.0; 5], &pose, 0.0).unwrap();
+                let action = absolute_action(&pose, 0.0);
+                prop_assert_eq!(&row[layout.ee_state_range()], &action[..]);
+                if let Some((q_prev, prev)) = &previous {
+                    let dtheta = angle_between_rad(q_prev, &q);
+                    let jump = prev.iter().zip(&row).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+                    prop_assert!(jump <= ROT6D_PER_RAD * dtheta + 1e-12, "step {}: 6D moved {} for {} rad", i, jump, dtheta);
+                }
+                previous = Some((q, row));
+            }
+        }
+
+        /// The same over the simulated SO-101's reachable orientations: random joint paths inside the limits,
+        /// through forward kinematics.
+        #[test]
+        fn reachable_sim_orientations_are_continuous(
+            from in prop::array::uniform5(0.0..1.0f64),
+            to in prop::array::uniform5(0.0..1.0f64),
+        ) {
+            let kin = So101Kinematics::new();
+            let layout = so101();
+            let joints_at = |s: f64| -> [f64; 5] {
+                std::array::from_fn(|j| {
+                    let (lo, hi) = SO101_JOINT_LIMITS_RAD[j];
+                    let u = from[j] + (to[j] - from[j]) * s;
+                    lo + (hi - lo) * u
+                })
+            };
+            let mut previous: Option<(Isometry3<f64>, Vec<f64>)> = None;
+            for i in 0..=300 {
+                let joints = joints_at(f64::from(i) / 300.0);
+                let pose = kin.forward(&joints);
+                let row = layout.state_vector(&joints, &pose, 0.0).unwrap();
+                if let Some((prev_pose, prev)) = &previous {
+                    let (dp, dtheta) = pose_distance(prev_pose, &pose);
+                    let r = layout.ee_state_range();
+                    let position_jump = prev[r.start..r.start + 3].iter().zip(&row[r.start..r.start + 3]).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+                    let rot_jump = prev[r.start + 3..r.end - 1].iter().zip(&row[r.start + 3..r.end - 1]).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+                    prop_assert!(position_jump <= dp + 1e-12);
+                    prop_assert!(rot_jump <= ROT6D_PER_RAD * dtheta + 1e-12, "step {}: {} for {} rad", i, rot_jump, dtheta);
+                }
+                previous = Some((pose, row));
+            }
+        }
+    }
+
+    /// What the recorder used to write (per-frame delta against the frame's own measured pose, roll-pitch-yaw
+    /// differences), pushed as the perfect policy does: it misses by the arm's lag, and this shows the
+    /// invariant test above would catch it.
+    #[test]
+    fn the_old_per_frame_delta_misses() {
+        use crate::pose::{rpy_from_rotation, wrap_angle_rad};
+        let fps = 20.0;
+        let targets: Vec<Isometry3<f64>> = (0..32)
+            .map(|i| Isometry3::translation(0.2 + 0.05 * f64::from(i) / fps, 0.0, 0.2))
+            .collect();
+        let measured = lagging(&targets, 0.6);
+        let old = |t: usize| -> Vec<f64> {
+            let (a, m) = (&targets[t], &measured[t]);
+            let (ra, rm) = (rpy_from_rotation(&a.rotation), rpy_from_rotation(&m.rotation));
+            let d = a.translation.vector - m.translation.vector;
+            vec![
+                d.x,
+                d.y,
+                d.z,
+                wrap_angle_rad(ra[0] - rm[0]),
+                wrap_angle_rad(ra[1] - rm[1]),
+                wrap_angle_rad(ra[2] - rm[2]),
+                1.0,
+            ]
+        };
+        let (t0, k) = (8, 12);
+        let step = old(t0 + k);
+        let (got, _) = target_from_step(&measured[t0], &step, ActionMode::Relative).unwrap();
+        let (dp, _) = pose_distance(&got, &targets[t0 + k]);
+        assert!(dp > 0.02, "the old convention misses by {dp} m");
     }
 }

@@ -46,10 +46,10 @@ proptest! {
 
             let state = layout.state_vector(&[0.1, 0.2], &target, gripper).unwrap();
             prop_assert!(state.iter().all(|v| v.is_finite()));
-            for mode in [ActionMode::Delta, ActionMode::Absolute] {
-                let action = layout.action_from_target(&measured, &target, gripper, mode);
+            for mode in [ActionMode::Relative, ActionMode::Absolute] {
+                let action = phone2act_core::step_from_target(&measured, &target, gripper, mode);
                 prop_assert!(action.iter().all(|v| v.is_finite()));
-                let (back, _) = layout.target_from_action(&measured, &action, mode).unwrap();
+                let (back, _) = phone2act_core::target_from_step(&measured, &action, mode).unwrap();
                 prop_assert!(angle_between_rad(&back.rotation, &target.rotation) < 1e-9);
                 prop_assert!((back.translation.vector - target.translation.vector).norm() < 1e-9);
             }

@@ -9,7 +9,7 @@
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 use phone2act_core::pose::{angle_between_rad, rotation_from_rpy, rpy_from_rotation, wrap_angle_rad};
 use phone2act_core::{
-    ActionMode, ArmLayout, AxisPreset, ClutchKind, GateVerdict, MappingConfig, TeleopArm, TeleopConfig,
+    ActionMode, AxisPreset, ClutchKind, GateVerdict, MappingConfig, TeleopArm, TeleopConfig,
 };
 
 /// The paper's planner (OmMandhane/Phone2Act `phone2act_teleop_planner.py`), written for this comparison:
@@ -149,7 +149,6 @@ fn run(script: Vec<Segment>) -> Outcome {
     let mut euler: Option<EulerPlanner> = None;
     let mut euler_measured = robot_start;
     let mut truth = robot_start.rotation;
-    let layout = ArmLayout::new(vec!["j1".into()]);
 
     let mut ours_errors = Vec::new();
     let mut euler_errors = Vec::new();
@@ -202,10 +201,9 @@ fn run(script: Vec<Segment>) -> Outcome {
                 step.decision
             );
             // The recorded action must reproduce the executed target.
-            let action = layout.action_from_target(&ours_measured, &target, 0.0, ActionMode::Delta);
-            let (replayed, _) = layout
-                .target_from_action(&ours_measured, &action, ActionMode::Delta)
-                .unwrap();
+            let action = phone2act_core::step_from_target(&ours_measured, &target, 0.0, ActionMode::Relative);
+            let (replayed, _) =
+                phone2act_core::target_from_step(&ours_measured, &action, ActionMode::Relative).unwrap();
             assert!(angle_between_rad(&replayed.rotation, &target.rotation) < 1e-9);
             ours_measured = target;
             ours_errors.push(angle_between_rad(&target.rotation, &truth));

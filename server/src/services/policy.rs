@@ -188,7 +188,7 @@ impl App {
             return Err(Status::invalid_argument("chunk has no steps"));
         }
         let mode = match v1::ActionMode::try_from(chunk.mode) {
-            Ok(v1::ActionMode::Unspecified | v1::ActionMode::DeltaEe) => ActionMode::Delta,
+            Ok(v1::ActionMode::Unspecified | v1::ActionMode::DeltaEe) => ActionMode::Relative,
             Ok(v1::ActionMode::AbsoluteEe) => ActionMode::Absolute,
             Err(_) => {
                 return Err(Status::invalid_argument(format!(
