@@ -4,7 +4,6 @@
 
 use crate::arm::ArmController;
 use crate::config::{Config, DatasetFormat};
-use phone2act_core::ActionMode;
 use phone2act_proto::v1;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::error::RecorderError;
@@ -67,14 +66,14 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         } else {
             String::new()
         };
-        // GR00T groups: the arm (joints + end effector in the state, 6-DoF in the action) and the gripper.
-        // A delta pose is relative to the observed pose (GR00T pads it with zero past the end); the
-        // gripper target is absolute in every mode.
+        // GR00T groups: the arm (joints + end effector in the state, the end-effector target in the action)
+        // and the gripper. Datasets record absolute targets whatever mode the arm's policies push (see
+        // `phone2act_core::layout`), so GR00T pads past an episode's end with the last target: hold.
         modality.push(ModalityGroup {
             name: format!("{prefix}arm"),
             state_range: s0..s0 + s.len() - 1,
             action_range: a0..a0 + a.len() - 1,
-            action_absolute: arm.action_mode != ActionMode::Delta,
+            action_absolute: true,
         });
         modality.push(ModalityGroup {
             name: format!("{prefix}gripper"),
