@@ -20,9 +20,10 @@ from phone2act import (
     InvalidArgument,
     NotFound,
     Unauthenticated,
+    aio,
+    client,
     pose_tuple,
 )
-from phone2act import aio, client
 from phone2act.aio import AsyncClient
 from phone2act.poses import rpy_from_quat
 from phone2act.v1 import common_pb2
