@@ -5,6 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 BUF_DIR="${CARGO_TARGET_DIR:-$PWD/target}/buf"
 if [[ ! -x "$BUF_DIR/node_modules/.bin/buf" ]]; then
+  command -v npm >/dev/null || { echo "lint-proto: npm is needed to fetch buf (Debian: apt install npm)" >&2; exit 1; }
   mkdir -p "$BUF_DIR"
   npm install --silent --prefix "$BUF_DIR" @bufbuild/buf@1.75.0 >/dev/null
 fi
