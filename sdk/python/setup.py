@@ -2,17 +2,21 @@
 
 The stubs are never committed. `pip install ./sdk/python` builds in place, so the protos are found at
 ../../proto relative to this file; PHONE2ACT_PROTO_DIR overrides that (e.g. for a copied source tree).
+A source distribution carries its own copy under ./proto (copied by the sdist command, listed in
+MANIFEST.in), so it builds anywhere.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from pathlib import Path
 
 from setuptools import setup
 from setuptools.command.build_py import build_py
 from setuptools.command.egg_info import egg_info
+from setuptools.command.sdist import sdist
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "src"
@@ -57,4 +61,15 @@ class EggInfo(egg_info):
         super().run()
 
 
-setup(cmdclass={"build_py": BuildPy, "egg_info": EggInfo})
+class Sdist(sdist):
+    # Ship the .proto files inside the sdist (at ./proto, the second place proto_root() looks).
+    def run(self) -> None:
+        root = proto_root()
+        bundled = HERE / "proto"
+        if root.resolve() != bundled.resolve():
+            shutil.rmtree(bundled, ignore_errors=True)
+            shutil.copytree(root / "phone2act", bundled / "phone2act", ignore=shutil.ignore_patterns("*.rs"))
+        super().run()
+
+
+setup(cmdclass={"build_py": BuildPy, "egg_info": EggInfo, "sdist": Sdist})

@@ -304,6 +304,8 @@ pub const MAX_CAMERAS: usize = 16;
 pub const MAX_REMOTE_JOINTS: usize = 64;
 /// Most steps a policy chunk may be configured to accept.
 pub const MAX_CHUNK_STEPS: usize = 100_000;
+/// Longest arm or camera name and `robot_type`: they become dataset column names and info.json values.
+pub const MAX_NAME_CHARS: usize = 64;
 /// Fastest simulated arm step rate, Hz: the simulation runs on its own thread at this rate.
 pub const MAX_SIM_STEP_HZ: f64 = 10_000.0;
 
@@ -406,6 +408,12 @@ impl Config {
                     arm.name
                 )));
             }
+            if arm.name.len() > MAX_NAME_CHARS {
+                return Err(invalid(format!(
+                    "arm name {:?} is longer than {MAX_NAME_CHARS} characters",
+                    arm.name
+                )));
+            }
             if !names.insert(arm.name.as_str()) {
                 return Err(invalid(format!("arm name {:?} appears twice", arm.name)));
             }
@@ -417,6 +425,12 @@ impl Config {
             if cam.name.is_empty() || !cam.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
                 return Err(invalid(format!(
                     "camera name {:?} must be non-empty ASCII letters, digits or '_'",
+                    cam.name
+                )));
+            }
+            if cam.name.len() > MAX_NAME_CHARS {
+                return Err(invalid(format!(
+                    "camera name {:?} is longer than {MAX_NAME_CHARS} characters",
                     cam.name
                 )));
             }
@@ -452,6 +466,12 @@ impl Config {
             return Err(invalid(format!(
                 "recorder.fps must be in 1..=60, got {}",
                 self.recorder.fps
+            )));
+        }
+        if self.recorder.robot_type.is_empty() || self.recorder.robot_type.len() > MAX_NAME_CHARS {
+            return Err(invalid(format!(
+                "recorder.robot_type must be 1..={MAX_NAME_CHARS} characters, got {}",
+                self.recorder.robot_type.len()
             )));
         }
         let max_message_bytes = self.gateway.max_message_bytes;
@@ -793,6 +813,15 @@ mod tests {
         let remote =
             format!("[[arms]]\nname = \"r\"\nbridge = \"remote\"\n[arms.remote]\njoint_names = [{joints}]\n");
         assert!(parse(&remote).unwrap_err().to_string().contains("at most 64"));
+        let long = "a".repeat(65);
+        let err = parse(&format!("[[arms]]\nname = \"{long}\"\nbridge = \"sim\"\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("longer than 64 characters"), "{err}");
+        let err = parse(&format!("{SIM}[recorder]\nrobot_type = \"{long}\"\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("recorder.robot_type must be 1..=64"), "{err}");
         let many = (0..17)
             .map(|i| format!("[[arms]]\nname = \"a{i}\"\nbridge = \"sim\"\n"))
             .collect::<Vec<_>>()

@@ -126,16 +126,17 @@ fn write_stdout_line(args: std::fmt::Arguments<'_>) {
 }
 
 /// The log filter: `PHONE2ACT_LOG` first, then the usual `RUST_LOG`, else `info`. Both take
-/// `tracing_subscriber` filter directives (`warn`, `phone2act_server=debug,info`).
-fn log_filter() -> tracing_subscriber::EnvFilter {
+/// `tracing_subscriber` filter directives (`warn`, `phone2act_server=debug,info`). `var` reads the
+/// environment (a parameter so that the choice is testable without touching the process environment).
+fn log_filter(var: impl Fn(&str) -> Option<String>) -> tracing_subscriber::EnvFilter {
     ["PHONE2ACT_LOG", "RUST_LOG"]
         .into_iter()
-        .find_map(|var| {
-            let value = std::env::var(var).ok().filter(|v| !v.trim().is_empty())?;
+        .find_map(|name| {
+            let value = var(name).filter(|v| !v.trim().is_empty())?;
             match tracing_subscriber::EnvFilter::try_new(&value) {
                 Ok(filter) => Some(filter),
                 Err(e) => {
-                    eprintln!("phone2act: ignoring {var}={value:?}: {e}");
+                    eprintln!("phone2act: ignoring {name}={value:?}: {e}");
                     None
                 }
             }
@@ -145,16 +146,29 @@ fn log_filter() -> tracing_subscriber::EnvFilter {
 
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(log_filter())
+        .with_env_filter(log_filter(|name| std::env::var(name).ok()))
         .with_writer(std::io::stderr)
         .init();
     match real_main() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("phone2act: error: {e:#}");
+            eprintln!("phone2act: error: {}", one_line(&e));
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// The error and its causes on one line, each said once: transport layers wrap an error in another with the
+/// same text ("tcp connect error: tcp connect error: ..."), which reads as noise.
+fn one_line(e: &anyhow::Error) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if parts.last().is_none_or(|last| !last.ends_with(&text)) {
+            parts.push(text);
+        }
+    }
+    parts.join(": ")
 }
 
 fn client_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
@@ -437,4 +451,26 @@ async fn shutdown_signal() {
         () = term => {}
     }
     tracing::info!("shutdown requested");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::log_filter;
+
+    fn filter(env: &[(&str, &str)]) -> String {
+        log_filter(|name| env.iter().find(|(k, _)| *k == name).map(|(_, v)| (*v).to_owned())).to_string()
+    }
+
+    #[test]
+    fn phone2act_log_then_rust_log_then_info() {
+        assert_eq!(filter(&[]), "info");
+        assert_eq!(filter(&[("RUST_LOG", "debug")]), "debug");
+        assert_eq!(
+            filter(&[("PHONE2ACT_LOG", "warn"), ("RUST_LOG", "debug")]),
+            "warn"
+        );
+        // An unusable value is reported and skipped, not silently turned into "log nothing".
+        assert_eq!(filter(&[("PHONE2ACT_LOG", "=="), ("RUST_LOG", "error")]), "error");
+        assert_eq!(filter(&[("PHONE2ACT_LOG", " ")]), "info");
+    }
 }

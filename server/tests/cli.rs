@@ -170,6 +170,10 @@ fn a_server_that_is_down_is_a_one_line_hint() {
     let (ok, _, err) = run(&["status"], "http://127.0.0.1:9");
     assert!(!ok);
     assert!(err.contains("is `phone2act serve` running"), "{err}");
+    // Each cause once: no "transport error: transport error: ..." from wrapped transport errors.
+    let parts: Vec<&str> = err.trim().split(": ").collect();
+    assert!(parts.windows(2).all(|w| w[0] != w[1]), "{err}");
+    assert_eq!(err.matches("cannot connect to").count(), 1, "{err}");
 }
 
 /// `serve --check` on `config` with extra environment: the exit code and stderr. `--check` loads and

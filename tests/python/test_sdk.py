@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import inspect
 import math
 import statistics
 import subprocess
@@ -19,6 +20,8 @@ from phone2act import (
     InvalidArgument,
     NotFound,
     Unauthenticated,
+    aio,
+    client,
     pose_tuple,
 )
 from phone2act.aio import AsyncClient
@@ -208,6 +211,79 @@ def test_asyncio_client(server: Server) -> None:
                 assert abs(z - (start[2] + 0.01)) < 1.5e-3, (start, z)
 
     asyncio.run(main())
+
+
+PAIRS = [
+    (client.Client, aio.AsyncClient),
+    (client.Episodes, aio.AsyncEpisodes),
+    (client.PolicySession, aio.AsyncPolicySession),
+    (client.TeleopSession, aio.AsyncTeleopSession),
+]
+
+
+def _public(cls: type) -> dict[str, object]:
+    return {n: v for n, v in inspect.getmembers(cls) if not n.startswith("_") or n == "__init__"}
+
+
+@pytest.mark.parametrize(("sync_cls", "async_cls"), PAIRS, ids=[a.__name__ for _, a in PAIRS])
+def test_async_api_is_the_sync_api(sync_cls: type, async_cls: type) -> None:
+    """Every public method of the sync class exists on its asyncio twin with the same parameters and
+    defaults, as a coroutine (or async iterator); the only additions allowed are listed here."""
+    sync, asyn = _public(sync_cls), _public(async_cls)
+    extra_allowed = {"connect"}  # `await AsyncClient.connect(...)`: a constructor cannot await readiness
+    assert set(sync) <= set(asyn), f"{async_cls.__name__} lacks {sorted(set(sync) - set(asyn))}"
+    assert set(asyn) - set(sync) <= extra_allowed, sorted(set(asyn) - set(sync))
+    for name, member in sync.items():
+        twin = asyn[name]
+        if isinstance(member, property):
+            assert isinstance(twin, property), name
+            continue
+        if name == "__init__" and sync_cls is not client.Client:
+            continue  # sessions are made by the client, their constructors are private
+        want = [(p.name, p.kind, p.default) for p in inspect.signature(member).parameters.values()]
+        got = [(p.name, p.kind, p.default) for p in inspect.signature(twin).parameters.values()]
+        assert got == want, f"{async_cls.__name__}.{name}{inspect.signature(twin)} != {inspect.signature(member)}"
+        if name != "__init__":
+            assert inspect.iscoroutinefunction(twin) or inspect.isasyncgenfunction(twin), name
+
+
+def test_async_client_as_the_sync_one_is_used(server: Server) -> None:
+    async def main() -> None:
+        # Constructed exactly like the sync client (no token, no timeout arguments), URL with a scheme.
+        async with AsyncClient(f"http://{server.target}") as c:
+            cams = await c.list_cameras()
+            info = await c.dataset_info()
+            assert (await c.arm("main")).arm == "main"
+            with pytest.raises(NotFound):
+                await c.arm("nope")
+            async with await c.teleop("main") as t:
+                # Feedback echoes a sample within a control tick (~10 ms); 10 s only absorbs scheduling
+                # stalls of a loaded 2-core machine, it is not a latency claim.
+                seq = await t.clutch(True, [0.0, 1.2, -0.3])
+                fb = await t.wait_feedback(seq, timeout_s=10.0)
+                assert fb.error == "" and fb.arm_state.engaged, fb
+                seq = await t.clutch(False)
+                assert not (await t.wait_feedback(seq, timeout_s=10.0)).arm_state.engaged
+        return cams, info
+
+    cams, info = asyncio.run(main())
+    with Client(server.target) as c:
+        assert [x.camera for x in cams] == [x.camera for x in c.list_cameras()]
+        assert info.root == c.dataset_info().root
+
+
+@pytest.mark.parametrize("form", ["{}", "http://{}", "HTTP://{}/"])
+def test_every_url_form_reaches_the_server(server: Server, form: str) -> None:
+    target = form.format(server.target)
+    # The server is already up: connecting is a loopback handshake; 10 s absorbs a loaded machine's stalls.
+    with Client(target, connect_timeout_s=10.0) as c:
+        assert c.list_arms()[0].arm == "main"
+
+    async def main() -> str:
+        async with AsyncClient(target, connect_timeout_s=10.0) as c:
+            return (await c.list_arms())[0].arm
+
+    assert asyncio.run(main()) == "main"
 
 
 def test_token_is_required_and_sent(make_server) -> None:  # type: ignore[no-untyped-def]

@@ -7,6 +7,7 @@ tests/scripts/install-deps.sh test
 export SVT_LOG=1
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
+tests/scripts/lint-proto.sh
 # Tests that write LeRobot datasets copy them here; tests/conformance/run.sh then loads each with lerobot.
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
@@ -25,6 +26,7 @@ echo "rust: ${passed} passed, 0 failed"
 cargo build --release -p phone2act-server --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
 tests/python/run.sh
+tests/scripts/test-packaging.sh
 tests/rosbridge/run.sh
 tests/browser/run.sh
 if [[ -x tests/conformance/run.sh ]]; then

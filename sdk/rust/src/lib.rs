@@ -20,8 +20,9 @@ pub use phone2act_proto::v1 as proto;
 /// Errors from the client.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// The URL could not be parsed or the connection could not be made.
-    #[error("cannot connect to {url}: {source}")]
+    /// The URL could not be parsed or the connection could not be made. The reason is the error's
+    /// `source()` (print the chain, e.g. anyhow's `{:#}`), not repeated in its own message.
+    #[error("cannot connect to {url}")]
     Connect {
         url: String,
         #[source]

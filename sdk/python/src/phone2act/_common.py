@@ -19,6 +19,23 @@ IMAGE_RGB8 = common_pb2.IMAGE_ENCODING_RGB8
 IMAGE_JPEG = common_pb2.IMAGE_ENCODING_JPEG
 
 
+def split_target(target: str) -> tuple[str, bool]:
+    """(grpc address, TLS?) for a target typed as `host:port`, `http://host:port`, `https://host:port` or
+    `unix:/path`: the same forms the `phone2act` CLI and the Rust SDK accept. No scheme means plaintext."""
+    t = target.strip()
+    lower = t.lower()
+    if lower.startswith("https://"):
+        return t[len("https://"):].rstrip("/"), True
+    if lower.startswith("http://"):
+        return t[len("http://"):].rstrip("/"), False
+    return t, False
+
+
+def channel_credentials(root_certificates: bytes | None) -> grpc.ChannelCredentials:
+    """TLS credentials: the system's roots, or `root_certificates` (PEM) for a self-signed deployment."""
+    return grpc.ssl_channel_credentials(root_certificates=root_certificates)
+
+
 def channel_options(target: str) -> list[tuple[str, object]]:
     options: list[tuple[str, object]] = [
         # Observations with RGB frames are large (640x480x3 = 921 kB per camera).

@@ -1,8 +1,15 @@
-"""asyncio client: `AsyncClient`, `AsyncEpisodes`, `AsyncPolicySession` (same shapes as the sync layer)."""
+"""asyncio client: `AsyncClient`, `AsyncEpisodes`, `AsyncPolicySession`, `AsyncTeleopSession`.
+
+The same API as the sync layer (`phone2act.Client` and friends: same constructor, same methods, same
+arguments and defaults), with coroutines in place of blocking calls; `tests/python/test_sdk.py` checks the
+two stay in step. The constructor does not wait for the server: `async with AsyncClient(...)` or
+`await AsyncClient.connect(...)` does, up to `connect_timeout_s`.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Sequence
 from typing import Any, TypeVar
 
@@ -15,13 +22,17 @@ from phone2act._common import (
     IMAGE_NONE,
     ArmLayout,
     auth_metadata,
+    channel_credentials,
     channel_options,
     hello_request,
     layouts_from_ready,
     make_chunk,
+    make_pose,
+    split_target,
 )
 from phone2act.errors import (
     DeadlineExceeded,
+    NotFound,
     Phone2ActError,
     ServerUnavailable,
     SessionClosed,
@@ -35,21 +46,42 @@ from phone2act.v1 import (
     policy_pb2_grpc,
     system_pb2,
     system_pb2_grpc,
+    teleop_pb2,
+    teleop_pb2_grpc,
 )
 
 T = TypeVar("T")
 
 
 class AsyncClient:
-    """asyncio counterpart of `phone2act.Client`. Create with `await AsyncClient.connect(...)`."""
+    """asyncio counterpart of `phone2act.Client`, with the same constructor.
 
-    def __init__(self, target: str, token: str | None, timeout_s: float) -> None:
+    >>> async with AsyncClient("127.0.0.1:50051") as c:
+    ...     print([a.arm for a in await c.list_arms()])
+    """
+
+    def __init__(
+        self,
+        target: str = DEFAULT_TARGET,
+        *,
+        token: str | None = None,
+        connect_timeout_s: float = 5.0,
+        timeout_s: float = 30.0,
+        root_certificates: bytes | None = None,
+    ) -> None:
         self.target = target
         self.timeout_s = timeout_s
+        self.connect_timeout_s = connect_timeout_s
         self._md = auth_metadata(token)
-        self._channel = grpc.aio.insecure_channel(target, options=channel_options(target))
+        address, tls = split_target(target)
+        self._channel = (
+            grpc.aio.secure_channel(address, channel_credentials(root_certificates), options=channel_options(address))
+            if tls
+            else grpc.aio.insecure_channel(address, options=channel_options(address))
+        )
         self.system_stub = system_pb2_grpc.SystemStub(self._channel)
         self.policy_stub = policy_pb2_grpc.PolicyStub(self._channel)
+        self.teleop_stub = teleop_pb2_grpc.TeleopStub(self._channel)
         self.episodes = AsyncEpisodes(self, episodes_pb2_grpc.EpisodesStub(self._channel))
 
     @classmethod
@@ -60,23 +92,37 @@ class AsyncClient:
         token: str | None = None,
         connect_timeout_s: float = 5.0,
         timeout_s: float = 30.0,
+        root_certificates: bytes | None = None,
     ) -> AsyncClient:
-        self = cls(target, token, timeout_s)
-        if connect_timeout_s > 0:
-            try:
-                await asyncio.wait_for(self._channel.channel_ready(), connect_timeout_s)
-            except asyncio.TimeoutError:
-                await self._channel.close()
-                raise ServerUnavailable(
-                    f"cannot connect to the phone2act server at {target} within {connect_timeout_s:.1f} s; "
-                    "is `phone2act serve` running and listening there?",
-                    grpc.StatusCode.UNAVAILABLE,
-                ) from None
+        """A client whose server answered within `connect_timeout_s` (0 skips the wait)."""
+        self = cls(
+            target,
+            token=token,
+            connect_timeout_s=connect_timeout_s,
+            timeout_s=timeout_s,
+            root_certificates=root_certificates,
+        )
+        await self._wait_ready()
         return self
 
-    async def _call(self, what: str, fn: Callable[..., Awaitable[T]], request: Any) -> T:
+    async def _wait_ready(self) -> None:
+        if self.connect_timeout_s <= 0:
+            return
         try:
-            return await fn(request, timeout=self.timeout_s, metadata=self._md)
+            await asyncio.wait_for(self._channel.channel_ready(), self.connect_timeout_s)
+        except asyncio.TimeoutError:
+            await self._channel.close()
+            raise ServerUnavailable(
+                f"cannot connect to the phone2act server at {self.target} within {self.connect_timeout_s:.1f} s; "
+                "is `phone2act serve` running and listening there?",
+                grpc.StatusCode.UNAVAILABLE,
+            ) from None
+
+    async def _call(
+        self, what: str, fn: Callable[..., Awaitable[T]], request: Any, timeout_s: float | None = None
+    ) -> T:
+        try:
+            return await fn(request, timeout=timeout_s or self.timeout_s, metadata=self._md)
         except grpc.aio.AioRpcError as e:
             raise from_rpc_error(e, what, self.target) from None
 
@@ -84,20 +130,43 @@ class AsyncClient:
         await self._channel.close()
 
     async def __aenter__(self) -> "AsyncClient":
+        await self._wait_ready()
         return self
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
+    # --- System ---------------------------------------------------------------------------------------
+
     async def list_arms(self) -> list[common_pb2.ArmState]:
         r = await self._call("System.ListArms", self.system_stub.ListArms, system_pb2.ListArmsRequest())
         return list(r.arms)
 
+    async def arm(self, name: str) -> common_pb2.ArmState:
+        for a in await self.list_arms():
+            if a.arm == name:
+                return a
+        raise NotFound(f"no arm {name!r} on {self.target}")
+
     async def status(self) -> system_pb2.SystemStatus:
         return await self._call("System.GetStatus", self.system_stub.GetStatus, system_pb2.GetStatusRequest())
 
-    async def observe(self, arms: Sequence[str] = (), image_encoding: int = IMAGE_NONE) -> policy_pb2.Observation:
-        req = policy_pb2.GetObservationRequest(arms=list(arms), image_encoding=image_encoding)
+    async def dataset_info(self) -> system_pb2.DatasetInfo:
+        return await self._call(
+            "System.GetDatasetInfo", self.system_stub.GetDatasetInfo, system_pb2.GetDatasetInfoRequest()
+        )
+
+    async def list_cameras(self) -> list[common_pb2.CameraStatus]:
+        r = await self._call("System.ListCameras", self.system_stub.ListCameras, system_pb2.ListCamerasRequest())
+        return list(r.cameras)
+
+    # --- Policy ---------------------------------------------------------------------------------------
+
+    async def observe(
+        self, arms: Sequence[str] = (), image_encoding: int = IMAGE_NONE, cameras: Sequence[str] = ()
+    ) -> policy_pb2.Observation:
+        """One observation now, without a session."""
+        req = policy_pb2.GetObservationRequest(arms=list(arms), image_encoding=image_encoding, cameras=list(cameras))
         return await self._call("Policy.GetObservation", self.policy_stub.GetObservation, req)
 
     async def policy_session(
@@ -108,16 +177,23 @@ class AsyncClient:
         request_control: bool = True,
         image_encoding: int = IMAGE_NONE,
         cameras: Sequence[str] = (),
-        policy_name: str = "phone2act-python-aio",
+        policy_name: str = "phone2act-python",
         silence_timeout_s: float = 1.0,
         ready_timeout_s: float = 10.0,
     ) -> AsyncPolicySession:
+        """Open a Policy.Session; returns once `SessionReady` arrived (and control was granted, if asked)."""
         hello = hello_request(
             arms, observation_rate_hz, request_control, image_encoding, cameras, policy_name, silence_timeout_s
         )
         session = AsyncPolicySession(self, hello)
         await session._open(ready_timeout_s)
         return session
+
+    async def teleop(
+        self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False
+    ) -> AsyncTeleopSession:
+        """Open a Teleop.Stream for `arm` (the arm is claimed with the first sample sent)."""
+        return AsyncTeleopSession(self, arm, client_name, take_over)
 
 
 class AsyncEpisodes:
@@ -130,8 +206,12 @@ class AsyncEpisodes:
         return r.status
 
     async def stop(self) -> episodes_pb2.EpisodeInfo:
+        """Stop and save; returns when the episode is on disk."""
+        return (await self.stop_with_latency())[0]
+
+    async def stop_with_latency(self) -> tuple[episodes_pb2.EpisodeInfo, float]:
         r = await self._c._call("Episodes.Stop", self._stub.Stop, episodes_pb2.StopEpisodeRequest())
-        return r.episode
+        return r.episode, r.save_latency_s
 
     async def discard(self) -> int:
         r = await self._c._call("Episodes.Discard", self._stub.Discard, episodes_pb2.DiscardEpisodeRequest())
@@ -174,7 +254,7 @@ class AsyncPolicySession:
         self.events: asyncio.Queue[policy_pb2.PolicyEvent] = asyncio.Queue(maxsize=10_000)
         self.granted: policy_pb2.ControlGranted | None = None
         self.revoked: policy_pb2.ControlRevoked | None = None
-        self.error: Phone2ActError | None = None
+        self._error: Phone2ActError | None = None
         self._reader: asyncio.Task[None] | None = None
         self.session_id = ""
         self.layouts: dict[str, ArmLayout] = {}
@@ -206,7 +286,7 @@ class AsyncPolicySession:
             while True:
                 ev = await self._call.read()
                 if ev is grpc.aio.EOF:
-                    self.error = SessionClosed("Policy.Session: the server ended the stream")
+                    self._error = SessionClosed("Policy.Session: the server ended the stream")
                     break
                 kind = ev.WhichOneof("event")
                 if kind == "observation":
@@ -221,13 +301,13 @@ class AsyncPolicySession:
                     self.events.put_nowait(ev)
                 self._changed.set()
         except grpc.aio.AioRpcError as e:
-            self.error = (
+            self._error = (
                 SessionClosed("Policy.Session: closed by the client", e.code())
                 if e.code() == grpc.StatusCode.CANCELLED
                 else from_rpc_error(e, "Policy.Session", self._client.target)
             )
         except asyncio.CancelledError:
-            self.error = SessionClosed("Policy.Session: closed by the client")
+            self._error = SessionClosed("Policy.Session: closed by the client")
         finally:
             self._changed.set()
 
@@ -239,8 +319,8 @@ class AsyncPolicySession:
             self._changed.clear()
             if predicate():
                 return
-            if self.error is not None:
-                raise self.error
+            if self._error is not None:
+                raise self._error
             left = deadline - loop.time()
             if left <= 0:
                 raise DeadlineExceeded(f"Policy.Session: no {what} within {timeout_s:.1f} s")
@@ -268,17 +348,44 @@ class AsyncPolicySession:
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
         chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
         req = policy_pb2.PushChunkRequest(session_id=self.session_id, chunk=chunk)
-        return await self._client._call("Policy.PushChunk", self._client.policy_stub.PushChunk, req)
+        return await self._client._call("Policy.PushChunk", self._client.policy_stub.PushChunk, req, timeout_s)
 
     async def push_on_stream(
-        self, arm: str, steps: Iterable[Sequence[float]], step_period_s: float, *,
-        observation_id: int = 0, mode: int = DELTA_EE,
+        self,
+        arm: str,
+        steps: Iterable[Sequence[float]],
+        step_period_s: float,
+        *,
+        observation_id: int = 0,
+        mode: int = DELTA_EE,
+        blend_steps: int = 0,
     ) -> None:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode)
+        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
         await self._call.write(policy_pb2.PolicyRequest(chunk=chunk))
+
+    async def request_observation(self) -> None:
+        await self._call.write(policy_pb2.PolicyRequest(observe=policy_pb2.ObservationRequest()))
+
+    async def next_event(self, timeout_s: float = 5.0) -> policy_pb2.PolicyEvent:
+        try:
+            return await asyncio.wait_for(self.events.get(), timeout_s)
+        except asyncio.TimeoutError:
+            if self._error is not None and self._reader is not None and self._reader.done():
+                raise self._error from None
+            raise DeadlineExceeded(f"no policy event within {timeout_s:.1f} s") from None
+
+    @property
+    def closed(self) -> bool:
+        return self._reader is not None and self._reader.done()
+
+    @property
+    def error(self) -> Phone2ActError | None:
+        """Why the session ended, once it has."""
+        return self._error
 
     async def release(self) -> None:
         await self._call.write(policy_pb2.PolicyRequest(release=policy_pb2.ReleaseControl()))
@@ -294,6 +401,125 @@ class AsyncPolicySession:
                 pass
 
     async def __aenter__(self) -> "AsyncPolicySession":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+class AsyncTeleopSession:
+    """A Teleop.Stream for one arm on asyncio: send phone poses and buttons, read the latest feedback."""
+
+    def __init__(self, client: AsyncClient, arm: str, client_name: str, take_over: bool) -> None:
+        self._client = client
+        self.arm = arm
+        self._client_name = client_name
+        self._take_over = take_over
+        self._seq = 0
+        self._first = True
+        self.feedback: teleop_pb2.TeleopFeedback | None = None
+        self._error: Phone2ActError | None = None
+        self._changed = asyncio.Event()
+        self._call: Any = client.teleop_stub.Stream(metadata=client._md)
+        self._reader = asyncio.get_running_loop().create_task(self._read())
+
+    async def _read(self) -> None:
+        try:
+            while True:
+                fb = await self._call.read()
+                if fb is grpc.aio.EOF:
+                    self._error = SessionClosed("Teleop.Stream: the server ended the stream")
+                    break
+                self.feedback = fb
+                self._changed.set()
+        except grpc.aio.AioRpcError as e:
+            self._error = (
+                SessionClosed("Teleop.Stream: closed by the client", e.code())
+                if e.code() == grpc.StatusCode.CANCELLED
+                else from_rpc_error(e, "Teleop.Stream", self._client.target)
+            )
+        except asyncio.CancelledError:
+            self._error = SessionClosed("Teleop.Stream: closed by the client")
+        finally:
+            self._changed.set()
+
+    @property
+    def closed(self) -> bool:
+        return self._reader.done()
+
+    @property
+    def error(self) -> Phone2ActError | None:
+        return self._error
+
+    async def send(
+        self,
+        position: Sequence[float] | None = None,
+        orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+        *,
+        buttons: Sequence[teleop_pb2.ButtonEvent] = (),
+        tracking: int = teleop_pb2.TRACKING_STATE_TRACKING,
+    ) -> int:
+        """Send one sample (a pose in the phone's tracking frame and/or buttons); returns its seq."""
+        if self.closed:
+            raise self._error or SessionClosed("Teleop.Stream closed")
+        self._seq += 1
+        sample = teleop_pb2.PhoneSample(
+            seq=self._seq,
+            capture_time_ns=time.monotonic_ns(),
+            buttons=list(buttons),
+            client_name=self._client_name,
+        )
+        if self._first:
+            sample.arm, sample.take_over, self._first = self.arm, self._take_over, False
+        if position is not None:
+            sample.tracking_from_phone.CopyFrom(make_pose(position, orientation_xyzw))
+            sample.tracking = tracking
+        else:
+            sample.tracking = teleop_pb2.TRACKING_STATE_UNSPECIFIED
+        await self._call.write(sample)
+        return self._seq
+
+    async def clutch(
+        self, engage: bool, position: Sequence[float] | None = None,
+        orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+    ) -> int:
+        kind = teleop_pb2.ClutchCommand.KIND_ENGAGE if engage else teleop_pb2.ClutchCommand.KIND_DISENGAGE
+        b = teleop_pb2.ButtonEvent(clutch=teleop_pb2.ClutchCommand(kind=kind))
+        return await self.send(position, orientation_xyzw, buttons=[b])
+
+    async def gripper(self, position: float) -> int:
+        b = teleop_pb2.ButtonEvent(
+            gripper=teleop_pb2.GripperCommand(kind=teleop_pb2.GripperCommand.KIND_SET, position=position)
+        )
+        return await self.send(None, buttons=[b])
+
+    async def wait_feedback(self, seq: int, timeout_s: float = 2.0) -> teleop_pb2.TeleopFeedback:
+        """Wait until feedback echoes `seq` (or a later sample)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while True:
+            self._changed.clear()
+            if self.feedback is not None and self.feedback.echoed_seq >= seq:
+                return self.feedback
+            if self.closed:
+                raise self._error or SessionClosed("Teleop.Stream closed")
+            left = deadline - loop.time()
+            if left <= 0:
+                raise DeadlineExceeded(f"no teleop feedback for seq {seq} within {timeout_s:.1f} s")
+            try:
+                await asyncio.wait_for(self._changed.wait(), left)
+            except asyncio.TimeoutError:
+                pass
+
+    async def close(self) -> None:
+        self._call.cancel()
+        self._reader.cancel()
+        try:
+            await self._reader
+        except asyncio.CancelledError:
+            pass
+
+    async def __aenter__(self) -> "AsyncTeleopSession":
         return self
 
     async def __aexit__(self, *exc: object) -> None:

@@ -20,11 +20,13 @@ from phone2act._common import (
     IMAGE_NONE,
     ArmLayout,
     auth_interceptor,
+    channel_credentials,
     channel_options,
     hello_request,
     layouts_from_ready,
     make_chunk,
     make_pose,
+    split_target,
 )
 from phone2act.errors import (
     DeadlineExceeded,
@@ -56,8 +58,10 @@ class Client:
     >>> with Client("127.0.0.1:50051") as c:
     ...     print([a.arm for a in c.list_arms()])
 
-    `target` is `host:port` or `unix:/path/to.sock`. The constructor waits up to `connect_timeout_s` for the
-    server and raises `ServerUnavailable` (a `ConnectionError`) if it does not answer; 0 skips the wait.
+    `target` is `host:port`, `http://host:port`, `https://host:port` (TLS; `root_certificates` is the PEM
+    to trust instead of the system's roots) or `unix:/path/to.sock`. The constructor waits up to
+    `connect_timeout_s` for the server and raises `ServerUnavailable` (a `ConnectionError`) if it does not
+    answer; 0 skips the wait.
     """
 
     def __init__(
@@ -67,10 +71,16 @@ class Client:
         token: str | None = None,
         connect_timeout_s: float = 5.0,
         timeout_s: float = 30.0,
+        root_certificates: bytes | None = None,
     ) -> None:
         self.target = target
         self.timeout_s = timeout_s
-        channel = grpc.insecure_channel(target, options=channel_options(target))
+        address, tls = split_target(target)
+        channel = (
+            grpc.secure_channel(address, channel_credentials(root_certificates), options=channel_options(address))
+            if tls
+            else grpc.insecure_channel(address, options=channel_options(address))
+        )
         if token:
             channel = grpc.intercept_channel(channel, auth_interceptor(token))
         self._channel = channel
