@@ -617,7 +617,12 @@ fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     // V4: MovL(pose={x,...},...); V3: MovL(x,y,z,rx,ry,rz).
     let values: Vec<&str> = match params.first().map(|p| p.trim()) {
         Some(first) if first.to_ascii_lowercase().starts_with("pose=") => {
-            let inner = first[5..].trim().trim_start_matches('{').trim_end_matches('}');
+            let inner = first
+                .get(5..)
+                .unwrap_or_default()
+                .trim()
+                .trim_start_matches('{')
+                .trim_end_matches('}');
             split_top_level(inner)
         }
         _ => params.to_vec(),
