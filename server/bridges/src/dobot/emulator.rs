@@ -7,6 +7,9 @@
 //! function of the tool pose, enough for feedback to move when the arm does. Faults can be injected: a robot
 //! error, dropped connections, and corrupt or truncated feedback packets.
 
+// Commands arrive from the network: slicing a `str` by byte index would panic on a multi-byte character.
+#![deny(clippy::string_slice)]
+
 use super::feedback::{EulerConvention, FeedbackPacket};
 use super::gripper::parse_modbus_write_register;
 use super::protocol::{Firmware, RobotMode, split_command, split_top_level};
