@@ -72,15 +72,19 @@ impl Drop for Running {
 }
 
 async fn start_gateway(server: &TestServer, pair_for_s: u64) -> Running {
+    start_gateway_with(server, |c| c.pair_for_s = pair_for_s).await
+}
+
+async fn start_gateway_with(server: &TestServer, tweak: impl FnOnce(&mut GatewayConfig)) -> Running {
     let dir = tempfile::tempdir().unwrap();
-    let config = GatewayConfig {
+    let mut config = GatewayConfig {
         cert_dir: Some(dir.path().to_owned()),
         print_qr: false,
         public_host: Some("127.0.0.1".into()),
         local_addresses: Some(vec!["127.0.0.1".parse().unwrap()]),
-        pair_for_s,
         ..GatewayConfig::default()
     };
+    tweak(&mut config);
     let listeners = Listeners {
         rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
         https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
@@ -409,5 +413,70 @@ async fn a_guessed_session_id_pushes_nothing() {
     let accepted = policy.push_chunk_checked(&client, fresh).await.unwrap();
     assert!(accepted.steps_scheduled > 0, "{accepted:?}");
     drop(policy);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn another_address_cannot_take_an_arm_from_a_silent_phone_until_it_disconnects() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = default_config(dir.path());
+    config.server.token = Some(SERVER_TOKEN.into());
+    let server = TestServer::start(config).await.unwrap();
+    let client = Client::connect(&server.url(), Some(SERVER_TOKEN)).await.unwrap();
+    // 127.0.0.2 is admitted (allow list) but is another address than the holder's.
+    let gw = start_gateway_with(&server, |c| c.allow = vec![PHONE.parse().unwrap()]).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let mut holder = rosbridge_from("127.0.0.1", &gw, "").await;
+    send(&mut holder, &app_pose(0.0)).await;
+    send(&mut holder, APP_FOLLOW).await;
+    assert!(wait_until(|| async { arm_state(&client).await.engaged }).await);
+    let owner = arm_state(&client).await.owner_id;
+    let held = pos(arm_state(&client).await.robot_from_target.as_ref().unwrap());
+    // The holder goes silent with its socket open (reading, so it answers pings).
+    let holder_task = tokio::spawn(async move { while let Some(Ok(_)) = holder.next().await {} });
+
+    let mut other = rosbridge_from(PHONE, &gw, "").await;
+    send(&mut other, r#"{"op":"set_level","level":"error"}"#).await;
+    // 1.5 s of poses walking 5 cm, five times the take-over silence: the arm must not change hands.
+    for i in 0..75 {
+        send(&mut other, &app_pose(-0.05 * f64::from(i) / 75.0)).await;
+        if i % 10 == 0 {
+            send(&mut other, APP_FOLLOW).await;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let state = arm_state(&client).await;
+    assert_eq!(state.owner_id, owner, "another address took the arm");
+    let now = pos(state.robot_from_target.as_ref().unwrap());
+    let moved = ((now[0] - held[0]).powi(2) + (now[1] - held[1]).powi(2) + (now[2] - held[2]).powi(2)).sqrt();
+    assert!(moved < 1e-9, "the arm moved {moved} m");
+    let refusal = loop {
+        match tokio::time::timeout(T, other.next()).await {
+            Ok(Some(Ok(Message::Text(t)))) if t.as_str().contains("status") => break t.as_str().to_owned(),
+            Ok(Some(Ok(_))) => {}
+            other => panic!("no refusal status: {other:?}"),
+        }
+    };
+    assert!(
+        refusal.contains("driven by another phone (127.0.0.1)"),
+        "{refusal}"
+    );
+
+    // Once the holder disconnects, the arm is free for the other phone (after its 2 s refusal back-off).
+    holder_task.abort();
+    let deadline = tokio::time::Instant::now() + T;
+    let mut z = -0.05;
+    let mut took = false;
+    while !took && tokio::time::Instant::now() < deadline {
+        z -= 0.0005;
+        send(&mut other, &app_pose(z)).await;
+        send(&mut other, APP_FOLLOW).await;
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        took = arm_state(&client).await.owner_id != owner;
+    }
+    assert!(took, "the arm stayed bound to a closed socket");
+    drop(other);
+    drop(gw);
     server.shutdown().await.unwrap();
 }

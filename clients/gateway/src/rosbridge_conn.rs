@@ -247,12 +247,12 @@ impl RosbridgeHandler {
         let live = self.sessions.get(&arm).is_some_and(|s| !s.is_finished());
         if !live {
             let silence = self.shared.takeover_silence();
-            match self
+            let inherited = match self
                 .shared
                 .holders
                 .claim(&arm, self.conn, self.peer, now, silence)
             {
-                Claim::Bind => {}
+                Claim::Bind => None,
                 Claim::TakeOver { volume } => {
                     tracing::info!(
                         arm,
@@ -260,15 +260,7 @@ impl RosbridgeHandler {
                         "rosbridge: a new connection from the arm's own address takes it over from its silent one"
                     );
                     sample.take_over = true;
-                    // Continue from the app's state unless this message states it already.
-                    if let Some(state) = volume
-                        && !self.volume.contains_key(&arm)
-                    {
-                        self.volume.insert(arm.clone(), state);
-                        let mut buttons = volume_buttons(state);
-                        buttons.append(&mut sample.buttons);
-                        sample.buttons = buttons;
-                    }
+                    volume
                 }
                 // The holder spoke less than a staleness timeout ago; the next message asks again.
                 Claim::Wait => return,
@@ -280,6 +272,14 @@ impl RosbridgeHandler {
                     self.status(StatusLevel::Error, &message, None);
                     self.refused_until.insert(arm, now + REFUSED_BACKOFF);
                     return;
+                }
+            };
+            // A new session starts disengaged: tell it the app's state this connection last heard (possibly
+            // while the arm was not yet its own), else the state of the connection it takes over from.
+            if let Some(state) = self.volume.get(&arm).copied().or(inherited) {
+                self.volume.insert(arm.clone(), state);
+                if sample.buttons.is_empty() {
+                    sample.buttons = volume_buttons(state);
                 }
             }
             let session = Session::start(

@@ -152,7 +152,9 @@ impl Gateway {
             }
             None => None,
         };
-        if token.is_none() && config.rosbridge_require_token {
+        // Without HTTPS there is no page to pair through, but rosbridge still needs a token to refuse anyone
+        // else: only `require_token = false` makes the gateway open.
+        if token.is_none() && (config.rosbridge_require_token || rosbridge_addr.is_some()) {
             token = tls::pairing_token(&config, &cert_dir)?;
         }
         let (shutdown_tx, shutdown) = watch::channel(false);

@@ -462,3 +462,46 @@ async fn a_server_restart_is_survived() {
     .await;
     assert!(ok.is_ok(), "gateway did not reconnect to the restarted server");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_https_rosbridge_still_refuses_addresses_that_are_not_local() {
+    // Only 127.0.0.1 counts as this machine; a client bound to 127.0.0.2 plays a phone on the Wi-Fi.
+    let h = start(&["main"], |c| {
+        c.https = false;
+        c.local_addresses = Some(vec!["127.0.0.1".parse().unwrap()]);
+    })
+    .await;
+    let token = h.info.token.clone().expect("a token even without HTTPS");
+    let addr = h.info.rosbridge_addr.unwrap();
+    let connect = |query: String| async move {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind("127.0.0.2:0".parse().unwrap()).unwrap();
+        let tcp = socket.connect(addr).await.unwrap();
+        tokio_tungstenite::client_async(format!("ws://{addr}/{query}"), tcp)
+            .await
+            .unwrap()
+            .0
+    };
+    let mut phone = connect(String::new()).await;
+    send(&mut phone, &pose_msg("/Phone2Act/ar_pose", 0.01)).await;
+    let refusal = next_json(&mut phone, T).await.expect("no refusal");
+    assert!(
+        refusal["msg"].as_str().unwrap().contains("not paired"),
+        "{refusal}"
+    );
+    // The token in the URL admits it.
+    let mut phone = connect(format!("?token={token}")).await;
+    send(&mut phone, &pose_msg("/Phone2Act/ar_pose", 0.02)).await;
+    assert!(
+        h.mock.wait_for(T, |m| !m.received().is_empty()).await,
+        "a token-bearing client was not served"
+    );
+    // Nothing from the refused socket reached the server.
+    assert!(h.mock.received().iter().all(|r| {
+        r.sample
+            .tracking_from_phone
+            .and_then(|p| p.position_m)
+            .map(|p| p.x)
+            == Some(0.02)
+    }));
+}

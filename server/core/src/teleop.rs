@@ -5,7 +5,9 @@
 //! current pose and the robot's *measured* end-effector pose, and resets the gate's jump reference there,
 //! so engaging never moves the robot. The same re-index happens automatically on the first good sample
 //! after lost tracking, after a stale stream and after a rejected jump, which is how the arm recovers
-//! without the operator touching the clutch.
+//! without the operator touching the clutch. After a rejected jump with the clutch still held it anchors at
+//! the last commanded target instead of the measured pose, which lags it: re-indexing at the lagging pose
+//! would shift the phone-to-robot mapping for good.
 
 use crate::config::{ConfigError, TeleopConfig};
 use crate::gate::{GateDecision, GateVerdict, SafetyGate};

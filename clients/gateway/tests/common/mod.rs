@@ -40,9 +40,14 @@ pub async fn start(arms: &[&str], tweak: impl FnOnce(&mut GatewayConfig)) -> Har
         ..GatewayConfig::default()
     };
     tweak(&mut config);
+    // The enable flags pick which listeners exist (with_listeners serves whatever it is given).
     let listeners = Listeners {
         rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
+        https: if config.https {
+            Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap())
+        } else {
+            None
+        },
     };
     let gateway = Gateway::with_listeners(config, &mock.url(), None, listeners).unwrap();
     let info = gateway.info().clone();

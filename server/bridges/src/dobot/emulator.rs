@@ -7,6 +7,9 @@
 //! function of the tool pose, enough for feedback to move when the arm does. Faults can be injected: a robot
 //! error, dropped connections, and corrupt or truncated feedback packets.
 
+// Commands arrive from the network: slicing a `str` by byte index would panic on a multi-byte character.
+#![deny(clippy::string_slice)]
+
 use super::feedback::{EulerConvention, FeedbackPacket};
 use super::gripper::parse_modbus_write_register;
 use super::protocol::{Firmware, RobotMode, split_command, split_top_level};
@@ -617,7 +620,12 @@ fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     // V4: MovL(pose={x,...},...); V3: MovL(x,y,z,rx,ry,rz).
     let values: Vec<&str> = match params.first().map(|p| p.trim()) {
         Some(first) if first.to_ascii_lowercase().starts_with("pose=") => {
-            let inner = first[5..].trim().trim_start_matches('{').trim_end_matches('}');
+            let inner = first
+                .get(5..)
+                .unwrap_or_default()
+                .trim()
+                .trim_start_matches('{')
+                .trim_end_matches('}');
             split_top_level(inner)
         }
         _ => params.to_vec(),

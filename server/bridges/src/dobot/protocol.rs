@@ -3,6 +3,9 @@
 //! Both the bridge and the emulator use these helpers, so the emulator's replies are checked by the same parser
 //! that reads the real controller. The shapes follow the Dobot V4 protocol document (V3 differences noted).
 
+// Replies arrive from the network: slicing a `str` by byte index would panic on a multi-byte character.
+#![deny(clippy::string_slice)]
+
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
@@ -113,7 +116,8 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
         }
     }
     let close = close.ok_or_else(|| ReplyError::Malformed(format!("unbalanced braces in {text:?}")))?;
-    let values_text = inner[..close].trim();
+    // `close` comes from `char_indices`, so both cuts are on char boundaries; `get` keeps that checked.
+    let values_text = inner.get(..close).unwrap_or_default().trim();
     let values = if values_text.is_empty() {
         Vec::new()
     } else {
@@ -122,7 +126,12 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
             .map(|v| v.trim().to_owned())
             .collect()
     };
-    let echo = inner[close + 1..].trim_start_matches(',').trim().to_owned();
+    let echo = inner
+        .get(close + 1..)
+        .unwrap_or_default()
+        .trim_start_matches(',')
+        .trim()
+        .to_owned();
     Ok(Reply {
         error_id,
         values,
@@ -140,13 +149,13 @@ pub fn split_top_level(text: &str) -> Vec<&str> {
             '{' | '(' => depth += 1,
             '}' | ')' => depth -= 1,
             ',' if depth == 0 => {
-                parts.push(&text[start..i]);
+                parts.push(text.get(start..i).unwrap_or_default());
                 start = i + 1;
             }
             _ => {}
         }
     }
-    parts.push(&text[start..]);
+    parts.push(text.get(start..).unwrap_or_default());
     parts
 }
 
@@ -267,8 +276,8 @@ pub fn split_command(text: &str) -> Option<(&str, Vec<&str>)> {
     if close < open {
         return None;
     }
-    let name = text[..open].trim();
-    let inner = text[open + 1..close].trim();
+    let name = text.get(..open)?.trim();
+    let inner = text.get(open + 1..close)?.trim();
     let params = if inner.is_empty() {
         Vec::new()
     } else {
