@@ -452,7 +452,8 @@ impl ImageStats {
 }
 
 /// Running aggregate of per-episode stats (what lerobot's `aggregate_stats` computes), small and
-/// serialisable so that resuming a dataset does not need to reread every episode.
+/// serialisable so that resuming a dataset does not need to reread every episode. Its quantiles are
+/// lerobot's count-weighted mean: kept for images; numeric columns take theirs from a [`QuantileSketch`].
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Aggregate {
     pub kind: Option<StatKind>,
@@ -463,7 +464,7 @@ pub struct Aggregate {
     pub sum_mean: Vec<f64>,
     /// Σ n·(var + mean²)
     pub sum_sq: Vec<f64>,
-    /// Σ n·q per quantile
+    /// Σ n·q per quantile (lerobot's aggregate, not a quantile of the data)
     pub sum_q: Vec<Vec<f64>>,
 }
 
