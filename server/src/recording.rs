@@ -177,6 +177,56 @@ mod tests {
     use super::*;
 
     #[test]
+    fn modality_groups_say_which_actions_are_relative() {
+        let config = Config::embedded_default().unwrap();
+        let arm = |name: &str, mode: ActionMode| {
+            let joints = (0..6).map(|j| format!("j{j}")).collect();
+            let bridge = phone2act_bridges::remote::RemoteBridge::with_joint_names(name, joints);
+            let a = &config.arms[0];
+            Arc::new(
+                ArmController::new(
+                    name,
+                    "remote",
+                    bridge,
+                    &a.teleop,
+                    &a.chunk,
+                    mode,
+                    nalgebra::Isometry3::identity(),
+                )
+                .unwrap(),
+            )
+        };
+        let arms = [arm("left", ActionMode::Delta), arm("right", ActionMode::Absolute)];
+        let spec = dataset_spec(&config, &arms).unwrap();
+        let flags: Vec<(&str, usize, usize, bool)> = spec
+            .modality
+            .iter()
+            .map(|g| {
+                (
+                    g.name.as_str(),
+                    g.action_range.start,
+                    g.action_range.end,
+                    g.action_absolute,
+                )
+            })
+            .collect();
+        assert_eq!(
+            flags,
+            [
+                ("left_arm", 0, 6, false),
+                ("left_gripper", 6, 7, true),
+                ("right_arm", 7, 13, true),
+                ("right_gripper", 13, 14, true),
+            ]
+        );
+        assert!(
+            spec.action_names[..6]
+                .iter()
+                .all(|n| n.starts_with("left_delta_"))
+        );
+    }
+
+    #[test]
     fn sync_counters_reach_the_wire() {
         let config = Config::embedded_default().unwrap();
         let status = RecorderStatus {

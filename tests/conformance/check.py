@@ -251,6 +251,64 @@ def check_v30_stats(root: Path, info: dict, stats: dict):
         mismatches = [m for m in (stats_mismatch(entry, col, ts) for ts in candidates) if m]
         if len(mismatches) == len(candidates):
             fail(mismatches[0])
+    check_v30_episode_stats(root, stats, all_rows, n_eps, ep.max() >= n_eps)
+
+
+def check_v30_episode_stats(root: Path, stats: dict, rows, n_eps: int, one_ahead: bool):
+    """The per-episode stats in meta/episodes are numpy's over that episode's rows, and meta/stats.json's
+    min, max, mean, std and count are what lerobot's own aggregate_stats makes of them (its quantiles are
+    a count-weighted mean of the episodes'; phone2act writes the dataset's, checked above; images keep
+    lerobot's aggregate)."""
+    from lerobot.datasets.compute_stats import aggregate_stats
+
+    meta = pa_concat([pq.read_table(f) for f in sorted((root / "meta/episodes").glob("*/*.parquet"))])
+    ep_col = np.asarray(rows.column("episode_index").to_pylist())
+    per_episode = {}
+    for i, e in enumerate(meta.column("episode_index").to_pylist()):
+        st = {}
+        for name in meta.column_names:
+            if name.startswith("stats/"):
+                feature, key = name[len("stats/"):].rsplit("/", 1)
+                st.setdefault(feature, {})[key] = np.asarray(meta.column(name)[i].as_py(), dtype=np.float64)
+        per_episode[e] = st
+        mask = ep_col == e
+        if not mask.any():
+            if e < n_eps:
+                fail(f"meta/episodes lists episode {e} but the data has no rows of it")
+            continue  # killed between the episode-metadata and data renames: not committed yet
+        for col in rows.column_names:
+            data = np.asarray(rows.column(col).filter(pa_mask(mask)).to_pylist(), dtype=np.float64).reshape(int(mask.sum()), -1)
+            got = st.get(col)
+            if got is None:
+                fail(f"meta/episodes: episode {e} has no stats for {col}")
+            for k, ref in (("min", data.min(0)), ("max", data.max(0)), ("mean", data.mean(0)), ("std", data.std(0))):
+                if not np.allclose(got[k].reshape(-1), ref, rtol=1e-4, atol=1e-4):
+                    fail(f"meta/episodes: episode {e} {col}.{k} = {got[k][:4]} but its rows give {ref[:4]}")
+            for k, q in QUANTILE_KEYS.items():
+                if not np.allclose(got[k].reshape(-1), np.quantile(data, q, axis=0), rtol=1e-5, atol=1e-6):
+                    fail(f"meta/episodes: episode {e} {col}.{k} is not numpy's over its rows")
+    candidates = [[per_episode[e] for e in sorted(per_episode) if e < n_eps]]
+    if one_ahead:
+        candidates.append([per_episode[e] for e in sorted(per_episode)])
+    problems = []
+    for eps in candidates:
+        agg = aggregate_stats(eps)
+        why = None
+        for feature, ref in agg.items():
+            keys = ["min", "max", "mean", "std", "count"]
+            if "image" in feature:
+                keys += list(QUANTILE_KEYS)
+            for k in keys:
+                got = np.asarray(stats[feature][k], dtype=np.float64)
+                if got.shape != np.asarray(ref[k]).shape or not np.allclose(got, ref[k], rtol=1e-6, atol=1e-9):
+                    why = f"meta/stats.json {feature}.{k} = {got.reshape(-1)[:4]} but lerobot aggregates {np.asarray(ref[k]).reshape(-1)[:4]}"
+                    break
+            if why:
+                break
+        if why is None:
+            return
+        problems.append(why)
+    fail(problems[0])
 
 
 def pa_concat(tables):

@@ -223,6 +223,17 @@ impl Dataset {
         } else if self.total_episodes > 0 {
             tracing::warn!(root = %root.display(), "rebuilding the dataset quantiles from the data");
             self.quantiles = QuantileStore::rebuild(root, self.total_episodes)?;
+            // A dataset from an older phone2act has averaged quantiles in stats.json: correct it now rather
+            // than at the next save, if the running aggregates describe the same frames (each file is
+            // replaced atomically, and both describe only committed episodes).
+            let agg = &self.provenance.stats;
+            if self.quantiles.current.frames == self.total_frames
+                && agg.get("index").is_some_and(|a| a.count == self.total_frames)
+            {
+                let stats = stats_json(agg, &self.quantiles, self.spec.format);
+                write_atomic(&root.join("meta/stats.json"), &pretty(&stats))?;
+                write_atomic(&root.join(QUANTILES_FILE), &self.quantiles.encode())?;
+            }
         }
         Ok(())
     }

@@ -5,8 +5,8 @@
 //! The file is written into staging and renamed by the same commit journal as the episode, so it always
 //! describes the committed episodes; it records how many episodes and frames it covers, and a dataset
 //! whose file is missing, damaged or out of step (another writer, a copy without it) gets it rebuilt from
-//! the parquet data at open. It also keeps the state before the last episode, so that removing that
-//! episode for a re-record needs no re-read either.
+//! the parquet data at open. In memory it also keeps the state before the last episode, so that removing
+//! that episode for a re-record needs no re-read (after a reopen that removal rebuilds from the data).
 
 use crate::error::RecorderError;
 use crate::parquet_io;
@@ -44,7 +44,7 @@ impl QuantileState {
     }
 }
 
-/// The current state and the one before the last episode.
+/// The current state and (in memory only) the one before the last episode.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct QuantileStore {
     pub current: QuantileState,
@@ -84,18 +84,11 @@ impl QuantileStore {
             .collect();
     }
 
-    /// The file's bytes: magic, then the current state, then a flag and the state before the last episode;
-    /// little-endian, closed by a 64-bit FNV-1a checksum of everything before it.
+    /// The file's bytes: magic, then the current state, little-endian, closed by a 64-bit FNV-1a checksum
+    /// of everything before it.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = MAGIC.to_vec();
         encode_state(&mut out, &self.current);
-        match &self.before_last {
-            Some(s) => {
-                out.push(1);
-                encode_state(&mut out, s);
-            }
-            None => out.push(0),
-        }
         let sum = fnv1a(&out);
         out.extend_from_slice(&sum.to_le_bytes());
         out
@@ -109,12 +102,10 @@ impl QuantileStore {
         }
         let mut r = Reader(body.strip_prefix(MAGIC.as_slice())?);
         let current = decode_state(&mut r)?;
-        let before_last = match r.u8()? {
-            0 => None,
-            1 => Some(decode_state(&mut r)?),
-            _ => return None,
-        };
-        r.0.is_empty().then_some(QuantileStore { current, before_last })
+        r.0.is_empty().then_some(QuantileStore {
+            current,
+            before_last: None,
+        })
     }
 
     /// The persisted store of `root` if it covers exactly `episodes` episodes and `frames` frames.
@@ -214,9 +205,18 @@ fn encode_state(out: &mut Vec<u8>, s: &QuantileState) {
                 u64s(out, v);
             }
             for l in levels {
+                // Recorded values are float32 (state, action, timestamp) or small integers: stored in 4
+                // bytes when that is exact, which halves the file.
+                #[allow(clippy::float_cmp)] // exactness is the point
+                let narrow = l.iter().all(|v| f64::from(*v as f32) == *v);
                 u64s(out, l.len() as u64);
+                out.push(if narrow { 4 } else { 8 });
                 for v in l {
-                    out.extend_from_slice(&v.to_le_bytes());
+                    if narrow {
+                        out.extend_from_slice(&(*v as f32).to_le_bytes());
+                    } else {
+                        out.extend_from_slice(&v.to_le_bytes());
+                    }
                 }
             }
         }
@@ -257,12 +257,20 @@ fn decode_state(r: &mut Reader) -> Option<QuantileState> {
             let (count, bound, parity) = (r.u64()?, r.u64()?, r.u64()?);
             let mut levels = Vec::new();
             for _ in 0..r.len(8)? {
-                let n = r.len(8)?;
-                let level = r
-                    .take(n * 8)?
-                    .chunks_exact(8)
-                    .map(|b| f64::from_le_bytes(b.try_into().unwrap_or_default()))
-                    .collect();
+                let n = r.len(4)?;
+                let level = match r.u8()? {
+                    4 => r
+                        .take(n.checked_mul(4)?)?
+                        .chunks_exact(4)
+                        .map(|b| f64::from(f32::from_le_bytes(b.try_into().unwrap_or_default())))
+                        .collect(),
+                    8 => r
+                        .take(n.checked_mul(8)?)?
+                        .chunks_exact(8)
+                        .map(|b| f64::from_le_bytes(b.try_into().unwrap_or_default()))
+                        .collect(),
+                    _ => return None,
+                };
                 levels.push(level);
             }
             dims.push(QuantileSketch::from_parts(levels, count, bound, parity)?);
@@ -296,7 +304,12 @@ mod tests {
         store.add_episode(3000, &[("action", &episode(0, 3000))]);
         store.add_episode(2500, &[("action", &episode(3000, 2500))]);
         let bytes = store.encode();
-        assert_eq!(QuantileStore::decode(&bytes), Some(store.clone()));
+        let back = QuantileStore::decode(&bytes).unwrap();
+        assert_eq!(back.current, store.current);
+        assert_eq!(
+            back.before_last, None,
+            "the state before the last episode is not persisted"
+        );
         for cut in [0, 8, bytes.len() / 2, bytes.len() - 1] {
             assert_eq!(QuantileStore::decode(&bytes[..cut]), None, "truncated at {cut}");
         }

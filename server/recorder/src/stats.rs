@@ -117,7 +117,7 @@ fn quantile_sorted(sorted: &[f64], q: f64) -> f64 {
 pub const SKETCH_LEVEL_CAPACITY: usize = 4096;
 
 /// A deterministic, mergeable quantile summary of one dimension (a multi-level compactor: level `h` holds
-/// values of weight `2^h`). Until a level overflows nothing is dropped and quantiles are exact. A
+/// values of weight `2^h`, sorted above level 0). Until a level overflows nothing is dropped and quantiles are exact. A
 /// compaction sorts a full level and promotes every other value (alternating which half, so that the
 /// errors of successive compactions tend to cancel); it moves any rank by at most the level's weight, and
 /// [`QuantileSketch::rank_error_bound`] is the sum of those weights: a proven bound, not an estimate.
@@ -144,7 +144,17 @@ impl QuantileSketch {
     }
 
     /// Rebuilds a sketch from its parts (see [`QuantileSketch::parts`]); `None` if they are inconsistent.
-    pub fn from_parts(levels: Vec<Vec<f64>>, count: u64, rank_error_bound: u64, parity: u64) -> Option<Self> {
+    pub fn from_parts(
+        mut levels: Vec<Vec<f64>>,
+        count: u64,
+        rank_error_bound: u64,
+        parity: u64,
+    ) -> Option<Self> {
+        for l in levels.iter_mut().skip(1) {
+            if !l.is_sorted_by(|a, b| a.total_cmp(b).is_le()) {
+                l.sort_by(f64::total_cmp);
+            }
+        }
         let weight: u128 = levels
             .iter()
             .enumerate()
@@ -179,8 +189,12 @@ impl QuantileSketch {
         if self.levels.len() < other.levels.len() {
             self.levels.resize(other.levels.len(), Vec::new());
         }
-        for (mine, theirs) in self.levels.iter_mut().zip(&other.levels) {
-            mine.extend_from_slice(theirs);
+        for (h, (mine, theirs)) in self.levels.iter_mut().zip(&other.levels).enumerate() {
+            if h == 0 {
+                mine.extend_from_slice(theirs);
+            } else {
+                merge_sorted(mine, theirs);
+            }
         }
         self.count += other.count;
         self.rank_error_bound += other.rank_error_bound;
@@ -192,7 +206,9 @@ impl QuantileSketch {
         while h < self.levels.len() {
             if self.levels[h].len() > SKETCH_LEVEL_CAPACITY {
                 let level = &mut self.levels[h];
-                level.sort_by(f64::total_cmp);
+                if h == 0 {
+                    level.sort_by(f64::total_cmp);
+                }
                 // An odd value out stays at this level; the rest pair up.
                 let keep = level.len() % 2;
                 let offset = usize::from(self.parity >> h & 1 == 1);
@@ -202,22 +218,24 @@ impl QuantileSketch {
                 if self.levels.len() == h + 1 {
                     self.levels.push(Vec::new());
                 }
-                self.levels[h + 1].extend(promoted);
+                merge_sorted(&mut self.levels[h + 1], &promoted);
                 self.rank_error_bound += 1 << h;
             }
             h += 1;
         }
     }
 
-    /// The summarised values with their weights, sorted by value.
+    /// The summarised values with their weights, sorted by value (the levels above 0 are sorted already,
+    /// so this is a sort of at most one level and a merge: a few ms per save for a long dataset).
     fn weighted(&self) -> Vec<(f64, u64)> {
-        let mut items: Vec<(f64, u64)> = self
-            .levels
-            .iter()
-            .enumerate()
-            .flat_map(|(h, l)| l.iter().map(move |v| (*v, 1u64 << h)))
-            .collect();
-        items.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut items: Vec<(f64, u64)> = Vec::new();
+        for (h, level) in self.levels.iter().enumerate() {
+            let mut run: Vec<(f64, u64)> = level.iter().map(|v| (*v, 1u64 << h)).collect();
+            if h == 0 {
+                run.sort_by(|a, b| a.0.total_cmp(&b.0));
+            }
+            merge_sorted_by(&mut items, &run, |x| x.0);
+        }
         items
     }
 
@@ -247,6 +265,32 @@ impl QuantileSketch {
             })
             .collect()
     }
+}
+
+/// Merges the sorted `run` into the sorted `into`.
+fn merge_sorted(into: &mut Vec<f64>, run: &[f64]) {
+    merge_sorted_by(into, run, |x| *x);
+}
+
+/// Merges `run` into `into`, both sorted by `key`.
+fn merge_sorted_by<T: Copy>(into: &mut Vec<T>, run: &[T], key: impl Fn(&T) -> f64) {
+    if run.is_empty() {
+        return;
+    }
+    let mut out = Vec::with_capacity(into.len() + run.len());
+    let (mut i, mut j) = (0, 0);
+    while i < into.len() && j < run.len() {
+        if key(&into[i]).total_cmp(&key(&run[j])).is_le() {
+            out.push(into[i]);
+            i += 1;
+        } else {
+            out.push(run[j]);
+            j += 1;
+        }
+    }
+    out.extend_from_slice(&into[i..]);
+    out.extend_from_slice(&run[j..]);
+    *into = out;
 }
 
 /// Collects the values of one numeric feature over one episode (bounded by the episode length).
@@ -408,7 +452,8 @@ impl ImageStats {
 }
 
 /// Running aggregate of per-episode stats (what lerobot's `aggregate_stats` computes), small and
-/// serialisable so that resuming a dataset does not need to reread every episode.
+/// serialisable so that resuming a dataset does not need to reread every episode. Its quantiles are
+/// lerobot's count-weighted mean: kept for images; numeric columns take theirs from a [`QuantileSketch`].
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Aggregate {
     pub kind: Option<StatKind>,
@@ -419,7 +464,7 @@ pub struct Aggregate {
     pub sum_mean: Vec<f64>,
     /// Σ n·(var + mean²)
     pub sum_sq: Vec<f64>,
-    /// Σ n·q per quantile
+    /// Σ n·q per quantile (lerobot's aggregate, not a quantile of the data)
     pub sum_q: Vec<Vec<f64>>,
 }
 

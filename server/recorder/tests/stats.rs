@@ -85,8 +85,21 @@ fn write_dataset(root: &Path, format: Format, episodes: u64, long: bool) {
         record_episode(&mut ds, half, long, &mut rng);
     }
     drop(ds);
+    // As a dataset from an older phone2act: no quantile file, averaged quantiles in stats.json.
     std::fs::remove_file(root.join(QUANTILES_FILE)).ok();
+    let stats_path = root.join("meta/stats.json");
+    let tampered = half > 0;
+    if tampered {
+        let mut stats = read_json(&stats_path);
+        stats["index"]["q01"] = json!([-1.0]);
+        std::fs::write(&stats_path, stats.to_string()).unwrap();
+    }
     let mut ds = open();
+    if tampered {
+        assert!(root.join(QUANTILES_FILE).exists(), "rebuilt at open");
+        let q01 = read_json(&stats_path)["index"]["q01"].clone();
+        assert_ne!(q01, json!([-1.0]), "stats.json corrected at open");
+    }
     let start = if half > 0 { half + 1 } else { 0 };
     for e in start..episodes {
         record_episode(&mut ds, e, long, &mut rng);
