@@ -177,7 +177,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn modality_groups_say_which_actions_are_relative() {
+    fn modality_groups_are_absolute_whatever_mode_policies_push() {
+        use phone2act_core::ActionMode;
         let config = Config::embedded_default().unwrap();
         let arm = |name: &str, mode: ActionMode| {
             let joints = (0..6).map(|j| format!("j{j}")).collect();
@@ -196,7 +197,10 @@ mod tests {
                 .unwrap(),
             )
         };
-        let arms = [arm("left", ActionMode::Delta), arm("right", ActionMode::Absolute)];
+        // A relative arm's policies push steps relative to their observation, but the dataset records the
+        // absolute target (the one definition in `phone2act_core::layout`), so GR00T must pad it with the last
+        // value (hold), never with zero.
+        let arms = [arm("left", ActionMode::Relative), arm("right", ActionMode::Absolute)];
         let spec = dataset_spec(&config, &arms).unwrap();
         let flags: Vec<(&str, usize, usize, bool)> = spec
             .modality
@@ -213,17 +217,15 @@ mod tests {
         assert_eq!(
             flags,
             [
-                ("left_arm", 0, 6, false),
-                ("left_gripper", 6, 7, true),
-                ("right_arm", 7, 13, true),
-                ("right_gripper", 13, 14, true),
+                ("left_arm", 0, 9, true),
+                ("left_gripper", 9, 10, true),
+                ("right_arm", 10, 19, true),
+                ("right_gripper", 19, 20, true),
             ]
         );
-        assert!(
-            spec.action_names[..6]
-                .iter()
-                .all(|n| n.starts_with("left_delta_"))
-        );
+        assert_eq!(spec.action_names[0], "left_x");
+        assert_eq!(spec.action_names[9], "left_gripper");
+        assert!(!spec.action_names.iter().any(|n| n.contains("delta")));
     }
 
     #[test]
