@@ -87,6 +87,8 @@ pub struct ArmController {
     pub bridge: Arc<dyn Bridge>,
     pub layout: ArmLayout,
     pub action_mode: ActionMode,
+    /// Forward/inverse kinematics for joint actions (arms whose joints are the SO-101's).
+    kinematics: Option<phone2act_core::kinematics::So101Kinematics>,
     inner: Mutex<Inner>,
     /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
     latencies_ns: Mutex<LatencyRing>,
@@ -134,6 +136,10 @@ pub enum ArmError {
         #[source]
         source: phone2act_core::ConfigError,
     },
+    #[error(
+        "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
+    )]
+    JointModeUnsupported { arm: String, joints: Vec<String> },
 }
 
 impl ArmController {
@@ -154,6 +160,14 @@ impl ArmController {
         let measured = bridge.feedback().map_or(fallback, |f| f.robot_from_ee);
         let gripper = bridge.feedback().map_or(0.0, |f| f.gripper_position);
         let layout = ArmLayout::new(bridge.joint_names().to_vec());
+        let kinematics = (bridge.joint_names() == phone2act_core::kinematics::SO101_ARM_JOINT_NAMES)
+            .then(phone2act_core::kinematics::So101Kinematics::new);
+        if action_mode == ActionMode::Joint && kinematics.is_none() {
+            return Err(ArmError::JointModeUnsupported {
+                arm: name.to_owned(),
+                joints: bridge.joint_names().to_vec(),
+            });
+        }
         let inner = Inner {
             teleop: TeleopArm::new(teleop, measured).map_err(config_err)?,
             policy_gate: SafetyGate::new(&teleop.gate, measured).map_err(config_err)?,
@@ -176,6 +190,7 @@ impl ArmController {
             bridge,
             layout,
             action_mode,
+            kinematics,
             inner: Mutex::new(inner),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
@@ -474,7 +489,13 @@ impl ArmController {
     ) -> Result<ReplaceReport, Status> {
         let mut steps = Vec::with_capacity(actions.len());
         for (k, action) in actions.iter().enumerate() {
-            let (robot_from_target, gripper) = phone2act_core::target_from_step(&reference, action, mode)
+            let converted = match (mode, &self.kinematics) {
+                (ActionMode::Joint, Some(kinematics)) => {
+                    phone2act_core::target_from_joint_step(kinematics, action)
+                }
+                _ => phone2act_core::target_from_step(&reference, action, mode),
+            };
+            let (robot_from_target, gripper) = converted
                 .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
             steps.push(ChunkStep {
                 robot_from_target,
@@ -632,7 +653,8 @@ impl ArmController {
     }
 
     /// `observation.state` and the executed `action` for the recorder and for policies: the action is the
-    /// last gated target, absolute (see `phone2act_core::layout`), so it means the same from any frame.
+    /// last gated target, absolute (see `phone2act_core::layout`), so it means the same from any frame; a
+    /// joint arm's is the joints that target asks for.
     pub fn state_and_action(&self) -> Option<ArmSample> {
         let feedback = self.bridge.feedback()?;
         let (target, gripper) = self.target();
@@ -644,7 +666,13 @@ impl ArmController {
                 feedback.gripper_position,
             )
             .ok()?;
-        let action = phone2act_core::absolute_action(&target, gripper);
+        let action = match (self.action_mode, &self.kinematics) {
+            (ActionMode::Joint, Some(kinematics)) => {
+                phone2act_core::joint_action(kinematics, &target, &feedback.joint_positions_rad, gripper)
+                    .ok()?
+            }
+            _ => phone2act_core::absolute_action(&target, gripper),
+        };
         Some(ArmSample {
             state,
             action,

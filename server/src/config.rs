@@ -123,8 +123,9 @@ pub struct ArmConfig {
     #[serde(default)]
     pub chunk: phone2act_core::ChunkConfig,
     /// Action representation policies are told to push (and trained with): "relative" (to the chunk's
-    /// observation; "delta" is accepted as its old name) or "absolute". Datasets always record absolute
-    /// targets, from which a trainer derives relative chunks.
+    /// observation; "delta" is accepted as its old name), "absolute", or "joint" (SO-101 arms: joint targets,
+    /// recorded and pushed). End-effector arms record absolute targets, from which a trainer derives
+    /// relative chunks.
     #[serde(default)]
     pub action_mode: phone2act_core::ActionMode,
     /// Simulated arm settings (bridge = "sim").
