@@ -54,6 +54,10 @@ struct Inner {
     gripper_target: f64,
     last_decision: GateDecision,
     last_policy_step: Option<ChunkStep>,
+    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
+    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
+    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
+    joint_seed: Option<Vec<f64>>,
     seq: u64,
     commands_sent: u64,
     commands_rejected: u64,
@@ -140,6 +144,10 @@ pub enum ArmError {
         "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
     )]
     JointModeUnsupported { arm: String, joints: Vec<String> },
+    #[error(
+        "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
+    )]
+    LerobotLayoutUnsupported { arm: String },
 }
 
 impl ArmController {
@@ -179,6 +187,7 @@ impl ArmController {
             gripper_target: gripper,
             last_decision: GateDecision::note(GateVerdict::Accepted, "idle"),
             last_policy_step: None,
+            joint_seed: None,
             seq: 0,
             commands_sent: 0,
             commands_rejected: 0,
@@ -195,6 +204,18 @@ impl ArmController {
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
         })
+    }
+
+    /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
+    /// `phone2act_core::LerobotSo101Units`). Joint arms with SO-101 kinematics only.
+    pub fn with_lerobot_so101(mut self, units: phone2act_core::LerobotSo101Units) -> Result<Self, ArmError> {
+        if self.action_mode != ActionMode::Joint || self.kinematics.is_none() {
+            return Err(ArmError::LerobotLayoutUnsupported {
+                arm: self.name.clone(),
+            });
+        }
+        self.layout = self.layout.with_lerobot_so101(units);
+        Ok(self)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -490,9 +511,10 @@ impl ArmController {
         let mut steps = Vec::with_capacity(actions.len());
         for (k, action) in actions.iter().enumerate() {
             let converted = match (mode, &self.kinematics) {
-                (ActionMode::Joint, Some(kinematics)) => {
-                    phone2act_core::target_from_joint_step(kinematics, action)
-                }
+                (ActionMode::Joint, Some(kinematics)) => phone2act_core::target_from_joint_step(
+                    kinematics,
+                    &self.layout.joint_step_to_native(action),
+                ),
                 _ => phone2act_core::target_from_step(&reference, action, mode),
             };
             let (robot_from_target, gripper) = converted
@@ -668,8 +690,15 @@ impl ArmController {
             .ok()?;
         let action = match (self.action_mode, &self.kinematics) {
             (ActionMode::Joint, Some(kinematics)) => {
-                phone2act_core::joint_action(kinematics, &target, &feedback.joint_positions_rad, gripper)
-                    .ok()?
+                let mut inner = self.lock();
+                let seed = inner
+                    .joint_seed
+                    .take()
+                    .unwrap_or_else(|| feedback.joint_positions_rad.clone());
+                let native = phone2act_core::joint_action(kinematics, &target, &seed, gripper).ok()?;
+                inner.joint_seed = Some(native[..native.len() - 1].to_vec());
+                drop(inner);
+                self.layout.joint_step_from_native(&native)
             }
             _ => phone2act_core::absolute_action(&target, gripper),
         };

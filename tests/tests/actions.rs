@@ -22,9 +22,19 @@ const FPS: f64 = 20.0;
 const HORIZON: usize = 16;
 const CHUNK_EVERY: usize = 8;
 
-fn config(root: &Path, mode: phone2act_core::ActionMode) -> Config {
+/// The arm's configured action mode and whether it records in lerobot's `so101_follower` layout.
+#[derive(Clone, Copy, Debug)]
+struct Setup {
+    mode: phone2act_core::ActionMode,
+    lerobot: bool,
+}
+
+fn config(root: &Path, setup: Setup) -> Config {
     let mut config = default_config(root);
-    config.arms[0].action_mode = mode;
+    config.arms[0].action_mode = setup.mode;
+    if setup.lerobot {
+        config.arms[0].dataset_layout = phone2act_server::config::DatasetLayout::LerobotSo101;
+    }
     // Phone rotations are robot rotations, so the script can turn the gripper about its own roll axis.
     config.arms[0].teleop.mapping.preset = phone2act_core::AxisPreset::Identity;
     config
@@ -77,6 +87,11 @@ fn load(root: &Path) -> Episode {
 }
 
 fn ee(layout: &ArmLayout, state: &[f64]) -> Isometry3<f64> {
+    if layout.ee_state_range().is_empty() {
+        // lerobot's layout has joints only (degrees): the pose is their forward kinematics.
+        let joints: [f64; 5] = std::array::from_fn(|j| state[j].to_radians());
+        return phone2act_core::kinematics::So101Kinematics::new().forward(&joints);
+    }
     pose_from_state_tail(&state[layout.ee_state_range()]).unwrap().0
 }
 
@@ -159,28 +174,12 @@ enum Replay {
     Joint,
 }
 
-impl Replay {
-    fn arm_mode(self) -> phone2act_core::ActionMode {
-        match self {
-            Replay::Joint => phone2act_core::ActionMode::Joint,
-            _ => phone2act_core::ActionMode::Relative,
-        }
-    }
-}
-
-async fn replay(episode: &Episode, how: Replay) -> Episode {
+async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
     let dir = tempfile::tempdir().unwrap();
-    let server = TestServer::start(config(dir.path(), how.arm_mode()))
-        .await
-        .unwrap();
+    let server = TestServer::start(config(dir.path(), setup)).await.unwrap();
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(400)).await;
-    let layout = ArmLayout::new(
-        phone2act_core::kinematics::SO101_ARM_JOINT_NAMES
-            .iter()
-            .map(|s| (*s).to_owned())
-            .collect(),
-    );
+    let layout = layout_of(setup);
     let (d, a) = pose_distance(&start_pose(&client).await, &ee(&layout, &episode.states[0]));
     assert!(
         d < 1e-4 && a < 1e-3,
@@ -301,9 +300,9 @@ fn path_errors(layout: &ArmLayout, original: &Episode, replayed: &Episode) -> (f
 }
 
 /// Records the teleoperated episode on a fresh server whose arm is configured with `mode`.
-async fn record(mode: phone2act_core::ActionMode, conformance_name: &str) -> Episode {
+async fn record(setup: Setup, conformance_name: &str) -> Episode {
     let dir = tempfile::tempdir().unwrap();
-    let server = TestServer::start(config(dir.path(), mode)).await.unwrap();
+    let server = TestServer::start(config(dir.path(), setup)).await.unwrap();
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(400)).await;
     client.episodes().start("turn the gripper twice").await.unwrap();
@@ -317,13 +316,22 @@ async fn record(mode: phone2act_core::ActionMode, conformance_name: &str) -> Epi
     }
 }
 
-fn so101_layout() -> ArmLayout {
-    ArmLayout::new(
+fn layout_of(setup: Setup) -> ArmLayout {
+    let layout = ArmLayout::new(
         phone2act_core::kinematics::SO101_ARM_JOINT_NAMES
             .iter()
             .map(|s| (*s).to_owned())
             .collect(),
-    )
+    );
+    if setup.lerobot {
+        // The state is read back only for its joints, so the gripper units do not matter here.
+        layout.with_lerobot_so101(phone2act_core::LerobotSo101Units {
+            gripper_open_pct: 100.0,
+            gripper_closed_pct: 0.0,
+        })
+    } else {
+        layout
+    }
 }
 
 /// Replays `original` the way `how` says and checks the path; a failed attempt is tried again, up to 3.
@@ -338,9 +346,9 @@ fn so101_layout() -> ArmLayout {
 /// load 10: 0.5 mm / 1.3°): the arm then skips the commands that arrived meanwhile and cuts straight to the
 /// newest, off the path. Such a stall is rare and independent between attempts; a wrong convention fails
 /// every attempt by centimetres. The recorders' held and late ticks are printed with each attempt.
-async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay) {
+async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay, setup: Setup) {
     for attempt in 1..=3 {
-        let replayed = replay(original, how).await;
+        let replayed = replay(original, how, setup).await;
         let (offset, dp, da) = path_errors(layout, original, &replayed);
         println!(
             "{how:?}: offset {offset:.2} frames, max {:.3} mm / {:.3}° (held+late ticks: original {}, replay {})",
@@ -363,8 +371,12 @@ async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_perfect_policy_retraces_the_recorded_episode_in_every_action_mode() {
-    let original = record(phone2act_core::ActionMode::Relative, "actions_perfect_policy").await;
-    let layout = so101_layout();
+    let setup = Setup {
+        mode: phone2act_core::ActionMode::Relative,
+        lerobot: false,
+    };
+    let original = record(setup, "actions_perfect_policy").await;
+    let layout = layout_of(setup);
     let poses: Vec<_> = original.states.iter().map(|s| ee(&layout, s)).collect();
     let turned = poses
         .iter()
@@ -391,9 +403,9 @@ async fn a_perfect_policy_retraces_the_recorded_episode_in_every_action_mode() {
     );
 
     for how in [Replay::Absolute, Replay::Relative] {
-        check_replay(&layout, &original, how).await;
+        check_replay(&layout, &original, how, setup).await;
     }
-    let old = replay(&original, Replay::OldPerFrameDelta).await;
+    let old = replay(&original, Replay::OldPerFrameDelta, setup).await;
     let (_, dp, _) = path_errors(&layout, &original, &old);
     println!("old per-frame delta: max {:.3} mm", dp * 1e3);
     assert!(
@@ -405,12 +417,82 @@ async fn a_perfect_policy_retraces_the_recorded_episode_in_every_action_mode() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_perfect_policy_retraces_a_joint_arms_episode() {
-    let original = record(phone2act_core::ActionMode::Joint, "actions_joint").await;
+    let setup = Setup {
+        mode: phone2act_core::ActionMode::Joint,
+        lerobot: false,
+    };
+    let original = record(setup, "actions_joint").await;
     assert_eq!(
         original.actions[0].len(),
         6,
         "a joint arm records joint targets and the gripper"
     );
-    let layout = so101_layout();
-    check_replay(&layout, &original, Replay::Joint).await;
+    check_replay(&layout_of(setup), &original, Replay::Joint, setup).await;
+}
+
+/// The lerobot `so101_follower` layout: the dataset's features are lerobot's names, the values its units
+/// (degrees, gripper percent), and the recorded joint targets pushed back in those units retrace the episode.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lerobot_so101_dataset_uses_lerobots_names_and_units_and_replays() {
+    let setup = Setup {
+        mode: phone2act_core::ActionMode::Joint,
+        lerobot: true,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(config(dir.path(), setup)).await.unwrap();
+    let client = server.client().await.unwrap();
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    let arms = client.system().list_arms().await.unwrap();
+    client.episodes().start("turn the gripper twice").await.unwrap();
+    teleoperate(&client).await;
+    client.episodes().stop().await.unwrap();
+    server.shutdown().await.unwrap();
+    keep_for_conformance("actions_lerobot_so101", dir.path());
+    let info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("meta/info.json")).unwrap()).unwrap();
+    let names = [
+        "shoulder_pan.pos",
+        "shoulder_lift.pos",
+        "elbow_flex.pos",
+        "wrist_flex.pos",
+        "wrist_roll.pos",
+        "gripper.pos",
+    ];
+    for feature in ["observation.state", "action"] {
+        assert_eq!(
+            info["features"][feature]["names"],
+            serde_json::json!(names),
+            "{feature}"
+        );
+    }
+    let original = load(dir.path());
+    // Frame 0 is the arm at rest where the server started: its joints, in degrees; the gripper open (100 %).
+    let start_deg: Vec<f64> = arms[0]
+        .joint_positions_rad
+        .iter()
+        .map(|q| q.to_degrees())
+        .collect();
+    for (j, want) in start_deg.iter().enumerate() {
+        // Degrees, not radians (a factor of 57); the sim's first IK solution still settles by ~0.01° between
+        // the snapshot and the first tick.
+        assert!(
+            (original.states[0][j] - want).abs() < 0.05,
+            "joint {j}: {} vs {want}",
+            original.states[0][j]
+        );
+    }
+    assert!(
+        (original.states[0][5] - 100.0).abs() < 1e-3,
+        "gripper.pos {}",
+        original.states[0][5]
+    );
+    if std::env::var_os("ACTIONS_DEBUG").is_some() {
+        println!(
+            "orig 0 {:?}\norig 60 {:?}\naction 60 {:?}",
+            original.states[0], original.states[60], original.actions[60]
+        );
+        let r = replay(&original, Replay::Joint, setup).await;
+        println!("rep 0 {:?}\nrep 60 {:?}", r.states[0], r.states[60]);
+    }
+    check_replay(&layout_of(setup), &original, Replay::Joint, setup).await;
 }

@@ -243,15 +243,89 @@ fn check_values(what: &'static str, values: &[f64], expected: usize) -> Result<(
     Ok(())
 }
 
+/// lerobot's `so101_follower` units, for datasets that merge with lerobot's own SO-101 datasets: the state and
+/// action are `shoulder_pan.pos` … `wrist_roll.pos` in degrees (lerobot's `use_degrees=True`, `(raw − mid)·360/4095`,
+/// which is what phone2act's SO-101 bridge reads as radians) and `gripper.pos` in percent of the calibrated
+/// range (`RANGE_0_100`), here at `gripper_open_pct` for phone2act's 0 (open) and `gripper_closed_pct` for 1.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LerobotSo101Units {
+    pub gripper_open_pct: f64,
+    pub gripper_closed_pct: f64,
+}
+
 /// Vector layout of one arm.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ArmLayout {
     joint_names: Vec<String>,
+    lerobot: Option<LerobotSo101Units>,
 }
 
 impl ArmLayout {
     pub fn new(joint_names: Vec<String>) -> Self {
-        Self { joint_names }
+        Self {
+            joint_names,
+            lerobot: None,
+        }
+    }
+
+    /// The same arm with lerobot `so101_follower` names and units for its state and joint actions (and no
+    /// end-effector columns, as lerobot has none).
+    #[must_use]
+    pub fn with_lerobot_so101(self, units: LerobotSo101Units) -> Self {
+        Self {
+            lerobot: Some(units),
+            ..self
+        }
+    }
+
+    /// lerobot's names: `{joint}.pos`, then `gripper.pos`.
+    fn lerobot_names(&self) -> Vec<String> {
+        self.joint_names
+            .iter()
+            .map(|n| format!("{n}.pos"))
+            .chain(std::iter::once("gripper.pos".to_owned()))
+            .collect()
+    }
+
+    /// A joint step in this layout's units (lerobot degrees and percent, or radians and 0..1) in radians and
+    /// 0..1.
+    pub fn joint_step_to_native(&self, step: &[f64]) -> Vec<f64> {
+        match self.lerobot {
+            None => step.to_vec(),
+            Some(u) => {
+                let span = u.gripper_closed_pct - u.gripper_open_pct;
+                step.iter()
+                    .enumerate()
+                    .map(|(i, v)| {
+                        if i + 1 < step.len() {
+                            v.to_radians()
+                        } else if span.abs() < 1e-9 {
+                            0.0
+                        } else {
+                            (v - u.gripper_open_pct) / span
+                        }
+                    })
+                    .collect()
+            }
+        }
+    }
+
+    /// The inverse of [`ArmLayout::joint_step_to_native`].
+    pub fn joint_step_from_native(&self, step: &[f64]) -> Vec<f64> {
+        match self.lerobot {
+            None => step.to_vec(),
+            Some(u) => step
+                .iter()
+                .enumerate()
+                .map(|(i, v)| {
+                    if i + 1 < step.len() {
+                        v.to_degrees()
+                    } else {
+                        u.gripper_open_pct + (u.gripper_closed_pct - u.gripper_open_pct) * v
+                    }
+                })
+                .collect(),
+        }
     }
 
     pub fn joint_names(&self) -> &[String] {
@@ -259,10 +333,16 @@ impl ArmLayout {
     }
 
     pub fn state_width(&self) -> usize {
+        if self.lerobot.is_some() {
+            return self.joint_names.len() + 1;
+        }
         self.joint_names.len() + EE_STATE_NAMES.len()
     }
 
     pub fn state_names(&self) -> Vec<String> {
+        if self.lerobot.is_some() {
+            return self.lerobot_names();
+        }
         self.joint_names
             .iter()
             .cloned()
@@ -286,6 +366,7 @@ impl ArmLayout {
         match mode {
             ActionMode::Absolute => self.recorded_action_names(mode),
             ActionMode::Relative => RELATIVE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect(),
+            ActionMode::Joint if self.lerobot.is_some() => self.lerobot_names(),
             ActionMode::Joint => self
                 .joint_names
                 .iter()
@@ -295,8 +376,12 @@ impl ArmLayout {
         }
     }
 
-    /// Where the end-effector part (`ee_x` … `gripper`) sits in this arm's state vector.
+    /// Where the end-effector part (`ee_x` … `gripper`) sits in this arm's state vector (empty in the lerobot
+    /// layout, which has none).
     pub fn ee_state_range(&self) -> Range<usize> {
+        if self.lerobot.is_some() {
+            return self.state_width()..self.state_width();
+        }
         self.joint_names.len()..self.state_width()
     }
 
@@ -313,6 +398,11 @@ impl ArmLayout {
                 expected: self.joint_names.len(),
                 got: joints_rad.len(),
             });
+        }
+        if self.lerobot.is_some() {
+            let mut native = joints_rad.to_vec();
+            native.push(gripper);
+            return Ok(self.joint_step_from_native(&native));
         }
         let mut v = Vec::with_capacity(self.state_width());
         v.extend_from_slice(joints_rad);
@@ -600,6 +690,39 @@ mod tests {
             prop_assert!(dp < 1e-4 && da < 1e-3, "{} m {} rad", dp, da);
             prop_assert!((g - 0.3).abs() < 1e-15);
         }
+    }
+
+    #[test]
+    fn lerobot_so101_names_and_units() {
+        let units = LerobotSo101Units {
+            gripper_open_pct: 100.0,
+            gripper_closed_pct: 0.0,
+        };
+        let l = so101().with_lerobot_so101(units);
+        let names = [
+            "shoulder_pan.pos",
+            "shoulder_lift.pos",
+            "elbow_flex.pos",
+            "wrist_flex.pos",
+            "wrist_roll.pos",
+            "gripper.pos",
+        ];
+        assert_eq!(l.state_names(), names);
+        assert_eq!(l.action_names(ActionMode::Joint), names);
+        assert_eq!(l.recorded_action_names(ActionMode::Joint), names);
+        assert!(l.ee_state_range().is_empty());
+        let state = l
+            .state_vector(&[FRAC_PI_2, -0.5, 0.0, 0.1, -PI], &Isometry3::identity(), 0.25)
+            .unwrap();
+        let expected = [90.0, -0.5f64.to_degrees(), 0.0, 0.1f64.to_degrees(), -180.0, 75.0];
+        assert!(
+            state.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
+            "{state:?}"
+        );
+        let native = l.joint_step_to_native(&state);
+        let back = l.joint_step_from_native(&native);
+        assert!(back.iter().zip(&state).all(|(a, b)| (a - b).abs() < 1e-12));
+        assert!((native[0] - FRAC_PI_2).abs() < 1e-15 && (native[5] - 0.25).abs() < 1e-15);
     }
 
     #[test]
