@@ -496,3 +496,25 @@ async fn a_lerobot_so101_dataset_uses_lerobots_names_and_units_and_replays() {
     }
     check_replay(&layout_of(setup), &original, Replay::Joint, setup).await;
 }
+
+/// Layouts an arm cannot have are refused at start, naming the arm and what to change.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn impossible_layouts_are_refused_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let lerobot_relative = config(
+        dir.path(),
+        Setup {
+            mode: phone2act_core::ActionMode::Relative,
+            lerobot: true,
+        },
+    );
+    let err = TestServer::start(lerobot_relative)
+        .await
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("main") && err.contains("action_mode = \"joint\""),
+        "{err}"
+    );
+}
