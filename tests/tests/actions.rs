@@ -27,6 +27,8 @@ const CHUNK_EVERY: usize = 8;
 struct Setup {
     mode: phone2act_core::ActionMode,
     lerobot: bool,
+    /// LeRobot v2.1 with GR00T's modality.json instead of v3.0.
+    v21: bool,
 }
 
 fn config(root: &Path, setup: Setup) -> Config {
@@ -34,6 +36,9 @@ fn config(root: &Path, setup: Setup) -> Config {
     config.arms[0].action_mode = setup.mode;
     if setup.lerobot {
         config.arms[0].dataset_layout = phone2act_server::config::DatasetLayout::LerobotSo101;
+    }
+    if setup.v21 {
+        config.recorder.format = phone2act_server::config::DatasetFormat::V21;
     }
     // Phone rotations are robot rotations, so the script can turn the gripper about its own roll axis.
     config.arms[0].teleop.mapping.preset = phone2act_core::AxisPreset::Identity;
@@ -374,6 +379,7 @@ async fn a_perfect_policy_retraces_the_recorded_episode_in_every_action_mode() {
     let setup = Setup {
         mode: phone2act_core::ActionMode::Relative,
         lerobot: false,
+        v21: false,
     };
     let original = record(setup, "actions_perfect_policy").await;
     let layout = layout_of(setup);
@@ -420,8 +426,10 @@ async fn a_perfect_policy_retraces_a_joint_arms_episode() {
     let setup = Setup {
         mode: phone2act_core::ActionMode::Joint,
         lerobot: false,
+        // In v2.1, so the conformance suite also checks GR00T's modality.json for a joint layout.
+        v21: true,
     };
-    let original = record(setup, "actions_joint").await;
+    let original = record(setup, "actions_joint_v21").await;
     assert_eq!(
         original.actions[0].len(),
         6,
@@ -437,6 +445,7 @@ async fn a_lerobot_so101_dataset_uses_lerobots_names_and_units_and_replays() {
     let setup = Setup {
         mode: phone2act_core::ActionMode::Joint,
         lerobot: true,
+        v21: false,
     };
     let dir = tempfile::tempdir().unwrap();
     let server = TestServer::start(config(dir.path(), setup)).await.unwrap();
@@ -506,6 +515,7 @@ async fn impossible_layouts_are_refused_at_start() {
         Setup {
             mode: phone2act_core::ActionMode::Relative,
             lerobot: true,
+            v21: false,
         },
     );
     let err = TestServer::start(lerobot_relative)
