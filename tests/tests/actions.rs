@@ -407,6 +407,24 @@ async fn a_perfect_policy_retraces_the_recorded_episode_in_every_action_mode() {
         10,
         "end-effector arms record absolute targets"
     );
+    // No recorded dimension jumps where the motion does not (the old `ee_roll` flipped at ±π 4 times in 5 s):
+    // between frames, the 6D columns of the state and of the action move at most √2 × the rotation between
+    // the two frames (each column is a unit vector turned by that angle), plus float32 rounding.
+    let rot6d_start = layout.ee_state_range().start + 3;
+    for (rows, r) in [(&original.states, rot6d_start), (&original.actions, 3)] {
+        for w in rows.windows(2) {
+            let (a, b) = (&w[0][r..r + 6], &w[1][r..r + 6]);
+            let turned = phone2act_core::pose::angle_between_rad(
+                &rotation_from_rot6d(a.try_into().unwrap()).unwrap(),
+                &rotation_from_rot6d(b.try_into().unwrap()).unwrap(),
+            );
+            let moved = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt();
+            assert!(
+                moved <= std::f64::consts::SQRT_2 * turned + 1e-5,
+                "6D moved {moved} for a {turned} rad turn"
+            );
+        }
+    }
 
     for how in [Replay::Absolute, Replay::Relative] {
         check_replay(&layout, &original, how, setup).await;
