@@ -151,6 +151,19 @@ impl App {
                 fallback_pose(),
             )
             .map_err(|e| arm_err(e.to_string()))?;
+            let controller = match arm.dataset_layout {
+                crate::config::DatasetLayout::Phone2act => controller,
+                crate::config::DatasetLayout::LerobotSo101 => {
+                    let defaults = phone2act_bridges::so101::So101Config::new("", "");
+                    let so101 = arm.so101.as_ref().unwrap_or(&defaults);
+                    controller
+                        .with_lerobot_so101(phone2act_core::LerobotSo101Units {
+                            gripper_open_pct: so101.gripper_open_pct,
+                            gripper_closed_pct: so101.gripper_closed_pct,
+                        })
+                        .map_err(|e| arm_err(e.to_string()))?
+                }
+            };
             arms.push(Arc::new(controller));
         }
         let mut cameras = Vec::new();

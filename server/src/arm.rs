@@ -54,6 +54,10 @@ struct Inner {
     gripper_target: f64,
     last_decision: GateDecision,
     last_policy_step: Option<ChunkStep>,
+    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
+    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
+    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
+    joint_seed: Option<Vec<f64>>,
     seq: u64,
     commands_sent: u64,
     commands_rejected: u64,
@@ -87,6 +91,8 @@ pub struct ArmController {
     pub bridge: Arc<dyn Bridge>,
     pub layout: ArmLayout,
     pub action_mode: ActionMode,
+    /// Forward/inverse kinematics for joint actions (arms whose joints are the SO-101's).
+    kinematics: Option<phone2act_core::kinematics::So101Kinematics>,
     inner: Mutex<Inner>,
     /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
     latencies_ns: Mutex<LatencyRing>,
@@ -134,6 +140,14 @@ pub enum ArmError {
         #[source]
         source: phone2act_core::ConfigError,
     },
+    #[error(
+        "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
+    )]
+    JointModeUnsupported { arm: String, joints: Vec<String> },
+    #[error(
+        "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
+    )]
+    LerobotLayoutUnsupported { arm: String },
 }
 
 impl ArmController {
@@ -154,6 +168,14 @@ impl ArmController {
         let measured = bridge.feedback().map_or(fallback, |f| f.robot_from_ee);
         let gripper = bridge.feedback().map_or(0.0, |f| f.gripper_position);
         let layout = ArmLayout::new(bridge.joint_names().to_vec());
+        let kinematics = (bridge.joint_names() == phone2act_core::kinematics::SO101_ARM_JOINT_NAMES)
+            .then(phone2act_core::kinematics::So101Kinematics::new);
+        if action_mode == ActionMode::Joint && kinematics.is_none() {
+            return Err(ArmError::JointModeUnsupported {
+                arm: name.to_owned(),
+                joints: bridge.joint_names().to_vec(),
+            });
+        }
         let inner = Inner {
             teleop: TeleopArm::new(teleop, measured).map_err(config_err)?,
             policy_gate: SafetyGate::new(&teleop.gate, measured).map_err(config_err)?,
@@ -165,6 +187,7 @@ impl ArmController {
             gripper_target: gripper,
             last_decision: GateDecision::note(GateVerdict::Accepted, "idle"),
             last_policy_step: None,
+            joint_seed: None,
             seq: 0,
             commands_sent: 0,
             commands_rejected: 0,
@@ -176,10 +199,23 @@ impl ArmController {
             bridge,
             layout,
             action_mode,
+            kinematics,
             inner: Mutex::new(inner),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
         })
+    }
+
+    /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
+    /// `phone2act_core::LerobotSo101Units`). Joint arms with SO-101 kinematics only.
+    pub fn with_lerobot_so101(mut self, units: phone2act_core::LerobotSo101Units) -> Result<Self, ArmError> {
+        if self.action_mode != ActionMode::Joint || self.kinematics.is_none() {
+            return Err(ArmError::LerobotLayoutUnsupported {
+                arm: self.name.clone(),
+            });
+        }
+        self.layout = self.layout.with_lerobot_so101(units);
+        Ok(self)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -482,7 +518,14 @@ impl ArmController {
     ) -> Result<ReplaceReport, Status> {
         let mut steps = Vec::with_capacity(actions.len());
         for (k, action) in actions.iter().enumerate() {
-            let (robot_from_target, gripper) = phone2act_core::target_from_step(&reference, action, mode)
+            let converted = match (mode, &self.kinematics) {
+                (ActionMode::Joint, Some(kinematics)) => phone2act_core::target_from_joint_step(
+                    kinematics,
+                    &self.layout.joint_step_to_native(action),
+                ),
+                _ => phone2act_core::target_from_step(&reference, action, mode),
+            };
+            let (robot_from_target, gripper) = converted
                 .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
             steps.push(ChunkStep {
                 robot_from_target,
@@ -640,7 +683,8 @@ impl ArmController {
     }
 
     /// `observation.state` and the executed `action` for the recorder and for policies: the action is the
-    /// last gated target, absolute (see `phone2act_core::layout`), so it means the same from any frame.
+    /// last gated target, absolute (see `phone2act_core::layout`), so it means the same from any frame; a
+    /// joint arm's is the joints that target asks for.
     pub fn state_and_action(&self) -> Option<ArmSample> {
         let feedback = self.bridge.feedback()?;
         let (target, gripper) = self.target();
@@ -652,7 +696,20 @@ impl ArmController {
                 feedback.gripper_position,
             )
             .ok()?;
-        let action = phone2act_core::absolute_action(&target, gripper);
+        let action = match (self.action_mode, &self.kinematics) {
+            (ActionMode::Joint, Some(kinematics)) => {
+                let mut inner = self.lock();
+                let seed = inner
+                    .joint_seed
+                    .take()
+                    .unwrap_or_else(|| feedback.joint_positions_rad.clone());
+                let native = phone2act_core::joint_action(kinematics, &target, &seed, gripper).ok()?;
+                inner.joint_seed = Some(native[..native.len() - 1].to_vec());
+                drop(inner);
+                self.layout.joint_step_from_native(&native)
+            }
+            _ => phone2act_core::absolute_action(&target, gripper),
+        };
         Some(ArmSample {
             state,
             action,

@@ -111,6 +111,15 @@ impl BridgeKind {
     }
 }
 
+/// Names and units of an arm's state and action columns.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum DatasetLayout {
+    #[default]
+    Phone2act,
+    LerobotSo101,
+}
+
 /// One arm.
 #[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -125,10 +134,16 @@ pub struct ArmConfig {
     #[serde(default)]
     pub chunk: phone2act_core::ChunkConfig,
     /// Action representation policies are told to push (and trained with): "relative" (to the chunk's
-    /// observation; "delta" is accepted as its old name) or "absolute". Datasets always record absolute
-    /// targets, from which a trainer derives relative chunks.
+    /// observation; "delta" is accepted as its old name), "absolute", or "joint" (SO-101 arms: joint targets,
+    /// recorded and pushed). End-effector arms record absolute targets, from which a trainer derives
+    /// relative chunks.
     #[serde(default)]
     pub action_mode: phone2act_core::ActionMode,
+    /// Names and units of the arm's state and actions: "phone2act" (joints rad, end-effector pose, gripper 0..1)
+    /// or "lerobot_so101" (lerobot's `so101_follower`: `shoulder_pan.pos` … in degrees, `gripper.pos` 0..100;
+    /// needs action_mode = "joint" on an SO-101), so datasets merge with lerobot's own SO-101 datasets.
+    #[serde(default)]
+    pub dataset_layout: DatasetLayout,
     /// Simulated arm settings (bridge = "sim").
     #[serde(default)]
     pub sim: Option<phone2act_bridges::sim::SimConfig>,

@@ -59,7 +59,11 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
     let mut modality = Vec::new();
     for arm in arms {
         let s = prefixed(&arm.name, arm.layout.state_names(), several);
-        let a = prefixed(&arm.name, arm.layout.recorded_action_names(), several);
+        let a = prefixed(
+            &arm.name,
+            arm.layout.recorded_action_names(arm.action_mode),
+            several,
+        );
         let (s0, a0) = (state_names.len(), action_names.len());
         let prefix = if several {
             format!("{}_", arm.name)

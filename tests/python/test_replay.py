@@ -1,7 +1,14 @@
-"""Replaying a recorded sim episode through the Policy API reproduces its end-effector trajectory.
+"""Replaying a recorded sim episode through the Policy API reproduces its targets and its trajectory.
 
 The original episode is teleoperated (a phone tracing a loop with a wrist turn); the replay is recorded as a
-second episode, and the two `observation.state` end-effector tracks are compared after aligning their start.
+second episode. Compared, both geometrically (each frame against the other recording's path, so a recorder
+tick that wakes late on a loaded machine, which samples the same path a little further along, does not count):
+- the executed targets (the `action` columns): the replay pushes the recorded targets themselves, so they must
+  lie on the original's target path to float32 rounding;
+- the measured end-effector paths (`observation.state`): the sim's 50 ms first-order joint lag follows the same
+  target path in both, but driven at different instants (50 Hz phone samples vs 80 Hz chunk steps), which
+  changes how it cuts the loop's curves by at most the lag's reach, v·τ ≤ 3.5 cm/s · 50 ms = 1.75 mm (and
+  0.19 rad/s · 50 ms = 0.5° of wrist turn), whatever the machine's load.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import pytest
 from conftest import REPO, Server
 from phone2act import Client
 from phone2act.poses import quat_from_rpy
-from phone2act_replay import align, load_episode, path_errors, pose_errors, replay
+from phone2act_replay import align, load_episode, path_errors, pose_errors, replay, target_path_errors
 
 PHONE0 = (0.0, 1.2, -0.3)
 
@@ -102,15 +109,17 @@ def test_replay_reproduces_the_recorded_trajectory(server: Server, recorded: int
           f"{max(pos.max(), back_pos.max()) * 1e3:.3f} mm / {math.degrees(max(ang.max(), back_ang.max())):.3f}°; "
           f"time-aligned (offset {offset:.2f} frames) max {tpos.max() * 1e3:.3f} mm / "
           f"{math.degrees(tang.max()):.3f}°, median {np.median(tpos) * 1e3:.3f} mm")
-    assert pos.max() < 1e-3 and back_pos.max() < 1e-3, f"path error {pos.max() * 1e3:.3f} / {back_pos.max() * 1e3:.3f} mm"
+    # See the module docstring for why these bounds hold on a loaded 2-core machine.
+    assert pos.max() < 2e-3 and back_pos.max() < 2e-3, f"path error {pos.max() * 1e3:.3f} / {back_pos.max() * 1e3:.3f} mm"
     assert math.degrees(max(ang.max(), back_ang.max())) < 1.0
+    # The median frame's tick is on time to a few ms even under load: v·δ = 3.5 cm/s · 10 ms = 0.35 mm.
     assert np.median(tpos) < 1.5e-3 and math.degrees(np.median(tang)) < 1.0, "the replay's timing is off"
-    # The replay's own recording, decoded with the same convention (action = target relative to the measured
-    # pose of that frame), gives back the targets that were pushed: the convention holds end to end.
-    tpos, tang = path_errors(original.targets(), replayed.targets())
-    print(f"executed targets: path error max {tpos.max() * 1e3:.3f} mm / {math.degrees(tang.max()):.3f}°")
-    assert tpos.max() < 1e-3 and math.degrees(tang.max()) < 1.0
-
+    # The executed targets are the recorded ones (the same action definition end to end): every target the
+    # replay executed (its action column, once its chunk started) lies on the original's target path as the
+    # replay resampled it, to float32 rounding. Timing does not enter: a late tick samples a later target.
+    tpos, tang = target_path_errors(original.targets(), replayed.targets())
+    print(f"executed targets: path error max {tpos.max() * 1e3:.4f} mm / {math.degrees(tang.max()):.4f}°")
+    assert tpos.max() < 5e-5 and math.degrees(tang.max()) < 0.05
 
 
 def test_command_line_replay(server: Server, recorded: int) -> None:
@@ -119,6 +128,9 @@ def test_command_line_replay(server: Server, recorded: int) -> None:
                           server.target, "--record", "cli replay"], capture_output=True, text=True, timeout=120,
                          env=env, check=False)
     assert out.returncode == 0, out.stderr
-    m = re.search(r"max path error ([0-9.]+) mm, ([0-9.]+)°", out.stdout)
+    m = re.search(r"max target path error ([0-9.]+) mm, ([0-9.]+)°; max path error ([0-9.]+) mm, ([0-9.]+)°",
+                  out.stdout)
     assert m, out.stdout
-    assert float(m.group(1)) < 1.0 and float(m.group(2)) < 1.0, out.stdout
+    # The bounds of test_replay_reproduces_the_recorded_trajectory, for the same reasons.
+    assert float(m.group(1)) < 0.05 and float(m.group(2)) < 0.05, out.stdout
+    assert float(m.group(3)) < 2.0 and float(m.group(4)) < 1.0, out.stdout

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 from conftest import FIXTURES
-from phone2act.poses import quat_angle, quat_from_rpy, rpy_from_quat
 from phone2act_replay import Episode, align, load_episode, path_errors, pose_errors, resample
+from phone2act_replay.dataset import ACTION_NAMES, EE_NAMES, rot6d, rotation_angle, rotation_from_6d
 
 REF = FIXTURES
 
@@ -29,50 +29,61 @@ def test_reads_lerobot_written_datasets(name: str) -> None:
         load_episode(REF / name, 0).ee_pose()
 
 
-def _episode(delta: bool) -> Episode:
-    names = ["j0", "ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper"]
-    state = np.array([[0.0, 0.2, 0.0, 0.1, 3.1, 0.1, 0.0, 0.0], [0.0, 0.21, 0.0, 0.1, -3.1, 0.1, 0.0, 0.5]])
-    if delta:
-        action = np.array([[0.01, 0, 0, 0.08, 0, 0, 0.5], [0.0, 0.01, 0, 0, 0, 0.2, 1.0]])
-        action_names = ["delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw", "gripper"]
-    else:
-        action = np.array([[0.21, 0, 0.1, 3.18, 0.1, 0, 0.5], [0.21, 0.01, 0.1, -3.1, 0.1, 0.2, 1.0]])
-        action_names = ["x", "y", "z", "roll", "pitch", "yaw", "gripper"]
-    return Episode(0, 20.0, "t", names, action_names, state, action)
+def _rx(angle: float) -> np.ndarray:
+    c, s_ = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s_], [0.0, s_, c]])
 
 
-def test_delta_and_absolute_actions_give_the_same_targets() -> None:
-    d, a = _episode(True).targets(), _episode(False).targets()
-    np.testing.assert_allclose(d[:, :3], a[:, :3], atol=1e-12)
-    np.testing.assert_allclose(d[:, 6], a[:, 6])
-    for rd, ra in zip(d, a):  # rpy may differ by 2*pi (roll across the seam); the rotation may not
-        assert quat_angle(quat_from_rpy(*rd[3:6]), quat_from_rpy(*ra[3:6])) < 1e-9
+def _pose_row(p: tuple[float, float, float], angle: float, gripper: float) -> np.ndarray:
+    return np.concatenate([p, rot6d(_rx(angle)), [gripper]])
+
+
+def _episode() -> Episode:
+    # Roll goes from just below +pi to just past it (-pi + 0.04 in roll-pitch-yaw): no seam in 6D.
+    ee = [_pose_row((0.2, 0.0, 0.1), math.pi - 0.04, 0.0), _pose_row((0.21, 0.0, 0.1), math.pi + 0.04, 0.5)]
+    state = np.array([np.concatenate([[0.3], row]) for row in ee])
+    action = np.array([_pose_row((0.21, 0.0, 0.1), math.pi + 0.04, 0.5), _pose_row((0.21, 0.01, 0.1), math.pi + 0.1, 1.0)])
+    return Episode(0, 20.0, "t", ["j0", *EE_NAMES], list(ACTION_NAMES), state, action)
+
+
+def test_targets_are_the_action_columns_and_6d_reads_back() -> None:
+    e = _episode()
+    np.testing.assert_array_equal(e.targets(), e.action)
+    assert e.ee_pose().shape == (2, 10) and e.arms() == [""]
+    np.testing.assert_allclose(rotation_from_6d(rot6d(_rx(2.0))), _rx(2.0), atol=1e-15)
+    assert rotation_angle(rot6d(_rx(math.pi - 0.04)), rot6d(_rx(-math.pi + 0.04))) == pytest.approx(0.08, abs=1e-7)
+    # A slightly non-orthonormal pair (a policy's output) reads as the nearest rotation, as the server does.
+    noisy = rot6d(_rx(0.5)) + np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.01])
+    assert rotation_angle(noisy, rot6d(_rx(0.5))) < 0.02
+    with pytest.raises(KeyError, match="not phone2act end-effector targets"):
+        Episode(0, 20.0, "t", e.state_names, ["a"] * 10, e.state, e.action).targets()
 
 
 def test_resample_interpolates_across_the_roll_seam() -> None:
-    t = _episode(True).targets()
+    t = _episode().targets()
     r = resample(t, 4)
     assert len(r) == 5
-    for got, want in ((r[0], t[0]), (r[-1], t[-1])):  # rpy may come back as another triple of the same rotation
-        assert np.allclose(got[[0, 1, 2, 6]], want[[0, 1, 2, 6]])
-        assert quat_angle(quat_from_rpy(*got[3:6]), quat_from_rpy(*want[3:6])) < 1e-6
-    # Roll goes 3.18 -> 3.18 (as -3.10 + 2 pi would be): the midpoint must not swing through 0.
-    q0, q1 = quat_from_rpy(*t[0, 3:6]), quat_from_rpy(*t[1, 3:6])
-    mid = quat_from_rpy(*r[2, 3:6])
-    assert quat_angle(q0, mid) + quat_angle(mid, q1) == pytest.approx(quat_angle(q0, q1), abs=1e-6)
-    assert rpy_from_quat(quat_from_rpy(0.3, -0.2, 1.0)) == pytest.approx((0.3, -0.2, 1.0))
+    np.testing.assert_allclose(r[0], t[0], atol=1e-12)
+    np.testing.assert_allclose(r[-1], t[-1], atol=1e-12)
+    # The midpoint turns half way along the short arc (through pi), never the long way round through 0.
+    mid = r[2]
+    assert rotation_angle(t[0, 3:9], mid[3:9]) == pytest.approx(0.03, abs=1e-4)
+    assert rotation_angle(mid[3:9], t[1, 3:9]) == pytest.approx(0.03, abs=1e-4)
+    assert mid[[0, 1, 2, 9]] == pytest.approx([0.21, 0.005, 0.1, 0.75])
 
 
 def test_alignment_finds_a_fractional_offset_and_path_error_ignores_timing() -> None:
     t = np.linspace(0, 2 * math.pi, 120)
-    traj = np.stack([0.2 + 0.03 * np.sin(t), 0.02 * np.cos(t), 0.1 + 0 * t, np.pi - 0.01 + 0 * t, 0 * t, 0.2 * np.sin(t)], 1)
+    traj = np.array([_pose_row((0.2 + 0.03 * math.sin(u), 0.02 * math.cos(u), 0.1), math.pi - 0.01 + 0.2 * math.sin(u), 0.0)
+                     for u in t])
     ref = traj[10:100]
     new = np.vstack([traj[:1].repeat(3, 0), traj[7:]])  # ref starts at new's frame 6
     offset, aligned = align(ref, new)
     assert offset == pytest.approx(6.0, abs=0.05)
     pos, ang = pose_errors(ref, aligned)
     assert pos.max() < 1e-9 and ang.max() < 1e-6  # acos near 1 resolves ~3e-8 rad
-    shifted = np.stack([np.interp(np.arange(len(traj)) + 0.4, np.arange(len(traj)), traj[:, c]) for c in range(6)], 1)
+    shifted = np.array([_pose_row((0.2 + 0.03 * math.sin(u), 0.02 * math.cos(u), 0.1), math.pi - 0.01 + 0.2 * math.sin(u), 0.0)
+                        for u in np.linspace(0, 2 * math.pi, 120) + 0.4 * (2 * math.pi / 119)])
     p, a = path_errors(ref, shifted)
     assert p.max() < 5e-5 and a.max() < 1e-3  # chord error of the densified path
     off_path = shifted.copy()

@@ -25,7 +25,6 @@ from phone2act import (
     pose_tuple,
 )
 from phone2act.aio import AsyncClient
-from phone2act.poses import rpy_from_quat
 from phone2act.v1 import common_pb2
 
 EXAMPLE = REPO / "sdk" / "python" / "examples" / "record_episode.py"
@@ -93,16 +92,19 @@ def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> 
     # The silence clock runs from the last chunk's arrival; this test pauses longer than the default 1 s.
     with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20, silence_timeout_s=10) as s:
         layout = s.layouts["main"]
-        assert layout.action_names == ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw",
-                                       "gripper")
-        assert layout.state_names[-7:] == ("ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper")
+        assert layout.action_names == ("delta_x", "delta_y", "delta_z", "delta_rx", "delta_ry", "delta_rz", "gripper")
+        assert layout.state_names[-10:] == ("ee_x", "ee_y", "ee_z", "ee_r00", "ee_r10", "ee_r20", "ee_r01", "ee_r11",
+                                            "ee_r21", "gripper")
         obs = s.next_observation()
         arm = obs.arms[0]
         assert arm.owner == common_pb2.CONTROL_SOURCE_POLICY
         start = pose_tuple(arm.robot_from_ee)[0]
-        # State carries the same pose as robot_from_ee, in x y z roll pitch yaw.
+        # State carries the same pose as robot_from_ee: x y z, then the rotation matrix's first two columns.
         assert arm.state[5:8] == pytest.approx(start, abs=1e-9)
-        assert list(arm.state[8:11]) == pytest.approx(rpy_from_quat(pose_tuple(arm.robot_from_ee)[1]), abs=1e-6)
+        qx, qy, qz, qw = pose_tuple(arm.robot_from_ee)[1]
+        first_two_columns = [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + qz * qw), 2 * (qx * qz - qy * qw),
+                             2 * (qx * qy - qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + qx * qw)]
+        assert list(arm.state[8:14]) == pytest.approx(first_two_columns, abs=1e-6)
         # 2 cm along +x over 20 steps, relative to this observation's pose (however old it is by now: on a
         # loaded machine early steps may already be past and are skipped; the last one is the goal).
         steps = [[0.001 * (k + 1), 0, 0, 0, 0, 0, 0] for k in range(20)]
@@ -131,7 +133,7 @@ def test_absolute_chunk_and_latency(server: Server) -> None:
     with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20, silence_timeout_s=30) as s:
         obs = s.next_observation()
         a = obs.arms[0]
-        goal = list(a.state[5:11]) + [0.5]
+        goal = list(a.state[5:14]) + [0.5]  # x y z and the 6D rotation as observed, gripper half closed
         goal[1] += 0.015
         s.push("main", [goal] * 10, 0.05, mode=ABSOLUTE_EE)
         assert wait_until(lambda: abs(ee_position(c)[1] - goal[1]) < 1e-3, 3.0)

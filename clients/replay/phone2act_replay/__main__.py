@@ -1,7 +1,8 @@
 """python -m phone2act_replay DATASET_ROOT EPISODE [--server ADDR] [--arm main] [--record TASK]
 
-Replays a recorded episode on an arm. With --record, the replay is recorded as a new episode and its
-end-effector trajectory is compared with the original one (max position and orientation error).
+Replays a recorded episode on an arm. With --record, the replay is recorded as a new episode and compared with
+the original: the executed targets (each replayed target's distance from the original's target path) and the
+measured end-effector paths (each original frame's distance from the replay's path), max position and angle.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import sys
 
 from phone2act import Client, Phone2ActError
 
-from phone2act_replay import align, load_episode, path_errors, pose_errors, replay
+from phone2act_replay import align, load_episode, path_errors, pose_errors, replay, target_path_errors
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,7 +44,10 @@ def main(argv: list[str] | None = None) -> int:
                 offset, aligned = align(ref, new.ee_pose(args.dataset_arm))
                 pos, ang = pose_errors(ref, aligned)
                 path_pos, path_ang = path_errors(ref, new.ee_pose(args.dataset_arm))
-                print(f"recorded as episode {saved.episode_index}; max path error {path_pos.max() * 1e3:.3f} mm, "
+                target_pos, target_ang = target_path_errors(episode.targets(args.dataset_arm), new.targets(args.dataset_arm))
+                print(f"recorded as episode {saved.episode_index}; max target path error "
+                      f"{target_pos.max() * 1e3:.4f} mm, {math.degrees(target_ang.max()):.4f}°; "
+                      f"max path error {path_pos.max() * 1e3:.3f} mm, "
                       f"{math.degrees(path_ang.max()):.3f}°; time-aligned (offset {offset:.2f} frames) max error "
                       f"{pos.max() * 1e3:.3f} mm, {math.degrees(ang.max()):.3f}°")
     except Phone2ActError as e:

@@ -1,8 +1,10 @@
-"""Reading one episode of a phone2act LeRobot dataset (v3.0 or v2.1) and turning its actions into targets.
+"""Reading one episode of a phone2act LeRobot dataset (v3.0 or v2.1) and its end-effector poses and targets.
 
-In a phone2act dataset, `action` at frame i is the executed target relative to the measured pose in
-`observation.state` at frame i (delta mode: position difference and roll/pitch/yaw differences), or the target
-itself (absolute mode). So the absolute target of frame i is always recoverable from the row alone.
+The action definition (phone2act-core `layout.rs`, the proto's `ActionMode`): `action` at frame i is the absolute
+end-effector target commanded at that frame, `x y z` (m, robot base frame), `r00 r10 r20 r01 r11 r21` (the first
+two columns of the target's rotation matrix, "6D rotation") and the gripper target; `observation.state` ends with
+the measured pose in the same layout (`ee_x` ... `ee_r21`, `gripper`). Rows here are those 10 values. The 6D form has
+no seam, so rows can be interpolated column by column and projected back onto a rotation (Gram-Schmidt).
 """
 
 from __future__ import annotations
@@ -15,11 +17,29 @@ from pathlib import Path
 import numpy as np
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
-from phone2act.poses import quat_from_rpy, rpy_from_quat
 
-DELTA_NAMES = ("delta_x", "delta_y", "delta_z", "delta_roll", "delta_pitch", "delta_yaw", "gripper")
-ABSOLUTE_NAMES = ("x", "y", "z", "roll", "pitch", "yaw", "gripper")
-EE_NAMES = ("ee_x", "ee_y", "ee_z", "ee_roll", "ee_pitch", "ee_yaw", "gripper")
+ACTION_NAMES = ("x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21", "gripper")
+EE_NAMES = ("ee_x", "ee_y", "ee_z", "ee_r00", "ee_r10", "ee_r20", "ee_r01", "ee_r11", "ee_r21", "gripper")
+
+
+def rotation_from_6d(v: np.ndarray) -> np.ndarray:
+    """The rotation matrix nearest a 6D value (its first column's direction kept), as the server reads it."""
+    a, b = np.asarray(v[:3], dtype=np.float64), np.asarray(v[3:6], dtype=np.float64)
+    x = a / np.linalg.norm(a)
+    b = b - x * (x @ b)
+    y = b / np.linalg.norm(b)
+    return np.stack([x, y, np.cross(x, y)], axis=1)
+
+
+def rot6d(m: np.ndarray) -> np.ndarray:
+    """The 6D form of a rotation matrix: its first two columns."""
+    return np.concatenate([m[:, 0], m[:, 1]])
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (rad) between two rotations given in 6D form."""
+    r = rotation_from_6d(a).T @ rotation_from_6d(b)
+    return float(math.acos(max(-1.0, min(1.0, (np.trace(r) - 1.0) / 2.0))))
 
 
 @dataclass
@@ -48,26 +68,18 @@ class Episode:
             return None
 
     def ee_pose(self, arm: str = "") -> np.ndarray:
-        """(N, 7): measured x y z roll pitch yaw gripper of `arm` from `observation.state`."""
+        """(N, 10): measured x y z, 6D rotation and gripper of `arm` from `observation.state`."""
         cols = self._cols(self.state_names, EE_NAMES, arm)
         if cols is None:
             raise KeyError(f"no end-effector columns for arm {arm!r} in {self.state_names}")
         return self.state[:, cols]
 
     def targets(self, arm: str = "") -> np.ndarray:
-        """(N, 7): the absolute target x y z roll pitch yaw gripper executed at each frame."""
-        ee = self.ee_pose(arm)
-        delta = self._cols(self.action_names, DELTA_NAMES, arm)
-        if delta is not None:
-            a = self.action[:, delta]
-            out = ee.copy()
-            out[:, :6] += a[:, :6]  # rpy targets = measured rpy + recorded (wrapped) rpy delta
-            out[:, 6] = a[:, 6]
-            return out
-        absolute = self._cols(self.action_names, ABSOLUTE_NAMES, arm)
-        if absolute is None:
-            raise KeyError(f"action names {self.action_names} are neither delta nor absolute end-effector actions")
-        return self.action[:, absolute].copy()
+        """(N, 10): the absolute target (x y z, 6D rotation, gripper) commanded at each frame: the action."""
+        cols = self._cols(self.action_names, ACTION_NAMES, arm)
+        if cols is None:
+            raise KeyError(f"action names {self.action_names} are not phone2act end-effector targets")
+        return self.action[:, cols].copy()
 
 
 def _feature_names(info: dict, key: str) -> list[str]:
@@ -125,44 +137,34 @@ def _task_text(root: Path, task_index: int) -> str:
     return ""
 
 
-def resample(targets: np.ndarray, factor: int) -> np.ndarray:
-    """Targets at `factor` times the rate: linear in position and gripper, slerp in orientation.
+def _project(rows: np.ndarray) -> np.ndarray:
+    """Rows whose 6D part is made a rotation again (after linear interpolation)."""
+    out = rows.copy()
+    for row in out:
+        row[3:9] = rot6d(rotation_from_6d(row[3:9]))
+    return out
 
-    The recorded targets are samples of a continuous target signal; holding each for a whole frame would lag
-    the original motion by half a frame on average.
-    """
+
+def _interp(rows: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Rows at fractional frame times `t`: linear per column, then projected onto rotations. Between frames a
+    few degrees apart this is the geodesic to within a hair (the 6D form is continuous, with no seam)."""
+    idx = np.arange(len(rows))
+    return _project(np.stack([np.interp(t, idx, rows[:, c]) for c in range(rows.shape[1])], axis=1))
+
+
+def resample(targets: np.ndarray, factor: int) -> np.ndarray:
+    """Targets at `factor` times the rate. The recorded targets are samples of a continuous target signal;
+    holding each for a whole frame would lag the original motion by half a frame on average."""
     if factor <= 1 or len(targets) < 2:
         return targets.copy()
-    out = []
-    quats = [quat_from_rpy(*row[3:6]) for row in targets]
-    for i in range(len(targets) - 1):
-        a, b = targets[i], targets[i + 1]
-        qa, qb = np.array(quats[i]), np.array(quats[i + 1])
-        if np.dot(qa, qb) < 0:
-            qb = -qb
-        for k in range(factor):
-            t = k / factor
-            row = a + t * (b - a)
-            q = (1 - t) * qa + t * qb  # nlerp: steps of a few degrees, indistinguishable from slerp
-            q /= np.linalg.norm(q)
-            row[3:6] = rpy_from_quat(tuple(q))
-            out.append(row)
-    out.append(targets[-1].copy())
-    return np.array(out)
+    return _interp(targets, np.arange((len(targets) - 1) * factor + 1) / factor)
 
 
 def pose_errors(ref: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-row position error (m) and orientation error (rad) between two (N, >=6) xyz-rpy arrays."""
+    """Per-row position error (m) and orientation error (rad) between two (N, >=9) pose arrays."""
     pos = np.linalg.norm(ref[:, :3] - new[:, :3], axis=1)
-    ang = np.array([
-        _angle(quat_from_rpy(*r[3:6]), quat_from_rpy(*n[3:6])) for r, n in zip(ref, new)
-    ])
+    ang = np.array([rotation_angle(r[3:9], n[3:9]) for r, n in zip(ref, new)])
     return pos, ang
-
-
-def _angle(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    dot = abs(sum(x * y for x, y in zip(a, b)))
-    return 2.0 * math.acos(min(1.0, dot))
 
 
 def align(ref: np.ndarray, new: np.ndarray, resolution: float = 0.05, lead: int = 5) -> tuple[float, np.ndarray]:
@@ -177,19 +179,17 @@ def align(ref: np.ndarray, new: np.ndarray, resolution: float = 0.05, lead: int 
     new = np.vstack([np.repeat(new[:1], lead, axis=0), new])
     if len(new) < n:
         raise ValueError(f"replayed trajectory has {len(new) - lead} frames, fewer than the {n} recorded")
-    t_new = np.arange(len(new))
-    new[:, 3:6] = np.unwrap(new[:, 3:6], axis=0)  # interpolate angles across the ±pi seam correctly
 
-    def sample(offset: float) -> np.ndarray:
+    def positions(offset: float) -> np.ndarray:
         t = np.arange(n) + offset
-        return np.stack([np.interp(t, t_new, new[:, c]) for c in range(new.shape[1])], axis=1)
+        return np.stack([np.interp(t, np.arange(len(new)), new[:, c]) for c in range(3)], axis=1)
 
     # Coarse on whole frames, then refine around the best one.
     coarse = min(range(len(new) - n + 1), key=lambda o: float(np.sum((new[o:o + n, :3] - ref[:, :3]) ** 2)))
     lo, hi = max(0.0, coarse - 1.0), min(float(len(new) - n), coarse + 1.0)
     candidates = np.arange(lo, hi + 1e-9, resolution)
-    best = min(candidates, key=lambda o: float(np.sum((sample(o)[:, :3] - ref[:, :3]) ** 2)))
-    return float(best) - lead, sample(float(best))
+    best = float(min(candidates, key=lambda o: float(np.sum((positions(o) - ref[:, :3]) ** 2))))
+    return best - lead, _interp(new, np.arange(n) + best)
 
 
 def path_errors(ref: np.ndarray, new: np.ndarray, density: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -197,12 +197,18 @@ def path_errors(ref: np.ndarray, new: np.ndarray, density: int = 20) -> tuple[np
     the orientation error (rad) there. Independent of when each frame was sampled: a loaded machine can wake
     the recorder's tick late, which shifts samples along the path without the motion itself changing."""
     n = len(new)
-    t = np.linspace(0, n - 1, (n - 1) * density + 1)
-    unwrapped = new.copy()
-    unwrapped[:, 3:6] = np.unwrap(unwrapped[:, 3:6], axis=0)
-    dense = np.stack([np.interp(t, np.arange(n), unwrapped[:, c]) for c in range(6)], axis=1)
+    dense = _interp(new, np.linspace(0, n - 1, (n - 1) * density + 1))
     d = np.linalg.norm(ref[:, None, :3] - dense[None, :, :3], axis=2)
     nearest = d.argmin(axis=1)
     pos = d[np.arange(len(ref)), nearest]
-    ang = np.array([_angle(quat_from_rpy(*r[3:6]), quat_from_rpy(*dense[k, 3:6])) for r, k in zip(ref, nearest)])
+    ang = np.array([rotation_angle(r[3:9], dense[k, 3:9]) for r, k in zip(ref, nearest)])
     return pos, ang
+
+
+def target_path_errors(ref: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far the targets a replay executed (`new`, its recorded action column) lie from the original's target
+    path (`ref`, densified as the replay resampled it). The replay's leading rows, which repeat its first
+    (the pose it was brought to before its chunk started), are left out."""
+    moved = np.flatnonzero(np.any(np.abs(new - new[0]) > 1e-6, axis=1))
+    start = int(moved[0]) if len(moved) else 0
+    return path_errors(new[start:], ref)

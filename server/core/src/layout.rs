@@ -15,6 +15,10 @@
 //!   and the gripper target, taken against the pose of the observation the chunk answers. A trainer or
 //!   adapter turns recorded absolute targets into relative steps per chunk with [`relative_step`]; the
 //!   executor composes them back with [`target_from_step`]; the two are exact inverses.
+//! - Joint arms (`action_mode = "joint"`, arms with SO-101 kinematics) record and push joint targets
+//!   instead: the joint positions (rad, bridge order) the executed target asks for, by inverse kinematics
+//!   seeded with the measured joints, then the gripper target; a pushed joint step commands the pose forward
+//!   kinematics gives ([`joint_action`], [`target_from_joint_step`]).
 //!
 //! Why 6D and not roll-pitch-yaw or a rotation vector: every 3-number orientation has a seam somewhere (RPY
 //! wraps at ±π and flips at ±90° pitch; a rotation vector flips at 180° from its reference), and an arm with a
@@ -22,6 +26,7 @@
 //! recorded dimension jumps unless the gripper does. Relative steps keep a rotation vector: it is 3 numbers,
 //! zero means "stay", and a chunk's rotation relative to its own observation is far from 180°.
 
+use crate::kinematics::{IkWeights, SO101_ARM_DOF, So101Joints, So101Kinematics};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -51,6 +56,8 @@ pub enum ActionMode {
     Relative,
     /// Absolute target pose in the base frame (lerobot's habit).
     Absolute,
+    /// Joint targets (rad) and gripper; recorded that way too.
+    Joint,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -75,6 +82,8 @@ pub enum LayoutError {
     },
     #[error("unknown arm {0:?}")]
     UnknownArm(String),
+    #[error("joint steps need the arm's kinematics (joint mode is for arms with SO-101 kinematics)")]
+    NoKinematics,
 }
 
 /// Columns shorter than this, or this close to parallel (sine of their angle), are not a rotation: they
@@ -132,9 +141,41 @@ pub fn step_from_target(
     mode: ActionMode,
 ) -> Vec<f64> {
     match mode {
-        ActionMode::Absolute => absolute_action(robot_from_target, gripper_target),
+        ActionMode::Absolute | ActionMode::Joint => absolute_action(robot_from_target, gripper_target),
         ActionMode::Relative => relative_step(robot_from_observation, robot_from_target, gripper_target),
     }
+}
+
+/// The joint action (recorded layout of a joint arm) of a target: the joints inverse kinematics finds for it,
+/// seeded with the measured joints as the bridges seed theirs, then the gripper target.
+pub fn joint_action(
+    kinematics: &So101Kinematics,
+    robot_from_target: &Isometry3<f64>,
+    measured_joints_rad: &[f64],
+    gripper_target: f64,
+) -> Result<Vec<f64>, LayoutError> {
+    let seed: So101Joints = measured_joints_rad
+        .try_into()
+        .map_err(|_| LayoutError::WrongWidth {
+            what: "joint positions",
+            expected: SO101_ARM_DOF,
+            got: measured_joints_rad.len(),
+        })?;
+    let solution = kinematics.inverse(robot_from_target, &seed, IkWeights::FULL);
+    let mut v = solution.joints_rad.to_vec();
+    v.push(gripper_target);
+    Ok(v)
+}
+
+/// The target pose and gripper target (clamped to [0, 1]) a joint step commands: forward kinematics of its
+/// joints, which the bridge's inverse kinematics, seeded near them, solves back to the same joints.
+pub fn target_from_joint_step(
+    kinematics: &So101Kinematics,
+    step: &[f64],
+) -> Result<(Isometry3<f64>, f64), LayoutError> {
+    check_values("action", step, SO101_ARM_DOF + 1)?;
+    let joints: So101Joints = std::array::from_fn(|j| step[j]);
+    Ok((kinematics.forward(&joints), step[SO101_ARM_DOF].clamp(0.0, 1.0)))
 }
 
 /// The absolute action (recorded layout) of a target.
@@ -156,6 +197,7 @@ pub fn target_from_step(
     mode: ActionMode,
 ) -> Result<(Isometry3<f64>, f64), LayoutError> {
     let (pose, gripper) = match mode {
+        ActionMode::Joint => return Err(LayoutError::NoKinematics),
         ActionMode::Absolute => {
             check_values("action", step, ACTION_WIDTH)?;
             let rotation = rotation_from_rot6d([step[3], step[4], step[5], step[6], step[7], step[8]])?;
@@ -201,15 +243,89 @@ fn check_values(what: &'static str, values: &[f64], expected: usize) -> Result<(
     Ok(())
 }
 
+/// lerobot's `so101_follower` units, for datasets that merge with lerobot's own SO-101 datasets: the state and
+/// action are `shoulder_pan.pos` … `wrist_roll.pos` in degrees (lerobot's `use_degrees=True`, `(raw − mid)·360/4095`,
+/// which is what phone2act's SO-101 bridge reads as radians) and `gripper.pos` in percent of the calibrated
+/// range (`RANGE_0_100`), here at `gripper_open_pct` for phone2act's 0 (open) and `gripper_closed_pct` for 1.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LerobotSo101Units {
+    pub gripper_open_pct: f64,
+    pub gripper_closed_pct: f64,
+}
+
 /// Vector layout of one arm.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ArmLayout {
     joint_names: Vec<String>,
+    lerobot: Option<LerobotSo101Units>,
 }
 
 impl ArmLayout {
     pub fn new(joint_names: Vec<String>) -> Self {
-        Self { joint_names }
+        Self {
+            joint_names,
+            lerobot: None,
+        }
+    }
+
+    /// The same arm with lerobot `so101_follower` names and units for its state and joint actions (and no
+    /// end-effector columns, as lerobot has none).
+    #[must_use]
+    pub fn with_lerobot_so101(self, units: LerobotSo101Units) -> Self {
+        Self {
+            lerobot: Some(units),
+            ..self
+        }
+    }
+
+    /// lerobot's names: `{joint}.pos`, then `gripper.pos`.
+    fn lerobot_names(&self) -> Vec<String> {
+        self.joint_names
+            .iter()
+            .map(|n| format!("{n}.pos"))
+            .chain(std::iter::once("gripper.pos".to_owned()))
+            .collect()
+    }
+
+    /// A joint step in this layout's units (lerobot degrees and percent, or radians and 0..1) in radians and
+    /// 0..1.
+    pub fn joint_step_to_native(&self, step: &[f64]) -> Vec<f64> {
+        match self.lerobot {
+            None => step.to_vec(),
+            Some(u) => {
+                let span = u.gripper_closed_pct - u.gripper_open_pct;
+                step.iter()
+                    .enumerate()
+                    .map(|(i, v)| {
+                        if i + 1 < step.len() {
+                            v.to_radians()
+                        } else if span.abs() < 1e-9 {
+                            0.0
+                        } else {
+                            (v - u.gripper_open_pct) / span
+                        }
+                    })
+                    .collect()
+            }
+        }
+    }
+
+    /// The inverse of [`ArmLayout::joint_step_to_native`].
+    pub fn joint_step_from_native(&self, step: &[f64]) -> Vec<f64> {
+        match self.lerobot {
+            None => step.to_vec(),
+            Some(u) => step
+                .iter()
+                .enumerate()
+                .map(|(i, v)| {
+                    if i + 1 < step.len() {
+                        v.to_degrees()
+                    } else {
+                        u.gripper_open_pct + (u.gripper_closed_pct - u.gripper_open_pct) * v
+                    }
+                })
+                .collect(),
+        }
     }
 
     pub fn joint_names(&self) -> &[String] {
@@ -217,10 +333,16 @@ impl ArmLayout {
     }
 
     pub fn state_width(&self) -> usize {
+        if self.lerobot.is_some() {
+            return self.joint_names.len() + 1;
+        }
         self.joint_names.len() + EE_STATE_NAMES.len()
     }
 
     pub fn state_names(&self) -> Vec<String> {
+        if self.lerobot.is_some() {
+            return self.lerobot_names();
+        }
         self.joint_names
             .iter()
             .cloned()
@@ -228,21 +350,38 @@ impl ArmLayout {
             .collect()
     }
 
-    /// Names of the recorded `action` (always absolute targets).
-    pub fn recorded_action_names(&self) -> Vec<String> {
-        ABSOLUTE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect()
+    /// Names of the recorded `action` of an arm configured with `mode`: absolute end-effector targets, or
+    /// joint targets for a joint arm.
+    pub fn recorded_action_names(&self, mode: ActionMode) -> Vec<String> {
+        match mode {
+            ActionMode::Joint => self.action_names(ActionMode::Joint),
+            ActionMode::Absolute | ActionMode::Relative => {
+                ABSOLUTE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect()
+            }
+        }
     }
 
     /// Names of a chunk step's values in `mode`.
     pub fn action_names(&self, mode: ActionMode) -> Vec<String> {
         match mode {
-            ActionMode::Absolute => self.recorded_action_names(),
+            ActionMode::Absolute => self.recorded_action_names(mode),
             ActionMode::Relative => RELATIVE_ACTION_NAMES.iter().map(|s| (*s).to_owned()).collect(),
+            ActionMode::Joint if self.lerobot.is_some() => self.lerobot_names(),
+            ActionMode::Joint => self
+                .joint_names
+                .iter()
+                .cloned()
+                .chain(std::iter::once("gripper".to_owned()))
+                .collect(),
         }
     }
 
-    /// Where the end-effector part (`ee_x` … `gripper`) sits in this arm's state vector.
+    /// Where the end-effector part (`ee_x` … `gripper`) sits in this arm's state vector (empty in the lerobot
+    /// layout, which has none).
     pub fn ee_state_range(&self) -> Range<usize> {
+        if self.lerobot.is_some() {
+            return self.state_width()..self.state_width();
+        }
         self.joint_names.len()..self.state_width()
     }
 
@@ -259,6 +398,11 @@ impl ArmLayout {
                 expected: self.joint_names.len(),
                 got: joints_rad.len(),
             });
+        }
+        if self.lerobot.is_some() {
+            let mut native = joints_rad.to_vec();
+            native.push(gripper);
+            return Ok(self.joint_step_from_native(&native));
         }
         let mut v = Vec::with_capacity(self.state_width());
         v.extend_from_slice(joints_rad);
@@ -297,8 +441,13 @@ mod tests {
         assert_eq!(l.state_names().len(), 15);
         assert_eq!(&l.state_names()[5..], &EE_STATE_NAMES.map(str::to_owned));
         assert_eq!(l.ee_state_range(), 5..15);
-        assert_eq!(l.recorded_action_names()[3], "r00");
-        assert_eq!(l.action_names(ActionMode::Absolute), l.recorded_action_names());
+        assert_eq!(l.recorded_action_names(ActionMode::Relative)[3], "r00");
+        assert_eq!(
+            l.action_names(ActionMode::Absolute),
+            l.recorded_action_names(ActionMode::Relative)
+        );
+        assert_eq!(l.recorded_action_names(ActionMode::Joint)[4], "wrist_roll");
+        assert_eq!(l.action_names(ActionMode::Joint).len(), 6);
         assert_eq!(l.action_names(ActionMode::Relative)[5], "delta_rz");
         let ee = Isometry3::from_parts(
             Translation3::new(0.2, -0.1, 0.3),
@@ -521,6 +670,71 @@ mod tests {
                 previous = Some((pose, row));
             }
         }
+    }
+
+    proptest! {
+        /// A joint action of a reachable target commands that target again: inverse kinematics seeded near the
+        /// joints that reach it finds them, and forward kinematics gives the pose back.
+        #[test]
+        fn joint_actions_round_trip(u in prop::array::uniform5(0.05..0.95f64), nudge in prop::array::uniform5(-0.05..0.05f64)) {
+            let kin = So101Kinematics::new();
+            let joints: [f64; 5] = std::array::from_fn(|j| {
+                let (lo, hi) = SO101_JOINT_LIMITS_RAD[j];
+                lo + (hi - lo) * u[j]
+            });
+            let target = kin.forward(&joints);
+            let seed: Vec<f64> = joints.iter().zip(nudge).map(|(q, d)| q + d).collect();
+            let action = joint_action(&kin, &target, &seed, 0.3).unwrap();
+            let (back, g) = target_from_joint_step(&kin, &action).unwrap();
+            let (dp, da) = pose_distance(&back, &target);
+            prop_assert!(dp < 1e-4 && da < 1e-3, "{} m {} rad", dp, da);
+            prop_assert!((g - 0.3).abs() < 1e-15);
+        }
+    }
+
+    #[test]
+    fn lerobot_so101_names_and_units() {
+        let units = LerobotSo101Units {
+            gripper_open_pct: 100.0,
+            gripper_closed_pct: 0.0,
+        };
+        let l = so101().with_lerobot_so101(units);
+        let names = [
+            "shoulder_pan.pos",
+            "shoulder_lift.pos",
+            "elbow_flex.pos",
+            "wrist_flex.pos",
+            "wrist_roll.pos",
+            "gripper.pos",
+        ];
+        assert_eq!(l.state_names(), names);
+        assert_eq!(l.action_names(ActionMode::Joint), names);
+        assert_eq!(l.recorded_action_names(ActionMode::Joint), names);
+        assert!(l.ee_state_range().is_empty());
+        let state = l
+            .state_vector(&[FRAC_PI_2, -0.5, 0.0, 0.1, -PI], &Isometry3::identity(), 0.25)
+            .unwrap();
+        let expected = [90.0, -0.5f64.to_degrees(), 0.0, 0.1f64.to_degrees(), -180.0, 75.0];
+        assert!(
+            state.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
+            "{state:?}"
+        );
+        let native = l.joint_step_to_native(&state);
+        let back = l.joint_step_from_native(&native);
+        assert!(back.iter().zip(&state).all(|(a, b)| (a - b).abs() < 1e-12));
+        assert!((native[0] - FRAC_PI_2).abs() < 1e-15 && (native[5] - 0.25).abs() < 1e-15);
+    }
+
+    #[test]
+    fn joint_steps_need_kinematics_and_the_right_width() {
+        let kin = So101Kinematics::new();
+        assert!(matches!(
+            target_from_step(&Isometry3::identity(), &[0.0; 6], ActionMode::Joint),
+            Err(LayoutError::NoKinematics)
+        ));
+        assert!(target_from_joint_step(&kin, &[0.0; 5]).is_err());
+        assert!(target_from_joint_step(&kin, &[0.0, 0.0, f64::NAN, 0.0, 0.0, 0.0]).is_err());
+        assert!(joint_action(&kin, &Isometry3::identity(), &[0.0; 3], 0.0).is_err());
     }
 
     /// What the recorder used to write (per-frame delta against the frame's own measured pose, roll-pitch-yaw

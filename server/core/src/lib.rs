@@ -17,8 +17,8 @@ pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConf
 pub use gate::{GateDecision, GateVerdict, SafetyGate};
 pub use gripper::{Gripper, GripperCommand, GripperError};
 pub use layout::{
-    ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, RELATIVE_STEP_WIDTH, absolute_action, relative_step,
-    step_from_target, target_from_step,
+    ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, LerobotSo101Units, RELATIVE_STEP_WIDTH,
+    absolute_action, joint_action, relative_step, step_from_target, target_from_joint_step, target_from_step,
 };
 pub use planner::{Mapping, Planner, Reference};
 pub use pose::{PoseError, rotation_from_rpy, rpy_from_rotation, validate_pose, wrap_angle_rad};

@@ -190,6 +190,7 @@ impl App {
         let mode = match v1::ActionMode::try_from(chunk.mode) {
             Ok(v1::ActionMode::Unspecified | v1::ActionMode::DeltaEe) => ActionMode::Relative,
             Ok(v1::ActionMode::AbsoluteEe) => ActionMode::Absolute,
+            Ok(v1::ActionMode::Joint) => ActionMode::Joint,
             Err(_) => {
                 return Err(Status::invalid_argument(format!(
                     "unknown action mode {}",
