@@ -17,6 +17,9 @@
     fatal: false,
     arm: localStorage.getItem('phone2act.arm') || '',
     arms: [],
+    // The gateway says where its rosbridge listens in `welcome` (null when it serves none).
+    rosbridgePort: undefined,
+    noXrReason: null,
     sessionOpen: false,
     seq: 0,
     engaged: false,
@@ -113,6 +116,8 @@
           sel.appendChild(o);
         }
         sel.value = state.arm;
+        state.rosbridgePort = msg.rosbridge_port;
+        renderNoXr();
         // After a reconnect this phone takes its arm back: its old stream may not have timed out yet.
         hello(state.wasOpen);
         break;
@@ -295,6 +300,30 @@
 
   // ---- WebXR ---------------------------------------------------------------------------------------------
 
+  function appHint() {
+    if (state.rosbridgePort === undefined) return 'the Phone2Act Android app (rosbridge; the gateway prints its port)';
+    if (state.rosbridgePort === null) return 'the Phone2Act Android app (this gateway serves no rosbridge port)';
+    return `the Phone2Act Android app (rosbridge, port ${state.rosbridgePort})`;
+  }
+
+  function renderNoXr() {
+    if (!state.noXrReason) return;
+    const el = $('no-xr');
+    el.hidden = false;
+    if (state.noXrReason === 'insecure') {
+      el.textContent = 'This page must be opened over https:// (WebXR needs a secure context). Use the URL the '
+        + 'gateway printed, or scan its QR code.';
+    } else if (state.noXrReason === 'ios') {
+      el.textContent = 'iPhone and iPad browsers have no WebXR AR, so this page cannot read the phone\'s pose. '
+        + `Use an Android phone with ARCore in Chrome, or ${appHint()}. `
+        + 'The buttons below still control recording.';
+    } else {
+      el.textContent = 'This browser has no WebXR AR (immersive-ar). Use Chrome on an ARCore-supported Android '
+        + `phone with "Google Play Services for AR" installed, or ${appHint()}. `
+        + 'The buttons below still control recording.';
+    }
+  }
+
   async function checkXr() {
     const isIos = /iPhone|iPad|iPod/.test(navigator.userAgent);
     let supported = false;
@@ -302,20 +331,8 @@
       try { supported = await navigator.xr.isSessionSupported('immersive-ar'); } catch (_) { supported = false; }
     }
     if (supported) return true;
-    const el = $('no-xr');
-    el.hidden = false;
-    if (!window.isSecureContext) {
-      el.textContent = 'This page must be opened over https:// (WebXR needs a secure context). Use the URL the '
-        + 'gateway printed, or scan its QR code.';
-    } else if (isIos) {
-      el.textContent = 'iPhone and iPad browsers have no WebXR AR, so this page cannot read the phone\'s pose. '
-        + 'Use an Android phone with ARCore in Chrome, or the Phone2Act Android app (rosbridge, port 9090). '
-        + 'The buttons below still control recording.';
-    } else {
-      el.textContent = 'This browser has no WebXR AR (immersive-ar). Use Chrome on an ARCore-supported Android '
-        + 'phone with "Google Play Services for AR" installed, or the Phone2Act Android app (rosbridge, port 9090). '
-        + 'The buttons below still control recording.';
-    }
+    state.noXrReason = !window.isSecureContext ? 'insecure' : (isIos ? 'ios' : 'no-ar');
+    renderNoXr();
     $('start-ar').disabled = true;
     return false;
   }

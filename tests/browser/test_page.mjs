@@ -228,6 +228,9 @@ await check('without WebXR (iPhone Safari) the page says what to use', async () 
   await waitPage(p, () => !document.querySelector('#no-xr').hidden, 'the no-WebXR notice');
   const text = await p.textContent('#no-xr');
   assert(/Android/.test(text) && /Phone2Act Android app/.test(text), `unhelpful message: ${text}`);
+  // The port is the one this gateway really serves rosbridge on (the stack picks a free one, not 9090).
+  await waitPage(p, `document.querySelector('#no-xr').textContent.includes('rosbridge, port ${ROSBRIDGE_PORT})')`,
+    `the rosbridge port ${ROSBRIDGE_PORT} in the notice`);
   assert(await p.isDisabled('#start-ar'), 'Start AR stays enabled without WebXR');
   await context.close();
 });

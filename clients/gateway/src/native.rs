@@ -166,8 +166,13 @@ impl PageHandler {
     /// Tells the page which arms exist (for the picker); called once after connecting.
     pub fn welcome(&self, arms: &[String]) {
         self.wiring.out.text(
-            json!({"type": "welcome", "arms": arms, "default_arm": self.shared.config.default_arm})
-                .to_string(),
+            json!({
+                "type": "welcome",
+                "arms": arms,
+                "default_arm": self.shared.config.default_arm,
+                "rosbridge_port": self.shared.rosbridge_port,
+            })
+            .to_string(),
         );
     }
 

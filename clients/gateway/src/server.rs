@@ -37,6 +37,8 @@ pub struct Shared {
     pub token: Option<String>,
     pub pairing: Pairing,
     pub holders: Holders,
+    /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
+    pub rosbridge_port: Option<u16>,
     connections: AtomicU64,
     shutdown: watch::Receiver<bool>,
     epoch: Instant,
@@ -176,6 +178,7 @@ impl Gateway {
             token,
             pairing,
             holders: Holders::default(),
+            rosbridge_port: rosbridge_addr.map(|a| a.port()),
             connections: AtomicU64::new(1),
             shutdown,
             epoch: Instant::now(),

@@ -343,6 +343,11 @@ async fn page_socket_needs_the_token_and_drives_recording() {
     let welcome = next_json(&mut page, T).await.unwrap();
     assert_eq!(welcome["type"], "welcome");
     assert_eq!(welcome["arms"], serde_json::json!(["left", "right"]));
+    // The page tells the Phone2Act app's users the port rosbridge really listens on (here an ephemeral one).
+    assert_eq!(
+        welcome["rosbridge_port"],
+        serde_json::json!(h.info.rosbridge_addr.unwrap().port())
+    );
     send(&mut page, r#"{"type":"hello","arm":"right"}"#).await;
     let open = wait_json(&mut page, T, |v| v["type"] == "session").await.unwrap();
     assert_eq!(

@@ -18,8 +18,10 @@ from phone2act.v1 import policy_pb2
 DELTA = "delta"
 ABSOLUTE = "absolute"
 JOINT = "joint"
-# Absolute end-effector axis names (today's `x y z roll pitch yaw`, and the continuous-rotation spellings).
-EE_AXES = {"x", "y", "z", "roll", "pitch", "yaw", "rx", "ry", "rz", "qx", "qy", "qz", "qw"}
+# Absolute end-effector axis names: phone2act's `x y z` and 6D rotation `r00 r10 r20 r01 r11 r21` (the recorded
+# action layout, `server/core/src/layout.rs`), and other spellings (roll/pitch/yaw, rotation vector, quaternion).
+EE_AXES = {"x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21", "roll", "pitch", "yaw", "rx", "ry", "rz", "qx", "qy",
+           "qz", "qw"}
 
 
 class ActionModeError(ValueError):
