@@ -106,6 +106,8 @@ enum DatasetAction {
 }
 
 fn main() -> std::process::ExitCode {
+    // Before any thread exists: it sets an environment variable.
+    phone2act_recorder::video::quiet_encoder_library_logs();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("PHONE2ACT_LOG")
