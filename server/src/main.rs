@@ -108,6 +108,7 @@ enum DatasetAction {
 fn main() -> std::process::ExitCode {
     // Before any thread exists: it sets an environment variable.
     phone2act_recorder::video::quiet_encoder_library_logs();
+    phone2act_recorder::memory::limit_malloc_arenas();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("PHONE2ACT_LOG")

@@ -109,7 +109,7 @@ pub fn verify(root: &Path) -> Report {
         }
         Err(e) => {
             report.problems.push(format!(
-                "{} cannot be read ({e}): not a LeRobot dataset",
+                "{} cannot be read ({e}): not a LeRobot dataset (phone2act writes nothing there before the first episode is saved)",
                 info_path.display()
             ));
             return report;
