@@ -437,3 +437,57 @@ async fn a_teleop_stream_that_never_sends_is_closed_and_names_are_bounded() {
     );
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_phone_is_told_when_the_bridge_disconnects_under_it() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(remote_config(dir.path())).await.unwrap();
+    let client = server.client().await.unwrap();
+    let (tx, mut down) = attach(&server, abc()).await.unwrap();
+    down.message().await.unwrap().unwrap();
+    // Feed valid feedback until the phone is engaged.
+    let feeder = {
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            while tx.send(fb(vec![0.0; 3])).await.is_ok() {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+    };
+    let t0 = std::time::Instant::now();
+    while ext_arm(&client).await.health() != v1::BridgeHealth::Ready {
+        // One loopback hop; 10 s is far beyond any stall on a loaded machine.
+        assert!(t0.elapsed() < Duration::from_secs(10), "never ready");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let mut phone = client
+        .teleop("ext", phone2act_sdk::TeleopOptions::default())
+        .await
+        .unwrap();
+    let pose = |z: f64| v1::Pose::from_parts([0.0, 0.0, z], [0.0, 0.0, 0.0, 1.0]);
+    let seq = phone
+        .send_pose(pose(0.0), vec![phone2act_sdk::buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
+    let fb0 = phone.feedback_for(seq).await.unwrap();
+    assert!(fb0.error.is_empty(), "{fb0:?}");
+    // The bridge process goes away.
+    feeder.abort();
+    let _ = feeder.await;
+    drop(tx);
+    drop(down);
+    let t0 = std::time::Instant::now();
+    while ext_arm(&client).await.health() != v1::BridgeHealth::Disconnected {
+        assert!(t0.elapsed() < Duration::from_secs(10), "never disconnected");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let seq = phone.send_pose(pose(-0.01), vec![], 0).await.unwrap();
+    let fb1 = phone.feedback_for(seq).await.unwrap();
+    assert!(fb1.error.contains("disconnected"), "{fb1:?}");
+    let arm = ext_arm(&client).await;
+    assert!(!arm.engaged, "{arm:?}");
+    let decision = arm.last_decision.unwrap();
+    assert_ne!(decision.verdict(), v1::GateVerdict::Accepted, "{decision:?}");
+    server.shutdown().await.unwrap();
+}
