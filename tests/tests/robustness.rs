@@ -491,3 +491,106 @@ async fn a_phone_is_told_when_the_bridge_disconnects_under_it() {
     assert_ne!(decision.verdict(), v1::GateVerdict::Accepted, "{decision:?}");
     server.shutdown().await.unwrap();
 }
+
+struct Unmount(std::path::PathBuf);
+impl Drop for Unmount {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// Writes `filler` until the filesystem at `mnt` has about `free` bytes left.
+fn fill_leaving(mnt: &std::path::Path, filler: &std::path::Path, free: u64) {
+    use std::io::Write;
+    let out = std::process::Command::new("df")
+        .args(["--output=avail", "-B1"])
+        .arg(mnt)
+        .output()
+        .unwrap();
+    let avail: u64 = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .nth(1)
+        .and_then(|l| l.trim().parse().ok())
+        .unwrap();
+    let mut f = std::fs::File::create(filler).unwrap();
+    let mut left = avail.saturating_sub(free);
+    let block = [0xa5u8; 4096];
+    while left > 0 {
+        let n = left.min(4096) as usize;
+        if f.write_all(&block[..n]).is_err() {
+            break;
+        }
+        left -= n as u64;
+    }
+}
+
+/// The dataset on a 30 MB tmpfs (as in the report) that fills while episodes are saved: every Stop
+/// answers (an error status or a saved episode), the recorder stays usable, and the server shuts down.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_during_saves_never_locks_the_server() {
+    let _serial = SERIAL.lock().await;
+    let dir = tempfile::tempdir().unwrap();
+    let mnt = dir.path().join("mnt");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=30m", "tmpfs"])
+        .arg(&mnt)
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("SKIPPED: cannot mount a tmpfs here (needs root) to fill a disk");
+        return;
+    }
+    let _unmount = Unmount(mnt.clone());
+    let root = mnt.join("ds");
+    let server = TestServer::start(default_config(&root)).await.unwrap();
+    let client = server.client().await.unwrap();
+    let mut episodes = client.episodes();
+    let filler = mnt.join("filler");
+    let mut saved = 0usize;
+    let mut refused = 0usize;
+    // Seconds: a save takes milliseconds; a minute only separates an answer from a hang.
+    let answer = Duration::from_mins(1);
+    for free_kb in [16u64, 64, 147, 197, 330] {
+        fill_leaving(&mnt, &filler, free_kb * 1024);
+        episodes.start("tight").await.unwrap();
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        let stopped = tokio::time::timeout(answer, episodes.stop())
+            .await
+            .unwrap_or_else(|_| panic!("Stop with {free_kb} KB free did not answer: the recorder is locked"));
+        match stopped {
+            Ok(_) => saved += 1,
+            Err(_) => refused += 1,
+        }
+        std::fs::remove_file(&filler).unwrap();
+        let st = tokio::time::timeout(answer, episodes.status())
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(st.phase(), v1::RecordingPhase::Idle, "{free_kb} KB: {st:?}");
+        // With room again, the next episode saves.
+        tokio::time::timeout(answer, episodes.start("room"))
+            .await
+            .unwrap()
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        tokio::time::timeout(answer, episodes.stop())
+            .await
+            .unwrap()
+            .unwrap();
+        saved += 1;
+    }
+    assert!(refused > 0, "the disk never filled: the test proves nothing");
+    let list = tokio::time::timeout(answer, episodes.list())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(list.episodes.len(), saved);
+    tokio::time::timeout(answer, server.shutdown())
+        .await
+        .expect("the server shuts down")
+        .unwrap();
+    let report = phone2act_recorder::verify::verify(&root);
+    assert!(report.ok(), "{:?}", report.problems);
+}
