@@ -451,7 +451,7 @@ impl ArmController {
             inner.driver = Driver::None;
         }
         if let Some(owner) = inner.policy.take() {
-            tracing::info!(arm = %self.name, policy = %owner.name, reason, "policy control revoked");
+            tracing::info!(arm = %self.name, policy = ?owner.name, reason, "policy control revoked");
             // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
             // ownership on its next chunk.
             let _ = owner.events.try_send(v1::PolicyEvent {

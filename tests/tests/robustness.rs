@@ -352,6 +352,21 @@ async fn policy_session_refusals_are_statuses() {
             "{bad}: {err}"
         );
     }
+    // A 1 MB policy name: refused (it would be logged and shown).
+    let err = client
+        .policy(v1::PolicyHello {
+            arms: vec!["main".into()],
+            policy_name: "p".repeat(1 << 20),
+            ..v1::PolicyHello::default()
+        })
+        .await
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("InvalidArgument") && err.contains("policy_name"),
+        "{err}"
+    );
     // A 100,000-step chunk on the session stream: the session ends with a non-OK status.
     let mut session = client
         .policy(v1::PolicyHello {

@@ -25,6 +25,8 @@ const MAX_OBSERVATION_RATE_HZ: f64 = 200.0;
 /// duration plus a margin.)
 const MIN_SILENCE_TIMEOUT_S: f64 = 0.05;
 const MAX_SILENCE_TIMEOUT_S: f64 = 3600.0;
+/// Longest `policy_name` accepted (it is logged and shown to operators).
+const MAX_POLICY_NAME_BYTES: usize = 128;
 
 /// What a chunk needs from the observation it answers.
 #[derive(Debug, Clone)]
@@ -327,6 +329,12 @@ impl Policy for PolicyService {
                 hello.observation_rate_hz
             )));
         }
+        if hello.policy_name.len() > MAX_POLICY_NAME_BYTES {
+            return Err(Status::invalid_argument(format!(
+                "policy_name is {} bytes, the limit is {MAX_POLICY_NAME_BYTES}",
+                hello.policy_name.len()
+            )));
+        }
         // 0 is proto3's "unset": the documented default. Anything else outside the range is refused: a
         // negative or NaN timeout means nothing, and a huge one lets a hung policy keep an arm forever.
         let silence_timeout_s = if hello.silence_timeout_s == 0.0 {
@@ -402,7 +410,8 @@ impl Policy for PolicyService {
             })));
         }
         app.register_policy(Arc::clone(&session));
-        tracing::info!(session = id, policy = %name, ?arms, control = hello.request_control, "policy session opened");
+        // Debug formatting escapes control characters: a policy name cannot forge log lines.
+        tracing::info!(session = id, policy = ?name, ?arms, control = hello.request_control, "policy session opened");
 
         let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(16);
         // Forward events; the events channel is shared with the arm controllers (revocations).
