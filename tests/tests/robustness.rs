@@ -269,13 +269,18 @@ async fn bad_remote_feedback_and_oversized_hellos_are_errors_not_silence() {
         }
         // ...and bad feedback ends the bridge's stream with the reason; the arm is not ready after it.
         tx.send(fb(bad)).await.unwrap();
-        let status = loop {
-            match down.message().await {
-                Ok(Some(_)) => {}
-                Ok(None) => panic!("the stream ended OK after bad feedback"),
-                Err(s) => break s,
+        // Bounded: without the fix the stream just stays open, and the test must fail, not hang.
+        let status = tokio::time::timeout(Duration::from_secs(10), async {
+            loop {
+                match down.message().await {
+                    Ok(Some(_)) => {}
+                    Ok(None) => panic!("the stream ended OK after bad feedback"),
+                    Err(s) => break s,
+                }
             }
-        };
+        })
+        .await
+        .unwrap_or_else(|_| panic!("bad feedback ({why}) left the bridge stream open"));
         assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status}");
         assert!(status.message().contains(why), "{status}");
         tokio::time::sleep(Duration::from_millis(100)).await;
