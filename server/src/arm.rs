@@ -19,6 +19,11 @@ use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::mpsc;
 use tonic::Status;
 
+/// Feedback older than this means the robot's pose is not known: nothing may start moving it. Bridges
+/// report at 50 Hz or more (Dobot 125 Hz, SO-101 at its `rate_hz`, sim and remote 50 Hz), so a second is
+/// dozens of missed reports, not jitter or a scheduler stall on a loaded machine.
+const FEEDBACK_MAX_AGE_S: f64 = 1.0;
+
 /// Seconds on the process monotonic clock.
 pub fn now_s() -> f64 {
     monotonic_ns() as f64 * 1e-9
@@ -226,6 +231,28 @@ impl ArmController {
         self.bridge.feedback().map_or(fallback, |f| f.robot_from_ee)
     }
 
+    /// Why the arm may not be moved now, if it may not: its bridge is not healthy, or it has no fresh
+    /// measured pose. Anything that starts motion (engaging, a gripper command, a policy claim) checks
+    /// this, so that no command ever starts from a pose nobody measured.
+    pub fn not_ready(&self) -> Option<String> {
+        let feedback = self.bridge.feedback();
+        match self.bridge.health() {
+            Health::Error(m) => return Some(format!("its bridge reports an error: {m}")),
+            Health::Disconnected(m) => return Some(format!("its bridge is disconnected: {m}")),
+            Health::Connecting if feedback.is_some() => {
+                return Some("its bridge is still connecting".to_owned());
+            }
+            // Ready, or connecting without feedback yet: the missing feedback is the reason given below.
+            Health::Ready | Health::Connecting => {}
+        }
+        let Some(feedback) = feedback else {
+            return Some("its bridge has sent no valid feedback yet (no measured pose)".to_owned());
+        };
+        let age_s = (monotonic_ns() - feedback.capture_time_ns) as f64 * 1e-9;
+        (age_s > FEEDBACK_MAX_AGE_S)
+            .then(|| format!("its last measured pose is {age_s:.2} s old (more than {FEEDBACK_MAX_AGE_S} s)"))
+    }
+
     /// Hands a gated command to the bridge. Called with the lock held so `seq` order equals send order.
     fn send(&self, inner: &mut Inner, target: Isometry3<f64>, gripper: f64) -> i64 {
         inner.seq += 1;
@@ -378,6 +405,10 @@ impl ArmController {
                             continue;
                         }
                     };
+                    if let Some(why) = self.not_ready() {
+                        outcome.error = format!("arm {:?} is not ready: {why}", self.name);
+                        continue;
+                    }
                     match inner.teleop.gripper(command) {
                         Ok(gripper) => {
                             // The gripper follows the phone only while the phone drives or nobody does.
@@ -392,6 +423,21 @@ impl ArmController {
                 Some(v1::button_event::Event::Record(r)) => outcome.record.push(r),
                 None => "empty button event".clone_into(&mut outcome.error),
             }
+        }
+        if inner.driver == Driver::Teleop
+            && let Some(why) = self.not_ready()
+        {
+            // The robot went away under the phone: stop driving and say so, rather than accept samples that
+            // go nowhere (or, on reconnect, continue from a pose measured before).
+            inner.driver = Driver::None;
+            let measured = self.measured_or(inner.target);
+            inner.teleop.clutch(ClutchKind::Disengage, None, measured, now);
+            let message = format!(
+                "arm {:?} is not ready: {why}; disengaged, the arm holds",
+                self.name
+            );
+            outcome.error.clone_from(&message);
+            Self::record_decision(&mut inner, GateDecision::note(GateVerdict::HeldStale, message));
         }
         if let Some(phone) = pose {
             let measured = self.measured_or(inner.target);
@@ -414,6 +460,15 @@ impl ArmController {
         now: f64,
         outcome: &mut TeleopOutcome,
     ) {
+        let engaging = match kind {
+            ClutchKind::Engage => true,
+            ClutchKind::Toggle => !inner.teleop.engaged(),
+            ClutchKind::Disengage => false,
+        };
+        if engaging && let Some(why) = self.not_ready() {
+            outcome.error = format!("arm {:?} is not ready, not engaging: {why}", self.name);
+            return;
+        }
         let measured = self.measured_or(inner.target);
         let step = inner.teleop.clutch(kind, phone, measured, now);
         if step.engaged {
@@ -440,7 +495,7 @@ impl ArmController {
             inner.driver = Driver::None;
         }
         if let Some(owner) = inner.policy.take() {
-            tracing::info!(arm = %self.name, policy = %owner.name, reason, "policy control revoked");
+            tracing::info!(arm = %self.name, policy = ?owner.name, reason, "policy control revoked");
             // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
             // ownership on its next chunk.
             let _ = owner.events.try_send(v1::PolicyEvent {
@@ -464,6 +519,12 @@ impl ArmController {
         if inner.driver == Driver::Teleop {
             return Err(Status::failed_precondition(format!(
                 "arm {:?} is driven by a phone; the operator must disengage first",
+                self.name
+            )));
+        }
+        if let Some(why) = self.not_ready() {
+            return Err(Status::failed_precondition(format!(
+                "arm {:?} is not ready: {why}",
                 self.name
             )));
         }
@@ -647,8 +708,13 @@ impl ArmController {
             ),
         };
         let (health, health_message) = match health {
-            Health::Connecting => (v1::BridgeHealth::Connecting, String::new()),
-            Health::Ready => (v1::BridgeHealth::Ready, String::new()),
+            Health::Connecting => (v1::BridgeHealth::Connecting, self.not_ready().unwrap_or_default()),
+            // READY means movable: a bridge that is up but has no fresh measured pose is not.
+            Health::Ready => match self.not_ready() {
+                None => (v1::BridgeHealth::Ready, String::new()),
+                Some(why) if feedback.is_none() => (v1::BridgeHealth::Connecting, why),
+                Some(why) => (v1::BridgeHealth::Error, why),
+            },
             Health::Error(m) => (v1::BridgeHealth::Error, m),
             Health::Disconnected(m) => (v1::BridgeHealth::Disconnected, m),
         };

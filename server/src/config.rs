@@ -112,7 +112,7 @@ impl BridgeKind {
 }
 
 /// Names and units of an arm's state and action columns.
-#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, Deserialize, Serialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
 pub enum DatasetLayout {
     #[default]

@@ -145,6 +145,9 @@ fn log_filter(var: impl Fn(&str) -> Option<String>) -> tracing_subscriber::EnvFi
 }
 
 fn main() -> std::process::ExitCode {
+    // Before any thread exists: it sets an environment variable.
+    phone2act_recorder::video::quiet_encoder_library_logs();
+    phone2act_recorder::memory::limit_malloc_arenas();
     tracing_subscriber::fmt()
         .with_env_filter(log_filter(|name| std::env::var(name).ok()))
         .with_writer(std::io::stderr)

@@ -3,6 +3,7 @@
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_phone2act");
@@ -23,11 +24,16 @@ impl Drop for Served {
 const SECRET_TOKEN: &str = "tok-3f9a1c77e2";
 
 fn serve(config: &std::path::Path) -> Served {
+    serve_logging(config, Arc::default())
+}
+
+/// Like [`serve`], without `SVT_LOG` in the environment, collecting the server's stderr lines in `log`.
+fn serve_logging(config: &std::path::Path, log: Arc<Mutex<Vec<String>>>) -> Served {
     let mut child = Command::new(BIN)
         .args(["serve", "--listen", "127.0.0.1:0", "--config"])
         .arg(config)
         .env("PHONE2ACT_SERVER__TOKEN", SECRET_TOKEN)
-        .env("SVT_LOG", "1")
+        .env_remove("SVT_LOG")
         // Phone ports are fixed (9090, 8443); other tests and servers may hold them.
         .env("PHONE2ACT_GATEWAY__ENABLED", "false")
         .stderr(Stdio::piped())
@@ -41,6 +47,7 @@ fn serve(config: &std::path::Path) -> Served {
             if let Some(addr) = line.strip_prefix("phone2act: gRPC on ") {
                 let _ = tx.send(addr.to_owned());
             }
+            log.lock().unwrap().push(line);
         }
     });
     let addr = rx
@@ -320,4 +327,45 @@ fn output_into_a_closed_pipe_ends_quietly() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{:?} {err}", out.status);
     assert!(!err.contains("panicked"), "{err}");
+}
+
+/// Issue 13: a fresh dataset is nothing on disk until its first episode (an empty one was a dataset no
+/// reader accepts); the encoder library's banner stays out of the log; and `episode list` after a restart
+/// lists the dataset's episodes even when phone2act's own sidecar file is gone.
+#[test]
+fn empty_until_the_first_episode_quiet_encoders_and_a_resumed_list() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let config = write_config(dir.path());
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let server = serve_logging(&config, Arc::clone(&log));
+    let (ok, out, err) = run(&["status"], &server.url);
+    assert!(ok, "{out}{err}");
+    assert!(
+        !ds.join("meta/info.json").exists(),
+        "info.json before any episode"
+    );
+    for task in ["one", "two"] {
+        let (ok, _, err) = run(&["episode", "start", "--task", task], &server.url);
+        assert!(ok, "{err}");
+        std::thread::sleep(Duration::from_millis(500));
+        let (ok, _, err) = run(&["episode", "stop"], &server.url);
+        assert!(ok, "{err}");
+    }
+    drop(server);
+    let svt: Vec<String> = log
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|l| l.starts_with("Svt["))
+        .cloned()
+        .collect();
+    assert!(svt.is_empty(), "SVT-AV1 logged {} lines: {svt:?}", svt.len());
+
+    std::fs::remove_file(ds.join("meta/phone2act_provenance.json")).unwrap();
+    let server = serve(&config);
+    let (ok, out, err) = run(&["episode", "list"], &server.url);
+    assert!(ok, "{err}");
+    assert!(out.contains("2 episodes"), "{out}");
+    assert!(out.contains("one") && out.contains("two"), "{out}");
 }

@@ -55,6 +55,8 @@ struct State {
     command: Option<Command>,
     controls: VecDeque<Control>,
     feedback: Option<Feedback>,
+    /// Why the last feedback was refused; cleared by the next valid one.
+    feedback_problem: Option<String>,
     health: Health,
     supports_orientation: bool,
     shut_down: bool,
@@ -115,6 +117,7 @@ impl RemoteBridge {
                     command: None,
                     controls: VecDeque::new(),
                     feedback: None,
+                    feedback_problem: None,
                     health: Health::Disconnected("no remote bridge attached".into()),
                     supports_orientation: true,
                     shut_down: false,
@@ -158,6 +161,7 @@ impl RemoteBridge {
         state.command = None;
         state.controls.clear();
         state.feedback = None;
+        state.feedback_problem = None;
         state.health = Health::Ready;
         state.supports_orientation = supports_orientation;
         let generation = state.generation;
@@ -207,8 +211,14 @@ impl Bridge for RemoteBridge {
         self.shared.lock().feedback.clone()
     }
 
+    /// Ready only once the attached bridge has sent valid feedback: joint names alone measure nothing.
     fn health(&self) -> Health {
-        self.shared.lock().health.clone()
+        let state = self.shared.lock();
+        match (&state.health, &state.feedback_problem, &state.feedback) {
+            (Health::Ready, Some(problem), _) => Health::Error(format!("invalid feedback: {problem}")),
+            (Health::Ready, None, None) => Health::Connecting,
+            (health, _, _) => health.clone(),
+        }
     }
 
     /// Forwards the request to the attached bridge.
@@ -304,24 +314,29 @@ impl AttachHandle {
 
     /// Publishes measured state from the remote. Rejects feedback whose joint count differs from the arm's or
     /// that holds non-finite values (nothing is stored then).
+    /// The arm's health is an error until the next valid feedback.
     pub fn publish_feedback(&self, feedback: Feedback) -> Result<(), RemoteError> {
         let expected = self.shared.joint_names.get().map_or(0, Vec::len);
-        if feedback.joint_positions_rad.len() != expected {
-            return Err(RemoteError::InvalidFeedback(format!(
+        let pose = &feedback.robot_from_ee;
+        let problem = if feedback.joint_positions_rad.len() == expected {
+            let finite = feedback.joint_positions_rad.iter().all(|v| v.is_finite())
+                && pose.translation.vector.iter().all(|v| v.is_finite())
+                && pose.rotation.coords.iter().all(|v| v.is_finite())
+                && feedback.gripper_position.is_finite();
+            (!finite).then(|| "non-finite value".to_owned())
+        } else {
+            Some(format!(
                 "{} joint positions, expected {expected}",
                 feedback.joint_positions_rad.len()
-            )));
-        }
-        let pose = &feedback.robot_from_ee;
-        let finite = feedback.joint_positions_rad.iter().all(|v| v.is_finite())
-            && pose.translation.vector.iter().all(|v| v.is_finite())
-            && pose.rotation.coords.iter().all(|v| v.is_finite())
-            && feedback.gripper_position.is_finite();
-        if !finite {
-            return Err(RemoteError::InvalidFeedback("non-finite value".into()));
-        }
+            ))
+        };
         let mut state = self.shared.lock();
         Shared::check(&state, self.generation)?;
+        if let Some(problem) = problem {
+            state.feedback_problem = Some(problem.clone());
+            return Err(RemoteError::InvalidFeedback(problem));
+        }
+        state.feedback_problem = None;
         state.feedback = Some(feedback);
         Ok(())
     }
@@ -405,6 +420,9 @@ mod tests {
         // A command from before the attach must not reach the new bridge.
         let handle = remote.attach(names(), false).unwrap();
         assert_eq!(handle.next(SHORT), Ok(None));
+        // Attached is not ready: nothing has been measured yet.
+        assert_eq!(remote.health(), Health::Connecting);
+        handle.publish_feedback(feedback(vec![0.0; 3])).unwrap();
         assert_eq!(remote.health(), Health::Ready);
         assert_eq!(remote.joint_names(), names().as_slice());
         assert!(!remote.supports_orientation());
@@ -460,8 +478,15 @@ mod tests {
         assert_eq!(
             remote.feedback(),
             Some(feedback(vec![0.1, 0.2, 0.3])),
-            "bad feedback changed nothing"
+            "bad feedback changed no stored value"
         );
+        // But it is not silent: the arm is in error until valid feedback comes again.
+        assert_eq!(
+            remote.health(),
+            Health::Error("invalid feedback: non-finite value".into())
+        );
+        handle.publish_feedback(feedback(vec![0.1, 0.2, 0.3])).unwrap();
+        assert_eq!(remote.health(), Health::Ready);
         handle.report_health(Health::Error("servo alarm".into())).unwrap();
         assert_eq!(remote.health(), Health::Error("servo alarm".into()));
     }

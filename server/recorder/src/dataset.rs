@@ -12,7 +12,7 @@
 //! crash hit between them. `open` also deletes whatever an interrupted recording left in staging.
 
 use crate::error::RecorderError;
-use crate::fsutil::{Journal, sync_dir, write_atomic, write_synced};
+use crate::fsutil::{Journal, sync_dir, write_synced};
 use crate::parquet_io::{self, DataWriter, EpisodeMetaRow, Row};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
@@ -176,7 +176,10 @@ impl Dataset {
         spec.validate()?;
         let video = VideoSettings::parse(spec.video_codec.as_deref(), spec.format)?;
         let root = spec.root.clone();
-        fs::create_dir_all(root.join("meta")).map_err(|e| RecorderError::io(&root, e))?;
+        // Only the root: meta/ and info.json come with the first saved episode. An info.json for zero
+        // episodes (v3.0: without tasks.parquet) is a dataset no reader accepts, and lerobot, finding none
+        // it can load, goes looking for it on the Hub.
+        fs::create_dir_all(&root).map_err(|e| RecorderError::io(&root, e))?;
         if let Some(ep) = Journal::recover(&root.join(JOURNAL_FILE))? {
             tracing::warn!(episode = ep, root = %root.display(), "finished a save interrupted by a crash");
         }
@@ -202,8 +205,6 @@ impl Dataset {
         let info_path = root.join("meta/info.json");
         if info_path.exists() {
             ds.resume(&info_path)?;
-        } else {
-            write_atomic(&info_path, &ds.info_json())?;
         }
         ds.provenance.software = "phone2act-recorder".into();
         ds.provenance.version = env!("CARGO_PKG_VERSION").into();
@@ -318,8 +319,71 @@ impl Dataset {
             // Episodes past the committed count belong to a save that never reached info.json.
             self.provenance.episodes.retain(|e| e.index < self.total_episodes);
         }
+        self.provenance.episodes = self.episodes_on_disk()?;
         tracing::info!(root = %root.display(), episodes = self.total_episodes, frames = self.total_frames, "resuming dataset");
         Ok(())
+    }
+
+    /// The committed episodes as the dataset's own metadata lists them, with the sidecar's extra fields
+    /// (held, paused, late ticks, save latency) where the sidecar knows the episode. The sidecar alone is
+    /// not the list: a dataset whose sidecar is missing, older or unreadable still lists every episode.
+    fn episodes_on_disk(&self) -> Result<Vec<EpisodeSummary>, RecorderError> {
+        let mut listed: Vec<(u64, String, u64)> = Vec::new();
+        match self.spec.format {
+            Format::V30 => {
+                let mut files = Vec::new();
+                let dir = self.spec.root.join("meta/episodes");
+                for chunk in fs::read_dir(&dir).into_iter().flatten().flatten() {
+                    for f in fs::read_dir(chunk.path()).into_iter().flatten().flatten() {
+                        if f.path().extension().is_some_and(|e| e == "parquet") {
+                            files.push(f.path());
+                        }
+                    }
+                }
+                files.sort();
+                for f in files {
+                    for e in parquet_io::read_episode_summaries(&f)? {
+                        listed.push((e.episode_index, e.tasks.join("; "), e.length));
+                    }
+                }
+            }
+            Format::V21 => {
+                for line in self.episodes_jsonl.lines().filter(|l| !l.trim().is_empty()) {
+                    let v: Value = serde_json::from_str(line)
+                        .map_err(|e| self.corrupt(format!("meta/episodes.jsonl: {e}")))?;
+                    let task = v["tasks"]
+                        .as_array()
+                        .into_iter()
+                        .flatten()
+                        .filter_map(Value::as_str);
+                    listed.push((
+                        v["episode_index"].as_u64().unwrap_or(0),
+                        task.collect::<Vec<_>>().join("; "),
+                        v["length"].as_u64().unwrap_or(0),
+                    ));
+                }
+            }
+        }
+        listed.sort_by_key(|e| e.0);
+        listed.retain(|e| e.0 < self.total_episodes);
+        let fps = f64::from(self.spec.fps);
+        Ok(listed
+            .into_iter()
+            .map(|(index, task, length_frames)| {
+                self.provenance
+                    .episodes
+                    .iter()
+                    .find(|p| p.index == index && p.length_frames == length_frames)
+                    .cloned()
+                    .unwrap_or_else(|| EpisodeSummary {
+                        index,
+                        task,
+                        length_frames,
+                        duration_s: length_frames as f64 / fps,
+                        ..EpisodeSummary::default()
+                    })
+            })
+            .collect())
     }
 
     fn check_features(&self, found: &Value) -> Result<(), RecorderError> {

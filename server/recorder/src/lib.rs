@@ -9,6 +9,7 @@ pub mod dataset;
 pub mod error;
 pub mod fsutil;
 pub mod jpeg;
+pub mod memory;
 pub mod parquet_io;
 pub mod quantiles;
 pub mod recorder;

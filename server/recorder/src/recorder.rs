@@ -242,6 +242,8 @@ impl Recorder {
     }
 
     fn set_idle(&self, warning: Option<String>) {
+        // The episode's encoders are gone: give their memory back (see `memory`).
+        crate::memory::release_freed_memory();
         let saved = lock(&self.shared.dataset).total_episodes();
         let mut t = lock(&self.shared.tick);
         t.saved = saved;

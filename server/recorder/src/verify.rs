@@ -109,7 +109,7 @@ pub fn verify(root: &Path) -> Report {
         }
         Err(e) => {
             report.problems.push(format!(
-                "{} cannot be read ({e}): not a LeRobot dataset",
+                "{} cannot be read ({e}): not a LeRobot dataset (phone2act writes nothing there before the first episode is saved)",
                 info_path.display()
             ));
             return report;
@@ -164,6 +164,7 @@ pub fn verify(root: &Path) -> Report {
     }
     let mut lengths: BTreeMap<i64, u64> = BTreeMap::new();
     let mut indices = Vec::new();
+    let mut data_tasks: BTreeSet<i64> = BTreeSet::new();
     for path in &data_files {
         let rel = path.strip_prefix(root).unwrap_or(path).display().to_string();
         let batches = match read_parquet(path) {
@@ -218,6 +219,9 @@ pub fn verify(root: &Path) -> Report {
                 *lengths.entry(ep[row]).or_default() += 1;
                 indices.push(ix[row]);
             }
+            if let Some(t) = int_column(batch, "task_index") {
+                data_tasks.extend(t);
+            }
         }
     }
     indices.sort_unstable();
@@ -245,6 +249,9 @@ pub fn verify(root: &Path) -> Report {
 
     // Episode metadata and videos.
     let mut episode_meta: BTreeMap<i64, (u64, EpisodeVideos)> = BTreeMap::new();
+    // Task texts named by the episode metadata, and the task table (index order), to cross-check them.
+    let mut meta_tasks: BTreeSet<String> = BTreeSet::new();
+    let mut tasks: Option<Vec<String>> = None;
     if v30 {
         let mut meta_files = Vec::new();
         files_with_ext(&root.join("meta/episodes"), "parquet", &mut meta_files);
@@ -277,14 +284,32 @@ pub fn verify(root: &Path) -> Report {
                                         .push(format!("episode {} has no video location for {key}", ep[row]));
                                 }
                             }
-                            episode_meta.insert(ep[row], (len[row].max(0) as u64, videos));
+                            let rel = path.strip_prefix(root).unwrap_or(path).display().to_string();
+                            if episode_meta
+                                .insert(ep[row], (len[row].max(0) as u64, videos))
+                                .is_some()
+                            {
+                                report.problems.push(format!(
+                                    "episode index {} appears twice in the episode metadata (again in {rel})",
+                                    ep[row]
+                                ));
+                            }
+                            if let Some(tasks) = string_list_column(batch, "tasks", row) {
+                                meta_tasks.extend(tasks);
+                            }
                         }
                     }
                 }
                 Err(e) => report.problems.push(e),
             }
         }
-        if !root.join("meta/tasks.parquet").exists() {
+        let tp = root.join("meta/tasks.parquet");
+        if tp.exists() {
+            match crate::parquet_io::read_tasks(&tp) {
+                Ok(t) => tasks = Some(t),
+                Err(e) => report.problems.push(format!("meta/tasks.parquet: {e}")),
+            }
+        } else {
             report.problems.push("meta/tasks.parquet is missing".to_owned());
         }
     } else {
@@ -308,10 +333,45 @@ pub fn verify(root: &Path) -> Report {
                 let len = v["length"].as_u64().unwrap_or(0);
                 videos.insert(key.clone(), (root.join(rel), 0.0, len as f64 / fps));
             }
-            episode_meta.insert(ep, (v["length"].as_u64().unwrap_or(0), videos));
+            if episode_meta
+                .insert(ep, (v["length"].as_u64().unwrap_or(0), videos))
+                .is_some()
+            {
+                report.problems.push(format!(
+                    "episode index {ep} appears twice in meta/episodes.jsonl (again on line {})",
+                    n + 1
+                ));
+            }
+            meta_tasks.extend(
+                v["tasks"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .filter_map(|t| t.as_str().map(str::to_owned)),
+            );
         }
-        if !root.join("meta/tasks.jsonl").exists() {
-            report.problems.push("meta/tasks.jsonl is missing".to_owned());
+        check_episodes_stats(root, &episode_meta, &mut report);
+        match std::fs::read_to_string(root.join("meta/tasks.jsonl")) {
+            Ok(text) => {
+                let mut table: BTreeMap<i64, String> = BTreeMap::new();
+                for line in text.lines().filter(|l| !l.trim().is_empty()) {
+                    let v: Value = serde_json::from_str(line).unwrap_or_default();
+                    let i = v["task_index"].as_i64().unwrap_or(-1);
+                    let t = v["task"].as_str().unwrap_or("").to_owned();
+                    if table.insert(i, t).is_some() {
+                        report
+                            .problems
+                            .push(format!("task index {i} appears twice in meta/tasks.jsonl"));
+                    }
+                }
+                if table.keys().copied().ne(0..table.len() as i64) {
+                    report
+                        .problems
+                        .push("meta/tasks.jsonl task indices are not 0..n".to_owned());
+                }
+                tasks = Some(table.into_values().collect());
+            }
+            Err(_) => report.problems.push("meta/tasks.jsonl is missing".to_owned()),
         }
         if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
             check_modality(&text, features, &mut report);
@@ -324,6 +384,15 @@ pub fn verify(root: &Path) -> Report {
             report.episodes
         ));
     }
+    check_metadata_agrees(
+        &info,
+        &episode_meta,
+        &lengths,
+        tasks.as_deref(),
+        &meta_tasks,
+        &data_tasks,
+        &mut report,
+    );
     let mut durations: BTreeMap<PathBuf, Result<(f64, i64), String>> = BTreeMap::new();
     for (ep, (len, videos)) in &episode_meta {
         match lengths.get(ep) {
@@ -356,6 +425,106 @@ pub fn verify(root: &Path) -> Report {
         }
     }
     report
+}
+
+/// The metadata files must tell one story: info.json's totals, the episode list (indices 0..n, each
+/// once), the data files and the task table.
+fn check_metadata_agrees(
+    info: &Value,
+    episode_meta: &BTreeMap<i64, (u64, EpisodeVideos)>,
+    lengths: &BTreeMap<i64, u64>,
+    tasks: Option<&[String]>,
+    meta_tasks: &BTreeSet<String>,
+    data_tasks: &BTreeSet<i64>,
+    report: &mut Report,
+) {
+    let n = episode_meta.len() as u64;
+    if let Some(total) = info["total_episodes"].as_u64()
+        && total != n
+    {
+        report.problems.push(format!(
+            "info.json says {total} episodes, the episode metadata lists {n}"
+        ));
+    }
+    let meta_frames: u64 = episode_meta.values().map(|(len, _)| len).sum();
+    if let Some(total) = info["total_frames"].as_u64()
+        && total != meta_frames
+    {
+        report.problems.push(format!(
+            "info.json says {total} frames, the episode metadata adds up to {meta_frames}"
+        ));
+    }
+    if episode_meta.keys().copied().ne(0..n as i64) {
+        report.problems.push(format!(
+            "episode metadata indices are not 0..{n}: {:?}",
+            episode_meta.keys().take(20).collect::<Vec<_>>()
+        ));
+    }
+    for ep in lengths.keys().filter(|ep| !episode_meta.contains_key(ep)) {
+        report
+            .problems
+            .push(format!("episode {ep} has data rows but no episode metadata"));
+    }
+    let Some(tasks) = tasks else { return };
+    if let Some(total) = info["total_tasks"].as_u64()
+        && total != tasks.len() as u64
+    {
+        report.problems.push(format!(
+            "info.json says {total} tasks, the task table has {}",
+            tasks.len()
+        ));
+    }
+    for t in meta_tasks.iter().filter(|t| !tasks.contains(t)) {
+        report.problems.push(format!(
+            "task {t:?} is in the episode metadata but not in the task table"
+        ));
+    }
+    for i in data_tasks.iter().filter(|&&i| i < 0 || i as usize >= tasks.len()) {
+        report.problems.push(format!(
+            "the data uses task_index {i}, the task table has {} tasks",
+            tasks.len()
+        ));
+    }
+}
+
+/// v2.1: `episodes_stats.jsonl` holds exactly one line per episode of `episodes.jsonl`.
+fn check_episodes_stats(
+    root: &Path,
+    episode_meta: &BTreeMap<i64, (u64, EpisodeVideos)>,
+    report: &mut Report,
+) {
+    let Ok(text) = std::fs::read_to_string(root.join("meta/episodes_stats.jsonl")) else {
+        report
+            .problems
+            .push("meta/episodes_stats.jsonl is missing".to_owned());
+        return;
+    };
+    let mut seen = BTreeSet::new();
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        let ep = serde_json::from_str::<Value>(line).unwrap_or_default()["episode_index"]
+            .as_i64()
+            .unwrap_or(-1);
+        if !seen.insert(ep) {
+            report.problems.push(format!(
+                "episode index {ep} appears twice in meta/episodes_stats.jsonl"
+            ));
+        }
+    }
+    let listed: BTreeSet<i64> = episode_meta.keys().copied().collect();
+    if seen != listed {
+        report.problems.push(format!(
+            "meta/episodes_stats.jsonl covers {} episodes, meta/episodes.jsonl lists {}; they differ",
+            seen.len(),
+            listed.len()
+        ));
+    }
+}
+
+fn string_list_column(batch: &RecordBatch, name: &str, row: usize) -> Option<Vec<String>> {
+    let list = batch.column_by_name(name)?.as_list_opt::<i32>()?;
+    let values = list.value(row);
+    let strings = values.as_string_opt::<i32>()?;
+    Some(strings.iter().flatten().map(str::to_owned).collect())
 }
 
 fn check_modality(text: &str, features: &serde_json::Map<String, Value>, report: &mut Report) {

@@ -24,8 +24,21 @@ use std::thread::JoinHandle;
 /// takes milliseconds, once per episode and camera, so the lock costs nothing measurable.
 pub static CODEC_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-/// Initialises FFmpeg once per process and keeps its log to errors. (SVT-AV1 prints its own banner per
-/// encoder unless the process runs with `SVT_LOG=1`; setting it here would race other threads.)
+/// Keeps SVT-AV1's own log (about 20 banner lines per encoder, so per episode and camera) to errors,
+/// unless the user set `SVT_LOG`. The library reads the variable when an encoder is created; call this at
+/// the top of `main`, before any thread starts, because changing the environment races other threads
+/// reading it.
+#[allow(unsafe_code)]
+pub fn quiet_encoder_library_logs() {
+    if std::env::var_os("SVT_LOG").is_none() {
+        // SAFETY: documented to be called while the process is single-threaded (start of main), so no other
+        // thread reads or writes the environment concurrently.
+        unsafe { std::env::set_var("SVT_LOG", "1") };
+    }
+}
+
+/// Initialises FFmpeg once per process and keeps its log to errors. (SVT-AV1 logs on its own; see
+/// [`quiet_encoder_library_logs`].)
 pub fn init_ffmpeg() {
     static INIT: Once = Once::new();
     INIT.call_once(|| {

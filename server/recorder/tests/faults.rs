@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{ManualRobot, read_json, spec, wait_for};
+use common::{ManualRobot, copy_dir, read_json, spec, wait_for};
 use phone2act_recorder::camera::{Frame, FrameSlot};
 use phone2act_recorder::{Format, Phase, Recorder};
 use std::path::Path;
@@ -284,4 +284,75 @@ fn fs_available(mnt: &Path) -> u64 {
         .nth(1)
         .and_then(|l| l.trim().parse().ok())
         .unwrap()
+}
+
+/// `verify` reads the metadata files against each other: a duplicated episode index (what the failed v2.1
+/// save used to leave) and any disagreement between them are reported in words.
+#[test]
+fn verify_finds_duplicated_episode_indices_and_disagreeing_metadata() {
+    use phone2act_recorder::verify::verify;
+    let problems = |root: &Path| verify(root).problems.join("\n");
+    for format in [Format::V21, Format::V30] {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("ds");
+        let cam = HandCamera::new();
+        let robot = Arc::new(ManualRobot::default());
+        // Nothing is written before the first episode.
+        let rec = open(&root, format, &cam, &robot);
+        rec.close().unwrap();
+        assert!(!root.join("meta/info.json").exists(), "{format:?}");
+        assert!(problems(&root).contains("before the first episode"), "{format:?}");
+        let rec = open(&root, format, &cam, &robot);
+        record(&rec, "one", 3);
+        record(&rec, "two", 3);
+        rec.close().unwrap();
+        assert!(verify(&root).ok(), "{format:?}: {}", problems(&root));
+
+        let copy = dir.path().join("dup");
+        copy_dir(&root, &copy);
+        if format == Format::V21 {
+            // The second line again, as the failed save wrote it.
+            let p = copy.join("meta/episodes.jsonl");
+            let text = std::fs::read_to_string(&p).unwrap();
+            let second = text.lines().nth(1).unwrap().to_owned();
+            std::fs::write(&p, format!("{text}{second}\n")).unwrap();
+        } else {
+            let from = copy.join("meta/episodes/chunk-000/file-001.parquet");
+            std::fs::copy(&from, copy.join("meta/episodes/chunk-000/file-002.parquet")).unwrap();
+        }
+        let text = problems(&copy);
+        assert!(
+            text.contains("episode index 1 appears twice"),
+            "{format:?}: {text}"
+        );
+
+        // info.json disagreeing with the episode metadata and the task table.
+        let copy = dir.path().join("disagree");
+        copy_dir(&root, &copy);
+        let p = copy.join("meta/info.json");
+        let info = std::fs::read_to_string(&p)
+            .unwrap()
+            .replace("\"total_tasks\": 2", "\"total_tasks\": 3");
+        std::fs::write(&p, info).unwrap();
+        let text = problems(&copy);
+        assert!(
+            text.contains("info.json says 3 tasks, the task table has 2"),
+            "{format:?}: {text}"
+        );
+        if format == Format::V21 {
+            // episodes_stats.jsonl missing an episode.
+            let copy = dir.path().join("stats");
+            copy_dir(&root, &copy);
+            let p = copy.join("meta/episodes_stats.jsonl");
+            let first = std::fs::read_to_string(&p)
+                .unwrap()
+                .lines()
+                .next()
+                .unwrap()
+                .to_owned();
+            std::fs::write(&p, format!("{first}\n")).unwrap();
+            let text = problems(&copy);
+            assert!(text.contains("episodes_stats.jsonl covers 1 episodes"), "{text}");
+        }
+    }
 }

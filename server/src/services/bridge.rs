@@ -49,6 +49,32 @@ fn feedback_from_proto(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
     })
 }
 
+/// More joints than any arm has; the bound keeps a hello (and the error naming its joints) small.
+const MAX_JOINTS: usize = 64;
+/// Longest joint, arm or bridge name accepted.
+const MAX_NAME_BYTES: usize = 128;
+
+/// Refuses a hello whose sizes are out of bounds, with a short message.
+fn check_hello(hello: &v1::BridgeHello) -> Result<(), Status> {
+    if hello.joint_names.len() > MAX_JOINTS {
+        return Err(Status::invalid_argument(format!(
+            "{} joint names, the limit is {MAX_JOINTS}",
+            hello.joint_names.len()
+        )));
+    }
+    let long = std::iter::once(("arm", &hello.arm))
+        .chain(std::iter::once(("bridge_name", &hello.bridge_name)))
+        .chain(hello.joint_names.iter().map(|n| ("joint name", n)))
+        .find(|(_, n)| n.len() > MAX_NAME_BYTES);
+    if let Some((what, n)) = long {
+        return Err(Status::invalid_argument(format!(
+            "a {what} is {} bytes, the limit is {MAX_NAME_BYTES}",
+            n.len()
+        )));
+    }
+    Ok(())
+}
+
 #[tonic::async_trait]
 impl Bridge for BridgeService {
     type AttachStream = DownStream;
@@ -65,6 +91,7 @@ impl Bridge for BridgeService {
             Some(_) => return Err(Status::invalid_argument("the first message must be BridgeHello")),
             None => return Err(Status::invalid_argument("the stream ended before BridgeHello")),
         };
+        check_hello(&hello)?;
         let remote = self.app.remote_bridges.get(&hello.arm).cloned().ok_or_else(|| {
             let remote_arms: Vec<_> = self.app.remote_bridges.keys().cloned().collect();
             Status::not_found(format!(
@@ -82,7 +109,8 @@ impl Bridge for BridgeService {
                 .attach(hello.joint_names.clone(), hello.supports_orientation)
                 .map_err(|e| Status::invalid_argument(e.to_string()))?,
         );
-        tracing::info!(arm = %hello.arm, bridge = %hello.bridge_name, "remote bridge attached");
+        // Debug formatting escapes control characters: a bridge name cannot forge log lines.
+        tracing::info!(arm = %hello.arm, bridge = ?hello.bridge_name, "remote bridge attached");
         let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::BridgeDownstream, Status>>(4);
         tx.try_send(Ok(down(v1::bridge_downstream::Message::Welcome(
             v1::BridgeWelcome {
@@ -133,6 +161,7 @@ impl Bridge for BridgeService {
             .map_err(|e| Status::internal(format!("cannot start bridge thread: {e}")))?;
 
         let mut shutdown = self.app.shutdown_signal();
+        let up_tx = tx;
         tokio::spawn(async move {
             loop {
                 let msg = tokio::select! {
@@ -160,11 +189,15 @@ impl Bridge for BridgeService {
                             }
                         };
                         if let Err(e) = result {
-                            // Bad feedback is refused without ending the stream: the arm keeps its last good state.
-                            tracing::warn!(error = %e, "remote bridge message refused");
-                            if !handle.is_current() {
-                                break;
-                            }
+                            // A bridge that measures nonsense must hear it, not be ignored while the arm shows
+                            // READY: the stream ends with the reason, and the arm holds until it attaches again.
+                            tracing::warn!(error = %e, "remote bridge message refused; ending its stream");
+                            let _ = up_tx
+                                .send(Err(Status::invalid_argument(format!(
+                                    "refused: {e}; the arm holds until the bridge attaches again"
+                                ))))
+                                .await;
+                            break;
                         }
                     }
                     Ok(Some(_)) => {}

@@ -105,12 +105,14 @@ impl Cameras for CamerasService {
                     summary.frames_accepted += 1;
                 }
                 Err(e) => {
-                    summary.frames_rejected += 1;
+                    // Any bad frame ends the stream with the reason: a sender whose frames are being thrown
+                    // away must hear it, not get an OK with a counter at the end.
                     tracing::debug!(camera = %summary.camera, error = %e, "pushed frame refused");
-                    if summary.frames_accepted == 0 && summary.frames_rejected == 1 {
-                        // The first frame is wrong: the sender is misconfigured, say so at once.
-                        return Err(Status::invalid_argument(e));
-                    }
+                    return Err(Status::invalid_argument(format!(
+                        "frame {} refused after {} accepted: {e}",
+                        summary.frames_accepted + 1,
+                        summary.frames_accepted
+                    )));
                 }
             }
         }

@@ -20,6 +20,13 @@ use tonic::{Request, Response, Status, Streaming};
 const OBSERVATION_MEMORY: usize = 128;
 /// Highest observation rate a session may ask for.
 const MAX_OBSERVATION_RATE_HZ: f64 = 200.0;
+/// Bounds of `silence_timeout_s`: shorter than a control tick is meaningless; longer than an hour leaves a
+/// hung policy in control of an arm for longer than anyone watches it. (Replaying a long episode asks for its
+/// duration plus a margin.)
+const MIN_SILENCE_TIMEOUT_S: f64 = 0.05;
+const MAX_SILENCE_TIMEOUT_S: f64 = 3600.0;
+/// Longest `policy_name` accepted (it is logged and shown to operators).
+const MAX_POLICY_NAME_BYTES: usize = 128;
 
 /// What a chunk needs from the observation it answers.
 #[derive(Debug, Clone)]
@@ -343,10 +350,23 @@ impl Policy for PolicyService {
                 hello.observation_rate_hz
             )));
         }
-        let silence_timeout_s = if hello.silence_timeout_s > 0.0 && hello.silence_timeout_s.is_finite() {
+        if hello.policy_name.len() > MAX_POLICY_NAME_BYTES {
+            return Err(Status::invalid_argument(format!(
+                "policy_name is {} bytes, the limit is {MAX_POLICY_NAME_BYTES}",
+                hello.policy_name.len()
+            )));
+        }
+        // 0 is proto3's "unset": the documented default. Anything else outside the range is refused: a
+        // negative or NaN timeout means nothing, and a huge one lets a hung policy keep an arm forever.
+        let silence_timeout_s = if hello.silence_timeout_s == 0.0 {
+            1.0
+        } else if (MIN_SILENCE_TIMEOUT_S..=MAX_SILENCE_TIMEOUT_S).contains(&hello.silence_timeout_s) {
             hello.silence_timeout_s
         } else {
-            1.0
+            return Err(Status::invalid_argument(format!(
+                "silence_timeout_s must be in {MIN_SILENCE_TIMEOUT_S}..={MAX_SILENCE_TIMEOUT_S} s (0 for the 1 s default), got {}",
+                hello.silence_timeout_s
+            )));
         };
         let encoding =
             v1::ImageEncoding::try_from(hello.image_encoding).unwrap_or(v1::ImageEncoding::Unspecified);
@@ -412,7 +432,8 @@ impl Policy for PolicyService {
             })));
         }
         app.register_policy(Arc::clone(&session));
-        tracing::info!(session = id, policy = %name, ?arms, control = hello.request_control, "policy session opened");
+        // Debug formatting escapes control characters: a policy name cannot forge log lines.
+        tracing::info!(session = id, policy = ?name, ?arms, control = hello.request_control, "policy session opened");
 
         let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(16);
         // Forward events; the events channel is shared with the arm controllers (revocations).
@@ -462,7 +483,14 @@ impl Policy for PolicyService {
                             }
                         },
                         Ok(Some(_)) => {}
-                        Ok(None) | Err(_) => break,
+                        Ok(None) => break,
+                        // An undecodable or oversized message (a 100,000-step chunk): the session ends with that
+                        // status, not with OK, so the policy knows it lost control.
+                        Err(status) => {
+                            tracing::warn!(session = session.id, %status, "policy session stream refused a message");
+                            let _ = out_tx.send(Err(status)).await;
+                            break;
+                        }
                     },
                     () = crate::app::stopped(&mut shutdown) => break,
                 }

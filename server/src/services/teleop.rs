@@ -16,6 +16,10 @@ use tonic::{Request, Response, Status, Streaming};
 
 /// Feedback is sent at least this often while the phone is idle.
 const IDLE_FEEDBACK: Duration = Duration::from_millis(100);
+/// A stream that has not named its arm by then is closed: an idle connection must not be held forever.
+const FIRST_SAMPLE_TIMEOUT: Duration = Duration::from_secs(10);
+/// Longest `client_name` accepted (it is logged and shown to operators).
+const MAX_CLIENT_NAME_BYTES: usize = 128;
 /// Most samples drained in one round before planning the newest.
 const MAX_DRAIN: usize = 256;
 
@@ -42,10 +46,21 @@ impl Teleop for TeleopService {
         request: Request<Streaming<v1::PhoneSample>>,
     ) -> Result<Response<Self::StreamStream>, Status> {
         let mut inbound = request.into_inner();
-        let first = inbound
-            .message()
-            .await?
+        let first = tokio::time::timeout(FIRST_SAMPLE_TIMEOUT, inbound.message())
+            .await
+            .map_err(|_| {
+                Status::deadline_exceeded(format!(
+                    "no first sample within {} s: a phone session starts by naming its arm",
+                    FIRST_SAMPLE_TIMEOUT.as_secs()
+                ))
+            })??
             .ok_or_else(|| Status::invalid_argument("the stream ended before its first sample"))?;
+        if first.client_name.len() > MAX_CLIENT_NAME_BYTES {
+            return Err(Status::invalid_argument(format!(
+                "client_name is {} bytes, the limit is {MAX_CLIENT_NAME_BYTES}",
+                first.client_name.len()
+            )));
+        }
         if first.arm.is_empty() {
             return Err(Status::invalid_argument(
                 "the first sample must name the arm (field `arm`)",
@@ -60,7 +75,8 @@ impl Teleop for TeleopService {
         })?;
         let session = self.app.next_session_id();
         arm.bind_teleop(session, first.take_over)?;
-        tracing::info!(arm = %arm.name, session, client = %first.client_name, "teleop session bound");
+        // Debug formatting escapes control characters: a client name cannot forge log lines.
+        tracing::info!(arm = %arm.name, session, client = ?first.client_name, "teleop session bound");
 
         // Small bound: feedback is a status display, the newest message is what matters.
         let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::TeleopFeedback, Status>>(4);

@@ -24,7 +24,10 @@ fn arg<T: std::str::FromStr>(name: &str) -> anyhow::Result<Option<T>> {
     std::env::args()
         .skip_while(|a| a != name)
         .nth(1)
-        .map(|s| s.parse::<T>().map_err(|_| anyhow::anyhow!("{name}: cannot parse {s:?}")))
+        .map(|s| {
+            s.parse::<T>()
+                .map_err(|_| anyhow::anyhow!("{name}: cannot parse {s:?}"))
+        })
         .transpose()
 }
 
@@ -87,7 +90,11 @@ async fn phone(client: Client, arm: String, engage: bool, c: Arc<Counters>) {
                 },
             )
             .await?;
-        let first = if engage { vec![buttons::clutch_engage()] } else { vec![] };
+        let first = if engage {
+            vec![buttons::clutch_engage()]
+        } else {
+            vec![]
+        };
         s.send_pose(phone_pose(0.0, 0.0), first, 0).await?;
         let start = Instant::now();
         let period = Duration::from_secs_f64(1.0 / 60.0);
@@ -97,8 +104,9 @@ async fn phone(client: Client, arm: String, engage: bool, c: Arc<Counters>) {
                 .await?;
             c.samples.fetch_add(1, Ordering::Relaxed);
             // Read whatever feedback is there, as a phone does, without waiting for it.
-            while let Ok(Some(fb)) =
-                tokio::time::timeout(Duration::ZERO, s.feedback()).await.unwrap_or(Ok(None))
+            while let Ok(Some(fb)) = tokio::time::timeout(Duration::ZERO, s.feedback())
+                .await
+                .unwrap_or(Ok(None))
             {
                 if !fb.error.is_empty() {
                     anyhow::bail!("feedback error: {}", fb.error);
@@ -232,7 +240,11 @@ fn main() -> anyhow::Result<()> {
         // Let the phones attach first, then the policies take the arms no phone is engaged on.
         tokio::time::sleep(Duration::from_millis(500)).await;
         for i in ARMS - POLICIES..ARMS {
-            tasks.push(tokio::spawn(policy(client.clone(), format!("arm{i}"), Arc::clone(&c))));
+            tasks.push(tokio::spawn(policy(
+                client.clone(),
+                format!("arm{i}"),
+                Arc::clone(&c),
+            )));
         }
         let recorder = {
             let (client, c) = (client.clone(), Arc::clone(&c));
@@ -259,7 +271,10 @@ fn main() -> anyhow::Result<()> {
         };
         let start = Instant::now();
         let mut trace: Vec<(f64, f64)> = Vec::new();
-        println!("{:>6} {:>8} {:>9} {:>8} {:>6}", "t_s", "rss_mb", "samples", "chunks", "errors");
+        println!(
+            "{:>6} {:>8} {:>9} {:>8} {:>6}",
+            "t_s", "rss_mb", "samples", "chunks", "errors"
+        );
         while start.elapsed().as_secs_f64() < minutes * 60.0 {
             let t = start.elapsed().as_secs_f64();
             let rss = rss_mb(pid)?;
@@ -295,7 +310,9 @@ fn main() -> anyhow::Result<()> {
         .collect();
     let (lo, hi) = window
         .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| (lo.min(*v), hi.max(*v)));
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(*v), hi.max(*v))
+        });
     let first = window.first().copied().unwrap_or(f64::NAN);
     let last = window.last().copied().unwrap_or(f64::NAN);
     println!(
@@ -338,7 +355,10 @@ fn main() -> anyhow::Result<()> {
         );
         ok &= out.status.success();
     } else {
-        println!("lerobot check: skipped (no conformance venv in {})", cache.display());
+        println!(
+            "lerobot check: skipped (no conformance venv in {})",
+            cache.display()
+        );
     }
     if arg::<PathBuf>("--keep")?.is_none() {
         let _ = std::fs::remove_dir_all(&tmp);
