@@ -1001,6 +1001,7 @@ cert_file = "c.pem"
 key_file = "k.pem"
 token = "pairing-secret-2"
 public_host = "h"
+local_addresses = ["127.0.0.1"]
 "#;
 
     /// Dotted key paths of every leaf, array entries merged; `namespaces` is a map of user data.
