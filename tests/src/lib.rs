@@ -54,6 +54,35 @@ pub async fn sim_pose_of(client: &Client, arm: &str) -> [f64; 3] {
     pos(state.robot_from_ee.as_ref().expect("arm has feedback"))
 }
 
+/// `arm`'s state, through System.ListArms.
+pub async fn arm_state(client: &Client, arm: &str) -> phone2act_proto::v1::ArmState {
+    client
+        .system()
+        .list_arms()
+        .await
+        .expect("ListArms")
+        .into_iter()
+        .find(|a| a.arm == arm)
+        .expect("arm listed")
+}
+
+/// Polls `check` every 20 ms until it holds or `timeout` passes; true if it held. Tests wait for an outcome
+/// rather than sleeping a guessed time, so a stalled 2-core machine only makes them slower.
+pub async fn wait_until<F, Fut>(timeout: std::time::Duration, mut check: F) -> bool
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = bool>,
+{
+    let deadline = tokio::time::Instant::now() + timeout;
+    while tokio::time::Instant::now() < deadline {
+        if check().await {
+            return true;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    false
+}
+
 /// Copies a dataset a test produced to `$PHONE2ACT_CONFORMANCE_DIR/<name>` so the conformance suite loads
 /// it with the real lerobot library. Does nothing when the variable is unset.
 pub fn keep_for_conformance(name: &str, dataset: &std::path::Path) {

@@ -5,7 +5,7 @@
 use futures_util::{SinkExt, StreamExt};
 use phone2act_gateway::{Gateway, GatewayConfig, GatewayInfo, Listeners};
 use phone2act_sdk::Client;
-use phone2act_tests::{TestServer, bimanual_config, default_config, pos, sim_pose_of};
+use phone2act_tests::{TestServer, arm_state, bimanual_config, default_config, pos, sim_pose_of};
 use rustls::pki_types::pem::PemObject;
 use serde_json::Value;
 use std::sync::Arc;
@@ -89,30 +89,12 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
-async fn arm_state(client: &Client, arm: &str) -> phone2act_sdk::proto::ArmState {
-    client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == arm)
-        .unwrap()
-}
-
-async fn wait_until<F, Fut>(mut check: F) -> bool
+async fn wait_until<F, Fut>(check: F) -> bool
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = bool>,
 {
-    let deadline = tokio::time::Instant::now() + T;
-    while tokio::time::Instant::now() < deadline {
-        if check().await {
-            return true;
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    false
+    phone2act_tests::wait_until(T, check).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -184,29 +184,15 @@ const SUBSCRIBE_STATUS: &str =
     r#"{"op":"subscribe","id":"s","topic":"/phone2act/status","type":"std_msgs/String"}"#;
 
 async fn arm_state(client: &Client) -> v1::ArmState {
-    client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "main")
-        .unwrap()
+    phone2act_tests::arm_state(client, "main").await
 }
 
-async fn wait_until<F, Fut>(mut check: F) -> bool
+async fn wait_until<F, Fut>(check: F) -> bool
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = bool>,
 {
-    let deadline = tokio::time::Instant::now() + T;
-    while tokio::time::Instant::now() < deadline {
-        if check().await {
-            return true;
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    false
+    phone2act_tests::wait_until(T, check).await
 }
 
 async fn first_publish(ws: &mut WebSocketStream<TcpStream>) -> Value {
