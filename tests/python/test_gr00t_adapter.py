@@ -99,7 +99,9 @@ def test_adapter_drives_the_sim_arm_through_a_full_golden_chunk(gserver: Server)
             assert r.steps["main"].shape == (16, 7)
             acc = r.accepted["main"]
             assert acc.steps_scheduled + acc.steps_skipped == 16
-            assert acc.steps_skipped == 0, acc  # answered within the first step
+            # Steps are anchored at the observation's time: an answer that comes back after step k's time (a loaded
+            # machine) skips steps 0..k, never plays them late. How many is timing; that none of them runs is not.
+            assert acc.steps_scheduled >= 1, acc
 
             expected = p0 + SCALE * np.array([[5 * k, 5 * k + 1, 5 * k + 2] for k in range(16)])
             seen: set[int] = set()
@@ -112,7 +114,10 @@ def test_adapter_drives_the_sim_arm_through_a_full_golden_chunk(gserver: Server)
                 if err[k] < 1e-6:
                     seen.add(k)
                 time.sleep(0.02)
-            assert len(seen) >= 15 and 15 in seen, f"targets seen for steps {sorted(seen)}"
+            # The poll samples the target every 20 ms and may miss a step on a stalled machine, so it checks what
+            # cannot depend on timing: the last step is commanded and no skipped step ever is.
+            assert 15 in seen and min(seen) >= acc.steps_skipped, (f"targets seen for steps {sorted(seen)}, "
+                                                                   f"{acc.steps_skipped} skipped")
             final = expected[15]
             # 3 s for the sim arm to settle within 2 mm of its last target (it tracks in well under a second).
             assert wait_until(lambda: math.dist(position(c, "main"), final) < 2e-3, 3.0), (position(c, "main"), final)
