@@ -204,7 +204,10 @@ mod tests {
         // A relative arm's policies push steps relative to their observation, but the dataset records the
         // absolute target (the one definition in `phone2act_core::layout`), so GR00T must pad it with the last
         // value (hold), never with zero.
-        let arms = [arm("left", ActionMode::Relative), arm("right", ActionMode::Absolute)];
+        let arms = [
+            arm("left", ActionMode::Relative),
+            arm("right", ActionMode::Absolute),
+        ];
         let spec = dataset_spec(&config, &arms).unwrap();
         let flags: Vec<(&str, usize, usize, bool)> = spec
             .modality

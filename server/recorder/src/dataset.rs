@@ -12,7 +12,7 @@
 //! crash hit between them. `open` also deletes whatever an interrupted recording left in staging.
 
 use crate::error::RecorderError;
-use crate::fsutil::{Journal, sync_dir, write_synced};
+use crate::fsutil::{Journal, sync_dir, write_atomic, write_synced};
 use crate::parquet_io::{self, DataWriter, EpisodeMetaRow, Row};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
