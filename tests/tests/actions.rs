@@ -110,8 +110,8 @@ fn ee(layout: &ArmLayout, state: &[f64]) -> Isometry3<f64> {
 /// Starts the episode and waits for its first frame, so the recording begins with the arm holding its start
 /// pose however late the recorder's first tick is (its video encoders start first): the replay holds the
 /// same pose until its first chunk, so every target it executes is on the recorded path.
-async fn start_recording(client: &Client) {
-    client.episodes().start("turn the gripper twice").await.unwrap();
+async fn start_recording(client: &Client, task: &str) {
+    client.episodes().start(task).await.unwrap();
     // Generous: the first tick comes within a frame period once the encoders are up (well under a second).
     let deadline = Instant::now() + Duration::from_secs(20);
     while client.episodes().status().await.unwrap().frames_recorded == 0 {
@@ -221,7 +221,9 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
         })
         .await
         .unwrap();
-    client.episodes().start("replay").await.unwrap();
+    // The replay's frames are compared with the original's from frame 0 on, so its recording must also begin
+    // before the motion does.
+    start_recording(&client, "replay").await;
     let n = episode.actions.len();
     let t_start = Instant::now();
     for t0 in (0..n).step_by(CHUNK_EVERY) {
@@ -272,6 +274,16 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
     }
     tokio::time::sleep(Duration::from_secs_f64(HORIZON as f64 / FPS + 0.3)).await;
     let saved = client.episodes().stop().await.unwrap().episode.unwrap();
+    let arm = &client.system().list_arms().await.unwrap()[0];
+    println!(
+        "replay {how:?}: commands sent {}, rejected {}, clamped {}; held {} late {} ticks; last decision {:?}",
+        arm.commands_sent,
+        arm.commands_rejected,
+        arm.commands_clamped,
+        saved.held_ticks,
+        saved.late_ticks,
+        arm.last_decision
+    );
     drop(policy);
     server.shutdown().await.unwrap();
     Episode {
@@ -330,7 +342,7 @@ async fn record(setup: Setup, conformance_name: &str) -> Episode {
     let server = TestServer::start(config(dir.path(), setup)).await.unwrap();
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(400)).await;
-    start_recording(&client).await;
+    start_recording(&client, "turn the gripper twice").await;
     teleoperate(&client).await;
     let saved = client.episodes().stop().await.unwrap().episode.unwrap();
     server.shutdown().await.unwrap();
@@ -539,7 +551,7 @@ async fn a_lerobot_so101_dataset_uses_lerobots_names_and_units_and_replays() {
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(400)).await;
     let arms = client.system().list_arms().await.unwrap();
-    start_recording(&client).await;
+    start_recording(&client, "turn the gripper twice").await;
     teleoperate(&client).await;
     client.episodes().stop().await.unwrap();
     server.shutdown().await.unwrap();
