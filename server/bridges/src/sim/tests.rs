@@ -27,6 +27,20 @@ fn hold(bridge: &SimBridge, seq: &mut u64, target: Isometry3<f64>, gripper: f64,
     }
 }
 
+/// The first feedback captured at or after `time_ns` (the bridge's clock). Polled, so a sim thread starved
+/// on a loaded machine only makes the caller wait; 10 s bounds a thread that never runs.
+fn feedback_after(bridge: &SimBridge, time_ns: i64) -> Feedback {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let fb = bridge.feedback().unwrap();
+        if fb.capture_time_ns >= time_ns {
+            return fb;
+        }
+        assert!(Instant::now() < deadline, "no sim feedback for 10 s");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
 #[test]
 fn follows_a_target_after_settling() {
     let bridge = SimBridge::start(SimConfig::default()).unwrap();
@@ -38,7 +52,7 @@ fn follows_a_target_after_settling() {
     let target = down_at(0.26, 0.05, 0.08);
     let mut seq = 0;
     hold(&bridge, &mut seq, target, 0.0, 0.5);
-    let fb = bridge.feedback().unwrap();
+    let fb = feedback_after(&bridge, local_monotonic_ns());
     let error = (fb.robot_from_ee.translation.vector - target.translation.vector).norm();
     assert!(error < 2e-3, "tool {error} m from target");
     assert!(fb.applied_seq > 10 && fb.applied_seq <= seq);
@@ -57,7 +71,10 @@ fn disable_holds_the_arm_and_enable_resumes() {
     bridge.control(Control::Disable).unwrap();
     let mut seq = 0;
     hold(&bridge, &mut seq, down_at(0.3, -0.1, 0.05), 0.0, 0.3);
-    let held = bridge.feedback().unwrap().robot_from_ee.translation.vector;
+    let held = feedback_after(&bridge, local_monotonic_ns())
+        .robot_from_ee
+        .translation
+        .vector;
     assert!(
         (held - home).norm() < 1e-6,
         "moved {} m while disabled",
@@ -65,7 +82,10 @@ fn disable_holds_the_arm_and_enable_resumes() {
     );
     bridge.control(Control::Enable).unwrap();
     hold(&bridge, &mut seq, down_at(0.3, -0.1, 0.05), 0.0, 0.4);
-    let moved = bridge.feedback().unwrap().robot_from_ee.translation.vector;
+    let moved = feedback_after(&bridge, local_monotonic_ns())
+        .robot_from_ee
+        .translation
+        .vector;
     assert!((moved - Vector3::new(0.3, -0.1, 0.05)).norm() < 3e-3, "{moved:?}");
 }
 
@@ -83,7 +103,7 @@ fn pick_and_place_through_the_bridge_api() {
         matches!(bridge.snapshot().ball_state, BallState::Held { .. }),
         "ball not grasped"
     );
-    let fb = bridge.feedback().unwrap();
+    let fb = feedback_after(&bridge, local_monotonic_ns());
     assert!(
         (0.5..0.8).contains(&fb.gripper_position),
         "gripper stops on the ball: {}",
@@ -97,16 +117,15 @@ fn pick_and_place_through_the_bridge_api() {
         "{carried:?}"
     );
     assert!(
-        !bridge.feedback().unwrap().task_success,
+        !feedback_after(&bridge, local_monotonic_ns()).task_success,
         "success only once released"
     );
     hold(&bridge, &mut seq, down_at(kx, ky, 0.13), 0.0, 0.6);
-    let fb = bridge.feedback().unwrap();
+    let fb = feedback_after(&bridge, local_monotonic_ns());
     assert!(fb.task_success, "ball at {:?}", bridge.snapshot().ball_center_m);
     assert_eq!(bridge.snapshot().ball_state, BallState::Resting);
     bridge.reset_scene();
-    std::thread::sleep(Duration::from_millis(20));
-    assert!(!bridge.feedback().unwrap().task_success);
+    assert!(!feedback_after(&bridge, local_monotonic_ns()).task_success);
 }
 
 #[test]
@@ -124,7 +143,7 @@ fn releasing_away_from_the_basket_is_not_success() {
         (ball - Vector3::new(0.3, 0.0, 0.02)).norm() < 0.02,
         "ball fell to the table below: {ball:?}"
     );
-    assert!(!bridge.feedback().unwrap().task_success);
+    assert!(!feedback_after(&bridge, local_monotonic_ns()).task_success);
 }
 
 #[test]
@@ -206,13 +225,14 @@ fn stream_and_compare(stall: bool) -> (usize, f64) {
     std::thread::sleep(Duration::from_millis(60));
     let released_ns = local_monotonic_ns();
     drop(stalled);
-    let mut samples = Vec::new();
-    let end = Instant::now() + Duration::from_millis(100);
-    while Instant::now() < end {
+    let mut samples: Vec<Feedback> = Vec::new();
+    // Every sample published until 100 ms after the release, waiting for it however starved the thread is.
+    let last_ns = feedback_after(&bridge, released_ns + 100_000_000).capture_time_ns;
+    while samples.last().is_none_or(|s| s.capture_time_ns < last_ns) {
         let fb = bridge.feedback().unwrap();
         if samples
             .last()
-            .is_none_or(|s: &Feedback| s.capture_time_ns != fb.capture_time_ns)
+            .is_none_or(|s| s.capture_time_ns != fb.capture_time_ns)
         {
             samples.push(fb);
         }
@@ -272,10 +292,10 @@ fn a_full_queue_drops_the_oldest_and_ends_on_the_newest() {
             });
         }
     }
+    let released_ns = local_monotonic_ns();
     assert_eq!(bridge.commands_dropped(), extra as u64);
-    // Ten time constants: the arm settles on the newest target.
-    std::thread::sleep(Duration::from_millis(500));
-    let fb = bridge.feedback().unwrap();
+    // Ten time constants after the release the arm has settled on the newest target.
+    let fb = feedback_after(&bridge, released_ns + 500_000_000);
     assert_eq!(fb.applied_seq, (queue::CAPACITY + extra) as u64);
     let error = (fb.robot_from_ee.translation.vector - target.translation.vector).norm();
     assert!(error < 1e-3, "{error} m from the newest target");
