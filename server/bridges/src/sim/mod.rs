@@ -1,12 +1,16 @@
-//! The simulated SO-101 arm: the default bridge. A [`SimWorld`] (pure state, stepped with an explicit `dt`)
-//! driven by one thread at `step_hz`, commands through a latest-only slot, feedback in a shared cell, and a
+//! The simulated SO-101 arm: the default bridge. A [`SimWorld`] (pure state, advanced to explicit times)
+//! driven by one thread at `step_hz`, commands through a bounded queue, feedback in a shared cell, and a
 //! software renderer for `sim_render` cameras.
 //!
-//! The thread waits on the command slot between physics ticks, so a command is solved (IK) as soon as it
-//! arrives rather than at the next tick; the joints then move toward the solution with the configured
-//! first-order lag.
+//! Each command is put in force at its `issue_time_ns`, in issue order: the world is advanced to that time,
+//! the command solved (IK, seeded with the previous solution) and made the joint target, and the joints move
+//! toward it with the configured first-order lag. A stall of the sim thread therefore delays the feedback
+//! but does not change the path the arm takes. The thread wakes when a command arrives, so it is solved
+//! without waiting for the next tick. The queue is bounded: when full it drops the oldest command (counted
+//! in [`SimBridge::commands_dropped`]), so the newest command always wins.
 
 mod config;
+mod queue;
 mod render;
 mod world;
 
@@ -14,8 +18,9 @@ pub use config::{SimCameraConfig, SimConfig};
 pub use render::Renderer;
 pub use world::{BallState, CommandOutcome, IkRequest, SceneSnapshot, SimWorld};
 
-use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health};
 use phone2act_core::kinematics::SO101_ARM_JOINT_NAMES;
+use queue::BoundedQueue;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::thread::JoinHandle;
@@ -38,7 +43,7 @@ const MAX_TICK_BACKLOG: u32 = 5;
 
 struct Shared {
     world: Mutex<SimWorld>,
-    commands: LatestSlot<Command>,
+    commands: BoundedQueue<Command>,
     feedback: FeedbackCell,
     stop: AtomicBool,
     clock: ClockFn,
@@ -68,13 +73,13 @@ impl SimBridge {
 
     /// Starts the simulation thread; feedback is stamped with `clock`.
     pub fn start_with_clock(config: SimConfig, clock: ClockFn) -> Result<Arc<Self>, BridgeError> {
-        let world = SimWorld::new(config)?;
+        let world = SimWorld::new(config)?.starting_at_ns(clock());
         let step_period = Duration::from_secs_f64(1.0 / world.config().step_hz);
         let renderer = Renderer::new(&world.config().camera);
-        let initial_feedback = world.feedback(clock());
+        let initial_feedback = world.feedback(world.time_ns());
         let shared = Arc::new(Shared {
             world: Mutex::new(world),
-            commands: LatestSlot::default(),
+            commands: BoundedQueue::new(queue::CAPACITY),
             feedback: Arc::new(Mutex::new(Some(initial_feedback))),
             stop: AtomicBool::new(false),
             clock,
@@ -127,62 +132,81 @@ impl SimBridge {
             .unwrap_or_else(PoisonError::into_inner)
             .snapshot()
     }
+
+    /// Commands dropped because the queue was full (the sim thread stalled for a long time), since start.
+    pub fn commands_dropped(&self) -> u64 {
+        self.shared.commands.dropped()
+    }
 }
 
 fn run(shared: &Shared, period: Duration) {
-    let mut last_step = Instant::now();
-    let mut next_tick = last_step + period;
+    let mut next_tick = Instant::now() + period;
+    let mut batch = Vec::with_capacity(queue::CAPACITY);
     while !shared.stop.load(Ordering::Acquire) {
         let now = Instant::now();
         if now >= next_tick {
-            let dt_s = (now - last_step).as_secs_f64();
-            last_step = now;
-            let feedback = {
-                let mut world = shared.world.lock().unwrap_or_else(PoisonError::into_inner);
-                world.step(dt_s);
-                world.feedback((shared.clock)())
-            };
-            *shared.feedback.lock().unwrap_or_else(PoisonError::into_inner) = Some(feedback);
+            let feedback = catch_up(shared, &mut batch, true);
+            *shared.feedback.lock().unwrap_or_else(PoisonError::into_inner) = feedback;
             next_tick += period;
             if now > next_tick + period * MAX_TICK_BACKLOG {
                 next_tick = now + period;
             }
             continue;
         }
-        if let Some(command) = shared.commands.take_wait(next_tick - now) {
-            // IK runs outside the world lock: unoptimised builds take milliseconds per solve, and the
-            // renderer and feedback readers should not wait for it.
-            let request = shared
-                .world
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .ik_request();
-            let outcome = match request {
-                Some(request) => {
-                    let solution = request.solve(&command);
-                    shared
-                        .world
-                        .lock()
-                        .unwrap_or_else(PoisonError::into_inner)
-                        .apply_solution(&command, solution)
-                }
-                None => CommandOutcome::Disabled,
-            };
-            match outcome {
-                CommandOutcome::Applied(solution) if !solution.position_reached => {
-                    tracing::debug!(
-                        seq = command.seq,
-                        position_error_m = solution.position_error_m,
-                        "sim target out of reach; moving to the closest reachable pose"
-                    );
-                }
-                CommandOutcome::Rejected => {
-                    tracing::warn!(seq = command.seq, "sim rejected a non-finite command");
-                }
-                _ => {}
-            }
+        if shared.commands.wait_nonempty(next_tick - now) {
+            catch_up(shared, &mut batch, false);
         }
     }
+}
+
+/// Puts every queued command in force at its issue time and, on a tick, advances the world to the present
+/// and returns its feedback.
+///
+/// The queue is drained and the present read with the world locked, so a command is either in this batch
+/// or was stamped after the present this batch advances to: the world never runs past a command it has not
+/// seen, unless its sender is preempted between stamping it and handing it over.
+fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Feedback> {
+    let lock = || shared.world.lock().unwrap_or_else(PoisonError::into_inner);
+    let present_ns = {
+        let _world = lock();
+        shared.commands.drain_into(batch);
+        (shared.clock)()
+    };
+    for command in batch.drain(..) {
+        // IK runs outside the world lock: unoptimised builds take milliseconds per solve, and the renderer
+        // should not wait for it. Only this thread advances the world or sets its joint targets, so the
+        // seed taken here is still the one in force when the solution is applied.
+        let request = {
+            let mut world = lock();
+            world.advance_to_issue(&command, present_ns);
+            world.ik_request()
+        };
+        let outcome = match request {
+            Some(request) => {
+                let solution = request.solve(&command);
+                lock().apply_solution(&command, solution)
+            }
+            None => CommandOutcome::Disabled,
+        };
+        match outcome {
+            CommandOutcome::Applied(solution) if !solution.position_reached => {
+                tracing::debug!(
+                    seq = command.seq,
+                    position_error_m = solution.position_error_m,
+                    "sim target out of reach; moving to the closest reachable pose"
+                );
+            }
+            CommandOutcome::Rejected => {
+                tracing::warn!(seq = command.seq, "sim rejected a non-finite command");
+            }
+            _ => {}
+        }
+    }
+    tick.then(|| {
+        let mut world = lock();
+        world.advance_to_ns(present_ns);
+        world.feedback(present_ns)
+    })
 }
 
 impl Bridge for SimBridge {
@@ -194,8 +218,18 @@ impl Bridge for SimBridge {
         &self.joint_names
     }
 
+    /// Queues the command to take effect at its `issue_time_ns`; never blocks. A full queue drops its oldest.
     fn send(&self, command: Command) {
-        self.shared.commands.put(command);
+        if self.shared.commands.push(command) {
+            let dropped = self.shared.commands.dropped();
+            // Logged at the first drop and then every 100th, so a suspended sim does not flood the log.
+            if dropped % 100 == 1 {
+                tracing::warn!(
+                    dropped,
+                    "sim command queue full: the oldest commands were dropped"
+                );
+            }
+        }
     }
 
     fn feedback(&self) -> Option<Feedback> {

@@ -1,7 +1,8 @@
 //! The simulated world, as a pure state machine: SO-101 joints with first-order dynamics toward the IK
-//! solution of the newest command, a first-order gripper, and a ball that can be grasped, carried, dropped
-//! and land in a basket. No threads and no clock: [`SimWorld::step`] advances by an explicit `dt_s`, so
-//! every behaviour is testable deterministically.
+//! solution of the command in force, a first-order gripper, and a ball that can be grasped, carried, dropped
+//! and land in a basket. No threads and no clock reads: [`SimWorld::step`] advances by an explicit `dt_s`,
+//! and [`SimWorld::apply_command_at`] puts a command in force at the time it was issued, so the arm's path is
+//! a function of the command history and time alone, whoever calls it and whenever.
 
 use super::config::SimConfig;
 use crate::{BridgeError, Command, Feedback};
@@ -88,7 +89,8 @@ pub struct SimWorld {
     task_success: bool,
     applied_seq: u64,
     enabled: bool,
-    time_s: f64,
+    /// The instant the state describes, on the clock commands are stamped with (`Command::issue_time_ns`).
+    time_ns: i64,
 }
 
 impl SimWorld {
@@ -107,7 +109,7 @@ impl SimWorld {
             task_success: false,
             applied_seq: 0,
             enabled: true,
-            time_s: 0.0,
+            time_ns: 0,
             config,
         };
         world.reset_scene();
@@ -124,6 +126,37 @@ impl SimWorld {
 
     pub fn config(&self) -> &SimConfig {
         &self.config
+    }
+
+    /// The same world with its present at `time_ns` on the caller's clock. Meant for a fresh world: it is at
+    /// rest, so no motion is skipped by moving its clock.
+    #[must_use]
+    pub fn starting_at_ns(mut self, time_ns: i64) -> Self {
+        self.time_ns = time_ns;
+        self
+    }
+
+    /// Advances the world to `time_ns`; a time not after the present changes nothing (the past is already
+    /// simulated).
+    pub fn advance_to_ns(&mut self, time_ns: i64) {
+        if time_ns > self.time_ns {
+            self.step((time_ns - self.time_ns) as f64 * 1e-9);
+            self.time_ns = time_ns;
+        }
+    }
+
+    /// Advances the world to the moment `command` takes effect: the time it was issued, but not later than
+    /// `horizon_ns` (the caller's present: a command stamped on a clock ahead of the world's takes effect on
+    /// arrival instead of waiting) and not before the world's present (a command issued before the world
+    /// last advanced takes effect now).
+    pub fn advance_to_issue(&mut self, command: &Command, horizon_ns: i64) {
+        self.advance_to_ns(command.issue_time_ns.min(horizon_ns));
+    }
+
+    /// [`Self::advance_to_issue`], then [`Self::apply_command`]: the command in force from its issue time on.
+    pub fn apply_command_at(&mut self, command: &Command, horizon_ns: i64) -> CommandOutcome {
+        self.advance_to_issue(command, horizon_ns);
+        self.apply_command(command)
     }
 
     /// Solves IK for the command's target (seeded with the current joint targets so that consecutive
@@ -176,7 +209,8 @@ impl SimWorld {
         self.enabled
     }
 
-    /// Advances the world by `dt_s` seconds (ignored unless finite and positive; long steps are split).
+    /// Advances the world by `dt_s` seconds (ignored unless finite and positive; long steps are split). The
+    /// clock of [`Self::time_ns`] does not move: use [`Self::advance_to_ns`] to keep the two together.
     pub fn step(&mut self, dt_s: f64) {
         if !dt_s.is_finite() || dt_s <= 0.0 {
             return;
@@ -190,7 +224,6 @@ impl SimWorld {
     }
 
     fn substep(&mut self, dt_s: f64) {
-        self.time_s += dt_s;
         // Exact discretisation of a first-order lag: stable for any dt.
         let joint_alpha = 1.0 - (-dt_s / self.config.joint_time_constant_s).exp();
         for (q, target) in self.joints_rad.iter_mut().zip(self.joint_targets_rad) {
@@ -286,9 +319,9 @@ impl SimWorld {
         self.applied_seq
     }
 
-    /// Simulated time since creation.
-    pub fn time_s(&self) -> f64 {
-        self.time_s
+    /// The instant the state describes (see [`Self::advance_to_ns`]).
+    pub fn time_ns(&self) -> i64 {
+        self.time_ns
     }
 
     /// The current state as bridge feedback, stamped `capture_time_ns`.
@@ -397,6 +430,73 @@ mod tests {
             assert!((qa - qb).abs() < 1e-9, "{qa} vs {qb}");
         }
         assert!((a.gripper_position() - b.gripper_position()).abs() < 1e-9);
+    }
+
+    /// The arm's path is a function of the command history and time: commands handed over in one batch after
+    /// a stall give the same state as commands handed over at 200 Hz ticks, because each is put in force at
+    /// the time it was issued, not when the world hears of it.
+    #[test]
+    fn commands_take_effect_at_their_issue_time_however_late_they_are_handed_over() {
+        let t0_ns = 1_000_000_000;
+        let start = world().tool_pose();
+        let commands: Vec<Command> = (1..=8u32)
+            .map(|k| {
+                let mut target = start;
+                target.translation.vector += f64::from(k) * Vector3::new(0.005, -0.004, 0.003);
+                Command {
+                    seq: u64::from(k),
+                    robot_from_target: target,
+                    gripper_target: if k > 4 { 1.0 } else { 0.0 },
+                    issue_time_ns: t0_ns + i64::from(k) * 20_000_000,
+                }
+            })
+            .collect();
+        let end_ns = t0_ns + 300_000_000;
+        let mut stalled = world().starting_at_ns(t0_ns);
+        for c in &commands {
+            stalled.apply_command_at(c, end_ns);
+        }
+        stalled.advance_to_ns(end_ns);
+        let mut ticked = world().starting_at_ns(t0_ns);
+        let mut pending = commands.iter().peekable();
+        for tick in 1..=60 {
+            let now_ns = t0_ns + tick * 5_000_000;
+            while let Some(c) = pending.next_if(|c| c.issue_time_ns <= now_ns) {
+                ticked.apply_command_at(c, now_ns);
+            }
+            ticked.advance_to_ns(now_ns);
+        }
+        assert_eq!((stalled.time_ns(), ticked.time_ns()), (end_ns, end_ns));
+        assert_eq!((stalled.applied_seq(), ticked.applied_seq()), (8, 8));
+        // Exact discretisation: slicing changes only rounding.
+        for (a, b) in stalled.joints_rad().iter().zip(ticked.joints_rad()) {
+            assert!((a - b).abs() < 1e-12, "{a} vs {b}");
+        }
+        assert!((stalled.gripper_position() - ticked.gripper_position()).abs() < 1e-12);
+        // Applied only at the end, the same commands leave the arm elsewhere: the test can tell.
+        let mut late = world().starting_at_ns(t0_ns);
+        late.advance_to_ns(end_ns - 1);
+        for c in &commands {
+            late.apply_command_at(c, end_ns);
+        }
+        late.advance_to_ns(end_ns);
+        let moved = (late.tool_pose().translation.vector - stalled.tool_pose().translation.vector).norm();
+        assert!(moved > 1e-3, "{moved} m");
+    }
+
+    #[test]
+    fn a_command_takes_effect_no_earlier_than_the_present_and_no_later_than_the_horizon() {
+        let mut w = world().starting_at_ns(1_000);
+        let mut c = command(1, w.tool_pose(), 1.0);
+        // Stamped before the world's present (or unstamped): in force now.
+        w.apply_command_at(&c, 5_000);
+        assert_eq!(w.time_ns(), 1_000);
+        // Stamped on a clock ahead of the caller's: in force at the caller's present, not later.
+        c.issue_time_ns = 1_000_000_000;
+        w.apply_command_at(&c, 5_000);
+        assert_eq!(w.time_ns(), 5_000);
+        w.advance_to_ns(2_000);
+        assert_eq!(w.time_ns(), 5_000, "time never runs back");
     }
 
     #[test]
