@@ -22,7 +22,7 @@ from phone2act import Client, FailedPrecondition
 from phone2act.v1 import common_pb2, policy_pb2
 
 sys.path.insert(0, str(REPO / "clients" / "replay"))
-from phone2act_replay import load_episode, path_errors, target_path_errors  # noqa: E402
+from phone2act_replay import load_episode, path_errors, target_path_errors
 
 SETTLE_S = 5.0
 FPS = 20
@@ -30,13 +30,13 @@ PHONE0 = (0.0, 1.2, -0.3)
 EE = ("ee_x", "ee_y", "ee_z", "ee_r00", "ee_r10", "ee_r20", "ee_r01", "ee_r11", "ee_r21", "gripper")
 
 
-def robot_config(server: Server, **kw):  # noqa: ANN201 - the plugin is imported late, after discovery
+def robot_config(server: Server, **kw):
     from lerobot_robot_phone2act import Phone2ActRobotConfig
 
     return Phone2ActRobotConfig(server=server.target, fps=FPS, **kw)
 
 
-def make_robot(server: Server, **kw):  # noqa: ANN201
+def make_robot(server: Server, **kw):
     from lerobot.robots.utils import make_robot_from_config
 
     return make_robot_from_config(robot_config(server, **kw))
@@ -85,7 +85,7 @@ def test_observation_has_the_declared_features(server: Server) -> None:
     assert list(features) == [*reported.state_names, "front"]
     assert features["front"] == (48, 64, 3)
     # The sim arm is in the default `relative` mode; LeRobot policies output the recorded absolute layout.
-    assert list(reported.action_names)[0] == "delta_x"
+    assert reported.action_names[0] == "delta_x"
     assert list(robot.action_features) == ["x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21", "gripper"]
     assert robot.action_mode == policy_pb2.ACTION_MODE_ABSOLUTE_EE
     with robot:
