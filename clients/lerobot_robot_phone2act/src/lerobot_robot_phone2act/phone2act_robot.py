@@ -89,6 +89,12 @@ class Phone2ActRobot(Robot):
         return dict.fromkeys(self.layout.action_names, float)
 
     @property
+    def cameras(self) -> dict[str, tuple[int, int]]:
+        """The server cameras this robot observes, name -> (height, width). lerobot-record sizes its image
+        writer pools by `len(robot.cameras)`, as built-in robots hold their camera objects there."""
+        return dict(self.layout.cameras)
+
+    @property
     def action_mode(self) -> int:
         """`ACTION_MODE_ABSOLUTE_EE` or `ACTION_MODE_JOINT`: how `send_action` pushes its values."""
         return self.layout.mode
