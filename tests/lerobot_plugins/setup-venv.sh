@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Creates (once) and reuses the Python 3.12 environment with lerobot 0.6.1 that the LeRobot plugin tests run
+# in (lerobot 0.6 needs Python >= 3.12; Debian 12's python3 is 3.11). Lives outside the checkout and is
+# reused across runs and checkouts. Prints the venv directory on the last line of stdout.
+set -euo pipefail
+cache="${PHONE2ACT_CACHE_DIR:-$HOME/.cache/phone2act}"
+venv="$cache/lerobot06-venv"
+# The `dataset` extra: lerobot-record and lerobot-replay need it.
+spec="lerobot[dataset]==0.6.1"
+mkdir -p "$cache"
+# A marker file written last (holding what was installed) means an interrupted or outdated install is redone
+# instead of half-used.
+if [[ "$(cat "$venv/.phone2act-ready" 2>/dev/null)" != "$spec" ]]; then
+  py=""
+  for cand in python3.12 "$HOME/.pyenv/versions/3.12.1/bin/python" /root/.pyenv/versions/3.12.1/bin/python; do
+    if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; assert sys.version_info[:2] >= (3, 12)' 2>/dev/null; then
+      py="$cand"
+      break
+    fi
+  done
+  if [[ -z "$py" ]]; then
+    echo "lerobot plugins: no Python >= 3.12 found (tried python3.12 on PATH and pyenv's 3.12.1);" \
+      "lerobot 0.6 needs it. Install one (e.g. pyenv install 3.12) and rerun." >&2
+    exit 2
+  fi
+  echo "lerobot plugins: installing lerobot 0.6.1 into $venv with $py (first run only, a few GB, a few minutes)" >&2
+  if [[ ! -x "$venv/bin/python" ]]; then
+    "$py" -m venv "$venv"
+    "$venv/bin/python" -m pip install --quiet --upgrade pip >&2
+  fi
+  "$venv/bin/python" -m pip install --quiet "$spec" pytest >&2
+  echo "$spec" > "$venv/.phone2act-ready"
+fi
+echo "$venv"
