@@ -10,14 +10,23 @@ spec="lerobot[dataset]==0.6.1"
 mkdir -p "$cache"
 # A marker file written last (holding what was installed) means an interrupted or outdated install is redone
 # instead of half-used.
-if [[ "$(cat "$venv/.phone2act-ready" 2>/dev/null)" != "$spec" ]]; then
-  py=""
-  for cand in python3.12 "$HOME/.pyenv/versions/3.12.1/bin/python" /root/.pyenv/versions/3.12.1/bin/python; do
+find_python() {
+  local cand
+  for cand in python3.12 python3.13 "$HOME"/.pyenv/versions/3.12*/bin/python "$HOME"/.pyenv/versions/3.13*/bin/python; do
     if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; assert sys.version_info[:2] >= (3, 12)' 2>/dev/null; then
-      py="$cand"
-      break
+      echo "$cand"
+      return 0
     fi
   done
+  return 1
+}
+# `--which-python`: print the interpreter that would be used, or exit 3 when there is none.
+if [[ "${1:-}" == "--which-python" ]]; then
+  find_python || exit 3
+  exit 0
+fi
+if [[ "$(cat "$venv/.phone2act-ready" 2>/dev/null)" != "$spec" ]]; then
+  py="$(find_python || true)"
   if [[ -z "$py" ]]; then
     echo "lerobot plugins: no Python >= 3.12 found (tried python3.12 on PATH and pyenv's 3.12.1);" \
       "lerobot 0.6 needs it. Install one (e.g. pyenv install 3.12) and rerun." >&2
