@@ -8,6 +8,7 @@ export SVT_LOG=1
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
 tests/scripts/lint-proto.sh
+tests/scripts/check-deps.py
 # Tests that write LeRobot datasets copy them here; tests/conformance/run.sh then loads each with lerobot.
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
