@@ -2,9 +2,10 @@
 //! a Feetech servo bus, and remote bridges attached over gRPC; plus the protocol emulators (Dobot controller,
 //! Feetech bus) that the tests and demos run against.
 //!
-//! Bridges run on their own threads and never block the caller: [`Bridge::send`] drops the command into a
-//! latest-only slot (a newer command replaces an unsent older one), and [`Bridge::feedback`] returns the newest
-//! measured state.
+//! Bridges run on their own threads and never block the caller: [`Bridge::send`] hands the command over without
+//! waiting (hardware bridges keep a latest-only slot, where a newer command replaces an unsent older one; the sim
+//! keeps a small bounded queue so that it can put each command in force at its issue time), and
+//! [`Bridge::feedback`] returns the newest measured state.
 
 pub mod dobot;
 pub mod feetech;
@@ -89,7 +90,7 @@ pub trait Bridge: Send + Sync {
     fn supports_orientation(&self) -> bool {
         true
     }
-    /// Hands a command to the bridge. Never blocks; replaces any command not yet sent to the robot.
+    /// Hands a command to the bridge. Never blocks; the newest command is the one the robot ends on.
     fn send(&self, command: Command);
     /// The newest measured state, if any has arrived.
     fn feedback(&self) -> Option<Feedback>;
