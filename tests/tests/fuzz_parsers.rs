@@ -13,7 +13,6 @@ use phone2act_bridges::dobot::protocol::{parse_reply, split_command};
 use phone2act_bridges::feetech::protocol::{Decoded, decode, instruction_packet, status_packet};
 use phone2act_gateway::mock_server::MockServer;
 use phone2act_gateway::rosbridge as rb;
-use phone2act_gateway::{Gateway, GatewayConfig, Listeners};
 use phone2act_proto::v1::bridge_client::BridgeClient;
 use phone2act_proto::v1::cameras_client::CamerasClient;
 use phone2act_sdk::proto as v1;
@@ -24,10 +23,12 @@ use proptest::strategy::ValueTree;
 use proptest::test_runner::{Config as RunnerConfig, TestRunner};
 use prost::Message as _;
 use std::cell::Cell;
+use std::sync::Once;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Once};
 use std::time::{Duration, Instant};
 use tokio_tungstenite::tungstenite::Message;
+
+mod common;
 
 static PANICS: AtomicUsize = AtomicUsize::new(0);
 
@@ -162,36 +163,18 @@ fn rosbridge_json_parser() {
 struct MockGateway {
     mock: MockServer,
     info: phone2act_gateway::GatewayInfo,
-    _dir: tempfile::TempDir,
-    _stop: tokio::sync::oneshot::Sender<()>,
+    _gateway: common::RunningGateway,
 }
 
 async fn mock_gateway() -> MockGateway {
     let mock = MockServer::start(&["main"], Instant::now(), true).await.unwrap();
-    let dir = tempfile::tempdir().unwrap();
-    let config = GatewayConfig {
-        cert_dir: Some(dir.path().to_owned()),
-        print_qr: false,
-        public_host: Some("127.0.0.1".into()),
-        // Every error goes back to the client, so the reply path is fuzzed too.
-        rosbridge_status_level: "info".into(),
-        ..GatewayConfig::default()
-    };
-    let listeners = Listeners {
-        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-    };
-    let gateway = Gateway::with_listeners(config, &mock.url(), None, listeners).unwrap();
-    let info = gateway.info().clone();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    tokio::spawn(gateway.run(async {
-        let _ = stopped.await;
-    }));
+    // Every error goes back to the client, so the reply path is fuzzed too.
+    let gateway =
+        common::start_gateway(&mock.url(), None, |c| c.rosbridge_status_level = "info".into()).await;
     MockGateway {
         mock,
-        info,
-        _dir: dir,
-        _stop: stop,
+        info: gateway.info.clone(),
+        _gateway: gateway,
     }
 }
 
@@ -288,28 +271,10 @@ async fn page_socket(
     gw: &MockGateway,
     path: &str,
 ) -> tokio_tungstenite::WebSocketStream<tokio_rustls::client::TlsStream<tokio::net::TcpStream>> {
-    use rustls::pki_types::pem::PemObject;
-    let pem = std::fs::read(gw.info.cert_path.as_ref().unwrap()).unwrap();
-    let mut roots = rustls::RootCertStore::empty();
-    for cert in rustls::pki_types::CertificateDer::pem_slice_iter(&pem) {
-        roots.add(cert.unwrap()).unwrap();
-    }
-    let config =
-        rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
-            .with_safe_default_protocol_versions()
-            .unwrap()
-            .with_root_certificates(roots)
-            .with_no_client_auth();
-    let addr = gw.info.https_addr.unwrap();
-    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let tls = tokio_rustls::TlsConnector::from(Arc::new(config))
-        .connect("localhost".try_into().unwrap(), tcp)
+    let tcp = tokio::net::TcpStream::connect(gw.info.https_addr.unwrap())
         .await
         .unwrap();
-    tokio_tungstenite::client_async(format!("wss://localhost:{}{path}", addr.port()), tls)
-        .await
-        .unwrap()
-        .0
+    common::wss_over(&gw.info, tcp, path).await
 }
 
 // ---------------------------------------------------------------- Dobot and Feetech

@@ -3,12 +3,9 @@
 //! arms; the phone page's socket records an episode. Everything over real sockets.
 
 use futures_util::{SinkExt, StreamExt};
-use phone2act_gateway::{Gateway, GatewayConfig, GatewayInfo, Listeners};
 use phone2act_sdk::Client;
 use phone2act_tests::{TestServer, arm_state, bimanual_config, default_config, pos, sim_pose_of};
-use rustls::pki_types::pem::PemObject;
 use serde_json::Value;
-use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpStream;
 use tokio_tungstenite::WebSocketStream;
@@ -16,43 +13,11 @@ use tokio_tungstenite::tungstenite::Message;
 
 const T: Duration = Duration::from_secs(10);
 
-struct RunningGateway {
-    info: GatewayInfo,
-    _dir: tempfile::TempDir,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Drop for RunningGateway {
-    fn drop(&mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-    }
-}
+mod common;
+use common::RunningGateway;
 
 async fn start_gateway(server: &TestServer) -> RunningGateway {
-    let dir = tempfile::tempdir().unwrap();
-    let config = GatewayConfig {
-        cert_dir: Some(dir.path().to_owned()),
-        print_qr: false,
-        public_host: Some("127.0.0.1".into()),
-        ..GatewayConfig::default()
-    };
-    let listeners = Listeners {
-        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-    };
-    let gateway = Gateway::with_listeners(config, &server.url(), None, listeners).unwrap();
-    let info = gateway.info().clone();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    tokio::spawn(gateway.run(async {
-        let _ = stopped.await;
-    }));
-    RunningGateway {
-        info,
-        _dir: dir,
-        stop: Some(stop),
-    }
+    common::start_gateway(&server.url(), None, |_| {}).await
 }
 
 async fn rosbridge(gw: &RunningGateway) -> WebSocketStream<TcpStream> {
@@ -314,27 +279,8 @@ async fn left_and_right_namespaces_drive_their_own_arms() {
 }
 
 async fn wss(gw: &RunningGateway, path: &str) -> WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>> {
-    let pem = std::fs::read(gw.info.cert_path.as_ref().unwrap()).unwrap();
-    let mut roots = rustls::RootCertStore::empty();
-    for cert in rustls::pki_types::CertificateDer::pem_slice_iter(&pem) {
-        roots.add(cert.unwrap()).unwrap();
-    }
-    let config =
-        rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
-            .with_safe_default_protocol_versions()
-            .unwrap()
-            .with_root_certificates(roots)
-            .with_no_client_auth();
-    let addr = gw.info.https_addr.unwrap();
-    let tcp = TcpStream::connect(addr).await.unwrap();
-    let tls = tokio_rustls::TlsConnector::from(Arc::new(config))
-        .connect("localhost".try_into().unwrap(), tcp)
-        .await
-        .unwrap();
-    tokio_tungstenite::client_async(format!("wss://localhost:{}{path}", addr.port()), tls)
-        .await
-        .unwrap()
-        .0
+    let tcp = TcpStream::connect(gw.info.https_addr.unwrap()).await.unwrap();
+    common::wss_over(&gw.info, tcp, path).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -5,11 +5,10 @@
 //! that only 127.0.0.1 is this machine, so no other machine's address is ever used.
 
 use futures_util::{SinkExt, StreamExt};
-use phone2act_gateway::{Gateway, GatewayConfig, GatewayInfo, Listeners};
+use phone2act_gateway::GatewayConfig;
 use phone2act_sdk::Client;
 use phone2act_sdk::proto as v1;
 use phone2act_tests::{TestServer, default_config, pos};
-use rustls::pki_types::pem::PemObject;
 use serde_json::Value;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -57,50 +56,20 @@ fn log_text() -> String {
     String::from_utf8_lossy(&log().lock().unwrap()).into_owned()
 }
 
-struct Running {
-    info: GatewayInfo,
-    _dir: tempfile::TempDir,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-}
-
-impl Drop for Running {
-    fn drop(&mut self) {
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
-    }
-}
+mod common;
+use common::RunningGateway as Running;
 
 async fn start_gateway(server: &TestServer, pair_for_s: u64) -> Running {
     start_gateway_with(server, |c| c.pair_for_s = pair_for_s).await
 }
 
+/// Only 127.0.0.1 counts as this machine, so 127.0.0.2 plays the phone; the gateway holds the server's token.
 async fn start_gateway_with(server: &TestServer, tweak: impl FnOnce(&mut GatewayConfig)) -> Running {
-    let dir = tempfile::tempdir().unwrap();
-    let mut config = GatewayConfig {
-        cert_dir: Some(dir.path().to_owned()),
-        print_qr: false,
-        public_host: Some("127.0.0.1".into()),
-        local_addresses: Some(vec!["127.0.0.1".parse().unwrap()]),
-        ..GatewayConfig::default()
-    };
-    tweak(&mut config);
-    let listeners = Listeners {
-        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-    };
-    // The gateway holds the server's token, as `phone2act serve` hands it over.
-    let gateway = Gateway::with_listeners(config, &server.url(), Some(SERVER_TOKEN), listeners).unwrap();
-    let info = gateway.info().clone();
-    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    tokio::spawn(gateway.run(async {
-        let _ = stopped.await;
-    }));
-    Running {
-        info,
-        _dir: dir,
-        stop: Some(stop),
-    }
+    common::start_gateway(&server.url(), Some(SERVER_TOKEN), |c| {
+        c.local_addresses = Some(vec!["127.0.0.1".parse().unwrap()]);
+        tweak(c);
+    })
+    .await
 }
 
 async fn tcp_from(local_ip: &str, to: SocketAddr) -> TcpStream {
@@ -125,27 +94,8 @@ async fn page_from(
     gw: &Running,
     path: &str,
 ) -> WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>> {
-    let pem = std::fs::read(gw.info.cert_path.as_ref().unwrap()).unwrap();
-    let mut roots = rustls::RootCertStore::empty();
-    for cert in rustls::pki_types::CertificateDer::pem_slice_iter(&pem) {
-        roots.add(cert.unwrap()).unwrap();
-    }
-    let config =
-        rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
-            .with_safe_default_protocol_versions()
-            .unwrap()
-            .with_root_certificates(roots)
-            .with_no_client_auth();
-    let addr = gw.info.https_addr.unwrap();
-    let tcp = tcp_from(local_ip, addr).await;
-    let tls = tokio_rustls::TlsConnector::from(Arc::new(config))
-        .connect("localhost".try_into().unwrap(), tcp)
-        .await
-        .unwrap();
-    tokio_tungstenite::client_async(format!("wss://localhost:{}{path}", addr.port()), tls)
-        .await
-        .unwrap()
-        .0
+    let tcp = tcp_from(local_ip, gw.info.https_addr.unwrap()).await;
+    common::wss_over(&gw.info, tcp, path).await
 }
 
 /// Reads until the socket closes; returns the text frames and the close code.
