@@ -41,6 +41,29 @@ pub fn bimanual_config(dataset_root: &std::path::Path) -> Config {
     config
 }
 
+/// One remote-bridge arm `ext` (joints `a b c`) and one pushed 64x64 camera `pushed`, with its dataset under
+/// `dataset_root`: what a client of `Bridge.Attach` and `Cameras.Push` talks to.
+pub fn remote_config(dataset_root: &std::path::Path) -> Config {
+    const REMOTE: &str = r#"
+[[arms]]
+name = "ext"
+bridge = "remote"
+[arms.remote]
+joint_names = ["a", "b", "c"]
+
+[[cameras]]
+name = "pushed"
+kind = "remote"
+width = 64
+height = 64
+fps = 30
+"#;
+    let mut config =
+        Config::from_toml_str(REMOTE, "remote_config", Vec::new()).expect("remote config parses");
+    dataset_root.clone_into(&mut config.recorder.root);
+    config
+}
+
 /// Position of a pose message as an array (metres).
 pub fn pos(pose: &phone2act_proto::v1::Pose) -> [f64; 3] {
     let p = pose.position_m.as_ref().expect("pose has a position");

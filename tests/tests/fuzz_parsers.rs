@@ -444,21 +444,6 @@ fn toml_config() {
 
 // ---------------------------------------------------------------- Cameras.Push and Bridge.Attach over gRPC
 
-const REMOTE: &str = r#"
-[[arms]]
-name = "ext"
-bridge = "remote"
-[arms.remote]
-joint_names = ["a", "b", "c"]
-
-[[cameras]]
-name = "pushed"
-kind = "remote"
-width = 64
-height = 64
-fps = 30
-"#;
-
 fn float() -> impl Strategy<Value = f64> {
     prop_oneof![
         -2.0..2.0f64,
@@ -553,9 +538,9 @@ fn bridge_message() -> impl Strategy<Value = v1::BridgeUpstream> {
 async fn cameras_push_and_bridge_attach_over_grpc() {
     count_panics();
     let dir = tempfile::tempdir().unwrap();
-    let mut config = Config::from_toml_str(REMOTE, "fuzz", Vec::new()).unwrap();
-    dir.path().clone_into(&mut config.recorder.root);
-    let server = TestServer::start(config).await.unwrap();
+    let server = TestServer::start(phone2act_tests::remote_config(dir.path()))
+        .await
+        .unwrap();
     let channel = tonic::transport::Endpoint::from_shared(server.url())
         .unwrap()
         .connect()

@@ -6,7 +6,7 @@
 #![allow(clippy::err_expect)]
 
 use phone2act_sdk::proto as v1;
-use phone2act_tests::{TestServer, default_config};
+use phone2act_tests::{TestServer, default_config, remote_config};
 use std::time::Duration;
 
 /// Tests here count the process's threads and time things: one at a time, so that another test's server
@@ -100,27 +100,6 @@ async fn episode_watch_streams_do_not_cost_a_thread_each() {
     client.episodes().discard().await.unwrap();
     drop(streams);
     server.shutdown().await.unwrap();
-}
-
-const REMOTE_CONFIG: &str = r#"
-[[arms]]
-name = "ext"
-bridge = "remote"
-[arms.remote]
-joint_names = ["a", "b", "c"]
-
-[[cameras]]
-name = "pushed"
-kind = "remote"
-width = 64
-height = 64
-fps = 30
-"#;
-
-fn remote_config(dir: &std::path::Path) -> phone2act_server::Config {
-    let mut c = phone2act_server::Config::from_toml_str(REMOTE_CONFIG, "robustness", Vec::new()).unwrap();
-    dir.clone_into(&mut c.recorder.root);
-    c
 }
 
 fn up(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
