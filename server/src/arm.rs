@@ -7,7 +7,7 @@
 //! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
 
 use nalgebra::Isometry3;
-use phone2act_bridges::{Bridge, Command, Health};
+use phone2act_bridges::{Bridge, Command, Feedback, Health};
 use phone2act_core::{
     ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
     GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
@@ -235,7 +235,11 @@ impl ArmController {
     /// measured pose. Anything that starts motion (engaging, a gripper command, a policy claim) checks
     /// this, so that no command ever starts from a pose nobody measured.
     pub fn not_ready(&self) -> Option<String> {
-        let feedback = self.bridge.feedback();
+        self.not_ready_given(self.bridge.feedback().as_ref(), monotonic_ns())
+    }
+
+    /// [`Self::not_ready`] for feedback the caller already read at `now_ns` (the per-sample path reads it once).
+    fn not_ready_given(&self, feedback: Option<&Feedback>, now_ns: i64) -> Option<String> {
         match self.bridge.health() {
             Health::Error(m) => return Some(format!("its bridge reports an error: {m}")),
             Health::Disconnected(m) => return Some(format!("its bridge is disconnected: {m}")),
@@ -248,7 +252,7 @@ impl ArmController {
         let Some(feedback) = feedback else {
             return Some("its bridge has sent no valid feedback yet (no measured pose)".to_owned());
         };
-        let age_s = (monotonic_ns() - feedback.capture_time_ns) as f64 * 1e-9;
+        let age_s = (now_ns - feedback.capture_time_ns) as f64 * 1e-9;
         (age_s > FEEDBACK_MAX_AGE_S)
             .then(|| format!("its last measured pose is {age_s:.2} s old (more than {FEEDBACK_MAX_AGE_S} s)"))
     }
@@ -353,7 +357,8 @@ impl ArmController {
 
     /// Processes one round of teleop input for the bound session.
     pub fn teleop_input(&self, session_id: u64, input: TeleopInput) -> Result<TeleopOutcome, Status> {
-        let now = now_s();
+        let now_ns = monotonic_ns();
+        let now = now_ns as f64 * 1e-9;
         let mut inner = self.lock();
         if inner.teleop_session != Some(session_id) {
             return Err(Status::aborted(format!(
@@ -424,13 +429,15 @@ impl ArmController {
                 None => "empty button event".clone_into(&mut outcome.error),
             }
         }
+        // One feedback read serves the readiness check and the planner: this runs for every phone sample.
+        let feedback = self.bridge.feedback();
+        let measured = feedback.as_ref().map_or(inner.target, |f| f.robot_from_ee);
         if inner.driver == Driver::Teleop
-            && let Some(why) = self.not_ready()
+            && let Some(why) = self.not_ready_given(feedback.as_ref(), now_ns)
         {
             // The robot went away under the phone: stop driving and say so, rather than accept samples that
             // go nowhere (or, on reconnect, continue from a pose measured before).
             inner.driver = Driver::None;
-            let measured = self.measured_or(inner.target);
             inner.teleop.clutch(ClutchKind::Disengage, None, measured, now);
             let message = format!(
                 "arm {:?} is not ready: {why}; disengaged, the arm holds",
@@ -440,7 +447,6 @@ impl ArmController {
             Self::record_decision(&mut inner, GateDecision::note(GateVerdict::HeldStale, message));
         }
         if let Some(phone) = pose {
-            let measured = self.measured_or(inner.target);
             let step = inner.teleop.on_pose(phone, input.tracking_ok, measured, now);
             if inner.driver == Driver::Teleop {
                 if let Some((target, gripper)) = step.command {
