@@ -62,22 +62,9 @@ struct Provenance {
     config: Value,
     sync: Value,
     episodes: Vec<EpisodeSummary>,
-    /// Running aggregates of per-episode stats, so resuming needs no re-read of old episodes.
+    /// Running aggregates of per-episode stats, so resuming needs no re-read of old episodes. (Files written
+    /// before Rerecord stopped deleting saved episodes also hold an `undo` entry, which is ignored.)
     stats: BTreeMap<String, Aggregate>,
-    /// The aggregates before the last episode and that episode's files (relative to the root), so the
-    /// last episode can be removed for a re-record.
-    #[serde(default)]
-    undo: Option<Undo>,
-}
-
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-struct Undo {
-    episode_index: u64,
-    length: u64,
-    stats: BTreeMap<String, Aggregate>,
-    files: Vec<PathBuf>,
-    episodes_stats_jsonl_len: usize,
-    episodes_jsonl_len: usize,
 }
 
 /// The dataset being written.
@@ -689,7 +676,6 @@ impl Dataset {
             tasks.push(task.clone());
         }
         let root = self.spec.root.clone();
-        let (old_es_len, old_el_len) = (self.episodes_stats_jsonl.len(), self.episodes_jsonl.len());
         let mut renames: Vec<(PathBuf, PathBuf)> = Vec::new();
         let mut new_jsonl: Option<(String, String)> = None;
         let mut agg = self.provenance.stats.clone();
@@ -799,20 +785,6 @@ impl Dataset {
         }
         // Sidecar and info.json last: info.json is what makes the episode count official.
         let mut prov = self.provenance.clone();
-        prov.undo = Some(Undo {
-            episode_index: index,
-            length: frames,
-            stats: prov.stats.clone(),
-            files: renames
-                .iter()
-                .filter_map(|(_, dst)| dst.strip_prefix(&root).ok().map(Path::to_path_buf))
-                .filter(|p| {
-                    p.starts_with("data") || p.starts_with("videos") || p.starts_with("meta/episodes/")
-                })
-                .collect(),
-            episodes_stats_jsonl_len: old_es_len,
-            episodes_jsonl_len: old_el_len,
-        });
         prov.stats = agg;
         prov.episodes.push(summary.clone());
         let qp = staging.join("quantiles.bin");
@@ -861,116 +833,6 @@ impl Dataset {
         self.provenance = prov;
         self.quantiles = quantiles;
         Ok(())
-    }
-
-    /// Removes the last saved episode (for a re-record). Only the last one, and only once per save.
-    pub fn remove_last_episode(&mut self) -> Result<EpisodeSummary, RecorderError> {
-        let Some(undo) = self.provenance.undo.clone() else {
-            return Err(RecorderError::NothingToRerecord);
-        };
-        if undo.episode_index + 1 != self.total_episodes {
-            return Err(RecorderError::NothingToRerecord);
-        }
-        let root = self.spec.root.clone();
-        let staging = root.join(STAGING_DIR);
-        if staging.exists() {
-            fs::remove_dir_all(&staging).map_err(|e| RecorderError::io(&staging, e))?;
-        }
-        let trash = staging.join("removed");
-        fs::create_dir_all(&trash).map_err(|e| RecorderError::io(&trash, e))?;
-        let mut quantiles = self.quantiles.clone();
-        if !quantiles.remove_last() {
-            quantiles = QuantileStore::rebuild(&root, undo.episode_index)?;
-        }
-        let old = (self.total_episodes, self.total_frames);
-        self.total_episodes -= 1;
-        self.total_frames -= undo.length;
-        let mut prov = self.provenance.clone();
-        prov.stats = undo.stats.clone();
-        prov.undo = None;
-        let removed = prov.episodes.pop().unwrap_or_default();
-        let mut renames = Vec::new();
-        let r = (|| {
-            // info.json first: from then on the episode is not counted, and lerobot ignores the leftovers
-            // until they are moved away just after.
-            let ip = staging.join("info.json");
-            write_synced(&ip, &self.info_json())?;
-            renames.push((ip, root.join("meta/info.json")));
-            let mut es = None;
-            let mut el = None;
-            match self.spec.format {
-                Format::V30 => {
-                    let sp = staging.join("stats.json");
-                    write_synced(&sp, &pretty(&stats_json(&prov.stats, &quantiles, Format::V30)))?;
-                    renames.push((sp, root.join("meta/stats.json")));
-                    for (i, f) in undo.files.iter().enumerate() {
-                        renames.push((root.join(f), trash.join(i.to_string())));
-                    }
-                }
-                Format::V21 => {
-                    let esv = self.episodes_stats_jsonl
-                        [..undo.episodes_stats_jsonl_len.min(self.episodes_stats_jsonl.len())]
-                        .to_owned();
-                    let elv = self.episodes_jsonl[..undo.episodes_jsonl_len.min(self.episodes_jsonl.len())]
-                        .to_owned();
-                    let esp = staging.join("episodes_stats.jsonl");
-                    write_synced(&esp, esv.as_bytes())?;
-                    let elp = staging.join("episodes.jsonl");
-                    write_synced(&elp, elv.as_bytes())?;
-                    renames.push((esp, root.join("meta/episodes_stats.jsonl")));
-                    let sp = staging.join("stats.json");
-                    write_synced(&sp, &pretty(&stats_json(&prov.stats, &quantiles, Format::V21)))?;
-                    renames.push((sp, root.join("meta/stats.json")));
-                    // The episodes.jsonl line and the data file disappear together: back to back.
-                    renames.push((elp, root.join("meta/episodes.jsonl")));
-                    for (i, f) in undo.files.iter().enumerate() {
-                        renames.push((root.join(f), trash.join(i.to_string())));
-                    }
-                    es = Some(esv);
-                    el = Some(elv);
-                }
-            }
-            let qp = staging.join("quantiles.bin");
-            write_synced(&qp, &quantiles.encode())?;
-            renames.push((qp, root.join(QUANTILES_FILE)));
-            let pp = staging.join("provenance.json");
-            write_synced(&pp, &pretty(&serde_json::to_value(&prov).unwrap_or(Value::Null)))?;
-            renames.push((pp, root.join(PROVENANCE_FILE)));
-            sync_dir(&staging)?;
-            Journal {
-                episode_index: undo.episode_index,
-                renames,
-            }
-            .commit(&root.join(JOURNAL_FILE))?;
-            Ok::<_, RecorderError>((es, el))
-        })();
-        match r {
-            Ok((es, el)) => {
-                if let Some(es) = es {
-                    self.episodes_stats_jsonl = es;
-                }
-                if let Some(el) = el {
-                    self.episodes_jsonl = el;
-                }
-                self.provenance = prov;
-                self.quantiles = quantiles;
-                if self.spec.format == Format::V30 {
-                    // The removed episode owned the newest files: reuse their numbers.
-                    self.next_data_file = self.next_data_file.saturating_sub(1);
-                    self.next_meta_file = self.next_meta_file.saturating_sub(1);
-                    for v in &mut self.next_video_file {
-                        *v = v.saturating_sub(1);
-                    }
-                }
-                let _ = fs::remove_dir_all(&staging);
-                Ok(removed)
-            }
-            Err(e) => {
-                (self.total_episodes, self.total_frames) = old;
-                let _ = fs::remove_dir_all(&staging);
-                Err(e)
-            }
-        }
     }
 
     fn modality_json(&self) -> Value {

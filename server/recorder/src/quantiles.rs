@@ -5,8 +5,7 @@
 //! The file is written into staging and renamed by the same commit journal as the episode, so it always
 //! describes the committed episodes; it records how many episodes and frames it covers, and a dataset
 //! whose file is missing, damaged or out of step (another writer, a copy without it) gets it rebuilt from
-//! the parquet data at open. In memory it also keeps the state before the last episode, so that removing
-//! that episode for a re-record needs no re-read (after a reopen that removal rebuilds from the data).
+//! the parquet data at open.
 
 use crate::error::RecorderError;
 use crate::parquet_io;
@@ -44,29 +43,16 @@ impl QuantileState {
     }
 }
 
-/// The current state and (in memory only) the one before the last episode.
+/// The dataset's quantile state.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct QuantileStore {
     pub current: QuantileState,
-    pub before_last: Option<QuantileState>,
 }
 
 impl QuantileStore {
     /// Adds one episode's columns (each holding that episode's values).
     pub fn add_episode(&mut self, frames: u64, columns: &[(&str, &ColumnStats)]) {
-        self.before_last = Some(self.current.clone());
         self.current.add(frames, columns);
-    }
-
-    /// Forgets the last episode; false if the state before it is not known.
-    pub fn remove_last(&mut self) -> bool {
-        match self.before_last.take() {
-            Some(prev) => {
-                self.current = prev;
-                true
-            }
-            None => false,
-        }
     }
 
     /// Replaces the quantiles of `stats` (feature `name`) with the dataset's, if this store sketches it.
@@ -102,10 +88,7 @@ impl QuantileStore {
         }
         let mut r = Reader(body.strip_prefix(MAGIC.as_slice())?);
         let current = decode_state(&mut r)?;
-        r.0.is_empty().then_some(QuantileStore {
-            current,
-            before_last: None,
-        })
+        r.0.is_empty().then_some(QuantileStore { current })
     }
 
     /// The persisted store of `root` if it covers exactly `episodes` episodes and `frames` frames.
@@ -306,26 +289,11 @@ mod tests {
         let bytes = store.encode();
         let back = QuantileStore::decode(&bytes).unwrap();
         assert_eq!(back.current, store.current);
-        assert_eq!(
-            back.before_last, None,
-            "the state before the last episode is not persisted"
-        );
         for cut in [0, 8, bytes.len() / 2, bytes.len() - 1] {
             assert_eq!(QuantileStore::decode(&bytes[..cut]), None, "truncated at {cut}");
         }
         let mut flipped = bytes.clone();
         flipped[bytes.len() / 3] ^= 0x10;
         assert_eq!(QuantileStore::decode(&flipped), None);
-    }
-
-    #[test]
-    fn removing_the_last_episode_restores_the_earlier_quantiles() {
-        let mut store = QuantileStore::default();
-        store.add_episode(100, &[("action", &episode(0, 100))]);
-        let one = store.clone();
-        store.add_episode(50, &[("action", &episode(100, 50))]);
-        assert!(store.remove_last());
-        assert_eq!(store.current, one.current);
-        assert!(!store.remove_last(), "only the last episode can be removed");
     }
 }
