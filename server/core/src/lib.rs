@@ -2,6 +2,7 @@
 //! and the action/state vector layouts. No I/O, no tokio, no clock reads: every time is an argument, so
 //! everything here is deterministic and property-testable.
 
+pub mod arbiter;
 pub mod chunk;
 pub mod config;
 pub mod gate;
@@ -12,6 +13,10 @@ pub mod planner;
 pub mod pose;
 pub mod teleop;
 
+pub use arbiter::{
+    Arbiter, ArbiterError, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S, Input,
+    Measured, NotReady, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
+};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
 pub use gate::{GateDecision, GateVerdict, SafetyGate};
