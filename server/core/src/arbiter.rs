@@ -874,10 +874,7 @@ mod tests {
 
     #[test]
     fn the_operator_takes_over_from_a_policy_and_the_policy_is_told() {
-        let mut a = arbiter();
-        let robot = ready(home(), 1.0);
-        a.handle(bind_phone(), &robot, 1.0).unwrap();
-        a.handle(claim(), &robot, 1.0).unwrap();
+        let (mut a, robot) = phone_bound_policy_driving();
         a.handle(chunk(1.0, &[at(0.26, 0.0, 0.2); 10]), &robot, 1.0)
             .unwrap();
         let moved = at(0.26, 0.0, 0.2);
