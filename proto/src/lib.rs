@@ -2,6 +2,9 @@
 //! the encoded file descriptor set (for gRPC server reflection), and small conversions between wire messages
 //! and plain values that every client and the server need.
 
+/// Arm types between the core domain and the wire.
+pub mod convert_arm;
+
 /// Generated code for package `phone2act.v1`.
 #[allow(clippy::pedantic, clippy::all, missing_docs)]
 pub mod v1 {

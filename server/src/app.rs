@@ -6,6 +6,7 @@ use crate::config::{BridgeKind, CameraKind, Config};
 use crate::services::policy::PolicySessionState;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use phone2act_bridges::Bridge;
+use phone2act_proto::convert_arm::arm_state_to_proto;
 use phone2act_proto::v1;
 use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::clock::monotonic_ns;
@@ -292,7 +293,11 @@ impl App {
             version: env!("CARGO_PKG_VERSION").to_owned(),
             server_time_ns: monotonic_ns(),
             uptime_s: self.started.elapsed().as_secs_f64(),
-            arms: self.arms.iter().map(|a| a.snapshot()).collect(),
+            arms: self
+                .arms
+                .iter()
+                .map(|a| arm_state_to_proto(&a.snapshot()))
+                .collect(),
             cameras: self.cameras.iter().map(CameraRuntime::status).collect(),
             recording: Some(self.recording_status()),
             sequence,

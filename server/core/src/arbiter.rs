@@ -207,6 +207,32 @@ pub enum TickNeed {
     Periodic,
 }
 
+/// What the API shows about one arm at one moment: the arbiter's state and the bridge's.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ArmSnapshot {
+    pub arm: String,
+    pub bridge_kind: String,
+    /// Ready means movable now (see [`Robot::not_ready`]); the message says why not.
+    pub health: BridgeHealth,
+    pub health_message: String,
+    pub driver: Driver,
+    /// The phone session id or `"<policy name>:<session id>"`, empty when nobody drives.
+    pub owner_id: String,
+    pub engaged: bool,
+    pub robot_from_target: Isometry3<f64>,
+    pub gripper_target: f64,
+    pub robot_from_ee: Option<Isometry3<f64>>,
+    pub joint_positions_rad: Vec<f64>,
+    pub joint_names: Vec<String>,
+    pub gripper_position: f64,
+    pub last_decision: GateDecision,
+    pub feedback_time_ns: i64,
+    /// Negative without feedback.
+    pub feedback_age_s: f64,
+    pub counters: Counters,
+    pub task_success: bool,
+}
+
 /// Commands handed out and refused so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Counters {
@@ -448,7 +474,7 @@ impl Arbiter {
                 TeleopButton::Clutch(kind) => self.clutch(kind, pose, robot, not_ready.as_ref(), now, fx),
                 TeleopButton::Gripper(command) => {
                     if let Some(why) = &not_ready {
-                        fx.phone_error = ArbiterError::NotReady(why.clone()).to_string();
+                        fx.phone_error = format!("the arm {}", ArbiterError::NotReady(why.clone()));
                         continue;
                     }
                     match self.teleop.gripper(command) {
@@ -470,7 +496,7 @@ impl Arbiter {
             self.driver = Driver::None;
             self.teleop.clutch(ClutchKind::Disengage, None, measured, now);
             let message = format!(
-                "{}; disengaged, the arm holds",
+                "the arm {}; disengaged, the arm holds",
                 ArbiterError::NotReady(why.clone())
             );
             fx.phone_error.clone_from(&message);
@@ -504,7 +530,7 @@ impl Arbiter {
             ClutchKind::Disengage => false,
         };
         if engaging && let Some(why) = not_ready {
-            fx.phone_error = format!("{}, not engaging", ArbiterError::NotReady(why.clone()));
+            fx.phone_error = format!("the arm {}, not engaging", ArbiterError::NotReady(why.clone()));
             return;
         }
         let step = self

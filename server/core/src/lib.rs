@@ -14,7 +14,7 @@ pub mod pose;
 pub mod teleop;
 
 pub use arbiter::{
-    Arbiter, ArbiterError, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S, Input,
+    Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S, Input,
     Measured, NotReady, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
 };
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};

@@ -4,9 +4,9 @@
 //! async runtime never blocks.
 
 use crate::app::App;
-use crate::arm::pose_from_proto;
 use phone2act_bridges::remote::Downstream;
 use phone2act_bridges::{Control, Feedback, Health};
+use phone2act_proto::convert_arm::{pose_from_proto, pose_to_proto};
 use phone2act_proto::v1;
 use phone2act_proto::v1::bridge_server::Bridge;
 use phone2act_recorder::clock::monotonic_ns;
@@ -42,7 +42,7 @@ fn feedback_from_proto(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
         // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
         capture_time_ns: monotonic_ns(),
         joint_positions_rad: fb.joint_positions_rad.clone(),
-        robot_from_ee: pose_from_proto(pose)?,
+        robot_from_ee: pose_from_proto(pose).map_err(|e| e.to_string())?,
         gripper_position: fb.gripper_position,
         applied_seq: fb.applied_seq,
         task_success: false,
@@ -133,7 +133,7 @@ impl Bridge for BridgeService {
                         Ok(Some(Downstream::Command(c))) => {
                             v1::bridge_downstream::Message::Command(v1::BridgeCommand {
                                 seq: c.seq,
-                                robot_from_target: Some(crate::arm::pose_to_proto(&c.robot_from_target)),
+                                robot_from_target: Some(pose_to_proto(&c.robot_from_target)),
                                 gripper_target: c.gripper_target,
                                 issue_time_ns: c.issue_time_ns,
                             })

@@ -4,6 +4,7 @@ pub mod auth;
 pub mod bridge;
 pub mod cameras;
 pub mod episodes;
+pub mod error;
 pub mod policy;
 pub mod system;
 pub mod teleop;

@@ -2,9 +2,10 @@
 //! executor and the same safety gate and bridge as teleop.
 
 use crate::app::App;
-use crate::arm::{now_s, pose_to_proto};
+use crate::arm::{RevocationSink, now_s};
 use nalgebra::Isometry3;
 use phone2act_core::ActionMode;
+use phone2act_proto::convert_arm::pose_to_proto;
 use phone2act_proto::v1;
 use phone2act_proto::v1::policy_server::Policy;
 use phone2act_recorder::clock::monotonic_ns;
@@ -87,6 +88,17 @@ fn event(e: v1::policy_event::Event) -> v1::PolicyEvent {
     v1::PolicyEvent { event: Some(e) }
 }
 
+impl RevocationSink for mpsc::Sender<v1::PolicyEvent> {
+    fn revoked(&self, arm: &str, reason: &str) {
+        // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
+        // ownership on its next chunk.
+        let _ = self.try_send(event(v1::policy_event::Event::Revoked(v1::ControlRevoked {
+            arm: arm.to_owned(),
+            reason: reason.to_owned(),
+        })));
+    }
+}
+
 impl App {
     /// Builds an observation of `arms` with frames of `cameras` and remembers it for `session`.
     fn observe(
@@ -104,7 +116,7 @@ impl App {
             let arm = self
                 .arm(name)
                 .ok_or_else(|| Status::not_found(format!("unknown arm {name:?}")))?;
-            let snapshot = arm.snapshot();
+            let owner = v1::ControlSource::from(arm.snapshot().driver) as i32;
             let Some(sample) = arm.state_and_action() else {
                 return Err(Status::unavailable(format!(
                     "arm {name:?} has no robot feedback yet"
@@ -118,7 +130,7 @@ impl App {
                 state_names: arm.layout.state_names(),
                 action_names: arm.layout.action_names(arm.action_mode),
                 robot_from_ee: Some(pose_to_proto(&pose)),
-                owner: snapshot.owner,
+                owner,
             });
         }
         let mut frames = Vec::new();
@@ -401,12 +413,12 @@ impl Policy for PolicyService {
             let mut claimed = Vec::new();
             for name_ in &arms {
                 let arm = app.arm(name_).expect("checked above");
-                if let Err(status) = arm.claim_for_policy(id, &name, tx.clone(), silence_timeout_s) {
+                if let Err(e) = arm.claim_for_policy(id, &name, Arc::new(tx.clone()), silence_timeout_s) {
                     for done in &claimed {
                         let done: &Arc<crate::arm::ArmController> = done;
                         done.release_policy(id, "session could not take every arm");
                     }
-                    return Err(status);
+                    return Err(e.into());
                 }
                 claimed.push(arm);
             }

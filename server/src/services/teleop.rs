@@ -3,8 +3,9 @@
 //! is planned, so a burst from the network never turns into a backlog of stale commands.
 
 use crate::app::App;
-use crate::arm::{TeleopInput, pose_from_proto};
 use futures_util::FutureExt;
+use phone2act_core::TeleopRound;
+use phone2act_proto::convert_arm::{ButtonInput, arm_state_to_proto, button_from_proto, pose_from_proto};
 use phone2act_proto::v1;
 use phone2act_proto::v1::teleop_server::Teleop;
 use phone2act_recorder::clock::monotonic_ns;
@@ -122,18 +123,18 @@ impl Teleop for TeleopService {
                     }
                 }
                 let batch_len = batch.len() as u64;
-                let (input, newest, dropped) = merge(batch);
+                let (input, records, newest, dropped) = merge(batch);
                 superseded += dropped;
                 let outcome = match arm.teleop_input(session, input) {
                     Ok(o) => o,
-                    Err(status) => {
-                        let _ = tx.send(Err(status)).await;
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
                         break;
                     }
                 };
                 arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
                 let mut error = outcome.error;
-                for record in outcome.record {
+                for record in records {
                     if let Err(e) = app.record_command(&record) {
                         error = e;
                     }
@@ -157,18 +158,25 @@ impl Teleop for TeleopService {
 }
 
 /// Folds a batch of samples into one input: all button events in order, the newest valid pose. Returns the
-/// input, the newest sample's (seq, capture time), and how many poses were superseded.
-fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
-    let mut input = TeleopInput::default();
+/// input, the record events (for the recorder, in order), the newest sample's (seq, capture time), and how
+/// many poses were superseded.
+fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopRound, Vec<v1::RecordCommand>, (u64, i64), u64) {
+    let mut input = TeleopRound::default();
+    let mut records = Vec::new();
     let mut newest = (0, 0);
     let mut poses = 0u64;
     for sample in batch {
         newest = (sample.seq, sample.capture_time_ns);
-        input.buttons.extend(sample.buttons);
+        for event in sample.buttons {
+            match button_from_proto(event) {
+                ButtonInput::Arm(button) => input.buttons.push(button),
+                ButtonInput::Record(record) => records.push(record),
+            }
+        }
         let tracking = v1::TrackingState::try_from(sample.tracking).unwrap_or(v1::TrackingState::Unspecified);
         if let Some(pose) = &sample.tracking_from_phone {
             poses += 1;
-            input.pose = Some(pose_from_proto(pose));
+            input.pose = Some(pose_from_proto(pose).map_err(|e| e.to_string()));
             input.tracking_ok = matches!(
                 tracking,
                 v1::TrackingState::Tracking | v1::TrackingState::Unspecified
@@ -177,7 +185,7 @@ fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
             input.tracking_ok = false;
         }
     }
-    (input, newest, poses.saturating_sub(1))
+    (input, records, newest, poses.saturating_sub(1))
 }
 
 fn feedback(
@@ -191,7 +199,7 @@ fn feedback(
         echoed_seq: last.0,
         echoed_capture_time_ns: last.1,
         server_receive_time_ns: last.2,
-        arm_state: Some(arm.snapshot()),
+        arm_state: Some(arm_state_to_proto(&arm.snapshot())),
         recording: Some(app.recording_status()),
         error,
         superseded_samples: superseded,
