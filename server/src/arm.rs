@@ -268,13 +268,6 @@ impl ArmController {
         }
     }
 
-    /// Why the arm may not be moved now, if it may not (see [`Robot::not_ready`]).
-    pub fn not_ready(&self) -> Option<String> {
-        robot_of(self.bridge.health(), self.bridge.feedback().as_ref())
-            .not_ready(now_s())
-            .map(|why| why.to_string())
-    }
-
     /// Binds a teleop session. A second phone is refused unless it takes over.
     pub fn bind_teleop(&self, session: u64, take_over: bool) -> Result<(), ArmError> {
         self.apply(Input::BindTeleop { session, take_over })
