@@ -122,6 +122,8 @@ pub struct ArmController {
     /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
     latencies_ns: Mutex<LatencyRing>,
     samples_received: AtomicU64,
+    /// Ticks run since start (an idle arm runs none).
+    ticks: AtomicU64,
 }
 
 impl std::fmt::Debug for ArmController {
@@ -190,6 +192,7 @@ impl ArmController {
             wake: Notify::new(),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
+            ticks: AtomicU64::new(0),
         })
     }
 
@@ -303,6 +306,11 @@ impl ArmController {
         self.samples_received.load(Ordering::Relaxed)
     }
 
+    /// Ticks run since start.
+    pub fn ticks(&self) -> u64 {
+        self.ticks.load(Ordering::Relaxed)
+    }
+
     /// Clears the latency ring (between benchmark phases).
     pub fn reset_latencies(&self) {
         *self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner) = LatencyRing::default();
@@ -391,6 +399,7 @@ impl ArmController {
 
     /// Plays due chunk steps and applies the silence and staleness rules at the current time.
     pub fn tick(&self) {
+        self.ticks.fetch_add(1, Ordering::Relaxed);
         // A tick refuses nothing.
         let _ = self.apply(Input::Tick);
     }
@@ -556,5 +565,84 @@ async fn tick_arm(
             }
         }
         arm.tick();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use phone2act_bridges::sim::{SimBridge, SimConfig};
+    use std::time::Instant;
+
+    #[derive(Debug)]
+    struct Nobody;
+
+    impl RevocationSink for Nobody {
+        fn revoked(&self, _: &str, _: &str) {}
+    }
+
+    /// Polls `done` until it holds or `limit` passes; returns whether it held.
+    async fn eventually(limit: Duration, done: impl Fn() -> bool) -> bool {
+        let start = Instant::now();
+        while start.elapsed() < limit {
+            if done() {
+                return true;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        done()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_tick_task_sleeps_while_idle_and_wakes_to_play_a_chunk_to_its_end() {
+        let config = crate::config::Config::embedded_default().unwrap();
+        let a = &config.arms[0];
+        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
+        let arm = Arc::new(
+            ArmController::new(
+                "main",
+                "sim",
+                bridge,
+                &a.teleop,
+                &a.chunk,
+                ActionMode::Absolute,
+                Isometry3::identity(),
+            )
+            .unwrap(),
+        );
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        let ticking = tokio::spawn(run_ticks(vec![Arc::clone(&arm)], 500.0, stopped));
+        // 10 s for a 50 Hz simulator to report once: a starved 2-core machine stalls for far less.
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().health
+                == BridgeHealth::Ready)
+            .await
+        );
+        // Nobody drives: whatever the scheduler does, no tick runs (a count, not a time bound).
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert_eq!(arm.ticks(), 0, "an idle arm ticks");
+
+        arm.claim_for_policy(1, "test", Arc::new(Nobody), 30.0).unwrap();
+        let here = arm.snapshot().robot_from_ee.unwrap();
+        let steps: Vec<Vec<f64>> = (0..5)
+            .map(|k| {
+                let target = Isometry3::translation(0.002 * f64::from(k), 0.0, 0.0) * here;
+                phone2act_core::absolute_action(&target, 0.0)
+            })
+            .collect();
+        let sent_before = arm.snapshot().counters.sent;
+        arm.push_chunk(1, &steps, 0.05, now_s(), here, ActionMode::Absolute)
+            .unwrap();
+        // The push plays step 0; only the woken tick task can play steps 1-4 (the chunk lasts 0.25 s; 10 s
+        // covers any stall of a loaded machine, and a task that was never woken never gets there).
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().counters.sent
+                == sent_before + 5)
+            .await,
+            "the chunk did not play to its end: {:?}",
+            arm.snapshot().counters
+        );
+        stop.send(true).unwrap();
+        ticking.await.unwrap();
     }
 }
