@@ -5,8 +5,9 @@
 use crate::app::App;
 use crate::arm::{TeleopInput, pose_from_proto};
 use futures_util::FutureExt;
-use phone2act_proto::v1;
+use phone2act_proto::sample::tracking_lost;
 use phone2act_proto::v1::teleop_server::Teleop;
+use phone2act_proto::{PendingSample, v1};
 use phone2act_recorder::clock::monotonic_ns;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -156,28 +157,22 @@ impl Teleop for TeleopService {
     }
 }
 
-/// Folds a batch of samples into one input: all button events in order, the newest valid pose. Returns the
-/// input, the newest sample's (seq, capture time), and how many poses were superseded.
+/// Folds a batch of samples into one input with the wire's one latest-wins rule ([`PendingSample`]): every
+/// button event in order, the newest pose. Returns the input, the newest sample's (seq, capture time), and how
+/// many poses were superseded.
 fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
-    let mut input = TeleopInput::default();
-    let mut newest = (0, 0);
-    let mut poses = 0u64;
-    for sample in batch {
-        newest = (sample.seq, sample.capture_time_ns);
-        input.buttons.extend(sample.buttons);
-        let tracking = v1::TrackingState::try_from(sample.tracking).unwrap_or(v1::TrackingState::Unspecified);
-        if let Some(pose) = &sample.tracking_from_phone {
-            poses += 1;
-            input.pose = Some(pose_from_proto(pose));
-            input.tracking_ok = matches!(
-                tracking,
-                v1::TrackingState::Tracking | v1::TrackingState::Unspecified
-            );
-        } else if tracking == v1::TrackingState::Lost || tracking == v1::TrackingState::Limited {
-            input.tracking_ok = false;
-        }
-    }
-    (input, newest, poses.saturating_sub(1))
+    let mut pending = PendingSample::default();
+    let superseded = batch.into_iter().map(|s| u64::from(pending.push(s))).sum();
+    let Some(sample) = pending.take() else {
+        return (TeleopInput::default(), (0, 0), 0);
+    };
+    let tracking_ok = !tracking_lost(sample.tracking);
+    let input = TeleopInput {
+        pose: sample.tracking_from_phone.as_ref().map(pose_from_proto),
+        tracking_ok: tracking_ok && sample.tracking_from_phone.is_some(),
+        buttons: sample.buttons,
+    };
+    (input, (sample.seq, sample.capture_time_ns), superseded)
 }
 
 fn feedback(
