@@ -92,8 +92,8 @@ impl Bridge for BridgeService {
             None => return Err(Status::invalid_argument("the stream ended before BridgeHello")),
         };
         check_hello(&hello)?;
-        let remote = self.app.remote_bridges.get(&hello.arm).cloned().ok_or_else(|| {
-            let remote_arms: Vec<_> = self.app.remote_bridges.keys().cloned().collect();
+        let remote = self.app.remote_bridge(&hello.arm).ok_or_else(|| {
+            let remote_arms = self.app.remote_arm_names();
             Status::not_found(format!(
                 "arm {:?} is not configured with bridge = \"remote\" (remote arms: {})",
                 hello.arm,
@@ -166,7 +166,7 @@ impl Bridge for BridgeService {
             loop {
                 let msg = tokio::select! {
                     msg = inbound.message() => msg,
-                    () = crate::app::stopped(&mut shutdown) => break,
+                    () = crate::runtime::stopped(&mut shutdown) => break,
                 };
                 match msg {
                     Ok(Some(v1::BridgeUpstream {

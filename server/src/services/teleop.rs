@@ -4,7 +4,9 @@
 
 use crate::app::App;
 use crate::arm::{TeleopInput, pose_from_proto};
+use crate::services::convert::current_recording_status;
 use futures_util::FutureExt;
+use phone2act_proto::convert_episode::RecordAction;
 use phone2act_proto::sample::tracking_lost;
 use phone2act_proto::v1::teleop_server::Teleop;
 use phone2act_proto::{PendingSample, v1};
@@ -67,13 +69,7 @@ impl Teleop for TeleopService {
                 "the first sample must name the arm (field `arm`)",
             ));
         }
-        let arm = self.app.arm(&first.arm).ok_or_else(|| {
-            Status::not_found(format!(
-                "unknown arm {:?}; configured arms: {}",
-                first.arm,
-                self.app.arm_names().join(", ")
-            ))
-        })?;
+        let arm = self.app.find_arm(&first.arm)?;
         let session = self.app.next_session_id();
         arm.bind_teleop(session, first.take_over)?;
         // Debug formatting escapes control characters: a client name cannot forge log lines.
@@ -106,7 +102,7 @@ impl Teleop for TeleopService {
                             if tx.try_send(Ok(fb)).is_err() && tx.is_closed() { break; }
                             continue;
                         }
-                        () = crate::app::stopped(&mut shutdown) => break,
+                        () = crate::runtime::stopped(&mut shutdown) => break,
                     }
                 }
                 let receive_ns = monotonic_ns();
@@ -135,7 +131,10 @@ impl Teleop for TeleopService {
                 arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
                 let mut error = outcome.error;
                 for record in outcome.record {
-                    if let Err(e) = app.record_command(&record) {
+                    let done = RecordAction::try_from(&record)
+                        .map_err(|e| e.to_string())
+                        .and_then(|action| app.record_action(action).map_err(|e| e.to_string()));
+                    if let Err(e) = done {
                         error = e;
                     }
                 }
@@ -187,7 +186,7 @@ fn feedback(
         echoed_capture_time_ns: last.1,
         server_receive_time_ns: last.2,
         arm_state: Some(arm.snapshot()),
-        recording: Some(app.recording_status()),
+        recording: Some(current_recording_status(app)),
         error,
         superseded_samples: superseded,
         server_send_time_ns: monotonic_ns(),
