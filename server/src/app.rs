@@ -106,6 +106,10 @@ pub enum LookupError {
     UnknownArm { arm: String, configured: String },
     #[error("unknown camera {0:?}")]
     UnknownCamera(String),
+    #[error("no camera {0:?} with kind = \"remote\" is configured")]
+    NotRemoteCamera(String),
+    #[error("arm {arm:?} is not configured with bridge = \"remote\" (remote arms: {remote})")]
+    NotRemoteArm { arm: String, remote: String },
 }
 
 /// Where an arm holds before its bridge reports a pose: the SO-101 workspace centre, gripper down.
@@ -304,14 +308,28 @@ impl App {
             .ok_or_else(|| LookupError::UnknownCamera(name.to_owned()))
     }
 
-    /// The remote bridge of arm `name`, if that arm is configured with `bridge = "remote"`.
-    pub fn remote_bridge(&self, name: &str) -> Option<Arc<RemoteBridge>> {
-        self.remote_bridges.get(name).cloned()
+    /// The camera `name` that takes pushed frames (`kind = "remote"`).
+    pub fn find_remote_camera(&self, name: &str) -> Result<&CameraRuntime, LookupError> {
+        self.cameras
+            .iter()
+            .find(|c| c.config.name == name && c.config.kind == CameraKind::Remote)
+            .ok_or_else(|| LookupError::NotRemoteCamera(name.to_owned()))
     }
 
-    /// Names of the arms with `bridge = "remote"`.
-    pub fn remote_arm_names(&self) -> Vec<String> {
-        self.remote_bridges.keys().cloned().collect()
+    /// The remote bridge of arm `name` (`bridge = "remote"`), for `Bridge.Attach`.
+    pub fn find_remote_bridge(&self, name: &str) -> Result<Arc<RemoteBridge>, LookupError> {
+        self.remote_bridges.get(name).cloned().ok_or_else(|| {
+            let mut remote: Vec<&str> = self.remote_bridges.keys().map(String::as_str).collect();
+            remote.sort_unstable();
+            LookupError::NotRemoteArm {
+                arm: name.to_owned(),
+                remote: if remote.is_empty() {
+                    "none".to_owned()
+                } else {
+                    remote.join(", ")
+                },
+            }
+        })
     }
 
     /// Configured arm names in order.

@@ -66,37 +66,23 @@ impl Cameras for CamerasService {
         request: Request<Streaming<v1::CameraFrame>>,
     ) -> Result<Response<v1::PushSummary>, Status> {
         let mut inbound = request.into_inner();
-        let mut bound: Option<usize> = None;
+        let mut bound = None;
         let mut summary = v1::PushSummary::default();
         while let Some(frame) = inbound.message().await? {
-            let index = if let Some(i) = bound {
-                if frame.camera != self.app.cameras()[i].config().name {
+            let cam = if let Some(cam) = bound {
+                if frame.camera != summary.camera {
                     return Err(Status::invalid_argument(format!(
                         "this stream is bound to camera {:?}, got a frame for {:?}",
                         summary.camera, frame.camera
                     )));
                 }
-                i
+                cam
             } else {
-                let i = self
-                    .app
-                    .cameras()
-                    .iter()
-                    .position(|c| {
-                        c.config().name == frame.camera
-                            && c.config().kind == crate::config::CameraKind::Remote
-                    })
-                    .ok_or_else(|| {
-                        Status::not_found(format!(
-                            "no camera {:?} with kind = \"remote\" is configured",
-                            frame.camera
-                        ))
-                    })?;
-                bound = Some(i);
+                let cam = self.app.find_remote_camera(&frame.camera)?;
+                bound = Some(cam);
                 summary.camera.clone_from(&frame.camera);
-                i
+                cam
             };
-            let cam = &self.app.cameras()[index];
             let (width, height) = (cam.config().width, cam.config().height);
             let seq = frame.frame_seq;
             let result = crate::runtime::blocking(|| decode(&frame, width, height));

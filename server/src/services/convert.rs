@@ -2,7 +2,9 @@
 //! service layer's half of the wire boundary. Conversions of core types live in `phone2act_proto`.
 
 use crate::app::{App, CameraHealth, CameraRuntime};
+use crate::arm::{pose_from_proto, pose_to_proto};
 use crate::config::Config;
+use phone2act_bridges::{Command, Control, Feedback, Health};
 use phone2act_proto::v1;
 use phone2act_recorder::clock::monotonic_ns;
 use phone2act_recorder::dataset::EpisodeSummary;
@@ -95,6 +97,51 @@ pub fn system_status(app: &App, sequence: u64) -> v1::SystemStatus {
         cameras: app.cameras().iter().map(camera_status).collect(),
         recording: Some(current_recording_status(app)),
         sequence,
+    }
+}
+
+/// Feedback from an out-of-process bridge, stamped with its arrival time on the server's clock.
+pub fn bridge_feedback(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
+    let pose = fb.robot_from_ee.as_ref().ok_or("feedback has no robot_from_ee")?;
+    Ok(Feedback {
+        // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
+        capture_time_ns: monotonic_ns(),
+        joint_positions_rad: fb.joint_positions_rad.clone(),
+        robot_from_ee: pose_from_proto(pose)?,
+        gripper_position: fb.gripper_position,
+        applied_seq: fb.applied_seq,
+        task_success: false,
+    })
+}
+
+/// A gated command for an out-of-process bridge.
+pub fn bridge_command(c: &Command) -> v1::BridgeCommand {
+    v1::BridgeCommand {
+        seq: c.seq,
+        robot_from_target: Some(pose_to_proto(&c.robot_from_target)),
+        gripper_target: c.gripper_target,
+        issue_time_ns: c.issue_time_ns,
+    }
+}
+
+/// A control request for an out-of-process bridge.
+pub fn bridge_control(c: Control) -> v1::BridgeControl {
+    let kind = match c {
+        Control::Enable => v1::bridge_control::Kind::Enable,
+        Control::Disable => v1::bridge_control::Kind::Disable,
+        Control::ClearError => v1::bridge_control::Kind::ClearError,
+        Control::Reconnect => v1::bridge_control::Kind::Reconnect,
+    };
+    v1::BridgeControl { kind: kind as i32 }
+}
+
+/// A bridge's health report; anything but ready, connecting or error counts as disconnected.
+pub fn bridge_health(report: v1::BridgeStatusReport) -> Health {
+    match v1::BridgeHealth::try_from(report.health) {
+        Ok(v1::BridgeHealth::Ready) => Health::Ready,
+        Ok(v1::BridgeHealth::Connecting) => Health::Connecting,
+        Ok(v1::BridgeHealth::Error) => Health::Error(report.message),
+        _ => Health::Disconnected(report.message),
     }
 }
 
