@@ -3,7 +3,7 @@
 //! observation and scheduling a chunk. The `Policy` service adapter only validates and converts around this.
 
 use crate::app::{App, LookupError};
-use crate::arm::{ArmController, now_s, pose_to_proto};
+use crate::arm::{ArmController, now_s};
 use nalgebra::Isometry3;
 use phone2act_core::{ActionMode, ReplaceReport};
 use phone2act_proto::v1;
@@ -60,6 +60,52 @@ pub enum PolicyError {
     Arm(tonic::Status),
 }
 
+/// How an observation carries camera frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameEncoding {
+    /// No frames.
+    None,
+    /// Packed RGB.
+    Rgb8,
+    /// JPEG at a quality of 1..=100.
+    Jpeg { quality: u8 },
+}
+
+/// One arm in an observation.
+#[derive(Debug, Clone)]
+pub struct ArmObservation {
+    pub arm: String,
+    pub state: Vec<f64>,
+    pub state_names: Vec<String>,
+    pub action_names: Vec<String>,
+    pub robot_from_ee: Isometry3<f64>,
+}
+
+/// One camera frame in an observation, encoded as asked.
+#[derive(Debug, Clone)]
+pub struct ObservedFrame {
+    pub camera: String,
+    pub width: u32,
+    pub height: u32,
+    /// JPEG bytes when true, packed RGB otherwise.
+    pub jpeg: bool,
+    pub data: Vec<u8>,
+    pub capture_time_ns: i64,
+    pub seq: u64,
+}
+
+/// What the robot and its cameras looked like at one instant.
+#[derive(Debug, Clone)]
+pub struct Observation {
+    /// Never 0 (0 means "no observation" in chunks).
+    pub id: u64,
+    pub timestamp_ns: i64,
+    pub arms: Vec<ArmObservation>,
+    pub frames: Vec<ObservedFrame>,
+    /// The task of the episode in progress.
+    pub task: String,
+}
+
 /// What a chunk needs from the observation it answers.
 #[derive(Debug, Clone)]
 struct ObservationAnchor {
@@ -75,8 +121,7 @@ pub struct SessionRequest {
     pub arms: Vec<String>,
     /// Cameras whose frames go into observations; empty means every camera.
     pub cameras: Vec<String>,
-    pub encoding: v1::ImageEncoding,
-    pub jpeg_quality: u8,
+    pub encoding: FrameEncoding,
     /// Empty for a generated `policy-<id>`.
     pub name: String,
     pub silence_timeout_s: f64,
@@ -101,8 +146,7 @@ pub struct PolicySession {
     name: String,
     arms: Vec<String>,
     cameras: Vec<String>,
-    encoding: v1::ImageEncoding,
-    jpeg_quality: u8,
+    encoding: FrameEncoding,
     events: mpsc::Sender<v1::PolicyEvent>,
     anchors: Mutex<VecDeque<ObservationAnchor>>,
     /// 128 random bits in `SessionReady.session_id`: `PushChunk` must name them, so a session id is a
@@ -181,7 +225,6 @@ impl PolicySessions {
             arms,
             cameras: request.cameras,
             encoding: request.encoding,
-            jpeg_quality: request.jpeg_quality,
             events,
             anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
             secret: random_secret()?,
@@ -227,10 +270,9 @@ impl PolicySessions {
         &self,
         arms: &[String],
         cameras: &[String],
-        encoding: v1::ImageEncoding,
-        jpeg_quality: u8,
-    ) -> Result<v1::Observation, PolicyError> {
-        self.observe_anchored(arms, cameras, encoding, jpeg_quality)
+        encoding: FrameEncoding,
+    ) -> Result<Observation, PolicyError> {
+        self.observe_anchored(arms, cameras, encoding)
             .map(|(observation, _)| observation)
     }
 
@@ -238,31 +280,28 @@ impl PolicySessions {
         &self,
         arms: &[String],
         cameras: &[String],
-        encoding: v1::ImageEncoding,
-        jpeg_quality: u8,
-    ) -> Result<(v1::Observation, ObservationAnchor), PolicyError> {
+        encoding: FrameEncoding,
+    ) -> Result<(Observation, ObservationAnchor), PolicyError> {
         let id = self.observations.fetch_add(1, Ordering::Relaxed);
         let timestamp_ns = monotonic_ns();
         let mut out = Vec::with_capacity(arms.len());
         let mut poses = Vec::with_capacity(arms.len());
         for name in arms {
             let arm = self.app.find_arm(name)?;
-            let snapshot = arm.snapshot();
             let sample = arm
                 .state_and_action()
                 .ok_or_else(|| PolicyError::NoFeedback(name.clone()))?;
             poses.push((name.clone(), sample.robot_from_ee));
-            out.push(v1::ArmObservation {
+            out.push(ArmObservation {
                 arm: name.clone(),
                 state: sample.state,
                 state_names: arm.layout.state_names(),
                 action_names: arm.layout.action_names(arm.action_mode),
-                robot_from_ee: Some(pose_to_proto(&sample.robot_from_ee)),
-                owner: snapshot.owner,
+                robot_from_ee: sample.robot_from_ee,
             });
         }
         let mut frames = Vec::new();
-        if encoding != v1::ImageEncoding::None {
+        if encoding != FrameEncoding::None {
             for cam in self.app.cameras() {
                 if !cameras.is_empty() && !cameras.contains(&cam.config().name) {
                     continue;
@@ -270,9 +309,8 @@ impl PolicySessions {
                 let Some(frame) = cam.slot().latest() else {
                     continue;
                 };
-                let jpeg = encoding == v1::ImageEncoding::Jpeg;
-                let data = if jpeg {
-                    phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, jpeg_quality)
+                let data = if let FrameEncoding::Jpeg { quality } = encoding {
+                    phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, quality)
                         .map_err(|source| PolicyError::Jpeg {
                             camera: cam.config().name.clone(),
                             source,
@@ -280,23 +318,19 @@ impl PolicySessions {
                 } else {
                     frame.rgb.as_ref().clone()
                 };
-                frames.push(v1::CameraFrame {
+                frames.push(ObservedFrame {
                     camera: cam.config().name.clone(),
                     width: frame.width,
                     height: frame.height,
-                    encoding: if jpeg {
-                        v1::ImageEncoding::Jpeg
-                    } else {
-                        v1::ImageEncoding::Rgb8
-                    } as i32,
+                    jpeg: matches!(encoding, FrameEncoding::Jpeg { .. }),
                     data,
                     capture_time_ns: frame.capture_time_ns,
-                    frame_seq: frame.seq,
+                    seq: frame.seq,
                 });
             }
         }
-        let observation = v1::Observation {
-            observation_id: id,
+        let observation = Observation {
+            id,
             timestamp_ns,
             arms: out,
             frames,
@@ -311,13 +345,9 @@ impl PolicySessions {
     }
 
     /// Builds an observation for `session` and remembers its poses, so chunks answering it are anchored there.
-    pub fn observe_for(&self, session: &PolicySession) -> Result<v1::Observation, PolicyError> {
-        let (observation, anchor) = self.observe_anchored(
-            &session.arms,
-            &session.cameras,
-            session.encoding,
-            session.jpeg_quality,
-        )?;
+    pub fn observe_for(&self, session: &PolicySession) -> Result<Observation, PolicyError> {
+        let (observation, anchor) =
+            self.observe_anchored(&session.arms, &session.cameras, session.encoding)?;
         session.remember(anchor);
         Ok(observation)
     }

@@ -4,6 +4,7 @@
 use crate::app::{App, CameraHealth, CameraRuntime};
 use crate::arm::{pose_from_proto, pose_to_proto};
 use crate::config::Config;
+use crate::policy_session::Observation;
 use phone2act_bridges::{Command, Control, Feedback, Health};
 use phone2act_proto::v1;
 use phone2act_recorder::clock::monotonic_ns;
@@ -142,6 +143,44 @@ pub fn bridge_health(report: v1::BridgeStatusReport) -> Health {
         Ok(v1::BridgeHealth::Connecting) => Health::Connecting,
         Ok(v1::BridgeHealth::Error) => Health::Error(report.message),
         _ => Health::Disconnected(report.message),
+    }
+}
+
+/// An observation on the wire; each arm says who drives it now.
+pub fn observation(app: &App, o: Observation) -> v1::Observation {
+    v1::Observation {
+        observation_id: o.id,
+        timestamp_ns: o.timestamp_ns,
+        arms: o
+            .arms
+            .into_iter()
+            .map(|a| v1::ArmObservation {
+                owner: app.arm(&a.arm).map_or(0, |arm| arm.snapshot().owner),
+                robot_from_ee: Some(pose_to_proto(&a.robot_from_ee)),
+                arm: a.arm,
+                state: a.state,
+                state_names: a.state_names,
+                action_names: a.action_names,
+            })
+            .collect(),
+        frames: o
+            .frames
+            .into_iter()
+            .map(|f| v1::CameraFrame {
+                camera: f.camera,
+                width: f.width,
+                height: f.height,
+                encoding: if f.jpeg {
+                    v1::ImageEncoding::Jpeg
+                } else {
+                    v1::ImageEncoding::Rgb8
+                } as i32,
+                data: f.data,
+                capture_time_ns: f.capture_time_ns,
+                frame_seq: f.seq,
+            })
+            .collect(),
+        task: o.task,
     }
 }
 

@@ -2,7 +2,8 @@
 //! rules (anchoring, claiming, scheduling) live in [`crate::policy_session`]. Chunks go through the arm
 //! controller's chunk executor and the same safety gate and bridge as teleop.
 
-use crate::policy_session::{ChunkRequest, PolicySession, PolicySessions, SessionRequest};
+use crate::policy_session::{ChunkRequest, FrameEncoding, PolicySession, PolicySessions, SessionRequest};
+use crate::services::convert::observation;
 use phone2act_proto::convert_policy::{action_mode, requested_encoding};
 use phone2act_proto::v1;
 use phone2act_proto::v1::policy_server::Policy;
@@ -72,19 +73,25 @@ fn session_request(hello: v1::PolicyHello) -> Result<SessionRequest, Status> {
     Ok(SessionRequest {
         arms: hello.arms,
         cameras: hello.cameras,
-        encoding: requested_encoding(hello.image_encoding),
-        jpeg_quality: jpeg_quality(hello.jpeg_quality),
+        encoding: frame_encoding(hello.image_encoding, hello.jpeg_quality),
         name: hello.policy_name,
         silence_timeout_s,
         request_control: hello.request_control,
     })
 }
 
-fn jpeg_quality(wire: u32) -> u8 {
-    if wire == 0 {
-        DEFAULT_JPEG_QUALITY
-    } else {
-        u8::try_from(wire.min(100)).unwrap_or(100)
+/// The frames a request asks for: unset encoding means JPEG, unset quality the default.
+fn frame_encoding(encoding: i32, jpeg_quality: u32) -> FrameEncoding {
+    match requested_encoding(encoding) {
+        v1::ImageEncoding::None => FrameEncoding::None,
+        v1::ImageEncoding::Rgb8 => FrameEncoding::Rgb8,
+        v1::ImageEncoding::Jpeg | v1::ImageEncoding::Unspecified => FrameEncoding::Jpeg {
+            quality: if jpeg_quality == 0 {
+                DEFAULT_JPEG_QUALITY
+            } else {
+                u8::try_from(jpeg_quality.min(100)).unwrap_or(100)
+            },
+        },
     }
 }
 
@@ -116,7 +123,10 @@ fn push(
 
 fn send_observation(sessions: &PolicySessions, session: &PolicySession) {
     match sessions.observe_for(session) {
-        Ok(observation) => session.notify(v1::policy_event::Event::Observation(observation)),
+        Ok(o) => session.notify(v1::policy_event::Event::Observation(observation(
+            sessions.app(),
+            o,
+        ))),
         Err(e) => tracing::debug!(error = %e, "observation skipped"),
     }
 }
@@ -250,13 +260,10 @@ impl Policy for PolicyService {
         } else {
             req.arms
         };
-        let observation = self.sessions.observe(
-            &arms,
-            &req.cameras,
-            requested_encoding(req.image_encoding),
-            DEFAULT_JPEG_QUALITY,
-        )?;
-        Ok(Response::new(observation))
+        let observed = self
+            .sessions
+            .observe(&arms, &req.cameras, frame_encoding(req.image_encoding, 0))?;
+        Ok(Response::new(observation(self.sessions.app(), observed)))
     }
 
     async fn push_chunk(
