@@ -471,3 +471,62 @@ impl PolicySession {
             })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn session() -> PolicySession {
+        let (events, _) = mpsc::channel(1);
+        PolicySession {
+            id: 7,
+            name: "p".into(),
+            arms: vec!["left".into()],
+            cameras: Vec::new(),
+            encoding: FrameEncoding::None,
+            events,
+            anchors: Mutex::new(VecDeque::new()),
+            secret: "ab".repeat(16),
+        }
+    }
+
+    fn anchor(id: u64) -> ObservationAnchor {
+        ObservationAnchor {
+            id,
+            time_s: id as f64,
+            poses: vec![("left".into(), Isometry3::translation(id as f64, 0.0, 0.0))],
+        }
+    }
+
+    #[test]
+    fn a_chunk_anchors_on_a_remembered_observation_until_it_is_forgotten() {
+        let s = session();
+        let count = OBSERVATION_MEMORY as u64 + 1;
+        for id in 1..=count {
+            s.remember(anchor(id));
+        }
+        let (time_s, pose) = s.anchor(count, "left").unwrap();
+        assert_eq!((time_s, pose.translation.x), (count as f64, count as f64));
+        // The oldest fell out of the bounded memory; the second oldest is still there.
+        assert!(matches!(
+            s.anchor(1, "left"),
+            Err(PolicyError::UnknownObservation(1))
+        ));
+        assert!(s.anchor(2, "left").is_ok());
+        assert!(matches!(
+            s.anchor(2, "right"),
+            Err(PolicyError::ObservationLacksArm { id: 2, .. })
+        ));
+    }
+
+    #[test]
+    fn the_capability_is_the_id_and_the_secret_and_secrets_compare_whole() {
+        let s = session();
+        assert_eq!(s.capability(), format!("7.{}", "ab".repeat(16)));
+        assert!(same_secret(&s.secret, &"ab".repeat(16)));
+        assert!(!same_secret(&s.secret, &"ab".repeat(15)));
+        assert!(!same_secret(&s.secret, &format!("{}ac", "ab".repeat(15))));
+        assert_eq!(random_secret().unwrap().len(), 32);
+        assert_ne!(random_secret().unwrap(), random_secret().unwrap());
+    }
+}
