@@ -909,7 +909,7 @@ pub async fn run_ticks(
     loop {
         tokio::select! {
             _ = ticker.tick() => {}
-            () = crate::app::stopped(&mut shutdown) => return,
+            () = crate::runtime::stopped(&mut shutdown) => return,
         }
         let now = now_s();
         for arm in &arms {

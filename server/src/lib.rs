@@ -5,7 +5,9 @@
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod policy_session;
 pub mod recording;
+pub mod runtime;
 pub mod services;
 
 use crate::app::App;
@@ -75,8 +77,8 @@ pub async fn serve_app(
     let local = listener
         .local_addr()
         .map_err(|e| ServerError::Startup(e.to_string()))?;
-    tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
-    if let Some(warning) = services::auth::exposure_warning(local, app.config.server.token.is_some()) {
+    tracing::info!(addr = %local, arms = app.arms().len(), cameras = app.cameras().len(), "phone2act serving");
+    if let Some(warning) = services::auth::exposure_warning(local, app.config().server.token.is_some()) {
         tracing::warn!("{warning}");
     }
 
@@ -98,7 +100,7 @@ pub async fn serve_app(
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
-    let auth = services::auth::TokenCheck::new(app.config.server.token.clone());
+    let auth = services::auth::TokenCheck::new(app.config().server.token.clone());
     let system = SystemServer::with_interceptor(
         services::system::SystemService::new(Arc::clone(&app)),
         auth.clone(),
@@ -127,7 +129,7 @@ pub async fn serve_app(
         auth,
     );
     tokio::spawn(arm::run_ticks(
-        app.arms.clone(),
+        app.arms().to_vec(),
         ARM_TICK_HZ,
         app.shutdown_signal(),
     ));

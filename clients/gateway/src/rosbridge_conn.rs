@@ -12,9 +12,9 @@ use crate::rosbridge::{self, Op, StatusLevel, WireError};
 use crate::server::Shared;
 use crate::session::{Session, SessionEvent};
 use crate::takeover::Claim;
+use phone2act_proto::buttons;
 use phone2act_proto::v1::{
-    ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, SystemStatus, TrackingState,
-    WatchStatusRequest, button_event, clutch_command, gripper_command,
+    ButtonEvent, PhoneSample, Pose, SystemStatus, TrackingState, WatchStatusRequest, clutch_command,
 };
 use serde_json::Value;
 use std::collections::{HashMap, HashSet};
@@ -221,11 +221,11 @@ impl RosbridgeHandler {
                 if !(0.0..=1.0).contains(&position) {
                     return Err(WireError(format!("gripper position {position} outside [0, 1]")));
                 }
-                sample.buttons.push(gripper(gripper_command::Kind::Set, position));
+                sample.buttons.push(buttons::gripper_set(position));
             }
             TopicRole::Clutch => {
                 let engage = rosbridge::parse_bool(msg)?;
-                sample.buttons.push(clutch(if engage {
+                sample.buttons.push(buttons::clutch(if engage {
                     clutch_command::Kind::Engage
                 } else {
                     clutch_command::Kind::Disengage
@@ -356,28 +356,13 @@ fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireEr
 fn volume_buttons(state: [i64; 2]) -> Vec<ButtonEvent> {
     let [up, down] = state;
     vec![
-        gripper(gripper_command::Kind::Set, if up == 0 { 1.0 } else { 0.0 }),
-        clutch(if down == 1 {
+        buttons::gripper_set(if up == 0 { 1.0 } else { 0.0 }),
+        buttons::clutch(if down == 1 {
             clutch_command::Kind::Disengage
         } else {
             clutch_command::Kind::Engage
         }),
     ]
-}
-
-fn gripper(kind: gripper_command::Kind, position: f64) -> ButtonEvent {
-    ButtonEvent {
-        event: Some(button_event::Event::Gripper(GripperCommand {
-            kind: kind.into(),
-            position,
-        })),
-    }
-}
-
-fn clutch(kind: clutch_command::Kind) -> ButtonEvent {
-    ButtonEvent {
-        event: Some(button_event::Event::Clutch(ClutchCommand { kind: kind.into() })),
-    }
 }
 
 impl Handler for RosbridgeHandler {

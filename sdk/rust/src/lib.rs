@@ -2,14 +2,16 @@
 //! service handles (`system()`, and the raw generated clients for the other services) share it. An optional
 //! bearer token is attached to every call.
 
+use phone2act_proto::PendingSample;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_client::EpisodesClient;
 use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::scene_client::SceneClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::sync::{Notify, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
@@ -379,16 +381,109 @@ pub struct TeleopOptions {
 /// An open teleop session.
 #[derive(Debug)]
 pub struct TeleopSession {
-    tx: mpsc::Sender<v1::PhoneSample>,
+    outbox: Arc<Outbox>,
     feedback: tonic::Streaming<v1::TeleopFeedback>,
     seq: u64,
     superseded: u64,
 }
 
+#[derive(Debug, Default)]
+struct OutboxState {
+    pending: PendingSample,
+    /// The session closed its end: the request stream ends once the pending sample is taken.
+    closed: bool,
+    /// The request stream is gone (the call ended): nothing sent now would reach the server.
+    gone: bool,
+}
+
+/// The depth-1 latest-wins outbox between [`TeleopSession`] and its gRPC request stream: the stream takes the
+/// pending sample when HTTP/2 flow control lets it send, and a sample offered meanwhile is folded into the
+/// pending one ([`PendingSample::push`]) so the newest pose is what goes out and no button event is lost.
+#[derive(Debug, Default)]
+struct Outbox {
+    state: Mutex<OutboxState>,
+    /// A sample is pending, or the outbox closed.
+    put: Notify,
+    /// The stream took the pending sample, or went away.
+    taken: Notify,
+}
+
+impl Outbox {
+    fn lock(&self) -> std::sync::MutexGuard<'_, OutboxState> {
+        // The state is a sample and two flags, consistent after any panic between statements.
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Folds `sample` in; false if another one was still pending.
+    fn offer(&self, sample: v1::PhoneSample) -> Result<bool> {
+        let mut state = self.lock();
+        if state.gone {
+            return Err(Error::Closed);
+        }
+        let was_empty = state.pending.is_empty();
+        state.pending.push(sample);
+        drop(state);
+        self.put.notify_one();
+        Ok(was_empty)
+    }
+
+    /// Puts `sample` once nothing is pending.
+    async fn put_when_empty(&self, sample: v1::PhoneSample) -> Result<()> {
+        let mut sample = Some(sample);
+        loop {
+            {
+                let mut state = self.lock();
+                if state.gone {
+                    return Err(Error::Closed);
+                }
+                if state.pending.is_empty() {
+                    state.pending.push(sample.take().expect("put once"));
+                    drop(state);
+                    self.put.notify_one();
+                    return Ok(());
+                }
+            }
+            // `notify_one` keeps a permit when nobody waits yet, so a take between the check and here wakes us.
+            self.taken.notified().await;
+        }
+    }
+
+    async fn take(&self) -> Option<v1::PhoneSample> {
+        loop {
+            {
+                let mut state = self.lock();
+                if let Some(sample) = state.pending.take() {
+                    drop(state);
+                    self.taken.notify_one();
+                    return Some(sample);
+                }
+                if state.closed {
+                    return None;
+                }
+            }
+            self.put.notified().await;
+        }
+    }
+
+    fn close(&self) {
+        self.lock().closed = true;
+        self.put.notify_one();
+    }
+}
+
+/// The request stream's hold on the outbox: when tonic drops the stream (the call ended), senders learn it.
+struct OutboxTaker(Arc<Outbox>);
+
+impl Drop for OutboxTaker {
+    fn drop(&mut self) {
+        self.0.lock().gone = true;
+        self.0.taken.notify_one();
+    }
+}
+
 impl TeleopSession {
     async fn open(mut client: TeleopClient<AuthChannel>, arm: &str, options: TeleopOptions) -> Result<Self> {
-        // Depth 1: the phone's newest pose matters, a backlog of old ones does not.
-        let (tx, rx) = mpsc::channel(1);
+        let outbox = Arc::new(Outbox::default());
         let hello = v1::PhoneSample {
             seq: 0,
             arm: arm.to_owned(),
@@ -396,36 +491,40 @@ impl TeleopSession {
             take_over: options.take_over,
             ..v1::PhoneSample::default()
         };
-        tx.send(hello).await.map_err(|_| Error::Closed)?;
-        let feedback = client.stream(ReceiverStream::new(rx)).await?.into_inner();
+        outbox.offer(hello)?;
+        let requests = futures_util::stream::unfold(OutboxTaker(Arc::clone(&outbox)), |taker| async move {
+            let sample = taker.0.take().await?;
+            Some((sample, taker))
+        });
+        let feedback = client.stream(requests).await?.into_inner();
         Ok(Self {
-            tx,
+            outbox,
             feedback,
             seq: 0,
             superseded: 0,
         })
     }
 
-    /// Sends one sample (its `seq` is assigned here). Returns false if the previous sample was still waiting
-    /// for the network, in which case this one is dropped in favour of the next (latest wins on the phone side).
+    /// Sends one sample (its `seq` is assigned here) without waiting. Returns false if the previous sample was
+    /// still waiting for the network: the two are then folded into one (latest wins: the newest pose and seq
+    /// go out, with the button events of both in order), so a burst never queues stale poses and never loses
+    /// a button.
     pub fn send(&mut self, mut sample: v1::PhoneSample) -> Result<bool> {
         self.seq += 1;
         sample.seq = self.seq;
-        match self.tx.try_send(sample) {
-            Ok(()) => Ok(true),
-            Err(mpsc::error::TrySendError::Full(_)) => {
-                self.superseded += 1;
-                Ok(false)
-            }
-            Err(mpsc::error::TrySendError::Closed(_)) => Err(Error::Closed),
+        let alone = self.outbox.offer(sample)?;
+        if !alone {
+            self.superseded += 1;
         }
+        Ok(alone)
     }
 
-    /// Sends one sample, waiting for room instead of dropping it (for scripted clients that need every event).
+    /// Sends one sample, waiting until the previous one went out instead of folding them (for scripted clients
+    /// that need every sample to reach the server on its own).
     pub async fn send_wait(&mut self, mut sample: v1::PhoneSample) -> Result<u64> {
         self.seq += 1;
         sample.seq = self.seq;
-        self.tx.send(sample).await.map_err(|_| Error::Closed)?;
+        self.outbox.put_when_empty(sample).await?;
         Ok(self.seq)
     }
 
@@ -471,83 +570,21 @@ impl TeleopSession {
         }
     }
 
-    /// Samples dropped locally because the previous one was still in flight.
+    /// Samples folded locally into a newer one because the previous one was still in flight.
     pub fn superseded(&self) -> u64 {
         self.superseded
     }
 }
 
-/// Button-event constructors.
-pub mod buttons {
-    use super::v1;
-
-    /// Clutch toggle (the Android app's volume key).
-    pub fn clutch_toggle() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Toggle)
-    }
-
-    /// Hold-to-move pressed.
-    pub fn clutch_engage() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Engage)
-    }
-
-    /// Hold-to-move released.
-    pub fn clutch_disengage() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Disengage)
-    }
-
-    fn clutch(kind: v1::clutch_command::Kind) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Clutch(v1::ClutchCommand {
-                kind: kind as i32,
-            })),
-        }
-    }
-
-    /// Gripper toggle.
-    pub fn gripper_toggle() -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
-                kind: v1::gripper_command::Kind::Toggle as i32,
-                position: 0.0,
-            })),
-        }
-    }
-
-    /// Absolute gripper position, 0 = open, 1 = closed.
-    pub fn gripper_set(position: f64) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
-                kind: v1::gripper_command::Kind::Set as i32,
-                position,
-            })),
-        }
-    }
-
-    /// Start recording with `task`.
-    pub fn record_start(task: &str) -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Start, task)
-    }
-
-    /// Stop and save.
-    pub fn record_stop() -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Stop, "")
-    }
-
-    /// Stop and discard.
-    pub fn record_discard() -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Discard, "")
-    }
-
-    fn record(kind: v1::record_command::Kind, task: &str) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Record(v1::RecordCommand {
-                kind: kind as i32,
-                task: task.to_owned(),
-            })),
-        }
+impl Drop for TeleopSession {
+    /// Ends the request stream (after any pending sample went out), as dropping a sender would.
+    fn drop(&mut self) {
+        self.outbox.close();
     }
 }
+
+/// Button-event constructors (shared with the gateway and the server's tests).
+pub use phone2act_proto::buttons;
 
 /// An open policy session.
 #[derive(Debug)]

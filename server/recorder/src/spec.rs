@@ -150,9 +150,7 @@ impl VideoSettings {
     }
 }
 
-/// Longest task text accepted, in bytes. lerobot stores it as a parquet string and GR00T tokenises it;
-/// anything longer is a pasted document, not an instruction.
-pub const MAX_TASK_BYTES: usize = 4096;
+pub use phone2act_core::config::MAX_TASK_BYTES;
 
 impl DatasetSpec {
     /// Checks what can be checked without touching the disk.

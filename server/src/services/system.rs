@@ -1,6 +1,7 @@
 //! `phone2act.v1.System`: arms, cameras, status snapshots and the status watch stream.
 
 use crate::app::App;
+use crate::services::convert::{camera_status, system_status};
 use phone2act_proto::v1;
 use phone2act_proto::v1::system_server::System;
 use std::pin::Pin;
@@ -31,7 +32,7 @@ impl System for SystemService {
         _: Request<v1::ListArmsRequest>,
     ) -> Result<Response<v1::ListArmsResponse>, Status> {
         Ok(Response::new(v1::ListArmsResponse {
-            arms: self.app.arms.iter().map(|a| a.snapshot()).collect(),
+            arms: self.app.arms().iter().map(|a| a.snapshot()).collect(),
         }))
     }
 
@@ -40,12 +41,7 @@ impl System for SystemService {
         _: Request<v1::ListCamerasRequest>,
     ) -> Result<Response<v1::ListCamerasResponse>, Status> {
         Ok(Response::new(v1::ListCamerasResponse {
-            cameras: self
-                .app
-                .cameras
-                .iter()
-                .map(crate::app::CameraRuntime::status)
-                .collect(),
+            cameras: self.app.cameras().iter().map(camera_status).collect(),
         }))
     }
 
@@ -53,7 +49,7 @@ impl System for SystemService {
         &self,
         _: Request<v1::GetStatusRequest>,
     ) -> Result<Response<v1::SystemStatus>, Status> {
-        Ok(Response::new(self.app.status(0)))
+        Ok(Response::new(system_status(&self.app, 0)))
     }
 
     type WatchStatusStream = StatusStream;
@@ -84,10 +80,10 @@ impl System for SystemService {
             loop {
                 tokio::select! {
                     _ = ticker.tick() => {}
-                    () = crate::app::stopped(&mut shutdown) => break,
+                    () = crate::runtime::stopped(&mut shutdown) => break,
                     () = tx.closed() => break,
                 }
-                if tx.send(Ok(app.status(sequence))).await.is_err() {
+                if tx.send(Ok(system_status(&app, sequence))).await.is_err() {
                     break;
                 }
                 sequence += 1;
@@ -102,7 +98,7 @@ impl System for SystemService {
         &self,
         _: Request<v1::GetDatasetInfoRequest>,
     ) -> Result<Response<v1::DatasetInfo>, Status> {
-        let rec = &self.app.config.recorder;
+        let rec = &self.app.config().recorder;
         Ok(Response::new(v1::DatasetInfo {
             root: rec.root.display().to_string(),
             format: rec.format.as_str().to_owned(),
