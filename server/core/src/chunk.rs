@@ -478,6 +478,54 @@ mod tests {
         assert_eq!(x_at(&e, 5.0), Some(0.4));
     }
 
+    #[test]
+    fn clear_stops_the_schedule_at_once() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.1), 1.0).unwrap();
+        // A source change or stop mid-chunk: the policy must not keep driving until the chunk runs out.
+        e.clear();
+        assert_eq!(x_at(&e, 1.15), None);
+        assert_eq!(e.end_time_s(), None);
+        assert_eq!(e.remaining_steps(1.15), 0);
+    }
+
+    #[test]
+    fn the_anchor_lead_limit_is_inclusive_and_measured_from_now() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Exactly the 2 s limit ahead (both values exact in binary): accepted.
+        assert!(e.replace(chunk(&[0.5], 3.0, 0.1), 1.0).is_ok());
+        // 2.5 s ahead of now = 10 s: refused, although 12.5 / 10 or 12.5 - 10.0 * 0 would not be.
+        assert!(matches!(
+            e.replace(chunk(&[0.5], 12.5, 0.1), 10.0),
+            Err(ChunkError::AnchorTooFarAhead { .. })
+        ));
+        // 1.5 s ahead: accepted (12.5 + 11 would be far beyond the limit).
+        assert!(e.replace(chunk(&[0.5], 12.5, 0.1), 11.0).is_ok());
+    }
+
+    #[test]
+    fn gripper_blending_stays_between_the_two_plans() {
+        let mut e = ChunkExecutor::new(ChunkConfig {
+            blend_steps: 1,
+            ..ChunkConfig::default()
+        })
+        .unwrap();
+        let mut old = chunk(&[0.0; 10], 0.0, 0.1);
+        for s in &mut old.steps {
+            s.gripper = 0.6;
+        }
+        e.replace(old, 0.0).unwrap();
+        let mut new = chunk(&[0.2; 4], 0.2, 0.1);
+        for s in &mut new.steps {
+            s.gripper = 1.0;
+        }
+        e.replace(new, 0.2).unwrap();
+        // Half way from 0.6 to 1.0 on the one blended step, then the new plan.
+        let g = e.target_at(0.25).unwrap().gripper;
+        assert!((g - 0.8).abs() < 1e-12, "{g}");
+        assert!((e.target_at(0.35).unwrap().gripper - 1.0).abs() < 1e-12);
+    }
+
     proptest! {
         /// After any sequence of replacements, the step executed at time t is the newest chunk's step
         /// floor((t − anchor)/period) wherever that chunk covers t, and nothing is executed after the end.
