@@ -479,6 +479,56 @@ mod tests {
     }
 
     #[test]
+    fn configs_with_a_limit_that_is_not_positive_are_refused() {
+        for value in [0.0, -0.5, f64::INFINITY, f64::NAN] {
+            let configs = [
+                ChunkConfig {
+                    min_step_period_s: value,
+                    ..ChunkConfig::default()
+                },
+                ChunkConfig {
+                    max_step_period_s: value,
+                    ..ChunkConfig::default()
+                },
+                ChunkConfig {
+                    max_anchor_lead_s: value,
+                    ..ChunkConfig::default()
+                },
+            ];
+            for config in configs {
+                assert!(config.validate().is_err(), "{config:?}");
+            }
+        }
+        let inverted = ChunkConfig {
+            min_step_period_s: 0.5,
+            max_step_period_s: 0.25,
+            ..ChunkConfig::default()
+        };
+        assert_eq!(
+            inverted.validate(),
+            Err(ConfigError::NotPositive {
+                name: "max_step_period_s - min_step_period_s",
+                value: -0.25,
+            })
+        );
+        let config = ChunkConfig {
+            blend_steps: 2,
+            ..ChunkConfig::default()
+        };
+        assert_eq!(ChunkExecutor::new(config.clone()).unwrap().config(), &config);
+    }
+
+    #[test]
+    fn a_step_whose_window_ended_is_not_remaining() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Windows [1, 1.5) and [1.5, 2), exact in binary.
+        e.replace(chunk(&[0.0, 0.1], 1.0, 0.5), 1.0).unwrap();
+        assert_eq!(e.remaining_steps(1.0), 2);
+        assert_eq!(e.remaining_steps(1.5), 1);
+        assert_eq!(e.remaining_steps(2.0), 0);
+    }
+
+    #[test]
     fn clear_stops_the_schedule_at_once() {
         let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
         e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.1), 1.0).unwrap();

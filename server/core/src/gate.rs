@@ -405,6 +405,10 @@ mod tests {
             "0.5 m/s for 20 ms is 1 cm"
         );
         assert!((d.rotation_step_rad - 0.02).abs() < 1e-12, "1 rad/s for 20 ms");
+        assert_eq!(
+            d.reason,
+            "linear speed limited to 0.500 m/s; angular speed limited to 1.000 rad/s"
+        );
         // No time elapsed: no motion allowed.
         let (out2, _) = g.check(target, 0.02);
         assert!(pose_distance(&out2.unwrap(), &out).0 < 1e-15);
@@ -473,6 +477,8 @@ mod tests {
     #[test]
     fn a_reset_without_time_allows_the_longest_interval() {
         let mut g = gate(&speed_limited());
+        g.check(at(0.26, 0.0, 0.2), 7.0);
+        // A reset forgets the time of the last check: a check at that same instant is not a zero interval.
         g.reset_reference(at(0.25, 0.0, 0.2));
         let (out, d) = g.check(at(0.30, 0.0, 0.2), 7.0);
         // 0.5 m/s over MAX_VELOCITY_INTERVAL_S (0.25 s) allows 12.5 cm: the 5 cm step passes whole.
@@ -511,6 +517,21 @@ mod tests {
         g.check(at(0.25, 0.0, 0.2), 2.0);
         assert!(!g.is_stale(2.1));
         assert!(g.check_stale(2.4).is_some());
+    }
+
+    #[test]
+    fn a_reset_restarts_staleness() {
+        let mut g = gate(&GateConfig::default());
+        g.check(at(0.25, 0.0, 0.2), 1.0);
+        assert!(g.check_stale(1.5).is_some());
+        // A timed reset is fresh input, and a new silence after it is reported again.
+        g.reset_reference_at(at(0.25, 0.0, 0.2), 2.0);
+        assert!(!g.is_stale(2.2));
+        assert!(g.check_stale(2.5).is_some());
+        // An untimed reset: nothing is stale until the next command.
+        g.reset_reference(at(0.25, 0.0, 0.2));
+        assert!(!g.is_stale(100.0));
+        assert!(g.check_stale(100.0).is_none());
     }
 
     /// One proposal of a random walk: a small move, sometimes a large jump, sometimes garbage.

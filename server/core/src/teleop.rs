@@ -484,6 +484,32 @@ mod tests {
     }
 
     #[test]
+    fn only_the_reindex_right_after_a_refused_jump_anchors_at_the_target() {
+        let ee = at(0.25, 0.0, 0.2);
+        let lagging = at(0.268, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
+        arm.on_pose(at(0.02, 0.0, 0.0), true, ee, 0.02);
+        arm.on_pose(at(0.5, 0.0, 0.0), true, lagging, 0.04);
+        let step = arm.on_pose(at(0.51, 0.0, 0.0), true, lagging, 0.06);
+        assert_eq!(step.command.unwrap().0, at(0.27, 0.0, 0.2));
+        // A later re-index (tracking lost and back) starts from the measured pose again.
+        arm.on_pose(at(0.52, 0.0, 0.0), false, lagging, 0.08);
+        let step = arm.on_pose(at(0.52, 0.0, 0.0), true, lagging, 0.10);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, lagging);
+
+        // A refused jump followed by a stale stream: after the silence the robot has settled, so the
+        // re-index anchors at the measured pose.
+        arm.on_pose(at(0.9, 0.0, 0.0), true, lagging, 0.12);
+        assert!(arm.check_stale(0.5).is_some());
+        let settled = at(0.265, 0.0, 0.2);
+        let step = arm.on_pose(at(0.91, 0.0, 0.0), true, settled, 0.6);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, settled);
+    }
+
+    #[test]
     fn gripper_commands_reach_the_command_tuple() {
         let ee = at(0.25, 0.0, 0.2);
         let mut arm = TeleopArm::new(&config(), ee).unwrap();
