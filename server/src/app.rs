@@ -316,7 +316,7 @@ impl App {
             .unwrap_or_else(|_| v1::RecordingStatus {
                 phase: v1::RecordingPhase::Idle as i32,
                 dataset_root: self.config.recorder.root.display().to_string(),
-                dataset_format: self.config.recorder.format.as_str().to_owned(),
+                dataset_format: self.config.recorder.format.codebase_version().to_owned(),
                 fps: self.config.recorder.fps,
                 warning: "recorder closed".to_owned(),
                 ..v1::RecordingStatus::default()

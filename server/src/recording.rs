@@ -3,12 +3,12 @@
 //! tick samples, and the translation of recorder errors into gRPC statuses.
 
 use crate::arm::ArmController;
-use crate::config::{Config, DatasetFormat};
+use crate::config::Config;
 use phone2act_proto::v1;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::error::RecorderError;
 use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
-use phone2act_recorder::spec::{CameraSpec, DatasetSpec, Format, ModalityGroup};
+use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
 use tonic::Status;
 
@@ -90,10 +90,7 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
     }
     Ok(DatasetSpec {
         root: config.recorder.root.clone(),
-        format: match config.recorder.format {
-            DatasetFormat::V30 => Format::V30,
-            DatasetFormat::V21 => Format::V21,
-        },
+        format: config.recorder.format,
         fps: fps as u32,
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),
@@ -146,7 +143,7 @@ pub fn status_to_proto(s: &RecorderStatus, config: &Config) -> v1::RecordingStat
             Phase::Saving => v1::RecordingPhase::Saving,
         } as i32,
         dataset_root: config.recorder.root.display().to_string(),
-        dataset_format: config.recorder.format.as_str().to_owned(),
+        dataset_format: config.recorder.format.codebase_version().to_owned(),
         episode_index: s.episode_index,
         task: s.task.clone(),
         frames_recorded: s.frames_recorded,
