@@ -529,6 +529,29 @@ mod tests {
     }
 
     #[test]
+    fn a_chunk_entirely_in_the_past_says_how_late_it_is() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Windows [0, 0.25) and [0.25, 0.5): the last one ended 0.5 s before now = 1.
+        assert_eq!(
+            e.replace(chunk(&[0.0, 0.1], 0.0, 0.25), 1.0),
+            Err(ChunkError::EntirelyInPast {
+                steps: 2,
+                late_s: 0.5
+            })
+        );
+    }
+
+    #[test]
+    fn an_old_step_that_ended_just_now_is_not_counted_as_replaced() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.25), 1.0).unwrap();
+        // At 1.5 the old step [1.25, 1.5) has just ended; only [1.5, 1.75) and [1.75, 2) were still to come.
+        let r = e.replace(chunk(&[1.0, 1.1], 1.0, 0.75), 1.5).unwrap();
+        assert_eq!((r.skipped, r.replaced), (0, 2));
+        assert_eq!(x_at(&e, 1.5), Some(1.0));
+    }
+
+    #[test]
     fn clear_stops_the_schedule_at_once() {
         let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
         e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.1), 1.0).unwrap();
