@@ -552,6 +552,46 @@ mod tests {
     }
 
     #[test]
+    fn past_steps_leave_the_schedule() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.25), 1.0).unwrap();
+        // At 1.5, [1.25, 1.5) has just ended: it goes, although it starts before the new chunk.
+        e.replace(chunk(&[1.0], 1.6, 0.25), 1.5).unwrap();
+        assert_eq!(x_at(&e, 1.3), None);
+        assert_eq!(x_at(&e, 1.55), Some(0.2));
+        assert_eq!(x_at(&e, 1.6), Some(1.0));
+    }
+
+    #[test]
+    fn an_old_step_a_rounding_error_before_the_new_chunk_is_the_same_slot() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1], 2.0 - TIME_EPSILON_S, 0.25), 1.9)
+            .unwrap();
+        let r = e.replace(chunk(&[1.0, 1.1], 2.0, 0.25), 1.9).unwrap();
+        assert_eq!(r.replaced, 2);
+        assert_eq!(
+            x_at(&e, 2.0 - TIME_EPSILON_S),
+            None,
+            "no 1 ns sliver of the old chunk"
+        );
+        assert_eq!(x_at(&e, 2.0), Some(1.0));
+    }
+
+    #[test]
+    fn a_chunk_of_exactly_the_step_limit_is_accepted() {
+        let mut e = ChunkExecutor::new(ChunkConfig {
+            max_steps: 3,
+            ..ChunkConfig::default()
+        })
+        .unwrap();
+        assert!(e.replace(chunk(&[0.0; 3], 1.0, 0.1), 1.0).is_ok());
+        assert_eq!(
+            e.replace(chunk(&[0.0; 4], 1.0, 0.1), 1.0),
+            Err(ChunkError::TooLong { len: 4, max: 3 })
+        );
+    }
+
+    #[test]
     fn clear_stops_the_schedule_at_once() {
         let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
         e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.1), 1.0).unwrap();

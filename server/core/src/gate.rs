@@ -534,6 +534,51 @@ mod tests {
         assert!(g.check_stale(100.0).is_none());
     }
 
+    #[test]
+    fn limits_are_inclusive() {
+        // Thresholds and targets exact in binary, so the comparisons meet on the boundary itself.
+        let config = GateConfig {
+            jump_position_m: 0.0625,
+            stale_timeout_s: 0.25,
+            ..GateConfig::default()
+        };
+        let mut g = gate(&config);
+        assert_eq!(g.config(), &config);
+        // A step of exactly the jump threshold passes.
+        let (out, d) = g.check(at(0.3125, 0.0, 0.2), 1.0);
+        assert_eq!(
+            (out, d.verdict),
+            (Some(at(0.3125, 0.0, 0.2)), GateVerdict::Accepted)
+        );
+        // Silent for exactly the timeout: not stale yet.
+        assert!(!g.is_stale(1.25));
+        assert!(g.is_stale(1.5));
+        // A target on the walls is inside the box: accepted, not clamped.
+        for wall in [at(0.40, 0.25, 0.35), at(0.10, -0.25, 0.02)] {
+            g.reset_reference(wall);
+            let (out, d) = g.check(wall, 2.0);
+            assert_eq!((out, d.verdict), (Some(wall), GateVerdict::Accepted), "{d:?}");
+        }
+    }
+
+    #[test]
+    fn verdicts_say_whether_a_target_passed_or_was_refused() {
+        use GateVerdict::{Accepted, Clamped, HeldStale, RejectedInvalid, RejectedJump};
+        for (verdict, passed, rejected) in [
+            (Accepted, true, false),
+            (Clamped, true, false),
+            (RejectedJump, false, true),
+            (RejectedInvalid, false, true),
+            (HeldStale, false, false),
+        ] {
+            assert_eq!(
+                (verdict.passed(), verdict.rejected()),
+                (passed, rejected),
+                "{verdict:?}"
+            );
+        }
+    }
+
     /// One proposal of a random walk: a small move, sometimes a large jump, sometimes garbage.
     fn any_move() -> impl Strategy<Value = ([f64; 3], [f64; 3], u8)> {
         (

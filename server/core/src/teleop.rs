@@ -517,7 +517,11 @@ mod tests {
         let step = arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
         assert!((step.command.unwrap().1 - 1.0).abs() < 1e-15);
         assert_eq!(arm.gripper(GripperCommand::Set(0.25)), Ok(0.25));
-        assert!((arm.on_pose(at(0.0, 0.0, 0.01), true, ee, 0.02).command.unwrap().1 - 0.25).abs() < 1e-15);
+        assert!((arm.gripper_target() - 0.25).abs() < 1e-15);
+        let step = arm.on_pose(at(0.0, 0.0, 0.01), true, ee, 0.02);
+        let (target, gripper) = step.command.unwrap();
+        assert!((gripper - 0.25).abs() < 1e-15);
+        assert_eq!(arm.target(), target);
     }
 
     /// One scripted input: a phone move, a clutch press, a tracking drop, or a measured-pose drift.
