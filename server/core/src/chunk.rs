@@ -288,7 +288,8 @@ impl ChunkExecutor {
 fn blend(old: &ChunkStep, new: &ChunkStep, new_weight: f64) -> ChunkStep {
     let (a, b) = (&old.robot_from_target, &new.robot_from_target);
     let position = a.translation.vector.lerp(&b.translation.vector, new_weight);
-    // Exactly opposite orientations have no unique slerp path: switch at the midpoint instead.
+    // nalgebra takes the short way round and gives up only when the two orientations are within ~1e-9 rad
+    // of each other (no well-defined arc): either end is then the answer, switch at the midpoint.
     let rotation = a
         .rotation
         .try_slerp(&b.rotation, new_weight, 1e-9)
