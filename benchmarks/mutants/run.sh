@@ -5,13 +5,19 @@
 #
 #   benchmarks/mutants/run.sh                       # gate, teleop, chunk (and arbiter when it exists)
 #   benchmarks/mutants/run.sh server/core/src/gate.rs
+#   benchmarks/mutants/run.sh --iterate             # after adding tests: re-test only the survivors
 #
+# Arguments starting with "-" go to cargo-mutants.
 # Needs `cargo install cargo-mutants --locked`. Results: target/mutants/mutants.out/ (missed.txt lists the
 # survivors); the table at the end counts outcomes per file. Equivalent mutants (no
 # observable difference) are listed with the reason in benchmarks/mutants/EQUIVALENT.md.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-files=("$@")
+files=()
+extra=()
+for a in "$@"; do
+  if [[ $a == -* ]]; then extra+=("$a"); else files+=("$a"); fi
+done
 if ((${#files[@]} == 0)); then
   files=(server/core/src/gate.rs server/core/src/teleop.rs server/core/src/chunk.rs)
   [[ -f server/core/src/arbiter.rs ]] && files+=(server/core/src/arbiter.rs)
@@ -25,7 +31,7 @@ mkdir -p "$out"
 # 3 = timeouts: both are results here, not failures.
 args=()
 for f in "${files[@]}"; do args+=(-f "$f"); done
-nice -n 19 cargo mutants -p phone2act-core "${args[@]}" -j 1 --no-shuffle --output "$out" || {
+nice -n 19 cargo mutants -p phone2act-core "${args[@]}" "${extra[@]}" -j 1 --no-shuffle --output "$out" || {
   rc=$?
   [[ $rc -eq 2 || $rc -eq 3 ]] || exit "$rc"
 }

@@ -553,6 +553,17 @@ mod tests {
         // Silent for exactly the timeout: not stale yet.
         assert!(!g.is_stale(1.25));
         assert!(g.is_stale(1.5));
+        // A turn of exactly the rotation threshold (as the gate measures it) passes too.
+        let turned = Isometry3::from_parts(
+            Translation3::new(0.25, 0.0, 0.2),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.3),
+        );
+        let threshold_rad = angle_between_rad(&UnitQuaternion::identity(), &turned.rotation);
+        let mut g2 = gate(&GateConfig {
+            jump_rotation_rad: threshold_rad,
+            ..GateConfig::default()
+        });
+        assert_eq!(g2.check(turned, 1.0).1.verdict, GateVerdict::Accepted);
         // A target on the walls is inside the box: accepted, not clamped.
         for wall in [at(0.40, 0.25, 0.35), at(0.10, -0.25, 0.02)] {
             g.reset_reference(wall);
