@@ -229,26 +229,8 @@ fn default_camera_fps() -> f64 {
     30.0
 }
 
-/// Dataset format written by the recorder.
-#[derive(Debug, Clone, Copy, Deserialize, Serialize, PartialEq, Eq)]
-pub enum DatasetFormat {
-    /// LeRobot v3.0 (lerobot >= 0.4).
-    #[serde(rename = "v3.0")]
-    V30,
-    /// LeRobot v2.1 with GR00T's `meta/modality.json` (lerobot 0.3.x, GR00T N1.5).
-    #[serde(rename = "v2.1")]
-    V21,
-}
-
-impl DatasetFormat {
-    /// `codebase_version` string.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::V30 => "v3.0",
-            Self::V21 => "v2.1",
-        }
-    }
-}
+/// Dataset format written by the recorder (`"v3.0"` or `"v2.1"` in the file): the recorder's own enum.
+pub use phone2act_recorder::spec::Format as DatasetFormat;
 
 /// The recorder.
 #[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
@@ -285,11 +267,9 @@ impl Default for RecorderConfig {
 impl RecorderConfig {
     /// The codec actually used.
     pub fn effective_video_codec(&self) -> &str {
-        match (&self.video_codec, self.format) {
-            (Some(codec), _) => codec,
-            (None, DatasetFormat::V30) => "libsvtav1",
-            (None, DatasetFormat::V21) => "libx264",
-        }
+        self.video_codec
+            .as_deref()
+            .unwrap_or(self.format.default_encoder())
     }
 }
 

@@ -3,10 +3,10 @@
 //! tick samples, and the recording layer's errors.
 
 use crate::arm::ArmController;
-use crate::config::{Config, DatasetFormat};
+use crate::config::Config;
 use phone2act_recorder::error::RecorderError;
 use phone2act_recorder::recorder::{RobotSample, RobotSource};
-use phone2act_recorder::spec::{CameraSpec, DatasetSpec, Format, ModalityGroup};
+use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
 
 /// Why a recording request failed.
@@ -98,10 +98,7 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
     }
     Ok(DatasetSpec {
         root: config.recorder.root.clone(),
-        format: match config.recorder.format {
-            DatasetFormat::V30 => Format::V30,
-            DatasetFormat::V21 => Format::V21,
-        },
+        format: config.recorder.format,
         fps: fps as u32,
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),

@@ -21,7 +21,7 @@ pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingSta
             Phase::Saving => v1::RecordingPhase::Saving,
         } as i32,
         dataset_root: config.recorder.root.display().to_string(),
-        dataset_format: config.recorder.format.as_str().to_owned(),
+        dataset_format: config.recorder.format.codebase_version().to_owned(),
         episode_index: s.episode_index,
         task: s.task.clone(),
         frames_recorded: s.frames_recorded,
@@ -43,7 +43,7 @@ pub fn current_recording_status(app: &App) -> v1::RecordingStatus {
         None => v1::RecordingStatus {
             phase: v1::RecordingPhase::Idle as i32,
             dataset_root: app.config().recorder.root.display().to_string(),
-            dataset_format: app.config().recorder.format.as_str().to_owned(),
+            dataset_format: app.config().recorder.format.codebase_version().to_owned(),
             fps: app.config().recorder.fps,
             warning: "recorder closed".to_owned(),
             ..v1::RecordingStatus::default()

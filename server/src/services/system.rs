@@ -101,7 +101,7 @@ impl System for SystemService {
         let rec = &self.app.config().recorder;
         Ok(Response::new(v1::DatasetInfo {
             root: rec.root.display().to_string(),
-            format: rec.format.as_str().to_owned(),
+            format: rec.format.codebase_version().to_owned(),
             fps: rec.fps,
             robot_type: rec.robot_type.clone(),
             video_codec: rec.effective_video_codec().to_owned(),
