@@ -13,7 +13,7 @@
 
 use crate::error::RecorderError;
 use crate::fsutil::{Journal, sync_dir, write_atomic, write_synced};
-use crate::parquet_io::{self, DataWriter, EpisodeMetaRow, Row};
+use crate::parquet_io::{self, DataWriter, EpisodeMetaRow, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
@@ -94,6 +94,8 @@ pub struct EpisodeWriter {
     pub(crate) encoders: Vec<EncoderThread>,
     state_stats: ColumnStats,
     action_stats: ColumnStats,
+    /// `next.success`, when the dataset records it.
+    success_stats: Option<ColumnStats>,
     frames: u64,
     fps: u32,
     staging: PathBuf,
@@ -422,6 +424,12 @@ impl Dataset {
                 json!({"dtype": "float32", "shape": [s.action_names.len()], "names": s.action_names}),
             ),
         ];
+        if s.success {
+            f.push((
+                SUCCESS_FEATURE.to_owned(),
+                json!({"dtype": "bool", "shape": [1], "names": null}),
+            ));
+        }
         for c in &s.cameras {
             f.push((
                 c.key(),
@@ -556,6 +564,7 @@ impl Dataset {
             self.spec.state_names.len(),
             self.spec.action_names.len(),
             self.spec.format == Format::V30,
+            self.spec.success,
         )?;
         let mut encoders = Vec::new();
         for c in &self.spec.cameras {
@@ -578,6 +587,7 @@ impl Dataset {
             encoders,
             state_stats: ColumnStats::new(StatKind::Float, self.spec.state_names.len()),
             action_stats: ColumnStats::new(StatKind::Float, self.spec.action_names.len()),
+            success_stats: self.spec.success.then(|| ColumnStats::new(StatKind::Bool, 1)),
             frames: 0,
             fps: self.spec.fps,
             staging,
@@ -618,6 +628,7 @@ impl Dataset {
             encoders,
             state_stats,
             action_stats,
+            success_stats,
             frames,
             fps,
             staging,
@@ -660,6 +671,9 @@ impl Dataset {
             ("observation.state".into(), state_stats.finish()),
             ("action".into(), action_stats.finish()),
         ];
+        if let Some(s) = &success_stats {
+            stats.push((SUCCESS_FEATURE.into(), s.finish()));
+        }
         for (c, r) in self.spec.cameras.iter().zip(&reports) {
             stats.push((c.key(), r.image_stats.finish()));
         }
@@ -667,6 +681,7 @@ impl Dataset {
         stats.extend(defaults.iter().map(|(k, c)| ((*k).to_owned(), c.finish())));
         let mut quantiles = self.quantiles.clone();
         let mut columns = vec![("observation.state", &state_stats), ("action", &action_stats)];
+        columns.extend(success_stats.as_ref().map(|s| (SUCCESS_FEATURE, s)));
         columns.extend(defaults.iter().map(|(k, c)| (*k, c)));
         quantiles.add_episode(frames, &columns);
 
@@ -1018,17 +1033,22 @@ fn reindent(compact: &str) -> String {
 }
 
 impl EpisodeWriter {
-    /// Appends frame `frames()` (state and executed action as recorded) to the parquet and the per-episode
-    /// stats. Camera frames are queued separately through [`EpisodeWriter::encoders`].
-    pub fn push_row(&mut self, state: &[f64], action: &[f64]) -> Result<(), RecorderError> {
+    /// Appends frame `frames()` (state, executed action and task success as recorded) to the parquet and the
+    /// per-episode stats. `success` is written only if the dataset records `next.success`. Camera frames are
+    /// queued separately through [`EpisodeWriter::encoders`].
+    pub fn push_row(&mut self, state: &[f64], action: &[f64], success: bool) -> Result<(), RecorderError> {
         let state: Vec<f32> = state.iter().map(|v| *v as f32).collect();
         let action: Vec<f32> = action.iter().map(|v| *v as f32).collect();
         self.state_stats.push_f32(&state);
         self.action_stats.push_f32(&action);
+        if let Some(s) = &mut self.success_stats {
+            s.push(&[f64::from(u8::from(success))]);
+        }
         let i = self.frames;
         self.data.push(Row {
             state,
             action,
+            success: self.success_stats.is_some().then_some(success),
             timestamp: timestamp_s(i, self.fps),
             frame_index: i as i64,
             episode_index: self.index as i64,
