@@ -148,6 +148,43 @@ async fn homing_is_refused_while_a_phone_drives_and_a_phone_engaging_afterwards_
     server.shutdown().await.unwrap();
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn homing_is_refused_while_a_policy_drives_but_the_ball_may_be_reset() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let client = server.client().await.unwrap();
+    let policy = client
+        .policy(v1::PolicyHello {
+            arms: vec!["main".into()],
+            request_control: true,
+            policy_name: "evaluator".into(),
+            // Long enough that the session keeps the arm through the calls below on a loaded machine.
+            silence_timeout_s: 30.0,
+            ..v1::PolicyHello::default()
+        })
+        .await
+        .unwrap();
+    let result = client.scene().reset("main", Some(9), true).await;
+    let Err(phone2act_sdk::Error::Status(status)) = result else {
+        panic!("{result:?}")
+    };
+    assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        status.message().contains("policy \"evaluator\""),
+        "{}",
+        status.message()
+    );
+    // Without the teleport the scene can be redrawn under a running policy (an evaluation between trials).
+    let state = client.scene().reset("main", Some(9), false).await.unwrap();
+    assert_eq!(state.seed, 9);
+    assert_eq!(
+        arm_state(&client, "main").await.owner(),
+        v1::ControlSource::Policy
+    );
+    drop(policy);
+    server.shutdown().await.unwrap();
+}
+
 /// One scripted pick-and-place (the operator, through the phone path) into a v2.1 dataset: afterwards the
 /// scene reports the ball in the basket, the arm state agrees, and the dataset goes to the conformance check.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
