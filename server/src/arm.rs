@@ -730,6 +730,11 @@ impl ArmController {
         Ok(state)
     }
 
+    /// True if the arm works in a scene with a success flag (the simulator's pick-and-place).
+    pub fn has_scene(&self) -> bool {
+        self.bridge.scene().is_ok()
+    }
+
     /// The arm's scene now.
     pub fn scene(&self) -> Result<SceneState, Status> {
         self.bridge.scene().map_err(|e| bridge_status(&self.name, &e))
@@ -838,6 +843,7 @@ impl ArmController {
         Some(ArmSample {
             state,
             action,
+            task_success: feedback.task_success,
             robot_from_ee: feedback.robot_from_ee,
             capture_time_ns: feedback.capture_time_ns,
         })
@@ -851,6 +857,8 @@ pub struct ArmSample {
     pub state: Vec<f64>,
     /// The executed action: the last gated target and gripper target, absolute.
     pub action: Vec<f64>,
+    /// The scene's success flag in the same feedback (false for arms without a scene).
+    pub task_success: bool,
     /// The measured pose both are taken at.
     pub robot_from_ee: Isometry3<f64>,
     /// Server monotonic time of the feedback.

@@ -33,15 +33,19 @@ impl RobotSource for ArmsSource {
         let mut state = Vec::new();
         let mut action = Vec::new();
         let mut oldest_ns = i64::MAX;
+        // The task is done when every arm that has one has done its own (a bimanual sim has two scenes).
+        let mut success = true;
         for arm in &self.arms {
             let sample = arm.state_and_action()?;
             state.extend(sample.state);
             action.extend(sample.action);
             oldest_ns = oldest_ns.min(sample.capture_time_ns);
+            success &= sample.task_success || !arm.has_scene();
         }
         Some(RobotSample {
             state,
             action,
+            success,
             capture_time_ns: oldest_ns,
         })
     }
@@ -100,6 +104,8 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         root: config.recorder.root.clone(),
         format: config.recorder.format,
         fps: fps as u32,
+        // `next.success` is the scene's success flag: recorded when an arm has a scene (the simulator's).
+        success: arms.iter().any(|a| a.has_scene()),
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),
         state_names,

@@ -119,16 +119,17 @@ impl Summary {
         }
     }
 
-    /// `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..]}`.
+    /// `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..]}`, keys in that order.
     pub fn to_json(&self) -> String {
-        serde_json::json!({
-            "attempted": self.attempted,
-            "succeeded": self.succeeded,
-            "saved": self.saved,
-            "success_rate": self.success_rate(),
-            "seeds": self.seeds,
-        })
-        .to_string()
+        let fields = [
+            ("attempted", serde_json::json!(self.attempted)),
+            ("succeeded", serde_json::json!(self.succeeded)),
+            ("saved", serde_json::json!(self.saved)),
+            ("success_rate", serde_json::json!(self.success_rate())),
+            ("seeds", serde_json::json!(self.seeds)),
+        ];
+        let body: Vec<String> = fields.iter().map(|(k, v)| format!("\"{k}\":{v}")).collect();
+        format!("{{{}}}", body.join(","))
     }
 }
 
@@ -602,7 +603,12 @@ mod tests {
             saved: 3,
             seeds: vec![10, 11, 12, 13],
         };
-        let value: serde_json::Value = serde_json::from_str(&summary.to_json()).unwrap();
+        let line = summary.to_json();
+        assert!(
+            line.starts_with(r#"{"attempted":4,"succeeded":3,"saved":3,"success_rate":0.75,"seeds":["#),
+            "{line}"
+        );
+        let value: serde_json::Value = serde_json::from_str(&line).unwrap();
         assert_eq!(
             value,
             serde_json::json!({"attempted": 4, "succeeded": 3, "saved": 3, "success_rate": 0.75,

@@ -49,5 +49,33 @@ async fn the_operator_records_two_successful_episodes_through_the_phone_path() {
     let rows: Vec<_> = files.iter().flat_map(|f| read_rows(f).unwrap()).collect();
     let frames: u64 = listed.iter().map(|e| e.length_frames).sum();
     assert_eq!(rows.len() as u64, frames);
+    // `next.success`: false while the ball is on the table or in the gripper, true once it rests in the
+    // basket, and so at the end of every saved episode (the operator holds still for half a second, ten
+    // frames at 20 fps, after the ball lands).
+    for episode in &listed {
+        let flags: Vec<bool> = rows
+            .iter()
+            .filter(|r| r.episode_index == episode.episode_index as i64)
+            .map(|r| r.success.expect("the sim dataset has next.success"))
+            .collect();
+        assert!(!flags[0], "episode {} starts successful", episode.episode_index);
+        assert!(
+            flags.last().copied().unwrap(),
+            "episode {} ends unsuccessful",
+            episode.episode_index
+        );
+        let first_true = flags.iter().position(|f| *f).unwrap();
+        assert!(
+            flags[first_true..].iter().all(|f| *f),
+            "success flickers in episode {}",
+            episode.episode_index
+        );
+    }
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("meta/info.json")).unwrap()).unwrap();
+    assert_eq!(
+        info["features"]["next.success"],
+        serde_json::json!({"dtype": "bool", "shape": [1], "names": null})
+    );
     keep_for_conformance("operator_v30", dir.path());
 }

@@ -5,7 +5,8 @@ use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{TeleopOptions, buttons};
 use phone2act_server::config::CameraKind;
-use phone2act_tests::{TestServer, arm_state, default_config, pos, sim_pose_of};
+use phone2act_tests::operator::{self, OperatorOptions};
+use phone2act_tests::{TestServer, arm_state, default_config, keep_for_conformance, pos, sim_pose_of};
 use std::time::Duration;
 
 fn ball_xy(state: &v1::SceneState) -> [f64; 2] {
@@ -145,6 +146,79 @@ async fn homing_is_refused_while_a_phone_drives_and_a_phone_engaging_afterwards_
         "engaging after a home moved the arm: {after:?}"
     );
     server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn homing_is_refused_while_a_policy_drives_but_the_ball_may_be_reset() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let client = server.client().await.unwrap();
+    let policy = client
+        .policy(v1::PolicyHello {
+            arms: vec!["main".into()],
+            request_control: true,
+            policy_name: "evaluator".into(),
+            // Long enough that the session keeps the arm through the calls below on a loaded machine.
+            silence_timeout_s: 30.0,
+            ..v1::PolicyHello::default()
+        })
+        .await
+        .unwrap();
+    let result = client.scene().reset("main", Some(9), true).await;
+    let Err(phone2act_sdk::Error::Status(status)) = result else {
+        panic!("{result:?}")
+    };
+    assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        status.message().contains("policy \"evaluator\""),
+        "{}",
+        status.message()
+    );
+    // Without the teleport the scene can be redrawn under a running policy (an evaluation between trials).
+    let state = client.scene().reset("main", Some(9), false).await.unwrap();
+    assert_eq!(state.seed, 9);
+    assert_eq!(
+        arm_state(&client, "main").await.owner(),
+        v1::ControlSource::Policy
+    );
+    drop(policy);
+    server.shutdown().await.unwrap();
+}
+
+/// One scripted pick-and-place (the operator, through the phone path) into a v2.1 dataset: afterwards the
+/// scene reports the ball in the basket, the arm state agrees, and the dataset goes to the conformance check.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn after_a_scripted_pick_and_place_the_scene_reports_success() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = default_config(dir.path());
+    config.recorder.format = phone2act_server::config::DatasetFormat::V21;
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    let options = OperatorOptions {
+        episodes: 1,
+        seed: 77,
+        // An episode takes about 6 s; 60 s leaves room for an unoptimised build on a loaded 2-core machine.
+        episode_time_s: 60.0,
+        reset_time_s: 0.0,
+        ..OperatorOptions::default()
+    };
+    let summary = operator::run(&client, &options, |_| {}).await.unwrap();
+    assert_eq!((summary.succeeded, summary.saved), (1, 1), "{summary:?}");
+    let scene = client.scene().get("main").await.unwrap();
+    assert!(scene.success);
+    assert_eq!((scene.seed, scene.ball_state()), (77, v1::BallState::InBasket));
+    let ball = scene.ball_position_m.unwrap();
+    let basket = scene.basket_position_m.unwrap();
+    assert!(
+        (ball.x - basket.x).hypot(ball.y - basket.y) <= scene.basket_radius_m - scene.ball_radius_m,
+        "{ball:?} vs {basket:?}"
+    );
+    assert!(arm_state(&client, "main").await.task_success);
+    // A new scene is not a success until it is done again.
+    let next = client.scene().reset("main", None, false).await.unwrap();
+    assert_eq!((next.seed, next.success), (78, false));
+    server.shutdown().await.unwrap();
+    keep_for_conformance("scene_operator_v21", dir.path());
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

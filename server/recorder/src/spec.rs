@@ -84,6 +84,9 @@ pub struct DatasetSpec {
     pub action_names: Vec<String>,
     pub cameras: Vec<CameraSpec>,
     pub modality: Vec<ModalityGroup>,
+    /// Record `next.success` (bool per frame: the task, e.g. the sim's ball in its basket, is done at that
+    /// frame), as LeRobot's simulation datasets do.
+    pub success: bool,
     /// Free-form configuration copied into the provenance sidecar.
     pub provenance: serde_json::Value,
 }

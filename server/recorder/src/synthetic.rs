@@ -68,6 +68,7 @@ impl RobotSource for SyntheticRobot {
         Some(RobotSample {
             state,
             action,
+            success: false,
             capture_time_ns: now,
         })
     }

@@ -3,6 +3,7 @@
 
 use super::{Layout, timestamp_s};
 use crate::error::RecorderError;
+use crate::parquet_io::SUCCESS_FEATURE;
 use crate::quantiles::QuantileStore;
 use crate::spec::{DatasetSpec, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, StatKind};
@@ -35,6 +36,12 @@ pub(super) fn features(spec: &DatasetSpec, video: &VideoSettings) -> IndexMap<St
         "action".to_owned(),
         json!({"dtype": "float32", "shape": [s.action_names.len()], "names": s.action_names}),
     );
+    if s.success {
+        f.insert(
+            SUCCESS_FEATURE.to_owned(),
+            json!({"dtype": "bool", "shape": [1], "names": null}),
+        );
+    }
     for c in &s.cameras {
         f.insert(
             c.key(),
@@ -227,6 +234,7 @@ mod tests {
                 .to_vec(),
             modality: Vec::new(),
             provenance: Value::Null,
+            success: false,
         }
     }
 

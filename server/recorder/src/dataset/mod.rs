@@ -21,7 +21,7 @@ mod v30;
 
 use crate::error::RecorderError;
 use crate::fsutil::write_atomic;
-use crate::parquet_io::{DataWriter, Row};
+use crate::parquet_io::{DataWriter, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
@@ -147,6 +147,8 @@ pub struct EpisodeWriter {
     pub(crate) encoders: Vec<EncoderThread>,
     state_stats: ColumnStats,
     action_stats: ColumnStats,
+    /// `next.success`, when the dataset records it.
+    success_stats: Option<ColumnStats>,
     frames: u64,
     fps: u32,
     staging: PathBuf,
@@ -320,6 +322,7 @@ impl Dataset {
             self.spec.state_names.len(),
             self.spec.action_names.len(),
             self.spec.format == Format::V30,
+            self.spec.success,
         )?;
         let mut encoders = Vec::new();
         for c in &self.spec.cameras {
@@ -342,6 +345,7 @@ impl Dataset {
             encoders,
             state_stats: ColumnStats::new(StatKind::Float, self.spec.state_names.len()),
             action_stats: ColumnStats::new(StatKind::Float, self.spec.action_names.len()),
+            success_stats: self.spec.success.then(|| ColumnStats::new(StatKind::Bool, 1)),
             frames: 0,
             fps: self.spec.fps,
             staging,
@@ -410,6 +414,7 @@ impl Dataset {
             encoders,
             state_stats,
             action_stats,
+            success_stats,
             frames,
             fps,
             staging,
@@ -432,6 +437,9 @@ impl Dataset {
             ("observation.state".into(), state_stats.finish()),
             ("action".into(), action_stats.finish()),
         ];
+        if let Some(s) = &success_stats {
+            stats.push((SUCCESS_FEATURE.into(), s.finish()));
+        }
         for (c, r) in self.spec.cameras.iter().zip(&reports) {
             stats.push((c.key(), r.image_stats.finish()));
         }
@@ -439,6 +447,7 @@ impl Dataset {
         stats.extend(defaults.iter().map(|(k, c)| ((*k).to_owned(), c.finish())));
         let mut quantiles = self.quantiles.clone();
         let mut columns = vec![("observation.state", &state_stats), ("action", &action_stats)];
+        columns.extend(success_stats.as_ref().map(|s| (SUCCESS_FEATURE, s)));
         columns.extend(defaults.iter().map(|(k, c)| (*k, c)));
         quantiles.add_episode(frames, &columns);
 
@@ -525,17 +534,22 @@ pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
 }
 
 impl EpisodeWriter {
-    /// Appends frame `frames()` (state and executed action as recorded) to the parquet and the per-episode
-    /// stats. Camera frames are queued separately through [`EpisodeWriter::encoders`].
-    pub fn push_row(&mut self, state: &[f64], action: &[f64]) -> Result<(), RecorderError> {
+    /// Appends frame `frames()` (state, executed action and task success as recorded) to the parquet and the
+    /// per-episode stats. `success` is written only if the dataset records `next.success`. Camera frames are
+    /// queued separately through [`EpisodeWriter::encoders`].
+    pub fn push_row(&mut self, state: &[f64], action: &[f64], success: bool) -> Result<(), RecorderError> {
         let state: Vec<f32> = state.iter().map(|v| *v as f32).collect();
         let action: Vec<f32> = action.iter().map(|v| *v as f32).collect();
         self.state_stats.push_f32(&state);
         self.action_stats.push_f32(&action);
+        if let Some(s) = &mut self.success_stats {
+            s.push(&[f64::from(u8::from(success))]);
+        }
         let i = self.frames;
         self.data.push(Row {
             state,
             action,
+            success: self.success_stats.is_some().then_some(success),
             timestamp: timestamp_s(i, self.fps),
             frame_index: i as i64,
             episode_index: self.index as i64,

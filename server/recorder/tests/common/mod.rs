@@ -54,6 +54,7 @@ pub fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u32)) -> 
             })
             .collect(),
         modality: SyntheticRobot::modality(),
+        success: false,
         provenance: serde_json::json!({"test": true}),
     }
 }
