@@ -41,15 +41,9 @@ pub struct Shared {
     pub rosbridge_port: Option<u16>,
     connections: AtomicU64,
     shutdown: watch::Receiver<bool>,
-    epoch: Instant,
 }
 
 impl Shared {
-    /// Gateway monotonic time, for samples that carry no capture time.
-    pub fn now_ns(&self) -> i64 {
-        self.epoch.elapsed().as_nanos() as i64
-    }
-
     /// A fresh id for a socket.
     pub fn next_connection(&self) -> u64 {
         self.connections.fetch_add(1, Ordering::Relaxed)
@@ -201,7 +195,6 @@ impl Gateway {
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
             connections: AtomicU64::new(1),
             shutdown,
-            epoch: Instant::now(),
         });
         Ok(Self {
             shared,

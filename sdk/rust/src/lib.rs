@@ -194,6 +194,7 @@ impl Client {
 
     /// Like [`Client::connect_with`], but the connection is made on the first call and made again after the
     /// server went away: for long-running clients (the phone gateway) that may start before the server.
+    /// Call it within a Tokio runtime: the channel's connection task is spawned on it.
     pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Self> {
         let channel = endpoint(url, options)?.connect_lazy();
         Self::on_channel(channel, options.token.as_deref())

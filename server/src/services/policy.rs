@@ -4,10 +4,10 @@
 use crate::app::App;
 use crate::arm::{now_s, pose_to_proto};
 use nalgebra::Isometry3;
+use phone2act_clock::monotonic_ns;
 use phone2act_core::ActionMode;
 use phone2act_proto::v1;
 use phone2act_proto::v1::policy_server::Policy;
-use phone2act_recorder::clock::monotonic_ns;
 use std::collections::VecDeque;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex, PoisonError};

@@ -5,9 +5,9 @@
 use crate::app::App;
 use crate::arm::{TeleopInput, pose_from_proto};
 use futures_util::FutureExt;
+use phone2act_clock::monotonic_ns;
 use phone2act_proto::v1;
 use phone2act_proto::v1::teleop_server::Teleop;
-use phone2act_recorder::clock::monotonic_ns;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;

@@ -7,7 +7,7 @@
 //! measured twice: standalone (own thread and runtime, gRPC over loopback TCP, as `phone2act-gateway`) and
 //! embedded (on the server's runtime, gRPC in-process through `Client::in_process`, as `phone2act serve`).
 //!
-//! `cargo run --release -p phone2act-gateway --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
+//! `cargo run --release -p phone2act-gateway --features mock --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -202,10 +202,14 @@ fn run(path: Path, gw: Gw, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
     // "Gateway process".
     let gateway = match standalone_stop {
         Some(stop) => {
-            let client =
-                phone2act_sdk::Client::connect_lazy(&mock.url(), &phone2act_sdk::ConnectOptions::default())?;
+            let url = mock.url();
             Some(on_thread("gateway", move || {
-                Box::pin(gateway_task(config, client, info_tx, stop))
+                Box::pin(async move {
+                    // Inside the runtime: the lazy channel spawns its connection task there.
+                    let options = phone2act_sdk::ConnectOptions::default();
+                    let client = phone2act_sdk::Client::connect_lazy(&url, &options).expect("server URL");
+                    gateway_task(config, client, info_tx, stop).await;
+                })
             }))
         }
         None => None,
