@@ -137,6 +137,17 @@ async fn policy(client: Client, arm: String, seconds: f64) -> anyhow::Result<u64
     Ok(chunks)
 }
 
+/// Why the server ended a session whose sending side failed: the status at the end of its feedback stream.
+async fn ended_because(session: &mut phone2act_sdk::TeleopSession, e: phone2act_sdk::Error) -> anyhow::Error {
+    loop {
+        match session.feedback().await {
+            Ok(Some(_)) => {}
+            Ok(None) => return anyhow::anyhow!("{e}: the server ended the stream without an error"),
+            Err(status) => return anyhow::anyhow!("{e}: the server ended the stream with {status}"),
+        }
+    }
+}
+
 fn report<S: AsRef<str>>(name: &str, app: &App, arms: &[S]) {
     let mut all = Vec::new();
     for arm in arms {
@@ -211,7 +222,9 @@ fn main() -> anyhow::Result<()> {
         let t0 = Instant::now();
         while t0.elapsed().as_secs_f64() < seconds.min(5.0) {
             let t = t0.elapsed().as_secs_f64();
-            session.send_pose(phone_pose(t, 0.0), vec![], 0).await?;
+            if let Err(e) = session.send_pose(phone_pose(t, 0.0), vec![], 0).await {
+                return Err(ended_because(&mut session, e).await);
+            }
             sent += 1;
         }
         anyhow::Ok(sent)
