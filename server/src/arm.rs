@@ -9,12 +9,12 @@
 use nalgebra::Isometry3;
 use phone2act_bridges::sim::SceneState;
 use phone2act_bridges::{Bridge, BridgeError, Command, Feedback, Health};
+use phone2act_clock::monotonic_ns;
 use phone2act_core::{
     ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
     GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
 };
 use phone2act_proto::v1;
-use phone2act_recorder::clock::monotonic_ns;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use tokio::sync::mpsc;

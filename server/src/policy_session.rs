@@ -5,9 +5,9 @@
 use crate::app::{App, LookupError};
 use crate::arm::{ArmController, now_s};
 use nalgebra::Isometry3;
+use phone2act_clock::monotonic_ns;
 use phone2act_core::{ActionMode, ReplaceReport};
 use phone2act_proto::v1;
-use phone2act_recorder::clock::monotonic_ns;
 use phone2act_recorder::jpeg::JpegError;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};

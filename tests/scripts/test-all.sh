@@ -24,7 +24,7 @@ fi
 passed=$(grep -Eo 'test result: ok\. [0-9]+ passed' /tmp/phone2act-cargo-test.log | awk '{s+=$4} END {print s+0}')
 echo "rust: ${passed} passed, 0 failed"
 # The Python, rosbridge and browser suites drive the release binary as a user would.
-cargo build --release -p phone2act-server --bin phone2act
+cargo build --release -p phone2act-cli --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
 tests/python/run.sh
 # The LeRobot plugins are tested with lerobot 0.6, which needs Python >= 3.12 (Debian 12 ships 3.11): they run

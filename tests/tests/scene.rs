@@ -257,7 +257,6 @@ async fn a_hardware_arm_has_no_scene_to_reset() {
         (cam.kind, cam.width, cam.height, cam.fps) = (CameraKind::TestPattern, 64, 64, 5.0);
     }
     dir.path().clone_into(&mut config.recorder.root);
-    config.gateway.enabled = false;
     let server = TestServer::start(config).await.unwrap();
     let client = server.client().await.unwrap();
     let before = emu.snapshot();

@@ -19,6 +19,8 @@
 pub mod config;
 mod conn;
 pub mod feedback;
+/// A stand-in server for tests and `gateway-bench` only: not in the product (`--features mock`).
+#[cfg(feature = "mock")]
 pub mod mock_server;
 mod native;
 pub mod pairing;

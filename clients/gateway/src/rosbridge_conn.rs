@@ -199,7 +199,7 @@ impl RosbridgeHandler {
                     self.client_name = "phone2act-android";
                     self.client_name.clone_into(&mut sample.client_name);
                 }
-                sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(|| self.shared.now_ns());
+                sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(phone2act_clock::monotonic_ns);
                 // Raw, in the phone's tracking frame: the server's planner owns the axis mapping.
                 sample.tracking_from_phone = Some(Pose::from_parts(pose.position_m, pose.quat_xyzw));
                 sample.tracking = TrackingState::Tracking.into();

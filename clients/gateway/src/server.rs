@@ -41,15 +41,9 @@ pub struct Shared {
     pub rosbridge_port: Option<u16>,
     connections: AtomicU64,
     shutdown: watch::Receiver<bool>,
-    epoch: Instant,
 }
 
 impl Shared {
-    /// Gateway monotonic time, for samples that carry no capture time.
-    pub fn now_ns(&self) -> i64 {
-        self.epoch.elapsed().as_nanos() as i64
-    }
-
     /// A fresh id for a socket.
     pub fn next_connection(&self) -> u64 {
         self.connections.fetch_add(1, Ordering::Relaxed)
@@ -91,12 +85,26 @@ pub struct Gateway {
 }
 
 impl Gateway {
-    /// Binds the listeners the config enables.
+    /// Binds the listeners the config enables; phones reach the server at `server_url` over the network.
     pub async fn bind(
         config: GatewayConfig,
         server_url: &str,
         grpc_token: Option<&str>,
     ) -> Result<Self, GatewayError> {
+        Self::bind_upstream(config, Upstream::new(server_url, grpc_token)?).await
+    }
+
+    /// Binds the listeners the config enables; phones reach the server through `client` (for a server in
+    /// the same process: [`phone2act_sdk::Client::in_process`]). The phones' own addresses still decide
+    /// pairing and take-over: those rules live here, not in the server.
+    pub async fn bind_client(
+        config: GatewayConfig,
+        client: phone2act_sdk::Client,
+    ) -> Result<Self, GatewayError> {
+        Self::bind_upstream(config, Upstream::from_client(client)).await
+    }
+
+    async fn bind_upstream(config: GatewayConfig, upstream: Upstream) -> Result<Self, GatewayError> {
         let bind = |addr: SocketAddr| async move {
             tokio::net::TcpListener::bind(addr)
                 .await
@@ -112,7 +120,7 @@ impl Gateway {
         } else {
             None
         };
-        Self::with_listeners(config, server_url, grpc_token, Listeners { rosbridge, https })
+        Self::with_upstream(config, upstream, Listeners { rosbridge, https })
     }
 
     /// Uses listeners bound by the caller; `config`'s listen addresses and enable flags are ignored.
@@ -122,18 +130,24 @@ impl Gateway {
         grpc_token: Option<&str>,
         listeners: Listeners,
     ) -> Result<Self, GatewayError> {
-        if StatusLevel::parse(&config.rosbridge_status_level).is_none() {
-            return Err(GatewayError::Config(format!(
-                "rosbridge_status_level must be none, error, warning or info, not {:?}",
-                config.rosbridge_status_level
-            )));
-        }
-        if config.max_message_bytes == 0 || config.max_message_bytes > HARD_MAX_MESSAGE_BYTES {
-            return Err(GatewayError::Config(format!(
-                "max_message_bytes must be between 1 and {HARD_MAX_MESSAGE_BYTES}"
-            )));
-        }
-        let upstream = Upstream::new(server_url, grpc_token)?;
+        Self::with_upstream(config, Upstream::new(server_url, grpc_token)?, listeners)
+    }
+
+    /// [`Gateway::with_listeners`] reaching the server through `client` (see [`Gateway::bind_client`]).
+    pub fn with_client(
+        config: GatewayConfig,
+        client: phone2act_sdk::Client,
+        listeners: Listeners,
+    ) -> Result<Self, GatewayError> {
+        Self::with_upstream(config, Upstream::from_client(client), listeners)
+    }
+
+    fn with_upstream(
+        config: GatewayConfig,
+        upstream: Upstream,
+        listeners: Listeners,
+    ) -> Result<Self, GatewayError> {
+        config.validate()?;
         let cert_dir = config.cert_dir.clone().unwrap_or_else(tls::default_cert_dir);
         let local =
             |l: &tokio::net::TcpListener| l.local_addr().map_err(|e| GatewayError::Config(e.to_string()));
@@ -181,7 +195,6 @@ impl Gateway {
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
             connections: AtomicU64::new(1),
             shutdown,
-            epoch: Instant::now(),
         });
         Ok(Self {
             shared,

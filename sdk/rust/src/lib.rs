@@ -112,6 +112,56 @@ impl Default for ConnectOptions {
     }
 }
 
+/// Connections a [`Client::in_process`] may open before the server accepted the previous ones (one in
+/// practice: the channel keeps a single HTTP/2 connection).
+const LOCAL_ACCEPT_QUEUE: usize = 4;
+/// Bytes in flight per direction of an in-process connection before the writer waits (HTTP/2 flow control
+/// keeps far less than this outstanding for teleop traffic).
+const LOCAL_PIPE_BYTES: usize = 256 * 1024;
+
+/// The endpoint for `url` with the options' timeouts and TLS settings.
+fn endpoint(url: &str, options: &ConnectOptions) -> Result<Endpoint> {
+    let to_connect_error = |source| Error::Connect {
+        url: url.to_owned(),
+        source,
+    };
+    let dial = normalize_url(url);
+    let endpoint = Endpoint::from_shared(dial.clone())
+        .map_err(to_connect_error)?
+        .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
+        .tcp_nodelay(true)
+        // A long-lived stream notices a vanished server (a pulled cable sends no FIN) within seconds.
+        .http2_keep_alive_interval(Duration::from_secs(10))
+        .keep_alive_timeout(Duration::from_secs(5));
+    if !dial.starts_with("https://") {
+        return Ok(endpoint);
+    }
+    let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
+    if let Some(pem) = &options.ca_pem {
+        tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+    }
+    if let Some(domain) = &options.tls_domain {
+        tls = tls.domain_name(domain.clone());
+    }
+    endpoint.tls_config(tls).map_err(to_connect_error)
+}
+
+/// The server side of [`Client::in_process`]: a stream of in-memory connections, each one a client's
+/// HTTP/2 connection, for a tonic server's `serve_with_incoming`.
+#[derive(Debug)]
+pub struct LocalIncoming(mpsc::Receiver<tokio::io::DuplexStream>);
+
+impl tokio_stream::Stream for LocalIncoming {
+    type Item = std::io::Result<tokio::io::DuplexStream>;
+
+    fn poll_next(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Self::Item>> {
+        self.0.poll_recv(cx).map(|conn| conn.map(Ok))
+    }
+}
+
 /// A connection to a phone2act server.
 #[derive(Clone, Debug)]
 pub struct Client {
@@ -135,29 +185,53 @@ impl Client {
 
     /// Connects with explicit options.
     pub async fn connect_with(url: &str, options: ConnectOptions) -> Result<Self> {
-        let to_connect_error = |source| Error::Connect {
-            url: url.to_owned(),
-            source,
-        };
-        let dial = normalize_url(url);
-        let endpoint = Endpoint::from_shared(dial.clone())
-            .map_err(to_connect_error)?
-            .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
-            .tcp_nodelay(true);
-        let endpoint = if dial.starts_with("https://") {
-            let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
-            if let Some(pem) = &options.ca_pem {
-                tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+        let channel = endpoint(url, &options)?
+            .connect()
+            .await
+            .map_err(|source| Error::Connect {
+                url: url.to_owned(),
+                source,
+            })?;
+        Self::on_channel(channel, options.token.as_deref())
+    }
+
+    /// Like [`Client::connect_with`], but the connection is made on the first call and made again after the
+    /// server went away: for long-running clients (the phone gateway) that may start before the server.
+    /// Call it within a Tokio runtime: the channel's connection task is spawned on it.
+    pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Self> {
+        let channel = endpoint(url, options)?.connect_lazy();
+        Self::on_channel(channel, options.token.as_deref())
+    }
+
+    /// A client of a server in the same process, over an in-memory pipe instead of a socket (no TCP, no
+    /// loopback hop): give the returned [`LocalIncoming`] to the server. The token is still sent and still
+    /// checked; the server sees no peer address.
+    pub fn in_process(token: Option<&str>) -> Result<(Self, LocalIncoming)> {
+        let (tx, rx) = mpsc::channel::<tokio::io::DuplexStream>(LOCAL_ACCEPT_QUEUE);
+        let connector = tower::service_fn(move |_: tonic::codegen::http::Uri| {
+            let tx = tx.clone();
+            async move {
+                let (ours, theirs) = tokio::io::duplex(LOCAL_PIPE_BYTES);
+                tx.send(theirs).await.map_err(|_| {
+                    std::io::Error::new(std::io::ErrorKind::ConnectionRefused, "in-process server stopped")
+                })?;
+                Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(ours))
             }
-            if let Some(domain) = &options.tls_domain {
-                tls = tls.domain_name(domain.clone());
-            }
-            endpoint.tls_config(tls).map_err(to_connect_error)?
-        } else {
-            endpoint
-        };
-        let channel = endpoint.connect().await.map_err(to_connect_error)?;
-        let header = match options.token {
+        });
+        // The authority is never resolved: the connector above is the only way out.
+        let channel =
+            Endpoint::from_static("http://in-process.phone2act").connect_with_connector_lazy(connector);
+        Ok((Self::on_channel(channel, token)?, LocalIncoming(rx)))
+    }
+
+    /// The same connection sending `token` instead (several identities over one channel, e.g. in tests of
+    /// the server's token check).
+    pub fn with_token(&self, token: Option<&str>) -> Result<Self> {
+        Self::on_channel(self.channel.clone(), token)
+    }
+
+    fn on_channel(channel: Channel, token: Option<&str>) -> Result<Self> {
+        let header = match token {
             Some(token) => {
                 Some(MetadataValue::try_from(format!("Bearer {token}")).map_err(|_| Error::BadToken)?)
             }
@@ -169,10 +243,15 @@ impl Client {
         })
     }
 
+    /// The raw generated System client.
+    pub fn system_raw(&self) -> SystemClient<AuthChannel> {
+        SystemClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    }
+
     /// The System service: arms, cameras, status.
     pub fn system(&self) -> SystemApi {
         SystemApi {
-            inner: SystemClient::with_interceptor(self.channel.clone(), self.auth.clone()),
+            inner: self.system_raw(),
         }
     }
 

@@ -2,6 +2,9 @@
 //! and the action/state vector layouts. No I/O, no tokio, no clock reads: every time is an argument, so
 //! everything here is deterministic and property-testable.
 
+// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
+#![warn(unreachable_pub)]
+
 pub mod chunk;
 pub mod config;
 pub mod gate;

@@ -9,10 +9,10 @@
 //! warning names the source) until the source is fresh again.
 
 use crate::camera::FrameSlot;
-use crate::clock::monotonic_ns;
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
 use crate::spec::DatasetSpec;
+use phone2act_clock::monotonic_ns;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};

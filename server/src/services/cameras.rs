@@ -1,11 +1,11 @@
 //! `phone2act.v1.Cameras`: remote cameras push frames into a configured camera's latest-frame slot.
 
 use crate::app::App;
+use phone2act_clock::monotonic_ns;
 use phone2act_proto::convert_camera::{FrameError, PushedPixels, pushed_pixels};
 use phone2act_proto::v1;
 use phone2act_proto::v1::cameras_server::Cameras;
 use phone2act_recorder::camera::Frame;
-use phone2act_recorder::clock::monotonic_ns;
 use phone2act_recorder::jpeg::JpegError;
 use std::sync::Arc;
 use tonic::{Request, Response, Status, Streaming};

@@ -6,8 +6,8 @@ use crate::arm::{pose_from_proto, pose_to_proto};
 use crate::config::Config;
 use crate::policy_session::Observation;
 use phone2act_bridges::{Command, Control, Feedback, Health};
+use phone2act_clock::monotonic_ns;
 use phone2act_proto::v1;
-use phone2act_recorder::clock::monotonic_ns;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::recorder::{Phase, RecorderStatus};
 

@@ -22,20 +22,12 @@ use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Healt
 use phone2act_core::kinematics::SO101_ARM_JOINT_NAMES;
 use queue::BoundedQueue;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-/// A monotonic clock in nanoseconds; the server passes its process-wide clock so feedback times compare
-/// with every other `*_time_ns`.
-pub type ClockFn = fn() -> i64;
-
-/// Nanoseconds since the first call; used when no clock is supplied.
-fn local_monotonic_ns() -> i64 {
-    static EPOCH: OnceLock<Instant> = OnceLock::new();
-    let epoch = *EPOCH.get_or_init(Instant::now);
-    i64::try_from(epoch.elapsed().as_nanos()).unwrap_or(i64::MAX)
-}
+pub use phone2act_clock::ClockFn;
+use phone2act_clock::monotonic_ns as local_monotonic_ns;
 
 /// Behind by more than this many ticks (a suspended process), the thread skips ahead instead of running
 /// the backlog in a burst.

@@ -24,7 +24,7 @@ const GRAVITY_M_S2: f64 = 9.81;
 /// Longest step taken in one go; a stalled thread resumes without the ball tunnelling through the table.
 const MAX_STEP_S: f64 = 0.02;
 /// Thickness of the basket floor.
-pub const BASKET_FLOOR_M: f64 = 0.004;
+pub(crate) const BASKET_FLOOR_M: f64 = 0.004;
 
 /// Where the ball is and what it is doing.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -1,7 +1,7 @@
 //! Helpers shared by the recorder's integration tests.
 #![allow(dead_code)] // each test binary uses a different subset
 
-use phone2act_recorder::clock::monotonic_ns;
+use phone2act_clock::monotonic_ns;
 use phone2act_recorder::synthetic::SyntheticRobot;
 use phone2act_recorder::{
     CameraSpec, DatasetSpec, Format, Recorder, RecorderStatus, RobotSample, RobotSource,

@@ -75,7 +75,7 @@ fn run(args: &[&str], url: &str) -> (bool, String, String) {
 
 fn write_config(dir: &std::path::Path) -> std::path::PathBuf {
     let path = dir.join("phone2act.toml");
-    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/default.toml"))
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/default.toml"))
         .unwrap()
         .replace("./datasets/phone2act", &dir.join("ds").display().to_string());
     std::fs::write(&path, text).unwrap();

@@ -3,7 +3,8 @@
 
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
-use phone2act_server::{Config, bind, run};
+use phone2act_gateway::GatewayConfig;
+use phone2act_server::{Config, bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -371,6 +372,11 @@ fn real_main() -> anyhow::Result<()> {
             if let Some(listen) = listen {
                 config.server.listen = listen;
             }
+            let gateway_config = GatewayConfig::from_table(&config.gateway)
+                .with_context(|| format!("in the configuration {origin}"))?;
+            // Defaults filled in, so that `--check` and the datasets' provenance show the whole table.
+            config.gateway = toml::Table::try_from(&gateway_config)
+                .context("cannot write the gateway configuration back as TOML")?;
             if check {
                 let text = config
                     .to_redacted_toml()
@@ -398,27 +404,22 @@ fn real_main() -> anyhow::Result<()> {
                 let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
                     let _ = rx.wait_for(|s| *s).await;
                 };
-                let gateway = if config.gateway.enabled {
-                    // The gateway is a gRPC client of this server, over loopback when bound to all interfaces.
-                    let grpc_url = if local.ip().is_unspecified() {
-                        format!("http://127.0.0.1:{}", local.port())
-                    } else {
-                        format!("http://{local}")
-                    };
-                    let gateway = phone2act_gateway::Gateway::bind(
-                        config.gateway.clone(),
-                        &grpc_url,
-                        config.server.token.as_deref(),
-                    )
-                    .await
-                    .context(
-                        "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
-                    )?;
-                    Some(tokio::spawn(gateway.run(stopped(stop_rx.clone()))))
+                // The embedded gateway is an SDK client of this server, in-process: no socket, no loopback
+                // hop, the same token check. Phones' addresses (pairing, take-over) are the gateway's.
+                let (gateway, local) = if gateway_config.enabled {
+                    let (client, local) = phone2act_sdk::Client::in_process(config.server.token.as_deref())
+                        .context("the server token cannot be sent as a header")?;
+                    let gateway = phone2act_gateway::Gateway::bind_client(gateway_config, client)
+                        .await
+                        .context(
+                            "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
+                        )?;
+                    let local: phone2act_server::LocalConnections = Box::pin(local);
+                    (Some(tokio::spawn(gateway.run(stopped(stop_rx.clone())))), Some(local))
                 } else {
-                    None
+                    (None, None)
                 };
-                run(config, listener, stopped(stop_rx))
+                run_with_local(config, listener, local, stopped(stop_rx))
                     .await
                     .with_context(|| format!("serving with the configuration {origin}"))?;
                 if let Some(gateway) = gateway {
