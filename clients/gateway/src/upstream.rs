@@ -4,6 +4,7 @@
 //! Lazy, because the embedded gateway starts alongside the server and the standalone one may start before
 //! it; tonic reconnects the channel by itself when the server comes back.
 
+use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
 use std::time::Duration;
@@ -63,5 +64,10 @@ impl Upstream {
     /// A System client on the shared channel.
     pub fn system(&self) -> SystemClient<InterceptedService<Channel, Auth>> {
         SystemClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    }
+
+    /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
+    pub fn policy(&self) -> PolicyClient<InterceptedService<Channel, Auth>> {
+        PolicyClient::with_interceptor(self.channel.clone(), self.auth.clone())
     }
 }
