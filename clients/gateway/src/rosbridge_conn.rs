@@ -1,5 +1,6 @@
 //! A rosbridge v2 client connection: publishes on mapped topics become teleop samples for the arm the topic's
-//! namespace names; subscriptions to the feedback topics are served from `System.WatchStatus`.
+//! namespace names; subscriptions to the feedback topics, `/joint_states` and `/tf` are served from
+//! `System.WatchStatus`, camera topics from `Policy.GetObservation` (see `ros_topics`).
 //!
 //! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`) to clients that asked for
 //! them with `set_level` (or to every client when `rosbridge_status_level` says so). rosbridge never sends
