@@ -24,6 +24,7 @@ pub mod feedback;
 pub mod mock_server;
 mod native;
 pub mod pairing;
+mod ros_topics;
 pub mod rosbridge;
 mod rosbridge_conn;
 mod server;

@@ -4,6 +4,7 @@
 //! The standalone gateway dials lazily, because it may start before the server and must survive the
 //! server's restarts; the gateway `phone2act serve` embeds reaches its server in-process.
 
+use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
 use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
@@ -42,5 +43,10 @@ impl Upstream {
     /// A System client on the shared channel.
     pub fn system(&self) -> SystemClient<AuthChannel> {
         self.0.system_raw()
+    }
+
+    /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
+    pub fn policy(&self) -> PolicyClient<InterceptedService<Channel, Auth>> {
+        PolicyClient::with_interceptor(self.channel.clone(), self.auth.clone())
     }
 }
