@@ -46,7 +46,7 @@ impl Upstream {
     }
 
     /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
-    pub fn policy(&self) -> PolicyClient<InterceptedService<Channel, Auth>> {
-        PolicyClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    pub fn policy(&self) -> PolicyClient<AuthChannel> {
+        self.0.policy_raw()
     }
 }
