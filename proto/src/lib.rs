@@ -12,13 +12,14 @@ pub mod v1 {
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("phone2act_v1_descriptor");
 
 /// Fully qualified gRPC service names, as health checks and reflection report them.
-pub const SERVICE_NAMES: [&str; 6] = [
+pub const SERVICE_NAMES: [&str; 7] = [
     "phone2act.v1.Teleop",
     "phone2act.v1.Policy",
     "phone2act.v1.Episodes",
     "phone2act.v1.System",
     "phone2act.v1.Bridge",
     "phone2act.v1.Cameras",
+    "phone2act.v1.Scene",
 ];
 
 impl v1::Vec3 {

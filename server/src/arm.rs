@@ -7,7 +7,8 @@
 //! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
 
 use nalgebra::Isometry3;
-use phone2act_bridges::{Bridge, Command, Feedback, Health};
+use phone2act_bridges::sim::SceneState;
+use phone2act_bridges::{Bridge, BridgeError, Command, Feedback, Health};
 use phone2act_core::{
     ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
     GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
@@ -682,6 +683,58 @@ impl ArmController {
         }
     }
 
+    /// Re-draws the arm's scene (see `phone2act.v1.Scene.Reset`). `home_arm` is a teleport, so it is refused
+    /// while a source drives; afterwards the target is the homed pose and both sources re-index from it, so a
+    /// phone or policy that takes the arm next starts where the arm now is.
+    pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, Status> {
+        // Held across the reset so that no source can start driving between the check and the teleport.
+        let mut inner = self.lock();
+        // An arm without a scene says so whoever drives it; its refusal changes nothing.
+        if let Err(BridgeError::Unsupported(_)) = self.bridge.scene() {
+            return self
+                .bridge
+                .reset_scene(seed, home_arm)
+                .map_err(|e| bridge_status(&self.name, &e));
+        }
+        if home_arm {
+            let owner = match inner.driver {
+                Driver::None => None,
+                Driver::Teleop => Some(format!(
+                    "a phone (teleop session {})",
+                    inner.teleop_session.unwrap_or_default()
+                )),
+                Driver::Policy => Some(format!(
+                    "policy {:?}",
+                    inner.policy.as_ref().map(|o| o.name.as_str()).unwrap_or_default()
+                )),
+            };
+            if let Some(owner) = owner {
+                return Err(Status::failed_precondition(format!(
+                    "arm {:?} is driven by {owner}; release it before homing the arm",
+                    self.name
+                )));
+            }
+        }
+        let state = self
+            .bridge
+            .reset_scene(seed, home_arm)
+            .map_err(|e| bridge_status(&self.name, &e))?;
+        if home_arm && let Some(feedback) = self.bridge.feedback() {
+            let now = now_s();
+            inner.target = feedback.robot_from_ee;
+            inner.gripper_target = feedback.gripper_position;
+            inner.joint_seed = None;
+            inner.teleop.request_reindex();
+            inner.policy_gate.reset_reference_at(feedback.robot_from_ee, now);
+        }
+        Ok(state)
+    }
+
+    /// The arm's scene now.
+    pub fn scene(&self) -> Result<SceneState, Status> {
+        self.bridge.scene().map_err(|e| bridge_status(&self.name, &e))
+    }
+
     /// Who drives the arm.
     pub fn driver(&self) -> Driver {
         self.lock().driver
@@ -802,6 +855,14 @@ pub struct ArmSample {
     pub robot_from_ee: Isometry3<f64>,
     /// Server monotonic time of the feedback.
     pub capture_time_ns: i64,
+}
+
+/// A bridge's refusal as a status: a feature the bridge lacks is UNIMPLEMENTED, anything else INTERNAL.
+fn bridge_status(arm: &str, error: &BridgeError) -> Status {
+    match error {
+        BridgeError::Unsupported(m) => Status::unimplemented(format!("arm {arm:?}: {m}")),
+        other => Status::internal(format!("arm {arm:?}: {other}")),
+    }
 }
 
 /// Proto pose from an isometry.

@@ -971,6 +971,7 @@ matrix = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 max_linear_speed_m_s = 0.5
 max_angular_speed_rad_s = 2.0
 [arms.sim]
+basket_area_m = { x_min_m = 0.18, x_max_m = 0.26, y_min_m = 0.10, y_max_m = 0.16 }
 [arms.dobot]
 host = "192.168.5.1"
 motion_port = 30003

@@ -14,6 +14,7 @@ use phone2act_proto::v1::bridge_server::BridgeServer;
 use phone2act_proto::v1::cameras_server::CamerasServer;
 use phone2act_proto::v1::episodes_server::EpisodesServer;
 use phone2act_proto::v1::policy_server::PolicyServer;
+use phone2act_proto::v1::scene_server::SceneServer;
 use phone2act_proto::v1::system_server::SystemServer;
 use phone2act_proto::v1::teleop_server::TeleopServer;
 use std::future::Future;
@@ -118,6 +119,8 @@ pub async fn serve_app(
         services::bridge::BridgeService::new(Arc::clone(&app)),
         auth.clone(),
     );
+    let scene =
+        SceneServer::with_interceptor(services::scene::SceneService::new(Arc::clone(&app)), auth.clone());
     let cameras = tonic::service::interceptor::InterceptedService::new(
         CamerasServer::new(services::cameras::CamerasService::new(Arc::clone(&app)))
             .max_decoding_message_size(MAX_FRAME_BYTES),
@@ -148,6 +151,7 @@ pub async fn serve_app(
         .add_service(episodes)
         .add_service(bridge)
         .add_service(cameras)
+        .add_service(scene)
         // `Server::tcp_nodelay` only applies to listeners tonic binds itself; without NODELAY on accepted
         // sockets a reply written in two parts waits ~40 ms for the peer's delayed ACK.
         .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), async {

@@ -1,5 +1,8 @@
 //! Helpers for phone2act's end-to-end tests: start a real server in-process on an ephemeral port and
-//! connect the real SDK to it.
+//! connect the real SDK to it; and the scripted operator ([`operator`]), a phone client that records
+//! pick-and-place demonstrations.
+
+pub mod operator;
 
 use phone2act_sdk::Client;
 use phone2act_server::Config;

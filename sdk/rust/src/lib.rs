@@ -5,6 +5,7 @@
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_client::EpisodesClient;
 use phone2act_proto::v1::policy_client::PolicyClient;
+use phone2act_proto::v1::scene_client::SceneClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
 use std::time::Duration;
@@ -180,6 +181,13 @@ impl Client {
         }
     }
 
+    /// The Scene service: reset and read a simulated arm's ball-and-basket scene.
+    pub fn scene(&self) -> SceneApi {
+        SceneApi {
+            inner: SceneClient::with_interceptor(self.channel.clone(), self.auth.clone()),
+        }
+    }
+
     /// Opens a teleop session bound to `arm`. Samples are sent through a depth-1 queue: if the network is slower
     /// than the phone, [`TeleopSession::send`] reports the sample as superseded instead of queueing it.
     pub async fn teleop(&self, arm: &str, options: TeleopOptions) -> Result<TeleopSession> {
@@ -253,6 +261,37 @@ impl SystemApi {
         Ok(self
             .inner
             .watch_status(v1::WatchStatusRequest { interval_s })
+            .await?
+            .into_inner())
+    }
+}
+
+/// Typed access to the Scene service.
+#[derive(Clone, Debug)]
+pub struct SceneApi {
+    inner: SceneClient<AuthChannel>,
+}
+
+impl SceneApi {
+    /// Re-draws `arm`'s scene from `seed` (`None`: the arm's next seed); `home_arm` also puts the simulated
+    /// arm at its initial joints, which the server refuses while a source drives it.
+    pub async fn reset(&mut self, arm: &str, seed: Option<u64>, home_arm: bool) -> Result<v1::SceneState> {
+        Ok(self
+            .inner
+            .reset(v1::ResetSceneRequest {
+                arm: arm.to_owned(),
+                seed,
+                home_arm,
+            })
+            .await?
+            .into_inner())
+    }
+
+    /// `arm`'s scene now.
+    pub async fn get(&mut self, arm: &str) -> Result<v1::SceneState> {
+        Ok(self
+            .inner
+            .get(v1::GetSceneRequest { arm: arm.to_owned() })
             .await?
             .into_inner())
     }

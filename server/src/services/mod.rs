@@ -5,5 +5,6 @@ pub mod bridge;
 pub mod cameras;
 pub mod episodes;
 pub mod policy;
+pub mod scene;
 pub mod system;
 pub mod teleop;
