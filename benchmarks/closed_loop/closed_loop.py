@@ -142,14 +142,23 @@ class Server:
 
 def reset_scene(client, seed: int) -> None:
     """Puts the ball at the position `seed` draws and the arm at home (Scene.Reset)."""
-    if hasattr(client, "scene"):  # PRE-MERGE switch: the Scene API arrives with branch i16s
-        client.scene.reset(ARM, seed=seed, home_arm=True)
+    from phone2act import FailedPrecondition
+
+    # Refused while a policy still owns the arm: the server learns that the previous trial's session ended when
+    # its stream closes, a moment after the client let go. 10 s is far beyond that even on a loaded machine.
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            client.scene.reset(ARM, seed=seed, home_arm=True)
+            return
+        except FailedPrecondition:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
 
 
 def scene_success(client) -> bool:
-    if hasattr(client, "scene"):
-        return bool(client.scene.get(ARM).success)
-    return bool(client.arm(ARM).task_success)
+    return bool(client.scene.get(ARM).success)
 
 
 # --- stage 2: demonstrations ---------------------------------------------------------------------------------
@@ -159,21 +168,22 @@ def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
     cmd = [str(args.operator), "--server", f"http://{server.target}", "--token", token, "--arm", ARM,
            "--episodes", str(args.demos), "--seed", str(args.seed), "--task", TASK,
            "--episode-time-s", str(args.episode_time_s), "--reset-time-s", str(args.reset_time_s)]
-    log = (log_dir / "operator.log").open("w")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
-    assert proc.stdout is not None
+    # The operator reports each episode on stderr and its summary as the last line of stdout.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    saved = 0
+    with (log_dir / "operator.log").open("w") as log, tqdm(total=args.demos, desc="demonstrations", unit="ep") as bar:
+        for line in proc.stderr:
+            log.write(line)
+            log.flush()
+            if line.startswith("episode "):
+                saved += " saved as " in line
+                bar.update(1)
+                bar.set_postfix(saved=saved)
+    stdout = proc.stdout.read()
+    proc.wait()
     summary: dict = {}
-    from phone2act import Client
-
-    with Client(server.target, token=token) as c, tqdm(total=args.demos, desc="demonstrations", unit="ep") as bar:
-        lines: list[str] = []
-        for line in proc.stdout:
-            lines.append(line)
-            saved = len(c.episodes.list())
-            bar.update(saved - bar.n)
-        proc.wait()
-        bar.update(len(c.episodes.list()) - bar.n)
-    for line in reversed(lines):
+    for line in reversed(stdout.splitlines()):
         try:
             summary = json.loads(line)
             break
@@ -366,7 +376,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--paths", default="api,plugin", help="evaluation paths: api, plugin or both")
     p.add_argument("--image-px", type=int, default=96)
     p.add_argument("--fps", type=int, default=20)
-    p.add_argument("--episode-time-s", type=float, default=12.0)
+    p.add_argument("--episode-time-s", type=float, default=20.0)
     p.add_argument("--reset-time-s", type=float, default=1.0)
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--dim-model", type=int, default=256)

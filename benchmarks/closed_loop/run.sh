@@ -28,7 +28,7 @@ while (($#)); do
 done
 if ((short)); then
   # Given first, so explicit options after --short still win (argparse keeps the last value).
-  args=(--demos 2 --train-steps 20 --eval-trials 1 --episode-time-s 8 --batch-size 4 "${args[@]}")
+  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 "${args[@]}")
 fi
 out="${out:-$REPO/target/closed-loop/$(date -u +%Y%m%dT%H%M%SZ)}"
 
@@ -39,9 +39,8 @@ fi
 "$VENV/bin/python" -m pip install -q ./sdk/python ./clients/lerobot_robot_phone2act
 
 if [[ -z "${PHONE2ACT_BIN:-}" || -z "${PHONE2ACT_OPERATOR:-}" ]]; then
-  # The operator's package is found by its binary name.
   cargo build --release -p phone2act-server --bin phone2act
-  cargo build --release --bin operator
+  cargo build --release -p phone2act-tests --bin operator
 fi
 bin_dir="${CARGO_TARGET_DIR:-$REPO/target}/release"
 PHONE2ACT_BIN="${PHONE2ACT_BIN:-$bin_dir/phone2act}"
