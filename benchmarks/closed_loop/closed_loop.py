@@ -284,6 +284,7 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
         for seed in tqdm(seeds, desc="eval: Policy API", unit="trial"):
             reset_scene(c, seed)
             ok = False
+            accepted = 0
             t0 = time.monotonic()
             # Observations stream at the control rate and the newest is taken, so a chunk starts from a fresh
             # one; each chunk is anchored on the observation it answers (the executor plays step k at observation
@@ -298,16 +299,20 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
                     state = np.asarray(obs.arms[0].state, dtype=np.float32)
                     steps = policy.chunk(state, image.copy(), TASK)
                     try:
-                        s.push(ARM, steps.tolist(), period_s, observation_id=obs.observation_id, mode=policy_pb2.ACTION_MODE_JOINT)
+                        s.push(ARM, steps.tolist(), period_s, observation_id=obs.observation_id,
+                               mode=policy_pb2.ACTION_MODE_JOINT)
                     except InvalidArgument as e:  # the inference outlasted the whole chunk: answer a newer one
                         late += 1
                         tqdm.write(f"seed {seed}: chunk refused ({e}); taking a newer observation")
                         continue
+                    accepted += 1
                     if scene_success(c):
                         ok = True
                         break
                     time.sleep(max(0.0, received + args.n_action_steps * period_s - time.monotonic()))
             ok = ok or scene_success(c)
+            if accepted == 0:
+                raise RuntimeError(f"seed {seed}: the server accepted no chunk in {args.episode_time_s} s")
             result.trials += 1
             result.successes += int(ok)
             result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0})
