@@ -37,6 +37,8 @@ if tests/lerobot_plugins/setup-venv.sh --which-python >/dev/null; then
   tests/lerobot_plugins/run.sh
   rm -rf target/closed-loop/ci
   benchmarks/closed_loop/run.sh --short --out target/closed-loop/ci
+  # The operator's demonstrations (lerobot's SO-101 layout) are read back by the conformance checks too.
+  cp -r target/closed-loop/ci/dataset "$PHONE2ACT_CONFORMANCE_DIR/closed-loop-ci"
 else
   echo "lerobot plugins, closed loop, conformance: SKIPPED: no Python >= 3.12 for lerobot 0.6 (install one," \
     "e.g. with pyenv)" >&2
