@@ -289,8 +289,10 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
             # Observations stream at the control rate and the newest is taken, so a chunk starts from a fresh
             # one; each chunk is anchored on the observation it answers (the executor plays step k at observation
             # time + k·period, whatever the inference took), and a new one replaces it every n_action_steps.
+            # A starved evaluator (a loaded machine: several chunks in a row late) leaves the arm holding; the
+            # 10 s silence timeout keeps the session's control through that instead of ending the trial.
             with c.policy_session([ARM], observation_rate_hz=args.fps, image_encoding=IMAGE_RGB8,
-                                  cameras=[CAMERA], policy_name="closed-loop-eval", silence_timeout_s=3.0) as s:
+                                  cameras=[CAMERA], policy_name="closed-loop-eval", silence_timeout_s=10.0) as s:
                 while time.monotonic() - t0 < args.episode_time_s:
                     obs = s.next_observation(timeout_s=10.0)
                     received = time.monotonic()
