@@ -363,7 +363,8 @@ def table(demos: int, train_s: float, steps: int, results: list[PathResult]) -> 
     for r in results:
         lo, hi = wilson_interval(r.successes, r.trials)
         rate = r.successes / r.trials if r.trials else 0.0
-        rows.append(f"| {r.path} | {demos} | {steps} steps, {train_s / 60:.1f} min | {r.trials} | {r.successes} | "
+        training = f"{steps} steps, {train_s / 60:.1f} min" if steps else "a given model (--model)"
+        rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
                     f"{rate:.0%} ({lo:.0%}–{hi:.0%}) |")
     return "\n".join(rows)
 
