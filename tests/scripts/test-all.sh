@@ -9,6 +9,11 @@ cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
 tests/scripts/lint-proto.sh
 tests/scripts/check-deps.py
+# No import cycle between the modules of any crate (the script prints the graph when it finds one).
+for src in server/src server/cli/src server/core/src server/recorder/src server/bridges/src server/clock/src \
+  proto/src sdk/rust/src clients/gateway/src; do
+  tests/scripts/check-module-cycles.py "$src" >/dev/null || tests/scripts/check-module-cycles.py "$src"
+done
 # Tests that write LeRobot datasets copy them here; tests/conformance/run.sh then loads each with lerobot.
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"

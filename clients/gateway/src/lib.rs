@@ -29,6 +29,7 @@ pub mod rosbridge;
 mod rosbridge_conn;
 mod server;
 pub mod session;
+mod shared;
 pub mod takeover;
 pub mod tls;
 mod upstream;

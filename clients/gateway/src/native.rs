@@ -11,8 +11,8 @@
 use crate::conn::{Handler, Wiring};
 use crate::feedback::page_feedback;
 use crate::rosbridge::parse_json;
-use crate::server::Shared;
 use crate::session::{Session, SessionEvent};
+use crate::shared::Shared;
 use phone2act_proto::v1::{ButtonEvent, PhoneSample, Pose, TrackingState, clutch_command, record_command};
 use phone2act_proto::{MAX_TASK_BYTES, buttons};
 use serde::Deserialize;

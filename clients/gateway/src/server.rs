@@ -7,6 +7,7 @@ use crate::native::PageHandler;
 use crate::pairing::{Admission, Pairing};
 use crate::rosbridge::{self, StatusLevel};
 use crate::rosbridge_conn::RosbridgeHandler;
+use crate::shared::Shared;
 use crate::takeover::Holders;
 use crate::tls;
 use crate::upstream::Upstream;
@@ -25,35 +26,9 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
-
-/// State shared by every socket.
-#[derive(Debug)]
-pub struct Shared {
-    pub config: GatewayConfig,
-    pub upstream: Upstream,
-    pub token: Option<String>,
-    pub pairing: Pairing,
-    pub holders: Holders,
-    /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
-    pub rosbridge_port: Option<u16>,
-    connections: AtomicU64,
-    shutdown: watch::Receiver<bool>,
-}
-
-impl Shared {
-    /// A fresh id for a socket.
-    pub fn next_connection(&self) -> u64 {
-        self.connections.fetch_add(1, Ordering::Relaxed)
-    }
-
-    /// How long a rosbridge arm holder must be silent before its own address may take the arm over.
-    pub fn takeover_silence(&self) -> Duration {
-        Duration::from_millis(self.config.takeover_silence_ms)
-    }
-}
 
 /// Listeners bound by the caller (tests use port 0). An endpoint without a listener is not served.
 #[derive(Debug, Default)]
