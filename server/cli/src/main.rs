@@ -198,7 +198,21 @@ fn phase_name(phase: i32) -> &'static str {
 }
 
 fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
-    outln!("phone2act {}  uptime {:.1} s", status.version, status.uptime_s);
+    for line in status_lines(status, None) {
+        outln!("{line}");
+    }
+}
+
+/// One status snapshot as lines. With the previous snapshot of a watch, each arm also shows its command rate
+/// over the interval between the two.
+fn status_lines(
+    status: &phone2act_sdk::proto::SystemStatus,
+    previous: Option<&phone2act_sdk::proto::SystemStatus>,
+) -> Vec<String> {
+    let mut lines = vec![format!(
+        "phone2act {}  uptime {:.1} s",
+        status.version, status.uptime_s
+    )];
     for arm in &status.arms {
         let pose = arm.robot_from_ee.as_ref().and_then(|p| p.position_m.as_ref());
         let at = pose.map_or_else(
@@ -206,7 +220,7 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             |p| format!("ee ({:.3}, {:.3}, {:.3}) m", p.x, p.y, p.z),
         );
         let decision = arm.last_decision.as_ref().map_or("", |d| d.reason.as_str());
-        outln!(
+        lines.push(format!(
             "  arm {:<8} {:<6} {:?} owner {:?} {}  {at}  gripper {:.2}  {decision}",
             arm.arm,
             arm.bridge_kind,
@@ -214,10 +228,21 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             arm.owner(),
             if arm.engaged { "engaged" } else { "" },
             arm.gripper_position,
-        );
+        ));
+        let rate = previous
+            .and_then(|p| Some((p, p.arms.iter().find(|a| a.arm == arm.arm)?)))
+            .and_then(|(p, before)| {
+                let dt_s = status.uptime_s - p.uptime_s;
+                (dt_s > 0.0).then(|| arm.commands_sent.saturating_sub(before.commands_sent) as f64 / dt_s)
+            })
+            .map_or_else(String::new, |hz| format!("{hz:.1} cmd/s  "));
+        lines.push(format!(
+            "      {rate}gate: sent {}  clamped {}  rejected {}",
+            arm.commands_sent, arm.commands_clamped, arm.commands_rejected
+        ));
     }
     for cam in &status.cameras {
-        outln!(
+        lines.push(format!(
             "  camera {:<8} {:<12} {}x{} @ {} fps  {} frames  {}",
             cam.camera,
             cam.kind,
@@ -226,10 +251,10 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             cam.fps,
             cam.frames_captured,
             if cam.live { "live" } else { "STALE" }
-        );
+        ));
     }
     if let Some(rec) = &status.recording {
-        outln!(
+        lines.push(format!(
             "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  held {} paused {} late {} dropped {}  saved {}  {}",
             rec.dataset_root,
             rec.dataset_format,
@@ -243,8 +268,30 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             rec.dropped_frames,
             rec.episodes_saved,
             rec.warning
-        );
+        ));
     }
+    lines
+}
+
+/// `status --watch`: on a terminal each snapshot replaces the previous one (cursor home, clear screen), so the
+/// view stays in place; into a pipe or a file snapshots follow each other, separated by a blank line, so logs
+/// keep every one.
+async fn watch_status(system: &mut phone2act_sdk::SystemApi, interval_s: f64) -> anyhow::Result<()> {
+    use std::io::IsTerminal as _;
+    let redraw = std::io::stdout().is_terminal();
+    let mut stream = system.watch_status(interval_s).await?;
+    let mut previous = None;
+    while let Some(status) = stream.message().await? {
+        let mut frame = status_lines(&status, previous.as_ref()).join("\n");
+        if redraw {
+            frame.insert_str(0, "\x1b[H\x1b[2J");
+        } else if previous.is_some() {
+            frame.insert(0, '\n');
+        }
+        outln!("{frame}");
+        previous = Some(status);
+    }
+    Ok(())
 }
 
 fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
@@ -325,12 +372,7 @@ fn real_main() -> anyhow::Result<()> {
             let mut system = client.system();
             match watch {
                 None => print_status(&system.status().await?),
-                Some(interval_s) => {
-                    let mut stream = system.watch_status(interval_s).await?;
-                    while let Some(status) = stream.message().await? {
-                        print_status(&status);
-                    }
-                }
+                Some(interval_s) => watch_status(&mut system, interval_s).await?,
             }
             anyhow::Ok(())
         }),
