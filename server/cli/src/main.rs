@@ -316,6 +316,46 @@ fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
             outln!("  {key:<32} {dtype:<8} {shape}");
         }
     }
+    // Per episode, from the data rows themselves (so a dataset lerobot wrote reads the same).
+    let report = phone2act_recorder::verify::verify(path);
+    let fps = info.get("fps").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
+    if !report.per_episode.is_empty() {
+        outln!("episode  frames  duration_s  success  task");
+    }
+    for (index, facts) in &report.per_episode {
+        let success = match facts.success_at_end {
+            Some(true) => "yes",
+            Some(false) => "no",
+            None => "-",
+        };
+        let task = facts
+            .task_indices
+            .iter()
+            .map(|&t| {
+                usize::try_from(t)
+                    .ok()
+                    .and_then(|t| report.tasks.get(t))
+                    .map_or_else(|| format!("<task {t}>"), Clone::clone)
+            })
+            .collect::<Vec<_>>()
+            .join(" | ");
+        let duration_s = if fps > 0.0 {
+            facts.frames as f64 / fps
+        } else {
+            f64::NAN
+        };
+        outln!(
+            "{index:>7}  {:>6}  {duration_s:>10.2}  {success:>7}  {task}",
+            facts.frames
+        );
+    }
+    if !report.ok() {
+        outln!(
+            "verify    {} problem(s): run `phone2act dataset verify {}`",
+            report.problems.len(),
+            path.display()
+        );
+    }
     Ok(())
 }
 

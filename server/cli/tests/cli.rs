@@ -135,6 +135,16 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         text.contains("LeRobot v3.0") && text.contains("observation.state"),
         "{text}"
     );
+    // Per episode: length, task and success (the default sim arm has a scene; the ball never reached the
+    // basket in this episode, so it ends without success).
+    let row = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("0 "))
+        .unwrap_or_else(|| panic!("no row for episode 0: {text}"));
+    let cells: Vec<&str> = row.split_whitespace().collect();
+    assert!(cells[1].parse::<u64>().unwrap() > 0, "{row}");
+    assert_eq!(cells[3], "no", "{row}");
+    assert!(row.ends_with("stack the cube"), "{row}");
     let out = Command::new(BIN)
         .args(["dataset", "verify"])
         .arg(dir.path().join("ds"))
