@@ -3,7 +3,7 @@
 
 run:
 	tests/scripts/install-deps.sh build
-	cargo run --release -p phone2act-server --bin phone2act -- serve $(ARGS)
+	cargo run --release -p phone2act-cli --bin phone2act -- serve $(ARGS)
 
 test:
 	tests/scripts/test-all.sh

@@ -26,6 +26,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "phone2act/v1/system.proto",
         "phone2act/v1/bridge.proto",
         "phone2act/v1/cameras.proto",
+        "phone2act/v1/scene.proto",
     ];
     tonic_prost_build::configure()
         .file_descriptor_set_path(out_dir.join("phone2act_v1_descriptor.bin"))

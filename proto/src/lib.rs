@@ -1,9 +1,17 @@
 //! The phone2act.v1 gRPC API: message types and service stubs generated from `proto/phone2act/v1/*.proto`,
-//! the encoded file descriptor set (for gRPC server reflection), and small conversions between wire messages
-//! and plain values that every client and the server need.
+//! the encoded file descriptor set (for gRPC server reflection), and the one wire boundary: conversions between
+//! wire messages and core types (`convert_*`), the latest-wins sample fold ([`sample`]) and the button
+//! builders ([`buttons`]) that the server, the SDK and the gateway all use.
 
-/// Arm types between the core domain and the wire.
+pub mod buttons;
 pub mod convert_arm;
+pub mod convert_camera;
+pub mod convert_episode;
+pub mod convert_policy;
+pub mod sample;
+
+pub use convert_episode::MAX_TASK_BYTES;
+pub use sample::PendingSample;
 
 /// Generated code for package `phone2act.v1`.
 #[allow(clippy::pedantic, clippy::all, missing_docs)]
@@ -14,14 +22,23 @@ pub mod v1 {
 /// Encoded `FileDescriptorSet` of every phone2act.v1 file, for gRPC reflection.
 pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("phone2act_v1_descriptor");
 
+/// A wire value that has no meaning here.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ConvertError {
+    /// An enum field holds a value this version does not know (or the unset value where one is required).
+    #[error("unknown {what} {value}")]
+    UnknownEnum { what: &'static str, value: i32 },
+}
+
 /// Fully qualified gRPC service names, as health checks and reflection report them.
-pub const SERVICE_NAMES: [&str; 6] = [
+pub const SERVICE_NAMES: [&str; 7] = [
     "phone2act.v1.Teleop",
     "phone2act.v1.Policy",
     "phone2act.v1.Episodes",
     "phone2act.v1.System",
     "phone2act.v1.Bridge",
     "phone2act.v1.Cameras",
+    "phone2act.v1.Scene",
 ];
 
 impl v1::Vec3 {

@@ -2,65 +2,76 @@
 //! signal. Services hold an `Arc<App>`.
 
 use crate::arm::ArmController;
-use crate::config::{BridgeKind, CameraKind, Config};
-use crate::services::policy::PolicySessionState;
+use crate::config::{BridgeKind, CameraConfig, CameraKind, Config};
+use crate::recording::RecordingError;
+use crate::runtime::blocking;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use phone2act_bridges::Bridge;
-use phone2act_proto::convert_arm::arm_state_to_proto;
-use phone2act_proto::v1;
+use phone2act_bridges::remote::RemoteBridge;
+use phone2act_clock::monotonic_ns;
+use phone2act_proto::convert_episode::RecordAction;
 use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
-use phone2act_recorder::clock::monotonic_ns;
-use phone2act_recorder::recorder::Recorder;
+use phone2act_recorder::recorder::{Recorder, RecorderStatus};
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
-use tonic::Status;
 
 /// One configured camera and its capture thread.
 #[derive(Debug)]
 pub struct CameraRuntime {
-    pub config: crate::config::CameraConfig,
-    pub slot: Arc<FrameSlot>,
+    config: CameraConfig,
+    slot: Arc<FrameSlot>,
     capture: Mutex<Option<CaptureThread>>,
 }
 
+/// How a camera is doing right now.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraHealth {
+    /// A frame arrived within three frame periods.
+    pub live: bool,
+    pub frames_captured: u64,
+    /// Age of the newest frame; `None` before the first.
+    pub last_frame_age_s: Option<f64>,
+}
+
 impl CameraRuntime {
+    /// The camera's configuration.
+    pub fn config(&self) -> &CameraConfig {
+        &self.config
+    }
+
+    /// Where its newest frame is.
+    pub fn slot(&self) -> &Arc<FrameSlot> {
+        &self.slot
+    }
+
     /// Health snapshot.
-    pub fn status(&self) -> v1::CameraStatus {
+    pub fn health(&self) -> CameraHealth {
         let now = monotonic_ns();
-        let latest = self.slot.latest();
-        let age_s = latest
-            .as_ref()
-            .map_or(f64::INFINITY, |f| (now - f.capture_time_ns) as f64 * 1e-9);
+        let age_s = self
+            .slot
+            .latest()
+            .map(|f| (now - f.capture_time_ns) as f64 * 1e-9);
         let freshness_s = 3.0 / self.config.fps;
-        v1::CameraStatus {
-            camera: self.config.name.clone(),
-            kind: self.config.kind.as_str().to_owned(),
-            width: self.config.width,
-            height: self.config.height,
-            fps: self.config.fps,
-            live: age_s <= freshness_s,
+        CameraHealth {
+            live: age_s.is_some_and(|a| a <= freshness_s),
             frames_captured: self.slot.frames_captured(),
-            last_frame_age_s: if age_s.is_finite() { age_s } else { -1.0 },
-            measured_fps: 0.0,
-            error: String::new(),
+            last_frame_age_s: age_s,
         }
     }
 }
 
 /// Everything the services share.
 pub struct App {
-    pub config: Config,
-    pub started: Instant,
-    pub arms: Vec<Arc<ArmController>>,
-    pub cameras: Vec<CameraRuntime>,
+    config: Config,
+    started: Instant,
+    arms: Vec<Arc<ArmController>>,
+    cameras: Vec<CameraRuntime>,
     /// Remote bridges by arm name, for `Bridge.Attach`.
-    pub remote_bridges: HashMap<String, Arc<phone2act_bridges::remote::RemoteBridge>>,
+    remote_bridges: HashMap<String, Arc<RemoteBridge>>,
     sessions: AtomicU64,
-    observations: AtomicU64,
-    policies: Mutex<HashMap<u64, Arc<PolicySessionState>>>,
     /// Read-locked for every use; write-locked only to close it at shutdown.
     recorder: std::sync::RwLock<Option<Recorder>>,
     shutdown_tx: watch::Sender<bool>,
@@ -85,7 +96,20 @@ pub enum AppError {
     #[error("arm {arm}: {message}")]
     Arm { arm: String, message: String },
     #[error("recorder: {0}")]
-    Recorder(String),
+    Recorder(#[from] RecordingError),
+}
+
+/// A name that is not configured.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LookupError {
+    #[error("unknown arm {arm:?}; configured arms: {configured}")]
+    UnknownArm { arm: String, configured: String },
+    #[error("unknown camera {0:?}")]
+    UnknownCamera(String),
+    #[error("no camera {0:?} with kind = \"remote\" is configured")]
+    NotRemoteCamera(String),
+    #[error("arm {arm:?} is not configured with bridge = \"remote\" (remote arms: {remote})")]
+    NotRemoteArm { arm: String, remote: String },
 }
 
 /// Where an arm holds before its bridge reports a pose: the SO-101 workspace centre, gripper down.
@@ -222,13 +246,13 @@ impl App {
                 capture: Mutex::new(capture),
             });
         }
-        let spec = crate::recording::dataset_spec(&config, &arms).map_err(AppError::Recorder)?;
+        let spec = crate::recording::dataset_spec(&config, &arms)?;
         let source = Arc::new(crate::recording::ArmsSource { arms: arms.clone() });
         let slots = cameras
             .iter()
             .map(|c| (c.config.name.clone(), Arc::clone(&c.slot)))
             .collect();
-        let recorder = Recorder::open(spec, source, slots).map_err(|e| AppError::Recorder(e.to_string()))?;
+        let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Self {
             recorder: std::sync::RwLock::new(Some(recorder)),
@@ -238,16 +262,74 @@ impl App {
             cameras,
             remote_bridges,
             sessions: AtomicU64::new(1),
-            observations: AtomicU64::new(1),
-            policies: Mutex::new(HashMap::new()),
             shutdown_tx,
             recorder_version: std::sync::OnceLock::new(),
         })
     }
 
+    /// The configuration the server runs.
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// When the server started.
+    pub fn started(&self) -> Instant {
+        self.started
+    }
+
+    /// Every arm, in configured order.
+    pub fn arms(&self) -> &[Arc<ArmController>] {
+        &self.arms
+    }
+
+    /// Every camera, in configured order.
+    pub fn cameras(&self) -> &[CameraRuntime] {
+        &self.cameras
+    }
+
     /// Looks up an arm by name.
     pub fn arm(&self, name: &str) -> Option<Arc<ArmController>> {
         self.arms.iter().find(|a| a.name == name).cloned()
+    }
+
+    /// Looks up an arm by name; the error lists the configured ones.
+    pub fn find_arm(&self, name: &str) -> Result<Arc<ArmController>, LookupError> {
+        self.arm(name).ok_or_else(|| LookupError::UnknownArm {
+            arm: name.to_owned(),
+            configured: self.arm_names().join(", "),
+        })
+    }
+
+    /// Looks up a camera by name.
+    pub fn find_camera(&self, name: &str) -> Result<&CameraRuntime, LookupError> {
+        self.cameras
+            .iter()
+            .find(|c| c.config.name == name)
+            .ok_or_else(|| LookupError::UnknownCamera(name.to_owned()))
+    }
+
+    /// The camera `name` that takes pushed frames (`kind = "remote"`).
+    pub fn find_remote_camera(&self, name: &str) -> Result<&CameraRuntime, LookupError> {
+        self.cameras
+            .iter()
+            .find(|c| c.config.name == name && c.config.kind == CameraKind::Remote)
+            .ok_or_else(|| LookupError::NotRemoteCamera(name.to_owned()))
+    }
+
+    /// The remote bridge of arm `name` (`bridge = "remote"`), for `Bridge.Attach`.
+    pub fn find_remote_bridge(&self, name: &str) -> Result<Arc<RemoteBridge>, LookupError> {
+        self.remote_bridges.get(name).cloned().ok_or_else(|| {
+            let mut remote: Vec<&str> = self.remote_bridges.keys().map(String::as_str).collect();
+            remote.sort_unstable();
+            LookupError::NotRemoteArm {
+                arm: name.to_owned(),
+                remote: if remote.is_empty() {
+                    "none".to_owned()
+                } else {
+                    remote.join(", ")
+                },
+            }
+        })
     }
 
     /// Configured arm names in order.
@@ -260,100 +342,41 @@ impl App {
         self.sessions.fetch_add(1, Ordering::Relaxed)
     }
 
-    /// A fresh observation id (never 0: 0 means "no observation" in chunks).
-    pub fn next_observation_id(&self) -> u64 {
-        self.observations.fetch_add(1, Ordering::Relaxed)
-    }
-
-    pub(crate) fn register_policy(&self, session: Arc<PolicySessionState>) {
-        self.policies
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .insert(session.id, session);
-    }
-
-    pub(crate) fn unregister_policy(&self, id: u64) {
-        self.policies
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .remove(&id);
-    }
-
-    pub(crate) fn policy_session(&self, id: u64) -> Option<Arc<PolicySessionState>> {
-        self.policies
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(&id)
-            .cloned()
-    }
-
-    /// A full status snapshot.
-    pub fn status(&self, sequence: u64) -> v1::SystemStatus {
-        v1::SystemStatus {
-            version: env!("CARGO_PKG_VERSION").to_owned(),
-            server_time_ns: monotonic_ns(),
-            uptime_s: self.started.elapsed().as_secs_f64(),
-            arms: self
-                .arms
-                .iter()
-                .map(|a| arm_state_to_proto(&a.snapshot()))
-                .collect(),
-            cameras: self.cameras.iter().map(CameraRuntime::status).collect(),
-            recording: Some(self.recording_status()),
-            sequence,
-        }
-    }
-
-    /// Runs `f` on the recorder; `UNAVAILABLE` once it is closed.
-    pub fn with_recorder<R>(&self, f: impl FnOnce(&Recorder) -> Result<R, Status>) -> Result<R, Status> {
+    /// Runs `f` on the recorder; [`RecordingError::Closed`] once it is closed.
+    pub fn with_recorder<R>(
+        &self,
+        f: impl FnOnce(&Recorder) -> Result<R, RecordingError>,
+    ) -> Result<R, RecordingError> {
         let guard = self.recorder.read().unwrap_or_else(PoisonError::into_inner);
         match guard.as_ref() {
             Some(recorder) => f(recorder),
-            None => Err(Status::unavailable(
-                "the recorder is closed (server shutting down)",
-            )),
+            None => Err(RecordingError::Closed),
         }
     }
 
-    /// The recorder's state.
-    pub fn recording_status(&self) -> v1::RecordingStatus {
-        self.with_recorder(|r| Ok(crate::recording::status_to_proto(&r.status(), &self.config)))
-            .unwrap_or_else(|_| v1::RecordingStatus {
-                phase: v1::RecordingPhase::Idle as i32,
-                dataset_root: self.config.recorder.root.display().to_string(),
-                dataset_format: self.config.recorder.format.as_str().to_owned(),
-                fps: self.config.recorder.fps,
-                warning: "recorder closed".to_owned(),
-                ..v1::RecordingStatus::default()
-            })
+    /// The recorder's state; `None` once it is closed.
+    pub fn recorder_status(&self) -> Option<RecorderStatus> {
+        self.with_recorder(|r| Ok(r.status())).ok()
     }
 
     /// The task of the episode in progress.
     pub fn current_task(&self) -> String {
-        self.with_recorder(|r| Ok(r.status().task)).unwrap_or_default()
+        self.recorder_status().map(|s| s.task).unwrap_or_default()
     }
 
     /// Applies a record button from a phone. Saving takes milliseconds (the video is already encoded), so
     /// it runs inline on a blocking-capable worker.
-    pub fn record_command(&self, command: &v1::RecordCommand) -> Result<(), String> {
-        let run = || {
+    pub fn record_action(&self, action: RecordAction<'_>) -> Result<(), RecordingError> {
+        blocking(|| {
             self.with_recorder(|r| {
-                let result = match v1::record_command::Kind::try_from(command.kind) {
-                    Ok(v1::record_command::Kind::Start) => r.start_episode(&command.task).map(|_| ()),
-                    Ok(v1::record_command::Kind::Stop) => r.stop_episode().map(|_| ()),
-                    Ok(v1::record_command::Kind::Discard) => r.discard_episode().map(|_| ()),
-                    _ => {
-                        return Err(Status::invalid_argument(format!(
-                            "unknown record command {}",
-                            command.kind
-                        )));
-                    }
-                };
-                result.map_err(|e| crate::recording::status_of(&e))
+                match action {
+                    RecordAction::Start { task } => r.start_episode(task).map(drop),
+                    RecordAction::Stop => r.stop_episode().map(drop),
+                    RecordAction::Discard => r.discard_episode().map(drop),
+                }
+                .map_err(RecordingError::from)
             })
-            .map_err(|s| s.message().to_owned())
-        };
-        blocking(run)
+        })
     }
 
     /// A receiver that turns `true` when shutdown begins; streaming RPCs end on it.
@@ -363,7 +386,7 @@ impl App {
 
     /// Changes whenever the recorder's status does. One thread waits on the recorder's condition variable
     /// for all watchers (started with the first), so a watch stream costs a task, not an OS thread.
-    pub fn recorder_changes(self: &Arc<Self>) -> Result<watch::Receiver<u64>, Status> {
+    pub fn recorder_changes(self: &Arc<Self>) -> Result<watch::Receiver<u64>, RecordingError> {
         if let Some(rx) = self.recorder_version.get() {
             return Ok(rx.clone());
         }
@@ -391,7 +414,7 @@ impl App {
                 .map(drop);
             rx
         });
-        spawned.map_err(|e| Status::internal(format!("cannot start the recorder watch thread: {e}")))?;
+        spawned.map_err(RecordingError::WatchThread)?;
         Ok(rx.clone())
     }
 
@@ -442,20 +465,5 @@ fn wait_for_feedback(bridge: &dyn Bridge, timeout: Duration) {
     let deadline = Instant::now() + timeout;
     while bridge.feedback().is_none() && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
-/// Resolves once shutdown has begun (a `Send`-friendly wrapper around `watch::Receiver::wait_for`).
-pub async fn stopped(rx: &mut watch::Receiver<bool>) {
-    let _ = rx.wait_for(|s| *s).await;
-}
-
-/// Runs blocking work from async code without stalling the runtime's other tasks where the runtime allows.
-pub fn blocking<R>(f: impl FnOnce() -> R) -> R {
-    match tokio::runtime::Handle::try_current() {
-        Ok(handle) if handle.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
-            tokio::task::block_in_place(f)
-        }
-        _ => f(),
     }
 }

@@ -8,14 +8,15 @@
 //! the bridge (which never blocks).
 
 use nalgebra::Isometry3;
-use phone2act_bridges::{Bridge, Feedback, Health};
+use phone2act_bridges::sim::SceneState;
+use phone2act_bridges::{Bridge, BridgeError, Feedback, Health};
+use phone2act_clock::monotonic_ns;
 use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
     ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
     ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, TeleopConfig, TeleopRound,
     TickNeed,
 };
-use phone2act_recorder::clock::monotonic_ns;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -71,6 +72,13 @@ pub enum ArmError {
         #[source]
         source: LayoutError,
     },
+    /// The bridge refused (a scene request to an arm without a scene is [`BridgeError::Unsupported`]).
+    #[error("arm {arm:?}: {source}")]
+    Bridge {
+        arm: String,
+        #[source]
+        source: BridgeError,
+    },
 }
 
 /// The last [`LatencyRing::CAPACITY`] latencies, for benchmarks and status (bounded memory).
@@ -105,6 +113,15 @@ struct Inner {
     /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
     /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
     joint_seed: Option<Vec<f64>>,
+}
+
+/// One input handled under the lock, with what is left to do once it is released.
+struct Handled {
+    effects: Effects,
+    /// Server time the last command was handed to the bridge.
+    command_time_ns: Option<i64>,
+    /// The revoked policy session's sink, to be told without the lock.
+    revoked: Option<Arc<dyn RevocationSink>>,
 }
 
 /// One arm.
@@ -230,8 +247,23 @@ impl ArmController {
         let robot = robot_of(self.bridge.health(), self.bridge.feedback().as_ref());
         let now = now_s();
         let mut inner = self.lock();
+        let handled = self.handle_locked(&mut inner, input, &robot, now, sink)?;
+        drop(inner);
+        Ok(self.finish(handled))
+    }
+
+    /// Hands `input` to the arbiter under the held lock and sends its commands. The caller releases the lock
+    /// and then [`Self::finish`]es.
+    fn handle_locked(
+        &self,
+        inner: &mut Inner,
+        input: Input,
+        robot: &Robot,
+        now: f64,
+        sink: Option<(u64, Arc<dyn RevocationSink>)>,
+    ) -> Result<Handled, ArbiterError> {
         let need_before = inner.arbiter.tick_need();
-        let effects = inner.arbiter.handle(input, &robot, now)?;
+        let effects = inner.arbiter.handle(input, robot, now)?;
         if sink.is_some() {
             inner.policy_sink = sink;
         }
@@ -256,16 +288,37 @@ impl ArmController {
         if inner.arbiter.tick_need() != need_before {
             self.wake.notify_one();
         }
-        drop(inner);
-        if let (Some(sink), Some(r)) = (sink, &effects.revoked) {
+        Ok(Handled {
+            effects,
+            command_time_ns,
+            revoked: sink,
+        })
+    }
+
+    /// Tells a revoked policy session that it lost the arm (without the lock: the sink must not be called
+    /// under it). Returns the effects and the time the last command was handed to the bridge.
+    fn finish(&self, handled: Handled) -> (Effects, Option<i64>) {
+        let Handled {
+            effects,
+            command_time_ns,
+            revoked,
+        } = handled;
+        if let (Some(sink), Some(r)) = (revoked, &effects.revoked) {
             tracing::info!(arm = %self.name, policy = ?r.policy, reason = %r.reason, "policy control revoked");
             sink.revoked(&self.name, &r.reason);
         }
-        Ok((effects, command_time_ns))
+        (effects, command_time_ns)
     }
 
     fn refused(&self, source: ArbiterError) -> ArmError {
         ArmError::Refused {
+            arm: self.name.clone(),
+            source,
+        }
+    }
+
+    fn bridge_error(&self, source: BridgeError) -> ArmError {
+        ArmError::Bridge {
             arm: self.name.clone(),
             source,
         }
@@ -404,6 +457,52 @@ impl ArmController {
         let _ = self.apply(Input::Tick);
     }
 
+    /// Re-draws the arm's scene (see `phone2act.v1.Scene.Reset`). `home_arm` is a teleport, so the arbiter
+    /// refuses it while a source drives; afterwards the arm holds the homed pose and both sources re-index
+    /// from it, so a phone or policy that takes the arm next starts where the arm now is.
+    pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, ArmError> {
+        // Held across the reset so that no source can start driving between the check and the teleport.
+        let mut inner = self.lock();
+        // An arm without a scene says so whoever drives it; its refusal changes nothing.
+        if let Err(BridgeError::Unsupported(_)) = self.bridge.scene() {
+            return self
+                .bridge
+                .reset_scene(seed, home_arm)
+                .map_err(|e| self.bridge_error(e));
+        }
+        if home_arm {
+            inner.arbiter.may_home().map_err(|e| self.refused(e))?;
+        }
+        let state = self
+            .bridge
+            .reset_scene(seed, home_arm)
+            .map_err(|e| self.bridge_error(e))?;
+        if home_arm && let Some(feedback) = self.bridge.feedback() {
+            let robot = robot_of(self.bridge.health(), Some(&feedback));
+            let homed = Input::Homed {
+                gripper: feedback.gripper_position,
+            };
+            // Nobody drives (checked above under this lock): the arbiter accepts, sends nothing, revokes nobody.
+            let handled = self
+                .handle_locked(&mut inner, homed, &robot, now_s(), None)
+                .map_err(|e| self.refused(e))?;
+            inner.joint_seed = None;
+            drop(inner);
+            self.finish(handled);
+        }
+        Ok(state)
+    }
+
+    /// True if the arm works in a scene with a success flag (the simulator's pick-and-place).
+    pub fn has_scene(&self) -> bool {
+        self.bridge.scene().is_ok()
+    }
+
+    /// The arm's scene now.
+    pub fn scene(&self) -> Result<SceneState, ArmError> {
+        self.bridge.scene().map_err(|e| self.bridge_error(e))
+    }
+
     /// How soon the arm needs a tick.
     fn tick_need(&self) -> TickNeed {
         self.lock().arbiter.tick_need()
@@ -495,6 +594,7 @@ impl ArmController {
         Some(ArmSample {
             state,
             action,
+            task_success: feedback.task_success,
             robot_from_ee: feedback.robot_from_ee,
             capture_time_ns: feedback.capture_time_ns,
         })
@@ -508,6 +608,8 @@ pub struct ArmSample {
     pub state: Vec<f64>,
     /// The executed action: the last gated target and gripper target, absolute.
     pub action: Vec<f64>,
+    /// The scene's success flag in the same feedback (false for arms without a scene).
+    pub task_success: bool,
     /// The measured pose both are taken at.
     pub robot_from_ee: Isometry3<f64>,
     /// Server monotonic time of the feedback.
@@ -549,13 +651,13 @@ async fn tick_arm(
             TickNeed::Periodic | TickNeed::At(_) => {
                 tokio::select! {
                     _ = ticker.tick() => {}
-                    () = crate::app::stopped(&mut shutdown) => return,
+                    () = crate::runtime::stopped(&mut shutdown) => return,
                 }
             }
             TickNeed::Idle => {
                 tokio::select! {
                     () = arm.wake.notified() => {}
-                    () = crate::app::stopped(&mut shutdown) => return,
+                    () = crate::runtime::stopped(&mut shutdown) => return,
                 }
             }
         }

@@ -2,10 +2,15 @@
 //! for a [`Config`] on a given listener until a shutdown future resolves. The `phone2act` binary is a thin
 //! CLI around it; tests start it in-process on an ephemeral port.
 
+// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
+#![warn(unreachable_pub)]
+
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod policy_session;
 pub mod recording;
+pub mod runtime;
 pub mod services;
 
 use crate::app::App;
@@ -14,12 +19,16 @@ use phone2act_proto::v1::bridge_server::BridgeServer;
 use phone2act_proto::v1::cameras_server::CamerasServer;
 use phone2act_proto::v1::episodes_server::EpisodesServer;
 use phone2act_proto::v1::policy_server::PolicyServer;
+use phone2act_proto::v1::scene_server::SceneServer;
 use phone2act_proto::v1::system_server::SystemServer;
 use phone2act_proto::v1::teleop_server::TeleopServer;
 use std::future::Future;
+use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
+use tokio::io::DuplexStream;
 use tokio::net::TcpListener;
+use tokio_stream::Stream;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 
@@ -55,14 +64,28 @@ pub async fn bind(addr: std::net::SocketAddr) -> Result<TcpListener, ServerError
     })
 }
 
+/// Connections from clients in the same process (an in-memory pipe each, e.g. the SDK's
+/// `Client::in_process`): served exactly as TCP connections are, token check included.
+pub type LocalConnections = Pin<Box<dyn Stream<Item = std::io::Result<DuplexStream>> + Send>>;
+
 /// Serves `config` on `listener` until `shutdown` resolves, then gives open streams [`SHUTDOWN_GRACE`] to end.
 pub async fn run(
     config: Config,
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
+    run_with_local(config, listener, None, shutdown).await
+}
+
+/// [`run`], also serving the in-process connections of `in_process` (the embedded phone gateway's).
+pub async fn run_with_local(
+    config: Config,
+    listener: TcpListener,
+    in_process: Option<LocalConnections>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
     let app = Arc::new(App::start(config).map_err(|e| ServerError::Startup(e.to_string()))?);
-    serve_app(app, listener, shutdown).await
+    serve_app_with_local(app, listener, in_process, shutdown).await
 }
 
 /// Serves an already started [`App`] (benchmarks keep a handle on it to read the control-path counters).
@@ -71,11 +94,21 @@ pub async fn serve_app(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
+    serve_app_with_local(app, listener, None, shutdown).await
+}
+
+/// [`serve_app`], also serving the in-process connections of `in_process`.
+pub async fn serve_app_with_local(
+    app: Arc<App>,
+    listener: TcpListener,
+    in_process: Option<LocalConnections>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
     let local = listener
         .local_addr()
         .map_err(|e| ServerError::Startup(e.to_string()))?;
-    tracing::info!(addr = %local, arms = app.arms.len(), cameras = app.cameras.len(), "phone2act serving");
-    if let Some(warning) = services::auth::exposure_warning(local, app.config.server.token.is_some()) {
+    tracing::info!(addr = %local, arms = app.arms().len(), cameras = app.cameras().len(), "phone2act serving");
+    if let Some(warning) = services::auth::exposure_warning(local, app.config().server.token.is_some()) {
         tracing::warn!("{warning}");
     }
 
@@ -97,7 +130,7 @@ pub async fn serve_app(
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
-    let auth = services::auth::TokenCheck::new(app.config.server.token.clone());
+    let auth = services::auth::TokenCheck::new(app.config().server.token.clone());
     let system = SystemServer::with_interceptor(
         services::system::SystemService::new(Arc::clone(&app)),
         auth.clone(),
@@ -118,26 +151,29 @@ pub async fn serve_app(
         services::bridge::BridgeService::new(Arc::clone(&app)),
         auth.clone(),
     );
+    let scene =
+        SceneServer::with_interceptor(services::scene::SceneService::new(Arc::clone(&app)), auth.clone());
     let cameras = tonic::service::interceptor::InterceptedService::new(
         CamerasServer::new(services::cameras::CamerasService::new(Arc::clone(&app)))
             .max_decoding_message_size(MAX_FRAME_BYTES),
         auth,
     );
     tokio::spawn(arm::run_ticks(
-        app.arms.clone(),
+        app.arms().to_vec(),
         ARM_TICK_HZ,
         app.shutdown_signal(),
     ));
 
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let app_for_shutdown = Arc::clone(&app);
     tokio::spawn(async move {
         shutdown.await;
         app_for_shutdown.begin_shutdown();
-        let _ = stop_tx.send(());
     });
+    let stopping = |mut signal: tokio::sync::watch::Receiver<bool>| async move {
+        let _ = signal.wait_for(|stopping| *stopping).await;
+    };
 
-    let server = Server::builder()
+    let router = Server::builder()
         .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(reflection)
@@ -148,11 +184,28 @@ pub async fn serve_app(
         .add_service(episodes)
         .add_service(bridge)
         .add_service(cameras)
-        // `Server::tcp_nodelay` only applies to listeners tonic binds itself; without NODELAY on accepted
-        // sockets a reply written in two parts waits ~40 ms for the peer's delayed ACK.
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), async {
-            let _ = stop_rx.await;
-        });
+        .add_service(scene);
+    // Both transports share one router, so the services, their interceptors and the shutdown are the same.
+    let in_process = in_process.map(|incoming| {
+        router
+            .clone()
+            .serve_with_incoming_shutdown(incoming, stopping(app.shutdown_signal()))
+    });
+    // `Server::tcp_nodelay` only applies to listeners tonic binds itself; without NODELAY on accepted
+    // sockets a reply written in two parts waits ~40 ms for the peer's delayed ACK.
+    let tcp = router.serve_with_incoming_shutdown(
+        TcpIncoming::from(listener).with_nodelay(Some(true)),
+        stopping(app.shutdown_signal()),
+    );
+    let server = async move {
+        match in_process {
+            Some(in_process) => {
+                let (tcp, in_process) = tokio::join!(tcp, in_process);
+                tcp.and(in_process)
+            }
+            None => tcp.await,
+        }
+    };
     tokio::pin!(server);
     let mut shutdown_seen = app.shutdown_signal();
     let result = tokio::select! {

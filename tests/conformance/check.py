@@ -111,6 +111,10 @@ def check_common(root: Path, info: dict, ds, version: str):
                     fail(f"row {i}: {key} shape {tuple(item[key].shape)} != {spec['shape']}")
                 if not np.isfinite(item[key].numpy()).all():
                     fail(f"row {i}: {key} not finite")
+            elif spec["dtype"] == "bool":
+                # `next.success` and friends: a boolean scalar per frame, as lerobot's sim datasets have.
+                if str(item[key].dtype) != "torch.bool" or item[key].numel() != 1:
+                    fail(f"row {i}: {key} is {item[key].dtype} of {item[key].numel()} values, not one bool")
     if sorted(ep_len) != list(range(total_episodes)):
         fail(f"episodes in data {sorted(ep_len)} != 0..{total_episodes - 1}")
     for e, n in expect.get("lengths", {}).items():

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Loads every dataset the Rust tests produced with the real lerobot library and checks it (see check.py).
 # Datasets: directories with meta/info.json under $PHONE2ACT_CONFORMANCE_DIR (default
-# target/conformance-datasets). v3.0 datasets are read by the newest lerobot that installs here (0.4.4 on
-# Python 3.11), v2.1 datasets by lerobot 0.3.3 plus a GR00T-style check of modality.json and stats.json.
-# The Python environment is created on first use outside the checkout (tests/conformance/setup-venv.sh).
+# target/conformance-datasets). v3.0 datasets are read by lerobot 0.6.1 (Python >= 3.12, the venv the plugin
+# tests use), v2.1 datasets by lerobot 0.3.3 plus a GR00T-style check of modality.json and stats.json.
+# The Python environment is created on first use outside the checkout (tests/conformance/setup-venv.sh); with
+# no Python >= 3.12 the checks are reported as skipped, loudly, and exit 2.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 repo="$(cd "$here/../.." && pwd)"
@@ -29,7 +30,10 @@ if ((${#v30[@]} + ${#v21[@]} == 0)); then
   echo "0 passed, 1 failed"
   exit 1
 fi
-venv="$("$here/setup-venv.sh" | tail -n 1)"
+if ! venv="$("$here/setup-venv.sh" | tail -n 1)" || [[ ! -x "$venv/bin/python" ]]; then
+  echo "conformance: SKIPPED: no lerobot 0.6 venv (needs a Python >= 3.12; see above)" >&2
+  exit 2
+fi
 cache="$(dirname "$venv")"
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 # datasets caches Arrow copies of the parquet files; keep them out of the user's cache and fresh per run.

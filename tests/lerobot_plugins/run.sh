@@ -17,7 +17,7 @@ fi
   ./clients/lerobot_teleoperator_phone2act ./clients/replay
 
 if [[ -z "${PHONE2ACT_BIN:-}" ]]; then
-  cargo build --release -p phone2act-server --bin phone2act
+  cargo build --release -p phone2act-cli --bin phone2act
   PHONE2ACT_BIN="${CARGO_TARGET_DIR:-$REPO/target}/release/phone2act"
 fi
 export PHONE2ACT_BIN

@@ -5,8 +5,9 @@
 set -euo pipefail
 cache="${PHONE2ACT_CACHE_DIR:-$HOME/.cache/phone2act}"
 venv="$cache/lerobot06-venv"
-# The `dataset` extra: lerobot-record and lerobot-replay need it.
-spec="lerobot[dataset]==0.6.1"
+# The `dataset` extra: lerobot-record and lerobot-replay need it; `training`: lerobot-train (the closed-loop
+# benchmark, benchmarks/closed_loop).
+spec="lerobot[dataset,training]==0.6.1"
 mkdir -p "$cache"
 # A marker file written last (holding what was installed) means an interrupted or outdated install is redone
 # instead of half-used.

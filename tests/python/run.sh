@@ -16,7 +16,7 @@ fi
 "$VENV/bin/pip" install -q "${PY_REQ[@]}" ./sdk/python ./clients/gr00t ./clients/replay
 
 if [[ -z "${PHONE2ACT_BIN:-}" ]]; then
-  cargo build --release -p phone2act-server --bin phone2act
+  cargo build --release -p phone2act-cli --bin phone2act
   PHONE2ACT_BIN="${CARGO_TARGET_DIR:-$REPO/target}/release/phone2act"
 fi
 export PHONE2ACT_BIN

@@ -218,6 +218,7 @@ def test_asyncio_client(server: Server) -> None:
 PAIRS = [
     (client.Client, aio.AsyncClient),
     (client.Episodes, aio.AsyncEpisodes),
+    (client.Scene, aio.AsyncScene),
     (client.PolicySession, aio.AsyncPolicySession),
     (client.TeleopSession, aio.AsyncTeleopSession),
 ]

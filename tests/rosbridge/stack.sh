@@ -10,7 +10,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])'; }
 
 # Debug build: the same artefacts `cargo test` already built, so this costs seconds in the test run.
-(cd "$REPO" && cargo build --quiet -p phone2act-server --bin phone2act -p phone2act-gateway --bin phone2act-gateway)
+(cd "$REPO" && cargo build --quiet -p phone2act-cli --bin phone2act -p phone2act-gateway --bin phone2act-gateway)
 TARGET_DIR="$(cd "$REPO" && cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')"
 BIN="$TARGET_DIR/debug"
 

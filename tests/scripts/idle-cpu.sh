@@ -12,7 +12,7 @@ cd "$(dirname "$0")/../.."
 bin="${1:-$PWD/target/release/phone2act}"
 window_s="${2:-20}"
 bin="$(realpath "$bin")"
-[[ -x "$bin" ]] || { echo "no binary at $bin (cargo build --release -p phone2act-server --bin phone2act)" >&2; exit 2; }
+[[ -x "$bin" ]] || { echo "no binary at $bin (cargo build --release -p phone2act-cli --bin phone2act)" >&2; exit 2; }
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 clk_tck="$(getconf CLK_TCK)"

@@ -9,6 +9,11 @@ cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
 tests/scripts/lint-proto.sh
 tests/scripts/check-deps.py
+# No import cycle between the modules of any crate (the script prints the graph when it finds one).
+for src in server/src server/cli/src server/core/src server/recorder/src server/bridges/src server/clock/src \
+  proto/src sdk/rust/src clients/gateway/src; do
+  tests/scripts/check-module-cycles.py "$src" >/dev/null || tests/scripts/check-module-cycles.py "$src"
+done
 # Tests that write LeRobot datasets copy them here; tests/conformance/run.sh then loads each with lerobot.
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
@@ -24,20 +29,28 @@ fi
 passed=$(grep -Eo 'test result: ok\. [0-9]+ passed' /tmp/phone2act-cargo-test.log | awk '{s+=$4} END {print s+0}')
 echo "rust: ${passed} passed, 0 failed"
 # The Python, rosbridge and browser suites drive the release binary as a user would.
-cargo build --release -p phone2act-server --bin phone2act
+cargo build --release -p phone2act-cli --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
 tests/python/run.sh
-# The LeRobot plugins are tested with lerobot 0.6, which needs Python >= 3.12 (Debian 12 ships 3.11): they run
-# wherever such a Python exists (this machine kind has one under pyenv) and are reported as skipped, loudly,
-# where none does.
+# The LeRobot plugins, the closed loop (its short CI version: 2 demonstrations, a few training steps, one trial
+# per evaluation path) and the conformance checks use lerobot 0.6, which needs Python >= 3.12 (Debian 12 ships
+# 3.11): they run wherever such a Python exists (this machine kind has one under pyenv) and are reported as
+# skipped, loudly, where none does.
+have_lerobot06=0
 if tests/lerobot_plugins/setup-venv.sh --which-python >/dev/null; then
+  have_lerobot06=1
   tests/lerobot_plugins/run.sh
+  rm -rf target/closed-loop/ci
+  benchmarks/closed_loop/run.sh --short --out target/closed-loop/ci
+  # The operator's demonstrations (lerobot's SO-101 layout) are read back by the conformance checks too.
+  cp -r target/closed-loop/ci/dataset "$PHONE2ACT_CONFORMANCE_DIR/closed-loop-ci"
 else
-  echo "lerobot plugins: SKIPPED: no Python >= 3.12 for lerobot 0.6 (install one, e.g. with pyenv)" >&2
+  echo "lerobot plugins, closed loop, conformance: SKIPPED: no Python >= 3.12 for lerobot 0.6 (install one," \
+    "e.g. with pyenv)" >&2
 fi
 tests/scripts/test-packaging.sh
 tests/rosbridge/run.sh
 tests/browser/run.sh
-if [[ -x tests/conformance/run.sh ]]; then
+if ((have_lerobot06)); then
   tests/conformance/run.sh
 fi

@@ -1,5 +1,8 @@
 //! Helpers for phone2act's end-to-end tests: start a real server in-process on an ephemeral port and
-//! connect the real SDK to it.
+//! connect the real SDK to it; and the scripted operator ([`operator`]), a phone client that records
+//! pick-and-place demonstrations.
+
+pub mod operator;
 
 use phone2act_sdk::Client;
 use phone2act_server::Config;
@@ -18,13 +21,11 @@ pub fn default_config(dataset_root: &std::path::Path) -> Config {
 }
 
 /// The embedded default configuration exactly as shipped, with its dataset under `dataset_root`.
-/// In-process servers never start the phone gateway (only the binary does).
 pub fn embedded_default(dataset_root: &std::path::Path) -> Config {
     let mut config =
         Config::from_toml_str(phone2act_server::config::EMBEDDED_DEFAULT, "embedded", Vec::new())
             .expect("embedded default parses");
     dataset_root.clone_into(&mut config.recorder.root);
-    config.gateway.enabled = false;
     config
 }
 
@@ -134,6 +135,8 @@ fn copy_dir(from: &std::path::Path, to: &std::path::Path) -> std::io::Result<()>
 /// A server running in-process on 127.0.0.1 with an ephemeral port.
 pub struct TestServer {
     pub addr: SocketAddr,
+    /// An in-process connection to the server, as `phone2act serve` gives its embedded gateway.
+    in_process: Client,
     stop: Option<oneshot::Sender<()>>,
     task: Option<JoinHandle<Result<(), phone2act_server::ServerError>>>,
 }
@@ -146,11 +149,18 @@ impl TestServer {
         let (stop, stopped) = oneshot::channel::<()>();
         // Start the app here, not inside the spawned server, so a bad config fails the test with its message.
         let app = std::sync::Arc::new(phone2act_server::app::App::start(config)?);
-        let task = tokio::spawn(phone2act_server::serve_app(app, listener, async {
-            let _ = stopped.await;
-        }));
+        let (in_process, local) = Client::in_process(None)?;
+        let task = tokio::spawn(phone2act_server::serve_app_with_local(
+            app,
+            listener,
+            Some(Box::pin(local)),
+            async {
+                let _ = stopped.await;
+            },
+        ));
         Ok(Self {
             addr,
+            in_process,
             stop: Some(stop),
             task: Some(task),
         })
@@ -169,6 +179,13 @@ impl TestServer {
     /// A connected SDK client.
     pub async fn client(&self) -> anyhow::Result<Client> {
         Ok(Client::connect(&self.url(), None).await?)
+    }
+
+    /// An in-process client (no socket) sending `token`: what the embedded gateway uses.
+    pub fn in_process_client(&self, token: Option<&str>) -> Client {
+        self.in_process
+            .with_token(token)
+            .expect("token is a valid header value")
     }
 
     /// Requests shutdown and waits for the server to return.

@@ -169,8 +169,11 @@ struct MockGateway {
 async fn mock_gateway() -> MockGateway {
     let mock = MockServer::start(&["main"], Instant::now(), true).await.unwrap();
     // Every error goes back to the client, so the reply path is fuzzed too.
-    let gateway =
-        common::start_gateway(&mock.url(), None, |c| c.rosbridge_status_level = "info".into()).await;
+    let gateway = common::start_gateway(
+        phone2act_sdk::Client::connect_lazy(&mock.url(), &phone2act_sdk::ConnectOptions::default()).unwrap(),
+        |c| c.rosbridge_status_level = "info".into(),
+    )
+    .await;
     MockGateway {
         mock,
         info: gateway.info.clone(),

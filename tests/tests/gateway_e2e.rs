@@ -17,7 +17,7 @@ mod common;
 use common::RunningGateway;
 
 async fn start_gateway(server: &TestServer) -> RunningGateway {
-    common::start_gateway(&server.url(), None, |_| {}).await
+    common::start_gateway(server.in_process_client(None), |_| {}).await
 }
 
 async fn rosbridge(gw: &RunningGateway) -> WebSocketStream<TcpStream> {

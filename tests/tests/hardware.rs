@@ -22,7 +22,6 @@ fn dobot_config(emu: &DobotEmulator, dataset: &std::path::Path) -> Config {
         (cam.kind, cam.width, cam.height, cam.fps) = (CameraKind::TestPattern, 160, 128, 15.0);
     }
     dataset.clone_into(&mut config.recorder.root);
-    config.gateway.enabled = false;
     config
 }
 

@@ -65,7 +65,7 @@ async fn start_gateway(server: &TestServer, pair_for_s: u64) -> Running {
 
 /// Only 127.0.0.1 counts as this machine, so 127.0.0.2 plays the phone; the gateway holds the server's token.
 async fn start_gateway_with(server: &TestServer, tweak: impl FnOnce(&mut GatewayConfig)) -> Running {
-    common::start_gateway(&server.url(), Some(SERVER_TOKEN), |c| {
+    common::start_gateway(server.in_process_client(Some(SERVER_TOKEN)), |c| {
         c.local_addresses = Some(vec!["127.0.0.1".parse().unwrap()]);
         tweak(c);
     })
@@ -171,6 +171,43 @@ async fn unpaired_attempts(gw: &Running, query: &str) -> Vec<String> {
     let (texts, code) = until_closed(&mut app).await;
     assert_eq!(code, Some(CloseCode::Policy), "{texts:?}");
     texts
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_in_process_connection_checks_the_token_as_tcp_does() {
+    // The embedded gateway reaches the server without a socket; that must not be a way around the token.
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = default_config(dir.path());
+    config.server.token = Some(SERVER_TOKEN.into());
+    let server = TestServer::start(config).await.unwrap();
+    for token in [None, Some("not-the-token")] {
+        let err = server
+            .in_process_client(token)
+            .system()
+            .status()
+            .await
+            .unwrap_err();
+        assert!(
+            matches!(&err, phone2act_sdk::Error::Status(s) if s.code() == tonic::Code::Unauthenticated),
+            "{token:?}: {err}"
+        );
+        let mut teleop = server.in_process_client(token).teleop_raw();
+        let refused = teleop
+            .stream(tokio_stream::iter([v1::PhoneSample {
+                arm: "main".into(),
+                ..v1::PhoneSample::default()
+            }]))
+            .await
+            .unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::Unauthenticated, "{token:?}");
+    }
+    let status = server
+        .in_process_client(Some(SERVER_TOKEN))
+        .system()
+        .status()
+        .await
+        .unwrap();
+    assert_eq!(status.arms.len(), 1);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

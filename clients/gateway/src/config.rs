@@ -4,6 +4,7 @@
 //! LAN can reach: rosbridge on `0.0.0.0:9090` (what the Phone2Act app expects) and the phone page on
 //! `https://0.0.0.0:8443` with a self-signed certificate and a pairing token.
 
+use crate::GatewayError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::net::{IpAddr, SocketAddr};
@@ -104,6 +105,35 @@ impl Default for GatewayConfig {
             local_addresses: None,
             takeover_silence_ms: 300,
         }
+    }
+}
+
+impl GatewayConfig {
+    /// Reads the `[gateway]` table of a server config (defaults for what it leaves out) and validates it.
+    pub fn from_table(table: &toml::Table) -> Result<Self, GatewayError> {
+        let config: Self = toml::Value::Table(table.clone())
+            .try_into()
+            .map_err(|e: toml::de::Error| GatewayError::Config(format!("[gateway]: {}", e.message())))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The checks serde cannot make; every way of starting a gateway runs them.
+    pub fn validate(&self) -> Result<(), GatewayError> {
+        if crate::rosbridge::StatusLevel::parse(&self.rosbridge_status_level).is_none() {
+            return Err(GatewayError::Config(format!(
+                "gateway.rosbridge_status_level must be none, error, warning or info, not {:?}",
+                self.rosbridge_status_level
+            )));
+        }
+        // Below 1 KiB a rosbridge advertise with a long topic name is refused.
+        if !(1024..=HARD_MAX_MESSAGE_BYTES).contains(&self.max_message_bytes) {
+            return Err(GatewayError::Config(format!(
+                "gateway.max_message_bytes must be in 1024..={HARD_MAX_MESSAGE_BYTES}, got {}",
+                self.max_message_bytes
+            )));
+        }
+        Ok(())
     }
 }
 
@@ -255,5 +285,87 @@ mod tests {
             serde_json::from_str(r#"{"topics": {"namespaces": {"a": "arm_a"}}}"#).unwrap();
         assert_eq!(ok.topics.namespaces.len(), 1);
         assert_eq!(ok.rosbridge_listen.port(), 9090);
+    }
+
+    #[test]
+    fn a_server_config_table_gets_defaults_and_checks() {
+        let table: toml::Table = toml::from_str("print_qr = false\n").unwrap();
+        let config = GatewayConfig::from_table(&table).unwrap();
+        assert!(!config.print_qr);
+        assert_eq!(config.takeover_silence_ms, 300);
+        for (text, needle) in [
+            (
+                "max_message_bytes = 1000000000000",
+                "gateway.max_message_bytes must be in 1024..=16777216",
+            ),
+            ("max_message_bytes = 1000", "got 1000"),
+            ("rosbridge_status_level = \"loud\"", "rosbridge_status_level"),
+            ("rosbrige = true", "unknown field"),
+        ] {
+            let err = GatewayConfig::from_table(&toml::from_str(text).unwrap())
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(needle), "{text}: {err}");
+        }
+    }
+
+    /// Key paths of the leaves of `table` (the user's namespace map counts as one key).
+    fn leaf_keys(table: &toml::Table, prefix: &str, out: &mut std::collections::BTreeSet<String>) {
+        for (key, value) in table {
+            let path = format!("{prefix}{key}");
+            match value {
+                toml::Value::Table(inner) if key != "namespaces" => {
+                    leaf_keys(inner, &format!("{path}."), out);
+                }
+                _ => {
+                    out.insert(path);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_server_reference_config_shows_every_gateway_key_and_no_other() {
+        // The server's reference config documents the `[gateway]` table; its commented examples
+        // (`# token = "change-me"`) count as shown.
+        let reference = include_str!("../../../server/config/reference.toml");
+        let (_, after) = reference
+            .split_once("\n[gateway]\n")
+            .expect("reference has [gateway]");
+        let section: String = std::iter::once("[gateway]")
+            .chain(after.lines())
+            .take_while(|l| !l.starts_with('[') || l.starts_with("[gateway"))
+            .map(|l| match l.strip_prefix("# ") {
+                Some(example)
+                    if example
+                        .split_once(" = ")
+                        .is_some_and(|(k, _)| k.chars().all(|c| c.is_ascii_lowercase() || c == '_')) =>
+                {
+                    example
+                }
+                _ => l,
+            })
+            .collect::<Vec<_>>()
+            .join("\n");
+        let parsed: toml::Table = toml::from_str(&section).unwrap();
+        let shown_table = parsed["gateway"].as_table().unwrap();
+        // Unknown keys are refused by the type itself.
+        GatewayConfig::from_table(shown_table).unwrap();
+        let populated = GatewayConfig {
+            cert_dir: Some("d".into()),
+            cert_file: Some("c".into()),
+            key_file: Some("k".into()),
+            token: Some("t".into()),
+            public_host: Some("h".into()),
+            local_addresses: Some(Vec::new()),
+            ..GatewayConfig::default()
+        };
+        let (mut every, mut shown) = Default::default();
+        leaf_keys(&toml::Table::try_from(&populated).unwrap(), "", &mut every);
+        leaf_keys(shown_table, "", &mut shown);
+        assert_eq!(
+            every, shown,
+            "server/config/reference.toml [gateway] against GatewayConfig"
+        );
     }
 }

@@ -1,7 +1,7 @@
 //! Turning server state (`TeleopFeedback`, `ArmState`, `RecordingStatus`) into the JSON the phone page and
 //! rosbridge status subscribers read. Field names are short and stable: the page is the only consumer.
 
-use phone2act_proto::v1::{ArmState, GateVerdict, Pose, RecordingPhase, RecordingStatus, TeleopFeedback};
+use phone2act_proto::v1::{ArmState, GateVerdict, Pose, RecordingStatus, TeleopFeedback};
 use serde_json::{Value, json};
 
 /// Position and quaternion of a wire pose, identity when absent.
@@ -26,23 +26,13 @@ fn verdict_name(verdict: i32) -> &'static str {
     }
 }
 
-fn phase_name(phase: i32) -> &'static str {
-    match RecordingPhase::try_from(phase).unwrap_or(RecordingPhase::Unspecified) {
-        RecordingPhase::Unspecified => "unknown",
-        RecordingPhase::Idle => "idle",
-        RecordingPhase::Recording => "recording",
-        RecordingPhase::Paused => "paused",
-        RecordingPhase::Saving => "saving",
-    }
-}
-
 /// Recorder state as JSON.
 pub fn recording_json(rec: Option<&RecordingStatus>) -> Value {
     let Some(rec) = rec else {
         return json!({"phase": "unknown"});
     };
     json!({
-        "phase": phase_name(rec.phase),
+        "phase": phone2act_proto::convert_episode::phase_name(rec.phase),
         "task": rec.task,
         "episode": rec.episode_index,
         "frames": rec.frames_recorded,
@@ -112,7 +102,7 @@ mod tests {
                 ..ArmState::default()
             }),
             recording: Some(RecordingStatus {
-                phase: RecordingPhase::Recording.into(),
+                phase: phone2act_proto::v1::RecordingPhase::Recording.into(),
                 task: "pick".into(),
                 ..RecordingStatus::default()
             }),

@@ -19,13 +19,17 @@
 pub mod config;
 mod conn;
 pub mod feedback;
+/// A stand-in server for tests and `gateway-bench` only: not in the product (`--features mock`).
+#[cfg(feature = "mock")]
 pub mod mock_server;
 mod native;
 pub mod pairing;
+mod ros_topics;
 pub mod rosbridge;
 mod rosbridge_conn;
 mod server;
 pub mod session;
+mod shared;
 pub mod takeover;
 pub mod tls;
 mod upstream;

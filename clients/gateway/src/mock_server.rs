@@ -18,7 +18,7 @@ use std::net::SocketAddr;
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, watch};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
@@ -54,7 +54,8 @@ struct Mock {
 pub struct MockServer {
     pub addr: SocketAddr,
     state: Arc<Mutex<State>>,
-    stop: Option<oneshot::Sender<()>>,
+    mock: Mock,
+    stop: watch::Sender<bool>,
 }
 
 impl MockServer {
@@ -91,23 +92,44 @@ impl MockServer {
             epoch,
             record_samples,
         };
-        let (stop, stopped) = oneshot::channel::<()>();
-        // As in the real server: `Server::tcp_nodelay` does not reach a listener the caller bound, and without
-        // NODELAY each feedback message waits for the client's next packet to carry the ACK.
-        let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-        tokio::spawn(
-            tonic::transport::Server::builder()
-                .add_service(TeleopServer::new(mock.clone()))
-                .add_service(SystemServer::new(mock))
-                .serve_with_incoming_shutdown(incoming, async {
-                    let _ = stopped.await;
-                }),
-        );
-        Ok(Self {
+        let (stop, _) = watch::channel(false);
+        let server = Self {
             addr,
             state,
-            stop: Some(stop),
-        })
+            mock,
+            stop,
+        };
+        // As in the real server: `Server::tcp_nodelay` does not reach a listener the caller bound, and without
+        // NODELAY each feedback message waits for the client's next packet to carry the ACK.
+        server.serve(tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)));
+        Ok(server)
+    }
+
+    /// Also serves the in-process connections of an SDK [`phone2act_sdk::Client::in_process`] client, as
+    /// `phone2act serve` does for its embedded gateway.
+    pub fn serve_in_process(&self, incoming: phone2act_sdk::LocalIncoming) {
+        self.serve(incoming);
+    }
+
+    fn serve<S, IO>(&self, incoming: S)
+    where
+        S: tokio_stream::Stream<Item = std::io::Result<IO>> + Send + 'static,
+        IO: tokio::io::AsyncRead
+            + tokio::io::AsyncWrite
+            + tonic::transport::server::Connected
+            + Unpin
+            + Send
+            + 'static,
+    {
+        let mut stopped = self.stop.subscribe();
+        tokio::spawn(
+            tonic::transport::Server::builder()
+                .add_service(TeleopServer::new(self.mock.clone()))
+                .add_service(SystemServer::new(self.mock.clone()))
+                .serve_with_incoming_shutdown(incoming, async move {
+                    let _ = stopped.wait_for(|stop| *stop).await;
+                }),
+        );
     }
 
     /// `http://addr`.
@@ -151,9 +173,7 @@ impl MockServer {
 impl Drop for MockServer {
     fn drop(&mut self) {
         self.state.lock().expect("mock poisoned").killed = true;
-        if let Some(stop) = self.stop.take() {
-            let _ = stop.send(());
-        }
+        self.stop.send_replace(true);
     }
 }
 

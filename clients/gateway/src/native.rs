@@ -11,18 +11,13 @@
 use crate::conn::{Handler, Wiring};
 use crate::feedback::page_feedback;
 use crate::rosbridge::parse_json;
-use crate::server::Shared;
 use crate::session::{Session, SessionEvent};
-use phone2act_proto::v1::{
-    ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, RecordCommand, TrackingState,
-    button_event, clutch_command, gripper_command, record_command,
-};
+use crate::shared::Shared;
+use phone2act_proto::v1::{ButtonEvent, PhoneSample, Pose, TrackingState, clutch_command, record_command};
+use phone2act_proto::{MAX_TASK_BYTES, buttons};
 use serde::Deserialize;
 use serde_json::{Value, json};
 use std::sync::Arc;
-
-/// Task text limit of `RecordCommand`.
-const MAX_TASK_BYTES: usize = 4096;
 
 #[derive(Debug, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
@@ -60,31 +55,21 @@ fn finite<const N: usize>(values: [Option<f64>; N]) -> Option<[f64; N]> {
 }
 
 fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
-    let event = if let Some(c) = v.get("clutch") {
+    if let Some(c) = v.get("clutch") {
         let kind = match c.as_str() {
             Some("engage") => clutch_command::Kind::Engage,
             Some("disengage") => clutch_command::Kind::Disengage,
             Some("toggle") => clutch_command::Kind::Toggle,
             _ => return Err(format!("clutch must be engage, disengage or toggle, got {c}")),
         };
-        button_event::Event::Clutch(ClutchCommand { kind: kind.into() })
+        Ok(buttons::clutch(kind))
     } else if let Some(g) = v.get("gripper") {
         match (g.as_str(), g.as_f64()) {
-            (Some("toggle"), _) => button_event::Event::Gripper(GripperCommand {
-                kind: gripper_command::Kind::Toggle.into(),
-                position: 0.0,
-            }),
-            (_, Some(position)) if (0.0..=1.0).contains(&position) => {
-                button_event::Event::Gripper(GripperCommand {
-                    kind: gripper_command::Kind::Set.into(),
-                    position,
-                })
-            }
-            _ => {
-                return Err(format!(
-                    "gripper must be \"toggle\" or a number in [0, 1], got {g}"
-                ));
-            }
+            (Some("toggle"), _) => Ok(buttons::gripper_toggle()),
+            (_, Some(position)) if (0.0..=1.0).contains(&position) => Ok(buttons::gripper_set(position)),
+            _ => Err(format!(
+                "gripper must be \"toggle\" or a number in [0, 1], got {g}"
+            )),
         }
     } else if let Some(r) = v.get("record") {
         let task = v.get("task").and_then(Value::as_str).unwrap_or_default();
@@ -102,14 +87,10 @@ fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
             Some("discard") => record_command::Kind::Discard,
             _ => return Err(format!("record must be start, stop or discard, got {r}")),
         };
-        button_event::Event::Record(RecordCommand {
-            kind: kind.into(),
-            task: task.to_owned(),
-        })
+        Ok(buttons::record(kind, task))
     } else {
-        return Err(format!("unknown button {v}"));
-    };
-    Ok(ButtonEvent { event: Some(event) })
+        Err(format!("unknown button {v}"))
+    }
 }
 
 /// Converts a page sample into a wire sample, or says what is wrong with it.
@@ -316,7 +297,7 @@ mod tests {
             "the gateway must not remap axes"
         );
         assert_eq!(s.buttons.len(), 3);
-        let Some(button_event::Event::Record(r)) = &s.buttons[2].event else {
+        let Some(phone2act_proto::v1::button_event::Event::Record(r)) = &s.buttons[2].event else {
             panic!()
         };
         assert_eq!(r.task, "pick the ball");

@@ -44,6 +44,8 @@ pub enum Op {
     },
     CallService {
         service: String,
+        /// The request's fields (`null` when the client sent none).
+        args: Value,
     },
     SetLevel {
         level: StatusLevel,
@@ -216,6 +218,7 @@ fn parse_op(obj: &Map<String, Value>) -> Result<Op, WireError> {
         },
         "call_service" => Op::CallService {
             service: str_field(obj, "service")?.to_owned(),
+            args: obj.get("args").cloned().unwrap_or(Value::Null),
         },
         "set_level" => Op::SetLevel {
             level: StatusLevel::parse(str_field(obj, "level")?)
@@ -378,6 +381,23 @@ pub fn service_failure(service: &str, message: &str, id: Option<&Value>) -> Stri
     if let Some(id) = id {
         v["id"] = id.clone();
     }
+    v.to_string()
+}
+
+/// `{"op":"service_response", ...}` for a successful call.
+pub fn service_success(service: &str, values: Value, id: Option<&Value>) -> String {
+    let mut v = json!({"op": "service_response", "service": service, "result": true});
+    v["values"] = values;
+    if let Some(id) = id {
+        v["id"] = id.clone();
+    }
+    v.to_string()
+}
+
+/// `{"op":"publish", ...}` of any message.
+pub fn publish(topic: &str, msg: Value) -> String {
+    let mut v = json!({"op": "publish", "topic": topic});
+    v["msg"] = msg;
     v.to_string()
 }
 

@@ -1,26 +1,30 @@
 //! A rosbridge v2 client connection: publishes on mapped topics become teleop samples for the arm the topic's
-//! namespace names; subscriptions to the feedback topics are served from `System.WatchStatus`.
+//! namespace names; subscriptions to the feedback topics, `/joint_states` and `/tf` are served from
+//! `System.WatchStatus`, camera topics from `Policy.GetObservation` (see `ros_topics`).
 //!
 //! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`) to clients that asked for
 //! them with `set_level` (or to every client when `rosbridge_status_level` says so). rosbridge never sends
 //! `status`, and roslibpy raises on an op it has no handler for, so unasked status would break such clients.
 
 use crate::config::TopicRole;
-use crate::conn::{Handler, Wiring};
+use crate::conn::{Handler, Out, Wiring};
 use crate::feedback::{arm_json, pose_parts, recording_json};
+use crate::ros_topics::{self, Builtin};
 use crate::rosbridge::{self, Op, StatusLevel, WireError};
-use crate::server::Shared;
 use crate::session::{Session, SessionEvent};
+use crate::shared::Shared;
 use crate::takeover::Claim;
+use crate::upstream::Upstream;
+use phone2act_proto::buttons;
 use phone2act_proto::v1::{
-    ButtonEvent, ClutchCommand, GripperCommand, PhoneSample, Pose, SystemStatus, TrackingState,
-    WatchStatusRequest, button_event, clutch_command, gripper_command,
+    ButtonEvent, GetObservationRequest, GetStatusRequest, ImageEncoding, PhoneSample, Pose, SystemStatus,
+    TrackingState, WatchStatusRequest, clutch_command,
 };
 use serde_json::Value;
 use std::collections::{HashMap, HashSet};
 use std::net::IpAddr;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::task::JoinHandle;
 
 /// After the server refuses an arm, publishes to it are dropped for this long instead of opening a new
@@ -28,14 +32,35 @@ use tokio::task::JoinHandle;
 const REFUSED_BACKOFF: Duration = Duration::from_secs(2);
 /// Rate of the status watch behind subscriptions.
 const WATCH_INTERVAL_S: f64 = 0.05;
+/// Fastest camera image rate per subscription (10 Hz): a JPEG as base64 JSON is tens of kB, and a viewer
+/// on Wi-Fi gains nothing from the recorder's full rate.
+const MIN_CAMERA_PERIOD: Duration = Duration::from_millis(100);
+
+/// Where a subscribed topic's messages come from.
+#[derive(Debug)]
+enum Source {
+    /// A per-arm feedback topic of the topic map.
+    Arm { arm: String, role: TopicRole },
+    /// `/joint_states`, `/tf` or a camera (see `ros_topics`).
+    Builtin(Builtin),
+}
 
 #[derive(Debug)]
 struct Subscription {
-    arm: String,
-    role: TopicRole,
+    source: Source,
     ids: HashSet<String>,
     throttle: Duration,
     last_sent: Option<Instant>,
+    /// The camera poller behind an image topic, stopped when the last subscriber leaves.
+    poller: Option<JoinHandle<()>>,
+}
+
+impl Drop for Subscription {
+    fn drop(&mut self) {
+        if let Some(p) = self.poller.take() {
+            p.abort();
+        }
+    }
 }
 
 /// State of one rosbridge socket.
@@ -87,10 +112,17 @@ impl RosbridgeHandler {
     fn handle(&mut self, id: Option<&Value>, op: Op) -> Result<(), WireError> {
         match op {
             Op::Advertise { topic, msg_type } => {
-                if let Some((_, role)) = self.resolve(&topic) {
+                let known = self.resolve(&topic);
+                if let Some((_, role)) = known {
                     check_type(&topic, role, &msg_type)?;
                 }
-                self.advertised.insert(topic, msg_type);
+                self.advertised.insert(topic.clone(), msg_type);
+                if known.is_none() {
+                    // Kept advertised (the app streams IMU topics we do not use), but said once, here.
+                    return Err(WireError(format!(
+                        "unknown topic {topic}: the gateway ignores what is published on it"
+                    )));
+                }
             }
             Op::Unadvertise { topic } => {
                 self.advertised.remove(&topic);
@@ -102,27 +134,57 @@ impl RosbridgeHandler {
                 msg_type,
                 throttle_rate_ms,
             } => {
-                let Some((arm, role)) = self.resolve(&topic).filter(|(_, r)| r.is_output()) else {
-                    self.status(
-                        StatusLevel::Warning,
-                        &format!("no data is published on {topic}"),
-                        id,
-                    );
-                    return Ok(());
+                let source = if let Some(builtin) = Builtin::resolve(&topic) {
+                    if let Some(t) = msg_type.as_deref().filter(|t| *t != builtin.msg_type()) {
+                        return Err(WireError(format!(
+                            "{topic} carries {}, not {t}",
+                            builtin.msg_type()
+                        )));
+                    }
+                    Source::Builtin(builtin)
+                } else if let Some((arm, role)) = self.resolve(&topic).filter(|(_, r)| r.is_output()) {
+                    if let Some(t) = &msg_type {
+                        check_type(&topic, role, t)?;
+                    }
+                    Source::Arm { arm, role }
+                } else {
+                    return Err(WireError(format!(
+                        "unknown topic {topic}: nothing is published on it (call /rosapi/topics for the list)"
+                    )));
                 };
-                if let Some(t) = &msg_type {
-                    check_type(&topic, role, t)?;
-                }
-                let sub = self.subscriptions.entry(topic).or_insert_with(|| Subscription {
-                    arm,
-                    role,
-                    ids: HashSet::new(),
-                    throttle: Duration::ZERO,
-                    last_sent: None,
-                });
+                let throttle = Duration::from_millis(throttle_rate_ms);
+                let camera = match &source {
+                    Source::Builtin(Builtin::Camera(name)) => Some(name.clone()),
+                    _ => None,
+                };
+                let sub = self
+                    .subscriptions
+                    .entry(topic.clone())
+                    .or_insert_with(|| Subscription {
+                        source,
+                        ids: HashSet::new(),
+                        throttle,
+                        last_sent: None,
+                        poller: None,
+                    });
                 sub.ids.insert(sub_id.unwrap_or_default());
-                sub.throttle = Duration::from_millis(throttle_rate_ms);
-                self.ensure_watcher();
+                sub.throttle = throttle;
+                match camera {
+                    Some(name) => {
+                        // A new throttle takes effect by restarting the poller.
+                        if let Some(p) = sub.poller.take() {
+                            p.abort();
+                        }
+                        sub.poller = Some(spawn_camera_poller(
+                            self.shared.upstream.clone(),
+                            self.wiring.out.clone(),
+                            topic,
+                            name,
+                            throttle,
+                        ));
+                    }
+                    None => self.ensure_watcher(),
+                }
             }
             Op::Unsubscribe { topic, sub_id } => {
                 if let Some(sub) = self.subscriptions.get_mut(&topic) {
@@ -136,23 +198,64 @@ impl RosbridgeHandler {
                         self.subscriptions.remove(&topic);
                     }
                 }
-                if self.subscriptions.is_empty()
+                if !self
+                    .subscriptions
+                    .values()
+                    .any(|s| !matches!(s.source, Source::Builtin(Builtin::Camera(_))))
                     && let Some(w) = self.watcher.take()
                 {
                     w.abort();
                 }
             }
-            Op::CallService { service } => {
-                self.wiring.out.text(rosbridge::service_failure(
-                    &service,
-                    &format!("service {service} is not provided by the phone2act gateway"),
-                    id,
-                ));
-            }
+            Op::CallService { service, args } => self.call_service(service, args, id),
             Op::SetLevel { level } => self.level = level,
             Op::Ignored => {}
         }
         Ok(())
+    }
+
+    /// Answers the `rosapi` services; the topic list needs the server's arms and cameras, so those calls
+    /// are answered from a task once `System.GetStatus` returns.
+    fn call_service(&self, service: String, args: Value, id: Option<&Value>) {
+        let out = self.wiring.out.clone();
+        let id = id.cloned();
+        if !ros_topics::needs_catalogue(&service) {
+            let reply = match ros_topics::rosapi_values(&service, &args, &[], wall_now_ns()) {
+                Some(values) => rosbridge::service_success(&service, values, id.as_ref()),
+                None => rosbridge::service_failure(
+                    &service,
+                    &format!("service {service} is not provided by the phone2act gateway"),
+                    id.as_ref(),
+                ),
+            };
+            out.text(reply);
+            return;
+        }
+        let shared = self.shared.clone();
+        tokio::spawn(async move {
+            let reply = match shared.upstream.system().get_status(GetStatusRequest {}).await {
+                Ok(status) => {
+                    let status = status.into_inner();
+                    let arms: Vec<String> = status.arms.iter().map(|a| a.arm.clone()).collect();
+                    let cameras: Vec<String> = status.cameras.iter().map(|c| c.camera.clone()).collect();
+                    let catalogue = ros_topics::catalogue(
+                        &shared.config.topics,
+                        &shared.config.default_arm,
+                        &arms,
+                        &cameras,
+                    );
+                    let values = ros_topics::rosapi_values(&service, &args, &catalogue, wall_now_ns())
+                        .unwrap_or(Value::Null);
+                    rosbridge::service_success(&service, values, id.as_ref())
+                }
+                Err(status) => rosbridge::service_failure(
+                    &service,
+                    &format!("the phone2act server did not answer: {}", status.message()),
+                    id.as_ref(),
+                ),
+            };
+            out.text(reply);
+        });
     }
 
     fn resolve(&self, topic: &str) -> Option<(String, TopicRole)> {
@@ -199,7 +302,7 @@ impl RosbridgeHandler {
                     self.client_name = "phone2act-android";
                     self.client_name.clone_into(&mut sample.client_name);
                 }
-                sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(|| self.shared.now_ns());
+                sample.capture_time_ns = pose.stamp_ns.unwrap_or_else(phone2act_clock::monotonic_ns);
                 // Raw, in the phone's tracking frame: the server's planner owns the axis mapping.
                 sample.tracking_from_phone = Some(Pose::from_parts(pose.position_m, pose.quat_xyzw));
                 sample.tracking = TrackingState::Tracking.into();
@@ -221,11 +324,11 @@ impl RosbridgeHandler {
                 if !(0.0..=1.0).contains(&position) {
                     return Err(WireError(format!("gripper position {position} outside [0, 1]")));
                 }
-                sample.buttons.push(gripper(gripper_command::Kind::Set, position));
+                sample.buttons.push(buttons::gripper_set(position));
             }
             TopicRole::Clutch => {
                 let engage = rosbridge::parse_bool(msg)?;
-                sample.buttons.push(clutch(if engage {
+                sample.buttons.push(buttons::clutch(if engage {
                     clutch_command::Kind::Engage
                 } else {
                     clutch_command::Kind::Disengage
@@ -339,6 +442,54 @@ impl Drop for RosbridgeHandler {
     }
 }
 
+/// Nanoseconds since the Unix epoch: ROS tools want wall-clock stamps.
+fn wall_now_ns() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+}
+
+/// Fetches one camera's JPEG through `Policy.GetObservation` (read-only: it takes no control) every
+/// `throttle` (at least `MIN_CAMERA_PERIOD`) and publishes it, until aborted by the last unsubscribe.
+fn spawn_camera_poller(
+    upstream: Upstream,
+    out: Out,
+    topic: String,
+    camera: String,
+    throttle: Duration,
+) -> JoinHandle<()> {
+    let period = throttle.max(MIN_CAMERA_PERIOD);
+    tokio::spawn(async move {
+        let mut warned = false;
+        loop {
+            let request = GetObservationRequest {
+                arms: Vec::new(),
+                image_encoding: ImageEncoding::Jpeg.into(),
+                cameras: vec![camera.clone()],
+            };
+            match upstream.policy().get_observation(request).await {
+                Ok(observation) => {
+                    let frame = observation
+                        .into_inner()
+                        .frames
+                        .into_iter()
+                        .find(|f| f.camera == camera);
+                    if let Some(frame) = frame.filter(|f| !f.data.is_empty()) {
+                        let msg = ros_topics::compressed_image(&camera, &frame.data, wall_now_ns());
+                        out.text(rosbridge::publish(&topic, msg));
+                    }
+                }
+                Err(status) if !warned => {
+                    warned = true;
+                    tracing::warn!(camera, %status, "rosbridge: camera image unavailable");
+                }
+                Err(_) => {}
+            }
+            tokio::time::sleep(period).await;
+        }
+    })
+}
+
 fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireError> {
     if msg_type == role.msg_type() {
         Ok(())
@@ -356,28 +507,13 @@ fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireEr
 fn volume_buttons(state: [i64; 2]) -> Vec<ButtonEvent> {
     let [up, down] = state;
     vec![
-        gripper(gripper_command::Kind::Set, if up == 0 { 1.0 } else { 0.0 }),
-        clutch(if down == 1 {
+        buttons::gripper_set(if up == 0 { 1.0 } else { 0.0 }),
+        buttons::clutch(if down == 1 {
             clutch_command::Kind::Disengage
         } else {
             clutch_command::Kind::Engage
         }),
     ]
-}
-
-fn gripper(kind: gripper_command::Kind, position: f64) -> ButtonEvent {
-    ButtonEvent {
-        event: Some(button_event::Event::Gripper(GripperCommand {
-            kind: kind.into(),
-            position,
-        })),
-    }
-}
-
-fn clutch(kind: clutch_command::Kind) -> ButtonEvent {
-    ButtonEvent {
-        event: Some(button_event::Event::Clutch(ClutchCommand { kind: kind.into() })),
-    }
 }
 
 impl Handler for RosbridgeHandler {
@@ -447,6 +583,7 @@ impl Handler for RosbridgeHandler {
 
     fn on_status(&mut self, status: Box<SystemStatus>) {
         let now = Instant::now();
+        let wall_ns = wall_now_ns();
         for (topic, sub) in &mut self.subscriptions {
             if sub
                 .last_sent
@@ -454,12 +591,28 @@ impl Handler for RosbridgeHandler {
             {
                 continue;
             }
-            let Some(arm) = status.arms.iter().find(|a| a.arm == sub.arm) else {
+            let (arm_name, role) = match &sub.source {
+                Source::Arm { arm, role } => (arm, *role),
+                Source::Builtin(Builtin::JointStates) => {
+                    sub.last_sent = Some(now);
+                    let msg = ros_topics::joint_states(&status, wall_ns);
+                    self.wiring.out.text(rosbridge::publish(topic, msg));
+                    continue;
+                }
+                Source::Builtin(Builtin::Tf) => {
+                    sub.last_sent = Some(now);
+                    let msg = ros_topics::tf(&status, wall_ns);
+                    self.wiring.out.text(rosbridge::publish(topic, msg));
+                    continue;
+                }
+                Source::Builtin(Builtin::Camera(_)) => continue,
+            };
+            let Some(arm) = status.arms.iter().find(|a| &a.arm == arm_name) else {
                 continue;
             };
-            let text = match sub.role {
+            let text = match role {
                 TopicRole::RobotFeedback | TopicRole::TargetPose => {
-                    let pose = if sub.role == TopicRole::RobotFeedback {
+                    let pose = if role == TopicRole::RobotFeedback {
                         &arm.robot_from_ee
                     } else {
                         &arm.robot_from_target

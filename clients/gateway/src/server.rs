@@ -7,6 +7,7 @@ use crate::native::PageHandler;
 use crate::pairing::{Admission, Pairing};
 use crate::rosbridge::{self, StatusLevel};
 use crate::rosbridge_conn::RosbridgeHandler;
+use crate::shared::Shared;
 use crate::takeover::Holders;
 use crate::tls;
 use crate::upstream::Upstream;
@@ -25,41 +26,9 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
-
-/// State shared by every socket.
-#[derive(Debug)]
-pub struct Shared {
-    pub config: GatewayConfig,
-    pub upstream: Upstream,
-    pub token: Option<String>,
-    pub pairing: Pairing,
-    pub holders: Holders,
-    /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
-    pub rosbridge_port: Option<u16>,
-    connections: AtomicU64,
-    shutdown: watch::Receiver<bool>,
-    epoch: Instant,
-}
-
-impl Shared {
-    /// Gateway monotonic time, for samples that carry no capture time.
-    pub fn now_ns(&self) -> i64 {
-        self.epoch.elapsed().as_nanos() as i64
-    }
-
-    /// A fresh id for a socket.
-    pub fn next_connection(&self) -> u64 {
-        self.connections.fetch_add(1, Ordering::Relaxed)
-    }
-
-    /// How long a rosbridge arm holder must be silent before its own address may take the arm over.
-    pub fn takeover_silence(&self) -> Duration {
-        Duration::from_millis(self.config.takeover_silence_ms)
-    }
-}
 
 /// Listeners bound by the caller (tests use port 0). An endpoint without a listener is not served.
 #[derive(Debug, Default)]
@@ -91,12 +60,26 @@ pub struct Gateway {
 }
 
 impl Gateway {
-    /// Binds the listeners the config enables.
+    /// Binds the listeners the config enables; phones reach the server at `server_url` over the network.
     pub async fn bind(
         config: GatewayConfig,
         server_url: &str,
         grpc_token: Option<&str>,
     ) -> Result<Self, GatewayError> {
+        Self::bind_upstream(config, Upstream::new(server_url, grpc_token)?).await
+    }
+
+    /// Binds the listeners the config enables; phones reach the server through `client` (for a server in
+    /// the same process: [`phone2act_sdk::Client::in_process`]). The phones' own addresses still decide
+    /// pairing and take-over: those rules live here, not in the server.
+    pub async fn bind_client(
+        config: GatewayConfig,
+        client: phone2act_sdk::Client,
+    ) -> Result<Self, GatewayError> {
+        Self::bind_upstream(config, Upstream::from_client(client)).await
+    }
+
+    async fn bind_upstream(config: GatewayConfig, upstream: Upstream) -> Result<Self, GatewayError> {
         let bind = |addr: SocketAddr| async move {
             tokio::net::TcpListener::bind(addr)
                 .await
@@ -112,7 +95,7 @@ impl Gateway {
         } else {
             None
         };
-        Self::with_listeners(config, server_url, grpc_token, Listeners { rosbridge, https })
+        Self::with_upstream(config, upstream, Listeners { rosbridge, https })
     }
 
     /// Uses listeners bound by the caller; `config`'s listen addresses and enable flags are ignored.
@@ -122,18 +105,24 @@ impl Gateway {
         grpc_token: Option<&str>,
         listeners: Listeners,
     ) -> Result<Self, GatewayError> {
-        if StatusLevel::parse(&config.rosbridge_status_level).is_none() {
-            return Err(GatewayError::Config(format!(
-                "rosbridge_status_level must be none, error, warning or info, not {:?}",
-                config.rosbridge_status_level
-            )));
-        }
-        if config.max_message_bytes == 0 || config.max_message_bytes > HARD_MAX_MESSAGE_BYTES {
-            return Err(GatewayError::Config(format!(
-                "max_message_bytes must be between 1 and {HARD_MAX_MESSAGE_BYTES}"
-            )));
-        }
-        let upstream = Upstream::new(server_url, grpc_token)?;
+        Self::with_upstream(config, Upstream::new(server_url, grpc_token)?, listeners)
+    }
+
+    /// [`Gateway::with_listeners`] reaching the server through `client` (see [`Gateway::bind_client`]).
+    pub fn with_client(
+        config: GatewayConfig,
+        client: phone2act_sdk::Client,
+        listeners: Listeners,
+    ) -> Result<Self, GatewayError> {
+        Self::with_upstream(config, Upstream::from_client(client), listeners)
+    }
+
+    fn with_upstream(
+        config: GatewayConfig,
+        upstream: Upstream,
+        listeners: Listeners,
+    ) -> Result<Self, GatewayError> {
+        config.validate()?;
         let cert_dir = config.cert_dir.clone().unwrap_or_else(tls::default_cert_dir);
         let local =
             |l: &tokio::net::TcpListener| l.local_addr().map_err(|e| GatewayError::Config(e.to_string()));
@@ -181,7 +170,6 @@ impl Gateway {
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
             connections: AtomicU64::new(1),
             shutdown,
-            epoch: Instant::now(),
         });
         Ok(Self {
             shared,

@@ -6,6 +6,7 @@
 //! they are carried over into the newer sample, because a lost "stop recording" is worse than a late one.
 
 use crate::upstream::Upstream;
+use phone2act_proto::PendingSample;
 use phone2act_proto::v1::{PhoneSample, TeleopFeedback};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -40,7 +41,7 @@ pub enum SessionEvent {
 
 #[derive(Debug, Default)]
 struct SlotState {
-    pending: Option<PhoneSample>,
+    pending: PendingSample,
     closed: bool,
 }
 
@@ -53,27 +54,14 @@ pub struct Slot {
 }
 
 impl Slot {
-    /// Offers a sample. A pending one is replaced, keeping its button events (in order, before the new ones)
-    /// and its pose when the new sample carries none.
-    pub fn put(&self, mut sample: PhoneSample) {
+    /// Offers a sample. A pending one is folded into it ([`PendingSample::push`]: the newest pose wins, every
+    /// button event survives in order).
+    pub fn put(&self, sample: PhoneSample) {
         let mut state = self.state.lock().expect("slot poisoned");
-        if let Some(old) = state.pending.take() {
+        if !state.pending.is_empty() {
             self.superseded.fetch_add(1, Ordering::Relaxed);
-            if !old.buttons.is_empty() {
-                let mut buttons = old.buttons;
-                buttons.append(&mut sample.buttons);
-                sample.buttons = buttons;
-            }
-            if sample.tracking_from_phone.is_none() && old.tracking_from_phone.is_some() {
-                sample.tracking_from_phone = old.tracking_from_phone;
-                sample.tracking = old.tracking;
-            }
-            if sample.arm.is_empty() {
-                sample.arm = old.arm;
-            }
-            sample.take_over |= old.take_over;
         }
-        state.pending = Some(sample);
+        state.pending.push(sample);
         drop(state);
         self.notify.notify_one();
     }
@@ -229,19 +217,14 @@ async fn run(upstream: Upstream, arm: String, slot: Arc<Slot>, events: mpsc::Sen
 #[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
-    use phone2act_proto::v1::{ButtonEvent, ClutchCommand, Pose, button_event, clutch_command};
+    use phone2act_proto::buttons::clutch;
+    use phone2act_proto::v1::{Pose, clutch_command};
 
     fn pose_sample(seq: u64, x: f64) -> PhoneSample {
         PhoneSample {
             seq,
             tracking_from_phone: Some(Pose::from_parts([x, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])),
             ..PhoneSample::default()
-        }
-    }
-
-    fn clutch(kind: clutch_command::Kind) -> ButtonEvent {
-        ButtonEvent {
-            event: Some(button_event::Event::Clutch(ClutchCommand { kind: kind.into() })),
         }
     }
 

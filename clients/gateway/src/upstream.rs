@@ -1,67 +1,52 @@
-//! The gateway's side of the gRPC connection to the phone2act server: one lazily connected HTTP/2 channel
-//! shared by every phone, with the server's bearer token attached to each call.
+//! The gateway's side of the gRPC connection to the phone2act server: one SDK client (one HTTP/2 channel with
+//! the server's bearer token) shared by every phone.
 //!
-//! Lazy, because the embedded gateway starts alongside the server and the standalone one may start before
-//! it; tonic reconnects the channel by itself when the server comes back.
+//! The standalone gateway dials lazily, because it may start before the server and must survive the
+//! server's restarts; the gateway `phone2act serve` embeds reaches its server in-process.
 
+use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
-use std::time::Duration;
-use tonic::metadata::{Ascii, MetadataValue};
-use tonic::service::Interceptor;
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
 
 use crate::GatewayError;
 
-/// Adds `authorization: Bearer <token>` when the server needs one.
-#[derive(Clone, Debug, Default)]
-pub struct Auth(Option<MetadataValue<Ascii>>);
-
-impl Interceptor for Auth {
-    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(header) = &self.0 {
-            request.metadata_mut().insert("authorization", header.clone());
-        }
-        Ok(request)
-    }
-}
-
-/// The shared channel to the server.
+/// The shared connection to the server.
 #[derive(Clone, Debug)]
-pub struct Upstream {
-    channel: Channel,
-    auth: Auth,
-}
+pub struct Upstream(Client);
 
 impl Upstream {
     /// A lazily connecting channel to `server_url` (`http://host:port`).
     pub fn new(server_url: &str, grpc_token: Option<&str>) -> Result<Self, GatewayError> {
-        let endpoint = Endpoint::from_shared(server_url.to_owned())
-            .map_err(|e| GatewayError::ServerUrl(format!("{server_url}: {e}")))?
-            .connect_timeout(Duration::from_secs(3))
-            .tcp_nodelay(true)
-            .http2_keep_alive_interval(Duration::from_secs(10))
-            .keep_alive_timeout(Duration::from_secs(5));
-        let auth = match grpc_token {
-            Some(token) => Auth(Some(MetadataValue::try_from(format!("Bearer {token}")).map_err(
-                |_| GatewayError::ServerUrl("gRPC token is not a valid header value".into()),
-            )?)),
-            None => Auth(None),
+        let options = ConnectOptions {
+            token: grpc_token.map(str::to_owned),
+            connect_timeout_s: 3.0,
+            ..ConnectOptions::default()
         };
-        Ok(Self {
-            channel: endpoint.connect_lazy(),
-            auth,
+        Client::connect_lazy(server_url, &options).map(Self).map_err(|e| {
+            // The SDK keeps the reason in the error's source; say it on the one line a user sees.
+            let reason = std::error::Error::source(&e).map_or_else(|| e.to_string(), ToString::to_string);
+            GatewayError::ServerUrl(format!("{server_url}: {reason}"))
         })
     }
 
+    /// An already made client (the embedded gateway's in-process one).
+    pub fn from_client(client: Client) -> Self {
+        Self(client)
+    }
+
     /// A Teleop client on the shared channel.
-    pub fn teleop(&self) -> TeleopClient<InterceptedService<Channel, Auth>> {
-        TeleopClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    pub fn teleop(&self) -> TeleopClient<AuthChannel> {
+        self.0.teleop_raw()
     }
 
     /// A System client on the shared channel.
-    pub fn system(&self) -> SystemClient<InterceptedService<Channel, Auth>> {
-        SystemClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    pub fn system(&self) -> SystemClient<AuthChannel> {
+        self.0.system_raw()
+    }
+
+    /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
+    pub fn policy(&self) -> PolicyClient<AuthChannel> {
+        self.0.policy_raw()
     }
 }

@@ -1,6 +1,6 @@
 //! The phone page, compiled into the binary so the gateway needs no files at run time.
 
-use crate::server::Shared;
+use crate::shared::Shared;
 use axum::Router;
 use axum::http::header;
 use axum::response::IntoResponse;

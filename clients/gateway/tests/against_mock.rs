@@ -261,6 +261,42 @@ async fn bad_input_is_refused_and_harms_nobody() {
         (e["op"].as_str(), e["result"].as_bool()),
         (Some("service_response"), Some(false))
     );
+    send(
+        &mut bad,
+        r#"{"op":"call_service","id":"s","service":"/rosapi/services"}"#,
+    )
+    .await;
+    let e = next_json(&mut bad, T).await.unwrap();
+    assert_eq!(
+        (e["result"].as_bool(), e["id"].as_str()),
+        (Some(true), Some("s")),
+        "{e}"
+    );
+    assert!(
+        e["values"]["services"]
+            .as_array()
+            .is_some_and(|s| s.iter().any(|s| s == "/rosapi/topics")),
+        "{e}"
+    );
+    // A subscription nothing will ever answer is an error, not silence.
+    send(
+        &mut bad,
+        r#"{"op":"subscribe","id":"u","topic":"/no/such/topic"}"#,
+    )
+    .await;
+    let e = next_json(&mut bad, T).await.unwrap();
+    assert_eq!(
+        (e["level"].as_str(), e["id"].as_str()),
+        (Some("error"), Some("u")),
+        "{e}"
+    );
+    assert!(
+        e["msg"]
+            .as_str()
+            .unwrap()
+            .contains("unknown topic /no/such/topic"),
+        "{e}"
+    );
 
     // The same connection still works, and so does the other phone.
     send(&mut bad, &pose_msg("/Phone2Act/ar_pose", 0.7)).await;

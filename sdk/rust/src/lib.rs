@@ -2,13 +2,16 @@
 //! service handles (`system()`, and the raw generated clients for the other services) share it. An optional
 //! bearer token is attached to every call.
 
+use phone2act_proto::PendingSample;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_client::EpisodesClient;
 use phone2act_proto::v1::policy_client::PolicyClient;
+use phone2act_proto::v1::scene_client::SceneClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::sync::{Notify, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
@@ -109,6 +112,56 @@ impl Default for ConnectOptions {
     }
 }
 
+/// Connections a [`Client::in_process`] may open before the server accepted the previous ones (one in
+/// practice: the channel keeps a single HTTP/2 connection).
+const LOCAL_ACCEPT_QUEUE: usize = 4;
+/// Bytes in flight per direction of an in-process connection before the writer waits (HTTP/2 flow control
+/// keeps far less than this outstanding for teleop traffic).
+const LOCAL_PIPE_BYTES: usize = 256 * 1024;
+
+/// The endpoint for `url` with the options' timeouts and TLS settings.
+fn endpoint(url: &str, options: &ConnectOptions) -> Result<Endpoint> {
+    let to_connect_error = |source| Error::Connect {
+        url: url.to_owned(),
+        source,
+    };
+    let dial = normalize_url(url);
+    let endpoint = Endpoint::from_shared(dial.clone())
+        .map_err(to_connect_error)?
+        .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
+        .tcp_nodelay(true)
+        // A long-lived stream notices a vanished server (a pulled cable sends no FIN) within seconds.
+        .http2_keep_alive_interval(Duration::from_secs(10))
+        .keep_alive_timeout(Duration::from_secs(5));
+    if !dial.starts_with("https://") {
+        return Ok(endpoint);
+    }
+    let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
+    if let Some(pem) = &options.ca_pem {
+        tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+    }
+    if let Some(domain) = &options.tls_domain {
+        tls = tls.domain_name(domain.clone());
+    }
+    endpoint.tls_config(tls).map_err(to_connect_error)
+}
+
+/// The server side of [`Client::in_process`]: a stream of in-memory connections, each one a client's
+/// HTTP/2 connection, for a tonic server's `serve_with_incoming`.
+#[derive(Debug)]
+pub struct LocalIncoming(mpsc::Receiver<tokio::io::DuplexStream>);
+
+impl tokio_stream::Stream for LocalIncoming {
+    type Item = std::io::Result<tokio::io::DuplexStream>;
+
+    fn poll_next(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Self::Item>> {
+        self.0.poll_recv(cx).map(|conn| conn.map(Ok))
+    }
+}
+
 /// A connection to a phone2act server.
 #[derive(Clone, Debug)]
 pub struct Client {
@@ -132,29 +185,53 @@ impl Client {
 
     /// Connects with explicit options.
     pub async fn connect_with(url: &str, options: ConnectOptions) -> Result<Self> {
-        let to_connect_error = |source| Error::Connect {
-            url: url.to_owned(),
-            source,
-        };
-        let dial = normalize_url(url);
-        let endpoint = Endpoint::from_shared(dial.clone())
-            .map_err(to_connect_error)?
-            .connect_timeout(Duration::from_secs_f64(options.connect_timeout_s))
-            .tcp_nodelay(true);
-        let endpoint = if dial.starts_with("https://") {
-            let mut tls = tonic::transport::ClientTlsConfig::new().with_native_roots();
-            if let Some(pem) = &options.ca_pem {
-                tls = tls.ca_certificate(tonic::transport::Certificate::from_pem(pem));
+        let channel = endpoint(url, &options)?
+            .connect()
+            .await
+            .map_err(|source| Error::Connect {
+                url: url.to_owned(),
+                source,
+            })?;
+        Self::on_channel(channel, options.token.as_deref())
+    }
+
+    /// Like [`Client::connect_with`], but the connection is made on the first call and made again after the
+    /// server went away: for long-running clients (the phone gateway) that may start before the server.
+    /// Call it within a Tokio runtime: the channel's connection task is spawned on it.
+    pub fn connect_lazy(url: &str, options: &ConnectOptions) -> Result<Self> {
+        let channel = endpoint(url, options)?.connect_lazy();
+        Self::on_channel(channel, options.token.as_deref())
+    }
+
+    /// A client of a server in the same process, over an in-memory pipe instead of a socket (no TCP, no
+    /// loopback hop): give the returned [`LocalIncoming`] to the server. The token is still sent and still
+    /// checked; the server sees no peer address.
+    pub fn in_process(token: Option<&str>) -> Result<(Self, LocalIncoming)> {
+        let (tx, rx) = mpsc::channel::<tokio::io::DuplexStream>(LOCAL_ACCEPT_QUEUE);
+        let connector = tower::service_fn(move |_: tonic::codegen::http::Uri| {
+            let tx = tx.clone();
+            async move {
+                let (ours, theirs) = tokio::io::duplex(LOCAL_PIPE_BYTES);
+                tx.send(theirs).await.map_err(|_| {
+                    std::io::Error::new(std::io::ErrorKind::ConnectionRefused, "in-process server stopped")
+                })?;
+                Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(ours))
             }
-            if let Some(domain) = &options.tls_domain {
-                tls = tls.domain_name(domain.clone());
-            }
-            endpoint.tls_config(tls).map_err(to_connect_error)?
-        } else {
-            endpoint
-        };
-        let channel = endpoint.connect().await.map_err(to_connect_error)?;
-        let header = match options.token {
+        });
+        // The authority is never resolved: the connector above is the only way out.
+        let channel =
+            Endpoint::from_static("http://in-process.phone2act").connect_with_connector_lazy(connector);
+        Ok((Self::on_channel(channel, token)?, LocalIncoming(rx)))
+    }
+
+    /// The same connection sending `token` instead (several identities over one channel, e.g. in tests of
+    /// the server's token check).
+    pub fn with_token(&self, token: Option<&str>) -> Result<Self> {
+        Self::on_channel(self.channel.clone(), token)
+    }
+
+    fn on_channel(channel: Channel, token: Option<&str>) -> Result<Self> {
+        let header = match token {
             Some(token) => {
                 Some(MetadataValue::try_from(format!("Bearer {token}")).map_err(|_| Error::BadToken)?)
             }
@@ -166,10 +243,15 @@ impl Client {
         })
     }
 
+    /// The raw generated System client.
+    pub fn system_raw(&self) -> SystemClient<AuthChannel> {
+        SystemClient::with_interceptor(self.channel.clone(), self.auth.clone())
+    }
+
     /// The System service: arms, cameras, status.
     pub fn system(&self) -> SystemApi {
         SystemApi {
-            inner: SystemClient::with_interceptor(self.channel.clone(), self.auth.clone()),
+            inner: self.system_raw(),
         }
     }
 
@@ -177,6 +259,13 @@ impl Client {
     pub fn episodes(&self) -> EpisodesApi {
         EpisodesApi {
             inner: self.episodes_raw(),
+        }
+    }
+
+    /// The Scene service: reset and read a simulated arm's ball-and-basket scene.
+    pub fn scene(&self) -> SceneApi {
+        SceneApi {
+            inner: SceneClient::with_interceptor(self.channel.clone(), self.auth.clone()),
         }
     }
 
@@ -253,6 +342,37 @@ impl SystemApi {
         Ok(self
             .inner
             .watch_status(v1::WatchStatusRequest { interval_s })
+            .await?
+            .into_inner())
+    }
+}
+
+/// Typed access to the Scene service.
+#[derive(Clone, Debug)]
+pub struct SceneApi {
+    inner: SceneClient<AuthChannel>,
+}
+
+impl SceneApi {
+    /// Re-draws `arm`'s scene from `seed` (`None`: the arm's next seed); `home_arm` also puts the simulated
+    /// arm at its initial joints, which the server refuses while a source drives it.
+    pub async fn reset(&mut self, arm: &str, seed: Option<u64>, home_arm: bool) -> Result<v1::SceneState> {
+        Ok(self
+            .inner
+            .reset(v1::ResetSceneRequest {
+                arm: arm.to_owned(),
+                seed,
+                home_arm,
+            })
+            .await?
+            .into_inner())
+    }
+
+    /// `arm`'s scene now.
+    pub async fn get(&mut self, arm: &str) -> Result<v1::SceneState> {
+        Ok(self
+            .inner
+            .get(v1::GetSceneRequest { arm: arm.to_owned() })
             .await?
             .into_inner())
     }
@@ -340,16 +460,109 @@ pub struct TeleopOptions {
 /// An open teleop session.
 #[derive(Debug)]
 pub struct TeleopSession {
-    tx: mpsc::Sender<v1::PhoneSample>,
+    outbox: Arc<Outbox>,
     feedback: tonic::Streaming<v1::TeleopFeedback>,
     seq: u64,
     superseded: u64,
 }
 
+#[derive(Debug, Default)]
+struct OutboxState {
+    pending: PendingSample,
+    /// The session closed its end: the request stream ends once the pending sample is taken.
+    closed: bool,
+    /// The request stream is gone (the call ended): nothing sent now would reach the server.
+    gone: bool,
+}
+
+/// The depth-1 latest-wins outbox between [`TeleopSession`] and its gRPC request stream: the stream takes the
+/// pending sample when HTTP/2 flow control lets it send, and a sample offered meanwhile is folded into the
+/// pending one ([`PendingSample::push`]) so the newest pose is what goes out and no button event is lost.
+#[derive(Debug, Default)]
+struct Outbox {
+    state: Mutex<OutboxState>,
+    /// A sample is pending, or the outbox closed.
+    put: Notify,
+    /// The stream took the pending sample, or went away.
+    taken: Notify,
+}
+
+impl Outbox {
+    fn lock(&self) -> std::sync::MutexGuard<'_, OutboxState> {
+        // The state is a sample and two flags, consistent after any panic between statements.
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Folds `sample` in; false if another one was still pending.
+    fn offer(&self, sample: v1::PhoneSample) -> Result<bool> {
+        let mut state = self.lock();
+        if state.gone {
+            return Err(Error::Closed);
+        }
+        let was_empty = state.pending.is_empty();
+        state.pending.push(sample);
+        drop(state);
+        self.put.notify_one();
+        Ok(was_empty)
+    }
+
+    /// Puts `sample` once nothing is pending.
+    async fn put_when_empty(&self, sample: v1::PhoneSample) -> Result<()> {
+        let mut sample = Some(sample);
+        loop {
+            {
+                let mut state = self.lock();
+                if state.gone {
+                    return Err(Error::Closed);
+                }
+                if state.pending.is_empty() {
+                    state.pending.push(sample.take().expect("put once"));
+                    drop(state);
+                    self.put.notify_one();
+                    return Ok(());
+                }
+            }
+            // `notify_one` keeps a permit when nobody waits yet, so a take between the check and here wakes us.
+            self.taken.notified().await;
+        }
+    }
+
+    async fn take(&self) -> Option<v1::PhoneSample> {
+        loop {
+            {
+                let mut state = self.lock();
+                if let Some(sample) = state.pending.take() {
+                    drop(state);
+                    self.taken.notify_one();
+                    return Some(sample);
+                }
+                if state.closed {
+                    return None;
+                }
+            }
+            self.put.notified().await;
+        }
+    }
+
+    fn close(&self) {
+        self.lock().closed = true;
+        self.put.notify_one();
+    }
+}
+
+/// The request stream's hold on the outbox: when tonic drops the stream (the call ended), senders learn it.
+struct OutboxTaker(Arc<Outbox>);
+
+impl Drop for OutboxTaker {
+    fn drop(&mut self) {
+        self.0.lock().gone = true;
+        self.0.taken.notify_one();
+    }
+}
+
 impl TeleopSession {
     async fn open(mut client: TeleopClient<AuthChannel>, arm: &str, options: TeleopOptions) -> Result<Self> {
-        // Depth 1: the phone's newest pose matters, a backlog of old ones does not.
-        let (tx, rx) = mpsc::channel(1);
+        let outbox = Arc::new(Outbox::default());
         let hello = v1::PhoneSample {
             seq: 0,
             arm: arm.to_owned(),
@@ -357,36 +570,40 @@ impl TeleopSession {
             take_over: options.take_over,
             ..v1::PhoneSample::default()
         };
-        tx.send(hello).await.map_err(|_| Error::Closed)?;
-        let feedback = client.stream(ReceiverStream::new(rx)).await?.into_inner();
+        outbox.offer(hello)?;
+        let requests = futures_util::stream::unfold(OutboxTaker(Arc::clone(&outbox)), |taker| async move {
+            let sample = taker.0.take().await?;
+            Some((sample, taker))
+        });
+        let feedback = client.stream(requests).await?.into_inner();
         Ok(Self {
-            tx,
+            outbox,
             feedback,
             seq: 0,
             superseded: 0,
         })
     }
 
-    /// Sends one sample (its `seq` is assigned here). Returns false if the previous sample was still waiting
-    /// for the network, in which case this one is dropped in favour of the next (latest wins on the phone side).
+    /// Sends one sample (its `seq` is assigned here) without waiting. Returns false if the previous sample was
+    /// still waiting for the network: the two are then folded into one (latest wins: the newest pose and seq
+    /// go out, with the button events of both in order), so a burst never queues stale poses and never loses
+    /// a button.
     pub fn send(&mut self, mut sample: v1::PhoneSample) -> Result<bool> {
         self.seq += 1;
         sample.seq = self.seq;
-        match self.tx.try_send(sample) {
-            Ok(()) => Ok(true),
-            Err(mpsc::error::TrySendError::Full(_)) => {
-                self.superseded += 1;
-                Ok(false)
-            }
-            Err(mpsc::error::TrySendError::Closed(_)) => Err(Error::Closed),
+        let alone = self.outbox.offer(sample)?;
+        if !alone {
+            self.superseded += 1;
         }
+        Ok(alone)
     }
 
-    /// Sends one sample, waiting for room instead of dropping it (for scripted clients that need every event).
+    /// Sends one sample, waiting until the previous one went out instead of folding them (for scripted clients
+    /// that need every sample to reach the server on its own).
     pub async fn send_wait(&mut self, mut sample: v1::PhoneSample) -> Result<u64> {
         self.seq += 1;
         sample.seq = self.seq;
-        self.tx.send(sample).await.map_err(|_| Error::Closed)?;
+        self.outbox.put_when_empty(sample).await?;
         Ok(self.seq)
     }
 
@@ -432,83 +649,21 @@ impl TeleopSession {
         }
     }
 
-    /// Samples dropped locally because the previous one was still in flight.
+    /// Samples folded locally into a newer one because the previous one was still in flight.
     pub fn superseded(&self) -> u64 {
         self.superseded
     }
 }
 
-/// Button-event constructors.
-pub mod buttons {
-    use super::v1;
-
-    /// Clutch toggle (the Android app's volume key).
-    pub fn clutch_toggle() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Toggle)
-    }
-
-    /// Hold-to-move pressed.
-    pub fn clutch_engage() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Engage)
-    }
-
-    /// Hold-to-move released.
-    pub fn clutch_disengage() -> v1::ButtonEvent {
-        clutch(v1::clutch_command::Kind::Disengage)
-    }
-
-    fn clutch(kind: v1::clutch_command::Kind) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Clutch(v1::ClutchCommand {
-                kind: kind as i32,
-            })),
-        }
-    }
-
-    /// Gripper toggle.
-    pub fn gripper_toggle() -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
-                kind: v1::gripper_command::Kind::Toggle as i32,
-                position: 0.0,
-            })),
-        }
-    }
-
-    /// Absolute gripper position, 0 = open, 1 = closed.
-    pub fn gripper_set(position: f64) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Gripper(v1::GripperCommand {
-                kind: v1::gripper_command::Kind::Set as i32,
-                position,
-            })),
-        }
-    }
-
-    /// Start recording with `task`.
-    pub fn record_start(task: &str) -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Start, task)
-    }
-
-    /// Stop and save.
-    pub fn record_stop() -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Stop, "")
-    }
-
-    /// Stop and discard.
-    pub fn record_discard() -> v1::ButtonEvent {
-        record(v1::record_command::Kind::Discard, "")
-    }
-
-    fn record(kind: v1::record_command::Kind, task: &str) -> v1::ButtonEvent {
-        v1::ButtonEvent {
-            event: Some(v1::button_event::Event::Record(v1::RecordCommand {
-                kind: kind as i32,
-                task: task.to_owned(),
-            })),
-        }
+impl Drop for TeleopSession {
+    /// Ends the request stream (after any pending sample went out), as dropping a sender would.
+    fn drop(&mut self) {
+        self.outbox.close();
     }
 }
+
+/// Button-event constructors (shared with the gateway and the server's tests).
+pub use phone2act_proto::buttons;
 
 /// An open policy session.
 #[derive(Debug)]

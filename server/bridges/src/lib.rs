@@ -7,6 +7,9 @@
 //! keeps a small bounded queue so that it can put each command in force at its issue time), and
 //! [`Bridge::feedback`] returns the newest measured state.
 
+// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
+#![warn(unreachable_pub)]
+
 pub mod dobot;
 pub mod feetech;
 pub mod remote;
@@ -76,6 +79,9 @@ pub enum BridgeError {
     Protocol(String),
     #[error("invalid bridge configuration: {0}")]
     Config(String),
+    /// The bridge has no such feature (a hardware arm asked for a scene reset); the text says which.
+    #[error("{0}")]
+    Unsupported(String),
     #[error("I/O: {0}")]
     Io(#[from] std::io::Error),
 }
@@ -98,6 +104,22 @@ pub trait Bridge: Send + Sync {
     fn health(&self) -> Health;
     /// Enable, disable, clear an error, or reconnect.
     fn control(&self, request: Control) -> Result<(), BridgeError>;
+    /// The task scene around the arm (the simulator's ball and basket). Real arms have none.
+    fn scene(&self) -> Result<sim::SceneState, BridgeError> {
+        Err(BridgeError::Unsupported(format!(
+            "scene state is not supported by the {} bridge",
+            self.kind()
+        )))
+    }
+    /// Re-draws the scene from `seed` (or the next seed of the arm's sequence); `home_arm` also teleports
+    /// the arm to its initial joints. Only a simulator can do either: real arms answer `Unsupported`.
+    fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<sim::SceneState, BridgeError> {
+        let _ = (seed, home_arm);
+        Err(BridgeError::Unsupported(format!(
+            "scene reset is not supported by the {} bridge",
+            self.kind()
+        )))
+    }
     /// Stops the bridge's threads; the robot holds. Idempotent.
     fn shutdown(&self);
 }

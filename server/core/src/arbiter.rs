@@ -11,6 +11,8 @@
 //!   reference) and clears the chunk executor, so the new source never continues an old plan;
 //! - nothing starts moving (engage, gripper, claim) unless the bridge is ready with a measured pose younger
 //!   than [`FEEDBACK_MAX_AGE_S`]; a phone that is driving when the robot goes away is disengaged;
+//! - the arm is teleported (a scene reset homes it) only while no source drives; afterwards it holds the
+//!   homed pose and both sources re-index from it;
 //! - time never runs backwards: an input stamped earlier than one already seen is handled at the later
 //!   time, so a late caller cannot replay an earlier chunk step.
 //!
@@ -102,6 +104,22 @@ impl Robot {
     }
 }
 
+/// The source driving an arm, as a refusal names it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Owner {
+    Phone { session: u64 },
+    Policy { name: String },
+}
+
+impl std::fmt::Display for Owner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Phone { session } => write!(f, "a phone (teleop session {session})"),
+            Self::Policy { name } => write!(f, "policy {name:?}"),
+        }
+    }
+}
+
 /// Why an input was refused. A refused input changes nothing.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ArbiterError {
@@ -119,6 +137,8 @@ pub enum ArbiterError {
     NotControlling,
     #[error("refused the chunk: {0}")]
     Chunk(#[from] ChunkError),
+    #[error("is driven by {owner}; release it before homing the arm")]
+    DrivenWhileHoming { owner: Owner },
 }
 
 /// One button event of a phone, already decoded.
@@ -160,6 +180,10 @@ pub enum Input {
     Chunk { session: u64, chunk: ActionChunk },
     /// Time passes: play due chunk steps, apply the silence and staleness rules.
     Tick,
+    /// The robot was teleported to its measured pose (`Robot::feedback`) with its gripper at `gripper` by
+    /// no source (a scene reset homed it): the arm holds there and both sources re-index from it. Refused
+    /// while a source drives (see [`Arbiter::may_home`], which the caller asks before teleporting).
+    Homed { gripper: f64 },
 }
 
 /// A command for the bridge; it passed the safety gate of the source that made it.
@@ -327,6 +351,29 @@ impl Arbiter {
         self.counters
     }
 
+    /// The source driving the arm, if one does.
+    pub fn owner(&self) -> Option<Owner> {
+        match self.driver {
+            Driver::None => None,
+            Driver::Teleop => Some(Owner::Phone {
+                session: self.teleop_session.unwrap_or_default(),
+            }),
+            Driver::Policy => Some(Owner::Policy {
+                name: self.policy.as_ref().map(|o| o.name.clone()).unwrap_or_default(),
+            }),
+        }
+    }
+
+    /// Whether the arm may be teleported now (a scene reset that homes it): not while a source drives, whose
+    /// plan would continue from a pose the arm left. Ask under the same lock as the teleport and the
+    /// [`Input::Homed`] that follows it, so that no source starts driving in between.
+    pub fn may_home(&self) -> Result<(), ArbiterError> {
+        match self.owner() {
+            None => Ok(()),
+            Some(owner) => Err(ArbiterError::DrivenWhileHoming { owner }),
+        }
+    }
+
     /// How soon the next [`Input::Tick`] is needed. Between inputs nothing else can change the arm.
     pub fn tick_need(&self) -> TickNeed {
         match self.driver {
@@ -379,6 +426,7 @@ impl Arbiter {
                 self.tick(now, &mut fx);
             }
             Input::Tick => self.tick(now, &mut fx),
+            Input::Homed { gripper } => self.homed(gripper, robot, now, &mut fx)?,
         }
         Ok(fx)
     }
@@ -607,6 +655,22 @@ impl Arbiter {
                 reason: reason.to_owned(),
             });
         }
+    }
+
+    fn homed(&mut self, gripper: f64, robot: &Robot, now: f64, fx: &mut Effects) -> Result<(), ArbiterError> {
+        self.may_home()?;
+        // Without a measured pose there is nothing to hold: the arm keeps its target.
+        let Some(measured) = robot.feedback else {
+            return Ok(());
+        };
+        self.target = measured.robot_from_ee;
+        self.gripper_target = gripper;
+        self.executor.clear();
+        self.last_policy_step = None;
+        self.teleop.request_reindex();
+        self.policy_gate.reset_reference_at(measured.robot_from_ee, now);
+        fx.reindexed = true;
+        Ok(())
     }
 
     fn tick(&mut self, now: f64, fx: &mut Effects) {
@@ -1069,6 +1133,91 @@ mod tests {
     }
 
     #[test]
+    fn homing_is_refused_naming_the_source_that_drives() {
+        let mut a = phone_driving();
+        assert_eq!(
+            a.may_home(),
+            Err(ArbiterError::DrivenWhileHoming {
+                owner: Owner::Phone { session: PHONE }
+            })
+        );
+        let refused = a.handle(Input::Homed { gripper: 0.0 }, &ready(home(), 1.1), 1.1);
+        assert_eq!(
+            refused.unwrap_err().to_string(),
+            "is driven by a phone (teleop session 1); release it before homing the arm"
+        );
+        let (a, _) = phone_bound_policy_driving();
+        assert_eq!(
+            a.may_home().unwrap_err().to_string(),
+            "is driven by policy \"p\"; release it before homing the arm"
+        );
+        // A bound phone that does not drive is no reason to refuse.
+        let mut a = arbiter();
+        a.handle(bind_phone(), &ready(home(), 1.0), 1.0).unwrap();
+        assert_eq!(a.may_home(), Ok(()));
+    }
+
+    #[test]
+    fn after_homing_the_arm_holds_the_homed_pose_and_both_sources_start_from_it() {
+        let mut a = phone_driving();
+        let moved = a
+            .handle(
+                round(Some(at(0.03, 0.0, 0.0)), vec![]),
+                &ready(home(), 1.02),
+                1.02,
+            )
+            .unwrap()
+            .commands[0]
+            .robot_from_target;
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &ready(moved, 1.1),
+            1.1,
+        )
+        .unwrap();
+        // A scene reset teleports the arm 10 cm away: farther than any gate lets a source jump.
+        let homed = at(0.25, 0.1, 0.2);
+        let fx = a
+            .handle(Input::Homed { gripper: 0.4 }, &ready(homed, 1.2), 1.2)
+            .unwrap();
+        assert!(fx.commands.is_empty() && fx.reindexed, "{fx:?}");
+        assert_eq!(a.target(), (homed, 0.4));
+        // The phone engages where it left off: the arm stays at the homed pose, not the phone's old offset.
+        let fx = a
+            .handle(engage(at(0.03, 0.0, 0.0)), &ready(homed, 1.3), 1.3)
+            .unwrap();
+        assert_close(&fx.commands.last().unwrap().robot_from_target, &homed);
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &ready(homed, 1.4),
+            1.4,
+        )
+        .unwrap();
+        // A policy is gated from the homed pose too: a step there passes, one at the old pose is a jump.
+        let mut b = arbiter();
+        let robot = ready(home(), 1.0);
+        b.handle(claim(), &robot, 1.0).unwrap();
+        b.handle(
+            Input::ReleasePolicy {
+                session: POLICY,
+                reason: "done".into(),
+            },
+            &robot,
+            1.0,
+        )
+        .unwrap();
+        b.handle(Input::Homed { gripper: 0.0 }, &ready(homed, 1.1), 1.1)
+            .unwrap();
+        b.handle(claim(), &ready(homed, 1.1), 1.1).unwrap();
+        let fx = b.handle(chunk(1.1, &[home()]), &ready(homed, 1.1), 1.1).unwrap();
+        assert!(fx.commands.is_empty(), "{fx:?}");
+        assert_eq!(b.last_decision().verdict, GateVerdict::RejectedJump);
+        let near = at(0.25, 0.101, 0.2);
+        let fx = b.handle(chunk(1.2, &[near]), &ready(homed, 1.2), 1.2).unwrap();
+        assert_close(&fx.commands[0].robot_from_target, &near);
+    }
+
+    #[test]
     fn time_going_backwards_replays_no_earlier_step() {
         let mut a = arbiter();
         let robot = ready(home(), 1.0);
@@ -1110,6 +1259,9 @@ mod tests {
         },
         Tick,
         Health(u8),
+        /// A scene reset teleports the arm to this offset from `home()` (only when nobody drives, as the
+        /// shell asks [`Arbiter::may_home`] first).
+        Home([f64; 3]),
     }
 
     fn any_op() -> impl Strategy<Value = Op> {
@@ -1131,6 +1283,7 @@ mod tests {
                 .prop_map(|(session, offsets, lead_s, from_home)| Op::Chunk { session, offsets, lead_s, from_home }),
             4 => Just(Op::Tick),
             1 => (0..8u8).prop_map(Op::Health),
+            1 => prop::array::uniform3(-0.1..0.1f64).prop_map(Op::Home),
         ]
     }
 
@@ -1270,6 +1423,15 @@ mod tests {
                     )
                 }
                 Op::Tick => (Input::Tick, true),
+                Op::Home(offset) => {
+                    if self.arbiter.may_home().is_ok() {
+                        self.measured = Isometry3::from_parts(
+                            Translation3::from(home().translation.vector + Vector3::from(*offset)),
+                            home().rotation,
+                        );
+                    }
+                    (Input::Homed { gripper: 0.0 }, false)
+                }
             })
         }
 
@@ -1297,6 +1459,14 @@ mod tests {
             prop_assert_eq!(a.policy_owner().is_some(), a.driver() == Driver::Policy);
             if a.driver() == Driver::Teleop {
                 prop_assert!(a.teleop_session().is_some() && a.policy_owner().is_none());
+            }
+
+            if let Input::Homed { .. } = &input {
+                // A teleport only while nobody drives; afterwards the arm holds where it landed.
+                prop_assert_eq!(result.is_ok(), before.driver() == Driver::None);
+                if result.is_ok() {
+                    prop_assert_eq!(a.target().0, self.measured);
+                }
             }
 
             let Ok(fx) = result else {

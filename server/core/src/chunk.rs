@@ -288,7 +288,8 @@ impl ChunkExecutor {
 fn blend(old: &ChunkStep, new: &ChunkStep, new_weight: f64) -> ChunkStep {
     let (a, b) = (&old.robot_from_target, &new.robot_from_target);
     let position = a.translation.vector.lerp(&b.translation.vector, new_weight);
-    // Exactly opposite orientations have no unique slerp path: switch at the midpoint instead.
+    // nalgebra takes the short way round and gives up only when the two orientations are within ~1e-9 rad
+    // of each other (no well-defined arc): either end is then the answer, switch at the midpoint.
     let rotation = a
         .rotation
         .try_slerp(&b.rotation, new_weight, 1e-9)
@@ -476,6 +477,167 @@ mod tests {
         e.clear();
         assert_eq!(e.replace(chunk(&[0.4; 3], 5.0, 0.1), 5.0).unwrap().blended, 0);
         assert_eq!(x_at(&e, 5.0), Some(0.4));
+    }
+
+    #[test]
+    fn configs_with_a_limit_that_is_not_positive_are_refused() {
+        for value in [0.0, -0.5, f64::INFINITY, f64::NAN] {
+            let configs = [
+                ChunkConfig {
+                    min_step_period_s: value,
+                    ..ChunkConfig::default()
+                },
+                ChunkConfig {
+                    max_step_period_s: value,
+                    ..ChunkConfig::default()
+                },
+                ChunkConfig {
+                    max_anchor_lead_s: value,
+                    ..ChunkConfig::default()
+                },
+            ];
+            for config in configs {
+                assert!(config.validate().is_err(), "{config:?}");
+            }
+        }
+        let inverted = ChunkConfig {
+            min_step_period_s: 0.5,
+            max_step_period_s: 0.25,
+            ..ChunkConfig::default()
+        };
+        assert_eq!(
+            inverted.validate(),
+            Err(ConfigError::NotPositive {
+                name: "max_step_period_s - min_step_period_s",
+                value: -0.25,
+            })
+        );
+        let config = ChunkConfig {
+            blend_steps: 2,
+            ..ChunkConfig::default()
+        };
+        assert_eq!(ChunkExecutor::new(config.clone()).unwrap().config(), &config);
+    }
+
+    #[test]
+    fn a_step_whose_window_ended_is_not_remaining() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Windows [1, 1.5) and [1.5, 2), exact in binary.
+        e.replace(chunk(&[0.0, 0.1], 1.0, 0.5), 1.0).unwrap();
+        assert_eq!(e.remaining_steps(1.0), 2);
+        assert_eq!(e.remaining_steps(1.5), 1);
+        assert_eq!(e.remaining_steps(2.0), 0);
+    }
+
+    #[test]
+    fn a_chunk_entirely_in_the_past_says_how_late_it_is() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Windows [0, 0.25) and [0.25, 0.5): the last one ended 0.5 s before now = 1.
+        assert_eq!(
+            e.replace(chunk(&[0.0, 0.1], 0.0, 0.25), 1.0),
+            Err(ChunkError::EntirelyInPast {
+                steps: 2,
+                late_s: 0.5
+            })
+        );
+    }
+
+    #[test]
+    fn an_old_step_that_ended_just_now_is_not_counted_as_replaced() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.25), 1.0).unwrap();
+        // At 1.5 the old step [1.25, 1.5) has just ended; only [1.5, 1.75) and [1.75, 2) were still to come.
+        let r = e.replace(chunk(&[1.0, 1.1], 1.0, 0.75), 1.5).unwrap();
+        assert_eq!((r.skipped, r.replaced), (0, 2));
+        assert_eq!(x_at(&e, 1.5), Some(1.0));
+    }
+
+    #[test]
+    fn past_steps_leave_the_schedule() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.25), 1.0).unwrap();
+        // At 1.5, [1.25, 1.5) has just ended: it goes, although it starts before the new chunk.
+        e.replace(chunk(&[1.0], 1.6, 0.25), 1.5).unwrap();
+        assert_eq!(x_at(&e, 1.3), None);
+        assert_eq!(x_at(&e, 1.55), Some(0.2));
+        assert_eq!(x_at(&e, 1.6), Some(1.0));
+    }
+
+    #[test]
+    fn an_old_step_a_rounding_error_before_the_new_chunk_is_the_same_slot() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1], 2.0 - TIME_EPSILON_S, 0.25), 1.9)
+            .unwrap();
+        let r = e.replace(chunk(&[1.0, 1.1], 2.0, 0.25), 1.9).unwrap();
+        assert_eq!(r.replaced, 2);
+        assert_eq!(
+            x_at(&e, 2.0 - TIME_EPSILON_S),
+            None,
+            "no 1 ns sliver of the old chunk"
+        );
+        assert_eq!(x_at(&e, 2.0), Some(1.0));
+    }
+
+    #[test]
+    fn a_chunk_of_exactly_the_step_limit_is_accepted() {
+        let mut e = ChunkExecutor::new(ChunkConfig {
+            max_steps: 3,
+            ..ChunkConfig::default()
+        })
+        .unwrap();
+        assert!(e.replace(chunk(&[0.0; 3], 1.0, 0.1), 1.0).is_ok());
+        assert_eq!(
+            e.replace(chunk(&[0.0; 4], 1.0, 0.1), 1.0),
+            Err(ChunkError::TooLong { len: 4, max: 3 })
+        );
+    }
+
+    #[test]
+    fn clear_stops_the_schedule_at_once() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3], 1.0, 0.1), 1.0).unwrap();
+        // A source change or stop mid-chunk: the policy must not keep driving until the chunk runs out.
+        e.clear();
+        assert_eq!(x_at(&e, 1.15), None);
+        assert_eq!(e.end_time_s(), None);
+        assert_eq!(e.remaining_steps(1.15), 0);
+    }
+
+    #[test]
+    fn the_anchor_lead_limit_is_inclusive_and_measured_from_now() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        // Exactly the 2 s limit ahead (both values exact in binary): accepted.
+        assert!(e.replace(chunk(&[0.5], 3.0, 0.1), 1.0).is_ok());
+        // 2.5 s ahead of now = 10 s: refused, although 12.5 / 10 or 12.5 - 10.0 * 0 would not be.
+        assert!(matches!(
+            e.replace(chunk(&[0.5], 12.5, 0.1), 10.0),
+            Err(ChunkError::AnchorTooFarAhead { .. })
+        ));
+        // 1.5 s ahead: accepted (12.5 + 11 would be far beyond the limit).
+        assert!(e.replace(chunk(&[0.5], 12.5, 0.1), 11.0).is_ok());
+    }
+
+    #[test]
+    fn gripper_blending_stays_between_the_two_plans() {
+        let mut e = ChunkExecutor::new(ChunkConfig {
+            blend_steps: 1,
+            ..ChunkConfig::default()
+        })
+        .unwrap();
+        let mut old = chunk(&[0.0; 10], 0.0, 0.1);
+        for s in &mut old.steps {
+            s.gripper = 0.6;
+        }
+        e.replace(old, 0.0).unwrap();
+        let mut new = chunk(&[0.2; 4], 0.2, 0.1);
+        for s in &mut new.steps {
+            s.gripper = 1.0;
+        }
+        e.replace(new, 0.2).unwrap();
+        // Half way from 0.6 to 1.0 on the one blended step, then the new plan.
+        let g = e.target_at(0.25).unwrap().gripper;
+        assert!((g - 0.8).abs() < 1e-12, "{g}");
+        assert!((e.target_at(0.35).unwrap().gripper - 1.0).abs() < 1e-12);
     }
 
     proptest! {

@@ -83,6 +83,11 @@ impl Default for MappingConfig {
 /// permutations or come from a calibration with at least this many digits.
 const ROTATION_TOLERANCE: f64 = 1e-6;
 
+/// Longest episode task text accepted, in bytes, by the recorder and by every client that checks before
+/// sending. lerobot stores it as a parquet string and GR00T tokenises it; anything longer is a pasted
+/// document, not an instruction.
+pub const MAX_TASK_BYTES: usize = 4096;
+
 impl MappingConfig {
     /// The validated `robot_from_tracking` rotation.
     pub fn robot_from_tracking(&self) -> Result<Rotation3<f64>, ConfigError> {

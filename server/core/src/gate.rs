@@ -22,6 +22,11 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 /// to cover the whole pause at full speed in one jump; this is also the interval assumed right after a reset.
 pub const MAX_VELOCITY_INTERVAL_S: f64 = 0.25;
 
+/// Rounding left in the angle between a rotation and itself (~1e-17 rad from the quaternion product). The
+/// angular speed limit ignores it: at zero elapsed time (a re-index checks its anchor at the reset instant)
+/// it would otherwise report every re-index of a rotated pose as speed-limited.
+const ROTATION_ROUNDING_RAD: f64 = 1e-12;
+
 /// What the gate did with one command (mirrors `phone2act.v1.GateVerdict`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum GateVerdict {
@@ -185,7 +190,7 @@ impl SafetyGate {
                 out_position[axis].clamp(cfg.workspace_min_m[axis], cfg.workspace_max_m[axis]);
         }
         let (out_rotation, angular_limited) = match cfg.max_angular_speed_rad_s {
-            Some(speed) if rotation_step_rad > speed * interval_s => {
+            Some(speed) if rotation_step_rad > speed * interval_s + ROTATION_ROUNDING_RAD => {
                 let delta: UnitQuaternion<f64> = self.reference.rotation.inverse() * proposed.rotation;
                 let fraction = speed * interval_s / rotation_step_rad;
                 (self.reference.rotation * delta.powf(fraction), true)
@@ -400,9 +405,85 @@ mod tests {
             "0.5 m/s for 20 ms is 1 cm"
         );
         assert!((d.rotation_step_rad - 0.02).abs() < 1e-12, "1 rad/s for 20 ms");
+        assert_eq!(
+            d.reason,
+            "linear speed limited to 0.500 m/s; angular speed limited to 1.000 rad/s"
+        );
         // No time elapsed: no motion allowed.
         let (out2, _) = g.check(target, 0.02);
         assert!(pose_distance(&out2.unwrap(), &out).0 < 1e-15);
+    }
+
+    fn speed_limited() -> GateConfig {
+        GateConfig {
+            max_linear_speed_m_s: Some(0.5),
+            max_angular_speed_rad_s: Some(1.0),
+            ..GateConfig::default()
+        }
+    }
+
+    #[test]
+    fn a_reindex_checked_at_the_same_instant_passes_the_anchor_unchanged() {
+        // Teleop re-indexes exactly like this: reset at the measured pose, then check that pose at the same
+        // now_s. A zero step in zero time must pass as is; 0/0 in the speed limit would make it NaN.
+        let mut g = gate(&speed_limited());
+        let anchor = Isometry3::from_parts(
+            Translation3::new(0.3, 0.1, 0.2),
+            UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3),
+        );
+        g.reset_reference_at(anchor, 2.0);
+        let (out, d) = g.check(anchor, 2.0);
+        assert_eq!(out, Some(anchor));
+        assert_eq!(d.verdict, GateVerdict::Accepted, "{d:?}");
+        assert!(!d.velocity_limited);
+        assert_eq!(*g.reference(), anchor);
+    }
+
+    #[test]
+    fn speed_limits_move_towards_the_target() {
+        let mut g = gate(&speed_limited());
+        let start = Isometry3::from_parts(
+            Translation3::new(0.25, 0.0, 0.2),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.2),
+        );
+        g.reset_reference_at(start, 0.0);
+        let target = Isometry3::from_parts(
+            Translation3::new(0.25, -0.05, 0.2),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.5),
+        );
+        let (out, d) = g.check(target, 0.02);
+        let out = out.unwrap();
+        assert!(d.velocity_limited);
+        // 1 rad/s for 20 ms: 0.02 rad of the 0.3 rad turn, so 0.28 rad remain (not 0.32: the wrong way).
+        let turned = angle_between_rad(&start.rotation, &out.rotation);
+        let left = angle_between_rad(&out.rotation, &target.rotation);
+        assert!((turned - 0.02).abs() < 1e-12, "{turned}");
+        assert!((left - 0.28).abs() < 1e-12, "{left}");
+        assert!((out.translation.y + 0.01).abs() < 1e-12, "{out:?}");
+    }
+
+    #[test]
+    fn a_sample_older_than_the_last_one_does_not_move_the_arm() {
+        let mut g = gate(&speed_limited());
+        g.reset_reference_at(at(0.25, 0.0, 0.2), 1.0);
+        let (first, _) = g.check(at(0.30, 0.0, 0.2), 1.02);
+        let first = first.unwrap();
+        // Out of order by 100 ms: a negative interval would carry the arm 5 cm backwards (0.5 m/s × 0.1 s).
+        let (out, d) = g.check(at(0.30, 0.0, 0.2), 0.92);
+        assert!(d.velocity_limited);
+        assert!(pose_distance(&out.unwrap(), &first).0 < 1e-15, "{out:?}");
+    }
+
+    #[test]
+    fn a_reset_without_time_allows_the_longest_interval() {
+        let mut g = gate(&speed_limited());
+        g.check(at(0.26, 0.0, 0.2), 7.0);
+        // A reset forgets the time of the last check: a check at that same instant is not a zero interval.
+        g.reset_reference(at(0.25, 0.0, 0.2));
+        let (out, d) = g.check(at(0.30, 0.0, 0.2), 7.0);
+        // 0.5 m/s over MAX_VELOCITY_INTERVAL_S (0.25 s) allows 12.5 cm: the 5 cm step passes whole.
+        assert_eq!(d.verdict, GateVerdict::Accepted, "{d:?}");
+        assert_eq!(out, Some(at(0.30, 0.0, 0.2)));
     }
 
     #[test]
@@ -436,6 +517,77 @@ mod tests {
         g.check(at(0.25, 0.0, 0.2), 2.0);
         assert!(!g.is_stale(2.1));
         assert!(g.check_stale(2.4).is_some());
+    }
+
+    #[test]
+    fn a_reset_restarts_staleness() {
+        let mut g = gate(&GateConfig::default());
+        g.check(at(0.25, 0.0, 0.2), 1.0);
+        assert!(g.check_stale(1.5).is_some());
+        // A timed reset is fresh input, and a new silence after it is reported again.
+        g.reset_reference_at(at(0.25, 0.0, 0.2), 2.0);
+        assert!(!g.is_stale(2.2));
+        assert!(g.check_stale(2.5).is_some());
+        // An untimed reset: nothing is stale until the next command.
+        g.reset_reference(at(0.25, 0.0, 0.2));
+        assert!(!g.is_stale(100.0));
+        assert!(g.check_stale(100.0).is_none());
+    }
+
+    #[test]
+    fn limits_are_inclusive() {
+        // Thresholds and targets exact in binary, so the comparisons meet on the boundary itself.
+        let config = GateConfig {
+            jump_position_m: 0.0625,
+            stale_timeout_s: 0.25,
+            ..GateConfig::default()
+        };
+        let mut g = gate(&config);
+        assert_eq!(g.config(), &config);
+        // A step of exactly the jump threshold passes.
+        let (out, d) = g.check(at(0.3125, 0.0, 0.2), 1.0);
+        assert_eq!(
+            (out, d.verdict),
+            (Some(at(0.3125, 0.0, 0.2)), GateVerdict::Accepted)
+        );
+        // Silent for exactly the timeout: not stale yet.
+        assert!(!g.is_stale(1.25));
+        assert!(g.is_stale(1.5));
+        // A turn of exactly the rotation threshold (as the gate measures it) passes too.
+        let turned = Isometry3::from_parts(
+            Translation3::new(0.25, 0.0, 0.2),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.3),
+        );
+        let threshold_rad = angle_between_rad(&UnitQuaternion::identity(), &turned.rotation);
+        let mut g2 = gate(&GateConfig {
+            jump_rotation_rad: threshold_rad,
+            ..GateConfig::default()
+        });
+        assert_eq!(g2.check(turned, 1.0).1.verdict, GateVerdict::Accepted);
+        // A target on the walls is inside the box: accepted, not clamped.
+        for wall in [at(0.40, 0.25, 0.35), at(0.10, -0.25, 0.02)] {
+            g.reset_reference(wall);
+            let (out, d) = g.check(wall, 2.0);
+            assert_eq!((out, d.verdict), (Some(wall), GateVerdict::Accepted), "{d:?}");
+        }
+    }
+
+    #[test]
+    fn verdicts_say_whether_a_target_passed_or_was_refused() {
+        use GateVerdict::{Accepted, Clamped, HeldStale, RejectedInvalid, RejectedJump};
+        for (verdict, passed, rejected) in [
+            (Accepted, true, false),
+            (Clamped, true, false),
+            (RejectedJump, false, true),
+            (RejectedInvalid, false, true),
+            (HeldStale, false, false),
+        ] {
+            assert_eq!(
+                (verdict.passed(), verdict.rejected()),
+                (passed, rejected),
+                "{verdict:?}"
+            );
+        }
     }
 
     /// One proposal of a random walk: a small move, sometimes a large jump, sometimes garbage.

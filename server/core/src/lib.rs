@@ -2,6 +2,9 @@
 //! and the action/state vector layouts. No I/O, no tokio, no clock reads: every time is an argument, so
 //! everything here is deterministic and property-testable.
 
+// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
+#![warn(unreachable_pub)]
+
 pub mod arbiter;
 pub mod chunk;
 pub mod config;
@@ -14,8 +17,8 @@ pub mod pose;
 pub mod teleop;
 
 pub use arbiter::{
-    Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S, Input,
-    Measured, NotReady, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
+    Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
+    Input, Measured, NotReady, Owner, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
 };
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};

@@ -416,6 +416,92 @@ mod tests {
     }
 
     #[test]
+    fn engage_while_driving_keeps_the_mapping() {
+        let ee = at(0.25, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
+        arm.on_pose(at(0.02, 0.0, 0.0), true, ee, 0.02);
+        // A repeated Engage (a second press, a retransmission) while the robot lags 2 mm behind its target:
+        // re-indexing would snap the target back to the lagging measurement.
+        let lagging = at(0.268, 0.0, 0.2);
+        let step = arm.clutch(ClutchKind::Engage, Some(at(0.5, 0.5, 0.5)), lagging, 0.03);
+        assert!(
+            step.engaged && !step.reindexed && step.command.is_none(),
+            "{step:?}"
+        );
+        let step = arm.on_pose(at(0.03, 0.0, 0.0), true, lagging, 0.04);
+        assert!(!step.reindexed);
+        assert!((step.command.unwrap().0.translation.x - 0.28).abs() < 1e-12);
+    }
+
+    #[test]
+    fn after_another_source_moved_the_arm_teleop_starts_from_the_measured_pose() {
+        let ee = at(0.25, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
+        arm.on_pose(at(0.02, 0.0, 0.0), true, ee, 0.02);
+        // A refused jump leaves a pending re-index anchored at the last target...
+        let step = arm.on_pose(at(0.5, 0.0, 0.0), true, ee, 0.04);
+        assert_eq!(step.decision.verdict, GateVerdict::RejectedJump);
+        // ...then a policy drives the arm 10 cm away and hands control back.
+        arm.request_reindex();
+        let moved = at(0.27, 0.1, 0.2);
+        let step = arm.on_pose(at(0.51, 0.0, 0.0), true, moved, 1.0);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, moved, "{}", step.decision.reason);
+        // Without a pending jump: the old offset would replay the phone's motion from the old target.
+        let step = arm.on_pose(at(0.52, 0.0, 0.0), true, moved, 1.02);
+        assert!((step.command.unwrap().0.translation.vector - Vector3::new(0.28, 0.1, 0.2)).norm() < 1e-12);
+        arm.request_reindex();
+        let elsewhere = at(0.2, -0.1, 0.25);
+        let step = arm.on_pose(at(0.53, 0.0, 0.0), true, elsewhere, 2.0);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, elsewhere);
+    }
+
+    #[test]
+    fn an_engage_carrying_an_invalid_pose_waits_for_a_tracked_one() {
+        let ee = at(0.25, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        let step = arm.clutch(ClutchKind::Engage, Some(at(f64::NAN, 0.0, 0.0)), ee, 0.0);
+        assert!(
+            step.engaged && !step.reindexed && step.command.is_none(),
+            "{step:?}"
+        );
+        let step = arm.on_pose(at(0.1, 0.0, 0.0), true, ee, 0.02);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, ee);
+        let step = arm.on_pose(at(0.11, 0.0, 0.0), true, ee, 0.04);
+        assert!((step.command.unwrap().0.translation.x - 0.26).abs() < 1e-12);
+    }
+
+    #[test]
+    fn only_the_reindex_right_after_a_refused_jump_anchors_at_the_target() {
+        let ee = at(0.25, 0.0, 0.2);
+        let lagging = at(0.268, 0.0, 0.2);
+        let mut arm = TeleopArm::new(&config(), ee).unwrap();
+        arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
+        arm.on_pose(at(0.02, 0.0, 0.0), true, ee, 0.02);
+        arm.on_pose(at(0.5, 0.0, 0.0), true, lagging, 0.04);
+        let step = arm.on_pose(at(0.51, 0.0, 0.0), true, lagging, 0.06);
+        assert_eq!(step.command.unwrap().0, at(0.27, 0.0, 0.2));
+        // A later re-index (tracking lost and back) starts from the measured pose again.
+        arm.on_pose(at(0.52, 0.0, 0.0), false, lagging, 0.08);
+        let step = arm.on_pose(at(0.52, 0.0, 0.0), true, lagging, 0.10);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, lagging);
+
+        // A refused jump followed by a stale stream: after the silence the robot has settled, so the
+        // re-index anchors at the measured pose.
+        arm.on_pose(at(0.9, 0.0, 0.0), true, lagging, 0.12);
+        assert!(arm.check_stale(0.5).is_some());
+        let settled = at(0.265, 0.0, 0.2);
+        let step = arm.on_pose(at(0.91, 0.0, 0.0), true, settled, 0.6);
+        assert!(step.reindexed);
+        assert_eq!(step.command.unwrap().0, settled);
+    }
+
+    #[test]
     fn gripper_commands_reach_the_command_tuple() {
         let ee = at(0.25, 0.0, 0.2);
         let mut arm = TeleopArm::new(&config(), ee).unwrap();
@@ -423,7 +509,11 @@ mod tests {
         let step = arm.clutch(ClutchKind::Engage, Some(at(0.0, 0.0, 0.0)), ee, 0.0);
         assert!((step.command.unwrap().1 - 1.0).abs() < 1e-15);
         assert_eq!(arm.gripper(GripperCommand::Set(0.25)), Ok(0.25));
-        assert!((arm.on_pose(at(0.0, 0.0, 0.01), true, ee, 0.02).command.unwrap().1 - 0.25).abs() < 1e-15);
+        assert!((arm.gripper_target() - 0.25).abs() < 1e-15);
+        let step = arm.on_pose(at(0.0, 0.0, 0.01), true, ee, 0.02);
+        let (target, gripper) = step.command.unwrap();
+        assert!((gripper - 0.25).abs() < 1e-15);
+        assert_eq!(arm.target(), target);
     }
 
     /// One scripted input: a phone move, a clutch press, a tracking drop, or a measured-pose drift.

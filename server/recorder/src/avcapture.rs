@@ -3,13 +3,13 @@
 //! thread, decodes to RGB and publishes into a [`FrameSlot`] stamped with the time the frame arrived.
 
 use crate::camera::{CaptureThread, Frame, FrameSlot};
-use crate::clock::monotonic_ns;
 use crate::error::RecorderError;
 use crate::video::init_ffmpeg;
 use ffmpeg_next::format::Pixel;
 use ffmpeg_next::software::scaling;
 use ffmpeg_next::util::frame::video::Video as VideoFrame;
 use ffmpeg_next::{Dictionary, Rational, codec, format, media};
+use phone2act_clock::monotonic_ns;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::sync_channel;

@@ -1,7 +1,7 @@
 //! Camera sources. Each source runs on its own thread and publishes into a [`FrameSlot`] that keeps only the
 //! newest frame (latest wins), stamped with its capture time on the process monotonic clock.
 
-use crate::clock::monotonic_ns;
+use phone2act_clock::monotonic_ns;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;

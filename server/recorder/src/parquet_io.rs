@@ -4,10 +4,10 @@
 
 use crate::error::RecorderError;
 use crate::stats::{FeatureStats, QUANTILES, StatKind};
-use arrow_array::builder::{Float64Builder, Int64Builder, ListBuilder, StringBuilder};
+use arrow_array::builder::{BooleanBuilder, Float64Builder, Int64Builder, ListBuilder, StringBuilder};
 use arrow_array::{
-    Array, ArrayRef, FixedSizeListArray, Float32Array, Int64Array, LargeStringArray, ListArray, RecordBatch,
-    StringArray,
+    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, Int64Array, LargeStringArray, ListArray,
+    RecordBatch, StringArray,
 };
 use arrow_schema::{DataType, Field, Schema, SchemaRef};
 use parquet::arrow::ArrowWriter;
@@ -48,35 +48,52 @@ fn vec_field(name: &str, n: usize) -> Field {
 }
 
 /// `datasets` feature JSON: v3.0 (datasets 4) says `List`, v2.1 (datasets 3.x) only knows `Sequence`.
-fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool) -> String {
+fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool, success: bool) -> String {
     let list = if v30 { "List" } else { "Sequence" };
     let vecf =
         |n: usize| json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": n, "_type": list});
     let scalar = |t: &str| json!({"dtype": t, "_type": "Value"});
-    json!({"info": {"features": {
-        "observation.state": vecf(state_dim),
-        "action": vecf(action_dim),
-        "timestamp": scalar("float32"),
-        "frame_index": scalar("int64"),
-        "episode_index": scalar("int64"),
-        "index": scalar("int64"),
-        "task_index": scalar("int64"),
-    }}})
-    .to_string()
+    let mut features = serde_json::Map::new();
+    features.insert("observation.state".into(), vecf(state_dim));
+    features.insert("action".into(), vecf(action_dim));
+    if success {
+        features.insert(SUCCESS_FEATURE.into(), scalar("bool"));
+    }
+    for (name, dtype) in [
+        ("timestamp", "float32"),
+        ("frame_index", "int64"),
+        ("episode_index", "int64"),
+        ("index", "int64"),
+        ("task_index", "int64"),
+    ] {
+        features.insert(name.into(), scalar(dtype));
+    }
+    json!({"info": {"features": features}}).to_string()
 }
 
-/// The data parquet schema for the given vector sizes.
-pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool) -> SchemaRef {
-    let fields = vec![
+/// The per-frame task success column (LeRobot's name for it; a bool scalar).
+pub const SUCCESS_FEATURE: &str = "next.success";
+
+/// The data parquet schema for the given vector sizes, with a `next.success` column if `success`.
+pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool, success: bool) -> SchemaRef {
+    let mut fields = vec![
         vec_field("observation.state", state_dim),
         vec_field("action", action_dim),
+    ];
+    if success {
+        fields.push(Field::new(SUCCESS_FEATURE, DataType::Boolean, true));
+    }
+    fields.extend([
         Field::new("timestamp", DataType::Float32, true),
         Field::new("frame_index", DataType::Int64, true),
         Field::new("episode_index", DataType::Int64, true),
         Field::new("index", DataType::Int64, true),
         Field::new("task_index", DataType::Int64, true),
-    ];
-    let meta = HashMap::from([("huggingface".to_owned(), hf_metadata(state_dim, action_dim, v30))]);
+    ]);
+    let meta = HashMap::from([(
+        "huggingface".to_owned(),
+        hf_metadata(state_dim, action_dim, v30, success),
+    )]);
     Arc::new(Schema::new_with_metadata(fields, meta))
 }
 
@@ -85,6 +102,8 @@ pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool) -> SchemaRef 
 pub struct Row {
     pub state: Vec<f32>,
     pub action: Vec<f32>,
+    /// `next.success`, in datasets that have the column.
+    pub success: Option<bool>,
     pub timestamp: f32,
     pub frame_index: i64,
     pub episode_index: i64,
@@ -99,6 +118,7 @@ pub struct DataWriter {
     writer: ArrowWriter<File>,
     state_dim: usize,
     action_dim: usize,
+    success: bool,
     buf: Vec<Row>,
     rows: u64,
 }
@@ -109,9 +129,10 @@ impl DataWriter {
         state_dim: usize,
         action_dim: usize,
         v30: bool,
+        success: bool,
     ) -> Result<Self, RecorderError> {
         let file = File::create(path).map_err(|e| RecorderError::io(path, e))?;
-        let schema = data_schema(state_dim, action_dim, v30);
+        let schema = data_schema(state_dim, action_dim, v30, success);
         let writer = ArrowWriter::try_new(file, Arc::clone(&schema), Some(props(&schema)))
             .map_err(|e| RecorderError::parquet(path, &e))?;
         Ok(DataWriter {
@@ -120,6 +141,7 @@ impl DataWriter {
             writer,
             state_dim,
             action_dim,
+            success,
             buf: Vec::new(),
             rows: 0,
         })
@@ -159,15 +181,23 @@ impl DataWriter {
         let ints = |get: &dyn Fn(&Row) -> i64| -> ArrayRef {
             Arc::new(Int64Array::from_iter_values(rows.iter().map(get)))
         };
-        let columns = vec![
+        let mut columns = vec![
             vec_col(self.state_dim, &|r| &r.state),
             vec_col(self.action_dim, &|r| &r.action),
+        ];
+        if self.success {
+            // A frame without a value (none can be, see `EpisodeWriter::push_row`) would be a null.
+            columns.push(Arc::new(BooleanArray::from(
+                rows.iter().map(|r| r.success).collect::<Vec<_>>(),
+            )));
+        }
+        columns.extend([
             Arc::new(Float32Array::from_iter_values(rows.iter().map(|r| r.timestamp))) as ArrayRef,
             ints(&|r| r.frame_index),
             ints(&|r| r.episode_index),
             ints(&|r| r.index),
             ints(&|r| r.task_index),
-        ];
+        ]);
         let batch =
             RecordBatch::try_new(Arc::clone(&self.schema), columns).map_err(|e| RecorderError::Parquet {
                 path: self.path.clone(),
@@ -359,6 +389,15 @@ fn stat_list(kind: StatKind, values: &[f64], keep_int: bool) -> (DataType, Array
             let a = b.finish();
             (a.data_type().clone(), Arc::new(a))
         }
+        StatKind::Bool if keep_int => {
+            let mut b = ListBuilder::new(BooleanBuilder::new());
+            for v in values {
+                b.values().append_value(*v >= 0.5);
+            }
+            b.append(true);
+            let a = b.finish();
+            (a.data_type().clone(), Arc::new(a))
+        }
         StatKind::Int if keep_int => {
             let mut b = ListBuilder::new(Int64Builder::new());
             for v in values {
@@ -498,6 +537,15 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>, RecorderError> {
                 .ok_or_else(|| bad(&format!("{name} is not int64")))
         };
         let (state, action) = (fsl("observation.state")?, fsl("action")?);
+        let success = match b.column_by_name(SUCCESS_FEATURE) {
+            None => None,
+            Some(c) => Some(
+                c.as_any()
+                    .downcast_ref::<BooleanArray>()
+                    .cloned()
+                    .ok_or_else(|| bad(&format!("{SUCCESS_FEATURE} is not bool")))?,
+            ),
+        };
         let ts = b
             .column_by_name("timestamp")
             .and_then(|c| c.as_any().downcast_ref::<Float32Array>().cloned())
@@ -519,6 +567,7 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>, RecorderError> {
             out.push(Row {
                 state: floats(&state, i),
                 action: floats(&action, i),
+                success: success.as_ref().map(|s| s.value(i)),
                 timestamp: ts.value(i),
                 frame_index: fi.value(i),
                 episode_index: ei.value(i),
@@ -538,11 +587,12 @@ mod tests {
     fn data_rows_round_trip_in_row_groups() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("d.parquet");
-        let mut w = DataWriter::create(&p, 3, 2, true).unwrap();
+        let mut w = DataWriter::create(&p, 3, 2, true, true).unwrap();
         for i in 0..(ROWS_PER_GROUP as i64 + 10) {
             w.push(Row {
                 state: vec![i as f32, 1.0, 2.0],
                 action: vec![-(i as f32), 0.5],
+                success: Some(i % 3 == 0),
                 timestamp: i as f32 / 20.0,
                 frame_index: i,
                 episode_index: 3,
@@ -556,6 +606,7 @@ mod tests {
         assert_eq!(rows.len(), ROWS_PER_GROUP + 10);
         assert_eq!(rows[7].state, vec![7.0, 1.0, 2.0]);
         assert_eq!((rows[7].index, rows[7].episode_index), (107, 3));
+        assert_eq!((rows[6].success, rows[7].success), (Some(true), Some(false)));
         let file = File::open(&p).unwrap();
         let meta = parquet::file::reader::FileReader::metadata(
             &parquet::file::serialized_reader::SerializedFileReader::new(file).unwrap(),
@@ -567,7 +618,14 @@ mod tests {
             "rows are flushed in row groups as they come"
         );
         let kv = meta.file_metadata().key_value_metadata().unwrap();
-        assert!(kv.iter().any(|k| k.key == "huggingface"));
+        let hf = kv.iter().find(|k| k.key == "huggingface").unwrap();
+        assert!(
+            hf.value
+                .as_deref()
+                .unwrap()
+                .contains(r#""next.success":{"_type":"Value","dtype":"bool"}"#),
+            "{hf:?}"
+        );
     }
 
     #[test]

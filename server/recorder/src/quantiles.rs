@@ -125,8 +125,12 @@ pub struct EpisodeColumns(pub Vec<(&'static str, ColumnStats)>);
 
 impl EpisodeColumns {
     fn from_rows(rows: &[parquet_io::Row]) -> Self {
-        use crate::stats::StatKind::{Float, Int};
+        use crate::stats::StatKind::{Bool, Float, Int};
         let (sd, ad) = rows.first().map_or((0, 0), |r| (r.state.len(), r.action.len()));
+        let mut success = rows
+            .first()
+            .is_some_and(|r| r.success.is_some())
+            .then(|| ColumnStats::new(Bool, 1));
         let mut c = [
             ("observation.state", ColumnStats::new(Float, sd)),
             ("action", ColumnStats::new(Float, ad)),
@@ -146,8 +150,13 @@ impl EpisodeColumns {
             {
                 c[3 + i].1.push(&[v as f64]);
             }
+            if let Some(s) = &mut success {
+                s.push(&[f64::from(u8::from(r.success.unwrap_or(false)))]);
+            }
         }
-        EpisodeColumns(c.into())
+        let mut columns: Vec<_> = c.into();
+        columns.extend(success.map(|s| (crate::parquet_io::SUCCESS_FEATURE, s)));
+        EpisodeColumns(columns)
     }
 
     pub fn as_refs(&self) -> Vec<(&str, &ColumnStats)> {

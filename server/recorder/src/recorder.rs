@@ -9,10 +9,10 @@
 //! warning names the source) until the source is fresh again.
 
 use crate::camera::FrameSlot;
-use crate::clock::monotonic_ns;
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
 use crate::spec::DatasetSpec;
+use phone2act_clock::monotonic_ns;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
@@ -24,6 +24,8 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 pub struct RobotSample {
     pub state: Vec<f64>,
     pub action: Vec<f64>,
+    /// The task's success flag at this sample (recorded as `next.success` when the dataset has it).
+    pub success: bool,
     pub capture_time_ns: i64,
 }
 
@@ -533,7 +535,7 @@ fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
     if held {
         a.held += 1;
     }
-    if let Err(e) = a.writer.push_row(&s.state, &s.action) {
+    if let Err(e) = a.writer.push_row(&s.state, &s.action, s.success) {
         let msg = format!("recording failed, the episode cannot be saved: {e}");
         tracing::error!("{msg}");
         a.error = Some(e);

@@ -6,12 +6,14 @@ use serde::{Deserialize, Serialize};
 use std::ops::Range;
 use std::path::PathBuf;
 
-/// The on-disk LeRobot layout.
+/// The on-disk LeRobot layout (spelled as its `codebase_version` in configuration files).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Format {
     /// LeRobot v3.0 (lerobot >= 0.4): episodes share chunked files.
+    #[serde(rename = "v3.0")]
     V30,
     /// LeRobot v2.1 (lerobot 0.3.x, GR00T N1.5): one file per episode, plus `meta/modality.json`.
+    #[serde(rename = "v2.1")]
     V21,
 }
 
@@ -21,6 +23,15 @@ impl Format {
         match self {
             Format::V30 => "v3.0",
             Format::V21 => "v2.1",
+        }
+    }
+
+    /// The FFmpeg encoder used when the configuration names none.
+    pub fn default_encoder(self) -> &'static str {
+        match self {
+            Format::V30 => "libsvtav1",
+            // GR00T N1.5's default decord backend cannot decode AV1.
+            Format::V21 => "libx264",
         }
     }
 }
@@ -73,6 +84,9 @@ pub struct DatasetSpec {
     pub action_names: Vec<String>,
     pub cameras: Vec<CameraSpec>,
     pub modality: Vec<ModalityGroup>,
+    /// Record `next.success` (bool per frame: the task, e.g. the sim's ball in its basket, is done at that
+    /// frame), as LeRobot's simulation datasets do.
+    pub success: bool,
     /// Free-form configuration copied into the provenance sidecar.
     pub provenance: serde_json::Value,
 }
@@ -94,12 +108,10 @@ pub struct VideoSettings {
 impl VideoSettings {
     /// LeRobot's defaults for `codec` (g=2, crf=30, yuv420p; SVT-AV1 preset 12).
     pub fn parse(spec: Option<&str>, format: Format) -> Result<Self, RecorderError> {
-        let default = match format {
-            Format::V30 => "libsvtav1",
-            // GR00T N1.5's default decord backend cannot decode AV1.
-            Format::V21 => "libx264",
-        };
-        let spec = spec.map(str::trim).filter(|s| !s.is_empty()).unwrap_or(default);
+        let spec = spec
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .unwrap_or(format.default_encoder());
         let (name, opts) = spec.split_once(':').unwrap_or((spec, ""));
         let (encoder, codec) = match name.to_ascii_lowercase().as_str() {
             "av1" | "libsvtav1" | "svtav1" => ("libsvtav1", "av1"),
@@ -150,9 +162,7 @@ impl VideoSettings {
     }
 }
 
-/// Longest task text accepted, in bytes. lerobot stores it as a parquet string and GR00T tokenises it;
-/// anything longer is a pasted document, not an instruction.
-pub const MAX_TASK_BYTES: usize = 4096;
+pub use phone2act_core::config::MAX_TASK_BYTES;
 
 impl DatasetSpec {
     /// Checks what can be checked without touching the disk.

@@ -30,6 +30,8 @@ pub enum StatKind {
     Float,
     /// int64 scalars: min and max as integers.
     Int,
+    /// bool scalars (`next.success`): min and max as booleans, the rest as floats of 0/1.
+    Bool,
     /// Video/image: every entry shaped (3,1,1).
     Image,
 }
@@ -51,6 +53,7 @@ fn wrap(kind: StatKind, v: &[f64]) -> Value {
     match kind {
         StatKind::Float => json!(v),
         StatKind::Int => json!(v.iter().map(|x| x.round() as i64).collect::<Vec<_>>()),
+        StatKind::Bool => json!(v.iter().map(|x| *x >= 0.5).collect::<Vec<_>>()),
         StatKind::Image => Value::Array(v.iter().map(|x| json!([[x]])).collect()),
     }
 }

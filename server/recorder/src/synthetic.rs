@@ -1,8 +1,8 @@
 //! A synthetic robot source for demos, tests and benchmarks: smooth, distinct signals per element, stamped
 //! with the current monotonic time, in the core's layout (joints, end-effector pose, gripper).
 
-use crate::clock::monotonic_ns;
 use crate::recorder::{RobotSample, RobotSource};
+use phone2act_clock::monotonic_ns;
 
 /// Six joints, end-effector pose and gripper; the action is the pose delta plus gripper.
 #[derive(Debug, Default)]
@@ -68,6 +68,7 @@ impl RobotSource for SyntheticRobot {
         Some(RobotSample {
             state,
             action,
+            success: false,
             capture_time_ns: now,
         })
     }

@@ -19,6 +19,22 @@ pub struct Report {
     pub frames: u64,
     /// Problems, each a sentence; empty when the dataset is valid.
     pub problems: Vec<String>,
+    /// What the data files say of each episode, by episode index.
+    pub per_episode: BTreeMap<i64, EpisodeFacts>,
+    /// The task table (task index order), when it could be read.
+    pub tasks: Vec<String>,
+}
+
+/// One episode as its data rows describe it.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct EpisodeFacts {
+    pub frames: u64,
+    /// Task indices its rows carry (one, for every dataset phone2act or lerobot writes).
+    pub task_indices: BTreeSet<i64>,
+    /// `next.success` at the episode's last frame, if the dataset records it.
+    pub success_at_end: Option<bool>,
+    /// Frame index of the row `success_at_end` was taken from.
+    last_frame: i64,
 }
 
 impl Report {
@@ -219,7 +235,24 @@ pub fn verify(root: &Path) -> Report {
                 *lengths.entry(ep[row]).or_default() += 1;
                 indices.push(ix[row]);
             }
-            if let Some(t) = int_column(batch, "task_index") {
+            let task = int_column(batch, "task_index");
+            let success = batch
+                .column_by_name("next.success")
+                .and_then(|c| c.as_boolean_opt().cloned());
+            for row in 0..batch.num_rows() {
+                let facts = report.per_episode.entry(ep[row]).or_default();
+                facts.frames += 1;
+                if let Some(t) = &task {
+                    facts.task_indices.insert(t[row]);
+                }
+                if let Some(s) = &success
+                    && (facts.success_at_end.is_none() || fi[row] >= facts.last_frame)
+                {
+                    facts.success_at_end = Some(s.value(row));
+                    facts.last_frame = fi[row];
+                }
+            }
+            if let Some(t) = task {
                 data_tasks.extend(t);
             }
         }
@@ -384,6 +417,7 @@ pub fn verify(root: &Path) -> Report {
             report.episodes
         ));
     }
+    report.tasks.clone_from(tasks.as_ref().unwrap_or(&Vec::new()));
     check_metadata_agrees(
         &info,
         &episode_meta,
@@ -589,6 +623,18 @@ mod tests {
             let report = verify(&root);
             assert!(report.ok(), "{name}: {:?}", report.problems);
             assert_eq!((report.episodes, report.frames), (3, 30), "{name}");
+            // Per episode, from the rows: the frames add up, one task each, no `next.success` column.
+            assert_eq!(report.per_episode.len(), 3, "{name}");
+            let frames: u64 = report.per_episode.values().map(|f| f.frames).sum();
+            assert_eq!(frames, 30, "{name}");
+            for facts in report.per_episode.values() {
+                assert!(
+                    facts.frames > 0 && facts.task_indices.len() == 1,
+                    "{name}: {facts:?}"
+                );
+                assert_eq!(facts.success_at_end, None, "{name}");
+            }
+            assert!(!report.tasks.is_empty(), "{name}");
         }
     }
 

@@ -52,7 +52,7 @@ impl HandCamera {
                         width: SIZE.0,
                         height: SIZE.1,
                         rgb: Arc::new(rgb),
-                        capture_time_ns: phone2act_recorder::clock::monotonic_ns(),
+                        capture_time_ns: phone2act_clock::monotonic_ns(),
                         seq,
                     });
                 }

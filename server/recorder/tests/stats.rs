@@ -63,7 +63,7 @@ fn record_episode(ds: &mut Dataset, e: u64, long: bool, rng: &mut Rng) {
         } else {
             gripper
         });
-        ep.push_row(&state, &action).unwrap();
+        ep.push_row(&state, &action, false).unwrap();
     }
     ds.commit_episode(ep, EpisodeSummary::default()).unwrap();
 }

@@ -4,12 +4,10 @@
 //! async runtime never blocks.
 
 use crate::app::App;
+use crate::services::convert;
 use phone2act_bridges::remote::Downstream;
-use phone2act_bridges::{Control, Feedback, Health};
-use phone2act_proto::convert_arm::{pose_from_proto, pose_to_proto};
 use phone2act_proto::v1;
 use phone2act_proto::v1::bridge_server::Bridge;
-use phone2act_recorder::clock::monotonic_ns;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
@@ -34,19 +32,6 @@ fn down(message: v1::bridge_downstream::Message) -> v1::BridgeDownstream {
     v1::BridgeDownstream {
         message: Some(message),
     }
-}
-
-fn feedback_from_proto(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
-    let pose = fb.robot_from_ee.as_ref().ok_or("feedback has no robot_from_ee")?;
-    Ok(Feedback {
-        // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
-        capture_time_ns: monotonic_ns(),
-        joint_positions_rad: fb.joint_positions_rad.clone(),
-        robot_from_ee: pose_from_proto(pose).map_err(|e| e.to_string())?,
-        gripper_position: fb.gripper_position,
-        applied_seq: fb.applied_seq,
-        task_success: false,
-    })
 }
 
 /// More joints than any arm has; the bound keeps a hello (and the error naming its joints) small.
@@ -92,18 +77,7 @@ impl Bridge for BridgeService {
             None => return Err(Status::invalid_argument("the stream ended before BridgeHello")),
         };
         check_hello(&hello)?;
-        let remote = self.app.remote_bridges.get(&hello.arm).cloned().ok_or_else(|| {
-            let remote_arms: Vec<_> = self.app.remote_bridges.keys().cloned().collect();
-            Status::not_found(format!(
-                "arm {:?} is not configured with bridge = \"remote\" (remote arms: {})",
-                hello.arm,
-                if remote_arms.is_empty() {
-                    "none".to_owned()
-                } else {
-                    remote_arms.join(", ")
-                }
-            ))
-        })?;
+        let remote = self.app.find_remote_bridge(&hello.arm)?;
         let handle = Arc::new(
             remote
                 .attach(hello.joint_names.clone(), hello.supports_orientation)
@@ -131,21 +105,10 @@ impl Bridge for BridgeService {
                     }
                     let message = match down_handle.next(Duration::from_millis(100)) {
                         Ok(Some(Downstream::Command(c))) => {
-                            v1::bridge_downstream::Message::Command(v1::BridgeCommand {
-                                seq: c.seq,
-                                robot_from_target: Some(pose_to_proto(&c.robot_from_target)),
-                                gripper_target: c.gripper_target,
-                                issue_time_ns: c.issue_time_ns,
-                            })
+                            v1::bridge_downstream::Message::Command(convert::bridge_command(&c))
                         }
                         Ok(Some(Downstream::Control(c))) => {
-                            let kind = match c {
-                                Control::Enable => v1::bridge_control::Kind::Enable,
-                                Control::Disable => v1::bridge_control::Kind::Disable,
-                                Control::ClearError => v1::bridge_control::Kind::ClearError,
-                                Control::Reconnect => v1::bridge_control::Kind::Reconnect,
-                            };
-                            v1::bridge_downstream::Message::Control(v1::BridgeControl { kind: kind as i32 })
+                            v1::bridge_downstream::Message::Control(convert::bridge_control(c))
                         }
                         Ok(None) => continue,
                         Err(e) => {
@@ -166,24 +129,18 @@ impl Bridge for BridgeService {
             loop {
                 let msg = tokio::select! {
                     msg = inbound.message() => msg,
-                    () = crate::app::stopped(&mut shutdown) => break,
+                    () = crate::runtime::stopped(&mut shutdown) => break,
                 };
                 match msg {
                     Ok(Some(v1::BridgeUpstream {
                         message: Some(message),
                     })) => {
                         let result = match message {
-                            v1::bridge_upstream::Message::Feedback(fb) => feedback_from_proto(&fb)
+                            v1::bridge_upstream::Message::Feedback(fb) => convert::bridge_feedback(&fb)
                                 .and_then(|f| handle.publish_feedback(f).map_err(|e| e.to_string())),
-                            v1::bridge_upstream::Message::Status(report) => {
-                                let health = match v1::BridgeHealth::try_from(report.health) {
-                                    Ok(v1::BridgeHealth::Ready) => Health::Ready,
-                                    Ok(v1::BridgeHealth::Connecting) => Health::Connecting,
-                                    Ok(v1::BridgeHealth::Error) => Health::Error(report.message),
-                                    _ => Health::Disconnected(report.message),
-                                };
-                                handle.report_health(health).map_err(|e| e.to_string())
-                            }
+                            v1::bridge_upstream::Message::Status(report) => handle
+                                .report_health(convert::bridge_health(report))
+                                .map_err(|e| e.to_string()),
                             v1::bridge_upstream::Message::Hello(_) => {
                                 Err("BridgeHello sent twice".to_owned())
                             }

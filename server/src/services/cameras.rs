@@ -1,10 +1,12 @@
 //! `phone2act.v1.Cameras`: remote cameras push frames into a configured camera's latest-frame slot.
 
 use crate::app::App;
+use phone2act_clock::monotonic_ns;
+use phone2act_proto::convert_camera::{FrameError, PushedPixels, pushed_pixels};
 use phone2act_proto::v1;
 use phone2act_proto::v1::cameras_server::Cameras;
 use phone2act_recorder::camera::Frame;
-use phone2act_recorder::clock::monotonic_ns;
+use phone2act_recorder::jpeg::JpegError;
 use std::sync::Arc;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -20,36 +22,40 @@ impl CamerasService {
     }
 }
 
+/// Why a pushed frame was refused.
+#[derive(Debug, thiserror::Error)]
+enum PushError {
+    #[error(transparent)]
+    Frame(#[from] FrameError),
+    #[error(transparent)]
+    Jpeg(#[from] JpegError),
+    #[error("JPEG is {got_width}x{got_height}, camera {camera:?} is configured for {width}x{height}")]
+    JpegSize {
+        camera: String,
+        got_width: u32,
+        got_height: u32,
+        width: u32,
+        height: u32,
+    },
+}
+
 /// Checks and decodes one pushed frame for a camera configured at `width`×`height`.
-fn decode(frame: &v1::CameraFrame, width: u32, height: u32) -> Result<Vec<u8>, String> {
-    if frame.width != width || frame.height != height {
-        return Err(format!(
-            "frame is {}x{}, camera {:?} is configured for {width}x{height}",
-            frame.width, frame.height, frame.camera
-        ));
-    }
-    match v1::ImageEncoding::try_from(frame.encoding) {
-        Ok(v1::ImageEncoding::Rgb8) => {
-            let expected = width as usize * height as usize * 3;
-            if frame.data.len() != expected {
-                return Err(format!(
-                    "RGB8 frame has {} bytes, expected {expected}",
-                    frame.data.len()
-                ));
-            }
-            Ok(frame.data.clone())
-        }
-        Ok(v1::ImageEncoding::Jpeg) => {
-            let decoded = phone2act_recorder::jpeg::decode_jpeg(&frame.data).map_err(|e| e.to_string())?;
+fn decode(frame: &v1::CameraFrame, width: u32, height: u32) -> Result<Vec<u8>, PushError> {
+    match pushed_pixels(frame, width, height)? {
+        PushedPixels::Rgb8(rgb) => Ok(rgb.to_vec()),
+        PushedPixels::Jpeg(jpeg) => {
+            let decoded = phone2act_recorder::jpeg::decode_jpeg(jpeg)?;
             if decoded.width != width || decoded.height != height {
-                return Err(format!(
-                    "JPEG is {}x{}, camera {:?} is configured for {width}x{height}",
-                    decoded.width, decoded.height, frame.camera
-                ));
+                return Err(PushError::JpegSize {
+                    camera: frame.camera.clone(),
+                    got_width: decoded.width,
+                    got_height: decoded.height,
+                    width,
+                    height,
+                });
             }
             Ok(Arc::try_unwrap(decoded.rgb).unwrap_or_else(|shared| shared.as_ref().clone()))
         }
-        _ => Err(format!("unsupported image encoding {}", frame.encoding)),
     }
 }
 
@@ -60,42 +66,29 @@ impl Cameras for CamerasService {
         request: Request<Streaming<v1::CameraFrame>>,
     ) -> Result<Response<v1::PushSummary>, Status> {
         let mut inbound = request.into_inner();
-        let mut bound: Option<usize> = None;
+        let mut bound = None;
         let mut summary = v1::PushSummary::default();
         while let Some(frame) = inbound.message().await? {
-            let index = if let Some(i) = bound {
-                if frame.camera != self.app.cameras[i].config.name {
+            let cam = if let Some(cam) = bound {
+                if frame.camera != summary.camera {
                     return Err(Status::invalid_argument(format!(
                         "this stream is bound to camera {:?}, got a frame for {:?}",
                         summary.camera, frame.camera
                     )));
                 }
-                i
+                cam
             } else {
-                let i = self
-                    .app
-                    .cameras
-                    .iter()
-                    .position(|c| {
-                        c.config.name == frame.camera && c.config.kind == crate::config::CameraKind::Remote
-                    })
-                    .ok_or_else(|| {
-                        Status::not_found(format!(
-                            "no camera {:?} with kind = \"remote\" is configured",
-                            frame.camera
-                        ))
-                    })?;
-                bound = Some(i);
+                let cam = self.app.find_remote_camera(&frame.camera)?;
+                bound = Some(cam);
                 summary.camera.clone_from(&frame.camera);
-                i
+                cam
             };
-            let cam = &self.app.cameras[index];
-            let (width, height) = (cam.config.width, cam.config.height);
+            let (width, height) = (cam.config().width, cam.config().height);
             let seq = frame.frame_seq;
-            let result = crate::app::blocking(|| decode(&frame, width, height));
+            let result = crate::runtime::blocking(|| decode(&frame, width, height));
             match result {
                 Ok(rgb) => {
-                    cam.slot.publish(Frame {
+                    cam.slot().publish(Frame {
                         width,
                         height,
                         rgb: Arc::new(rgb),

@@ -1,8 +1,10 @@
 //! `phone2act.v1.Episodes`: start, stop (save), discard, re-record, list, status and watch. The recorder
 //! does file I/O, so calls run on blocking-capable workers.
 
-use crate::app::{App, blocking};
-use crate::recording::{episode_to_proto, status_of, status_to_proto};
+use crate::app::App;
+use crate::recording::RecordingError;
+use crate::runtime::blocking;
+use crate::services::convert::{current_recording_status, episode, recording_status};
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;
@@ -33,9 +35,10 @@ impl Episodes for EpisodesService {
     ) -> Result<Response<v1::StartEpisodeResponse>, Status> {
         let task = request.into_inner().task;
         let app = &self.app;
-        let status = blocking(|| app.with_recorder(|r| r.start_episode(&task).map_err(|e| status_of(&e))))?;
+        let status =
+            blocking(|| app.with_recorder(|r| r.start_episode(&task).map_err(RecordingError::from)))?;
         Ok(Response::new(v1::StartEpisodeResponse {
-            status: Some(status_to_proto(&status, &app.config)),
+            status: Some(recording_status(&status, app.config())),
         }))
     }
 
@@ -45,9 +48,9 @@ impl Episodes for EpisodesService {
     ) -> Result<Response<v1::StopEpisodeResponse>, Status> {
         let started = Instant::now();
         let app = &self.app;
-        let summary = blocking(|| app.with_recorder(|r| r.stop_episode().map_err(|e| status_of(&e))))?;
+        let summary = blocking(|| app.with_recorder(|r| r.stop_episode().map_err(RecordingError::from)))?;
         Ok(Response::new(v1::StopEpisodeResponse {
-            episode: Some(episode_to_proto(&summary)),
+            episode: Some(episode(&summary)),
             save_latency_s: started.elapsed().as_secs_f64(),
         }))
     }
@@ -57,7 +60,7 @@ impl Episodes for EpisodesService {
         _: Request<v1::DiscardEpisodeRequest>,
     ) -> Result<Response<v1::DiscardEpisodeResponse>, Status> {
         let app = &self.app;
-        let frames = blocking(|| app.with_recorder(|r| r.discard_episode().map_err(|e| status_of(&e))))?;
+        let frames = blocking(|| app.with_recorder(|r| r.discard_episode().map_err(RecordingError::from)))?;
         Ok(Response::new(v1::DiscardEpisodeResponse {
             frames_discarded: frames,
         }))
@@ -74,9 +77,9 @@ impl Episodes for EpisodesService {
         } else {
             Some(task.as_str())
         };
-        let status = blocking(|| app.with_recorder(|r| r.rerecord(task).map_err(|e| status_of(&e))))?;
+        let status = blocking(|| app.with_recorder(|r| r.rerecord(task).map_err(RecordingError::from)))?;
         Ok(Response::new(v1::StartEpisodeResponse {
-            status: Some(status_to_proto(&status, &app.config)),
+            status: Some(recording_status(&status, app.config())),
         }))
     }
 
@@ -86,8 +89,8 @@ impl Episodes for EpisodesService {
     ) -> Result<Response<v1::ListEpisodesResponse>, Status> {
         let episodes = self.app.with_recorder(|r| Ok(r.episodes()))?;
         Ok(Response::new(v1::ListEpisodesResponse {
-            episodes: episodes.iter().map(episode_to_proto).collect(),
-            dataset_root: self.app.config.recorder.root.display().to_string(),
+            episodes: episodes.iter().map(episode).collect(),
+            dataset_root: self.app.config().recorder.root.display().to_string(),
         }))
     }
 
@@ -95,7 +98,7 @@ impl Episodes for EpisodesService {
         &self,
         _: Request<v1::EpisodeStatusRequest>,
     ) -> Result<Response<v1::RecordingStatus>, Status> {
-        Ok(Response::new(self.app.recording_status()))
+        Ok(Response::new(current_recording_status(&self.app)))
     }
 
     type WatchStream = StatusStream;
@@ -121,7 +124,7 @@ impl Episodes for EpisodesService {
         let mut changes = app.recorder_changes()?;
         tokio::spawn(async move {
             loop {
-                let status = app.recording_status();
+                let status = current_recording_status(&app);
                 if tx.send(Ok(status)).await.is_err() {
                     break;
                 }
@@ -129,7 +132,7 @@ impl Episodes for EpisodesService {
                     changed = changes.changed() => if changed.is_err() { break },
                     () = tokio::time::sleep(interval) => {}
                     () = tx.closed() => break,
-                    () = crate::app::stopped(&mut shutdown) => break,
+                    () = crate::runtime::stopped(&mut shutdown) => break,
                 }
             }
         });

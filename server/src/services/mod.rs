@@ -3,8 +3,10 @@
 pub mod auth;
 pub mod bridge;
 pub mod cameras;
+pub mod convert;
 pub mod episodes;
 pub mod error;
 pub mod policy;
+pub mod scene;
 pub mod system;
 pub mod teleop;

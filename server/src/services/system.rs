@@ -1,6 +1,7 @@
 //! `phone2act.v1.System`: arms, cameras, status snapshots and the status watch stream.
 
 use crate::app::App;
+use crate::services::convert::{camera_status, system_status};
 use phone2act_proto::convert_arm::arm_state_to_proto;
 use phone2act_proto::v1;
 use phone2act_proto::v1::system_server::System;
@@ -34,7 +35,7 @@ impl System for SystemService {
         Ok(Response::new(v1::ListArmsResponse {
             arms: self
                 .app
-                .arms
+                .arms()
                 .iter()
                 .map(|a| arm_state_to_proto(&a.snapshot()))
                 .collect(),
@@ -46,12 +47,7 @@ impl System for SystemService {
         _: Request<v1::ListCamerasRequest>,
     ) -> Result<Response<v1::ListCamerasResponse>, Status> {
         Ok(Response::new(v1::ListCamerasResponse {
-            cameras: self
-                .app
-                .cameras
-                .iter()
-                .map(crate::app::CameraRuntime::status)
-                .collect(),
+            cameras: self.app.cameras().iter().map(camera_status).collect(),
         }))
     }
 
@@ -59,7 +55,7 @@ impl System for SystemService {
         &self,
         _: Request<v1::GetStatusRequest>,
     ) -> Result<Response<v1::SystemStatus>, Status> {
-        Ok(Response::new(self.app.status(0)))
+        Ok(Response::new(system_status(&self.app, 0)))
     }
 
     type WatchStatusStream = StatusStream;
@@ -90,10 +86,10 @@ impl System for SystemService {
             loop {
                 tokio::select! {
                     _ = ticker.tick() => {}
-                    () = crate::app::stopped(&mut shutdown) => break,
+                    () = crate::runtime::stopped(&mut shutdown) => break,
                     () = tx.closed() => break,
                 }
-                if tx.send(Ok(app.status(sequence))).await.is_err() {
+                if tx.send(Ok(system_status(&app, sequence))).await.is_err() {
                     break;
                 }
                 sequence += 1;
@@ -108,10 +104,10 @@ impl System for SystemService {
         &self,
         _: Request<v1::GetDatasetInfoRequest>,
     ) -> Result<Response<v1::DatasetInfo>, Status> {
-        let rec = &self.app.config.recorder;
+        let rec = &self.app.config().recorder;
         Ok(Response::new(v1::DatasetInfo {
             root: rec.root.display().to_string(),
-            format: rec.format.as_str().to_owned(),
+            format: rec.format.codebase_version().to_owned(),
             fps: rec.fps,
             robot_type: rec.robot_type.clone(),
             video_codec: rec.effective_video_codec().to_owned(),

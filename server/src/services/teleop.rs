@@ -3,12 +3,15 @@
 //! is planned, so a burst from the network never turns into a backlog of stale commands.
 
 use crate::app::App;
+use crate::services::convert::current_recording_status;
 use futures_util::FutureExt;
+use phone2act_clock::monotonic_ns;
 use phone2act_core::TeleopRound;
 use phone2act_proto::convert_arm::{ButtonInput, arm_state_to_proto, button_from_proto, pose_from_proto};
-use phone2act_proto::v1;
+use phone2act_proto::convert_episode::RecordAction;
+use phone2act_proto::sample::tracking_lost;
 use phone2act_proto::v1::teleop_server::Teleop;
-use phone2act_recorder::clock::monotonic_ns;
+use phone2act_proto::{PendingSample, v1};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
@@ -67,13 +70,7 @@ impl Teleop for TeleopService {
                 "the first sample must name the arm (field `arm`)",
             ));
         }
-        let arm = self.app.arm(&first.arm).ok_or_else(|| {
-            Status::not_found(format!(
-                "unknown arm {:?}; configured arms: {}",
-                first.arm,
-                self.app.arm_names().join(", ")
-            ))
-        })?;
+        let arm = self.app.find_arm(&first.arm)?;
         let session = self.app.next_session_id();
         arm.bind_teleop(session, first.take_over)?;
         // Debug formatting escapes control characters: a client name cannot forge log lines.
@@ -106,7 +103,7 @@ impl Teleop for TeleopService {
                             if tx.try_send(Ok(fb)).is_err() && tx.is_closed() { break; }
                             continue;
                         }
-                        () = crate::app::stopped(&mut shutdown) => break,
+                        () = crate::runtime::stopped(&mut shutdown) => break,
                     }
                 }
                 let receive_ns = monotonic_ns();
@@ -135,7 +132,10 @@ impl Teleop for TeleopService {
                 arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
                 let mut error = outcome.error;
                 for record in records {
-                    if let Err(e) = app.record_command(&record) {
+                    let done = RecordAction::try_from(&record)
+                        .map_err(|e| e.to_string())
+                        .and_then(|action| app.record_action(action).map_err(|e| e.to_string()));
+                    if let Err(e) = done {
                         error = e;
                     }
                 }
@@ -157,35 +157,32 @@ impl Teleop for TeleopService {
     }
 }
 
-/// Folds a batch of samples into one input: all button events in order, the newest valid pose. Returns the
-/// input, the record events (for the recorder, in order), the newest sample's (seq, capture time), and how
-/// many poses were superseded.
+/// Folds a batch of samples into one input with the wire's one latest-wins rule ([`PendingSample`]): every
+/// button event in order, the newest pose. Returns the arm's input, the record events (for the recorder, in
+/// order), the newest sample's (seq, capture time), and how many poses were superseded.
 fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopRound, Vec<v1::RecordCommand>, (u64, i64), u64) {
-    let mut input = TeleopRound::default();
+    let mut pending = PendingSample::default();
+    let superseded = batch.into_iter().map(|s| u64::from(pending.push(s))).sum();
+    let Some(sample) = pending.take() else {
+        return (TeleopRound::default(), Vec::new(), (0, 0), 0);
+    };
+    let tracking_ok = !tracking_lost(sample.tracking);
+    let mut input = TeleopRound {
+        pose: sample
+            .tracking_from_phone
+            .as_ref()
+            .map(|pose| pose_from_proto(pose).map_err(|e| e.to_string())),
+        tracking_ok: tracking_ok && sample.tracking_from_phone.is_some(),
+        buttons: Vec::with_capacity(sample.buttons.len()),
+    };
     let mut records = Vec::new();
-    let mut newest = (0, 0);
-    let mut poses = 0u64;
-    for sample in batch {
-        newest = (sample.seq, sample.capture_time_ns);
-        for event in sample.buttons {
-            match button_from_proto(event) {
-                ButtonInput::Arm(button) => input.buttons.push(button),
-                ButtonInput::Record(record) => records.push(record),
-            }
-        }
-        let tracking = v1::TrackingState::try_from(sample.tracking).unwrap_or(v1::TrackingState::Unspecified);
-        if let Some(pose) = &sample.tracking_from_phone {
-            poses += 1;
-            input.pose = Some(pose_from_proto(pose).map_err(|e| e.to_string()));
-            input.tracking_ok = matches!(
-                tracking,
-                v1::TrackingState::Tracking | v1::TrackingState::Unspecified
-            );
-        } else if tracking == v1::TrackingState::Lost || tracking == v1::TrackingState::Limited {
-            input.tracking_ok = false;
+    for event in sample.buttons {
+        match button_from_proto(event) {
+            ButtonInput::Arm(button) => input.buttons.push(button),
+            ButtonInput::Record(record) => records.push(record),
         }
     }
-    (input, records, newest, poses.saturating_sub(1))
+    (input, records, (sample.seq, sample.capture_time_ns), superseded)
 }
 
 fn feedback(
@@ -200,7 +197,7 @@ fn feedback(
         echoed_capture_time_ns: last.1,
         server_receive_time_ns: last.2,
         arm_state: Some(arm_state_to_proto(&arm.snapshot())),
-        recording: Some(app.recording_status()),
+        recording: Some(current_recording_status(app)),
         error,
         superseded_samples: superseded,
         server_send_time_ns: monotonic_ns(),

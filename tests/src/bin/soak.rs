@@ -5,7 +5,7 @@
 //! with `phone2act dataset verify` and, when the conformance venv exists, with the real lerobot.
 //!
 //! Run (release build of the server first):
-//! `cargo build --release -p phone2act-server --bin phone2act && cargo run --release -p phone2act-tests --bin soak -- --minutes 10`
+//! `cargo build --release -p phone2act-cli --bin phone2act && cargo run --release -p phone2act-tests --bin soak -- --minutes 10`
 //! Options: `--minutes M` (default 10), `--episode-s S` (default 20), `--bin PATH` (default
 //! target/release/phone2act next to this binary), `--keep DIR` (dataset location, default a temp dir).
 
@@ -185,7 +185,7 @@ fn main() -> anyhow::Result<()> {
     let bin: PathBuf = arg("--bin")?.unwrap_or_else(default_bin);
     if !bin.exists() {
         bail!(
-            "{} not found: cargo build --release -p phone2act-server --bin phone2act (or --bin PATH)",
+            "{} not found: cargo build --release -p phone2act-cli --bin phone2act (or --bin PATH)",
             bin.display()
         );
     }

@@ -1,5 +1,6 @@
 //! Gateway helpers shared by the end-to-end test binaries that include this module: a gateway in front of a
-//! gRPC server on ephemeral ports, and its wss:// page socket over a TCP connection the caller opened (from
+//! gRPC server (through the SDK client it is given: in-process, as `phone2act serve` embeds it, or over TCP)
+//! on ephemeral ports, and its wss:// page socket over a TCP connection the caller opened (from
 //! whichever local address plays the phone).
 #![allow(dead_code)] // each test binary uses the part it needs
 
@@ -24,11 +25,11 @@ impl Drop for RunningGateway {
     }
 }
 
-/// Starts a gateway for `server_url` (holding `token` as `phone2act serve` hands it over) on ephemeral ports,
-/// with its certificate in a temporary directory; `tweak` adjusts the configuration first.
+/// Starts a gateway reaching its server through `client` (holding the server's token as `phone2act serve`
+/// hands it over) on ephemeral ports, with its certificate in a temporary directory; `tweak` adjusts the
+/// configuration first.
 pub async fn start_gateway(
-    server_url: &str,
-    token: Option<&str>,
+    client: phone2act_sdk::Client,
     tweak: impl FnOnce(&mut GatewayConfig),
 ) -> RunningGateway {
     let dir = tempfile::tempdir().unwrap();
@@ -43,7 +44,7 @@ pub async fn start_gateway(
         rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
         https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
     };
-    let gateway = Gateway::with_listeners(config, server_url, token, listeners).unwrap();
+    let gateway = Gateway::with_client(config, client, listeners).unwrap();
     let info = gateway.info().clone();
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     tokio::spawn(gateway.run(async {

@@ -3,9 +3,11 @@
 //!
 //! The server is the in-process mock (a real tonic server on a loopback socket) so that arrival times are
 //! read on the same monotonic clock the phones stamp their messages with. A direct gRPC stream (no gateway)
-//! is measured the same way as a baseline, so the gateway's own share can be read off.
+//! is measured the same way as a baseline, so the gateway's own share can be read off. Each gateway path is
+//! measured twice: standalone (own thread and runtime, gRPC over loopback TCP, as `phone2act-gateway`) and
+//! embedded (on the server's runtime, gRPC in-process through `Client::in_process`, as `phone2act serve`).
 //!
-//! `cargo run --release -p phone2act-gateway --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
+//! `cargo run --release -p phone2act-gateway --features mock --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
 
 use anyhow::{Context, Result};
 use clap::Parser;
@@ -32,11 +34,20 @@ struct Args {
     seconds: f64,
 }
 
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Path {
     Rosbridge,
     Page,
     DirectGrpc,
+}
+
+/// Where the gateway runs and how it reaches the server.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Gw {
+    /// The standalone `phone2act-gateway`: its own thread and runtime, gRPC over loopback TCP.
+    Standalone,
+    /// Embedded as in `phone2act serve`: on the server's runtime, gRPC in-process (no socket).
+    Embedded,
 }
 
 fn percentile(sorted: &[i64], p: f64) -> f64 {
@@ -76,17 +87,26 @@ fn main() -> Result<()> {
             "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
         );
         let mut round_trips = Vec::new();
-        for path in [Path::DirectGrpc, Path::Rosbridge, Path::Page] {
-            let (lat, rtt) = run(path, &args)?;
-            match path {
-                Path::DirectGrpc => round_trips.insert(0, ("direct gRPC round trip", rtt)),
-                Path::Page => round_trips.push(("page round trip (feedback)", rtt)),
-                Path::Rosbridge => {}
+        for (path, gw) in [
+            (Path::DirectGrpc, Gw::Standalone),
+            (Path::Rosbridge, Gw::Standalone),
+            (Path::Page, Gw::Standalone),
+            (Path::Rosbridge, Gw::Embedded),
+            (Path::Page, Gw::Embedded),
+        ] {
+            let (lat, rtt) = run(path, gw, &args)?;
+            match (path, gw) {
+                (Path::DirectGrpc, _) => round_trips.insert(0, ("direct gRPC round trip", rtt)),
+                (Path::Page, Gw::Standalone) => round_trips.push(("page round trip, standalone", rtt)),
+                (Path::Page, Gw::Embedded) => round_trips.push(("page round trip, embedded", rtt)),
+                (Path::Rosbridge, _) => {}
             }
-            let name = match path {
-                Path::DirectGrpc => "direct gRPC (no gateway)",
-                Path::Rosbridge => "rosbridge ws → gateway → gRPC",
-                Path::Page => "page wss → gateway → gRPC",
+            let name = match (path, gw) {
+                (Path::DirectGrpc, _) => "direct gRPC (no gateway)",
+                (Path::Rosbridge, Gw::Standalone) => "rosbridge → gateway → TCP",
+                (Path::Page, Gw::Standalone) => "page wss → gateway → TCP",
+                (Path::Rosbridge, Gw::Embedded) => "rosbridge → embedded gateway",
+                (Path::Page, Gw::Embedded) => "page wss → embedded gateway",
             };
             print_row(name, lat);
         }
@@ -116,28 +136,34 @@ fn on_thread<T: Send + 'static>(
         .expect("thread")
 }
 
-/// One measurement: the mock server, the gateway and the phones each on their own thread and runtime.
-/// Returns the one-way latencies (phone send → sample at the server) and, for the page, the round trips
-/// (phone send → feedback for that sample back at the phone), both after a 1 s warm-up.
-fn run(path: Path, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
+/// Binds port-0 listeners, starts the gateway on the current runtime with `client`, reports its info and
+/// runs it until `stop`.
+async fn gateway_task(
+    config: GatewayConfig,
+    client: phone2act_sdk::Client,
+    info_tx: std::sync::mpsc::Sender<phone2act_gateway::GatewayInfo>,
+    stop: tokio::sync::oneshot::Receiver<()>,
+) {
+    let listeners = Listeners {
+        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
+        https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
+    };
+    let gateway = Gateway::with_client(config, client, listeners).expect("gateway");
+    info_tx.send(gateway.info().clone()).expect("main thread gone");
+    let _ = gateway
+        .run(async {
+            let _ = stop.await;
+        })
+        .await;
+}
+
+/// One measurement: the mock server, the gateway (standalone: on its own thread and runtime; embedded: on the
+/// server's) and the phones each on their own thread and runtime. Returns the one-way latencies (phone send →
+/// sample at the server) and, for the page, the round trips (phone send → feedback for that sample back at
+/// the phone), both after a 1 s warm-up.
+fn run(path: Path, gw: Gw, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
     let epoch = Instant::now();
     let arms: Vec<String> = (0..args.phones).map(|i| format!("arm{i}")).collect();
-
-    // "Server process".
-    let (mock_tx, mock_rx) = std::sync::mpsc::channel();
-    let (server_stop_tx, server_stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let server_arms = arms.clone();
-    let server = on_thread("server", move || {
-        Box::pin(async move {
-            let refs: Vec<&str> = server_arms.iter().map(String::as_str).collect();
-            let mock = MockServer::start(&refs, epoch, true).await.expect("mock server");
-            mock_tx.send(mock).expect("main thread gone");
-            let _ = server_stop_rx.await;
-        })
-    });
-    let mock = mock_rx.recv()?;
-
-    // "Gateway process".
     let dir = std::env::temp_dir().join(format!("phone2act-gateway-bench-{}", std::process::id()));
     let mut config = GatewayConfig {
         cert_dir: Some(dir.clone()),
@@ -148,22 +174,46 @@ fn run(path: Path, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
     config.topics.namespaces = arms.iter().map(|a| (a.clone(), a.clone())).collect();
     let (info_tx, info_rx) = std::sync::mpsc::channel();
     let (gw_stop_tx, gw_stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let url = mock.url();
-    let gateway = on_thread("gateway", move || {
+
+    // "Server process" (with the gateway when it is embedded).
+    let (mock_tx, mock_rx) = std::sync::mpsc::channel();
+    let (server_stop_tx, server_stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server_arms = arms.clone();
+    let embedded = (gw == Gw::Embedded).then(|| (config.clone(), info_tx.clone()));
+    let (embedded_stop, standalone_stop) = match gw {
+        Gw::Embedded => (Some(gw_stop_rx), None),
+        Gw::Standalone => (None, Some(gw_stop_rx)),
+    };
+    let server = on_thread("server", move || {
         Box::pin(async move {
-            let listeners = Listeners {
-                rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
-                https: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind")),
-            };
-            let gateway = Gateway::with_listeners(config, &url, None, listeners).expect("gateway");
-            info_tx.send(gateway.info().clone()).expect("main thread gone");
-            let _ = gateway
-                .run(async {
-                    let _ = gw_stop_rx.await;
-                })
-                .await;
+            let refs: Vec<&str> = server_arms.iter().map(String::as_str).collect();
+            let mock = MockServer::start(&refs, epoch, true).await.expect("mock server");
+            if let (Some((config, info_tx)), Some(stop)) = (embedded, embedded_stop) {
+                let (client, incoming) = phone2act_sdk::Client::in_process(None).expect("client");
+                mock.serve_in_process(incoming);
+                tokio::spawn(gateway_task(config, client, info_tx, stop));
+            }
+            mock_tx.send(mock).expect("main thread gone");
+            let _ = server_stop_rx.await;
         })
     });
+    let mock = mock_rx.recv()?;
+
+    // "Gateway process".
+    let gateway = match standalone_stop {
+        Some(stop) => {
+            let url = mock.url();
+            Some(on_thread("gateway", move || {
+                Box::pin(async move {
+                    // Inside the runtime: the lazy channel spawns its connection task there.
+                    let options = phone2act_sdk::ConnectOptions::default();
+                    let client = phone2act_sdk::Client::connect_lazy(&url, &options).expect("server URL");
+                    gateway_task(config, client, info_tx, stop).await;
+                })
+            }))
+        }
+        None => None,
+    };
     let info = info_rx.recv()?;
 
     // "Phones".
@@ -201,7 +251,9 @@ fn run(path: Path, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
         .map_err(|_| anyhow::anyhow!("phones thread panicked"))??;
     std::thread::sleep(Duration::from_millis(100));
     let _ = gw_stop_tx.send(());
-    let _ = gateway.join();
+    if let Some(gateway) = gateway {
+        let _ = gateway.join();
+    }
     let warmup_ns = 1_000_000_000_i64;
     let latencies = mock
         .received()

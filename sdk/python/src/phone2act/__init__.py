@@ -1,6 +1,7 @@
 """phone2act: Python client for the phone2act server.
 
-Sync:    `Client`, `Episodes` (as `client.episodes`), `PolicySession`, `TeleopSession`.
+Sync:    `Client`, `Episodes` (as `client.episodes`), `Scene` (as `client.scene`), `PolicySession`,
+         `TeleopSession`.
 asyncio: `phone2act.aio.AsyncClient` and friends.
 Raw generated stubs: `phone2act.v1.*_pb2` / `*_pb2_grpc`.
 """
@@ -16,7 +17,7 @@ from phone2act._common import (
     make_pose,
     pose_tuple,
 )
-from phone2act.client import Client, Episodes, PolicySession, TeleopSession
+from phone2act.client import Client, Episodes, PolicySession, Scene, TeleopSession
 from phone2act.errors import (
     DeadlineExceeded,
     FailedPrecondition,
@@ -26,6 +27,7 @@ from phone2act.errors import (
     ServerUnavailable,
     SessionClosed,
     Unauthenticated,
+    Unimplemented,
 )
 
 __all__ = [
@@ -43,10 +45,12 @@ __all__ = [
     "NotFound",
     "Phone2ActError",
     "PolicySession",
+    "Scene",
     "ServerUnavailable",
     "SessionClosed",
     "TeleopSession",
     "Unauthenticated",
+    "Unimplemented",
     "make_chunk",
     "make_pose",
     "pose_tuple",

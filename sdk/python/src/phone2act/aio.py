@@ -1,4 +1,4 @@
-"""asyncio client: `AsyncClient`, `AsyncEpisodes`, `AsyncPolicySession`, `AsyncTeleopSession`.
+"""asyncio client: `AsyncClient`, `AsyncEpisodes`, `AsyncScene`, `AsyncPolicySession`, `AsyncTeleopSession`.
 
 The same API as the sync layer (`phone2act.Client` and friends: same constructor, same methods, same
 arguments and defaults), with coroutines in place of blocking calls; `tests/python/test_sdk.py` checks the
@@ -44,6 +44,8 @@ from phone2act.v1 import (
     episodes_pb2_grpc,
     policy_pb2,
     policy_pb2_grpc,
+    scene_pb2,
+    scene_pb2_grpc,
     system_pb2,
     system_pb2_grpc,
     teleop_pb2,
@@ -83,6 +85,7 @@ class AsyncClient:
         self.policy_stub = policy_pb2_grpc.PolicyStub(self._channel)
         self.teleop_stub = teleop_pb2_grpc.TeleopStub(self._channel)
         self.episodes = AsyncEpisodes(self, episodes_pb2_grpc.EpisodesStub(self._channel))
+        self.scene = AsyncScene(self, scene_pb2_grpc.SceneStub(self._channel))
 
     @classmethod
     async def connect(
@@ -194,6 +197,20 @@ class AsyncClient:
     ) -> AsyncTeleopSession:
         """Open a Teleop.Stream for `arm` (the arm is claimed with the first sample sent)."""
         return AsyncTeleopSession(self, arm, client_name, take_over)
+
+
+class AsyncScene:
+    def __init__(self, client: AsyncClient, stub: scene_pb2_grpc.SceneStub) -> None:
+        self._c = client
+        self._stub = stub
+
+    async def reset(self, arm: str, seed: int | None = None, home_arm: bool = False) -> scene_pb2.SceneState:
+        """Re-draw the scene from `seed` (None: the arm's next seed); see `phone2act.client.Scene.reset`."""
+        req = scene_pb2.ResetSceneRequest(arm=arm, seed=seed, home_arm=home_arm)
+        return await self._c._call("Scene.Reset", self._stub.Reset, req)
+
+    async def get(self, arm: str) -> scene_pb2.SceneState:
+        return await self._c._call("Scene.Get", self._stub.Get, scene_pb2.GetSceneRequest(arm=arm))
 
 
 class AsyncEpisodes:

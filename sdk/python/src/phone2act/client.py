@@ -42,6 +42,8 @@ from phone2act.v1 import (
     episodes_pb2_grpc,
     policy_pb2,
     policy_pb2_grpc,
+    scene_pb2,
+    scene_pb2_grpc,
     system_pb2,
     system_pb2_grpc,
     teleop_pb2,
@@ -98,6 +100,7 @@ class Client:
         self.policy_stub = policy_pb2_grpc.PolicyStub(channel)
         self.teleop_stub = teleop_pb2_grpc.TeleopStub(channel)
         self.episodes = Episodes(self, episodes_pb2_grpc.EpisodesStub(channel))
+        self.scene = Scene(self, scene_pb2_grpc.SceneStub(channel))
 
     # --- plumbing -------------------------------------------------------------------------------------
 
@@ -168,6 +171,24 @@ class Client:
 
     def teleop(self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False) -> TeleopSession:
         return TeleopSession(self, arm, client_name, take_over)
+
+
+class Scene:
+    """The task scene of a simulated arm (ball and basket): reset it between episodes, read it (success)."""
+
+    def __init__(self, client: Client, stub: scene_pb2_grpc.SceneStub) -> None:
+        self._c = client
+        self._stub = stub
+
+    def reset(self, arm: str, seed: int | None = None, home_arm: bool = False) -> scene_pb2.SceneState:
+        """Re-draw the scene from `seed` (None: the arm's next seed). `home_arm` also puts the simulated arm
+        at its initial joints; refused (`FailedPrecondition`) while a phone or policy drives it. Arms
+        without a scene raise `Unimplemented`."""
+        req = scene_pb2.ResetSceneRequest(arm=arm, seed=seed, home_arm=home_arm)
+        return self._c._call("Scene.Reset", self._stub.Reset, req)
+
+    def get(self, arm: str) -> scene_pb2.SceneState:
+        return self._c._call("Scene.Get", self._stub.Get, scene_pb2.GetSceneRequest(arm=arm))
 
 
 class Episodes:

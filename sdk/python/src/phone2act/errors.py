@@ -30,6 +30,10 @@ class FailedPrecondition(Phone2ActError):
     """The request is valid but not now (e.g. an episode is already recording, a phone owns the arm)."""
 
 
+class Unimplemented(Phone2ActError, NotImplementedError):
+    """The arm or server cannot do this (e.g. a scene reset on a hardware arm)."""
+
+
 class Unauthenticated(Phone2ActError, PermissionError):
     """Missing or wrong bearer token."""
 
@@ -48,6 +52,7 @@ _BY_CODE: dict[grpc.StatusCode, type[Phone2ActError]] = {
     grpc.StatusCode.NOT_FOUND: NotFound,
     grpc.StatusCode.FAILED_PRECONDITION: FailedPrecondition,
     grpc.StatusCode.ALREADY_EXISTS: FailedPrecondition,
+    grpc.StatusCode.UNIMPLEMENTED: Unimplemented,
     grpc.StatusCode.UNAUTHENTICATED: Unauthenticated,
     grpc.StatusCode.PERMISSION_DENIED: Unauthenticated,
     grpc.StatusCode.DEADLINE_EXCEEDED: DeadlineExceeded,

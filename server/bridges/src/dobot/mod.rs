@@ -326,7 +326,7 @@ impl DobotBridge {
     /// Connects to the controller, clears errors, sets the speed, enables the robot (as configured), waits for
     /// the first feedback packet and starts streaming.
     pub fn start(config: DobotConfig) -> Result<Arc<Self>, BridgeError> {
-        Self::start_with_clock(config, monotonic_ns)
+        Self::start_with_clock(config, phone2act_clock::monotonic_ns)
     }
 
     /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).
@@ -940,12 +940,6 @@ impl Bridge for DobotBridge {
     fn shutdown(&self) {
         self.inner.shutdown();
     }
-}
-
-/// Monotonic nanoseconds since the first call in this process: the feedback clock when none is supplied.
-pub(crate) fn monotonic_ns() -> i64 {
-    static EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
-    EPOCH.get_or_init(Instant::now).elapsed().as_nanos() as i64
 }
 
 #[cfg(test)]

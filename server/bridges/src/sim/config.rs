@@ -2,7 +2,8 @@
 //! config). Every field has a default, so an empty table is a working scene.
 
 use crate::BridgeError;
-use phone2act_core::kinematics::{SO101_JOINT_LIMITS_RAD, So101Joints};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use phone2act_core::kinematics::{IkWeights, SO101_JOINT_LIMITS_RAD, So101Joints, So101Kinematics};
 use serde::{Deserialize, Serialize};
 
 /// Simulated arm and scene parameters.
@@ -22,8 +23,15 @@ pub struct SimConfig {
     pub initial_gripper: f64,
     /// Orientation weight of the IK (0 = position only, 1 = as much orientation as a 5-DoF arm allows).
     pub ik_orientation_weight: f64,
-    /// Ball centre on the table at start, (x, y) in the robot base frame.
+    /// Ball centre on the table at start, (x, y) in the robot base frame, until the first scene reset.
     pub ball_xy_m: [f64; 2],
+    /// Where a scene reset draws the ball's start from. Every point must be reachable with the tool pointing
+    /// down at the ball (checked at load).
+    pub ball_area_m: TableArea,
+    /// Where a scene reset draws the basket's centre from; unset keeps the basket at `basket_xy_m`.
+    pub basket_area_m: Option<TableArea>,
+    /// First seed of the arm's scene sequence: a reset without a seed uses the one after the last used.
+    pub seed: u64,
     pub ball_radius_m: f64,
     /// Basket centre on the table, (x, y) in the robot base frame.
     pub basket_xy_m: [f64; 2],
@@ -47,6 +55,17 @@ impl Default for SimConfig {
             initial_gripper: 0.0,
             ik_orientation_weight: 1.0,
             ball_xy_m: [0.25, -0.10],
+            // In front of the arm on the side away from the basket, 0.16-0.30 m from the base: inside the
+            // SO-101's reach with the tool pointing straight down (which ends about 0.3 m out), and in
+            // the default camera's view.
+            ball_area_m: TableArea {
+                x_min_m: 0.16,
+                x_max_m: 0.26,
+                y_min_m: -0.14,
+                y_max_m: -0.04,
+            },
+            basket_area_m: None,
+            seed: 0,
             ball_radius_m: 0.02,
             basket_xy_m: [0.22, 0.13],
             basket_radius_m: 0.06,
@@ -54,6 +73,48 @@ impl Default for SimConfig {
             grasp_radius_m: 0.03,
             camera: SimCameraConfig::default(),
         }
+    }
+}
+
+/// An axis-aligned rectangle on the table, robot base frame.
+#[derive(Clone, Copy, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TableArea {
+    pub x_min_m: f64,
+    pub x_max_m: f64,
+    pub y_min_m: f64,
+    pub y_max_m: f64,
+}
+
+impl TableArea {
+    /// The point at fractions `(u, v)` (each in 0..1) of the way from the minimum to the maximum corner.
+    pub fn point_at(&self, u: f64, v: f64) -> [f64; 2] {
+        [
+            self.x_min_m + u * (self.x_max_m - self.x_min_m),
+            self.y_min_m + v * (self.y_max_m - self.y_min_m),
+        ]
+    }
+
+    /// The four corners.
+    pub fn corners(&self) -> [[f64; 2]; 4] {
+        [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)].map(|(u, v)| self.point_at(u, v))
+    }
+
+    /// Distance from (x, y) to the nearest point of the area (0 inside).
+    pub fn distance_to(&self, [x, y]: [f64; 2]) -> f64 {
+        let dx = (self.x_min_m - x).max(x - self.x_max_m).max(0.0);
+        let dy = (self.y_min_m - y).max(y - self.y_max_m).max(0.0);
+        dx.hypot(dy)
+    }
+
+    fn validate(&self, name: &str) -> Result<(), BridgeError> {
+        finite(name, &[self.x_min_m, self.x_max_m, self.y_min_m, self.y_max_m])?;
+        if self.x_min_m > self.x_max_m || self.y_min_m > self.y_max_m {
+            return Err(BridgeError::Config(format!(
+                "sim.{name}: x_min_m/y_min_m must not exceed x_max_m/y_max_m, got {self:?}"
+            )));
+        }
+        Ok(())
     }
 }
 
@@ -150,6 +211,7 @@ impl SimConfig {
                 "sim.basket_radius_m must be larger than sim.ball_radius_m".into(),
             ));
         }
+        self.validate_areas()?;
         let eye = nalgebra::Vector3::from(self.camera.eye_m);
         if (eye - nalgebra::Vector3::from(self.camera.look_at_m)).norm() < 1e-3 {
             return Err(BridgeError::Config(
@@ -158,6 +220,63 @@ impl SimConfig {
         }
         Ok(())
     }
+}
+
+impl SimConfig {
+    /// The areas are well formed, every corner of the ball's area can be reached with a grasp pose, and no
+    /// ball drawn from it can start inside (or against the wall of) any basket the basket's area allows.
+    fn validate_areas(&self) -> Result<(), BridgeError> {
+        self.ball_area_m.validate("ball_area_m")?;
+        if let Some(area) = &self.basket_area_m {
+            area.validate("basket_area_m")?;
+        }
+        let kinematics = So101Kinematics::new();
+        for corner in self.ball_area_m.corners() {
+            let solution = kinematics.inverse(
+                &grasp_pose_at(corner, self.ball_radius_m),
+                &self.initial_joints_rad,
+                IkWeights::FULL,
+            );
+            if !solution.position_reached {
+                return Err(BridgeError::Config(format!(
+                    "sim.ball_area_m corner ({:.3}, {:.3}) is out of the arm's reach with the tool pointing down \
+                     (closest {:.3} m away)",
+                    corner[0], corner[1], solution.position_error_m
+                )));
+            }
+        }
+        // Closest a basket centre can come to the ball area, against the clearance a ball needs to start
+        // outside the basket wall.
+        let clearance_m = self.basket_radius_m + self.ball_radius_m;
+        let closest_m = match &self.basket_area_m {
+            None => self.ball_area_m.distance_to(self.basket_xy_m),
+            Some(area) => {
+                let dx = (area.x_min_m - self.ball_area_m.x_max_m)
+                    .max(self.ball_area_m.x_min_m - area.x_max_m)
+                    .max(0.0);
+                let dy = (area.y_min_m - self.ball_area_m.y_max_m)
+                    .max(self.ball_area_m.y_min_m - area.y_max_m)
+                    .max(0.0);
+                dx.hypot(dy)
+            }
+        };
+        if closest_m < clearance_m {
+            return Err(BridgeError::Config(format!(
+                "sim.ball_area_m comes within {closest_m:.3} m of a basket centre; it must stay {clearance_m:.3} m \
+                 (basket radius + ball radius) away so that no ball starts in or on the basket"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The tool pointing straight down with its centre at the height of a resting ball's centre over (x, y),
+/// turned to face away from the base: how a grasp from above is held.
+pub fn grasp_pose_at([x, y]: [f64; 2], ball_radius_m: f64) -> Isometry3<f64> {
+    let zero = So101Kinematics::new().forward(&[0.0; 5]).rotation;
+    let down = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2) * zero;
+    let facing = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), y.atan2(x));
+    Isometry3::from_parts(Translation3::new(x, y, ball_radius_m), facing * down)
 }
 
 #[cfg(test)]
@@ -183,5 +302,53 @@ mod tests {
         assert!(matches!(bad.validate(), Err(BridgeError::Config(m)) if m.contains("initial_joints_rad[2]")));
         let bad: SimConfig = toml::from_str("joint_time_constant_s = 0.0").unwrap();
         assert!(bad.validate().is_err());
+    }
+
+    #[test]
+    fn every_corner_of_the_default_ball_area_is_reachable_with_a_grasp_pose() {
+        let config = SimConfig::default();
+        let kinematics = So101Kinematics::new();
+        // The corners and the middle: a grasp from above, reached to the solver's tolerance, and the tool
+        // really pointing down (the approach axis within 0.05 rad of vertical).
+        let area = config.ball_area_m;
+        for xy in area.corners().into_iter().chain([area.point_at(0.5, 0.5)]) {
+            let target = grasp_pose_at(xy, config.ball_radius_m);
+            let solution = kinematics.inverse(&target, &config.initial_joints_rad, IkWeights::FULL);
+            assert!(solution.position_reached, "{xy:?}: {solution:?}");
+            assert!(solution.orientation_error_rad < 0.05, "{xy:?}: {solution:?}");
+        }
+    }
+
+    #[test]
+    fn areas_out_of_reach_or_over_the_basket_are_refused_with_the_reason() {
+        let far: SimConfig =
+            toml::from_str("[ball_area_m]\nx_min_m = 0.2\nx_max_m = 0.7\ny_min_m = -0.1\ny_max_m = 0.0")
+                .unwrap();
+        assert!(
+            matches!(far.validate(), Err(BridgeError::Config(m)) if m.contains("out of the arm's reach")),
+            "{:?}",
+            far.validate()
+        );
+        let over: SimConfig =
+            toml::from_str("[ball_area_m]\nx_min_m = 0.18\nx_max_m = 0.26\ny_min_m = 0.0\ny_max_m = 0.1")
+                .unwrap();
+        assert!(
+            matches!(over.validate(), Err(BridgeError::Config(m)) if m.contains("basket")),
+            "{:?}",
+            over.validate()
+        );
+        let moving_basket: SimConfig =
+            toml::from_str("[basket_area_m]\nx_min_m = 0.2\nx_max_m = 0.25\ny_min_m = -0.12\ny_max_m = 0.15")
+                .unwrap();
+        assert!(moving_basket.validate().is_err());
+        let inverted: SimConfig =
+            toml::from_str("[ball_area_m]\nx_min_m = 0.3\nx_max_m = 0.2\ny_min_m = -0.1\ny_max_m = 0.0")
+                .unwrap();
+        assert!(matches!(inverted.validate(), Err(BridgeError::Config(m)) if m.contains("must not exceed")));
+        let ok: SimConfig = toml::from_str(
+            "seed = 7\n[basket_area_m]\nx_min_m = 0.2\nx_max_m = 0.26\ny_min_m = 0.1\ny_max_m = 0.16",
+        )
+        .unwrap();
+        ok.validate().unwrap();
     }
 }

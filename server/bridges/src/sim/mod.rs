@@ -14,28 +14,20 @@ mod queue;
 mod render;
 mod world;
 
-pub use config::{SimCameraConfig, SimConfig};
+pub use config::{SimCameraConfig, SimConfig, TableArea, grasp_pose_at};
 pub use render::Renderer;
-pub use world::{BallState, CommandOutcome, IkRequest, SceneSnapshot, SimWorld};
+pub use world::{BallState, CommandOutcome, IkRequest, SceneSnapshot, SceneState, SimWorld};
 
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health};
 use phone2act_core::kinematics::SO101_ARM_JOINT_NAMES;
 use queue::BoundedQueue;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-/// A monotonic clock in nanoseconds; the server passes its process-wide clock so feedback times compare
-/// with every other `*_time_ns`.
-pub type ClockFn = fn() -> i64;
-
-/// Nanoseconds since the first call; used when no clock is supplied.
-fn local_monotonic_ns() -> i64 {
-    static EPOCH: OnceLock<Instant> = OnceLock::new();
-    let epoch = *EPOCH.get_or_init(Instant::now);
-    i64::try_from(epoch.elapsed().as_nanos()).unwrap_or(i64::MAX)
-}
+pub use phone2act_clock::ClockFn;
+use phone2act_clock::monotonic_ns as local_monotonic_ns;
 
 /// Behind by more than this many ticks (a suspended process), the thread skips ahead instead of running
 /// the backlog in a burst.
@@ -113,15 +105,6 @@ impl SimBridge {
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .render(&snapshot, width, height, out);
-    }
-
-    /// Puts the ball back at its start position (between episodes).
-    pub fn reset_scene(&self) {
-        self.shared
-            .world
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .reset_scene();
     }
 
     /// The scene state (ball, gripper, links) right now.
@@ -257,6 +240,37 @@ impl Bridge for SimBridge {
             Control::ClearError | Control::Reconnect => {}
         }
         Ok(())
+    }
+
+    fn scene(&self) -> Result<SceneState, BridgeError> {
+        Ok(self
+            .shared
+            .world
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .scene_state())
+    }
+
+    /// Draws a new scene (see [`SimWorld::reset_scene`]) and publishes the new state at once, so the next
+    /// feedback anyone reads (the arm controller re-indexing a source, `ArmState.task_success`) is the reset
+    /// world, not the one before it.
+    fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, BridgeError> {
+        let mut world = self.shared.world.lock().unwrap_or_else(PoisonError::into_inner);
+        let now_ns = (self.shared.clock)();
+        world.advance_to_ns(now_ns);
+        if home_arm {
+            // Commands still queued were issued before the teleport: played after it they would drag the arm
+            // back toward where it was.
+            let mut stale = Vec::new();
+            self.shared.commands.drain_into(&mut stale);
+        }
+        world.reset_scene(seed, home_arm);
+        *self
+            .shared
+            .feedback
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some(world.feedback(now_ns));
+        Ok(world.scene_state())
     }
 
     fn shutdown(&self) {

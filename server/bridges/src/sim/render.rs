@@ -776,6 +776,31 @@ mod tests {
         assert_eq!(render(&world, &mut renderer, 160, 120), b);
     }
 
+    /// Wherever a reset puts the ball in the default area, the default camera shows it: a policy that learns
+    /// from the image can see where to reach.
+    #[test]
+    fn the_camera_sees_the_ball_anywhere_in_its_area() {
+        let config = SimConfig::default();
+        let mut renderer = Renderer::new(&config.camera);
+        let red = |img: &[u8]| {
+            img.chunks(3)
+                .filter(|p| p[0] > 150 && p[1] < 60 && p[2] < 60)
+                .count()
+        };
+        let area = config.ball_area_m;
+        for xy in area.corners().into_iter().chain([area.point_at(0.5, 0.5)]) {
+            let world = SimWorld::new(SimConfig {
+                ball_xy_m: xy,
+                ..config.clone()
+            })
+            .unwrap();
+            // A 2 cm ball about 0.55 m from the camera covers 40-70 pixels at 160x120; 20 means "in view and
+            // not hidden behind the arm".
+            let pixels = red(&render(&world, &mut renderer, 160, 120));
+            assert!(pixels > 20, "ball at {xy:?}: {pixels} red pixels");
+        }
+    }
+
     #[test]
     fn degenerate_sizes_do_not_panic() {
         let config = SimConfig::default();

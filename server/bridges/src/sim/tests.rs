@@ -124,7 +124,7 @@ fn pick_and_place_through_the_bridge_api() {
     let fb = feedback_after(&bridge, local_monotonic_ns());
     assert!(fb.task_success, "ball at {:?}", bridge.snapshot().ball_center_m);
     assert_eq!(bridge.snapshot().ball_state, BallState::Resting);
-    bridge.reset_scene();
+    bridge.reset_scene(None, false).unwrap();
     assert!(!feedback_after(&bridge, local_monotonic_ns()).task_success);
 }
 

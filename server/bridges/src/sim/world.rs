@@ -4,12 +4,14 @@
 //! and [`SimWorld::apply_command_at`] puts a command in force at the time it was issued, so the arm's path is
 //! a function of the command history and time alone, whoever calls it and whenever.
 
-use super::config::SimConfig;
+use super::config::{SimConfig, TableArea};
 use crate::{BridgeError, Command, Feedback};
 use nalgebra::{Isometry3, Point3, Vector3};
 use phone2act_core::kinematics::{
     IkSolution, IkWeights, So101Joints, So101Kinematics, So101LinkPoses, clamp_to_limits,
 };
+use rand_chacha::ChaCha8Rng;
+use rand_chacha::rand_core::{RngCore, SeedableRng};
 
 /// Gripper position at which a closing gripper takes hold of a ball within reach.
 const GRASP_CLOSE_THRESHOLD: f64 = 0.5;
@@ -22,7 +24,7 @@ const GRAVITY_M_S2: f64 = 9.81;
 /// Longest step taken in one go; a stalled thread resumes without the ball tunnelling through the table.
 const MAX_STEP_S: f64 = 0.02;
 /// Thickness of the basket floor.
-pub const BASKET_FLOOR_M: f64 = 0.004;
+pub(crate) const BASKET_FLOOR_M: f64 = 0.004;
 
 /// Where the ball is and what it is doing.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -47,6 +49,25 @@ pub struct SceneSnapshot {
     pub basket_radius_m: f64,
     pub basket_height_m: f64,
     pub task_success: bool,
+}
+
+/// The task scene as the API reports it (see `phone2act.v1.SceneState`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneState {
+    /// Seed the scene was drawn from; 0 with `resets == 0` is the configured start (`ball_xy_m`), not drawn.
+    pub seed: u64,
+    /// Resets since the world was made.
+    pub resets: u64,
+    pub ball_center_m: Vector3<f64>,
+    pub ball_state: BallState,
+    pub ball_radius_m: f64,
+    pub basket_xy_m: [f64; 2],
+    pub basket_radius_m: f64,
+    pub basket_height_m: f64,
+    /// The ball rests in the basket.
+    pub task_success: bool,
+    pub ball_area_m: TableArea,
+    pub basket_area_m: Option<TableArea>,
 }
 
 /// Result of handing a command to the world.
@@ -87,6 +108,11 @@ pub struct SimWorld {
     ball_center_m: Vector3<f64>,
     ball_state: BallState,
     task_success: bool,
+    basket_xy_m: [f64; 2],
+    /// Seed of the current scene and the one a reset without a seed uses.
+    seed: u64,
+    next_seed: u64,
+    resets: u64,
     applied_seq: u64,
     enabled: bool,
     /// The instant the state describes, on the clock commands are stamped with (`Command::issue_time_ns`).
@@ -107,21 +133,68 @@ impl SimWorld {
             ball_center_m: Vector3::zeros(),
             ball_state: BallState::Resting,
             task_success: false,
+            basket_xy_m: config.basket_xy_m,
+            seed: 0,
+            next_seed: config.seed,
+            resets: 0,
             applied_seq: 0,
             enabled: true,
             time_ns: 0,
             config,
         };
-        world.reset_scene();
+        world.place_ball(world.config.ball_xy_m);
         Ok(world)
     }
 
-    /// Puts the ball back at its start position (the arm stays where it is).
-    pub fn reset_scene(&mut self) {
-        let [x, y] = self.config.ball_xy_m;
+    /// Draws a new scene from `seed` (or the next seed of the sequence): the basket's centre from its area
+    /// if one is configured, then the ball's start from its area, where the ball is put at rest. With
+    /// `home_arm` the arm is also put at its initial joints with the gripper at its initial opening, at rest
+    /// (a teleport: the caller makes sure nobody is driving). Returns the seed used.
+    pub fn reset_scene(&mut self, seed: Option<u64>, home_arm: bool) -> u64 {
+        let seed = seed.unwrap_or(self.next_seed);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        // 53 random bits: every f64 in [0, 1) the generator can give, the same on every platform.
+        let mut unit = || (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+        if let Some(area) = self.config.basket_area_m {
+            self.basket_xy_m = area.point_at(unit(), unit());
+        }
+        let ball_xy_m = self.config.ball_area_m.point_at(unit(), unit());
+        self.place_ball(ball_xy_m);
+        if home_arm {
+            let joints = clamp_to_limits(&self.config.initial_joints_rad);
+            self.joints_rad = joints;
+            self.joint_targets_rad = joints;
+            self.gripper = self.config.initial_gripper;
+            self.gripper_target = self.config.initial_gripper;
+        }
+        self.seed = seed;
+        self.next_seed = seed.wrapping_add(1);
+        self.resets += 1;
+        seed
+    }
+
+    /// Puts the ball at rest on the table (or the basket floor) at (x, y).
+    fn place_ball(&mut self, [x, y]: [f64; 2]) {
         self.ball_center_m = Vector3::new(x, y, self.ball_floor_z(x, y));
         self.ball_state = BallState::Resting;
         self.task_success = self.in_basket(x, y);
+    }
+
+    /// The scene now.
+    pub fn scene_state(&self) -> SceneState {
+        SceneState {
+            seed: self.seed,
+            resets: self.resets,
+            ball_center_m: self.ball_center_m,
+            ball_state: self.ball_state,
+            ball_radius_m: self.config.ball_radius_m,
+            basket_xy_m: self.basket_xy_m,
+            basket_radius_m: self.config.basket_radius_m,
+            basket_height_m: self.config.basket_height_m,
+            task_success: self.task_success,
+            ball_area_m: self.config.ball_area_m,
+            basket_area_m: self.config.basket_area_m,
+        }
     }
 
     pub fn config(&self) -> &SimConfig {
@@ -275,7 +348,7 @@ impl SimWorld {
 
     /// True if a ball centred at (x, y) fits inside the basket wall.
     fn in_basket(&self, x: f64, y: f64) -> bool {
-        let [bx, by] = self.config.basket_xy_m;
+        let [bx, by] = self.basket_xy_m;
         (x - bx).hypot(y - by) <= self.config.basket_radius_m - self.config.ball_radius_m
     }
 
@@ -344,7 +417,7 @@ impl SimWorld {
             ball_center_m: self.ball_center_m,
             ball_radius_m: self.config.ball_radius_m,
             ball_state: self.ball_state,
-            basket_xy_m: self.config.basket_xy_m,
+            basket_xy_m: self.basket_xy_m,
             basket_radius_m: self.config.basket_radius_m,
             basket_height_m: self.config.basket_height_m,
             task_success: self.task_success,
@@ -573,10 +646,12 @@ mod tests {
         assert_eq!(w.ball_state(), BallState::Resting);
         assert!(w.task_success());
         assert!((w.ball_center_m().z - (BASKET_FLOOR_M + w.config().ball_radius_m)).abs() < 1e-12);
-        // A reset puts it back on the table and clears success.
-        w.reset_scene();
+        // A reset puts it back on the table, inside the ball's area, and clears success.
+        assert_eq!(w.reset_scene(Some(3), false), 3);
         assert!(!w.task_success());
-        assert_eq!(w.ball_center_m().xy(), Vector3::new(bx, by, 0.0).xy());
+        assert_eq!(w.ball_state(), BallState::Resting);
+        let [x, y] = [w.ball_center_m().x, w.ball_center_m().y];
+        assert!(w.config().ball_area_m.distance_to([x, y]) < 1e-12);
     }
 
     #[test]
@@ -595,5 +670,58 @@ mod tests {
         assert_eq!(w.ball_state(), BallState::Resting);
         assert!((w.ball_center_m().z - w.config().ball_radius_m).abs() < 1e-12);
         assert!(!w.task_success());
+    }
+
+    #[test]
+    fn a_seed_draws_the_same_scene_and_home_teleports_the_arm() {
+        let config = SimConfig {
+            basket_area_m: Some(TableArea {
+                x_min_m: 0.18,
+                x_max_m: 0.26,
+                y_min_m: 0.10,
+                y_max_m: 0.16,
+            }),
+            seed: 40,
+            ..SimConfig::default()
+        };
+        let mut a = SimWorld::new(config.clone()).unwrap();
+        let mut b = SimWorld::new(config).unwrap();
+        // Moved and holding nothing: a reset without home leaves the arm alone.
+        let mut target = a.tool_pose();
+        target.translation.vector.z -= 0.04;
+        a.apply_command(&command(1, target, 1.0));
+        run(&mut a, 0.5);
+        let moved = a.joints_rad();
+        assert_eq!(
+            a.reset_scene(None, false),
+            40,
+            "the first unseeded reset uses the configured seed"
+        );
+        assert_eq!(a.joints_rad().map(f64::to_bits), moved.map(f64::to_bits));
+        assert_eq!(b.reset_scene(Some(40), false), 40);
+        let (sa, sb) = (a.scene_state(), b.scene_state());
+        assert_eq!(
+            sa.ball_center_m.map(f64::to_bits),
+            sb.ball_center_m.map(f64::to_bits)
+        );
+        assert_eq!(sa.basket_xy_m.map(f64::to_bits), sb.basket_xy_m.map(f64::to_bits));
+        assert_eq!((sa.seed, sa.resets), (40, 1));
+        assert_eq!(a.reset_scene(None, false), 41);
+        assert_ne!(a.scene_state().ball_center_m, sa.ball_center_m);
+        assert_ne!(
+            a.scene_state().basket_xy_m.map(f64::to_bits),
+            sa.basket_xy_m.map(f64::to_bits)
+        );
+        // Home: the initial joints and gripper, at rest (targets equal), whatever was commanded before.
+        a.reset_scene(Some(7), true);
+        let initial = a.config().initial_joints_rad.map(f64::to_bits);
+        assert_eq!(a.joints_rad().map(f64::to_bits), initial);
+        assert_eq!(a.joint_targets_rad().map(f64::to_bits), initial);
+        assert_eq!(
+            a.gripper_position().to_bits(),
+            a.config().initial_gripper.to_bits()
+        );
+        run(&mut a, 0.2);
+        assert_eq!(a.joints_rad().map(f64::to_bits), initial, "nothing pulls it away");
     }
 }

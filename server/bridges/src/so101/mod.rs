@@ -219,7 +219,7 @@ impl So101Bridge {
     /// Loads the calibration, opens the bus, checks every servo answers, configures them, sets each goal to
     /// the present position (so enabling torque does not move the arm) and starts the control cycle.
     pub fn start(config: So101Config) -> Result<Arc<Self>, BridgeError> {
-        Self::start_with_clock(config, crate::dobot::monotonic_ns)
+        Self::start_with_clock(config, phone2act_clock::monotonic_ns)
     }
 
     /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).

@@ -68,6 +68,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         action_names: SyntheticRobot::action_names(),
         cameras: specs,
         modality: SyntheticRobot::modality(),
+        success: false,
         provenance: serde_json::json!({"source": "record-demo"}),
     };
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), cams)?;

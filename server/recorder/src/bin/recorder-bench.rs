@@ -143,6 +143,7 @@ fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
         action_names: SyntheticRobot::action_names(),
         cameras: specs,
         modality: SyntheticRobot::modality(),
+        success: false,
         provenance: serde_json::json!({"bench": true}),
     };
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), slots)?;

@@ -48,6 +48,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         action_names: SyntheticRobot::action_names(),
         cameras: Vec::new(),
         modality: SyntheticRobot::modality(),
+        success: false,
         provenance: serde_json::json!({}),
     };
     let mut ds = Dataset::open(spec)?;
@@ -75,7 +76,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             // As the recorder does: the parquet holds float32, and so do the sketches.
             state_c.push_f32(&state.iter().map(|v| *v as f32).collect::<Vec<_>>());
             action_c.push_f32(&action.iter().map(|v| *v as f32).collect::<Vec<_>>());
-            ep.push_row(&state, &action)?;
+            ep.push_row(&state, &action, false)?;
         }
         let t0 = Instant::now();
         ds.commit_episode(ep, EpisodeSummary::default())?;

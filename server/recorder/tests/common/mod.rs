@@ -1,7 +1,7 @@
 //! Helpers shared by the recorder's integration tests.
 #![allow(dead_code)] // each test binary uses a different subset
 
-use phone2act_recorder::clock::monotonic_ns;
+use phone2act_clock::monotonic_ns;
 use phone2act_recorder::synthetic::SyntheticRobot;
 use phone2act_recorder::{
     CameraSpec, DatasetSpec, Format, Recorder, RecorderStatus, RobotSample, RobotSource,
@@ -54,6 +54,7 @@ pub fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u32)) -> 
             })
             .collect(),
         modality: SyntheticRobot::modality(),
+        success: false,
         provenance: serde_json::json!({"test": true}),
     }
 }

@@ -75,7 +75,7 @@ fn run(args: &[&str], url: &str) -> (bool, String, String) {
 
 fn write_config(dir: &std::path::Path) -> std::path::PathBuf {
     let path = dir.join("phone2act.toml");
-    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/default.toml"))
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../config/default.toml"))
         .unwrap()
         .replace("./datasets/phone2act", &dir.join("ds").display().to_string());
     std::fs::write(&path, text).unwrap();
@@ -135,6 +135,16 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         text.contains("LeRobot v3.0") && text.contains("observation.state"),
         "{text}"
     );
+    // Per episode: length, task and success (the default sim arm has a scene; the ball never reached the
+    // basket in this episode, so it ends without success).
+    let row = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("0 "))
+        .unwrap_or_else(|| panic!("no row for episode 0: {text}"));
+    let cells: Vec<&str> = row.split_whitespace().collect();
+    assert!(cells[1].parse::<u64>().unwrap() > 0, "{row}");
+    assert_eq!(cells[3], "no", "{row}");
+    assert!(row.ends_with("stack the cube"), "{row}");
     let out = Command::new(BIN)
         .args(["dataset", "verify"])
         .arg(dir.path().join("ds"))
@@ -368,4 +378,53 @@ fn empty_until_the_first_episode_quiet_encoders_and_a_resumed_list() {
     assert!(ok, "{err}");
     assert!(out.contains("2 episodes"), "{out}");
     assert!(out.contains("one") && out.contains("two"), "{out}");
+}
+
+#[test]
+fn status_watch_into_a_pipe_keeps_every_snapshot_with_rates_and_gate_counters() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = serve(&write_config(dir.path()));
+    let mut watch = Command::new(BIN)
+        .args(["status", "--watch", "0.2", "--url", &server.url])
+        .env("PHONE2ACT_TOKEN", SECRET_TOKEN)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = watch.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    // Three whole snapshots (read until the fourth begins): the second and third carry a rate (they have a
+    // previous one). A minute is far more than four 0.2 s intervals even when a loaded 2-core machine starves
+    // the debug binaries.
+    let deadline = Instant::now() + Duration::from_mins(1);
+    let mut lines = Vec::new();
+    while lines
+        .iter()
+        .filter(|l: &&String| l.starts_with("phone2act "))
+        .count()
+        < 4
+    {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let line = rx
+            .recv_timeout(left)
+            .unwrap_or_else(|e| panic!("fewer than four snapshots within a minute ({e}): {lines:#?}"));
+        lines.push(line);
+    }
+    let _ = watch.kill();
+    let _ = watch.wait();
+    let all = lines.join("\n");
+    let text = &all[..all.rfind("\n\nphone2act ").unwrap()];
+    // Into a pipe: no terminal control codes, snapshots separated by a blank line.
+    assert!(!text.contains('\x1b'), "{text}");
+    assert_eq!(text.matches("\n\nphone2act ").count(), 2, "{text}");
+    assert_eq!(text.matches("gate: sent ").count(), 3, "{text}");
+    // The first snapshot has no previous one to take a rate from; the next two have.
+    assert_eq!(text.matches(" cmd/s  gate: sent ").count(), 2, "{text}");
 }

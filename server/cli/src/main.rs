@@ -3,7 +3,8 @@
 
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
-use phone2act_server::{Config, bind, run};
+use phone2act_gateway::GatewayConfig;
+use phone2act_server::{Config, bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -197,7 +198,21 @@ fn phase_name(phase: i32) -> &'static str {
 }
 
 fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
-    outln!("phone2act {}  uptime {:.1} s", status.version, status.uptime_s);
+    for line in status_lines(status, None) {
+        outln!("{line}");
+    }
+}
+
+/// One status snapshot as lines. With the previous snapshot of a watch, each arm also shows its command rate
+/// over the interval between the two.
+fn status_lines(
+    status: &phone2act_sdk::proto::SystemStatus,
+    previous: Option<&phone2act_sdk::proto::SystemStatus>,
+) -> Vec<String> {
+    let mut lines = vec![format!(
+        "phone2act {}  uptime {:.1} s",
+        status.version, status.uptime_s
+    )];
     for arm in &status.arms {
         let pose = arm.robot_from_ee.as_ref().and_then(|p| p.position_m.as_ref());
         let at = pose.map_or_else(
@@ -205,7 +220,7 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             |p| format!("ee ({:.3}, {:.3}, {:.3}) m", p.x, p.y, p.z),
         );
         let decision = arm.last_decision.as_ref().map_or("", |d| d.reason.as_str());
-        outln!(
+        lines.push(format!(
             "  arm {:<8} {:<6} {:?} owner {:?} {}  {at}  gripper {:.2}  {decision}",
             arm.arm,
             arm.bridge_kind,
@@ -213,10 +228,21 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             arm.owner(),
             if arm.engaged { "engaged" } else { "" },
             arm.gripper_position,
-        );
+        ));
+        let rate = previous
+            .and_then(|p| Some((p, p.arms.iter().find(|a| a.arm == arm.arm)?)))
+            .and_then(|(p, before)| {
+                let dt_s = status.uptime_s - p.uptime_s;
+                (dt_s > 0.0).then(|| arm.commands_sent.saturating_sub(before.commands_sent) as f64 / dt_s)
+            })
+            .map_or_else(String::new, |hz| format!("{hz:.1} cmd/s  "));
+        lines.push(format!(
+            "      {rate}gate: sent {}  clamped {}  rejected {}",
+            arm.commands_sent, arm.commands_clamped, arm.commands_rejected
+        ));
     }
     for cam in &status.cameras {
-        outln!(
+        lines.push(format!(
             "  camera {:<8} {:<12} {}x{} @ {} fps  {} frames  {}",
             cam.camera,
             cam.kind,
@@ -225,10 +251,10 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             cam.fps,
             cam.frames_captured,
             if cam.live { "live" } else { "STALE" }
-        );
+        ));
     }
     if let Some(rec) = &status.recording {
-        outln!(
+        lines.push(format!(
             "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  held {} paused {} late {} dropped {}  saved {}  {}",
             rec.dataset_root,
             rec.dataset_format,
@@ -242,8 +268,30 @@ fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
             rec.dropped_frames,
             rec.episodes_saved,
             rec.warning
-        );
+        ));
     }
+    lines
+}
+
+/// `status --watch`: on a terminal each snapshot replaces the previous one (cursor home, clear screen), so the
+/// view stays in place; into a pipe or a file snapshots follow each other, separated by a blank line, so logs
+/// keep every one.
+async fn watch_status(system: &mut phone2act_sdk::SystemApi, interval_s: f64) -> anyhow::Result<()> {
+    use std::io::IsTerminal as _;
+    let redraw = std::io::stdout().is_terminal();
+    let mut stream = system.watch_status(interval_s).await?;
+    let mut previous = None;
+    while let Some(status) = stream.message().await? {
+        let mut frame = status_lines(&status, previous.as_ref()).join("\n");
+        if redraw {
+            frame.insert_str(0, "\x1b[H\x1b[2J");
+        } else if previous.is_some() {
+            frame.insert(0, '\n');
+        }
+        outln!("{frame}");
+        previous = Some(status);
+    }
+    Ok(())
 }
 
 fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
@@ -267,6 +315,46 @@ fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
             let shape = f.get("shape").map(ToString::to_string).unwrap_or_default();
             outln!("  {key:<32} {dtype:<8} {shape}");
         }
+    }
+    // Per episode, from the data rows themselves (so a dataset lerobot wrote reads the same).
+    let report = phone2act_recorder::verify::verify(path);
+    let fps = info.get("fps").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
+    if !report.per_episode.is_empty() {
+        outln!("episode  frames  duration_s  success  task");
+    }
+    for (index, facts) in &report.per_episode {
+        let success = match facts.success_at_end {
+            Some(true) => "yes",
+            Some(false) => "no",
+            None => "-",
+        };
+        let task = facts
+            .task_indices
+            .iter()
+            .map(|&t| {
+                usize::try_from(t)
+                    .ok()
+                    .and_then(|t| report.tasks.get(t))
+                    .map_or_else(|| format!("<task {t}>"), Clone::clone)
+            })
+            .collect::<Vec<_>>()
+            .join(" | ");
+        let duration_s = if fps > 0.0 {
+            facts.frames as f64 / fps
+        } else {
+            f64::NAN
+        };
+        outln!(
+            "{index:>7}  {:>6}  {duration_s:>10.2}  {success:>7}  {task}",
+            facts.frames
+        );
+    }
+    if !report.ok() {
+        outln!(
+            "verify    {} problem(s): run `phone2act dataset verify {}`",
+            report.problems.len(),
+            path.display()
+        );
     }
     Ok(())
 }
@@ -324,12 +412,7 @@ fn real_main() -> anyhow::Result<()> {
             let mut system = client.system();
             match watch {
                 None => print_status(&system.status().await?),
-                Some(interval_s) => {
-                    let mut stream = system.watch_status(interval_s).await?;
-                    while let Some(status) = stream.message().await? {
-                        print_status(&status);
-                    }
-                }
+                Some(interval_s) => watch_status(&mut system, interval_s).await?,
             }
             anyhow::Ok(())
         }),
@@ -371,6 +454,11 @@ fn real_main() -> anyhow::Result<()> {
             if let Some(listen) = listen {
                 config.server.listen = listen;
             }
+            let gateway_config = GatewayConfig::from_table(&config.gateway)
+                .with_context(|| format!("in the configuration {origin}"))?;
+            // Defaults filled in, so that `--check` and the datasets' provenance show the whole table.
+            config.gateway = toml::Table::try_from(&gateway_config)
+                .context("cannot write the gateway configuration back as TOML")?;
             if check {
                 let text = config
                     .to_redacted_toml()
@@ -398,27 +486,22 @@ fn real_main() -> anyhow::Result<()> {
                 let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
                     let _ = rx.wait_for(|s| *s).await;
                 };
-                let gateway = if config.gateway.enabled {
-                    // The gateway is a gRPC client of this server, over loopback when bound to all interfaces.
-                    let grpc_url = if local.ip().is_unspecified() {
-                        format!("http://127.0.0.1:{}", local.port())
-                    } else {
-                        format!("http://{local}")
-                    };
-                    let gateway = phone2act_gateway::Gateway::bind(
-                        config.gateway.clone(),
-                        &grpc_url,
-                        config.server.token.as_deref(),
-                    )
-                    .await
-                    .context(
-                        "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
-                    )?;
-                    Some(tokio::spawn(gateway.run(stopped(stop_rx.clone()))))
+                // The embedded gateway is an SDK client of this server, in-process: no socket, no loopback
+                // hop, the same token check. Phones' addresses (pairing, take-over) are the gateway's.
+                let (gateway, local) = if gateway_config.enabled {
+                    let (client, local) = phone2act_sdk::Client::in_process(config.server.token.as_deref())
+                        .context("the server token cannot be sent as a header")?;
+                    let gateway = phone2act_gateway::Gateway::bind_client(gateway_config, client)
+                        .await
+                        .context(
+                            "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
+                        )?;
+                    let local: phone2act_server::LocalConnections = Box::pin(local);
+                    (Some(tokio::spawn(gateway.run(stopped(stop_rx.clone())))), Some(local))
                 } else {
-                    None
+                    (None, None)
                 };
-                run(config, listener, stopped(stop_rx))
+                run_with_local(config, listener, local, stopped(stop_rx))
                     .await
                     .with_context(|| format!("serving with the configuration {origin}"))?;
                 if let Some(gateway) = gateway {

@@ -1,0 +1,445 @@
+"""The closed loop in the simulator: record demonstrations through the phone path, train a LeRobot policy on
+them, evaluate it on held-out ball positions through phone2act, print a table.
+
+Run through `run.sh` (it provides the venv, the binaries and the arguments); `--help` lists the options.
+Stages, each logged under the run's output directory:
+  1. a `phone2act serve` with one simulated arm and its rendered camera (the dataset goes to OUT/dataset);
+  2. the scripted operator records `--demos` successful episodes through Teleop.Stream (seeds from
+     `--seed`), or `--dataset DIR` reuses demonstrations recorded before;
+  3. `lerobot-train` trains ACT from the rendered camera and the arm's state (never the ball position);
+  4. evaluation on seeds from `--eval-seed` (disjoint from the training seeds), each trial starting from a scene
+     reset with the arm at home: (a) this process runs the policy and pushes its chunks through the Policy API
+     (joint steps, the dataset's action layout, anchored on the observation they answer);
+     (b) lerobot's own `lerobot-rollout` (base strategy: lerobot 0.6's entry point for running a trained
+     policy on a real robot) drives the `phone2act` robot plugin. Success is the scene's, read with Scene.Get.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import secrets
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+ARM = "main"
+CAMERA = "front"
+TASK = "put the ball in the basket"
+# Training seeds are `--seed ..`; evaluation seeds start far above any number of demonstrations.
+DEFAULT_EVAL_SEED = 1_000_000
+
+
+@dataclass
+class PathResult:
+    path: str
+    trials: int = 0
+    successes: int = 0
+    seconds: float = 0.0
+    # Chunks refused because the inference outlasted them (Policy API path).
+    late_chunks: int = 0
+    per_trial: list[dict] = field(default_factory=list)
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion (sound at 0/n and n/n, unlike the normal one)."""
+    if trials == 0:
+        return (0.0, 1.0)
+    p = successes / trials
+    denom = 1 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denom
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+# --- the server --------------------------------------------------------------------------------------------
+
+
+def server_config(dataset_root: Path, image_px: int, fps: int, token: str) -> str:
+    return f"""[server]
+listen = "127.0.0.1:0"
+token = "{token}"
+
+[[arms]]
+name = "{ARM}"
+bridge = "sim"
+# lerobot's own SO-101 names and units (`shoulder_pan.pos` ... in degrees, `gripper.pos` 0..100): lerobot-rollout
+# routes only `.pos`/`.vel` robot features to a policy, so the end-effector layout would reach it empty.
+action_mode = "joint"
+dataset_layout = "lerobot_so101"
+
+[[cameras]]
+name = "{CAMERA}"
+kind = "sim_render"
+width = {image_px}
+height = {image_px}
+fps = {fps}
+
+[recorder]
+root = "{dataset_root}"
+format = "v3.0"
+fps = {fps}
+robot_type = "so101_sim"
+video_codec = "libx264"
+"""
+
+
+class Server:
+    """A `phone2act serve` process on a free loopback port; its log goes to a file."""
+
+    def __init__(self, binary: Path, workdir: Path, config: str) -> None:
+        workdir.mkdir(parents=True, exist_ok=True)
+        cfg = workdir / "server.toml"
+        cfg.write_text(config)
+        self.log_path = workdir / "server.log"
+        # The embedded phone gateway listens on fixed ports; nothing here needs it.
+        env = dict(os.environ, SVT_LOG="1", RUST_LOG=os.environ.get("RUST_LOG", "warn"),
+                   PHONE2ACT_GATEWAY__ENABLED="false")
+        self.proc = subprocess.Popen([str(binary), "serve", "--config", str(cfg)], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True, env=env)
+        self.target = ""
+        found = threading.Event()
+
+        def pump() -> None:  # the server's log to a file, and its listen address (announced on stderr) to us
+            assert self.proc.stderr is not None
+            with self.log_path.open("w") as log:
+                for line in self.proc.stderr:
+                    log.write(line)
+                    log.flush()
+                    m = re.search(r"gRPC on (\S+)", line)
+                    if m and not self.target:
+                        self.target = m.group(1)
+                        found.set()
+            found.set()
+
+        threading.Thread(target=pump, daemon=True).start()
+        found.wait(timeout=60)
+        if not self.target:
+            self.stop()
+            raise RuntimeError(f"phone2act serve did not start; see {self.log_path}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+# --- the scene (Scene API) -----------------------------------------------------------------------------------
+
+
+def reset_scene(client, seed: int) -> None:
+    """Puts the ball at the position `seed` draws and the arm at home (Scene.Reset)."""
+    from phone2act import FailedPrecondition
+
+    # Refused while a policy still owns the arm: the server learns that the previous trial's session ended when
+    # its stream closes, a moment after the client let go. 10 s is far beyond that even on a loaded machine.
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            client.scene.reset(ARM, seed=seed, home_arm=True)
+            return
+        except FailedPrecondition:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def scene_success(client) -> bool:
+    return bool(client.scene.get(ARM).success)
+
+
+# --- stage 2: demonstrations ---------------------------------------------------------------------------------
+
+
+def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
+    cmd = [str(args.operator), "--server", f"http://{server.target}", "--token", token, "--arm", ARM,
+           "--episodes", str(args.demos), "--seed", str(args.seed), "--task", TASK,
+           "--episode-time-s", str(args.episode_time_s), "--reset-time-s", str(args.reset_time_s)]
+    # The operator reports each episode on stderr and its summary as the last line of stdout.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    saved = 0
+    with (log_dir / "operator.log").open("w") as log, tqdm(total=args.demos, desc="demonstrations", unit="ep") as bar:
+        for line in proc.stderr:
+            log.write(line)
+            log.flush()
+            if line.startswith("episode "):
+                saved += " saved as " in line
+                bar.update(1)
+                bar.set_postfix(saved=saved)
+    stdout = proc.stdout.read()
+    proc.wait()
+    summary: dict = {}
+    for line in reversed(stdout.splitlines()):
+        try:
+            summary = json.loads(line)
+            break
+        except json.JSONDecodeError:
+            continue
+    if proc.returncode != 0 or not summary:
+        raise RuntimeError(f"operator failed (exit {proc.returncode}); see {log_dir / 'operator.log'}")
+    return summary
+
+
+# --- stage 3: training ---------------------------------------------------------------------------------------
+
+
+def train(args, dataset_root: Path, out: Path) -> tuple[Path, float, int]:
+    train_dir = out / "train"
+    shutil.rmtree(train_dir, ignore_errors=True)
+    cmd = [
+        str(Path(sys.executable).parent / "lerobot-train"),
+        "--dataset.repo_id=local/phone2act_closed_loop", f"--dataset.root={dataset_root}",
+        "--policy.type=act", "--policy.device=cpu", "--policy.push_to_hub=false",
+        # No download: the vision backbone trains from scratch.
+        "--policy.pretrained_backbone_weights=null",
+        f"--policy.dim_model={args.dim_model}", f"--policy.dim_feedforward={args.dim_model * 4}",
+        f"--policy.n_encoder_layers={args.encoder_layers}", "--policy.n_decoder_layers=1",
+        f"--policy.chunk_size={args.chunk_size}", f"--policy.n_action_steps={args.n_action_steps}",
+        f"--batch_size={args.batch_size}", f"--steps={args.train_steps}",
+        f"--log_freq={max(1, min(100, args.train_steps // 10))}", f"--save_freq={args.train_steps}",
+        f"--num_workers={args.num_workers}", "--wandb.enable=false", f"--seed={args.seed}",
+        f"--output_dir={train_dir}",
+    ]
+    log_path = out / "train.log"
+    start = time.monotonic()
+    with log_path.open("w") as log, tqdm(total=args.train_steps, desc="training", unit="step") as bar:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            log.write(line)
+            m = re.search(r"step:(\d+(?:\.\d+)?)([KM]?)", line)
+            if m:
+                step = float(m.group(1)) * {"": 1, "K": 1e3, "M": 1e6}[m.group(2)]
+                bar.update(max(0, int(step) - bar.n))
+        proc.wait()
+        bar.update(args.train_steps - bar.n)
+    took_s = time.monotonic() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"lerobot-train failed (exit {proc.returncode}); see {log_path}")
+    model = train_dir / "checkpoints" / "last" / "pretrained_model"
+    if not model.is_dir():
+        raise RuntimeError(f"lerobot-train wrote no {model}; see {log_path}")
+    return model, took_s, args.train_steps
+
+
+# --- stage 4a: evaluation through the Policy API ------------------------------------------------------------
+
+
+class ChunkPolicy:
+    """The trained policy behind lerobot's own pre- and post-processors, returning whole action chunks."""
+
+    def __init__(self, model: Path) -> None:
+        import torch
+        from lerobot.policies import get_policy_class, make_pre_post_processors
+        from lerobot.configs.policies import PreTrainedConfig
+
+        cfg = PreTrainedConfig.from_pretrained(model)
+        cfg.device = "cpu"
+        self.policy = get_policy_class(cfg.type).from_pretrained(model, config=cfg)
+        self.policy.eval()
+        self.pre, self.post = make_pre_post_processors(
+            policy_cfg=cfg, pretrained_path=str(model),
+            preprocessor_overrides={"device_processor": {"device": "cpu"}},
+        )
+        self.torch = torch
+        self.device = torch.device("cpu")
+
+    def chunk(self, state, image_hwc, task: str):
+        from lerobot.common.control_utils import prepare_observation_for_inference
+
+        obs = {"observation.state": state, f"observation.images.{CAMERA}": image_hwc}
+        with self.torch.inference_mode():
+            batch = prepare_observation_for_inference(obs, self.device, task, "so101_sim")
+            batch = self.pre(batch)
+            actions = self.policy.predict_action_chunk(batch)  # (1, chunk, action dim), normalised
+            actions = self.post(actions)
+        return actions[0].cpu().numpy()
+
+
+def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: list[int]) -> PathResult:
+    import numpy as np
+    from phone2act import IMAGE_RGB8, Client, InvalidArgument
+    from phone2act.v1 import policy_pb2
+
+    policy = ChunkPolicy(model)
+    late = 0
+    result = PathResult("Policy API, chunks")
+    period_s = 1.0 / args.fps
+    start = time.monotonic()
+    with Client(server.target, token=token) as c:
+        for seed in tqdm(seeds, desc="eval: Policy API", unit="trial"):
+            reset_scene(c, seed)
+            ok = False
+            accepted = 0
+            t0 = time.monotonic()
+            # Observations stream at the control rate and the newest is taken, so a chunk starts from a fresh
+            # one; each chunk is anchored on the observation it answers (the executor plays step k at observation
+            # time + k·period, whatever the inference took), and a new one replaces it every n_action_steps.
+            # A starved evaluator (a loaded machine: several chunks in a row late) leaves the arm holding; the
+            # 10 s silence timeout keeps the session's control through that instead of ending the trial.
+            with c.policy_session([ARM], observation_rate_hz=args.fps, image_encoding=IMAGE_RGB8,
+                                  cameras=[CAMERA], policy_name="closed-loop-eval", silence_timeout_s=10.0) as s:
+                while time.monotonic() - t0 < args.episode_time_s:
+                    obs = s.next_observation(timeout_s=10.0)
+                    received = time.monotonic()
+                    frame = next(f for f in obs.frames if f.camera == CAMERA)
+                    image = np.frombuffer(frame.data, dtype=np.uint8).reshape(frame.height, frame.width, 3)
+                    state = np.asarray(obs.arms[0].state, dtype=np.float32)
+                    steps = policy.chunk(state, image.copy(), TASK)
+                    try:
+                        s.push(ARM, steps.tolist(), period_s, observation_id=obs.observation_id,
+                               mode=policy_pb2.ACTION_MODE_JOINT)
+                    except InvalidArgument as e:  # the inference outlasted the whole chunk: answer a newer one
+                        late += 1
+                        tqdm.write(f"seed {seed}: chunk refused ({e}); taking a newer observation")
+                        continue
+                    accepted += 1
+                    if scene_success(c):
+                        ok = True
+                        break
+                    time.sleep(max(0.0, received + args.n_action_steps * period_s - time.monotonic()))
+            ok = ok or scene_success(c)
+            if accepted == 0:
+                raise RuntimeError(f"seed {seed}: the server accepted no chunk in {args.episode_time_s} s")
+            result.trials += 1
+            result.successes += int(ok)
+            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0})
+    result.seconds = time.monotonic() - start
+    result.late_chunks = late
+    return result
+
+
+# --- stage 4b: evaluation through the LeRobot robot plugin --------------------------------------------------
+
+
+def evaluate_plugin(args, server: Server, token: str, model: Path, seeds: list[int], log_dir: Path) -> PathResult:
+    from phone2act import Client
+
+    result = PathResult("robot plugin, lerobot-rollout")
+    start = time.monotonic()
+    rollout = str(Path(sys.executable).parent / "lerobot-rollout")
+    with Client(server.target, token=token) as c, (log_dir / "rollout.log").open("w") as log:
+        for seed in tqdm(seeds, desc="eval: lerobot-rollout", unit="trial"):
+            reset_scene(c, seed)
+            t0 = time.monotonic()
+            cmd = [rollout, "--strategy.type=base", f"--policy.path={model}", "--policy.device=cpu",
+                   "--robot.type=phone2act", f"--robot.server={server.target}", f"--robot.token={token}",
+                   f"--robot.arm={ARM}", f"--robot.camera_names=[{CAMERA}]", f"--robot.fps={args.fps}",
+                   f"--fps={args.fps}", f"--duration={args.episode_time_s}", f"--task={TASK}",
+                   "--display_data=false", "--play_sounds=false", "--return_to_initial_position=false"]
+            log.write(f"--- seed {seed}: {' '.join(cmd)}\n")
+            log.flush()
+            rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=False).returncode
+            if rc != 0:
+                raise RuntimeError(f"lerobot-rollout failed (exit {rc}); see {log_dir / 'rollout.log'}")
+            ok = scene_success(c)
+            result.trials += 1
+            result.successes += int(ok)
+            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0})
+    result.seconds = time.monotonic() - start
+    return result
+
+
+# --- the table -----------------------------------------------------------------------------------------------
+
+
+def table(demos: int, train_s: float, steps: int, results: list[PathResult]) -> str:
+    rows = ["| path | demonstrations | training | trials | successes | success rate (95 % Wilson) |",
+            "|---|---|---|---|---|---|"]
+    for r in results:
+        lo, hi = wilson_interval(r.successes, r.trials)
+        rate = r.successes / r.trials if r.trials else 0.0
+        training = f"{steps} steps, {train_s / 60:.1f} min" if steps else "a given model (--model)"
+        rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
+                    f"{rate:.0%} ({lo:.0%}–{hi:.0%}) |")
+    return "\n".join(rows)
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, required=True, help="output directory (dataset, model, logs, results)")
+    p.add_argument("--server-bin", type=Path, required=True)
+    p.add_argument("--operator", type=Path, help="the scripted operator binary (not needed with --dataset)")
+    p.add_argument("--dataset", type=Path, help="reuse demonstrations recorded before instead of recording")
+    p.add_argument("--model", type=Path, help="evaluate this trained policy instead of training one")
+    p.add_argument("--demos", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0, help="first training seed")
+    p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
+    p.add_argument("--train-steps", type=int, default=20_000)
+    p.add_argument("--eval-trials", type=int, default=50)
+    p.add_argument("--paths", default="api,plugin", help="evaluation paths: api, plugin or both")
+    p.add_argument("--image-px", type=int, default=96)
+    p.add_argument("--fps", type=int, default=20)
+    p.add_argument("--episode-time-s", type=float, default=20.0)
+    p.add_argument("--reset-time-s", type=float, default=1.0)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--dim-model", type=int, default=256)
+    p.add_argument("--encoder-layers", type=int, default=2)
+    p.add_argument("--chunk-size", type=int, default=20)
+    p.add_argument("--n-action-steps", type=int, default=10)
+    p.add_argument("--num-workers", type=int, default=1)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str]) -> int:
+    args = parse_args(argv)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_hex(16)
+    dataset_root = args.dataset if args.dataset else out / "dataset"
+    if not args.dataset and dataset_root.exists():
+        raise SystemExit(f"{dataset_root} exists: choose a new --out (a run never appends to another's demos)")
+    server = Server(args.server_bin, out, server_config(out / "eval-dataset" if args.dataset else dataset_root,
+                                                          args.image_px, args.fps, token))
+    try:
+        if args.dataset:
+            demos = None
+        else:
+            if not args.operator:
+                raise SystemExit("--operator is needed to record demonstrations (or pass --dataset)")
+            demos = record_demos(args, server, token, out)
+            print(f"operator: {json.dumps(demos)}")
+        info = json.loads((dataset_root / "meta" / "info.json").read_text())
+        n_demos = int(info["total_episodes"])
+        if n_demos == 0:
+            raise SystemExit("no successful demonstration was saved: nothing to train on")
+        if args.model:
+            model, train_s, steps = args.model, float("nan"), 0
+        else:
+            model, train_s, steps = train(args, dataset_root, out)
+        seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
+        results = []
+        paths = args.paths.split(",")
+        if "api" in paths:
+            results.append(evaluate_policy_api(args, server, token, model, seeds))
+        if "plugin" in paths:
+            results.append(evaluate_plugin(args, server, token, model, seeds, out))
+    finally:
+        server.stop()
+    text = table(n_demos, train_s, steps, results)
+    print(text)
+    (out / "results.md").write_text(text + "\n")
+    (out / "results.json").write_text(json.dumps({
+        "demos": n_demos, "operator": demos, "train_seconds": train_s, "train_steps": steps,
+        "settings": {k: str(v) for k, v in vars(args).items()},
+        "paths": [asdict(r) for r in results],
+    }, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

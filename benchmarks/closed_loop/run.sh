@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# The closed loop in one command: record demonstrations with the scripted operator through the phone path,
+# train ACT with lerobot-train on the rendered camera and the arm state, evaluate on held-out ball positions
+# through the Policy API (chunks) and through the LeRobot robot plugin (lerobot-rollout), print the table.
+#
+#   benchmarks/closed_loop/run.sh [--demos N] [--train-steps K] [--eval-trials M] [--short] [--out DIR] [...]
+#
+# --short is the CI version: 2 demonstrations, 20 training steps, 1 trial per path. Other options go to
+# closed_loop.py (`--help` lists them). Output (dataset, model, logs, results.md/json): --out, default
+# target/closed-loop/<UTC time>. Python: the lerobot 0.6.1 venv of tests/lerobot_plugins/setup-venv.sh.
+# Binaries: release builds from cargo, unless PHONE2ACT_BIN / PHONE2ACT_OPERATOR name them.
+# Nothing is downloaded beyond that venv: no pretrained backbone, HF_HUB_OFFLINE, no hub push, no wandb.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+REPO=$PWD
+
+args=()
+out=""
+short=0
+while (($#)); do
+  case "$1" in
+    --short) short=1 ;;
+    --out) out="$2"; shift ;;
+    --out=*) out="${1#--out=}" ;;
+    *) args+=("$1") ;;
+  esac
+  shift
+done
+if ((short)); then
+  # Given first, so explicit options after --short still win (argparse keeps the last value).
+  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 "${args[@]}")
+fi
+out="${out:-$REPO/target/closed-loop/$(date -u +%Y%m%dT%H%M%SZ)}"
+
+if ! VENV="$(tests/lerobot_plugins/setup-venv.sh | tail -n 1)" || [[ ! -x "$VENV/bin/python" ]]; then
+  echo "closed loop: cannot create the lerobot 0.6 venv (see above); NOT run" >&2
+  exit 2
+fi
+"$VENV/bin/python" -m pip install -q ./sdk/python ./clients/lerobot_robot_phone2act
+
+if [[ -z "${PHONE2ACT_BIN:-}" || -z "${PHONE2ACT_OPERATOR:-}" ]]; then
+  cargo build --release -p phone2act-cli --bin phone2act
+  cargo build --release -p phone2act-tests --bin operator
+fi
+bin_dir="${CARGO_TARGET_DIR:-$REPO/target}/release"
+PHONE2ACT_BIN="${PHONE2ACT_BIN:-$bin_dir/phone2act}"
+PHONE2ACT_OPERATOR="${PHONE2ACT_OPERATOR:-$bin_dir/operator}"
+
+export SVT_LOG=1 HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 WANDB_MODE=disabled TOKENIZERS_PARALLELISM=false
+# lerobot writes calibration files and caches under HF_HOME: a scratch one per run, never the user's.
+HF_HOME="$(mktemp -d)"
+export HF_HOME
+trap 'rm -rf "$HF_HOME"' EXIT
+
+"$VENV/bin/python" benchmarks/closed_loop/closed_loop.py --out "$out" --server-bin "$PHONE2ACT_BIN" \
+  --operator "$PHONE2ACT_OPERATOR" "${args[@]}"

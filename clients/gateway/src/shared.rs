@@ -1,0 +1,37 @@
+//! State shared by every socket of the gateway (its config, the upstream client, pairing and take-over
+//! holders). Its own module so that the per-protocol handlers and the listener wiring both depend on it
+//! instead of on each other.
+
+use crate::config::GatewayConfig;
+use crate::pairing::Pairing;
+use crate::takeover::Holders;
+use crate::upstream::Upstream;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+use tokio::sync::watch;
+
+/// State shared by every socket.
+#[derive(Debug)]
+pub struct Shared {
+    pub config: GatewayConfig,
+    pub upstream: Upstream,
+    pub token: Option<String>,
+    pub pairing: Pairing,
+    pub holders: Holders,
+    /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
+    pub rosbridge_port: Option<u16>,
+    pub(crate) connections: AtomicU64,
+    pub(crate) shutdown: watch::Receiver<bool>,
+}
+
+impl Shared {
+    /// A fresh id for a socket.
+    pub fn next_connection(&self) -> u64 {
+        self.connections.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// How long a rosbridge arm holder must be silent before its own address may take the arm over.
+    pub fn takeover_silence(&self) -> Duration {
+        Duration::from_millis(self.config.takeover_silence_ms)
+    }
+}

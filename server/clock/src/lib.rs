@@ -1,0 +1,37 @@
+//! The process's one monotonic clock. Every `*_time_ns` a phone2act process produces (camera frames, bridge
+//! feedback, arm commands, recorder ticks, gateway stamps) is nanoseconds since one epoch read here, so any
+//! two of them can be subtracted. Pure code takes time as an argument (`phone2act-core` reads no clock);
+//! the edges read it here and nowhere else (`clippy.toml` refuses `Instant::now` in the core).
+
+// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
+#![warn(unreachable_pub)]
+
+use std::sync::OnceLock;
+use std::time::Instant;
+
+/// A monotonic clock in nanoseconds: what a component that stamps times is handed (tests hand it a fake).
+pub type ClockFn = fn() -> i64;
+
+static EPOCH: OnceLock<Instant> = OnceLock::new();
+
+/// Nanoseconds since the process epoch (fixed by the first read), on a monotonic clock.
+pub fn monotonic_ns() -> i64 {
+    let epoch = EPOCH.get_or_init(Instant::now);
+    i64::try_from(epoch.elapsed().as_nanos()).unwrap_or(i64::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn readings_move_forward_by_the_time_that_passed_on_every_thread() {
+        let a = monotonic_ns();
+        std::thread::sleep(std::time::Duration::from_millis(2));
+        // Another thread reads the same epoch, not one of its own.
+        let b = std::thread::spawn(monotonic_ns).join().unwrap();
+        // A sleep of 2 ms lasts at least 2 ms on any machine, loaded or not; a second epoch fixed by the
+        // other thread's first read would put `b` near zero.
+        assert!(b - a >= 2_000_000, "{a} then {b}");
+    }
+}

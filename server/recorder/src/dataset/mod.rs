@@ -1,0 +1,602 @@
+//! A LeRobot dataset on disk: layout, `info.json`, metadata files, and the crash-safe episode commit.
+//!
+//! Durability design. Every episode is written into its *own* new files (v3.0: its own data, video and
+//! episodes-metadata file, i.e. the size roll-over happens after every episode; lerobot's reader accepts any
+//! split of episodes into files). Nothing already committed is ever appended to or rewritten in place, so a
+//! kill can never damage a saved episode. While recording, the episode's parquet and mp4s stream into
+//! `<root>/.phone2act-staging/`, which no reader looks at. Saving = closing those files, writing the new
+//! metadata files into staging too, fsyncing, writing a rename journal, and renaming everything into place
+//! in an order in which every intermediate state still loads in lerobot (v3.0: videos, tasks, episode
+//! metadata, data, then `info.json` last). v2.1 needs its data file and the `episodes.jsonl` line to appear
+//! together; they are renamed back to back (a window of two syscalls) and `open` replays the journal if a
+//! crash hit between them. `open` also deletes whatever an interrupted recording left in staging.
+//!
+//! Rooms: [`journal`] (staging and the rename journal), [`meta`] (`info.json`, `stats.json`), and one
+//! [`Layout`] per format ([`v30`], [`v21`] with GR00T's `modality.json`), chosen once when the dataset opens.
+
+mod journal;
+mod meta;
+mod v21;
+mod v30;
+
+use crate::error::RecorderError;
+use crate::fsutil::write_atomic;
+use crate::parquet_io::{DataWriter, Row, SUCCESS_FEATURE};
+use crate::quantiles::{QUANTILES_FILE, QuantileStore};
+use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
+use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
+use crate::video::{EncodeReport, EncoderThread};
+use journal::Staging;
+use meta::{Totals, pretty};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+/// lerobot's `chunks_size`: files (v3.0) or episodes (v2.1) per chunk directory.
+pub const CHUNKS_SIZE: u64 = 1000;
+/// The provenance sidecar, ignored by lerobot and GR00T.
+pub const PROVENANCE_FILE: &str = "meta/phone2act_provenance.json";
+
+/// A saved (or being saved) episode, as reported to the operator.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeSummary {
+    pub index: u64,
+    pub task: String,
+    pub length_frames: u64,
+    pub duration_s: f64,
+    /// Ticks where a source had no new sample and its last value was reused (within tolerance).
+    pub held_ticks: u64,
+    /// Ticks not recorded because a source was stale beyond tolerance (the episode was paused).
+    pub paused_ticks: u64,
+    /// Ticks skipped because the recorder stalled longer than the hold tolerance (machine overloaded);
+    /// not recorded, never a gap. Shorter stalls are caught up and counted in `held_ticks`.
+    pub late_ticks: u64,
+    /// Video frames that did not fit in an encoder queue (replaced by a repeat of the previous frame).
+    pub dropped_frames: u64,
+    pub start_unix_ns: i64,
+    pub save_latency_s: f64,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+struct Provenance {
+    software: String,
+    version: String,
+    format: String,
+    video: Value,
+    config: Value,
+    sync: Value,
+    episodes: Vec<EpisodeSummary>,
+    /// Running aggregates of per-episode stats, so resuming needs no re-read of old episodes. (Files written
+    /// before Rerecord stopped deleting saved episodes also hold an `undo` entry, which is ignored.)
+    stats: BTreeMap<String, Aggregate>,
+}
+
+/// What differs between the on-disk layouts; one implementation per [`Format`], chosen at open.
+trait Layout: Send {
+    /// The `info.json` keys between `total_tasks` and `fps`, in lerobot's order.
+    fn info_fields(&self, total_episodes: u64, cameras: u64) -> Vec<(&'static str, Value)>;
+    /// `data_path` and `video_path` of `info.json`.
+    fn path_templates(&self) -> (&'static str, &'static str);
+    /// Reads the layout's own state of a committed dataset; returns its tasks by index.
+    fn resume(&mut self, spec: &DatasetSpec, total_episodes: u64) -> Result<Vec<String>, RecorderError>;
+    /// `(episode_index, tasks joined, length)` of every episode the metadata lists, in any order.
+    fn listed_episodes(&self, root: &Path) -> Result<Vec<(u64, String, u64)>, RecorderError>;
+    /// One feature's entry of `meta/stats.json`, or `None` to leave the feature out.
+    fn stats_entry(&self, key: &str, stats: &FeatureStats) -> Option<Value>;
+    /// Writes the layout's files of a save into staging and queues their renames, in commit order.
+    fn stage(&mut self, ep: &Saving<'_>, staging: &mut Staging) -> Result<(), RecorderError>;
+    /// The save staged last was committed.
+    fn committed(&mut self);
+}
+
+fn layout_for(spec: &DatasetSpec) -> Box<dyn Layout> {
+    match spec.format {
+        Format::V30 => Box::new(v30::V30::new(spec.cameras.len())),
+        Format::V21 => Box::<v21::V21>::default(),
+    }
+}
+
+/// An episode being saved, as the layouts need it.
+struct Saving<'a> {
+    spec: &'a DatasetSpec,
+    index: u64,
+    task: &'a str,
+    frames: u64,
+    duration_s: f64,
+    first_global_index: u64,
+    /// One per camera, in `spec.cameras` order.
+    videos: &'a [EncodeReport],
+    /// Every task including this episode's.
+    tasks: &'a [String],
+    new_task: bool,
+    /// This episode's stats, in `info.json` feature order.
+    stats: &'a [(String, FeatureStats)],
+    /// The dataset's `meta/stats.json` after this episode.
+    stats_json: &'a [u8],
+}
+
+fn corrupt(root: &Path, detail: impl Into<String>) -> RecorderError {
+    RecorderError::CorruptDataset {
+        root: root.to_owned(),
+        detail: detail.into(),
+    }
+}
+
+/// The dataset being written.
+pub struct Dataset {
+    spec: DatasetSpec,
+    video: VideoSettings,
+    layout: Box<dyn Layout>,
+    tasks: Vec<String>,
+    total_episodes: u64,
+    total_frames: u64,
+    provenance: Provenance,
+    /// Dataset quantiles of the numeric columns (see [`crate::quantiles`]).
+    quantiles: QuantileStore,
+}
+
+/// An episode being recorded into staging files.
+pub struct EpisodeWriter {
+    pub index: u64,
+    pub task: String,
+    task_index: i64,
+    first_global_index: u64,
+    data: DataWriter,
+    pub(crate) encoders: Vec<EncoderThread>,
+    state_stats: ColumnStats,
+    action_stats: ColumnStats,
+    /// `next.success`, when the dataset records it.
+    success_stats: Option<ColumnStats>,
+    frames: u64,
+    fps: u32,
+    staging: PathBuf,
+}
+
+impl Dataset {
+    /// Opens `spec.root`, creating it or resuming it (finishing an interrupted save, removing the leftovers
+    /// of an interrupted recording, and checking that fps, format and features match).
+    pub fn open(spec: DatasetSpec) -> Result<Self, RecorderError> {
+        spec.validate()?;
+        let video = VideoSettings::parse(spec.video_codec.as_deref(), spec.format)?;
+        let root = spec.root.clone();
+        // Only the root: meta/ and info.json come with the first saved episode. An info.json for zero
+        // episodes (v3.0: without tasks.parquet) is a dataset no reader accepts, and lerobot, finding none
+        // it can load, goes looking for it on the Hub.
+        fs::create_dir_all(&root).map_err(|e| RecorderError::io(&root, e))?;
+        journal::recover(&root)?;
+        let mut ds = Dataset {
+            layout: layout_for(&spec),
+            spec,
+            video,
+            tasks: Vec::new(),
+            total_episodes: 0,
+            total_frames: 0,
+            provenance: Provenance::default(),
+            quantiles: QuantileStore::default(),
+        };
+        let info_path = root.join("meta/info.json");
+        if info_path.exists() {
+            ds.resume(&info_path)?;
+        }
+        ds.provenance.software = "phone2act-recorder".into();
+        ds.provenance.version = env!("CARGO_PKG_VERSION").into();
+        ds.provenance.format = ds.spec.format.codebase_version().into();
+        ds.provenance.video = serde_json::to_value(&ds.video).unwrap_or(Value::Null);
+        ds.provenance.config = ds.spec.provenance.clone();
+        ds.load_quantiles()?;
+        Ok(ds)
+    }
+
+    /// Loads the persisted quantile sketches, or rebuilds them from the data when they are missing or do not
+    /// describe exactly the committed episodes (a dataset from another writer or an older phone2act).
+    fn load_quantiles(&mut self) -> Result<(), RecorderError> {
+        let root = &self.spec.root;
+        if let Some(q) = QuantileStore::load(root, self.total_episodes, self.total_frames) {
+            self.quantiles = q;
+        } else if self.total_episodes > 0 {
+            tracing::warn!(root = %root.display(), "rebuilding the dataset quantiles from the data");
+            self.quantiles = QuantileStore::rebuild(root, self.total_episodes)?;
+            // A dataset from an older phone2act has averaged quantiles in stats.json: correct it now rather
+            // than at the next save, if the running aggregates describe the same frames (each file is
+            // replaced atomically, and both describe only committed episodes).
+            let agg = &self.provenance.stats;
+            if self.quantiles.current.frames == self.total_frames
+                && agg.get("index").is_some_and(|a| a.count == self.total_frames)
+            {
+                let stats = meta::stats_json(agg, &self.quantiles, self.layout.as_ref());
+                write_atomic(&root.join("meta/stats.json"), &pretty(&stats))?;
+                write_atomic(&root.join(QUANTILES_FILE), &self.quantiles.encode())?;
+            }
+        }
+        Ok(())
+    }
+
+    fn resume(&mut self, info_path: &Path) -> Result<(), RecorderError> {
+        let root = self.spec.root.clone();
+        let text = fs::read_to_string(info_path).map_err(|e| RecorderError::io(info_path, e))?;
+        let info: Value =
+            serde_json::from_str(&text).map_err(|e| corrupt(&root, format!("meta/info.json: {e}")))?;
+        let version = info["codebase_version"].as_str().unwrap_or("?").to_owned();
+        if version != self.spec.format.codebase_version() {
+            return Err(RecorderError::FormatMismatch {
+                root,
+                found: version,
+                wanted: self.spec.format.codebase_version().into(),
+            });
+        }
+        let fps = info["fps"].as_u64().unwrap_or(0) as u32;
+        if fps != self.spec.fps {
+            return Err(RecorderError::FpsMismatch {
+                root,
+                found: fps,
+                wanted: self.spec.fps,
+            });
+        }
+        meta::check_features(&root, &self.spec, &self.video, &info["features"])?;
+        self.total_episodes = info["total_episodes"].as_u64().unwrap_or(0);
+        self.total_frames = info["total_frames"].as_u64().unwrap_or(0);
+        self.tasks = self.layout.resume(&self.spec, self.total_episodes)?;
+        let prov_path = root.join(PROVENANCE_FILE);
+        if let Some(p) = fs::read(&prov_path)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<Provenance>(&b).ok())
+        {
+            self.provenance = p;
+            // Episodes past the committed count belong to a save that never reached info.json.
+            self.provenance.episodes.retain(|e| e.index < self.total_episodes);
+        }
+        self.provenance.episodes = self.episodes_on_disk()?;
+        tracing::info!(root = %root.display(), episodes = self.total_episodes, frames = self.total_frames, "resuming dataset");
+        Ok(())
+    }
+
+    /// The committed episodes as the dataset's own metadata lists them, with the sidecar's extra fields
+    /// (held, paused, late ticks, save latency) where the sidecar knows the episode. The sidecar alone is
+    /// not the list: a dataset whose sidecar is missing, older or unreadable still lists every episode.
+    fn episodes_on_disk(&self) -> Result<Vec<EpisodeSummary>, RecorderError> {
+        let mut listed = self.layout.listed_episodes(&self.spec.root)?;
+        listed.sort_by_key(|e| e.0);
+        listed.retain(|e| e.0 < self.total_episodes);
+        let fps = f64::from(self.spec.fps);
+        Ok(listed
+            .into_iter()
+            .map(|(index, task, length_frames)| {
+                self.provenance
+                    .episodes
+                    .iter()
+                    .find(|p| p.index == index && p.length_frames == length_frames)
+                    .cloned()
+                    .unwrap_or_else(|| EpisodeSummary {
+                        index,
+                        task,
+                        length_frames,
+                        duration_s: length_frames as f64 / fps,
+                        ..EpisodeSummary::default()
+                    })
+            })
+            .collect())
+    }
+
+    /// Next task index for `task`, and whether it is new.
+    fn task_index(&self, task: &str) -> (i64, bool) {
+        match self.tasks.iter().position(|t| t == task) {
+            Some(i) => (i as i64, false),
+            None => (self.tasks.len() as i64, true),
+        }
+    }
+
+    pub fn total_episodes(&self) -> u64 {
+        self.total_episodes
+    }
+
+    pub fn total_frames(&self) -> u64 {
+        self.total_frames
+    }
+
+    pub fn spec(&self) -> &DatasetSpec {
+        &self.spec
+    }
+
+    pub fn video_settings(&self) -> &VideoSettings {
+        &self.video
+    }
+
+    /// Summaries of the committed episodes (from the provenance sidecar).
+    pub fn episodes(&self) -> Vec<EpisodeSummary> {
+        self.provenance.episodes.clone()
+    }
+
+    /// Records the sync settings in the provenance sidecar.
+    pub fn set_sync_provenance(&mut self, sync: Value) {
+        self.provenance.sync = sync;
+    }
+
+    /// Starts writing episode `total_episodes` into staging.
+    pub fn begin_episode(&mut self, task: &str, queue_frames: usize) -> Result<EpisodeWriter, RecorderError> {
+        let task = check_task(task)?;
+        let staging = journal::fresh_staging(&self.spec.root)?;
+        let data = DataWriter::create(
+            &staging.join("data.parquet"),
+            self.spec.state_names.len(),
+            self.spec.action_names.len(),
+            self.spec.format == Format::V30,
+            self.spec.success,
+        )?;
+        let mut encoders = Vec::new();
+        for c in &self.spec.cameras {
+            encoders.push(EncoderThread::spawn(
+                &c.name,
+                staging.join(format!("{}.mp4", c.key())),
+                c.width,
+                c.height,
+                self.spec.fps,
+                self.video.clone(),
+                queue_frames,
+            )?);
+        }
+        Ok(EpisodeWriter {
+            index: self.total_episodes,
+            task: task.to_owned(),
+            task_index: self.task_index(task).0,
+            first_global_index: self.total_frames,
+            data,
+            encoders,
+            state_stats: ColumnStats::new(StatKind::Float, self.spec.state_names.len()),
+            action_stats: ColumnStats::new(StatKind::Float, self.spec.action_names.len()),
+            success_stats: self.spec.success.then(|| ColumnStats::new(StatKind::Bool, 1)),
+            frames: 0,
+            fps: self.spec.fps,
+            staging,
+        })
+    }
+
+    /// Throws away an episode being recorded.
+    pub fn abort_episode(&mut self, ep: EpisodeWriter) {
+        let staging = ep.staging.clone();
+        drop(ep);
+        let _ = fs::remove_dir_all(&staging);
+    }
+
+    /// Saves an episode: closes its files and commits it (see the module doc). On error the dataset keeps
+    /// its earlier episodes and the staging files are removed.
+    pub fn commit_episode(
+        &mut self,
+        ep: EpisodeWriter,
+        mut summary: EpisodeSummary,
+    ) -> Result<EpisodeSummary, RecorderError> {
+        let staging = ep.staging.clone();
+        let r = self.commit_inner(ep, &mut summary);
+        if r.is_err() {
+            let _ = fs::remove_dir_all(&staging);
+        }
+        r.map(|()| summary)
+    }
+
+    /// Closes the episode's files and returns their encoder reports, checked against the row count.
+    fn close_files(
+        data: DataWriter,
+        encoders: Vec<EncoderThread>,
+        frames: u64,
+    ) -> Result<Vec<EncodeReport>, RecorderError> {
+        // Finish the encoders first (they run in parallel with the parquet close).
+        for e in &encoders {
+            e.request_finish(frames);
+        }
+        let rows = data.finish()?;
+        let mut reports: Vec<Result<EncodeReport, RecorderError>> = Vec::new();
+        for e in encoders {
+            reports.push(e.join());
+        }
+        let reports: Vec<EncodeReport> = reports.into_iter().collect::<Result<_, _>>()?;
+        for r in &reports {
+            if r.frames != frames {
+                return Err(RecorderError::Video {
+                    camera: r.camera.clone(),
+                    detail: format!("video has {} frames, episode has {frames}", r.frames),
+                });
+            }
+            let f = fs::File::open(&r.path).map_err(|e| RecorderError::io(&r.path, e))?;
+            f.sync_all().map_err(|e| RecorderError::io(&r.path, e))?;
+        }
+        debug_assert_eq!(rows, frames);
+        Ok(reports)
+    }
+
+    fn commit_inner(&mut self, ep: EpisodeWriter, summary: &mut EpisodeSummary) -> Result<(), RecorderError> {
+        let EpisodeWriter {
+            index,
+            task,
+            task_index,
+            first_global_index,
+            data,
+            encoders,
+            state_stats,
+            action_stats,
+            success_stats,
+            frames,
+            fps,
+            staging,
+        } = ep;
+        if frames == 0 {
+            drop(encoders);
+            return Err(RecorderError::EmptyEpisode(index));
+        }
+        let t0 = std::time::Instant::now();
+        let reports = Self::close_files(data, encoders, frames)?;
+        let flush_ms = t0.elapsed().as_secs_f64() * 1e3;
+        summary.dropped_frames = reports.iter().map(|r| r.dropped).sum();
+        summary.length_frames = frames;
+        summary.index = index;
+        summary.task.clone_from(&task);
+        summary.duration_s = frames as f64 / f64::from(fps);
+
+        // Per-episode stats, in info.json feature order.
+        let mut stats: Vec<(String, FeatureStats)> = vec![
+            ("observation.state".into(), state_stats.finish()),
+            ("action".into(), action_stats.finish()),
+        ];
+        if let Some(s) = &success_stats {
+            stats.push((SUCCESS_FEATURE.into(), s.finish()));
+        }
+        for (c, r) in self.spec.cameras.iter().zip(&reports) {
+            stats.push((c.key(), r.image_stats.finish()));
+        }
+        let defaults = meta::default_feature_columns(frames, fps, index, first_global_index, task_index);
+        stats.extend(defaults.iter().map(|(k, c)| ((*k).to_owned(), c.finish())));
+        let mut quantiles = self.quantiles.clone();
+        let mut columns = vec![("observation.state", &state_stats), ("action", &action_stats)];
+        columns.extend(success_stats.as_ref().map(|s| (SUCCESS_FEATURE, s)));
+        columns.extend(defaults.iter().map(|(k, c)| (*k, c)));
+        quantiles.add_episode(frames, &columns);
+
+        let (_, new_task) = self.task_index(&task);
+        let mut tasks = self.tasks.clone();
+        if new_task {
+            tasks.push(task.clone());
+        }
+        let mut agg = self.provenance.stats.clone();
+        for (name, s) in &stats {
+            agg.entry(name.clone()).or_default().add(s);
+        }
+        let root = self.spec.root.clone();
+        let mut staged = Staging::new(staging.clone(), root.clone());
+        let stats_json = pretty(&meta::stats_json(&agg, &quantiles, self.layout.as_ref()));
+        self.layout.stage(
+            &Saving {
+                spec: &self.spec,
+                index,
+                task: &task,
+                frames,
+                duration_s: summary.duration_s,
+                first_global_index,
+                videos: &reports,
+                tasks: &tasks,
+                new_task,
+                stats: &stats,
+                stats_json: &stats_json,
+            },
+            &mut staged,
+        )?;
+        // Sidecar and info.json last: info.json is what makes the episode count official.
+        let mut prov = self.provenance.clone();
+        prov.stats = agg;
+        prov.episodes.push(summary.clone());
+        staged.write("quantiles.bin", &quantiles.encode(), QUANTILES_FILE)?;
+        staged.write(
+            "provenance.json",
+            &pretty(&serde_json::to_value(&prov).unwrap_or(Value::Null)),
+            PROVENANCE_FILE,
+        )?;
+        let totals = Totals {
+            episodes: self.total_episodes + 1,
+            frames: self.total_frames + frames,
+            tasks: tasks.len(),
+        };
+        let info = meta::info_json(&self.spec, &self.video, self.layout.as_ref(), &totals);
+        staged.commit(index, &info)?;
+        tracing::debug!(
+            episode = index,
+            flush_ms,
+            commit_ms = t0.elapsed().as_secs_f64() * 1e3 - flush_ms,
+            "episode committed"
+        );
+        let _ = fs::remove_dir_all(&staging);
+        self.total_episodes = totals.episodes;
+        self.total_frames = totals.frames;
+        self.tasks = tasks;
+        self.layout.committed();
+        self.provenance = prov;
+        self.quantiles = quantiles;
+        Ok(())
+    }
+}
+
+/// The task text as recorded (trimmed), or why it cannot be.
+pub fn check_task(task: &str) -> Result<&str, RecorderError> {
+    let task = task.trim();
+    if task.is_empty() {
+        return Err(RecorderError::EmptyTask);
+    }
+    if task.len() > MAX_TASK_BYTES {
+        return Err(RecorderError::TaskTooLong {
+            len: task.len(),
+            max: MAX_TASK_BYTES,
+        });
+    }
+    Ok(task)
+}
+
+/// `frame_index / fps` as float32, computed in f64 first so it is the nearest float32 to the exact value.
+pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
+    (frame_index as f64 / f64::from(fps)) as f32
+}
+
+impl EpisodeWriter {
+    /// Appends frame `frames()` (state, executed action and task success as recorded) to the parquet and the
+    /// per-episode stats. `success` is written only if the dataset records `next.success`. Camera frames are
+    /// queued separately through [`EpisodeWriter::encoders`].
+    pub fn push_row(&mut self, state: &[f64], action: &[f64], success: bool) -> Result<(), RecorderError> {
+        let state: Vec<f32> = state.iter().map(|v| *v as f32).collect();
+        let action: Vec<f32> = action.iter().map(|v| *v as f32).collect();
+        self.state_stats.push_f32(&state);
+        self.action_stats.push_f32(&action);
+        if let Some(s) = &mut self.success_stats {
+            s.push(&[f64::from(u8::from(success))]);
+        }
+        let i = self.frames;
+        self.data.push(Row {
+            state,
+            action,
+            success: self.success_stats.is_some().then_some(success),
+            timestamp: timestamp_s(i, self.fps),
+            frame_index: i as i64,
+            episode_index: self.index as i64,
+            index: (self.first_global_index + i) as i64,
+            task_index: self.task_index,
+        })?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Length of the state vector.
+    pub fn state_dims(&self) -> usize {
+        self.state_stats.dims()
+    }
+
+    /// Length of the action vector.
+    pub fn action_dims(&self) -> usize {
+        self.action_stats.dims()
+    }
+
+    /// Frames (rows) written so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Video frames dropped so far, all cameras.
+    pub fn dropped(&self) -> u64 {
+        self.encoders.iter().map(EncoderThread::dropped).sum()
+    }
+
+    /// The name of a camera whose encoder has failed, if any.
+    pub fn failed_camera(&self) -> Option<String> {
+        self.encoders
+            .iter()
+            .find(|e| e.failed())
+            .map(|e| e.camera().to_owned())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    #[allow(clippy::float_cmp)] // exactness is the point
+    fn timestamps_are_exact_multiples() {
+        assert_eq!(timestamp_s(3, 30), 0.1_f32);
+        assert_eq!(timestamp_s(20, 20), 1.0);
+    }
+}

@@ -1,0 +1,547 @@
+//! Policy sessions: which arms and cameras a session opened, the observations it was sent (so a chunk can be
+//! anchored on the pose of the observation it answers), its capability id, and the rules for building an
+//! observation and scheduling a chunk. The `Policy` service adapter only validates and converts around this.
+
+use crate::app::{App, LookupError};
+use crate::arm::{ArmController, ArmError, RevocationSink, now_s};
+use nalgebra::Isometry3;
+use phone2act_clock::monotonic_ns;
+use phone2act_core::{ActionMode, ReplaceReport};
+use phone2act_proto::v1;
+use phone2act_recorder::jpeg::JpegError;
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use tokio::sync::mpsc;
+
+/// Observations a session remembers for anchoring chunks (at 50 Hz, about 2.5 s).
+pub const OBSERVATION_MEMORY: usize = 128;
+
+/// Why a policy request was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum PolicyError {
+    #[error(transparent)]
+    Lookup(#[from] LookupError),
+    #[error("arm {0:?} has no robot feedback yet")]
+    NoFeedback(String),
+    #[error("camera {camera}: {source}")]
+    Jpeg {
+        camera: String,
+        #[source]
+        source: JpegError,
+    },
+    #[error("this session did not open arm {0:?}")]
+    ArmNotOpened(String),
+    #[error("chunk has no steps")]
+    EmptyChunk,
+    #[error("step {step} has {got} values; arm {arm:?} takes {width} ({names})")]
+    StepWidth {
+        step: usize,
+        got: usize,
+        arm: String,
+        width: usize,
+        names: String,
+    },
+    #[error("step {step} value {index} is not finite")]
+    NotFinite { step: usize, index: usize },
+    #[error("step_period_s must be > 0, got {0}")]
+    StepPeriod(f64),
+    #[error("observation {0} is unknown or too old (this session remembers its last {OBSERVATION_MEMORY})")]
+    UnknownObservation(u64),
+    #[error("observation {id} has no arm {arm:?}")]
+    ObservationLacksArm { id: u64, arm: String },
+    /// One answer for a malformed, unknown or wrongly keyed id, so guessing learns nothing.
+    #[error("no open policy session with this session_id (use SessionReady.session_id)")]
+    UnknownSession,
+    #[error("no randomness for a session id: {0}")]
+    NoRandomness(#[source] getrandom::Error),
+    /// The arm controller refused.
+    #[error(transparent)]
+    Arm(#[from] ArmError),
+}
+
+/// How an observation carries camera frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameEncoding {
+    /// No frames.
+    None,
+    /// Packed RGB.
+    Rgb8,
+    /// JPEG at a quality of 1..=100.
+    Jpeg { quality: u8 },
+}
+
+/// One arm in an observation.
+#[derive(Debug, Clone)]
+pub struct ArmObservation {
+    pub arm: String,
+    pub state: Vec<f64>,
+    pub state_names: Vec<String>,
+    pub action_names: Vec<String>,
+    pub robot_from_ee: Isometry3<f64>,
+}
+
+/// One camera frame in an observation, encoded as asked.
+#[derive(Debug, Clone)]
+pub struct ObservedFrame {
+    pub camera: String,
+    pub width: u32,
+    pub height: u32,
+    /// JPEG bytes when true, packed RGB otherwise.
+    pub jpeg: bool,
+    pub data: Vec<u8>,
+    pub capture_time_ns: i64,
+    pub seq: u64,
+}
+
+/// What the robot and its cameras looked like at one instant.
+#[derive(Debug, Clone)]
+pub struct Observation {
+    /// Never 0 (0 means "no observation" in chunks).
+    pub id: u64,
+    pub timestamp_ns: i64,
+    pub arms: Vec<ArmObservation>,
+    pub frames: Vec<ObservedFrame>,
+    /// The task of the episode in progress.
+    pub task: String,
+}
+
+/// What a chunk needs from the observation it answers.
+#[derive(Debug, Clone)]
+struct ObservationAnchor {
+    id: u64,
+    time_s: f64,
+    poses: Vec<(String, Isometry3<f64>)>,
+}
+
+/// What a session asks for when it opens (already validated by the adapter).
+#[derive(Debug, Clone)]
+pub struct SessionRequest {
+    /// Arms to observe (and drive, with `request_control`); empty means every arm.
+    pub arms: Vec<String>,
+    /// Cameras whose frames go into observations; empty means every camera.
+    pub cameras: Vec<String>,
+    pub encoding: FrameEncoding,
+    /// Empty for a generated `policy-<id>`.
+    pub name: String,
+    pub silence_timeout_s: f64,
+    pub request_control: bool,
+}
+
+/// A chunk of steps for one arm, as the session schedules it.
+#[derive(Debug, Clone, Copy)]
+pub struct ChunkRequest<'a> {
+    pub arm: &'a str,
+    /// The observation the chunk answers; 0 anchors it on the arm's pose now.
+    pub observation_id: u64,
+    pub mode: ActionMode,
+    pub step_period_s: f64,
+    pub steps: &'a [Vec<f64>],
+}
+
+/// One open policy session.
+#[derive(Debug)]
+pub struct PolicySession {
+    id: u64,
+    name: String,
+    arms: Vec<String>,
+    cameras: Vec<String>,
+    encoding: FrameEncoding,
+    events: mpsc::Sender<v1::PolicyEvent>,
+    anchors: Mutex<VecDeque<ObservationAnchor>>,
+    /// 128 random bits in `SessionReady.session_id`: `PushChunk` must name them, so a session id is a
+    /// capability that only the session's own client holds, not a small integer anyone can guess.
+    secret: String,
+}
+
+/// The open sessions and the observation counter they share.
+#[derive(Debug)]
+pub struct PolicySessions {
+    app: Arc<App>,
+    open: Mutex<HashMap<u64, Arc<PolicySession>>>,
+    observations: AtomicU64,
+}
+
+/// A session hears that it lost an arm on its event channel.
+impl RevocationSink for mpsc::Sender<v1::PolicyEvent> {
+    fn revoked(&self, arm: &str, reason: &str) {
+        // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
+        // ownership on its next chunk.
+        let _ = self.try_send(
+            v1::policy_event::Event::Revoked(v1::ControlRevoked {
+                arm: arm.to_owned(),
+                reason: reason.to_owned(),
+            })
+            .into(),
+        );
+    }
+}
+
+fn random_secret() -> Result<String, PolicyError> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes).map_err(PolicyError::NoRandomness)?;
+    Ok(format!("{:032x}", u128::from_le_bytes(bytes)))
+}
+
+/// Compares in time independent of where the first difference is, so timing does not reveal a prefix.
+fn same_secret(a: &str, b: &str) -> bool {
+    a.len() == b.len() && a.bytes().zip(b.bytes()).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+impl PolicySessions {
+    /// No session open yet, over `app`'s arms and cameras.
+    pub fn new(app: Arc<App>) -> Self {
+        Self {
+            app,
+            open: Mutex::new(HashMap::new()),
+            // Never 0: 0 means "no observation" in chunks.
+            observations: AtomicU64::new(1),
+        }
+    }
+
+    /// The server the sessions run on.
+    pub fn app(&self) -> &Arc<App> {
+        &self.app
+    }
+
+    fn sessions(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Arc<PolicySession>>> {
+        // A map of Arcs: an insert or remove that panicked left it whole.
+        self.open.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Opens a session that sends its events to `events`, claiming its arms if it asks for control (all or
+    /// none: an arm it cannot take releases the ones already taken).
+    pub fn open(
+        &self,
+        request: SessionRequest,
+        events: mpsc::Sender<v1::PolicyEvent>,
+    ) -> Result<Arc<PolicySession>, PolicyError> {
+        let arms = if request.arms.is_empty() {
+            self.app.arm_names()
+        } else {
+            request.arms
+        };
+        let controllers = arms
+            .iter()
+            .map(|name| self.app.find_arm(name))
+            .collect::<Result<Vec<_>, _>>()?;
+        for cam in &request.cameras {
+            self.app.find_camera(cam)?;
+        }
+        let id = self.app.next_session_id();
+        let name = if request.name.is_empty() {
+            format!("policy-{id}")
+        } else {
+            request.name
+        };
+        let session = Arc::new(PolicySession {
+            id,
+            name,
+            arms,
+            cameras: request.cameras,
+            encoding: request.encoding,
+            events,
+            anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
+            secret: random_secret()?,
+        });
+        if request.request_control {
+            for (k, arm) in controllers.iter().enumerate() {
+                if let Err(e) = arm.claim_for_policy(
+                    id,
+                    &session.name,
+                    Arc::new(session.events.clone()),
+                    request.silence_timeout_s,
+                ) {
+                    for done in &controllers[..k] {
+                        done.release_policy(id, "session could not take every arm");
+                    }
+                    return Err(PolicyError::Arm(e));
+                }
+            }
+        }
+        self.sessions().insert(id, Arc::clone(&session));
+        Ok(session)
+    }
+
+    /// The session a `SessionReady.session_id` capability names.
+    pub fn find(&self, capability: &str) -> Result<Arc<PolicySession>, PolicyError> {
+        let (id, secret) = capability.split_once('.').ok_or(PolicyError::UnknownSession)?;
+        let id: u64 = id.parse().map_err(|_| PolicyError::UnknownSession)?;
+        self.sessions()
+            .get(&id)
+            .filter(|s| same_secret(&s.secret, secret))
+            .cloned()
+            .ok_or(PolicyError::UnknownSession)
+    }
+
+    /// Ends `session`: its arms hold and its id stops working.
+    pub fn close(&self, session: &PolicySession) {
+        session.release(&self.app, "session ended");
+        self.sessions().remove(&session.id);
+    }
+
+    /// Builds an observation of `arms` with the latest frames of `cameras` (every camera when empty).
+    pub fn observe(
+        &self,
+        arms: &[String],
+        cameras: &[String],
+        encoding: FrameEncoding,
+    ) -> Result<Observation, PolicyError> {
+        self.observe_anchored(arms, cameras, encoding)
+            .map(|(observation, _)| observation)
+    }
+
+    fn observe_anchored(
+        &self,
+        arms: &[String],
+        cameras: &[String],
+        encoding: FrameEncoding,
+    ) -> Result<(Observation, ObservationAnchor), PolicyError> {
+        let id = self.observations.fetch_add(1, Ordering::Relaxed);
+        let timestamp_ns = monotonic_ns();
+        let mut out = Vec::with_capacity(arms.len());
+        let mut poses = Vec::with_capacity(arms.len());
+        for name in arms {
+            let arm = self.app.find_arm(name)?;
+            let sample = arm
+                .state_and_action()
+                .ok_or_else(|| PolicyError::NoFeedback(name.clone()))?;
+            poses.push((name.clone(), sample.robot_from_ee));
+            out.push(ArmObservation {
+                arm: name.clone(),
+                state: sample.state,
+                state_names: arm.layout.state_names(),
+                action_names: arm.layout.action_names(arm.action_mode),
+                robot_from_ee: sample.robot_from_ee,
+            });
+        }
+        let mut frames = Vec::new();
+        if encoding != FrameEncoding::None {
+            for cam in self.app.cameras() {
+                if !cameras.is_empty() && !cameras.contains(&cam.config().name) {
+                    continue;
+                }
+                let Some(frame) = cam.slot().latest() else {
+                    continue;
+                };
+                let data = if let FrameEncoding::Jpeg { quality } = encoding {
+                    phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, quality)
+                        .map_err(|source| PolicyError::Jpeg {
+                            camera: cam.config().name.clone(),
+                            source,
+                        })?
+                } else {
+                    frame.rgb.as_ref().clone()
+                };
+                frames.push(ObservedFrame {
+                    camera: cam.config().name.clone(),
+                    width: frame.width,
+                    height: frame.height,
+                    jpeg: matches!(encoding, FrameEncoding::Jpeg { .. }),
+                    data,
+                    capture_time_ns: frame.capture_time_ns,
+                    seq: frame.seq,
+                });
+            }
+        }
+        let observation = Observation {
+            id,
+            timestamp_ns,
+            arms: out,
+            frames,
+            task: self.app.current_task(),
+        };
+        let anchor = ObservationAnchor {
+            id,
+            time_s: timestamp_ns as f64 * 1e-9,
+            poses,
+        };
+        Ok((observation, anchor))
+    }
+
+    /// Builds an observation for `session` and remembers its poses, so chunks answering it are anchored there.
+    pub fn observe_for(&self, session: &PolicySession) -> Result<Observation, PolicyError> {
+        let (observation, anchor) =
+            self.observe_anchored(&session.arms, &session.cameras, session.encoding)?;
+        session.remember(anchor);
+        Ok(observation)
+    }
+
+    /// Schedules `chunk` for `session` on its arm: steps are checked against the arm's layout and anchored
+    /// on the observation they answer (or the arm's pose now).
+    pub fn push_chunk(
+        &self,
+        session: &PolicySession,
+        chunk: &ChunkRequest<'_>,
+    ) -> Result<ReplaceReport, PolicyError> {
+        let arm = self.app.find_arm(chunk.arm)?;
+        if !session.arms.iter().any(|a| a == chunk.arm) {
+            return Err(PolicyError::ArmNotOpened(chunk.arm.to_owned()));
+        }
+        check_steps(&arm, chunk)?;
+        let (anchor_s, reference) = if chunk.observation_id == 0 {
+            let sample = arm
+                .state_and_action()
+                .ok_or_else(|| PolicyError::NoFeedback(chunk.arm.to_owned()))?;
+            (now_s(), sample.robot_from_ee)
+        } else {
+            session.anchor(chunk.observation_id, chunk.arm)?
+        };
+        arm.push_chunk(
+            session.id,
+            chunk.steps,
+            chunk.step_period_s,
+            anchor_s,
+            reference,
+            chunk.mode,
+        )
+        .map_err(PolicyError::Arm)
+    }
+}
+
+fn check_steps(arm: &ArmController, chunk: &ChunkRequest<'_>) -> Result<(), PolicyError> {
+    if chunk.steps.is_empty() {
+        return Err(PolicyError::EmptyChunk);
+    }
+    let names = arm.layout.action_names(chunk.mode);
+    for (step, values) in chunk.steps.iter().enumerate() {
+        if values.len() != names.len() {
+            return Err(PolicyError::StepWidth {
+                step,
+                got: values.len(),
+                arm: chunk.arm.to_owned(),
+                width: names.len(),
+                names: names.join(", "),
+            });
+        }
+        if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+            return Err(PolicyError::NotFinite { step, index });
+        }
+    }
+    if !chunk.step_period_s.is_finite() || chunk.step_period_s <= 0.0 {
+        return Err(PolicyError::StepPeriod(chunk.step_period_s));
+    }
+    Ok(())
+}
+
+impl PolicySession {
+    /// The session's number (logs and ownership), not its capability.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// The policy's name as operators see it.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The arms the session opened.
+    pub fn arms(&self) -> &[String] {
+        &self.arms
+    }
+
+    /// `"<id>.<32 hex digits>"`: the sequential id keeps logs readable, the random part makes it unguessable.
+    pub fn capability(&self) -> String {
+        format!("{}.{}", self.id, self.secret)
+    }
+
+    /// Queues an event for the policy. Latest wins: a policy that is busy inferring misses an event rather
+    /// than queueing it.
+    pub fn notify(&self, event: v1::policy_event::Event) {
+        let _ = self.events.try_send(event.into());
+    }
+
+    /// Gives up control of every arm the session drives; they hold.
+    pub fn release(&self, app: &App, reason: &str) {
+        for name in &self.arms {
+            if let Ok(arm) = app.find_arm(name) {
+                arm.release_policy(self.id, reason);
+            }
+        }
+    }
+
+    fn remember(&self, anchor: ObservationAnchor) {
+        let mut anchors = self.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+        if anchors.len() == OBSERVATION_MEMORY {
+            anchors.pop_front();
+        }
+        anchors.push_back(anchor);
+    }
+
+    /// The time and pose of `arm` in observation `id`.
+    fn anchor(&self, id: u64, arm: &str) -> Result<(f64, Isometry3<f64>), PolicyError> {
+        let anchors = self.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+        let anchor = anchors
+            .iter()
+            .find(|a| a.id == id)
+            .ok_or(PolicyError::UnknownObservation(id))?;
+        anchor
+            .poses
+            .iter()
+            .find(|(name, _)| name == arm)
+            .map(|(_, pose)| (anchor.time_s, *pose))
+            .ok_or_else(|| PolicyError::ObservationLacksArm {
+                id,
+                arm: arm.to_owned(),
+            })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn session() -> PolicySession {
+        let (events, _) = mpsc::channel(1);
+        PolicySession {
+            id: 7,
+            name: "p".into(),
+            arms: vec!["left".into()],
+            cameras: Vec::new(),
+            encoding: FrameEncoding::None,
+            events,
+            anchors: Mutex::new(VecDeque::new()),
+            secret: "ab".repeat(16),
+        }
+    }
+
+    fn anchor(id: u64) -> ObservationAnchor {
+        ObservationAnchor {
+            id,
+            time_s: id as f64,
+            poses: vec![("left".into(), Isometry3::translation(id as f64, 0.0, 0.0))],
+        }
+    }
+
+    #[test]
+    fn a_chunk_anchors_on_a_remembered_observation_until_it_is_forgotten() {
+        let s = session();
+        let count = OBSERVATION_MEMORY as u64 + 1;
+        for id in 1..=count {
+            s.remember(anchor(id));
+        }
+        let (time_s, pose) = s.anchor(count, "left").unwrap();
+        assert_eq!((time_s, pose.translation.x), (count as f64, count as f64));
+        // The oldest fell out of the bounded memory; the second oldest is still there.
+        assert!(matches!(
+            s.anchor(1, "left"),
+            Err(PolicyError::UnknownObservation(1))
+        ));
+        assert!(s.anchor(2, "left").is_ok());
+        assert!(matches!(
+            s.anchor(2, "right"),
+            Err(PolicyError::ObservationLacksArm { id: 2, .. })
+        ));
+    }
+
+    #[test]
+    fn the_capability_is_the_id_and_the_secret_and_secrets_compare_whole() {
+        let s = session();
+        assert_eq!(s.capability(), format!("7.{}", "ab".repeat(16)));
+        assert!(same_secret(&s.secret, &"ab".repeat(16)));
+        assert!(!same_secret(&s.secret, &"ab".repeat(15)));
+        assert!(!same_secret(&s.secret, &format!("{}ac", "ab".repeat(15))));
+        assert_eq!(random_secret().unwrap().len(), 32);
+        assert_ne!(random_secret().unwrap(), random_secret().unwrap());
+    }
+}

@@ -1,0 +1,238 @@
+//! Server state ⇄ wire messages for the types the proto crate cannot see (the recorder's, the app's): the
+//! service layer's half of the wire boundary. Conversions of core types live in `phone2act_proto`.
+
+use crate::app::{App, CameraHealth, CameraRuntime};
+use crate::config::Config;
+use crate::policy_session::Observation;
+use phone2act_bridges::{Command, Control, Feedback, Health};
+use phone2act_clock::monotonic_ns;
+use phone2act_proto::convert_arm::{arm_state_to_proto, pose_from_proto, pose_to_proto};
+use phone2act_proto::v1;
+use phone2act_recorder::dataset::EpisodeSummary;
+use phone2act_recorder::recorder::{Phase, RecorderStatus};
+
+/// Recorder status on the wire.
+pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingStatus {
+    v1::RecordingStatus {
+        phase: match s.phase {
+            Phase::Idle => v1::RecordingPhase::Idle,
+            Phase::Recording => v1::RecordingPhase::Recording,
+            Phase::Paused => v1::RecordingPhase::Paused,
+            Phase::Saving => v1::RecordingPhase::Saving,
+        } as i32,
+        dataset_root: config.recorder.root.display().to_string(),
+        dataset_format: config.recorder.format.codebase_version().to_owned(),
+        episode_index: s.episode_index,
+        task: s.task.clone(),
+        frames_recorded: s.frames_recorded,
+        duration_s: s.duration_s,
+        held_ticks: s.held_ticks,
+        paused_ticks: s.paused_ticks,
+        dropped_frames: s.dropped_frames,
+        episodes_saved: s.episodes_saved,
+        warning: s.warning.clone().unwrap_or_default(),
+        fps: f64::from(s.fps),
+        late_ticks: s.late_ticks,
+    }
+}
+
+/// The recorder's state on the wire, or an idle status that says it is closed.
+pub fn current_recording_status(app: &App) -> v1::RecordingStatus {
+    match app.recorder_status() {
+        Some(status) => recording_status(&status, app.config()),
+        None => v1::RecordingStatus {
+            phase: v1::RecordingPhase::Idle as i32,
+            dataset_root: app.config().recorder.root.display().to_string(),
+            dataset_format: app.config().recorder.format.codebase_version().to_owned(),
+            fps: app.config().recorder.fps,
+            warning: "recorder closed".to_owned(),
+            ..v1::RecordingStatus::default()
+        },
+    }
+}
+
+/// A saved episode on the wire.
+pub fn episode(e: &EpisodeSummary) -> v1::EpisodeInfo {
+    v1::EpisodeInfo {
+        episode_index: e.index,
+        task: e.task.clone(),
+        length_frames: e.length_frames,
+        duration_s: e.duration_s,
+        held_ticks: e.held_ticks,
+        paused_ticks: e.paused_ticks,
+        start_unix_ns: e.start_unix_ns,
+        late_ticks: e.late_ticks,
+        dropped_frames: e.dropped_frames,
+    }
+}
+
+/// A camera's configuration and health on the wire.
+pub fn camera_status(cam: &CameraRuntime) -> v1::CameraStatus {
+    let config = cam.config();
+    let CameraHealth {
+        live,
+        frames_captured,
+        last_frame_age_s,
+    } = cam.health();
+    v1::CameraStatus {
+        camera: config.name.clone(),
+        kind: config.kind.as_str().to_owned(),
+        width: config.width,
+        height: config.height,
+        fps: config.fps,
+        live,
+        frames_captured,
+        last_frame_age_s: last_frame_age_s.unwrap_or(-1.0),
+        measured_fps: 0.0,
+        error: String::new(),
+    }
+}
+
+/// A full status snapshot.
+pub fn system_status(app: &App, sequence: u64) -> v1::SystemStatus {
+    v1::SystemStatus {
+        version: env!("CARGO_PKG_VERSION").to_owned(),
+        server_time_ns: monotonic_ns(),
+        uptime_s: app.started().elapsed().as_secs_f64(),
+        arms: app
+            .arms()
+            .iter()
+            .map(|a| arm_state_to_proto(&a.snapshot()))
+            .collect(),
+        cameras: app.cameras().iter().map(camera_status).collect(),
+        recording: Some(current_recording_status(app)),
+        sequence,
+    }
+}
+
+/// Feedback from an out-of-process bridge, stamped with its arrival time on the server's clock.
+pub fn bridge_feedback(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
+    let pose = fb.robot_from_ee.as_ref().ok_or("feedback has no robot_from_ee")?;
+    Ok(Feedback {
+        // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
+        capture_time_ns: monotonic_ns(),
+        joint_positions_rad: fb.joint_positions_rad.clone(),
+        robot_from_ee: pose_from_proto(pose).map_err(|e| e.to_string())?,
+        gripper_position: fb.gripper_position,
+        applied_seq: fb.applied_seq,
+        task_success: false,
+    })
+}
+
+/// A gated command for an out-of-process bridge.
+pub fn bridge_command(c: &Command) -> v1::BridgeCommand {
+    v1::BridgeCommand {
+        seq: c.seq,
+        robot_from_target: Some(pose_to_proto(&c.robot_from_target)),
+        gripper_target: c.gripper_target,
+        issue_time_ns: c.issue_time_ns,
+    }
+}
+
+/// A control request for an out-of-process bridge.
+pub fn bridge_control(c: Control) -> v1::BridgeControl {
+    let kind = match c {
+        Control::Enable => v1::bridge_control::Kind::Enable,
+        Control::Disable => v1::bridge_control::Kind::Disable,
+        Control::ClearError => v1::bridge_control::Kind::ClearError,
+        Control::Reconnect => v1::bridge_control::Kind::Reconnect,
+    };
+    v1::BridgeControl { kind: kind as i32 }
+}
+
+/// A bridge's health report; anything but ready, connecting or error counts as disconnected.
+pub fn bridge_health(report: v1::BridgeStatusReport) -> Health {
+    match v1::BridgeHealth::try_from(report.health) {
+        Ok(v1::BridgeHealth::Ready) => Health::Ready,
+        Ok(v1::BridgeHealth::Connecting) => Health::Connecting,
+        Ok(v1::BridgeHealth::Error) => Health::Error(report.message),
+        _ => Health::Disconnected(report.message),
+    }
+}
+
+/// An observation on the wire; each arm says who drives it now.
+pub fn observation(app: &App, o: Observation) -> v1::Observation {
+    v1::Observation {
+        observation_id: o.id,
+        timestamp_ns: o.timestamp_ns,
+        arms: o
+            .arms
+            .into_iter()
+            .map(|a| v1::ArmObservation {
+                owner: app
+                    .arm(&a.arm)
+                    .map_or(0, |arm| v1::ControlSource::from(arm.snapshot().driver) as i32),
+                robot_from_ee: Some(pose_to_proto(&a.robot_from_ee)),
+                arm: a.arm,
+                state: a.state,
+                state_names: a.state_names,
+                action_names: a.action_names,
+            })
+            .collect(),
+        frames: o
+            .frames
+            .into_iter()
+            .map(|f| v1::CameraFrame {
+                camera: f.camera,
+                width: f.width,
+                height: f.height,
+                encoding: if f.jpeg {
+                    v1::ImageEncoding::Jpeg
+                } else {
+                    v1::ImageEncoding::Rgb8
+                } as i32,
+                data: f.data,
+                capture_time_ns: f.capture_time_ns,
+                frame_seq: f.seq,
+            })
+            .collect(),
+        task: o.task,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sync_counters_reach_the_wire() {
+        let config = Config::embedded_default().unwrap();
+        let status = RecorderStatus {
+            phase: Phase::Recording,
+            episode_index: 4,
+            task: "pick".into(),
+            frames_recorded: 120,
+            duration_s: 6.0,
+            held_ticks: 3,
+            paused_ticks: 2,
+            late_ticks: 7,
+            dropped_frames: 1,
+            episodes_saved: 4,
+            warning: None,
+            fps: 20,
+            version: 9,
+        };
+        let wire = recording_status(&status, &config);
+        assert_eq!(
+            (
+                wire.held_ticks,
+                wire.paused_ticks,
+                wire.late_ticks,
+                wire.dropped_frames
+            ),
+            (3, 2, 7, 1)
+        );
+        let summary = EpisodeSummary {
+            index: 4,
+            late_ticks: 5,
+            dropped_frames: 6,
+            paused_ticks: 2,
+            ..EpisodeSummary::default()
+        };
+        let wire = episode(&summary);
+        assert_eq!(
+            (wire.paused_ticks, wire.late_ticks, wire.dropped_frames),
+            (2, 5, 6)
+        );
+    }
+}
