@@ -4,6 +4,7 @@
 //! builders ([`buttons`]) that the server, the SDK and the gateway all use.
 
 pub mod buttons;
+pub mod convert_arm;
 pub mod convert_camera;
 pub mod convert_episode;
 pub mod convert_policy;

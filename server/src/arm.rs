@@ -1,108 +1,84 @@
-//! Arm controllers: one per configured arm, the single place where teleop samples and policy chunks become
-//! bridge commands. Both sources pass the same safety gate and the same bridge; one source drives an arm
-//! at a time, the operator can always take over from the phone, and a source that goes silent leaves the
-//! arm holding.
+//! Arm controllers: one per configured arm, the shell around its [`Arbiter`] (the source-arbitration rules,
+//! in `phone2act_core::arbiter`). The shell reads the bridge and the clock, hands the arbiter one input at a
+//! time under a lock, and carries out what it returns: commands go to [`Bridge::send`] in order, a revoked
+//! policy session is told, and the tick task is woken when the arbiter needs ticks.
 //!
-//! The critical section is a `std::sync::Mutex` held for microseconds and never across an `.await`, so the
-//! control path is a straight function call from the gRPC handler to [`Bridge::send`] (which never blocks).
+//! The critical section is a `std::sync::Mutex` (the workspace has no `parking_lot`) held for microseconds
+//! and never across an `.await`, so the control path is a straight function call from the gRPC handler to
+//! the bridge (which never blocks).
 
 use nalgebra::Isometry3;
 use phone2act_bridges::sim::SceneState;
-use phone2act_bridges::{Bridge, BridgeError, Command, Feedback, Health};
+use phone2act_bridges::{Bridge, BridgeError, Feedback, Health};
 use phone2act_clock::monotonic_ns;
+use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
-    ActionChunk, ActionMode, ArmLayout, ChunkConfig, ChunkExecutor, ChunkStep, ClutchKind, GateDecision,
-    GateVerdict, GripperCommand, ReplaceReport, SafetyGate, TeleopArm, TeleopConfig,
+    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
+    ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, TeleopConfig, TeleopRound,
+    TickNeed,
 };
-use phone2act_proto::v1;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
-use tokio::sync::mpsc;
-use tonic::Status;
-
-/// Feedback older than this means the robot's pose is not known: nothing may start moving it. Bridges
-/// report at 50 Hz or more (Dobot 125 Hz, SO-101 at its `rate_hz`, sim and remote 50 Hz), so a second is
-/// dozens of missed reports, not jitter or a scheduler stall on a loaded machine.
-const FEEDBACK_MAX_AGE_S: f64 = 1.0;
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::time::Duration;
+use tokio::sync::Notify;
 
 /// Seconds on the process monotonic clock.
 pub fn now_s() -> f64 {
     monotonic_ns() as f64 * 1e-9
 }
 
-/// Who drives the arm right now.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Driver {
-    None,
-    Teleop,
-    Policy,
+/// Where a policy session hears that it lost an arm. Called after the arm's lock is released; must not
+/// block (the control path calls it).
+pub trait RevocationSink: Send + Sync + std::fmt::Debug {
+    fn revoked(&self, arm: &str, reason: &str);
 }
 
-/// The policy session that owns (or may own) the arm.
-#[derive(Debug)]
-struct PolicyOwner {
-    session_id: u64,
-    name: String,
-    events: mpsc::Sender<v1::PolicyEvent>,
-    silence_timeout_s: f64,
-    last_chunk_s: f64,
-}
-
-#[derive(Debug)]
-struct Inner {
-    teleop: TeleopArm,
-    policy_gate: SafetyGate,
-    executor: ChunkExecutor,
-    teleop_session: Option<u64>,
-    driver: Driver,
-    policy: Option<PolicyOwner>,
-    target: Isometry3<f64>,
-    gripper_target: f64,
-    last_decision: GateDecision,
-    last_policy_step: Option<ChunkStep>,
-    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
-    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
-    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
-    joint_seed: Option<Vec<f64>>,
-    seq: u64,
-    commands_sent: u64,
-    commands_rejected: u64,
-    commands_clamped: u64,
-}
-
-/// What one teleop sample did.
+/// What one teleop round did.
 #[derive(Debug, Clone)]
 pub struct TeleopOutcome {
     /// Per-sample error for the phone (invalid pose, bad gripper value); empty when fine.
     pub error: String,
-    /// Record button events to forward to the recorder, in order.
-    pub record: Vec<v1::RecordCommand>,
-    /// Server time the command (if any) was handed to the bridge.
+    /// Server time the last command (if any) was handed to the bridge.
     pub command_time_ns: Option<i64>,
 }
 
-/// The teleop input of one processing round: the newest pose and every button event since the last round.
-#[derive(Debug, Default)]
-pub struct TeleopInput {
-    /// Newest pose (already validated) or the validation error.
-    pub pose: Option<Result<Isometry3<f64>, String>>,
-    pub tracking_ok: bool,
-    pub buttons: Vec<v1::ButtonEvent>,
-}
-
-/// One arm.
-pub struct ArmController {
-    pub name: String,
-    pub kind: &'static str,
-    pub bridge: Arc<dyn Bridge>,
-    pub layout: ArmLayout,
-    pub action_mode: ActionMode,
-    /// Forward/inverse kinematics for joint actions (arms whose joints are the SO-101's).
-    kinematics: Option<phone2act_core::kinematics::So101Kinematics>,
-    inner: Mutex<Inner>,
-    /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
-    latencies_ns: Mutex<LatencyRing>,
-    samples_received: AtomicU64,
+/// Errors of an arm controller: building it, and inputs it refused (a refusal changes nothing).
+#[derive(Debug, thiserror::Error)]
+pub enum ArmError {
+    #[error("arm {arm}: {source}")]
+    Config {
+        arm: String,
+        #[source]
+        source: phone2act_core::ConfigError,
+    },
+    #[error(
+        "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
+    )]
+    JointModeUnsupported { arm: String, joints: Vec<String> },
+    #[error(
+        "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
+    )]
+    LerobotLayoutUnsupported { arm: String },
+    #[error("arm {arm:?} {source}")]
+    Refused {
+        arm: String,
+        #[source]
+        source: ArbiterError,
+    },
+    #[error("arm {arm:?} step {step}: {source}")]
+    InvalidStep {
+        arm: String,
+        step: usize,
+        #[source]
+        source: LayoutError,
+    },
+    /// The bridge refused (a scene request to an arm without a scene is [`BridgeError::Unsupported`]).
+    #[error("arm {arm:?}: {source}")]
+    Bridge {
+        arm: String,
+        #[source]
+        source: BridgeError,
+    },
 }
 
 /// The last [`LatencyRing::CAPACITY`] latencies, for benchmarks and status (bounded memory).
@@ -128,6 +104,45 @@ impl LatencyRing {
     }
 }
 
+#[derive(Debug)]
+struct Inner {
+    arbiter: Arbiter,
+    /// The owning policy session's event sink (the arbiter knows only its id).
+    policy_sink: Option<(u64, Arc<dyn RevocationSink>)>,
+    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
+    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
+    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
+    joint_seed: Option<Vec<f64>>,
+}
+
+/// One input handled under the lock, with what is left to do once it is released.
+struct Handled {
+    effects: Effects,
+    /// Server time the last command was handed to the bridge.
+    command_time_ns: Option<i64>,
+    /// The revoked policy session's sink, to be told without the lock.
+    revoked: Option<Arc<dyn RevocationSink>>,
+}
+
+/// One arm.
+pub struct ArmController {
+    pub name: String,
+    pub kind: &'static str,
+    pub bridge: Arc<dyn Bridge>,
+    pub layout: ArmLayout,
+    pub action_mode: ActionMode,
+    /// Forward/inverse kinematics for joint actions (arms whose joints are the SO-101's).
+    kinematics: Option<So101Kinematics>,
+    inner: Mutex<Inner>,
+    /// Wakes this arm's tick task when the arbiter starts needing ticks.
+    wake: Notify,
+    /// Control-path latency of recent teleop commands (sample received → handed to the bridge), ns.
+    latencies_ns: Mutex<LatencyRing>,
+    samples_received: AtomicU64,
+    /// Ticks run since start (an idle arm runs none).
+    ticks: AtomicU64,
+}
+
 impl std::fmt::Debug for ArmController {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("ArmController")
@@ -137,23 +152,19 @@ impl std::fmt::Debug for ArmController {
     }
 }
 
-/// Errors building an arm controller.
-#[derive(Debug, thiserror::Error)]
-pub enum ArmError {
-    #[error("arm {arm}: {source}")]
-    Config {
-        arm: String,
-        #[source]
-        source: phone2act_core::ConfigError,
-    },
-    #[error(
-        "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
-    )]
-    JointModeUnsupported { arm: String, joints: Vec<String> },
-    #[error(
-        "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
-    )]
-    LerobotLayoutUnsupported { arm: String },
+fn robot_of(health: Health, feedback: Option<&Feedback>) -> Robot {
+    Robot {
+        health: match health {
+            Health::Ready => BridgeHealth::Ready,
+            Health::Connecting => BridgeHealth::Connecting,
+            Health::Error(m) => BridgeHealth::Error(m),
+            Health::Disconnected(m) => BridgeHealth::Disconnected(m),
+        },
+        feedback: feedback.map(|f| Measured {
+            robot_from_ee: f.robot_from_ee,
+            capture_time_s: f.capture_time_ns as f64 * 1e-9,
+        }),
+    }
 }
 
 impl ArmController {
@@ -167,38 +178,22 @@ impl ArmController {
         action_mode: ActionMode,
         fallback: Isometry3<f64>,
     ) -> Result<Self, ArmError> {
-        let config_err = |source| ArmError::Config {
-            arm: name.to_owned(),
-            source,
-        };
-        let measured = bridge.feedback().map_or(fallback, |f| f.robot_from_ee);
-        let gripper = bridge.feedback().map_or(0.0, |f| f.gripper_position);
+        let feedback = bridge.feedback();
+        let measured = feedback.as_ref().map_or(fallback, |f| f.robot_from_ee);
+        let gripper = feedback.as_ref().map_or(0.0, |f| f.gripper_position);
         let layout = ArmLayout::new(bridge.joint_names().to_vec());
-        let kinematics = (bridge.joint_names() == phone2act_core::kinematics::SO101_ARM_JOINT_NAMES)
-            .then(phone2act_core::kinematics::So101Kinematics::new);
+        let kinematics = (bridge.joint_names() == SO101_ARM_JOINT_NAMES).then(So101Kinematics::new);
         if action_mode == ActionMode::Joint && kinematics.is_none() {
             return Err(ArmError::JointModeUnsupported {
                 arm: name.to_owned(),
                 joints: bridge.joint_names().to_vec(),
             });
         }
-        let inner = Inner {
-            teleop: TeleopArm::new(teleop, measured).map_err(config_err)?,
-            policy_gate: SafetyGate::new(&teleop.gate, measured).map_err(config_err)?,
-            executor: ChunkExecutor::new(chunk.clone()).map_err(config_err)?,
-            teleop_session: None,
-            driver: Driver::None,
-            policy: None,
-            target: measured,
-            gripper_target: gripper,
-            last_decision: GateDecision::note(GateVerdict::Accepted, "idle"),
-            last_policy_step: None,
-            joint_seed: None,
-            seq: 0,
-            commands_sent: 0,
-            commands_rejected: 0,
-            commands_clamped: 0,
-        };
+        let arbiter =
+            Arbiter::new(teleop, chunk.clone(), measured, gripper).map_err(|source| ArmError::Config {
+                arm: name.to_owned(),
+                source,
+            })?;
         Ok(Self {
             name: name.to_owned(),
             kind,
@@ -206,9 +201,15 @@ impl ArmController {
             layout,
             action_mode,
             kinematics,
-            inner: Mutex::new(inner),
+            inner: Mutex::new(Inner {
+                arbiter,
+                policy_sink: None,
+                joint_seed: None,
+            }),
+            wake: Notify::new(),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
+            ticks: AtomicU64::new(0),
         })
     }
 
@@ -224,104 +225,116 @@ impl ArmController {
         Ok(self)
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        // A panic under the lock leaves the arbiter between two inputs, never half way through a send.
         self.inner.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    fn measured_or(&self, fallback: Isometry3<f64>) -> Isometry3<f64> {
-        self.bridge.feedback().map_or(fallback, |f| f.robot_from_ee)
+    /// Hands `input` to the arbiter with the bridge's state read now, and carries out the effects. Returns
+    /// them and the time the last command was handed to the bridge.
+    fn apply(&self, input: Input) -> Result<(Effects, Option<i64>), ArbiterError> {
+        self.apply_with(input, None)
     }
 
-    /// Why the arm may not be moved now, if it may not: its bridge is not healthy, or it has no fresh
-    /// measured pose. Anything that starts motion (engaging, a gripper command, a policy claim) checks
-    /// this, so that no command ever starts from a pose nobody measured.
-    pub fn not_ready(&self) -> Option<String> {
-        self.not_ready_given(self.bridge.feedback().as_ref(), monotonic_ns())
+    /// [`Self::apply`]; if the input is accepted, `sink` becomes the owning policy's (in the same critical
+    /// section, so a revocation right after a claim finds it).
+    fn apply_with(
+        &self,
+        input: Input,
+        sink: Option<(u64, Arc<dyn RevocationSink>)>,
+    ) -> Result<(Effects, Option<i64>), ArbiterError> {
+        // One feedback read and one clock read serve the readiness check and the planner.
+        let robot = robot_of(self.bridge.health(), self.bridge.feedback().as_ref());
+        let now = now_s();
+        let mut inner = self.lock();
+        let handled = self.handle_locked(&mut inner, input, &robot, now, sink)?;
+        drop(inner);
+        Ok(self.finish(handled))
     }
 
-    /// [`Self::not_ready`] for feedback the caller already read at `now_ns` (the per-sample path reads it once).
-    fn not_ready_given(&self, feedback: Option<&Feedback>, now_ns: i64) -> Option<String> {
-        match self.bridge.health() {
-            Health::Error(m) => return Some(format!("its bridge reports an error: {m}")),
-            Health::Disconnected(m) => return Some(format!("its bridge is disconnected: {m}")),
-            Health::Connecting if feedback.is_some() => {
-                return Some("its bridge is still connecting".to_owned());
-            }
-            // Ready, or connecting without feedback yet: the missing feedback is the reason given below.
-            Health::Ready | Health::Connecting => {}
+    /// Hands `input` to the arbiter under the held lock and sends its commands. The caller releases the lock
+    /// and then [`Self::finish`]es.
+    fn handle_locked(
+        &self,
+        inner: &mut Inner,
+        input: Input,
+        robot: &Robot,
+        now: f64,
+        sink: Option<(u64, Arc<dyn RevocationSink>)>,
+    ) -> Result<Handled, ArbiterError> {
+        let need_before = inner.arbiter.tick_need();
+        let effects = inner.arbiter.handle(input, robot, now)?;
+        if sink.is_some() {
+            inner.policy_sink = sink;
         }
-        let Some(feedback) = feedback else {
-            return Some("its bridge has sent no valid feedback yet (no measured pose)".to_owned());
-        };
-        let age_s = (now_ns - feedback.capture_time_ns) as f64 * 1e-9;
-        (age_s > FEEDBACK_MAX_AGE_S)
-            .then(|| format!("its last measured pose is {age_s:.2} s old (more than {FEEDBACK_MAX_AGE_S} s)"))
-    }
-
-    /// Hands a gated command to the bridge. Called with the lock held so `seq` order equals send order.
-    fn send(&self, inner: &mut Inner, target: Isometry3<f64>, gripper: f64) -> i64 {
-        inner.seq += 1;
-        inner.target = target;
-        inner.gripper_target = gripper;
-        inner.commands_sent += 1;
-        let issue_time_ns = monotonic_ns();
-        self.bridge.send(Command {
-            seq: inner.seq,
-            robot_from_target: target,
-            gripper_target: gripper,
-            issue_time_ns,
+        let mut command_time_ns = None;
+        // Sent under the lock, so the bridge sees commands in `seq` order.
+        for c in &effects.commands {
+            let issue_time_ns = monotonic_ns();
+            self.bridge.send(phone2act_bridges::Command {
+                seq: c.seq,
+                robot_from_target: c.robot_from_target,
+                gripper_target: c.gripper,
+                issue_time_ns,
+            });
+            command_time_ns = Some(issue_time_ns);
+        }
+        let sink = effects.revoked.as_ref().and_then(|r| {
+            inner
+                .policy_sink
+                .take_if(|(session, _)| *session == r.session)
+                .map(|(_, sink)| sink)
         });
-        issue_time_ns
+        if inner.arbiter.tick_need() != need_before {
+            self.wake.notify_one();
+        }
+        Ok(Handled {
+            effects,
+            command_time_ns,
+            revoked: sink,
+        })
     }
 
-    fn record_decision(inner: &mut Inner, decision: GateDecision) {
-        match decision.verdict {
-            GateVerdict::RejectedJump | GateVerdict::RejectedInvalid => inner.commands_rejected += 1,
-            GateVerdict::Clamped => inner.commands_clamped += 1,
-            GateVerdict::Accepted | GateVerdict::HeldStale => {}
+    /// Tells a revoked policy session that it lost the arm (without the lock: the sink must not be called
+    /// under it). Returns the effects and the time the last command was handed to the bridge.
+    fn finish(&self, handled: Handled) -> (Effects, Option<i64>) {
+        let Handled {
+            effects,
+            command_time_ns,
+            revoked,
+        } = handled;
+        if let (Some(sink), Some(r)) = (revoked, &effects.revoked) {
+            tracing::info!(arm = %self.name, policy = ?r.policy, reason = %r.reason, "policy control revoked");
+            sink.revoked(&self.name, &r.reason);
         }
-        inner.last_decision = decision;
+        (effects, command_time_ns)
+    }
+
+    fn refused(&self, source: ArbiterError) -> ArmError {
+        ArmError::Refused {
+            arm: self.name.clone(),
+            source,
+        }
+    }
+
+    fn bridge_error(&self, source: BridgeError) -> ArmError {
+        ArmError::Bridge {
+            arm: self.name.clone(),
+            source,
+        }
     }
 
     /// Binds a teleop session. A second phone is refused unless it takes over.
-    pub fn bind_teleop(&self, session_id: u64, take_over: bool) -> Result<(), Status> {
-        let mut inner = self.lock();
-        match inner.teleop_session {
-            Some(other) if other != session_id && !take_over => Err(Status::already_exists(format!(
-                "arm {:?} is already bound to another phone; set take_over to replace it",
-                self.name
-            ))),
-            _ => {
-                inner.teleop_session = Some(session_id);
-                if inner.driver == Driver::Teleop {
-                    // The replaced phone was driving: the new one starts disengaged.
-                    inner.driver = Driver::None;
-                    let measured = self.measured_or(inner.target);
-                    let now = now_s();
-                    inner.teleop.clutch(ClutchKind::Disengage, None, measured, now);
-                }
-                Ok(())
-            }
-        }
+    pub fn bind_teleop(&self, session: u64, take_over: bool) -> Result<(), ArmError> {
+        self.apply(Input::BindTeleop { session, take_over })
+            .map(drop)
+            .map_err(|e| self.refused(e))
     }
 
     /// Ends a teleop session; the arm holds if it was driving.
-    pub fn unbind_teleop(&self, session_id: u64) {
-        let mut inner = self.lock();
-        if inner.teleop_session == Some(session_id) {
-            inner.teleop_session = None;
-            if inner.driver == Driver::Teleop {
-                inner.driver = Driver::None;
-                let measured = self.measured_or(inner.target);
-                inner
-                    .teleop
-                    .clutch(ClutchKind::Disengage, None, measured, now_s());
-                Self::record_decision(
-                    &mut inner,
-                    GateDecision::note(GateVerdict::Accepted, "phone disconnected: the arm holds"),
-                );
-            }
-        }
+    pub fn unbind_teleop(&self, session: u64) {
+        // Unbinding refuses nothing.
+        let _ = self.apply(Input::UnbindTeleop { session });
     }
 
     /// Records one control-path latency and the number of samples a round merged.
@@ -346,246 +359,67 @@ impl ArmController {
         self.samples_received.load(Ordering::Relaxed)
     }
 
+    /// Ticks run since start.
+    pub fn ticks(&self) -> u64 {
+        self.ticks.load(Ordering::Relaxed)
+    }
+
     /// Clears the latency ring (between benchmark phases).
     pub fn reset_latencies(&self) {
         *self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner) = LatencyRing::default();
     }
 
-    /// True if `session_id` is the bound teleop session.
-    pub fn is_teleop_bound(&self, session_id: u64) -> bool {
-        self.lock().teleop_session == Some(session_id)
-    }
-
     /// Processes one round of teleop input for the bound session.
-    pub fn teleop_input(&self, session_id: u64, input: TeleopInput) -> Result<TeleopOutcome, Status> {
-        let now_ns = monotonic_ns();
-        let now = now_ns as f64 * 1e-9;
-        let mut inner = self.lock();
-        if inner.teleop_session != Some(session_id) {
-            return Err(Status::aborted(format!(
-                "another phone took over arm {:?}",
-                self.name
-            )));
-        }
-        let mut outcome = TeleopOutcome {
-            error: String::new(),
-            record: Vec::new(),
-            command_time_ns: None,
-        };
-        let pose = match &input.pose {
-            Some(Ok(p)) => Some(*p),
-            Some(Err(e)) => {
-                outcome.error.clone_from(e);
-                // A malformed pose (non-unit quaternion, NaN) is a refused command like any other: counted and
-                // shown as the verdict, unless a policy drives and the verdict on display is its own.
-                if inner.driver != Driver::Policy {
-                    Self::record_decision(
-                        &mut inner,
-                        GateDecision::note(GateVerdict::RejectedInvalid, format!("invalid phone pose: {e}")),
-                    );
-                }
-                None
-            }
-            None => None,
-        };
-        for event in input.buttons {
-            match event.event {
-                Some(v1::button_event::Event::Clutch(c)) => {
-                    let kind = match v1::clutch_command::Kind::try_from(c.kind) {
-                        Ok(v1::clutch_command::Kind::Toggle) => ClutchKind::Toggle,
-                        Ok(v1::clutch_command::Kind::Engage) => ClutchKind::Engage,
-                        Ok(v1::clutch_command::Kind::Disengage) => ClutchKind::Disengage,
-                        _ => {
-                            outcome.error = format!("unknown clutch kind {}", c.kind);
-                            continue;
-                        }
-                    };
-                    self.clutch_locked(&mut inner, kind, pose, now, &mut outcome);
-                }
-                Some(v1::button_event::Event::Gripper(g)) => {
-                    let command = match v1::gripper_command::Kind::try_from(g.kind) {
-                        Ok(v1::gripper_command::Kind::Toggle) => GripperCommand::Toggle,
-                        Ok(v1::gripper_command::Kind::Set) => GripperCommand::Set(g.position),
-                        _ => {
-                            outcome.error = format!("unknown gripper kind {}", g.kind);
-                            continue;
-                        }
-                    };
-                    if let Some(why) = self.not_ready() {
-                        outcome.error = format!("arm {:?} is not ready: {why}", self.name);
-                        continue;
-                    }
-                    match inner.teleop.gripper(command) {
-                        Ok(gripper) => {
-                            // The gripper follows the phone only while the phone drives or nobody does.
-                            if inner.driver != Driver::Policy {
-                                let target = inner.target;
-                                outcome.command_time_ns = Some(self.send(&mut inner, target, gripper));
-                            }
-                        }
-                        Err(e) => outcome.error = e.to_string(),
-                    }
-                }
-                Some(v1::button_event::Event::Record(r)) => outcome.record.push(r),
-                None => "empty button event".clone_into(&mut outcome.error),
-            }
-        }
-        // One feedback read serves the readiness check and the planner: this runs for every phone sample.
-        let feedback = self.bridge.feedback();
-        let measured = feedback.as_ref().map_or(inner.target, |f| f.robot_from_ee);
-        if inner.driver == Driver::Teleop
-            && let Some(why) = self.not_ready_given(feedback.as_ref(), now_ns)
-        {
-            // The robot went away under the phone: stop driving and say so, rather than accept samples that
-            // go nowhere (or, on reconnect, continue from a pose measured before).
-            inner.driver = Driver::None;
-            inner.teleop.clutch(ClutchKind::Disengage, None, measured, now);
-            let message = format!(
-                "arm {:?} is not ready: {why}; disengaged, the arm holds",
-                self.name
-            );
-            outcome.error.clone_from(&message);
-            Self::record_decision(&mut inner, GateDecision::note(GateVerdict::HeldStale, message));
-        }
-        if let Some(phone) = pose {
-            let step = inner.teleop.on_pose(phone, input.tracking_ok, measured, now);
-            if inner.driver == Driver::Teleop {
-                if let Some((target, gripper)) = step.command {
-                    outcome.command_time_ns = Some(self.send(&mut inner, target, gripper));
-                }
-                Self::record_decision(&mut inner, step.decision);
-            }
-        }
-        Ok(outcome)
-    }
-
-    fn clutch_locked(
-        &self,
-        inner: &mut Inner,
-        kind: ClutchKind,
-        phone: Option<Isometry3<f64>>,
-        now: f64,
-        outcome: &mut TeleopOutcome,
-    ) {
-        let engaging = match kind {
-            ClutchKind::Engage => true,
-            ClutchKind::Toggle => !inner.teleop.engaged(),
-            ClutchKind::Disengage => false,
-        };
-        if engaging && let Some(why) = self.not_ready() {
-            outcome.error = format!("arm {:?} is not ready, not engaging: {why}", self.name);
-            return;
-        }
-        let measured = self.measured_or(inner.target);
-        let step = inner.teleop.clutch(kind, phone, measured, now);
-        if step.engaged {
-            if inner.driver == Driver::Policy {
-                self.revoke_policy_locked(inner, "operator took over from phone");
-            }
-            inner.driver = Driver::Teleop;
-            if let Some((target, gripper)) = step.command {
-                outcome.command_time_ns = Some(self.send(inner, target, gripper));
-            } else {
-                // Engaging re-indexes at the measured pose: that is the target now.
-                inner.target = inner.teleop.target();
-            }
-        } else if inner.driver == Driver::Teleop {
-            inner.driver = Driver::None;
-        }
-        Self::record_decision(inner, step.decision);
-    }
-
-    fn revoke_policy_locked(&self, inner: &mut Inner, reason: &str) {
-        inner.executor.clear();
-        inner.last_policy_step = None;
-        if inner.driver == Driver::Policy {
-            inner.driver = Driver::None;
-        }
-        if let Some(owner) = inner.policy.take() {
-            tracing::info!(arm = %self.name, policy = ?owner.name, reason, "policy control revoked");
-            // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
-            // ownership on its next chunk.
-            let _ = owner.events.try_send(v1::PolicyEvent {
-                event: Some(v1::policy_event::Event::Revoked(v1::ControlRevoked {
-                    arm: self.name.clone(),
-                    reason: reason.to_owned(),
-                })),
-            });
-        }
+    pub fn teleop_input(&self, session: u64, round: TeleopRound) -> Result<TeleopOutcome, ArmError> {
+        let (effects, command_time_ns) = self
+            .apply(Input::Teleop { session, round })
+            .map_err(|e| self.refused(e))?;
+        Ok(TeleopOutcome {
+            error: effects.phone_error,
+            command_time_ns,
+        })
     }
 
     /// Gives the arm to a policy session. Refused while a phone drives it.
     pub fn claim_for_policy(
         &self,
-        session_id: u64,
+        session: u64,
         name: &str,
-        events: mpsc::Sender<v1::PolicyEvent>,
+        events: Arc<dyn RevocationSink>,
         silence_timeout_s: f64,
-    ) -> Result<(), Status> {
-        let mut inner = self.lock();
-        if inner.driver == Driver::Teleop {
-            return Err(Status::failed_precondition(format!(
-                "arm {:?} is driven by a phone; the operator must disengage first",
-                self.name
-            )));
-        }
-        if let Some(why) = self.not_ready() {
-            return Err(Status::failed_precondition(format!(
-                "arm {:?} is not ready: {why}",
-                self.name
-            )));
-        }
-        if let Some(owner) = &inner.policy
-            && owner.session_id != session_id
-        {
-            return Err(Status::failed_precondition(format!(
-                "arm {:?} is already controlled by policy {:?}",
-                self.name, owner.name
-            )));
-        }
-        let measured = self.measured_or(inner.target);
-        let now = now_s();
-        inner.policy_gate.reset_reference_at(measured, now);
-        inner.executor.clear();
-        inner.last_policy_step = None;
-        inner.driver = Driver::Policy;
-        inner.policy = Some(PolicyOwner {
-            session_id,
+    ) -> Result<(), ArmError> {
+        let claim = Input::ClaimPolicy {
+            session,
             name: name.to_owned(),
-            events,
             silence_timeout_s,
-            last_chunk_s: now,
-        });
-        // The phone's floating zero is stale once a policy moves the arm.
-        inner.teleop.request_reindex();
-        Self::record_decision(
-            &mut inner,
-            GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control")),
-        );
-        Ok(())
+        };
+        self.apply_with(claim, Some((session, events)))
+            .map(drop)
+            .map_err(|e| self.refused(e))
     }
 
-    /// Releases the arm if `session_id` owns it; the arm holds.
-    pub fn release_policy(&self, session_id: u64, reason: &str) {
-        let mut inner = self.lock();
-        if inner.policy.as_ref().is_some_and(|o| o.session_id == session_id) {
-            self.revoke_policy_locked(&mut inner, reason);
-        }
+    /// Releases the arm if `session` owns it; the arm holds.
+    pub fn release_policy(&self, session: u64, reason: &str) {
+        // Releasing refuses nothing.
+        let _ = self.apply(Input::ReleasePolicy {
+            session,
+            reason: reason.to_owned(),
+        });
     }
 
     /// Schedules a chunk for the owning policy session. `reference` is the measured pose of the observation
     /// the chunk answers (relative steps are composed onto it) and `anchor_s` the time of step 0.
     pub fn push_chunk(
         &self,
-        session_id: u64,
+        session: u64,
         actions: &[Vec<f64>],
         step_period_s: f64,
         anchor_s: f64,
         reference: Isometry3<f64>,
         mode: ActionMode,
-    ) -> Result<ReplaceReport, Status> {
+    ) -> Result<ReplaceReport, ArmError> {
         let mut steps = Vec::with_capacity(actions.len());
-        for (k, action) in actions.iter().enumerate() {
+        for (step, action) in actions.iter().enumerate() {
             let converted = match (mode, &self.kinematics) {
                 (ActionMode::Joint, Some(kinematics)) => phone2act_core::target_from_joint_step(
                     kinematics,
@@ -593,100 +427,40 @@ impl ArmController {
                 ),
                 _ => phone2act_core::target_from_step(&reference, action, mode),
             };
-            let (robot_from_target, gripper) = converted
-                .map_err(|e| Status::invalid_argument(format!("arm {:?} step {k}: {e}", self.name)))?;
+            let (robot_from_target, gripper) = converted.map_err(|source| ArmError::InvalidStep {
+                arm: self.name.clone(),
+                step,
+                source,
+            })?;
             steps.push(ChunkStep {
                 robot_from_target,
                 gripper,
             });
         }
-        let now = now_s();
-        let mut inner = self.lock();
-        let driving = inner.driver == Driver::Policy;
-        match &mut inner.policy {
-            Some(owner) if owner.session_id == session_id && driving => {
-                owner.last_chunk_s = now;
-            }
-            _ => {
-                return Err(Status::failed_precondition(format!(
-                    "this policy session does not control arm {:?}",
-                    self.name
-                )));
-            }
-        }
-        let report = inner
-            .executor
-            .replace(
-                ActionChunk {
-                    steps,
-                    anchor_time_s: anchor_s,
-                    step_period_s,
-                },
-                now,
-            )
-            .map_err(|e| Status::invalid_argument(format!("arm {:?}: {e}", self.name)))?;
-        drop(inner);
-        self.tick(now);
-        Ok(report)
+        let chunk = ActionChunk {
+            steps,
+            anchor_time_s: anchor_s,
+            step_period_s,
+        };
+        let (effects, _) = self
+            .apply(Input::Chunk { session, chunk })
+            .map_err(|e| self.refused(e))?;
+        Ok(effects
+            .chunk
+            .expect("an accepted chunk reports what it scheduled"))
     }
 
-    /// Periodic work: plays due chunk steps, and applies the silence and staleness rules.
-    pub fn tick(&self, now: f64) {
-        let mut inner = self.lock();
-        match inner.driver {
-            Driver::Policy => {
-                let step = inner.executor.target_at(now);
-                match step {
-                    Some(step) if inner.last_policy_step != Some(step) => {
-                        inner.last_policy_step = Some(step);
-                        // Silence counts from when the policy's plan runs out, not from the chunk's arrival.
-                        if let Some(owner) = inner.policy.as_mut() {
-                            owner.last_chunk_s = owner.last_chunk_s.max(now);
-                        }
-                        let (gated, decision) = inner.policy_gate.check(step.robot_from_target, now);
-                        if let Some(target) = gated {
-                            self.send(&mut inner, target, step.gripper.clamp(0.0, 1.0));
-                        }
-                        Self::record_decision(&mut inner, decision);
-                    }
-                    Some(_) => {
-                        if let Some(owner) = inner.policy.as_mut() {
-                            owner.last_chunk_s = owner.last_chunk_s.max(now);
-                        }
-                    }
-                    None => {
-                        let silent = inner
-                            .policy
-                            .as_ref()
-                            .map(|o| (now - o.last_chunk_s, o.silence_timeout_s));
-                        if let Some((silent_s, timeout_s)) = silent
-                            && silent_s > timeout_s
-                        {
-                            self.revoke_policy_locked(&mut inner, &format!("silent for {silent_s:.2} s"));
-                            Self::record_decision(
-                                &mut inner,
-                                GateDecision::note(
-                                    GateVerdict::HeldStale,
-                                    format!("policy silent for {silent_s:.2} s: holding"),
-                                ),
-                            );
-                        }
-                    }
-                }
-            }
-            Driver::Teleop => {
-                if let Some(decision) = inner.teleop.check_stale(now) {
-                    Self::record_decision(&mut inner, decision);
-                }
-            }
-            Driver::None => {}
-        }
+    /// Plays due chunk steps and applies the silence and staleness rules at the current time.
+    pub fn tick(&self) {
+        self.ticks.fetch_add(1, Ordering::Relaxed);
+        // A tick refuses nothing.
+        let _ = self.apply(Input::Tick);
     }
 
-    /// Re-draws the arm's scene (see `phone2act.v1.Scene.Reset`). `home_arm` is a teleport, so it is refused
-    /// while a source drives; afterwards the target is the homed pose and both sources re-index from it, so a
-    /// phone or policy that takes the arm next starts where the arm now is.
-    pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, Status> {
+    /// Re-draws the arm's scene (see `phone2act.v1.Scene.Reset`). `home_arm` is a teleport, so the arbiter
+    /// refuses it while a source drives; afterwards the arm holds the homed pose and both sources re-index
+    /// from it, so a phone or policy that takes the arm next starts where the arm now is.
+    pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, ArmError> {
         // Held across the reset so that no source can start driving between the check and the teleport.
         let mut inner = self.lock();
         // An arm without a scene says so whoever drives it; its refusal changes nothing.
@@ -694,38 +468,27 @@ impl ArmController {
             return self
                 .bridge
                 .reset_scene(seed, home_arm)
-                .map_err(|e| bridge_status(&self.name, &e));
+                .map_err(|e| self.bridge_error(e));
         }
         if home_arm {
-            let owner = match inner.driver {
-                Driver::None => None,
-                Driver::Teleop => Some(format!(
-                    "a phone (teleop session {})",
-                    inner.teleop_session.unwrap_or_default()
-                )),
-                Driver::Policy => Some(format!(
-                    "policy {:?}",
-                    inner.policy.as_ref().map(|o| o.name.as_str()).unwrap_or_default()
-                )),
-            };
-            if let Some(owner) = owner {
-                return Err(Status::failed_precondition(format!(
-                    "arm {:?} is driven by {owner}; release it before homing the arm",
-                    self.name
-                )));
-            }
+            inner.arbiter.may_home().map_err(|e| self.refused(e))?;
         }
         let state = self
             .bridge
             .reset_scene(seed, home_arm)
-            .map_err(|e| bridge_status(&self.name, &e))?;
+            .map_err(|e| self.bridge_error(e))?;
         if home_arm && let Some(feedback) = self.bridge.feedback() {
-            let now = now_s();
-            inner.target = feedback.robot_from_ee;
-            inner.gripper_target = feedback.gripper_position;
+            let robot = robot_of(self.bridge.health(), Some(&feedback));
+            let homed = Input::Homed {
+                gripper: feedback.gripper_position,
+            };
+            // Nobody drives (checked above under this lock): the arbiter accepts, sends nothing, revokes nobody.
+            let handled = self
+                .handle_locked(&mut inner, homed, &robot, now_s(), None)
+                .map_err(|e| self.refused(e))?;
             inner.joint_seed = None;
-            inner.teleop.request_reindex();
-            inner.policy_gate.reset_reference_at(feedback.robot_from_ee, now);
+            drop(inner);
+            self.finish(handled);
         }
         Ok(state)
     }
@@ -736,78 +499,66 @@ impl ArmController {
     }
 
     /// The arm's scene now.
-    pub fn scene(&self) -> Result<SceneState, Status> {
-        self.bridge.scene().map_err(|e| bridge_status(&self.name, &e))
+    pub fn scene(&self) -> Result<SceneState, ArmError> {
+        self.bridge.scene().map_err(|e| self.bridge_error(e))
     }
 
-    /// Who drives the arm.
-    pub fn driver(&self) -> Driver {
-        self.lock().driver
-    }
-
-    /// Last target and gripper target handed to the bridge.
-    pub fn target(&self) -> (Isometry3<f64>, f64) {
-        let inner = self.lock();
-        (inner.target, inner.gripper_target)
+    /// How soon the arm needs a tick.
+    fn tick_need(&self) -> TickNeed {
+        self.lock().arbiter.tick_need()
     }
 
     /// A snapshot for the API.
-    pub fn snapshot(&self) -> v1::ArmState {
+    pub fn snapshot(&self) -> ArmSnapshot {
         let feedback = self.bridge.feedback();
-        let health = self.bridge.health();
-        let inner = self.lock();
-        let (owner, owner_id) = match inner.driver {
-            Driver::None => (v1::ControlSource::None, String::new()),
-            Driver::Teleop => (
-                v1::ControlSource::Teleop,
-                inner.teleop_session.map(|s| s.to_string()).unwrap_or_default(),
-            ),
-            Driver::Policy => (
-                v1::ControlSource::Policy,
-                inner
-                    .policy
-                    .as_ref()
-                    .map(|o| format!("{}:{}", o.name, o.session_id))
-                    .unwrap_or_default(),
-            ),
-        };
-        let (health, health_message) = match health {
-            Health::Connecting => (v1::BridgeHealth::Connecting, self.not_ready().unwrap_or_default()),
+        let robot = robot_of(self.bridge.health(), feedback.as_ref());
+        let now_ns = monotonic_ns();
+        let not_ready = robot.not_ready(now_ns as f64 * 1e-9).map(|why| why.to_string());
+        let (health, health_message) = match robot.health {
+            BridgeHealth::Connecting => (BridgeHealth::Connecting, not_ready.unwrap_or_default()),
             // READY means movable: a bridge that is up but has no fresh measured pose is not.
-            Health::Ready => match self.not_ready() {
-                None => (v1::BridgeHealth::Ready, String::new()),
-                Some(why) if feedback.is_none() => (v1::BridgeHealth::Connecting, why),
-                Some(why) => (v1::BridgeHealth::Error, why),
+            BridgeHealth::Ready => match not_ready {
+                None => (BridgeHealth::Ready, String::new()),
+                Some(why) if feedback.is_none() => (BridgeHealth::Connecting, why),
+                Some(why) => (BridgeHealth::Error(why.clone()), why),
             },
-            Health::Error(m) => (v1::BridgeHealth::Error, m),
-            Health::Disconnected(m) => (v1::BridgeHealth::Disconnected, m),
+            BridgeHealth::Error(m) => (BridgeHealth::Error(m.clone()), m),
+            BridgeHealth::Disconnected(m) => (BridgeHealth::Disconnected(m.clone()), m),
         };
-        let now = monotonic_ns();
-        v1::ArmState {
+        let inner = self.lock();
+        let a = &inner.arbiter;
+        let owner_id = match a.driver() {
+            phone2act_core::Driver::None => String::new(),
+            phone2act_core::Driver::Teleop => a.teleop_session().map(|s| s.to_string()).unwrap_or_default(),
+            phone2act_core::Driver::Policy => a
+                .policy_owner()
+                .map(|(session, name)| format!("{name}:{session}"))
+                .unwrap_or_default(),
+        };
+        let (robot_from_target, gripper_target) = a.target();
+        ArmSnapshot {
             arm: self.name.clone(),
             bridge_kind: self.kind.to_owned(),
-            health: health as i32,
+            health,
             health_message,
-            owner: owner as i32,
+            driver: a.driver(),
             owner_id,
-            engaged: inner.driver == Driver::Teleop && inner.teleop.engaged(),
-            robot_from_target: Some(pose_to_proto(&inner.target)),
-            robot_from_ee: feedback.as_ref().map(|f| pose_to_proto(&f.robot_from_ee)),
+            engaged: a.engaged(),
+            robot_from_target,
+            gripper_target,
+            robot_from_ee: feedback.as_ref().map(|f| f.robot_from_ee),
             joint_positions_rad: feedback
                 .as_ref()
                 .map(|f| f.joint_positions_rad.clone())
                 .unwrap_or_default(),
             joint_names: self.layout.joint_names().to_vec(),
             gripper_position: feedback.as_ref().map_or(0.0, |f| f.gripper_position),
-            gripper_target: inner.gripper_target,
-            last_decision: Some(decision_to_proto(&inner.last_decision)),
+            last_decision: a.last_decision().clone(),
             feedback_time_ns: feedback.as_ref().map_or(0, |f| f.capture_time_ns),
             feedback_age_s: feedback
                 .as_ref()
-                .map_or(-1.0, |f| (now - f.capture_time_ns) as f64 * 1e-9),
-            commands_sent: inner.commands_sent,
-            commands_rejected: inner.commands_rejected,
-            commands_clamped: inner.commands_clamped,
+                .map_or(-1.0, |f| (now_ns - f.capture_time_ns) as f64 * 1e-9),
+            counters: a.counters(),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
         }
     }
@@ -817,7 +568,6 @@ impl ArmController {
     /// joint arm's is the joints that target asks for.
     pub fn state_and_action(&self) -> Option<ArmSample> {
         let feedback = self.bridge.feedback()?;
-        let (target, gripper) = self.target();
         let state = self
             .layout
             .state_vector(
@@ -826,19 +576,20 @@ impl ArmController {
                 feedback.gripper_position,
             )
             .ok()?;
-        let action = match (self.action_mode, &self.kinematics) {
-            (ActionMode::Joint, Some(kinematics)) => {
-                let mut inner = self.lock();
-                let seed = inner
-                    .joint_seed
-                    .take()
-                    .unwrap_or_else(|| feedback.joint_positions_rad.clone());
-                let native = phone2act_core::joint_action(kinematics, &target, &seed, gripper).ok()?;
-                inner.joint_seed = Some(native[..native.len() - 1].to_vec());
-                drop(inner);
-                self.layout.joint_step_from_native(&native)
-            }
-            _ => phone2act_core::absolute_action(&target, gripper),
+        let mut inner = self.lock();
+        let (target, gripper) = inner.arbiter.target();
+        let action = if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
+            let seed = inner
+                .joint_seed
+                .take()
+                .unwrap_or_else(|| feedback.joint_positions_rad.clone());
+            let native = phone2act_core::joint_action(kinematics, &target, &seed, gripper).ok()?;
+            inner.joint_seed = Some(native[..native.len() - 1].to_vec());
+            drop(inner);
+            self.layout.joint_step_from_native(&native)
+        } else {
+            drop(inner);
+            phone2act_core::absolute_action(&target, gripper)
         };
         Some(ArmSample {
             state,
@@ -865,63 +616,130 @@ pub struct ArmSample {
     pub capture_time_ns: i64,
 }
 
-/// A bridge's refusal as a status: a feature the bridge lacks is UNIMPLEMENTED, anything else INTERNAL.
-fn bridge_status(arm: &str, error: &BridgeError) -> Status {
-    match error {
-        BridgeError::Unsupported(m) => Status::unimplemented(format!("arm {arm:?}: {m}")),
-        other => Status::internal(format!("arm {arm:?}: {other}")),
-    }
-}
-
-/// Proto pose from an isometry.
-pub fn pose_to_proto(pose: &Isometry3<f64>) -> v1::Pose {
-    let t = pose.translation.vector;
-    let q = pose.rotation.quaternion();
-    v1::Pose::from_parts([t.x, t.y, t.z], [q.i, q.j, q.k, q.w])
-}
-
-/// Proto gate decision from the core's.
-pub fn decision_to_proto(d: &GateDecision) -> v1::GateDecision {
-    let verdict = match d.verdict {
-        GateVerdict::Accepted => v1::GateVerdict::Accepted,
-        GateVerdict::Clamped => v1::GateVerdict::Clamped,
-        GateVerdict::RejectedJump => v1::GateVerdict::RejectedJump,
-        GateVerdict::RejectedInvalid => v1::GateVerdict::RejectedInvalid,
-        GateVerdict::HeldStale => v1::GateVerdict::HeldStale,
-    };
-    v1::GateDecision {
-        verdict: verdict as i32,
-        reason: d.reason.clone(),
-        workspace_clamped: d.workspace_clamped,
-        velocity_limited: d.velocity_limited,
-        position_step_m: d.position_step_m,
-        rotation_step_rad: d.rotation_step_rad,
-    }
-}
-
-/// Validates a wire pose into an isometry, with an error the phone can show.
-pub fn pose_from_proto(pose: &v1::Pose) -> Result<Isometry3<f64>, String> {
-    let p = pose.position_m.as_ref().ok_or("pose has no position_m")?;
-    let q = pose.orientation.as_ref().ok_or("pose has no orientation")?;
-    phone2act_core::validate_pose([p.x, p.y, p.z], [q.x, q.y, q.z, q.w]).map_err(|e| e.to_string())
-}
-
-/// Runs `tick` on every arm at `rate_hz` until shutdown.
+/// Runs every arm's tick task until shutdown.
 pub async fn run_ticks(
     arms: Vec<Arc<ArmController>>,
     rate_hz: f64,
+    shutdown: tokio::sync::watch::Receiver<bool>,
+) {
+    let period = Duration::from_secs_f64(1.0 / rate_hz);
+    let tasks: Vec<_> = arms
+        .into_iter()
+        .map(|arm| tokio::spawn(tick_arm(arm, period, shutdown.clone())))
+        .collect();
+    for task in tasks {
+        let _ = task.await;
+    }
+}
+
+/// Ticks one arm only while its arbiter has work: at `period` while a policy owns the arm or a phone
+/// drives, and not at all when idle (it sleeps until an input wakes it).
+async fn tick_arm(
+    arm: Arc<ArmController>,
+    period: Duration,
     mut shutdown: tokio::sync::watch::Receiver<bool>,
 ) {
-    let mut ticker = tokio::time::interval(std::time::Duration::from_secs_f64(1.0 / rate_hz));
+    let mut ticker = tokio::time::interval(period);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
-        tokio::select! {
-            _ = ticker.tick() => {}
-            () = crate::runtime::stopped(&mut shutdown) => return,
+        // `notify_one` keeps a permit when nobody waits, so a wake between reading the need and waiting
+        // below is not lost.
+        match arm.tick_need() {
+            // While a policy owns the arm the task ticks at the rate even between chunks, as the always-on
+            // tick did: the actions suite under `stress --cpu 2` failed more often with the task asleep until
+            // the silence deadline (see the arbiter's `TickNeed::At`), and the cause is not yet pinned down.
+            TickNeed::Periodic | TickNeed::At(_) => {
+                tokio::select! {
+                    _ = ticker.tick() => {}
+                    () = crate::runtime::stopped(&mut shutdown) => return,
+                }
+            }
+            TickNeed::Idle => {
+                tokio::select! {
+                    () = arm.wake.notified() => {}
+                    () = crate::runtime::stopped(&mut shutdown) => return,
+                }
+            }
         }
-        let now = now_s();
-        for arm in &arms {
-            arm.tick(now);
+        arm.tick();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use phone2act_bridges::sim::{SimBridge, SimConfig};
+    use std::time::Instant;
+
+    #[derive(Debug)]
+    struct Nobody;
+
+    impl RevocationSink for Nobody {
+        fn revoked(&self, _: &str, _: &str) {}
+    }
+
+    /// Polls `done` until it holds or `limit` passes; returns whether it held.
+    async fn eventually(limit: Duration, done: impl Fn() -> bool) -> bool {
+        let start = Instant::now();
+        while start.elapsed() < limit {
+            if done() {
+                return true;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
         }
+        done()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_tick_task_sleeps_while_idle_and_wakes_to_play_a_chunk_to_its_end() {
+        let config = crate::config::Config::embedded_default().unwrap();
+        let a = &config.arms[0];
+        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
+        let arm = Arc::new(
+            ArmController::new(
+                "main",
+                "sim",
+                bridge,
+                &a.teleop,
+                &a.chunk,
+                ActionMode::Absolute,
+                Isometry3::identity(),
+            )
+            .unwrap(),
+        );
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        let ticking = tokio::spawn(run_ticks(vec![Arc::clone(&arm)], 500.0, stopped));
+        // 10 s for a 50 Hz simulator to report once: a starved 2-core machine stalls for far less.
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().health
+                == BridgeHealth::Ready)
+            .await
+        );
+        // Nobody drives: whatever the scheduler does, no tick runs (a count, not a time bound).
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert_eq!(arm.ticks(), 0, "an idle arm ticks");
+
+        arm.claim_for_policy(1, "test", Arc::new(Nobody), 30.0).unwrap();
+        let here = arm.snapshot().robot_from_ee.unwrap();
+        let steps: Vec<Vec<f64>> = (0..5)
+            .map(|k| {
+                let target = Isometry3::translation(0.002 * f64::from(k), 0.0, 0.0) * here;
+                phone2act_core::absolute_action(&target, 0.0)
+            })
+            .collect();
+        let sent_before = arm.snapshot().counters.sent;
+        arm.push_chunk(1, &steps, 0.05, now_s(), here, ActionMode::Absolute)
+            .unwrap();
+        // The push plays step 0; only the woken tick task can play steps 1-4 (the chunk lasts 0.25 s; 10 s
+        // covers any stall of a loaded machine, and a task that was never woken never gets there).
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().counters.sent
+                == sent_before + 5)
+            .await,
+            "the chunk did not play to its end: {:?}",
+            arm.snapshot().counters
+        );
+        stop.send(true).unwrap();
+        ticking.await.unwrap();
     }
 }

@@ -3,7 +3,7 @@
 //! observation and scheduling a chunk. The `Policy` service adapter only validates and converts around this.
 
 use crate::app::{App, LookupError};
-use crate::arm::{ArmController, now_s};
+use crate::arm::{ArmController, ArmError, RevocationSink, now_s};
 use nalgebra::Isometry3;
 use phone2act_clock::monotonic_ns;
 use phone2act_core::{ActionMode, ReplaceReport};
@@ -55,9 +55,9 @@ pub enum PolicyError {
     UnknownSession,
     #[error("no randomness for a session id: {0}")]
     NoRandomness(#[source] getrandom::Error),
-    /// The arm controller refused (it still speaks `tonic::Status`; its own error enum replaces this).
-    #[error("{}", .0.message())]
-    Arm(tonic::Status),
+    /// The arm controller refused.
+    #[error(transparent)]
+    Arm(#[from] ArmError),
 }
 
 /// How an observation carries camera frames.
@@ -162,6 +162,21 @@ pub struct PolicySessions {
     observations: AtomicU64,
 }
 
+/// A session hears that it lost an arm on its event channel.
+impl RevocationSink for mpsc::Sender<v1::PolicyEvent> {
+    fn revoked(&self, arm: &str, reason: &str) {
+        // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
+        // ownership on its next chunk.
+        let _ = self.try_send(
+            v1::policy_event::Event::Revoked(v1::ControlRevoked {
+                arm: arm.to_owned(),
+                reason: reason.to_owned(),
+            })
+            .into(),
+        );
+    }
+}
+
 fn random_secret() -> Result<String, PolicyError> {
     let mut bytes = [0u8; 16];
     getrandom::fill(&mut bytes).map_err(PolicyError::NoRandomness)?;
@@ -231,16 +246,16 @@ impl PolicySessions {
         });
         if request.request_control {
             for (k, arm) in controllers.iter().enumerate() {
-                if let Err(status) = arm.claim_for_policy(
+                if let Err(e) = arm.claim_for_policy(
                     id,
                     &session.name,
-                    session.events.clone(),
+                    Arc::new(session.events.clone()),
                     request.silence_timeout_s,
                 ) {
                     for done in &controllers[..k] {
                         done.release_policy(id, "session could not take every arm");
                     }
-                    return Err(PolicyError::Arm(status));
+                    return Err(PolicyError::Arm(e));
                 }
             }
         }

@@ -5,6 +5,7 @@
 // A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
 #![warn(unreachable_pub)]
 
+pub mod arbiter;
 pub mod chunk;
 pub mod config;
 pub mod gate;
@@ -15,6 +16,10 @@ pub mod planner;
 pub mod pose;
 pub mod teleop;
 
+pub use arbiter::{
+    Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
+    Input, Measured, NotReady, Owner, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
+};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
 pub use gate::{GateDecision, GateVerdict, SafetyGate};

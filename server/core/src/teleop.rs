@@ -84,14 +84,6 @@ impl TeleopArm {
         self.gripper.target()
     }
 
-    pub fn gate(&self) -> &SafetyGate {
-        &self.gate
-    }
-
-    pub fn planner(&self) -> &Planner {
-        &self.planner
-    }
-
     /// Makes the next tracked pose re-index, e.g. after another source (a policy) moved the arm.
     pub fn request_reindex(&mut self) {
         self.needs_reindex = true;

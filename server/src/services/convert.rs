@@ -2,11 +2,11 @@
 //! service layer's half of the wire boundary. Conversions of core types live in `phone2act_proto`.
 
 use crate::app::{App, CameraHealth, CameraRuntime};
-use crate::arm::{pose_from_proto, pose_to_proto};
 use crate::config::Config;
 use crate::policy_session::Observation;
 use phone2act_bridges::{Command, Control, Feedback, Health};
 use phone2act_clock::monotonic_ns;
+use phone2act_proto::convert_arm::{arm_state_to_proto, pose_from_proto, pose_to_proto};
 use phone2act_proto::v1;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::recorder::{Phase, RecorderStatus};
@@ -94,7 +94,11 @@ pub fn system_status(app: &App, sequence: u64) -> v1::SystemStatus {
         version: env!("CARGO_PKG_VERSION").to_owned(),
         server_time_ns: monotonic_ns(),
         uptime_s: app.started().elapsed().as_secs_f64(),
-        arms: app.arms().iter().map(|a| a.snapshot()).collect(),
+        arms: app
+            .arms()
+            .iter()
+            .map(|a| arm_state_to_proto(&a.snapshot()))
+            .collect(),
         cameras: app.cameras().iter().map(camera_status).collect(),
         recording: Some(current_recording_status(app)),
         sequence,
@@ -108,7 +112,7 @@ pub fn bridge_feedback(fb: &v1::RobotFeedback) -> Result<Feedback, String> {
         // The bridge's clock is not ours: stamp feedback with its arrival time on the server's clock.
         capture_time_ns: monotonic_ns(),
         joint_positions_rad: fb.joint_positions_rad.clone(),
-        robot_from_ee: pose_from_proto(pose)?,
+        robot_from_ee: pose_from_proto(pose).map_err(|e| e.to_string())?,
         gripper_position: fb.gripper_position,
         applied_seq: fb.applied_seq,
         task_success: false,
@@ -155,7 +159,9 @@ pub fn observation(app: &App, o: Observation) -> v1::Observation {
             .arms
             .into_iter()
             .map(|a| v1::ArmObservation {
-                owner: app.arm(&a.arm).map_or(0, |arm| arm.snapshot().owner),
+                owner: app
+                    .arm(&a.arm)
+                    .map_or(0, |arm| v1::ControlSource::from(arm.snapshot().driver) as i32),
                 robot_from_ee: Some(pose_to_proto(&a.robot_from_ee)),
                 arm: a.arm,
                 state: a.state,

@@ -1,12 +1,47 @@
-//! The only place domain errors become statuses: each layer's error enum maps to a `tonic::Status` here, so a
-//! code is chosen once per error and every service returns the same status for the same failure.
+//! The only place domain errors become statuses. Below the service layer nothing knows about `tonic::Status`:
+//! each layer returns its own error enum, and each maps here to the status code a client can act on, with the
+//! error's message. A code is chosen once per error, so every service returns the same status for the same
+//! failure.
 
 use crate::app::LookupError;
+use crate::arm::ArmError;
 use crate::policy_session::PolicyError;
 use crate::recording::RecordingError;
+use phone2act_bridges::BridgeError;
+use phone2act_core::ArbiterError;
 use phone2act_proto::ConvertError;
 use phone2act_recorder::error::RecorderError;
 use tonic::Status;
+
+impl From<ArmError> for Status {
+    fn from(e: ArmError) -> Self {
+        let message = e.to_string();
+        match e {
+            ArmError::Refused { source, .. } => match source {
+                ArbiterError::PhoneBound => Status::already_exists(message),
+                // The session lost its arm to another phone: it cannot continue.
+                ArbiterError::PhoneReplaced => Status::aborted(message),
+                ArbiterError::DrivenByPhone
+                | ArbiterError::NotReady(_)
+                | ArbiterError::NotOwner { .. }
+                | ArbiterError::NotControlling
+                | ArbiterError::DrivenWhileHoming { .. } => Status::failed_precondition(message),
+                ArbiterError::Chunk(_) => Status::invalid_argument(message),
+            },
+            ArmError::InvalidStep { .. } => Status::invalid_argument(message),
+            // A feature the bridge lacks (a scene on a real arm) is UNIMPLEMENTED, anything else INTERNAL.
+            ArmError::Bridge {
+                source: BridgeError::Unsupported(_),
+                ..
+            } => Status::unimplemented(message),
+            ArmError::Bridge { .. } => Status::internal(message),
+            // Configuration mistakes are found at start; a request never causes them.
+            ArmError::Config { .. }
+            | ArmError::JointModeUnsupported { .. }
+            | ArmError::LerobotLayoutUnsupported { .. } => Status::failed_precondition(message),
+        }
+    }
+}
 
 impl From<LookupError> for Status {
     fn from(e: LookupError) -> Self {
@@ -63,7 +98,7 @@ impl From<PolicyError> for Status {
             | PolicyError::UnknownObservation(_)
             | PolicyError::ObservationLacksArm { .. } => Status::invalid_argument(message),
             PolicyError::UnknownSession => Status::not_found(message),
-            PolicyError::Arm(status) => status,
+            PolicyError::Arm(e) => e.into(),
         }
     }
 }
@@ -71,7 +106,67 @@ impl From<PolicyError> for Status {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use phone2act_core::{ChunkError, NotReady, Owner};
     use tonic::Code;
+
+    fn refused(source: ArbiterError) -> Status {
+        ArmError::Refused {
+            arm: "main".into(),
+            source,
+        }
+        .into()
+    }
+
+    #[test]
+    fn every_refusal_is_a_status_a_client_can_act_on() {
+        assert_eq!(refused(ArbiterError::PhoneBound).code(), Code::AlreadyExists);
+        assert_eq!(refused(ArbiterError::PhoneReplaced).code(), Code::Aborted);
+        let not_ready = refused(NotReady::NoFeedback.into());
+        assert_eq!(not_ready.code(), Code::FailedPrecondition);
+        assert_eq!(
+            not_ready.message(),
+            "arm \"main\" is not ready: its bridge has sent no valid feedback yet (no measured pose)"
+        );
+        assert_eq!(
+            refused(ArbiterError::NotControlling).code(),
+            Code::FailedPrecondition
+        );
+        assert_eq!(refused(ChunkError::Empty.into()).code(), Code::InvalidArgument);
+        let homing = refused(ArbiterError::DrivenWhileHoming {
+            owner: Owner::Policy {
+                name: "evaluator".into(),
+            },
+        });
+        assert_eq!(
+            (homing.code(), homing.message()),
+            (
+                Code::FailedPrecondition,
+                "arm \"main\" is driven by policy \"evaluator\"; release it before homing the arm"
+            )
+        );
+    }
+
+    #[test]
+    fn a_bridge_without_the_feature_is_unimplemented() {
+        let bridge = |source| -> Status {
+            ArmError::Bridge {
+                arm: "main".into(),
+                source,
+            }
+            .into()
+        };
+        let missing = bridge(BridgeError::Unsupported(
+            "scene reset is not supported by the dobot bridge".into(),
+        ));
+        assert_eq!(
+            (missing.code(), missing.message()),
+            (
+                Code::Unimplemented,
+                "arm \"main\": scene reset is not supported by the dobot bridge"
+            )
+        );
+        assert_eq!(bridge(BridgeError::Protocol("x".into())).code(), Code::Internal);
+    }
 
     #[test]
     fn each_error_keeps_its_code_and_message() {

@@ -2,6 +2,7 @@
 
 use crate::app::App;
 use crate::services::convert::{camera_status, system_status};
+use phone2act_proto::convert_arm::arm_state_to_proto;
 use phone2act_proto::v1;
 use phone2act_proto::v1::system_server::System;
 use std::pin::Pin;
@@ -32,7 +33,12 @@ impl System for SystemService {
         _: Request<v1::ListArmsRequest>,
     ) -> Result<Response<v1::ListArmsResponse>, Status> {
         Ok(Response::new(v1::ListArmsResponse {
-            arms: self.app.arms().iter().map(|a| a.snapshot()).collect(),
+            arms: self
+                .app
+                .arms()
+                .iter()
+                .map(|a| arm_state_to_proto(&a.snapshot()))
+                .collect(),
         }))
     }
 

@@ -3,10 +3,11 @@
 //! is planned, so a burst from the network never turns into a backlog of stale commands.
 
 use crate::app::App;
-use crate::arm::{TeleopInput, pose_from_proto};
 use crate::services::convert::current_recording_status;
 use futures_util::FutureExt;
 use phone2act_clock::monotonic_ns;
+use phone2act_core::TeleopRound;
+use phone2act_proto::convert_arm::{ButtonInput, arm_state_to_proto, button_from_proto, pose_from_proto};
 use phone2act_proto::convert_episode::RecordAction;
 use phone2act_proto::sample::tracking_lost;
 use phone2act_proto::v1::teleop_server::Teleop;
@@ -119,18 +120,18 @@ impl Teleop for TeleopService {
                     }
                 }
                 let batch_len = batch.len() as u64;
-                let (input, newest, dropped) = merge(batch);
+                let (input, records, newest, dropped) = merge(batch);
                 superseded += dropped;
                 let outcome = match arm.teleop_input(session, input) {
                     Ok(o) => o,
-                    Err(status) => {
-                        let _ = tx.send(Err(status)).await;
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
                         break;
                     }
                 };
                 arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
                 let mut error = outcome.error;
-                for record in outcome.record {
+                for record in records {
                     let done = RecordAction::try_from(&record)
                         .map_err(|e| e.to_string())
                         .and_then(|action| app.record_action(action).map_err(|e| e.to_string()));
@@ -157,21 +158,31 @@ impl Teleop for TeleopService {
 }
 
 /// Folds a batch of samples into one input with the wire's one latest-wins rule ([`PendingSample`]): every
-/// button event in order, the newest pose. Returns the input, the newest sample's (seq, capture time), and how
-/// many poses were superseded.
-fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopInput, (u64, i64), u64) {
+/// button event in order, the newest pose. Returns the arm's input, the record events (for the recorder, in
+/// order), the newest sample's (seq, capture time), and how many poses were superseded.
+fn merge(batch: Vec<v1::PhoneSample>) -> (TeleopRound, Vec<v1::RecordCommand>, (u64, i64), u64) {
     let mut pending = PendingSample::default();
     let superseded = batch.into_iter().map(|s| u64::from(pending.push(s))).sum();
     let Some(sample) = pending.take() else {
-        return (TeleopInput::default(), (0, 0), 0);
+        return (TeleopRound::default(), Vec::new(), (0, 0), 0);
     };
     let tracking_ok = !tracking_lost(sample.tracking);
-    let input = TeleopInput {
-        pose: sample.tracking_from_phone.as_ref().map(pose_from_proto),
+    let mut input = TeleopRound {
+        pose: sample
+            .tracking_from_phone
+            .as_ref()
+            .map(|pose| pose_from_proto(pose).map_err(|e| e.to_string())),
         tracking_ok: tracking_ok && sample.tracking_from_phone.is_some(),
-        buttons: sample.buttons,
+        buttons: Vec::with_capacity(sample.buttons.len()),
     };
-    (input, (sample.seq, sample.capture_time_ns), superseded)
+    let mut records = Vec::new();
+    for event in sample.buttons {
+        match button_from_proto(event) {
+            ButtonInput::Arm(button) => input.buttons.push(button),
+            ButtonInput::Record(record) => records.push(record),
+        }
+    }
+    (input, records, (sample.seq, sample.capture_time_ns), superseded)
 }
 
 fn feedback(
@@ -185,7 +196,7 @@ fn feedback(
         echoed_seq: last.0,
         echoed_capture_time_ns: last.1,
         server_receive_time_ns: last.2,
-        arm_state: Some(arm.snapshot()),
+        arm_state: Some(arm_state_to_proto(&arm.snapshot())),
         recording: Some(current_recording_status(app)),
         error,
         superseded_samples: superseded,

@@ -1,0 +1,1584 @@
+//! Source arbitration of one arm: which source (the phone or a policy) may move it, and what each input
+//! makes the arm do.
+//!
+//! The rules, all in [`Arbiter::handle`]:
+//! - one source drives at a time ([`Driver`]);
+//! - the operator always takes over from the phone: engaging revokes a policy;
+//! - a policy may claim the arm only while no phone drives it, the robot is ready and no other policy owns
+//!   it; it loses the arm on take-over, release, session end and silence;
+//! - a silent source holds: nothing here moves the arm without an input asking for it;
+//! - every source change re-indexes at the measured pose (the phone's floating zero, the policy's jump
+//!   reference) and clears the chunk executor, so the new source never continues an old plan;
+//! - nothing starts moving (engage, gripper, claim) unless the bridge is ready with a measured pose younger
+//!   than [`FEEDBACK_MAX_AGE_S`]; a phone that is driving when the robot goes away is disengaged;
+//! - the arm is teleported (a scene reset homes it) only while no source drives; afterwards it holds the
+//!   homed pose and both sources re-index from it;
+//! - time never runs backwards: an input stamped earlier than one already seen is handled at the later
+//!   time, so a late caller cannot replay an earlier chunk step.
+//!
+//! Pure: no clock reads, no I/O. The caller passes the bridge's state ([`Robot`]) and the time, and carries
+//! out the returned [`Effects`] (send these commands in order, tell that policy session it lost the arm).
+
+use crate::chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
+use crate::config::{ConfigError, TeleopConfig};
+use crate::gate::{GateDecision, GateVerdict, SafetyGate};
+use crate::gripper::GripperCommand;
+use crate::teleop::{ClutchKind, TeleopArm};
+use nalgebra::Isometry3;
+
+/// Feedback older than this means the robot's pose is not known: nothing may start moving it. Bridges
+/// report at 50 Hz or more (Dobot 125 Hz, SO-101 at its `rate_hz`, sim and remote 50 Hz), so a second is
+/// dozens of missed reports, not jitter or a scheduler stall on a loaded machine.
+pub const FEEDBACK_MAX_AGE_S: f64 = 1.0;
+
+/// Who drives the arm right now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Driver {
+    None,
+    Teleop,
+    Policy,
+}
+
+/// The bridge's connection state, as the arbiter needs it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BridgeHealth {
+    Ready,
+    Connecting,
+    Error(String),
+    Disconnected(String),
+}
+
+/// The robot's last measured end-effector pose and when it was captured (same clock as `now_s`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Measured {
+    pub robot_from_ee: Isometry3<f64>,
+    pub capture_time_s: f64,
+}
+
+/// What the bridge reports at the moment of an input.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Robot {
+    pub health: BridgeHealth,
+    pub feedback: Option<Measured>,
+}
+
+/// Why the arm may not start moving.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NotReady {
+    #[error("its bridge reports an error: {0}")]
+    BridgeError(String),
+    #[error("its bridge is disconnected: {0}")]
+    Disconnected(String),
+    #[error("its bridge is still connecting")]
+    Connecting,
+    #[error("its bridge has sent no valid feedback yet (no measured pose)")]
+    NoFeedback,
+    #[error("its last measured pose is {age_s:.2} s old (more than {FEEDBACK_MAX_AGE_S} s)")]
+    StaleFeedback { age_s: f64 },
+}
+
+impl Robot {
+    /// Why the arm may not be moved at `now_s`, if it may not: its bridge is not healthy, or it has no fresh
+    /// measured pose. No command may start from a pose nobody measured.
+    pub fn not_ready(&self, now_s: f64) -> Option<NotReady> {
+        match &self.health {
+            BridgeHealth::Error(m) => return Some(NotReady::BridgeError(m.clone())),
+            BridgeHealth::Disconnected(m) => return Some(NotReady::Disconnected(m.clone())),
+            BridgeHealth::Connecting if self.feedback.is_some() => return Some(NotReady::Connecting),
+            // Ready, or connecting without feedback yet: the missing feedback is the reason given below.
+            BridgeHealth::Ready | BridgeHealth::Connecting => {}
+        }
+        let Some(feedback) = &self.feedback else {
+            return Some(NotReady::NoFeedback);
+        };
+        let age_s = now_s - feedback.capture_time_s;
+        // A NaN capture time is not fresh either.
+        let fresh = age_s
+            .partial_cmp(&FEEDBACK_MAX_AGE_S)
+            .is_some_and(std::cmp::Ordering::is_le);
+        (!fresh).then_some(NotReady::StaleFeedback { age_s })
+    }
+
+    fn measured_or(&self, fallback: Isometry3<f64>) -> Isometry3<f64> {
+        self.feedback.map_or(fallback, |f| f.robot_from_ee)
+    }
+}
+
+/// The source driving an arm, as a refusal names it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Owner {
+    Phone { session: u64 },
+    Policy { name: String },
+}
+
+impl std::fmt::Display for Owner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Phone { session } => write!(f, "a phone (teleop session {session})"),
+            Self::Policy { name } => write!(f, "policy {name:?}"),
+        }
+    }
+}
+
+/// Why an input was refused. A refused input changes nothing.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ArbiterError {
+    #[error("is already bound to another phone; set take_over to replace it")]
+    PhoneBound,
+    #[error("was taken over by another phone")]
+    PhoneReplaced,
+    #[error("is driven by a phone; the operator must disengage first")]
+    DrivenByPhone,
+    #[error("is not ready: {0}")]
+    NotReady(#[from] NotReady),
+    #[error("is already controlled by policy {owner:?}")]
+    NotOwner { owner: String },
+    #[error("is not controlled by this policy session")]
+    NotControlling,
+    #[error("refused the chunk: {0}")]
+    Chunk(#[from] ChunkError),
+    #[error("is driven by {owner}; release it before homing the arm")]
+    DrivenWhileHoming { owner: Owner },
+}
+
+/// One button event of a phone, already decoded.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TeleopButton {
+    Clutch(ClutchKind),
+    Gripper(GripperCommand),
+    /// An event that could not be decoded; its message is reported to the phone in order with the others.
+    Invalid(String),
+}
+
+/// The teleop input of one processing round: the newest pose and every button event since the last round.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TeleopRound {
+    /// Newest pose (already validated) or the validation error.
+    pub pose: Option<Result<Isometry3<f64>, String>>,
+    pub tracking_ok: bool,
+    pub buttons: Vec<TeleopButton>,
+}
+
+/// An input to the arbiter.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Input {
+    /// A phone asks for the arm; `take_over` replaces a bound phone.
+    BindTeleop { session: u64, take_over: bool },
+    /// A phone session ended.
+    UnbindTeleop { session: u64 },
+    /// A round of phone samples.
+    Teleop { session: u64, round: TeleopRound },
+    /// A policy session asks to drive the arm.
+    ClaimPolicy {
+        session: u64,
+        name: String,
+        silence_timeout_s: f64,
+    },
+    /// A policy session gives the arm up (release, session end).
+    ReleasePolicy { session: u64, reason: String },
+    /// A policy's chunk, already converted to targets.
+    Chunk { session: u64, chunk: ActionChunk },
+    /// Time passes: play due chunk steps, apply the silence and staleness rules.
+    Tick,
+    /// The robot was teleported to its measured pose (`Robot::feedback`) with its gripper at `gripper` by
+    /// no source (a scene reset homed it): the arm holds there and both sources re-index from it. Refused
+    /// while a source drives (see [`Arbiter::may_home`], which the caller asks before teleporting).
+    Homed { gripper: f64 },
+}
+
+/// A command for the bridge; it passed the safety gate of the source that made it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Command {
+    /// Increases by one per command: the caller sends in this order.
+    pub seq: u64,
+    pub robot_from_target: Isometry3<f64>,
+    pub gripper: f64,
+}
+
+/// A policy session lost the arm.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Revocation {
+    pub session: u64,
+    pub policy: String,
+    pub reason: String,
+}
+
+/// What the caller must do after one input.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Effects {
+    /// Commands to hand to the bridge, in order.
+    pub commands: Vec<Command>,
+    /// The policy session to tell that it lost the arm.
+    pub revoked: Option<Revocation>,
+    /// The decision now on display, if this input changed it.
+    pub decision: Option<GateDecision>,
+    /// True if the source changed and the new one was re-indexed at the measured pose.
+    pub reindexed: bool,
+    /// A per-sample problem to show on the phone (the round itself was accepted); empty when fine.
+    pub phone_error: String,
+    /// What a chunk did to the schedule.
+    pub chunk: Option<ReplaceReport>,
+}
+
+/// How soon the arbiter needs a [`Input::Tick`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TickNeed {
+    /// Nothing can change without an input: no ticks.
+    Idle,
+    /// Once, at this time (a policy's silence deadline).
+    At(f64),
+    /// At the control rate: a chunk is playing, or a phone drives and its stream may go stale.
+    Periodic,
+}
+
+/// What the API shows about one arm at one moment: the arbiter's state and the bridge's.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ArmSnapshot {
+    pub arm: String,
+    pub bridge_kind: String,
+    /// Ready means movable now (see [`Robot::not_ready`]); the message says why not.
+    pub health: BridgeHealth,
+    pub health_message: String,
+    pub driver: Driver,
+    /// The phone session id or `"<policy name>:<session id>"`, empty when nobody drives.
+    pub owner_id: String,
+    pub engaged: bool,
+    pub robot_from_target: Isometry3<f64>,
+    pub gripper_target: f64,
+    pub robot_from_ee: Option<Isometry3<f64>>,
+    pub joint_positions_rad: Vec<f64>,
+    pub joint_names: Vec<String>,
+    pub gripper_position: f64,
+    pub last_decision: GateDecision,
+    pub feedback_time_ns: i64,
+    /// Negative without feedback.
+    pub feedback_age_s: f64,
+    pub counters: Counters,
+    pub task_success: bool,
+}
+
+/// Commands handed out and refused so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Counters {
+    pub sent: u64,
+    pub rejected: u64,
+    pub clamped: u64,
+}
+
+#[derive(Debug, Clone)]
+struct PolicyOwner {
+    session: u64,
+    name: String,
+    silence_timeout_s: f64,
+    last_chunk_s: f64,
+}
+
+/// Source arbitration of one arm (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Arbiter {
+    teleop: TeleopArm,
+    policy_gate: SafetyGate,
+    executor: ChunkExecutor,
+    teleop_session: Option<u64>,
+    driver: Driver,
+    policy: Option<PolicyOwner>,
+    target: Isometry3<f64>,
+    gripper_target: f64,
+    last_decision: GateDecision,
+    last_policy_step: Option<ChunkStep>,
+    latest_s: f64,
+    seq: u64,
+    counters: Counters,
+}
+
+impl Arbiter {
+    /// Nobody drives; the arm holds `measured` (its measured pose, or a configured fallback before
+    /// feedback) with the gripper at `gripper`. Time starts at 0.
+    pub fn new(
+        teleop: &TeleopConfig,
+        chunk: ChunkConfig,
+        measured: Isometry3<f64>,
+        gripper: f64,
+    ) -> Result<Self, ConfigError> {
+        Ok(Self {
+            teleop: TeleopArm::new(teleop, measured)?,
+            policy_gate: SafetyGate::new(&teleop.gate, measured)?,
+            executor: ChunkExecutor::new(chunk)?,
+            teleop_session: None,
+            driver: Driver::None,
+            policy: None,
+            target: measured,
+            gripper_target: gripper,
+            last_decision: GateDecision::note(GateVerdict::Accepted, "idle"),
+            last_policy_step: None,
+            latest_s: 0.0,
+            seq: 0,
+            counters: Counters::default(),
+        })
+    }
+
+    /// Who drives the arm.
+    pub fn driver(&self) -> Driver {
+        self.driver
+    }
+
+    /// True if the driving phone's clutch is engaged.
+    pub fn engaged(&self) -> bool {
+        self.driver == Driver::Teleop && self.teleop.engaged()
+    }
+
+    /// The bound phone session.
+    pub fn teleop_session(&self) -> Option<u64> {
+        self.teleop_session
+    }
+
+    /// The policy session that owns the arm and its name.
+    pub fn policy_owner(&self) -> Option<(u64, &str)> {
+        self.policy.as_ref().map(|o| (o.session, o.name.as_str()))
+    }
+
+    /// The last target and gripper target handed out (the arm holds them).
+    pub fn target(&self) -> (Isometry3<f64>, f64) {
+        (self.target, self.gripper_target)
+    }
+
+    /// The decision on display.
+    pub fn last_decision(&self) -> &GateDecision {
+        &self.last_decision
+    }
+
+    pub fn counters(&self) -> Counters {
+        self.counters
+    }
+
+    /// The source driving the arm, if one does.
+    pub fn owner(&self) -> Option<Owner> {
+        match self.driver {
+            Driver::None => None,
+            Driver::Teleop => Some(Owner::Phone {
+                session: self.teleop_session.unwrap_or_default(),
+            }),
+            Driver::Policy => Some(Owner::Policy {
+                name: self.policy.as_ref().map(|o| o.name.clone()).unwrap_or_default(),
+            }),
+        }
+    }
+
+    /// Whether the arm may be teleported now (a scene reset that homes it): not while a source drives, whose
+    /// plan would continue from a pose the arm left. Ask under the same lock as the teleport and the
+    /// [`Input::Homed`] that follows it, so that no source starts driving in between.
+    pub fn may_home(&self) -> Result<(), ArbiterError> {
+        match self.owner() {
+            None => Ok(()),
+            Some(owner) => Err(ArbiterError::DrivenWhileHoming { owner }),
+        }
+    }
+
+    /// How soon the next [`Input::Tick`] is needed. Between inputs nothing else can change the arm.
+    pub fn tick_need(&self) -> TickNeed {
+        match self.driver {
+            Driver::Teleop if self.teleop.engaged() => TickNeed::Periodic,
+            Driver::Policy => match (&self.policy, self.executor.end_time_s()) {
+                (_, Some(end_s)) if end_s > self.latest_s => TickNeed::Periodic,
+                // The silence timeout counts from the chunk's arrival or the end of the plan, whichever is
+                // later; the tick at that moment revokes (with margin: the rule is "more than").
+                (Some(owner), end_s) => TickNeed::At(
+                    owner.last_chunk_s.max(end_s.unwrap_or(f64::NEG_INFINITY)) + owner.silence_timeout_s,
+                ),
+                (None, _) => TickNeed::Idle,
+            },
+            Driver::Teleop | Driver::None => TickNeed::Idle,
+        }
+    }
+
+    /// Applies one input at `now_s` with the bridge reporting `robot`.
+    pub fn handle(&mut self, input: Input, robot: &Robot, now_s: f64) -> Result<Effects, ArbiterError> {
+        // Inputs from several threads may arrive slightly out of clock order: the later time stands.
+        if now_s > self.latest_s {
+            self.latest_s = now_s;
+        }
+        let now = self.latest_s;
+        let mut fx = Effects::default();
+        match input {
+            Input::BindTeleop { session, take_over } => self.bind_teleop(session, take_over, robot, now)?,
+            Input::UnbindTeleop { session } => self.unbind_teleop(session, robot, now, &mut fx),
+            Input::Teleop { session, round } => self.teleop_round(session, round, robot, now, &mut fx)?,
+            Input::ClaimPolicy {
+                session,
+                name,
+                silence_timeout_s,
+            } => self.claim_policy(session, name, silence_timeout_s, robot, now, &mut fx)?,
+            Input::ReleasePolicy { session, reason } => {
+                if self.policy.as_ref().is_some_and(|o| o.session == session) {
+                    self.revoke_policy(&reason, &mut fx);
+                }
+            }
+            Input::Chunk { session, chunk } => {
+                let owns = self.driver == Driver::Policy
+                    && self.policy.as_ref().is_some_and(|o| o.session == session);
+                if !owns {
+                    return Err(ArbiterError::NotControlling);
+                }
+                fx.chunk = Some(self.executor.replace(chunk, now)?);
+                if let Some(owner) = self.policy.as_mut() {
+                    owner.last_chunk_s = now;
+                }
+                self.tick(now, &mut fx);
+            }
+            Input::Tick => self.tick(now, &mut fx),
+            Input::Homed { gripper } => self.homed(gripper, robot, now, &mut fx)?,
+        }
+        Ok(fx)
+    }
+
+    fn send(&mut self, target: Isometry3<f64>, gripper: f64, fx: &mut Effects) {
+        self.seq += 1;
+        self.target = target;
+        self.gripper_target = gripper;
+        self.counters.sent += 1;
+        fx.commands.push(Command {
+            seq: self.seq,
+            robot_from_target: target,
+            gripper,
+        });
+    }
+
+    fn decide(&mut self, decision: GateDecision, fx: &mut Effects) {
+        match decision.verdict {
+            GateVerdict::RejectedJump | GateVerdict::RejectedInvalid => self.counters.rejected += 1,
+            GateVerdict::Clamped => self.counters.clamped += 1,
+            GateVerdict::Accepted | GateVerdict::HeldStale => {}
+        }
+        fx.decision = Some(decision.clone());
+        self.last_decision = decision;
+    }
+
+    fn bind_teleop(
+        &mut self,
+        session: u64,
+        take_over: bool,
+        robot: &Robot,
+        now: f64,
+    ) -> Result<(), ArbiterError> {
+        if self.teleop_session.is_some_and(|other| other != session) && !take_over {
+            return Err(ArbiterError::PhoneBound);
+        }
+        self.teleop_session = Some(session);
+        if self.driver == Driver::Teleop {
+            // The replaced phone was driving: the new one starts disengaged.
+            self.driver = Driver::None;
+            self.teleop
+                .clutch(ClutchKind::Disengage, None, robot.measured_or(self.target), now);
+        }
+        Ok(())
+    }
+
+    fn unbind_teleop(&mut self, session: u64, robot: &Robot, now: f64, fx: &mut Effects) {
+        if self.teleop_session != Some(session) {
+            return;
+        }
+        self.teleop_session = None;
+        if self.driver == Driver::Teleop {
+            self.driver = Driver::None;
+            self.teleop
+                .clutch(ClutchKind::Disengage, None, robot.measured_or(self.target), now);
+            self.decide(
+                GateDecision::note(GateVerdict::Accepted, "phone disconnected: the arm holds"),
+                fx,
+            );
+        }
+    }
+
+    fn teleop_round(
+        &mut self,
+        session: u64,
+        round: TeleopRound,
+        robot: &Robot,
+        now: f64,
+        fx: &mut Effects,
+    ) -> Result<(), ArbiterError> {
+        if self.teleop_session != Some(session) {
+            return Err(ArbiterError::PhoneReplaced);
+        }
+        let not_ready = robot.not_ready(now);
+        let pose = match round.pose {
+            Some(Ok(p)) => Some(p),
+            Some(Err(e)) => {
+                // A malformed pose (non-unit quaternion, NaN) is a refused command like any other: counted and
+                // shown as the verdict, unless a policy drives and the verdict on display is its own.
+                if self.driver != Driver::Policy {
+                    self.decide(
+                        GateDecision::note(GateVerdict::RejectedInvalid, format!("invalid phone pose: {e}")),
+                        fx,
+                    );
+                }
+                fx.phone_error = e;
+                None
+            }
+            None => None,
+        };
+        for button in round.buttons {
+            match button {
+                TeleopButton::Clutch(kind) => self.clutch(kind, pose, robot, not_ready.as_ref(), now, fx),
+                TeleopButton::Gripper(command) => {
+                    if let Some(why) = &not_ready {
+                        fx.phone_error = format!("the arm {}", ArbiterError::NotReady(why.clone()));
+                        continue;
+                    }
+                    match self.teleop.gripper(command) {
+                        // The gripper follows the phone only while the phone drives or nobody does.
+                        Ok(gripper) if self.driver != Driver::Policy => self.send(self.target, gripper, fx),
+                        Ok(_) => {}
+                        Err(e) => fx.phone_error = e.to_string(),
+                    }
+                }
+                TeleopButton::Invalid(message) => fx.phone_error = message,
+            }
+        }
+        let measured = robot.measured_or(self.target);
+        if self.driver == Driver::Teleop
+            && let Some(why) = &not_ready
+        {
+            // The robot went away under the phone: stop driving and say so, rather than accept samples that
+            // go nowhere (or, on reconnect, continue from a pose measured before).
+            self.driver = Driver::None;
+            self.teleop.clutch(ClutchKind::Disengage, None, measured, now);
+            let message = format!(
+                "the arm {}; disengaged, the arm holds",
+                ArbiterError::NotReady(why.clone())
+            );
+            fx.phone_error.clone_from(&message);
+            self.decide(GateDecision::note(GateVerdict::HeldStale, message), fx);
+        }
+        if let Some(phone) = pose {
+            let step = self.teleop.on_pose(phone, round.tracking_ok, measured, now);
+            if self.driver == Driver::Teleop {
+                if let Some((target, gripper)) = step.command {
+                    self.send(target, gripper, fx);
+                }
+                fx.reindexed |= step.reindexed;
+                self.decide(step.decision, fx);
+            }
+        }
+        Ok(())
+    }
+
+    fn clutch(
+        &mut self,
+        kind: ClutchKind,
+        phone: Option<Isometry3<f64>>,
+        robot: &Robot,
+        not_ready: Option<&NotReady>,
+        now: f64,
+        fx: &mut Effects,
+    ) {
+        let engaging = match kind {
+            ClutchKind::Engage => true,
+            ClutchKind::Toggle => !self.teleop.engaged(),
+            ClutchKind::Disengage => false,
+        };
+        if engaging && let Some(why) = not_ready {
+            fx.phone_error = format!("the arm {}, not engaging", ArbiterError::NotReady(why.clone()));
+            return;
+        }
+        let step = self
+            .teleop
+            .clutch(kind, phone, robot.measured_or(self.target), now);
+        if step.engaged {
+            if self.driver == Driver::Policy {
+                self.revoke_policy("operator took over from phone", fx);
+            }
+            self.driver = Driver::Teleop;
+            // Without a command (no pose at the press) the arm keeps holding the last target it was sent.
+            if let Some((target, gripper)) = step.command {
+                self.send(target, gripper, fx);
+            }
+            fx.reindexed |= step.reindexed;
+        } else if self.driver == Driver::Teleop {
+            self.driver = Driver::None;
+        }
+        self.decide(step.decision, fx);
+    }
+
+    fn claim_policy(
+        &mut self,
+        session: u64,
+        name: String,
+        silence_timeout_s: f64,
+        robot: &Robot,
+        now: f64,
+        fx: &mut Effects,
+    ) -> Result<(), ArbiterError> {
+        if self.driver == Driver::Teleop {
+            return Err(ArbiterError::DrivenByPhone);
+        }
+        if let Some(why) = robot.not_ready(now) {
+            return Err(ArbiterError::NotReady(why));
+        }
+        if let Some(owner) = &self.policy
+            && owner.session != session
+        {
+            return Err(ArbiterError::NotOwner {
+                owner: owner.name.clone(),
+            });
+        }
+        self.policy_gate
+            .reset_reference_at(robot.measured_or(self.target), now);
+        self.executor.clear();
+        self.last_policy_step = None;
+        self.driver = Driver::Policy;
+        // The phone's floating zero is stale once a policy moves the arm. (Every way out of phone driving
+        // already disengages, which re-indexes too; this keeps the rule true without relying on that.)
+        self.teleop.request_reindex();
+        fx.reindexed = true;
+        let note = GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control"));
+        self.policy = Some(PolicyOwner {
+            session,
+            name,
+            silence_timeout_s,
+            last_chunk_s: now,
+        });
+        self.decide(note, fx);
+        Ok(())
+    }
+
+    fn revoke_policy(&mut self, reason: &str, fx: &mut Effects) {
+        self.executor.clear();
+        self.last_policy_step = None;
+        if self.driver == Driver::Policy {
+            self.driver = Driver::None;
+        }
+        if let Some(owner) = self.policy.take() {
+            fx.revoked = Some(Revocation {
+                session: owner.session,
+                policy: owner.name,
+                reason: reason.to_owned(),
+            });
+        }
+    }
+
+    fn homed(&mut self, gripper: f64, robot: &Robot, now: f64, fx: &mut Effects) -> Result<(), ArbiterError> {
+        self.may_home()?;
+        // Without a measured pose there is nothing to hold: the arm keeps its target.
+        let Some(measured) = robot.feedback else {
+            return Ok(());
+        };
+        self.target = measured.robot_from_ee;
+        self.gripper_target = gripper;
+        self.executor.clear();
+        self.last_policy_step = None;
+        self.teleop.request_reindex();
+        self.policy_gate.reset_reference_at(measured.robot_from_ee, now);
+        fx.reindexed = true;
+        Ok(())
+    }
+
+    fn tick(&mut self, now: f64, fx: &mut Effects) {
+        match self.driver {
+            Driver::Policy => self.tick_policy(now, fx),
+            Driver::Teleop => {
+                if let Some(decision) = self.teleop.check_stale(now) {
+                    self.decide(decision, fx);
+                }
+            }
+            Driver::None => {}
+        }
+    }
+
+    fn tick_policy(&mut self, now: f64, fx: &mut Effects) {
+        if let Some(step) = self.executor.target_at(now) {
+            // Silence counts from when the policy's plan runs out, not from the chunk's arrival.
+            if let Some(owner) = self.policy.as_mut() {
+                owner.last_chunk_s = owner.last_chunk_s.max(now);
+            }
+            if self.last_policy_step != Some(step) {
+                self.last_policy_step = Some(step);
+                let (gated, decision) = self.policy_gate.check(step.robot_from_target, now);
+                if let Some(target) = gated {
+                    self.send(target, step.gripper.clamp(0.0, 1.0), fx);
+                }
+                self.decide(decision, fx);
+            }
+            return;
+        }
+        let silent = self
+            .policy
+            .as_ref()
+            .map(|o| (now - o.last_chunk_s, o.silence_timeout_s));
+        if let Some((silent_s, timeout_s)) = silent
+            && silent_s > timeout_s
+        {
+            self.revoke_policy(&format!("silent for {silent_s:.2} s"), fx);
+            self.decide(
+                GateDecision::note(
+                    GateVerdict::HeldStale,
+                    format!("policy silent for {silent_s:.2} s: holding"),
+                ),
+                fx,
+            );
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pose::angle_between_rad;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    use proptest::prelude::*;
+
+    const PHONE: u64 = 1;
+    const POLICY: u64 = 7;
+
+    fn at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
+        Isometry3::translation(x, y, z)
+    }
+
+    fn assert_close(a: &Isometry3<f64>, b: &Isometry3<f64>) {
+        let m = (a.translation.vector - b.translation.vector).norm();
+        let rad = angle_between_rad(&a.rotation, &b.rotation);
+        assert!(m < 1e-9 && rad < 1e-9, "{a:?} is {m} m, {rad} rad from {b:?}");
+    }
+
+    fn home() -> Isometry3<f64> {
+        at(0.25, 0.0, 0.2)
+    }
+
+    fn arbiter() -> Arbiter {
+        Arbiter::new(&TeleopConfig::default(), ChunkConfig::default(), home(), 0.0).unwrap()
+    }
+
+    /// A ready bridge measuring `pose` at `now_s`.
+    fn ready(pose: Isometry3<f64>, now_s: f64) -> Robot {
+        Robot {
+            health: BridgeHealth::Ready,
+            feedback: Some(Measured {
+                robot_from_ee: pose,
+                capture_time_s: now_s,
+            }),
+        }
+    }
+
+    fn bind_phone() -> Input {
+        Input::BindTeleop {
+            session: PHONE,
+            take_over: false,
+        }
+    }
+
+    fn round(pose: Option<Isometry3<f64>>, buttons: Vec<TeleopButton>) -> Input {
+        Input::Teleop {
+            session: PHONE,
+            round: TeleopRound {
+                pose: pose.map(Ok),
+                tracking_ok: true,
+                buttons,
+            },
+        }
+    }
+
+    fn engage(phone: Isometry3<f64>) -> Input {
+        round(Some(phone), vec![TeleopButton::Clutch(ClutchKind::Engage)])
+    }
+
+    fn claim() -> Input {
+        Input::ClaimPolicy {
+            session: POLICY,
+            name: "p".into(),
+            silence_timeout_s: 0.5,
+        }
+    }
+
+    fn chunk(anchor_s: f64, targets: &[Isometry3<f64>]) -> Input {
+        Input::Chunk {
+            session: POLICY,
+            chunk: ActionChunk {
+                steps: targets
+                    .iter()
+                    .map(|&robot_from_target| ChunkStep {
+                        robot_from_target,
+                        gripper: 0.5,
+                    })
+                    .collect(),
+                anchor_time_s: anchor_s,
+                step_period_s: 0.1,
+            },
+        }
+    }
+
+    /// An arbiter with a bound, disengaged phone, driven by a policy from `home()` since t = 1.
+    fn phone_bound_policy_driving() -> (Arbiter, Robot) {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        a.handle(claim(), &robot, 1.0).unwrap();
+        (a, robot)
+    }
+
+    /// An arbiter with a bound phone, driven by the phone from `home()` at t = 1.
+    fn phone_driving() -> Arbiter {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        let fx = a.handle(engage(Isometry3::identity()), &robot, 1.0).unwrap();
+        assert_eq!(a.driver(), Driver::Teleop);
+        assert!(fx.reindexed);
+        a
+    }
+
+    #[test]
+    fn a_second_phone_is_refused_unless_it_takes_over_and_then_starts_disengaged() {
+        let mut a = phone_driving();
+        let robot = ready(home(), 1.1);
+        let err = a.handle(
+            Input::BindTeleop {
+                session: 2,
+                take_over: false,
+            },
+            &robot,
+            1.1,
+        );
+        assert_eq!(err, Err(ArbiterError::PhoneBound));
+        assert_eq!(a.teleop_session(), Some(PHONE));
+        a.handle(
+            Input::BindTeleop {
+                session: 2,
+                take_over: true,
+            },
+            &robot,
+            1.1,
+        )
+        .unwrap();
+        assert_eq!(a.driver(), Driver::None);
+        assert!(!a.engaged());
+        // The replaced phone's samples are refused from now on.
+        let err = a.handle(round(Some(Isometry3::identity()), vec![]), &robot, 1.1);
+        assert_eq!(err, Err(ArbiterError::PhoneReplaced));
+    }
+
+    #[test]
+    fn the_phone_moves_the_arm_relative_to_where_it_was_engaged() {
+        let mut a = phone_driving();
+        let fx = a
+            .handle(
+                round(Some(at(0.01, 0.0, 0.0)), vec![]),
+                &ready(home(), 1.02),
+                1.02,
+            )
+            .unwrap();
+        assert_eq!(fx.commands.len(), 1);
+        let moved = fx.commands[0].robot_from_target.translation.vector - home().translation.vector;
+        assert!((moved.norm() - 0.01).abs() < 1e-9, "{moved:?}");
+    }
+
+    #[test]
+    fn a_policy_cannot_claim_while_a_phone_drives() {
+        let mut a = phone_driving();
+        let err = a.handle(claim(), &ready(home(), 1.1), 1.1);
+        assert_eq!(err, Err(ArbiterError::DrivenByPhone));
+        assert_eq!(a.driver(), Driver::Teleop);
+    }
+
+    #[test]
+    fn a_second_policy_is_refused_and_names_the_owner() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let err = a.handle(
+            Input::ClaimPolicy {
+                session: 8,
+                name: "q".into(),
+                silence_timeout_s: 1.0,
+            },
+            &robot,
+            1.0,
+        );
+        assert_eq!(err, Err(ArbiterError::NotOwner { owner: "p".into() }));
+        let err = a.handle(
+            Input::Chunk {
+                session: 8,
+                chunk: ActionChunk {
+                    steps: vec![],
+                    anchor_time_s: 1.0,
+                    step_period_s: 0.1,
+                },
+            },
+            &robot,
+            1.0,
+        );
+        assert_eq!(err, Err(ArbiterError::NotControlling));
+    }
+
+    #[test]
+    fn nothing_starts_moving_without_a_fresh_measured_pose() {
+        let stale = ready(home(), 1.0);
+        let now_s = 1.0 + FEEDBACK_MAX_AGE_S + 0.01;
+        let mut a = arbiter();
+        assert!(matches!(
+            a.handle(claim(), &stale, now_s),
+            Err(ArbiterError::NotReady(NotReady::StaleFeedback { .. }))
+        ));
+        let unhealthy = Robot {
+            health: BridgeHealth::Disconnected("gone".into()),
+            ..ready(home(), now_s)
+        };
+        assert!(matches!(
+            a.handle(claim(), &unhealthy, now_s),
+            Err(ArbiterError::NotReady(NotReady::Disconnected(_)))
+        ));
+        let blind = Robot {
+            health: BridgeHealth::Ready,
+            feedback: None,
+        };
+        assert_eq!(a.handle(claim(), &blind, now_s), Err(NotReady::NoFeedback.into()));
+        a.handle(bind_phone(), &stale, now_s).unwrap();
+        let fx = a.handle(engage(Isometry3::identity()), &stale, now_s).unwrap();
+        assert!(fx.phone_error.contains("not engaging"), "{fx:?}");
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Gripper(GripperCommand::Set(1.0))]),
+                &stale,
+                now_s,
+            )
+            .unwrap();
+        assert!(fx.phone_error.contains("not ready"), "{fx:?}");
+        assert!(fx.commands.is_empty());
+        assert_eq!(a.driver(), Driver::None);
+        assert_eq!(a.counters().sent, 0);
+    }
+
+    #[test]
+    fn a_phone_driving_when_the_robot_goes_away_is_disengaged() {
+        let mut a = phone_driving();
+        let gone = Robot {
+            health: BridgeHealth::Error("estop".into()),
+            ..ready(home(), 1.1)
+        };
+        let fx = a
+            .handle(round(Some(at(0.01, 0.0, 0.0)), vec![]), &gone, 1.1)
+            .unwrap();
+        assert!(fx.commands.is_empty());
+        assert_eq!(a.driver(), Driver::None);
+        assert_eq!(a.last_decision().verdict, GateVerdict::HeldStale);
+    }
+
+    #[test]
+    fn the_operator_takes_over_from_a_policy_and_the_policy_is_told() {
+        let (mut a, robot) = phone_bound_policy_driving();
+        a.handle(chunk(1.0, &[at(0.26, 0.0, 0.2); 10]), &robot, 1.0)
+            .unwrap();
+        let moved = at(0.26, 0.0, 0.2);
+        let fx = a
+            .handle(engage(Isometry3::identity()), &ready(moved, 1.05), 1.05)
+            .unwrap();
+        assert_eq!(a.driver(), Driver::Teleop);
+        let revoked = fx.revoked.expect("the policy is told");
+        assert_eq!(
+            (revoked.session, revoked.reason.as_str()),
+            (POLICY, "operator took over from phone")
+        );
+        // Re-indexed at the measured pose: the first command is where the arm is.
+        assert_close(&fx.commands.last().unwrap().robot_from_target, &moved);
+        // The revoked chunk does not play on.
+        let fx = a.handle(Input::Tick, &ready(moved, 1.3), 1.3).unwrap();
+        assert!(fx.commands.is_empty());
+        assert_eq!(
+            a.handle(chunk(1.3, &[moved]), &robot, 1.3),
+            Err(ArbiterError::NotControlling)
+        );
+    }
+
+    #[test]
+    fn engaging_without_a_pose_keeps_holding_the_last_target_sent() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let moved = at(0.28, 0.0, 0.2);
+        a.handle(chunk(1.0, &[moved; 3]), &robot, 1.0).unwrap();
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Clutch(ClutchKind::Engage)]),
+                &ready(moved, 1.1),
+                1.1,
+            )
+            .unwrap();
+        assert!(fx.commands.is_empty());
+        // A gripper press now must not send the phone's old target (where it was before the policy moved).
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Gripper(GripperCommand::Set(1.0))]),
+                &ready(moved, 1.1),
+                1.1,
+            )
+            .unwrap();
+        assert_eq!(fx.commands.len(), 1);
+        assert_eq!(fx.commands[0].robot_from_target, moved);
+    }
+
+    #[test]
+    fn a_phone_after_a_policy_starts_from_the_measured_pose_not_its_old_offset() {
+        let mut a = phone_driving();
+        let robot = ready(home(), 1.0);
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &robot,
+            1.0,
+        )
+        .unwrap();
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let moved = at(0.28, 0.0, 0.2);
+        a.handle(chunk(1.0, &[moved; 3]), &robot, 1.0).unwrap();
+        a.handle(
+            Input::ReleasePolicy {
+                session: POLICY,
+                reason: "done".into(),
+            },
+            &robot,
+            1.2,
+        )
+        .unwrap();
+        // Engage with the phone where it was: the arm must stay where the policy left it.
+        let fx = a
+            .handle(engage(Isometry3::identity()), &ready(moved, 1.3), 1.3)
+            .unwrap();
+        assert_close(&fx.commands.last().unwrap().robot_from_target, &moved);
+    }
+
+    #[test]
+    fn a_policy_is_gated_from_where_the_phone_left_the_arm() {
+        let mut a = phone_driving();
+        let mut measured = home();
+        for k in 1..=10 {
+            let now_s = 1.0 + f64::from(k) * 0.02;
+            let fx = a
+                .handle(
+                    round(Some(at(0.01 * f64::from(k), 0.0, 0.0)), vec![]),
+                    &ready(measured, now_s),
+                    now_s,
+                )
+                .unwrap();
+            measured = fx.commands[0].robot_from_target;
+        }
+        let robot = ready(measured, 1.3);
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &robot,
+            1.3,
+        )
+        .unwrap();
+        a.handle(claim(), &robot, 1.3).unwrap();
+        // A step back to where the arm was 10 cm ago is a jump from where it is now.
+        let fx = a.handle(chunk(1.3, &[home()]), &robot, 1.3).unwrap();
+        assert!(fx.commands.is_empty(), "{fx:?}");
+        assert_eq!(a.last_decision().verdict, GateVerdict::RejectedJump);
+    }
+
+    #[test]
+    fn a_policy_holds_when_its_plan_runs_out_and_loses_the_arm_when_silent() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let fx = a
+            .handle(
+                chunk(1.0, &[at(0.251, 0.0, 0.2), at(0.252, 0.0, 0.2)]),
+                &robot,
+                1.0,
+            )
+            .unwrap();
+        assert_eq!(fx.commands.len(), 1, "the due step plays at once");
+        assert_eq!(a.tick_need(), TickNeed::Periodic);
+        assert_eq!(a.handle(Input::Tick, &robot, 1.1).unwrap().commands.len(), 1);
+        // Plan over (ended at 1.2): hold, then revoke once silent for more than 0.5 s.
+        assert!(a.handle(Input::Tick, &robot, 1.25).unwrap().commands.is_empty());
+        let TickNeed::At(deadline_s) = a.tick_need() else {
+            panic!("{:?}", a.tick_need());
+        };
+        assert!((deadline_s - 1.7).abs() < 0.051, "{deadline_s}");
+        let fx = a.handle(Input::Tick, &robot, 1.6).unwrap();
+        assert!(fx.revoked.is_none() && fx.commands.is_empty());
+        let fx = a.handle(Input::Tick, &robot, deadline_s + 1e-6).unwrap();
+        assert_eq!(fx.revoked.map(|r| r.session), Some(POLICY));
+        assert_eq!(a.driver(), Driver::None);
+        assert_eq!(a.tick_need(), TickNeed::Idle);
+    }
+
+    #[test]
+    fn a_refused_chunk_changes_nothing() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let err = a.handle(chunk(10.0, &[home()]), &robot, 1.0);
+        assert!(matches!(
+            err,
+            Err(ArbiterError::Chunk(ChunkError::AnchorTooFarAhead { .. }))
+        ));
+        // The silence clock was not restarted by the refused chunk.
+        let fx = a.handle(Input::Tick, &robot, 1.51).unwrap();
+        assert!(fx.revoked.is_some());
+    }
+
+    #[test]
+    fn an_idle_arm_needs_no_ticks_and_an_engaged_phone_does() {
+        let mut a = arbiter();
+        assert_eq!(a.tick_need(), TickNeed::Idle);
+        a.handle(bind_phone(), &ready(home(), 1.0), 1.0).unwrap();
+        assert_eq!(a.tick_need(), TickNeed::Idle);
+        a.handle(engage(Isometry3::identity()), &ready(home(), 1.0), 1.0)
+            .unwrap();
+        assert_eq!(a.tick_need(), TickNeed::Periodic);
+        a.handle(Input::UnbindTeleop { session: PHONE }, &ready(home(), 1.0), 1.0)
+            .unwrap();
+        assert_eq!(a.tick_need(), TickNeed::Idle);
+    }
+
+    #[test]
+    fn homing_is_refused_naming_the_source_that_drives() {
+        let mut a = phone_driving();
+        assert_eq!(
+            a.may_home(),
+            Err(ArbiterError::DrivenWhileHoming {
+                owner: Owner::Phone { session: PHONE }
+            })
+        );
+        let refused = a.handle(Input::Homed { gripper: 0.0 }, &ready(home(), 1.1), 1.1);
+        assert_eq!(
+            refused.unwrap_err().to_string(),
+            "is driven by a phone (teleop session 1); release it before homing the arm"
+        );
+        let (a, _) = phone_bound_policy_driving();
+        assert_eq!(
+            a.may_home().unwrap_err().to_string(),
+            "is driven by policy \"p\"; release it before homing the arm"
+        );
+        // A bound phone that does not drive is no reason to refuse.
+        let mut a = arbiter();
+        a.handle(bind_phone(), &ready(home(), 1.0), 1.0).unwrap();
+        assert_eq!(a.may_home(), Ok(()));
+    }
+
+    #[test]
+    fn after_homing_the_arm_holds_the_homed_pose_and_both_sources_start_from_it() {
+        let mut a = phone_driving();
+        let moved = a
+            .handle(
+                round(Some(at(0.03, 0.0, 0.0)), vec![]),
+                &ready(home(), 1.02),
+                1.02,
+            )
+            .unwrap()
+            .commands[0]
+            .robot_from_target;
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &ready(moved, 1.1),
+            1.1,
+        )
+        .unwrap();
+        // A scene reset teleports the arm 10 cm away: farther than any gate lets a source jump.
+        let homed = at(0.25, 0.1, 0.2);
+        let fx = a
+            .handle(Input::Homed { gripper: 0.4 }, &ready(homed, 1.2), 1.2)
+            .unwrap();
+        assert!(fx.commands.is_empty() && fx.reindexed, "{fx:?}");
+        assert_eq!(a.target(), (homed, 0.4));
+        // The phone engages where it left off: the arm stays at the homed pose, not the phone's old offset.
+        let fx = a
+            .handle(engage(at(0.03, 0.0, 0.0)), &ready(homed, 1.3), 1.3)
+            .unwrap();
+        assert_close(&fx.commands.last().unwrap().robot_from_target, &homed);
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &ready(homed, 1.4),
+            1.4,
+        )
+        .unwrap();
+        // A policy is gated from the homed pose too: a step there passes, one at the old pose is a jump.
+        let mut b = arbiter();
+        let robot = ready(home(), 1.0);
+        b.handle(claim(), &robot, 1.0).unwrap();
+        b.handle(
+            Input::ReleasePolicy {
+                session: POLICY,
+                reason: "done".into(),
+            },
+            &robot,
+            1.0,
+        )
+        .unwrap();
+        b.handle(Input::Homed { gripper: 0.0 }, &ready(homed, 1.1), 1.1)
+            .unwrap();
+        b.handle(claim(), &ready(homed, 1.1), 1.1).unwrap();
+        let fx = b.handle(chunk(1.1, &[home()]), &ready(homed, 1.1), 1.1).unwrap();
+        assert!(fx.commands.is_empty(), "{fx:?}");
+        assert_eq!(b.last_decision().verdict, GateVerdict::RejectedJump);
+        let near = at(0.25, 0.101, 0.2);
+        let fx = b.handle(chunk(1.2, &[near]), &ready(homed, 1.2), 1.2).unwrap();
+        assert_close(&fx.commands[0].robot_from_target, &near);
+    }
+
+    #[test]
+    fn time_going_backwards_replays_no_earlier_step() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let steps = [at(0.251, 0.0, 0.2), at(0.252, 0.0, 0.2), at(0.253, 0.0, 0.2)];
+        a.handle(chunk(1.0, &steps), &robot, 1.0).unwrap();
+        assert_eq!(a.handle(Input::Tick, &robot, 1.15).unwrap().commands.len(), 1);
+        assert!(a.handle(Input::Tick, &robot, 1.05).unwrap().commands.is_empty());
+        assert!(
+            a.handle(Input::Tick, &robot, f64::NAN)
+                .unwrap()
+                .commands
+                .is_empty()
+        );
+    }
+
+    // ---- Property tests of the safety contracts over random input sequences. ----
+
+    #[derive(Debug, Clone)]
+    enum Op {
+        Advance(f64),
+        Bind(u64, bool),
+        Unbind(u64),
+        Sample {
+            phone: u64,
+            pose: [f64; 6],
+            tracking_ok: bool,
+            button: u8,
+        },
+        Claim(u64),
+        Release(u64),
+        Chunk {
+            session: u64,
+            offsets: Vec<[f64; 3]>,
+            lead_s: f64,
+            /// Steps around `home()` rather than around the measured pose: a policy that plans from a pose
+            /// the arm has left.
+            from_home: bool,
+        },
+        Tick,
+        Health(u8),
+        /// A scene reset teleports the arm to this offset from `home()` (only when nobody drives, as the
+        /// shell asks [`Arbiter::may_home`] first).
+        Home([f64; 3]),
+    }
+
+    fn any_op() -> impl Strategy<Value = Op> {
+        prop_oneof![
+            3 => (-0.2..0.4f64).prop_map(Op::Advance),
+            1 => (1..3u64, any::<bool>()).prop_map(|(p, t)| Op::Bind(p, t)),
+            1 => (1..3u64).prop_map(Op::Unbind),
+            5 => (1..3u64, prop::array::uniform6(-0.1..0.1f64), prop::bool::weighted(0.9), 0..12u8).prop_map(
+                |(phone, pose, tracking_ok, button)| Op::Sample { phone, pose, tracking_ok, button }
+            ),
+            1 => (7..9u64).prop_map(Op::Claim),
+            1 => (7..9u64).prop_map(Op::Release),
+            3 => (
+                7..9u64,
+                prop::collection::vec(prop::array::uniform3(-0.05..0.05f64), 1..6),
+                -0.3..0.2f64,
+                prop::bool::weighted(0.3),
+            )
+                .prop_map(|(session, offsets, lead_s, from_home)| Op::Chunk { session, offsets, lead_s, from_home }),
+            4 => Just(Op::Tick),
+            1 => (0..8u8).prop_map(Op::Health),
+            1 => prop::array::uniform3(-0.1..0.1f64).prop_map(Op::Home),
+        ]
+    }
+
+    /// The phone's pose after a move `p`: mostly a small step (the operator's hand), sometimes a leap (a
+    /// tracking glitch).
+    fn phone_pose(phone: &Isometry3<f64>, p: [f64; 6]) -> Isometry3<f64> {
+        let scale = if p[0] > 0.09 { 3.0 } else { 0.4 };
+        Isometry3::from_parts(
+            Translation3::from(phone.translation.vector + Vector3::new(p[0], p[1], p[2]) * scale),
+            UnitQuaternion::from_scaled_axis(Vector3::new(p[3], p[4], p[5]) * scale) * phone.rotation,
+        )
+    }
+
+    fn button(b: u8) -> Vec<TeleopButton> {
+        match b {
+            0 => vec![TeleopButton::Clutch(ClutchKind::Engage)],
+            1 => vec![TeleopButton::Clutch(ClutchKind::Disengage)],
+            2 => vec![TeleopButton::Clutch(ClutchKind::Toggle)],
+            3 => vec![TeleopButton::Gripper(GripperCommand::Toggle)],
+            4 => vec![TeleopButton::Gripper(GripperCommand::Set(0.7))],
+            _ => vec![],
+        }
+    }
+
+    /// The world around the arbiter: a robot that reaches every target at once (so its measured pose is the
+    /// last command), with a bridge whose health the operations change.
+    struct World {
+        arbiter: Arbiter,
+        now_s: f64,
+        latest_s: f64,
+        measured: Isometry3<f64>,
+        phone: Isometry3<f64>,
+        health: BridgeHealth,
+        feedback_age_s: f64,
+        /// Sessions that lost the arm and have not claimed it again.
+        revoked: Vec<u64>,
+        /// The end of the newest chunk of the current owner.
+        plan_end_s: f64,
+    }
+
+    impl World {
+        fn robot(&self) -> Robot {
+            Robot {
+                health: self.health.clone(),
+                feedback: Some(Measured {
+                    robot_from_ee: self.measured,
+                    capture_time_s: self.now_s - self.feedback_age_s,
+                }),
+            }
+        }
+
+        fn input(&mut self, op: &Op) -> Option<(Input, bool)> {
+            Some(match op {
+                Op::Advance(dt_s) => {
+                    self.now_s += dt_s;
+                    return None;
+                }
+                Op::Health(h) => {
+                    (self.health, self.feedback_age_s) = match h {
+                        0 => (BridgeHealth::Error("e".into()), 0.0),
+                        1 => (BridgeHealth::Connecting, 0.0),
+                        2 => (BridgeHealth::Ready, FEEDBACK_MAX_AGE_S + 0.5),
+                        _ => (BridgeHealth::Ready, 0.0),
+                    };
+                    return None;
+                }
+                Op::Bind(session, take_over) => (
+                    Input::BindTeleop {
+                        session: *session,
+                        take_over: *take_over,
+                    },
+                    false,
+                ),
+                Op::Unbind(session) => (Input::UnbindTeleop { session: *session }, false),
+                Op::Sample {
+                    phone,
+                    pose,
+                    tracking_ok,
+                    button: b,
+                } => {
+                    self.phone = phone_pose(&self.phone, *pose);
+                    (
+                        Input::Teleop {
+                            session: *phone,
+                            round: TeleopRound {
+                                // Some clutch presses come without a pose, as from a phone that lost tracking.
+                                pose: (*b != 0 || pose[0] > -0.05).then_some(Ok(self.phone)),
+                                tracking_ok: *tracking_ok,
+                                buttons: button(*b),
+                            },
+                        },
+                        false,
+                    )
+                }
+                Op::Claim(session) => (
+                    Input::ClaimPolicy {
+                        session: *session,
+                        name: format!("policy-{session}"),
+                        silence_timeout_s: 0.3,
+                    },
+                    false,
+                ),
+                Op::Release(session) => (
+                    Input::ReleasePolicy {
+                        session: *session,
+                        reason: "released".into(),
+                    },
+                    false,
+                ),
+                Op::Chunk {
+                    session,
+                    offsets,
+                    lead_s,
+                    from_home,
+                } => {
+                    let origin = if *from_home { home() } else { self.measured };
+                    let steps = offsets
+                        .iter()
+                        .map(|o| ChunkStep {
+                            robot_from_target: Isometry3::from_parts(
+                                Translation3::from(origin.translation.vector + Vector3::from(*o)),
+                                origin.rotation,
+                            ),
+                            gripper: o[0] * 20.0,
+                        })
+                        .collect();
+                    (
+                        Input::Chunk {
+                            session: *session,
+                            chunk: ActionChunk {
+                                steps,
+                                anchor_time_s: self.now_s + lead_s,
+                                step_period_s: 0.05,
+                            },
+                        },
+                        true,
+                    )
+                }
+                Op::Tick => (Input::Tick, true),
+                Op::Home(offset) => {
+                    if self.arbiter.may_home().is_ok() {
+                        self.measured = Isometry3::from_parts(
+                            Translation3::from(home().translation.vector + Vector3::from(*offset)),
+                            home().rotation,
+                        );
+                    }
+                    (Input::Homed { gripper: 0.0 }, false)
+                }
+            })
+        }
+
+        /// Applies `op` and checks every contract on what it did.
+        fn step(&mut self, op: &Op) -> Result<(), TestCaseError> {
+            let Some((input, policy_input)) = self.input(op) else {
+                return Ok(());
+            };
+            let before = self.arbiter.clone();
+            let ready_now = self.robot().not_ready(self.now_s.max(self.latest_s)).is_none();
+            let backwards = self.now_s <= self.latest_s;
+            let latest_before_s = self.latest_s;
+            let chunk_end_s = match &input {
+                Input::Chunk { chunk, .. } => {
+                    chunk.anchor_time_s + chunk.steps.len() as f64 * chunk.step_period_s
+                }
+                _ => 0.0,
+            };
+            let robot = self.robot();
+            let result = self.arbiter.handle(input.clone(), &robot, self.now_s);
+            self.latest_s = self.latest_s.max(self.now_s);
+            let a = &self.arbiter;
+
+            // Never two drivers: a policy owns the arm exactly when it drives; a driving phone is bound.
+            prop_assert_eq!(a.policy_owner().is_some(), a.driver() == Driver::Policy);
+            if a.driver() == Driver::Teleop {
+                prop_assert!(a.teleop_session().is_some() && a.policy_owner().is_none());
+            }
+
+            if let Input::Homed { .. } = &input {
+                // A teleport only while nobody drives; afterwards the arm holds where it landed.
+                prop_assert_eq!(result.is_ok(), before.driver() == Driver::None);
+                if result.is_ok() {
+                    prop_assert_eq!(a.target().0, self.measured);
+                }
+            }
+
+            let Ok(fx) = result else {
+                // A refusal changes nothing.
+                prop_assert_eq!(a.driver(), before.driver());
+                prop_assert_eq!(a.target(), before.target());
+                prop_assert_eq!(a.counters(), before.counters());
+                return Ok(());
+            };
+            if let Some(r) = &fx.revoked {
+                self.revoked.push(r.session);
+            }
+            if let Input::ClaimPolicy { session, .. } = &input {
+                self.revoked.retain(|s| s != session);
+                self.plan_end_s = f64::NEG_INFINITY;
+                // Claiming starts nothing unless the robot is ready.
+                prop_assert!(ready_now, "a claim succeeded on a robot that is not ready");
+            }
+            if let Input::BindTeleop { take_over: true, .. } = &input {
+                // (An error here would have returned above: check it did not.)
+                prop_assert!(a.teleop_session().is_some());
+            }
+            if matches!(input, Input::Chunk { .. }) {
+                self.plan_end_s = chunk_end_s;
+            }
+            if let Input::Teleop { round, .. } = &input
+                && ready_now
+                && round.buttons == [TeleopButton::Clutch(ClutchKind::Engage)]
+            {
+                // The operator always takes over.
+                prop_assert_eq!(a.driver(), Driver::Teleop);
+                prop_assert!(before.policy_owner().is_none() || fx.revoked.is_some());
+            }
+
+            if backwards && matches!(input, Input::Tick) {
+                // Time going backwards is time standing still: never an earlier step of a plan.
+                let mut standing = before.clone();
+                let expected = standing.handle(Input::Tick, &robot, latest_before_s);
+                prop_assert_eq!(
+                    Ok(fx.clone()),
+                    expected,
+                    "a tick at an earlier time did something else"
+                );
+            }
+            for (seq, c) in (before.counters().sent + 1..).zip(&fx.commands) {
+                prop_assert_eq!(c.seq, seq);
+                // Every send passed a gate: inside the box, within the jump thresholds of where the robot is
+                // (its measured pose is the previous command), a gripper target in [0, 1].
+                let gate = &TeleopConfig::default().gate;
+                let p = c.robot_from_target.translation.vector;
+                for axis in 0..3 {
+                    prop_assert!(p[axis] >= gate.workspace_min_m[axis] - 1e-12);
+                    prop_assert!(p[axis] <= gate.workspace_max_m[axis] + 1e-12);
+                }
+                let step_m = (p - self.measured.translation.vector).norm();
+                let turn_rad = angle_between_rad(&self.measured.rotation, &c.robot_from_target.rotation);
+                prop_assert!(
+                    step_m <= gate.jump_position_m + 1e-9,
+                    "jump of {} m after {:?}",
+                    step_m,
+                    op
+                );
+                prop_assert!(
+                    turn_rad <= gate.jump_rotation_rad + 1e-9,
+                    "turn of {} rad",
+                    turn_rad
+                );
+                prop_assert!((0.0..=1.0).contains(&c.gripper));
+                self.measured = c.robot_from_target;
+            }
+            if !fx.commands.is_empty() {
+                if policy_input {
+                    let owner = before.policy_owner().map(|(s, _)| s);
+                    // Only the owning policy's plan moves the arm, and a revoked one never again.
+                    prop_assert!(owner.is_some());
+                    prop_assert!(!self.revoked.contains(&owner.unwrap()));
+                    // A silent policy produces no motion once its newest plan is over.
+                    prop_assert!(
+                        self.latest_s < self.plan_end_s + 1e-9,
+                        "motion after the plan ended"
+                    );
+                }
+                if matches!(input, Input::Tick) {
+                    prop_assert_eq!(before.driver(), Driver::Policy, "a tick moved a phone-driven arm");
+                }
+                if matches!(input, Input::Teleop { .. }) {
+                    prop_assert!(ready_now, "a phone moved a robot that is not ready");
+                }
+            }
+            Ok(())
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(400))]
+
+        #[test]
+        fn the_safety_contracts_hold_over_random_inputs(ops in prop::collection::vec(any_op(), 1..120)) {
+            let mut world = World {
+                arbiter: arbiter(),
+                now_s: 1.0,
+                latest_s: 0.0,
+                measured: home(),
+                phone: Isometry3::identity(),
+                health: BridgeHealth::Ready,
+                feedback_age_s: 0.0,
+                revoked: Vec::new(),
+                plan_end_s: f64::NEG_INFINITY,
+            };
+            for op in &ops {
+                world.step(op)?;
+            }
+        }
+    }
+}
