@@ -91,6 +91,9 @@ pub struct DatasetSpec {
     pub provenance: serde_json::Value,
 }
 
+/// SVT-AV1 parameters of the default AV1 settings (see `VideoSettings::parse`).
+pub const SVT_LOW_DELAY_PARAMS: &str = "pred-struct=1:irefresh-type=2";
+
 /// Resolved video encoder settings.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct VideoSettings {
@@ -131,11 +134,14 @@ impl VideoSettings {
             // lerobot's preset for SVT-AV1; for x264 `veryfast` instead of its `medium` default, so that
             // three 640x480 cameras at 30 fps fit in two cores.
             preset: Some(if encoder == "libsvtav1" { "12" } else { "veryfast" }.to_owned()),
-            // Low-delay prediction: with a GOP of 2 the stream is the same I/P alternation lerobot writes,
-            // but SVT-AV1 keeps no mini-GOP of future frames: half the memory per encoder (~55 MB instead
-            // of ~110 MB at 640x480) and a flush that does not re-encode a backlog at save time.
+            // Low-delay prediction: SVT-AV1 keeps no mini-GOP of future frames: half the memory per encoder
+            // (~55 MB instead of ~110 MB at 640x480) and a flush that does not re-encode a backlog at save
+            // time. In that mode SVT-AV1 (1.4) makes its periodic intra frames forward key frames, which are
+            // not sync samples: the file would have one key frame, and every random access (lerobot's
+            // training loader) would decode from the episode's start. `irefresh-type=2` makes them true key
+            // frames: the I/P alternation lerobot writes with its GOP of 2.
             extra: if encoder == "libsvtav1" {
-                vec![("svtav1-params".to_owned(), "pred-struct=1".to_owned())]
+                vec![("svtav1-params".to_owned(), SVT_LOW_DELAY_PARAMS.to_owned())]
             } else {
                 Vec::new()
             },
@@ -244,7 +250,7 @@ mod tests {
         assert_eq!(av1.preset.as_deref(), Some("12"));
         assert_eq!(
             av1.extra,
-            vec![("svtav1-params".to_owned(), "pred-struct=1".to_owned())]
+            vec![("svtav1-params".to_owned(), SVT_LOW_DELAY_PARAMS.to_owned())]
         );
         let lerobot_like = VideoSettings::parse(Some("av1:svtav1-params="), Format::V30).unwrap();
         assert!(lerobot_like.extra.is_empty());

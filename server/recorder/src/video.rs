@@ -505,3 +505,48 @@ fn encode_loop(
         image_stats: stats,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::spec::Format;
+
+    /// Key (sync) flags of the video packets of `path`, in file order.
+    fn key_flags(path: &Path) -> Vec<bool> {
+        let mut input = format::input(&path).unwrap();
+        let stream = input.streams().best(ffmpeg::media::Type::Video).unwrap().index();
+        input
+            .packets()
+            .filter(|(s, _)| s.index() == stream)
+            .map(|(_, p)| p.is_key())
+            .collect()
+    }
+
+    /// lerobot's loader seeks to the key frame before each sampled frame and decodes from there: with a GOP of
+    /// 2 that is at most one frame of extra decoding. A file whose only key frame is its first makes every
+    /// sample decode the episode from its start, so the default settings of each codec must give a key frame
+    /// every second packet, as lerobot's own files have.
+    #[test]
+    fn default_settings_give_a_key_frame_every_second_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        // SVT-AV1 refuses pictures under 64x64.
+        let (w, h, fps) = (64, 64, 20);
+        for codec in ["av1", "h264"] {
+            let settings = VideoSettings::parse(Some(codec), Format::V30).unwrap();
+            let path = dir.path().join(format!("{codec}.mp4"));
+            let mut enc = VideoEncoder::create(&path, w, h, fps, &settings).unwrap();
+            for i in 0..20u8 {
+                // Moving content, so that no encoder could code a frame as a repeat.
+                let rgb: Vec<u8> = (0..w * h * 3)
+                    .map(|k| (k as u8).wrapping_mul(7).wrapping_add(i * 13))
+                    .collect();
+                enc.push_rgb(&rgb, w, h).unwrap();
+            }
+            assert_eq!(enc.finish().unwrap(), 20);
+            let keys = key_flags(&path);
+            assert_eq!(keys.len(), 20, "{codec}: {keys:?}");
+            let want: Vec<bool> = (0..20).map(|i| i % 2 == 0).collect();
+            assert_eq!(keys, want, "{codec}: key frames at the wrong packets");
+        }
+    }
+}

@@ -405,7 +405,11 @@ fn encode_speed(o: &Opts) -> Res<()> {
             "h264:preset=medium,bf=-1",
             Some("h264"),
         ),
-        ("av1, phone2act default (+pred-struct=1)", "av1", None),
+        (
+            "av1, phone2act default (+pred-struct=1:irefresh-type=2)",
+            "av1",
+            None,
+        ),
         ("h264, phone2act default (veryfast, no B-frames)", "h264", None),
     ];
     for (label, ours, theirs) in rows {
