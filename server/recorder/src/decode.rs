@@ -1,0 +1,176 @@
+//! Reading frames back out of a dataset's video: the few frames `phone2act dataset plot` shows per camera.
+//! Decodes sequentially from the start of the file up to the last frame asked for (an episode's video is a
+//! few seconds to minutes; a lerobot v3.0 file holding several episodes is read up to the one wanted).
+
+use crate::camera::Frame;
+use crate::error::RecorderError;
+use ffmpeg_next as ffmpeg;
+use ffmpeg_next::format::Pixel;
+use ffmpeg_next::software::scaling;
+use ffmpeg_next::util::frame::video::Video as VideoFrame;
+use std::path::Path;
+use std::sync::Arc;
+
+fn video_error(path: &Path, detail: impl std::fmt::Display) -> RecorderError {
+    RecorderError::Video {
+        camera: path.display().to_string(),
+        detail: detail.to_string(),
+    }
+}
+
+/// The frames presented at `times_s` (seconds from the start of the file, ascending), as RGB no wider
+/// than `max_width_px` (aspect kept). Each is the first frame whose presentation time is at or after the
+/// time asked for, less half a frame (so `i / fps` finds frame *i* despite rounding); a time past the last
+/// frame gets the last frame. An empty file or a file without a video stream is an error.
+pub fn frames_at(path: &Path, times_s: &[f64], max_width_px: u32) -> Result<Vec<Frame>, RecorderError> {
+    crate::video::init_ffmpeg();
+    let mut input =
+        ffmpeg::format::input(path).map_err(|e| video_error(path, format!("cannot open: {e}")))?;
+    let stream = input
+        .streams()
+        .best(ffmpeg::media::Type::Video)
+        .ok_or_else(|| video_error(path, "no video stream"))?;
+    let index = stream.index();
+    let time_base = f64::from(stream.time_base());
+    let rate = stream.avg_frame_rate();
+    let half_frame_s = if rate.numerator() > 0 {
+        0.5 / f64::from(rate)
+    } else {
+        1e-3
+    };
+    let parameters = stream.parameters();
+    let context = ffmpeg::codec::context::Context::from_parameters(parameters)
+        .map_err(|e| video_error(path, format!("cannot read the codec parameters: {e}")))?;
+    // FFmpeg's own AV1 decoder needs a hardware accelerator; dav1d decodes in software.
+    let av1 = context.id() == ffmpeg::codec::Id::AV1;
+    let mut decoder = {
+        let _guard = crate::video::CODEC_LOCK
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        match ffmpeg::decoder::find_by_name("libdav1d").filter(|_| av1) {
+            Some(codec) => context
+                .decoder()
+                .open_as(codec)
+                .and_then(ffmpeg::decoder::Opened::video),
+            None => context.decoder().video(),
+        }
+    }
+    .map_err(|e| video_error(path, format!("no decoder for this stream: {e}")))?;
+
+    let mut wanted = times_s.iter().copied().peekable();
+    let mut out = Vec::with_capacity(times_s.len());
+    let mut scaler: Option<scaling::Context> = None;
+    let mut decoded = VideoFrame::empty();
+    let mut last: Option<Frame> = None;
+    let mut take =
+        |frame: &VideoFrame, out: &mut Vec<Frame>, last: &mut Option<Frame>| -> Result<bool, RecorderError> {
+            let pts_s = frame.timestamp().or(frame.pts()).unwrap_or(0) as f64 * time_base;
+            let rgb = to_rgb(path, frame, max_width_px, &mut scaler)?;
+            while wanted.peek().is_some_and(|t| *t <= pts_s + half_frame_s) {
+                wanted.next();
+                out.push(rgb.clone());
+            }
+            *last = Some(rgb);
+            Ok(wanted.peek().is_none())
+        };
+    'packets: for (s, packet) in input.packets() {
+        if s.index() != index {
+            continue;
+        }
+        decoder
+            .send_packet(&packet)
+            .map_err(|e| video_error(path, format!("cannot decode: {e}")))?;
+        while decoder.receive_frame(&mut decoded).is_ok() {
+            if take(&decoded, &mut out, &mut last)? {
+                break 'packets;
+            }
+        }
+    }
+    if out.len() < times_s.len() {
+        let _ = decoder.send_eof();
+        while decoder.receive_frame(&mut decoded).is_ok() {
+            if take(&decoded, &mut out, &mut last)? {
+                break;
+            }
+        }
+    }
+    let Some(last) = last else {
+        return Err(video_error(path, "the video holds no frame"));
+    };
+    out.resize(times_s.len(), last);
+    Ok(out)
+}
+
+/// Packed RGB of a decoded frame, scaled down to at most `max_width_px` wide.
+fn to_rgb(
+    path: &Path,
+    frame: &VideoFrame,
+    max_width_px: u32,
+    scaler: &mut Option<scaling::Context>,
+) -> Result<Frame, RecorderError> {
+    let (w, h) = (frame.width(), frame.height());
+    let out_w = w.min(max_width_px.max(2));
+    let out_h = ((u64::from(h) * u64::from(out_w) / u64::from(w.max(1))) as u32).max(1);
+    let stale = scaler.as_ref().is_none_or(|s| {
+        let i = s.input();
+        (i.format, i.width, i.height) != (frame.format(), w, h)
+    });
+    if stale {
+        *scaler = Some(
+            scaling::Context::get(
+                frame.format(),
+                w,
+                h,
+                Pixel::RGB24,
+                out_w,
+                out_h,
+                scaling::Flags::BILINEAR,
+            )
+            .map_err(|e| video_error(path, format!("cannot convert to RGB: {e}")))?,
+        );
+    }
+    let mut rgb = VideoFrame::empty();
+    scaler
+        .as_mut()
+        .map(|s| s.run(frame, &mut rgb))
+        .transpose()
+        .map_err(|e| video_error(path, format!("cannot convert to RGB: {e}")))?;
+    let stride = rgb.stride(0);
+    let row = out_w as usize * 3;
+    let data = rgb.data(0);
+    let mut packed = Vec::with_capacity(row * out_h as usize);
+    for y in 0..out_h as usize {
+        packed.extend_from_slice(&data[y * stride..y * stride + row]);
+    }
+    Ok(Frame {
+        width: out_w,
+        height: out_h,
+        rgb: Arc::new(packed),
+        capture_time_ns: 0,
+        seq: 0,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// lerobot's v3.0 fixture: 30 frames of 128x96 at 10 fps (three episodes in one AV1 file).
+    const FIXTURE: &str = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/lerobot_sample_v30/videos/observation.images.front/chunk-000/file-000.mp4"
+    );
+
+    #[test]
+    fn frames_at_times_decode_scaled_and_past_the_end_repeat_the_last() {
+        let frames = frames_at(Path::new(FIXTURE), &[0.0, 1.0, 2.9, 50.0], 64).unwrap();
+        assert_eq!(frames.len(), 4);
+        for f in &frames {
+            assert_eq!((f.width, f.height), (64, 48));
+            assert_eq!(f.rgb.len(), 64 * 48 * 3);
+        }
+        assert_eq!(frames[2].rgb, frames[3].rgb, "past the end: the last frame");
+        let err = frames_at(Path::new("/nonexistent.mp4"), &[0.0], 64).unwrap_err();
+        assert!(err.to_string().contains("cannot open"), "{err}");
+    }
+}
