@@ -130,6 +130,34 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
     spans
 }
 
+/// The points of one series, at most two per bucket of consecutive frames (its lowest and its highest, in
+/// time order), so that an hour-long episode's panel stays a few kB and still shows every spike.
+fn decimate(times_s: &[f64], values: &[f64], buckets: usize) -> Vec<(f64, f64)> {
+    let points: Vec<(f64, f64)> = times_s
+        .iter()
+        .zip(values)
+        .filter(|(_, v)| v.is_finite())
+        .map(|(t, v)| (*t, *v))
+        .collect();
+    if points.len() <= 2 * buckets {
+        return points;
+    }
+    let per_bucket = points.len().div_ceil(buckets);
+    let mut out = Vec::with_capacity(2 * buckets);
+    for chunk in points.chunks(per_bucket) {
+        let by_value = |a: &&(f64, f64), b: &&(f64, f64)| a.1.total_cmp(&b.1);
+        let (Some(lo), Some(hi)) = (chunk.iter().min_by(by_value), chunk.iter().max_by(by_value)) else {
+            continue;
+        };
+        let (first, second) = if lo.0 <= hi.0 { (lo, hi) } else { (hi, lo) };
+        out.push(*first);
+        if second != first {
+            out.push(*second);
+        }
+    }
+    out
+}
+
 fn html_escape(text: &str) -> String {
     text.replace('&', "&amp;")
         .replace('<', "&lt;")
@@ -178,7 +206,13 @@ fn panel_svg(
         chart.draw_series(spans.iter().map(|(_, from, to)| {
             Rectangle::new([(*from, y0), (*to, y1)], ENGAGED_COLOR.mix(0.13).filled())
         }))?;
+        // One line per kind and pixel column: a gate refusing every frame of an hour must not draw 70 000.
+        let mut drawn = std::collections::BTreeSet::new();
         for e in events {
+            let column = (e.timestamp / end_s * f64::from(PANEL_SIZE_PX.0)).round() as i64;
+            if !drawn.insert((e.kind as u8, column)) {
+                continue;
+            }
             let color = match e.kind {
                 EventKind::GateRejected => REJECTED_COLOR,
                 EventKind::GateClamped => CLAMPED_COLOR,
@@ -190,11 +224,7 @@ fn panel_svg(
             )))?;
         }
         for (values, color) in series {
-            let points = times_s
-                .iter()
-                .zip(values.iter())
-                .filter(|(_, v)| v.is_finite())
-                .map(|(t, v)| (*t, *v));
+            let points = decimate(times_s, values, PANEL_SIZE_PX.0 as usize);
             chart.draw_series(LineSeries::new(points, color.stroke_width(2)))?;
         }
         root.present()?;
@@ -445,6 +475,22 @@ mod tests {
         assert_eq!(unit("gripper.pos", true), "%");
         assert_eq!(unit("elbow_flex.pos", true), "deg");
         assert_eq!(unit("j0", false), "unit not recorded");
+    }
+
+    #[test]
+    fn decimation_keeps_every_spike_in_time_order() {
+        let times: Vec<f64> = (0..100_000).map(|i| f64::from(i) / 30.0).collect();
+        let mut values: Vec<f64> = times.iter().map(|t| (t * 0.1).sin()).collect();
+        values[77_777] = 9.0;
+        values[12_345] = -9.0;
+        values[5] = f64::NAN;
+        let points = decimate(&times, &values, 500);
+        assert!(points.len() <= 1000, "{}", points.len());
+        assert!(points.windows(2).all(|w| w[0].0 < w[1].0));
+        assert!(points.contains(&(times[77_777], 9.0)) && points.contains(&(times[12_345], -9.0)));
+        assert!(points.iter().all(|p| p.1.is_finite()));
+        // Short series are drawn as they are.
+        assert_eq!(decimate(&times[..10], &values[..10], 500).len(), 9);
     }
 
     #[test]
