@@ -56,48 +56,81 @@ pub fn frames_at(path: &Path, times_s: &[f64], max_width_px: u32) -> Result<Vec<
     .map_err(|e| video_error(path, format!("no decoder for this stream: {e}")))?;
 
     let mut scaler: Option<scaling::Context> = None;
-    let mut decoded = VideoFrame::empty();
+    let pts_s = |frame: &VideoFrame| frame.timestamp().or(frame.pts()).unwrap_or(0) as f64 * time_base;
+    // The newest decoded frame and a spare to receive into, swapped rather than copied, so that only the
+    // frames shown are converted to RGB.
+    let (mut current, mut spare) = (VideoFrame::empty(), VideoFrame::empty());
+    let mut current_s: Option<f64> = None;
+    let mut eof = false;
+    // Seeking helps only where keyframes are close (lerobot writes one every 2 frames); phone2act's AV1 has
+    // one per episode, where every seek would go back to the first frame: then decode straight on.
+    let mut straight_on = false;
     let mut out = Vec::with_capacity(times_s.len());
     for &t_s in times_s {
-        // To the keyframe at or before t (AV_TIME_BASE units), then decode forward: a GOP per frame asked
-        // for, not the whole file (a lerobot v3.0 file holds many episodes).
-        let target_us = (t_s.max(0.0) * 1e6) as i64;
-        input
-            .seek(target_us, ..target_us + 1)
-            .map_err(|e| video_error(path, format!("cannot seek to {t_s:.3} s: {e}")))?;
-        decoder.flush();
-        let mut last = None;
-        let mut at = |frame: &VideoFrame, last: &mut Option<Frame>| -> Result<bool, RecorderError> {
-            let pts_s = frame.timestamp().or(frame.pts()).unwrap_or(0) as f64 * time_base;
-            *last = Some(to_rgb(path, frame, max_width_px, &mut scaler)?);
-            Ok(pts_s + half_frame_s >= t_s)
-        };
-        let mut found = false;
-        'packets: for (s, packet) in input.packets() {
-            if s.index() != index {
-                continue;
-            }
-            decoder
-                .send_packet(&packet)
-                .map_err(|e| video_error(path, format!("cannot decode: {e}")))?;
-            while decoder.receive_frame(&mut decoded).is_ok() {
-                if at(&decoded, &mut last)? {
-                    found = true;
-                    break 'packets;
-                }
+        let ahead = current_s.is_some_and(|c| c - half_frame_s <= t_s);
+        if !(ahead && (straight_on || current_s.is_some_and(|c| t_s - c < SEEK_GAP_S))) {
+            let before = current_s.filter(|_| ahead);
+            // To the keyframe at or before t (AV_TIME_BASE units).
+            let target_us = (t_s.max(0.0) * 1e6) as i64;
+            input
+                .seek(target_us, ..target_us + 1)
+                .map_err(|e| video_error(path, format!("cannot seek to {t_s:.3} s: {e}")))?;
+            decoder.flush();
+            (eof, current_s) = (false, None);
+            if next_frame(&mut input, &mut decoder, index, &mut spare, &mut eof)
+                .map_err(|e| video_error(path, e))?
+            {
+                std::mem::swap(&mut current, &mut spare);
+                let landed_s = pts_s(&current);
+                current_s = Some(landed_s);
+                straight_on |= before.is_some_and(|b| landed_s <= b);
             }
         }
-        if !found {
-            let _ = decoder.send_eof();
-            while decoder.receive_frame(&mut decoded).is_ok() {
-                if at(&decoded, &mut last)? {
-                    break;
-                }
+        while current_s.is_none_or(|c| c + half_frame_s < t_s) {
+            if !next_frame(&mut input, &mut decoder, index, &mut spare, &mut eof)
+                .map_err(|e| video_error(path, e))?
+            {
+                // Past the last frame: the last frame.
+                break;
             }
+            std::mem::swap(&mut current, &mut spare);
+            current_s = Some(pts_s(&current));
         }
-        out.push(last.ok_or_else(|| video_error(path, format!("no frame at or before {t_s:.3} s")))?);
+        if current_s.is_none() {
+            return Err(video_error(path, format!("no frame at or before {t_s:.3} s")));
+        }
+        out.push(to_rgb(path, &current, max_width_px, &mut scaler)?);
     }
     Ok(out)
+}
+
+/// A gap between two frames asked for, s, beyond which seeking is tried rather than decoding through it.
+const SEEK_GAP_S: f64 = 1.0;
+
+/// Receives the next decoded frame of stream `index` into `frame`; `false` at the end of the stream.
+fn next_frame(
+    input: &mut ffmpeg::format::context::Input,
+    decoder: &mut ffmpeg::decoder::Video,
+    index: usize,
+    frame: &mut VideoFrame,
+    eof: &mut bool,
+) -> Result<bool, String> {
+    loop {
+        if decoder.receive_frame(frame).is_ok() {
+            return Ok(true);
+        }
+        if *eof {
+            return Ok(false);
+        }
+        if let Some((_, packet)) = input.packets().find(|(s, _)| s.index() == index) {
+            decoder
+                .send_packet(&packet)
+                .map_err(|e| format!("cannot decode: {e}"))?;
+        } else {
+            let _ = decoder.send_eof();
+            *eof = true;
+        }
+    }
 }
 
 /// Packed RGB of a decoded frame, scaled down to at most `max_width_px` wide.
@@ -181,6 +214,45 @@ mod tests {
             (&reversed[0].rgb, &reversed[1].rgb),
             (&frames[2].rgb, &frames[0].rgb)
         );
+        let err = frames_at(Path::new("/nonexistent.mp4"), &[0.0], 64).unwrap_err();
+        assert!(err.to_string().contains("cannot open"), "{err}");
+    }
+
+    /// phone2act's own videos, both defaults: AV1 (one keyframe per file: decoded straight on) and H.264
+    /// (a keyframe every 2 frames: sought). Frame i is a flat grey of level 4i, so every frame found can be
+    /// told from its neighbours.
+    #[test]
+    fn our_videos_give_the_frame_asked_for_in_both_codecs() {
+        use crate::spec::{Format, VideoSettings};
+        let dir = tempfile::tempdir().unwrap();
+        for format in [Format::V30, Format::V21] {
+            let path = dir.path().join(format!("{format:?}.mp4"));
+            let settings = VideoSettings::parse(None, format).unwrap();
+            let mut encoder = crate::video::VideoEncoder::create(&path, 64, 64, 20, &settings).unwrap();
+            for i in 0..60_u8 {
+                encoder.push_rgb(&vec![4 * i; 64 * 64 * 3], 64, 64).unwrap();
+            }
+            encoder.finish().unwrap();
+            // Gaps over a second (seek or decode on), under it (decode on), backwards, and past the end.
+            let frames = [0_u8, 27, 28, 55, 12, 59];
+            let mut times: Vec<f64> = frames.iter().map(|&i| f64::from(i) / 20.0).collect();
+            times.push(20.0);
+            let got = frames_at(&path, &times, 64).unwrap();
+            for (k, frame) in got.iter().enumerate() {
+                let mean = frame.rgb.iter().map(|&v| f64::from(v)).sum::<f64>() / frame.rgb.len() as f64;
+                let want = 4.0 * f64::from(*frames.get(k).unwrap_or(&59));
+                // Neighbouring frames are 4 levels apart; a flat grey comes back within 1 (seen: 1 off).
+                assert!(
+                    (mean - want).abs() < 1.5,
+                    "{format:?} time {}: level {mean}, want {want}",
+                    times[k]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn missing_files_are_named() {
         let err = frames_at(Path::new("/nonexistent.mp4"), &[0.0], 64).unwrap_err();
         assert!(err.to_string().contains("cannot open"), "{err}");
     }
