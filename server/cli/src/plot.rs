@@ -158,6 +158,14 @@ fn decimate(times_s: &[f64], values: &[f64], buckets: usize) -> Vec<(f64, f64)> 
     out
 }
 
+/// The arm a dimension belongs to, among the arms that have events: with several arms phone2act prefixes
+/// every name with `{arm}_`. `None` (a single arm's unprefixed names, another writer's): every arm's.
+fn arm_of<'a>(name: &str, arms: &[&'a str]) -> Option<&'a str> {
+    arms.iter()
+        .copied()
+        .find(|arm| name.strip_prefix(arm).is_some_and(|rest| rest.starts_with('_')))
+}
+
 fn html_escape(text: &str) -> String {
     text.replace('&', "&amp;")
         .replace('<', "&lt;")
@@ -299,6 +307,9 @@ pub fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Result<Pat
         Some(e) => (e.clone(), engaged_spans(e, end_s)),
         None => (Vec::new(), Vec::new()),
     };
+    let mut arms: Vec<&str> = marks.iter().map(|e| e.arm.as_str()).collect();
+    arms.sort_unstable();
+    arms.dedup();
     let vector = |key: &str| episode.vectors.iter().find(|v| v.key == key);
     let (state, action) = (vector("observation.state"), vector("action"));
     let names = |v: Option<&phone2act_recorder::readback::VectorFeature>| {
@@ -397,7 +408,13 @@ pub fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Result<Pat
         units.dedup();
         let units = units.join(" / ");
         let refs: Vec<(&[f64], RGBColor)> = series.iter().map(|(v, c)| (v.as_slice(), *c)).collect();
-        let svg = panel_svg(&times_s, &refs, &marks, &spans, &units)
+        // A bimanual dataset: each arm's panels carry that arm's clutch and gate marks only.
+        let name = panel.title.split(" / ").next().unwrap_or_default();
+        let arm = arm_of(name, &arms);
+        let ours = |a: &str| arm.is_none_or(|arm| arm == a);
+        let panel_marks: Vec<EpisodeEvent> = marks.iter().filter(|e| ours(&e.arm)).cloned().collect();
+        let panel_spans: Vec<(String, f64, f64)> = spans.iter().filter(|s| ours(&s.0)).cloned().collect();
+        let svg = panel_svg(&times_s, &refs, &panel_marks, &panel_spans, &units)
             .with_context(|| format!("cannot draw the panel of {}", panel.title))?;
         let attr = |v: Option<&phone2act_recorder::readback::VectorFeature>, i: Option<usize>| {
             i.and_then(|i| Some(html_escape(&v?.names[i])))
@@ -491,6 +508,15 @@ mod tests {
         assert!(points.iter().all(|p| p.1.is_finite()));
         // Short series are drawn as they are.
         assert_eq!(decimate(&times[..10], &values[..10], 500).len(), 9);
+    }
+
+    #[test]
+    fn each_arm_has_its_own_marks() {
+        let arms = ["left", "right"];
+        assert_eq!(arm_of("left_ee_x", &arms), Some("left"));
+        assert_eq!(arm_of("right_gripper", &arms), Some("right"));
+        assert_eq!(arm_of("leftover", &arms), None);
+        assert_eq!(arm_of("ee_x", &["main"]), None);
     }
 
     #[test]
