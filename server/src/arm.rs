@@ -508,6 +508,18 @@ impl ArmController {
         self.lock().arbiter.tick_need()
     }
 
+    /// Whether the operator's clutch is in, the gate's rejected and clamped counters, and the reason of its
+    /// last decision: what the recorder turns into the episode's clutch and gate events.
+    pub fn clutch_and_gate(&self) -> (bool, u64, u64, String) {
+        let inner = self.lock();
+        (
+            inner.driver == Driver::Teleop && inner.teleop.engaged(),
+            inner.commands_rejected,
+            inner.commands_clamped,
+            inner.last_decision.reason.clone(),
+        )
+    }
+
     /// A snapshot for the API.
     pub fn snapshot(&self) -> ArmSnapshot {
         let feedback = self.bridge.feedback();

@@ -5,6 +5,7 @@
 use crate::arm::ArmController;
 use crate::config::Config;
 use phone2act_recorder::error::RecorderError;
+use phone2act_recorder::events::ArmActivity;
 use phone2act_recorder::recorder::{RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
@@ -35,8 +36,17 @@ impl RobotSource for ArmsSource {
         let mut oldest_ns = i64::MAX;
         // The task is done when every arm that has one has done its own (a bimanual sim has two scenes).
         let mut success = true;
+        let mut activity = Vec::with_capacity(self.arms.len());
         for arm in &self.arms {
             let sample = arm.state_and_action()?;
+            let (engaged, rejected, clamped, last_reason) = arm.clutch_and_gate();
+            activity.push(ArmActivity {
+                arm: arm.name.clone(),
+                engaged,
+                rejected,
+                clamped,
+                last_reason,
+            });
             state.extend(sample.state);
             action.extend(sample.action);
             oldest_ns = oldest_ns.min(sample.capture_time_ns);
@@ -47,6 +57,7 @@ impl RobotSource for ArmsSource {
             action,
             success,
             capture_time_ns: oldest_ns,
+            arms: activity,
         })
     }
 }

@@ -8,6 +8,8 @@ use phone2act_server::{Config, bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+mod plot;
+
 #[derive(Parser, Debug)]
 #[command(
     name = "phone2act",
@@ -103,6 +105,18 @@ enum DatasetAction {
     Verify {
         /// Dataset root directory.
         path: PathBuf,
+    },
+    /// Plot an episode into one HTML page: camera frames, state and action per dimension over time, clutch
+    /// and gate events marked.
+    Plot {
+        /// Dataset root directory.
+        path: PathBuf,
+        /// Episode index.
+        #[arg(long)]
+        episode: u64,
+        /// Output file [default: episode_NNNNNN.html in the current directory].
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -419,6 +433,13 @@ fn real_main() -> anyhow::Result<()> {
         Command::Dataset {
             action: DatasetAction::Info { path },
         } => dataset_info(&path),
+        Command::Dataset {
+            action: DatasetAction::Plot { path, episode, out },
+        } => {
+            let written = plot::plot(&path, episode, out)?;
+            outln!("{}", written.display());
+            Ok(())
+        }
         Command::Dataset {
             action: DatasetAction::Verify { path },
         } => {

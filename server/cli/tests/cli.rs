@@ -428,3 +428,330 @@ fn status_watch_into_a_pipe_keeps_every_snapshot_with_rates_and_gate_counters() 
     // The first snapshot has no previous one to take a rate from; the next two have.
     assert_eq!(text.matches(" cmd/s  gate: sent ").count(), 2, "{text}");
 }
+
+/// `(kind, frame)` of every event the plot page lists, in page order.
+fn plotted_events(html: &str) -> Vec<(String, u64)> {
+    html.split("<li class=\"event\" data-kind=\"")
+        .skip(1)
+        .map(|rest| {
+            let (kind, rest) = rest.split_once('"').unwrap();
+            let frame = rest.split("data-frame=\"").nth(1).unwrap();
+            (
+                kind.to_owned(),
+                frame[..frame.find('"').unwrap()].parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+/// The values of attribute `attr` of every `<figure class="panel"`, in page order.
+fn panel_attr(html: &str, attr: &str) -> Vec<String> {
+    html.split("<figure class=\"panel\"")
+        .skip(1)
+        .map(|p| {
+            let v = p.split(&format!("{attr}=\"")).nth(1).unwrap();
+            v[..v.find('"').unwrap()].to_owned()
+        })
+        .collect()
+}
+
+/// Every inline camera frame of the page, decoded: `(width, height)` as the JPEG says.
+fn plotted_frames(html: &str) -> Vec<(u32, u32)> {
+    use base64::Engine as _;
+    html.split("src=\"data:image/jpeg;base64,")
+        .skip(1)
+        .map(|rest| {
+            let bytes = base64::engine::general_purpose::STANDARD
+                .decode(&rest[..rest.find('"').unwrap()])
+                .unwrap();
+            let frame = phone2act_recorder::jpeg::decode_jpeg(&bytes).unwrap();
+            (frame.width, frame.height)
+        })
+        .collect()
+}
+
+fn plot(args: &[&str], dir: &std::path::Path) -> (bool, String, String) {
+    let out = Command::new(BIN)
+        .args(["dataset", "plot"])
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Issue 18: an episode teleoperated over a real socket (two clutch cycles, one 12 cm jump the gate rejects)
+/// is recorded on a served binary; its events sidecar holds the clutch and gate events at frames the recorded
+/// action agrees with, and `dataset plot` draws a panel per dimension, the events, and camera frames.
+#[test]
+fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
+    use phone2act_recorder::events::EventKind;
+    use phone2act_sdk::buttons;
+    use phone2act_sdk::proto as v1;
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let server = serve(&write_config(dir.path()));
+    let pose = |z: f64| v1::Pose::from_parts([0.0, 0.0, z], [0.0, 0.0, 0.0, 1.0]);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let client = phone2act_sdk::Client::connect(&server.url, Some(SECRET_TOKEN))
+            .await
+            .unwrap();
+        // The sim's first feedback, so that the arm is ready to engage.
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        let mut episodes = client.episodes();
+        episodes.start("plot me").await.unwrap();
+        // A few frames before the first engage, so that the action before it is on record. A minute is far
+        // more than two 50 ms ticks even when a loaded 2-core machine starves the debug binary.
+        let deadline = Instant::now() + Duration::from_mins(1);
+        while episodes.status().await.unwrap().frames_recorded < 2 {
+            assert!(
+                Instant::now() < deadline,
+                "the recorder recorded nothing for a minute"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let mut phone = client
+            .teleop("main", phone2act_sdk::TeleopOptions::default())
+            .await
+            .unwrap();
+        // Pauses long enough for the 20 fps recorder to tick between the steps (it holds the newest sample, so a
+        // late tick only moves an event by the frames it was late, which the checks below allow).
+        let pause = || tokio::time::sleep(Duration::from_millis(300));
+        pause().await;
+        let mut send = async |z: f64, buttons: Vec<v1::ButtonEvent>| {
+            let seq = phone.send_pose(pose(z), buttons, 0).await.unwrap();
+            let fb = phone.feedback_for(seq).await.unwrap();
+            assert!(fb.error.is_empty(), "{}", fb.error);
+            fb.arm_state.unwrap()
+        };
+        assert!(send(0.0, vec![buttons::clutch_engage()]).await.engaged);
+        for i in 1..=4 {
+            send(-0.01 * f64::from(i), vec![]).await;
+        }
+        // 12 cm in one sample: over the default 60 mm jump threshold (right after the walk: after 0.3 s of
+        // silence the gate counts the input as stale and takes the next pose as its new reference).
+        let state = send(-0.16, vec![]).await;
+        assert_eq!(
+            state.last_decision.unwrap().verdict(),
+            v1::GateVerdict::RejectedJump
+        );
+        pause().await;
+        assert!(!send(-0.04, vec![buttons::clutch_disengage()]).await.engaged);
+        pause().await;
+        assert!(send(0.0, vec![buttons::clutch_engage()]).await.engaged);
+        for i in 1..=3 {
+            send(0.01 * f64::from(i), vec![]).await;
+        }
+        pause().await;
+        assert!(!send(0.03, vec![buttons::clutch_disengage()]).await.engaged);
+        pause().await;
+        drop(phone);
+        episodes.stop().await.unwrap();
+    });
+
+    // The sidecar: engage, rejection, release, engage, release, in that order.
+    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    let kinds: Vec<EventKind> = events.iter().map(|e| e.kind).collect();
+    assert_eq!(
+        kinds,
+        [
+            EventKind::ClutchEngage,
+            EventKind::GateRejected,
+            EventKind::ClutchRelease,
+            EventKind::ClutchEngage,
+            EventKind::ClutchRelease
+        ],
+        "{events:#?}"
+    );
+    let frame = |i: usize| usize::try_from(events[i].frame_index).unwrap();
+    assert!(
+        events.windows(2).all(|w| w[0].frame_index <= w[1].frame_index),
+        "{events:#?}"
+    );
+    // At the right frames: the recorded action is the gated target, which moves only while the clutch is in.
+    // So it holds still before the first engage and from each release to the next engage, and over the first
+    // engaged span it moved the 4 cm walked (the engage frame may already hold the first steps: the phone
+    // sends faster than the recorder ticks). A marker late by even one frame would put a moving frame
+    // before it. (One early cannot be told from the action: the clutch may engage a frame before the first
+    // step; `events::tests` pin the exact frame of a change.)
+    let episode = phone2act_recorder::readback::read_episode(&ds, 0).unwrap();
+    let action = &episode.vectors.iter().find(|v| v.key == "action").unwrap().rows;
+    let x = episode.vectors[1].names.iter().position(|n| n == "x").unwrap();
+    let still = |from: usize, to: usize| action[from..to].iter().all(|a| a == &action[from]);
+    assert!(still(0, frame(0)), "moved before the clutch engaged");
+    assert!(still(frame(2), frame(3)), "moved while the clutch was released");
+    assert!(still(frame(4), action.len()), "moved after the last release");
+    let moved_m = (0..3)
+        .map(|k| (action[frame(2)][x + k] - action[frame(0) - 1][x + k]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        (moved_m - 0.04).abs() < 0.005,
+        "the first engaged span moved {moved_m} m, not 4 cm: {events:#?}"
+    );
+
+    let (ok, out, err) = plot(&["ds", "--episode", "0", "--out", "ep0.html"], dir.path());
+    assert!(ok, "{err}");
+    assert_eq!(out.trim(), "ep0.html");
+    let html = std::fs::read_to_string(dir.path().join("ep0.html")).unwrap();
+    let listed: Vec<(String, u64)> = events
+        .iter()
+        .map(|e| {
+            let kind = serde_json::to_value(e.kind).unwrap();
+            (kind.as_str().unwrap().to_owned(), e.frame_index)
+        })
+        .collect();
+    assert_eq!(plotted_events(&html), listed);
+    assert!(!html.contains("No events recorded"));
+    // A panel per dimension: every state and every action dimension is drawn, the measured end-effector pose
+    // and gripper with the commanded ones (`ee_x` with `x`, ...), the joints alone.
+    let state_names = &episode.vectors[0].names;
+    let action_names = &episode.vectors[1].names;
+    let (states, actions) = (panel_attr(&html, "data-state"), panel_attr(&html, "data-action"));
+    assert_eq!(
+        states.iter().filter(|s| !s.is_empty()).collect::<Vec<_>>(),
+        state_names.iter().collect::<Vec<_>>()
+    );
+    let mut drawn: Vec<&String> = actions.iter().filter(|a| !a.is_empty()).collect();
+    drawn.sort();
+    let mut want: Vec<&String> = action_names.iter().collect();
+    want.sort();
+    assert_eq!(drawn, want);
+    let both = states
+        .iter()
+        .zip(&actions)
+        .filter(|(s, a)| !s.is_empty() && !a.is_empty())
+        .count();
+    assert_eq!(
+        both,
+        action_names.len(),
+        "every commanded quantity meets its measured one"
+    );
+    assert!(html.contains("ee_x / x [m]"), "units from the layout");
+    // Five frames (fewer only for a shorter episode) of the one camera (640x480), scaled to 240 px wide, that
+    // decode as JPEGs.
+    let shown = episode.frame_index.len().min(5);
+    assert_eq!(plotted_frames(&html), vec![(240, 180); shown]);
+    assert_eq!(html.matches("<svg").count(), states.len());
+}
+
+/// lerobot's own datasets (v3.0 and v2.1) plot without markers, and say why; bad requests are clear errors.
+#[test]
+fn lerobot_datasets_plot_without_events_and_bad_requests_are_clear_errors() {
+    let fixtures = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/fixtures");
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["lerobot_sample_v30", "lerobot_sample_v21"] {
+        let (ok, out, err) = plot(&[&format!("{fixtures}/{name}"), "--episode", "2"], dir.path());
+        assert!(ok, "{name}: {err}");
+        assert_eq!(out.trim(), "episode_000002.html");
+        let html = std::fs::read_to_string(dir.path().join("episode_000002.html")).unwrap();
+        // The fixture: 6 joints j0..j5 on both sides, two 128x96 cameras, episode 2 has 8 frames.
+        assert_eq!(
+            panel_attr(&html, "data-state"),
+            ["j0", "j1", "j2", "j3", "j4", "j5"],
+            "{name}"
+        );
+        assert_eq!(
+            panel_attr(&html, "data-action"),
+            ["j0", "j1", "j2", "j3", "j4", "j5"],
+            "{name}"
+        );
+        assert!(html.contains("8 frames at 10 fps"), "{name}");
+        assert!(html.contains("No events recorded"), "{name}");
+        assert!(plotted_events(&html).is_empty());
+        assert_eq!(plotted_frames(&html), vec![(128, 96); 10], "{name}");
+    }
+
+    let (ok, _, err) = plot(
+        &[&format!("{fixtures}/lerobot_sample_v30"), "--episode", "3"],
+        dir.path(),
+    );
+    assert!(
+        !ok && err.contains("has 3 episodes") && err.contains("no episode 3"),
+        "{err}"
+    );
+    let (ok, _, err) = plot(&["missing-dir", "--episode", "0"], dir.path());
+    assert!(!ok && err.contains("missing-dir does not exist"), "{err}");
+    // A dataset whose video is gone: named, not a decoder's message.
+    let copy = dir.path().join("novideo");
+    copy_dir(
+        std::path::Path::new(&format!("{fixtures}/lerobot_sample_v21")),
+        &copy,
+    );
+    std::fs::remove_dir_all(copy.join("videos")).unwrap();
+    let (ok, _, err) = plot(&["novideo", "--episode", "0"], dir.path());
+    assert!(
+        !ok && err.contains("video of camera observation.images.front for episode 0 is missing"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        !dir.path().join("episode_000000.html").exists(),
+        "a refused plot writes nothing"
+    );
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let dest = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &dest);
+        } else {
+            std::fs::copy(entry.path(), dest).unwrap();
+        }
+    }
+}
+
+/// phone2act's v2.1 (GR00T) layout plots too: its episode files, its (empty) events sidecar, and the dataset
+/// with the sidecar still verifies.
+#[test]
+fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path());
+    let text = std::fs::read_to_string(&config).unwrap();
+    assert!(text.contains("format = \"v3.0\""), "{text}");
+    std::fs::write(&config, text.replace("format = \"v3.0\"", "format = \"v2.1\"")).unwrap();
+    let server = serve(&config);
+    let (ok, _, err) = run(&["episode", "start", "--task", "hold still"], &server.url);
+    assert!(ok, "{err}");
+    std::thread::sleep(Duration::from_millis(500));
+    let (ok, _, err) = run(&["episode", "stop"], &server.url);
+    assert!(ok, "{err}");
+    drop(server);
+    let ds = dir.path().join("ds");
+    // Nobody touched the clutch: a sidecar with no events (not a missing one).
+    let events = std::fs::read_to_string(ds.join("meta/phone2act/events/episode_000000.jsonl")).unwrap();
+    assert_eq!(events, "");
+    let (ok, out, err) = plot(&["ds", "--episode", "0"], dir.path());
+    assert!(ok, "{err}");
+    let html = std::fs::read_to_string(dir.path().join(out.trim())).unwrap();
+    assert!(
+        html.contains("LeRobot v2.1") && html.contains("hold still"),
+        "no facts"
+    );
+    assert!(html.contains("0 events from meta/phone2act/events/episode_000000.jsonl"));
+    assert!(!panel_attr(&html, "data-state").is_empty());
+    let frames = phone2act_recorder::readback::read_episode(&ds, 0)
+        .unwrap()
+        .frame_index
+        .len();
+    assert_eq!(plotted_frames(&html).len(), frames.min(5));
+    let out = Command::new(BIN)
+        .args(["dataset", "verify"])
+        .arg(&ds)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("valid LeRobot v2.1 dataset, 1 episodes"), "{text}");
+}

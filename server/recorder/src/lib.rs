@@ -8,12 +8,15 @@
 pub mod avcapture;
 pub mod camera;
 pub mod dataset;
+pub mod decode;
 pub mod error;
+pub mod events;
 pub mod fsutil;
 pub mod jpeg;
 pub mod memory;
 pub mod parquet_io;
 pub mod quantiles;
+pub mod readback;
 pub mod recorder;
 pub mod spec;
 pub mod stats;

@@ -265,7 +265,7 @@ pub fn write_tasks(path: &Path, tasks: &[String]) -> Result<(), RecorderError> {
     write_batch(path, &batch)
 }
 
-fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, RecorderError> {
+pub(crate) fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, RecorderError> {
     let file = File::open(path).map_err(|e| RecorderError::io(path, e))?;
     let reader = ParquetRecordBatchReaderBuilder::try_new(file)
         .and_then(parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::build)

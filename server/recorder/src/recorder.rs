@@ -11,6 +11,7 @@
 use crate::camera::FrameSlot;
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
+use crate::events::ArmActivity;
 use crate::spec::DatasetSpec;
 use phone2act_clock::monotonic_ns;
 use serde::Serialize;
@@ -27,6 +28,9 @@ pub struct RobotSample {
     /// The task's success flag at this sample (recorded as `next.success` when the dataset has it).
     pub success: bool,
     pub capture_time_ns: i64,
+    /// Each arm's clutch state and gate counters, from which the episode's events sidecar is derived
+    /// (see [`crate::events`]); empty for a source without arms.
+    pub arms: Vec<ArmActivity>,
 }
 
 /// Where the recorder reads robot samples from.
@@ -535,7 +539,11 @@ fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
     if held {
         a.held += 1;
     }
-    if let Err(e) = a.writer.push_row(&s.state, &s.action, s.success) {
+    let pushed = a
+        .writer
+        .note_activity(&s.arms)
+        .and_then(|()| a.writer.push_row(&s.state, &s.action, s.success));
+    if let Err(e) = pushed {
         let msg = format!("recording failed, the episode cannot be saved: {e}");
         tracing::error!("{msg}");
         a.error = Some(e);

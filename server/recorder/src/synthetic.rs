@@ -70,6 +70,7 @@ impl RobotSource for SyntheticRobot {
             action,
             success: false,
             capture_time_ns: now,
+            arms: Vec::new(),
         })
     }
 }

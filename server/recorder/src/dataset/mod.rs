@@ -20,6 +20,7 @@ mod v21;
 mod v30;
 
 use crate::error::RecorderError;
+use crate::events::{ArmActivity, EventWriter, events_path};
 use crate::fsutil::write_atomic;
 use crate::parquet_io::{DataWriter, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
@@ -152,6 +153,8 @@ pub struct EpisodeWriter {
     frames: u64,
     fps: u32,
     staging: PathBuf,
+    /// Clutch and gate events, streamed into staging (see [`crate::events`]).
+    events: EventWriter,
 }
 
 impl Dataset {
@@ -348,6 +351,7 @@ impl Dataset {
             success_stats: self.spec.success.then(|| ColumnStats::new(StatKind::Bool, 1)),
             frames: 0,
             fps: self.spec.fps,
+            events: EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?,
             staging,
         })
     }
@@ -418,6 +422,7 @@ impl Dataset {
             frames,
             fps,
             staging,
+            events,
         } = ep;
         if frames == 0 {
             drop(encoders);
@@ -425,6 +430,7 @@ impl Dataset {
         }
         let t0 = std::time::Instant::now();
         let reports = Self::close_files(data, encoders, frames)?;
+        let events = events.finish()?;
         let flush_ms = t0.elapsed().as_secs_f64() * 1e3;
         summary.dropped_frames = reports.iter().map(|r| r.dropped).sum();
         summary.length_frames = frames;
@@ -479,7 +485,9 @@ impl Dataset {
             },
             &mut staged,
         )?;
-        // Sidecar and info.json last: info.json is what makes the episode count official.
+        // Sidecars and info.json last: info.json is what makes the episode count official. The events file
+        // replaces any left by a save that never reached info.json.
+        staged.rename(events, staged.dest(events_path(index)));
         let mut prov = self.provenance.clone();
         prov.stats = agg;
         prov.episodes.push(summary.clone());
@@ -558,6 +566,12 @@ impl EpisodeWriter {
         })?;
         self.frames += 1;
         Ok(())
+    }
+
+    /// Notes the arms' clutch and gate state at the frame about to be pushed; their changes since the
+    /// previous frame go to the events sidecar.
+    pub fn note_activity(&mut self, arms: &[ArmActivity]) -> Result<(), RecorderError> {
+        self.events.observe(arms, self.frames)
     }
 
     /// Length of the state vector.

@@ -1,0 +1,281 @@
+//! The per-episode events sidecar: clutch cycles and safety-gate decisions, at the frame where the recorder
+//! saw them, in `meta/phone2act/events/episode_{index:06}.jsonl` (one JSON object per line). lerobot and
+//! GR00T read only the files they know, so they ignore it; `phone2act dataset plot` marks them on the time
+//! axis.
+//!
+//! The recorder samples each arm's clutch state and cumulative gate counters once per recorded frame and
+//! turns their changes into events ([`transitions`], pure). The file streams into the episode's staging
+//! directory (memory stays bounded however long the episode) and is renamed into place with the episode's
+//! commit, before `info.json`: a discarded episode leaves none, a re-recorded take replaces it.
+
+use crate::error::RecorderError;
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::{BufWriter, Write as _};
+use std::path::{Path, PathBuf};
+
+/// Where the events of episode `index` live, relative to the dataset root.
+pub fn events_path(index: u64) -> PathBuf {
+    PathBuf::from(format!("meta/phone2act/events/episode_{index:06}.jsonl"))
+}
+
+/// One arm's clutch and gate state at a sample: what events are derived from.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ArmActivity {
+    pub arm: String,
+    /// The operator's clutch is in (teleop drives the arm).
+    pub engaged: bool,
+    /// Commands the safety gate refused so far (jumps, invalid targets), since the server started.
+    pub rejected: u64,
+    /// Commands the safety gate clamped into the workspace so far.
+    pub clamped: u64,
+    /// The reason of the gate's last decision (kept as the event's detail).
+    pub last_reason: String,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EventKind {
+    ClutchEngage,
+    ClutchRelease,
+    GateRejected,
+    GateClamped,
+}
+
+/// One line of the sidecar.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeEvent {
+    /// The first recorded frame at which the change was seen.
+    pub frame_index: u64,
+    /// `frame_index / fps`, s.
+    pub timestamp: f64,
+    pub arm: String,
+    pub kind: EventKind,
+    /// Gate events: how many decisions of this kind happened since the previous frame (the gate runs at
+    /// the phone's rate, the recorder at the dataset's); 1 for clutch events.
+    pub count: u64,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub detail: String,
+}
+
+/// The events between two consecutive recorded samples. `previous` is `None` at an episode's first frame:
+/// counters are only a baseline there (decisions before the episode are not its events), and an arm already
+/// engaged gets a `clutch_engage` at frame 0 so that every engaged span has a start. An arm absent from
+/// `previous` (or whose counters went down: a restarted source) is treated the same way. Changes are seen at
+/// the recorder's rate: a clutch released and engaged again between two frames leaves no event.
+pub fn transitions(
+    previous: Option<&[ArmActivity]>,
+    current: &[ArmActivity],
+    frame_index: u64,
+    fps: u32,
+) -> Vec<EpisodeEvent> {
+    let timestamp = frame_index as f64 / f64::from(fps);
+    let event = |arm: &ArmActivity, kind, count, detail: &str| EpisodeEvent {
+        frame_index,
+        timestamp,
+        arm: arm.arm.clone(),
+        kind,
+        count,
+        detail: detail.to_owned(),
+    };
+    let mut events = Vec::new();
+    for now in current {
+        let before = previous
+            .and_then(|p| p.iter().find(|b| b.arm == now.arm))
+            .filter(|b| b.rejected <= now.rejected && b.clamped <= now.clamped);
+        let Some(before) = before else {
+            if now.engaged {
+                events.push(event(
+                    now,
+                    EventKind::ClutchEngage,
+                    1,
+                    "engaged when the episode started",
+                ));
+            }
+            continue;
+        };
+        match (before.engaged, now.engaged) {
+            (false, true) => events.push(event(now, EventKind::ClutchEngage, 1, "")),
+            (true, false) => events.push(event(now, EventKind::ClutchRelease, 1, "")),
+            _ => {}
+        }
+        let rejected = now.rejected - before.rejected;
+        let clamped = now.clamped - before.clamped;
+        // The last reason belongs to one kind of decision; when both kinds happened it is not known which.
+        let reason = if rejected == 0 || clamped == 0 {
+            now.last_reason.as_str()
+        } else {
+            ""
+        };
+        if rejected > 0 {
+            events.push(event(now, EventKind::GateRejected, rejected, reason));
+        }
+        if clamped > 0 {
+            events.push(event(now, EventKind::GateClamped, clamped, reason));
+        }
+    }
+    events
+}
+
+/// Reads a sidecar back: `Ok(None)` when the dataset has none for the episode (written by lerobot, or by a
+/// phone2act before events were recorded).
+pub fn read_events(root: &Path, index: u64) -> Result<Option<Vec<EpisodeEvent>>, RecorderError> {
+    let path = root.join(events_path(index));
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(RecorderError::io(&path, e)),
+    };
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(n, l)| {
+            serde_json::from_str(l).map_err(|e| RecorderError::CorruptDataset {
+                root: root.to_owned(),
+                detail: format!("{} line {}: {e}", events_path(index).display(), n + 1),
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(Some)
+}
+
+/// Streams an episode's events into its staging file.
+pub(crate) struct EventWriter {
+    file: BufWriter<File>,
+    path: PathBuf,
+    fps: u32,
+    previous: Option<Vec<ArmActivity>>,
+}
+
+impl EventWriter {
+    pub(crate) fn create(path: PathBuf, fps: u32) -> Result<Self, RecorderError> {
+        let file = File::create(&path).map_err(|e| RecorderError::io(&path, e))?;
+        Ok(EventWriter {
+            file: BufWriter::new(file),
+            path,
+            fps,
+            previous: None,
+        })
+    }
+
+    /// Writes the events between the previous recorded frame and `frame_index`.
+    pub(crate) fn observe(&mut self, arms: &[ArmActivity], frame_index: u64) -> Result<(), RecorderError> {
+        if self.previous.as_deref() == Some(arms) {
+            return Ok(());
+        }
+        for e in transitions(self.previous.as_deref(), arms, frame_index, self.fps) {
+            let mut line = serde_json::to_vec(&e).map_err(|e| RecorderError::io(&self.path, e.into()))?;
+            line.push(b'\n');
+            self.file
+                .write_all(&line)
+                .map_err(|e| RecorderError::io(&self.path, e))?;
+        }
+        self.previous = Some(arms.to_vec());
+        Ok(())
+    }
+
+    /// Flushes and fsyncs the file; returns its path, ready to be renamed into the dataset.
+    pub(crate) fn finish(self) -> Result<PathBuf, RecorderError> {
+        let file = self
+            .file
+            .into_inner()
+            .map_err(|e| RecorderError::io(&self.path, e.into_error()))?;
+        file.sync_all().map_err(|e| RecorderError::io(&self.path, e))?;
+        Ok(self.path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn arm(engaged: bool, rejected: u64, clamped: u64) -> ArmActivity {
+        ArmActivity {
+            arm: "main".into(),
+            engaged,
+            rejected,
+            clamped,
+            last_reason: "jump of 120 mm".into(),
+        }
+    }
+
+    fn kinds(events: &[EpisodeEvent]) -> Vec<(EventKind, u64)> {
+        events.iter().map(|e| (e.kind, e.count)).collect()
+    }
+
+    #[test]
+    fn the_first_frame_is_a_baseline_except_an_engaged_clutch() {
+        assert!(transitions(None, &[arm(false, 7, 3)], 0, 20).is_empty());
+        let e = transitions(None, &[arm(true, 7, 3)], 0, 20);
+        assert_eq!(kinds(&e), [(EventKind::ClutchEngage, 1)]);
+        assert!(e[0].detail.contains("started"));
+    }
+
+    #[test]
+    fn changes_become_events_at_their_frame() {
+        let e = transitions(Some(&[arm(false, 1, 0)]), &[arm(true, 1, 0)], 30, 20);
+        assert_eq!(kinds(&e), [(EventKind::ClutchEngage, 1)]);
+        assert!((e[0].timestamp - 1.5).abs() < 1e-12);
+        assert_eq!(e[0].frame_index, 30);
+        let e = transitions(Some(&[arm(true, 1, 0)]), &[arm(false, 4, 0)], 31, 20);
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::ClutchRelease, 1), (EventKind::GateRejected, 3)]
+        );
+        assert_eq!(e[1].detail, "jump of 120 mm");
+        // Both kinds of decision between two frames: counts for both, no reason attributed.
+        let e = transitions(Some(&[arm(true, 1, 0)]), &[arm(true, 2, 5)], 32, 20);
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::GateRejected, 1), (EventKind::GateClamped, 5)]
+        );
+        assert!(e.iter().all(|e| e.detail.is_empty()));
+        assert!(transitions(Some(&[arm(true, 2, 5)]), &[arm(true, 2, 5)], 33, 20).is_empty());
+    }
+
+    #[test]
+    fn arms_are_matched_by_name_and_a_restarted_counter_is_a_new_baseline() {
+        let mut left = arm(false, 0, 0);
+        left.arm = "left".into();
+        let mut left_on = left.clone();
+        left_on.engaged = true;
+        let e = transitions(
+            Some(&[left.clone(), arm(false, 0, 0)]),
+            &[arm(false, 2, 0), left_on],
+            5,
+            10,
+        );
+        let got: Vec<(&str, EventKind)> = e.iter().map(|e| (e.arm.as_str(), e.kind)).collect();
+        assert_eq!(
+            got,
+            [
+                ("main", EventKind::GateRejected),
+                ("left", EventKind::ClutchEngage)
+            ]
+        );
+        assert!(transitions(Some(&[arm(false, 9, 0)]), &[arm(false, 2, 0)], 6, 10).is_empty());
+    }
+
+    #[test]
+    fn the_writer_streams_lines_that_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        let mut w = EventWriter::create(root.join("events.jsonl"), 10).unwrap();
+        w.observe(&[arm(false, 0, 0)], 0).unwrap();
+        w.observe(&[arm(true, 0, 0)], 1).unwrap();
+        w.observe(&[arm(true, 0, 0)], 2).unwrap();
+        w.observe(&[arm(true, 2, 0)], 3).unwrap();
+        let path = w.finish().unwrap();
+        std::fs::create_dir_all(root.join("meta/phone2act/events")).unwrap();
+        std::fs::rename(path, root.join(events_path(4))).unwrap();
+        let events = read_events(root, 4).unwrap().unwrap();
+        assert_eq!(
+            kinds(&events),
+            [(EventKind::ClutchEngage, 1), (EventKind::GateRejected, 2)]
+        );
+        assert_eq!(events[1].frame_index, 3);
+        assert_eq!(read_events(root, 5).unwrap(), None);
+        std::fs::write(root.join(events_path(5)), "{not json\n").unwrap();
+        assert!(read_events(root, 5).unwrap_err().to_string().contains("line 1"));
+    }
+}
