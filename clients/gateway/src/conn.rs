@@ -51,17 +51,32 @@ impl Out {
 /// one), sent only when the control queue is empty and the page has acknowledged the frame before.
 #[derive(Debug, Default)]
 pub struct PreviewSlot {
-    frame: Mutex<Option<Bytes>>,
+    /// The preview's generation (a new one at every start and stop, so a fetch that finishes after its
+    /// preview was stopped stores nothing) and the frame waiting.
+    frame: Mutex<(u64, Option<Bytes>)>,
     /// A frame went out and the page has not acknowledged it yet.
     in_flight: AtomicBool,
     changed: Notify,
 }
 
 impl PreviewSlot {
-    /// Offers a frame; it replaces one not sent yet.
-    pub fn put(&self, jpeg: Bytes) {
-        *self.frame.lock().unwrap_or_else(PoisonError::into_inner) = Some(jpeg);
-        self.changed.notify_one();
+    /// Starts a new preview; its frames are put with the generation returned.
+    pub fn open(&self) -> u64 {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        slot.0 += 1;
+        slot.1 = None;
+        slot.0
+    }
+
+    /// Offers a frame of preview `generation`; it replaces one not sent yet. Ignored once that preview has
+    /// been stopped.
+    pub fn put(&self, generation: u64, jpeg: Bytes) {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        if slot.0 == generation {
+            slot.1 = Some(jpeg);
+            drop(slot);
+            self.changed.notify_one();
+        }
     }
 
     /// True while a frame waits in the slot or is on its way to the page: fetching another now would only
@@ -72,6 +87,7 @@ impl PreviewSlot {
                 .frame
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner)
+                .1
                 .is_some()
     }
 
@@ -81,9 +97,11 @@ impl PreviewSlot {
         self.changed.notify_one();
     }
 
-    /// Forgets the waiting frame and any unacknowledged one (the preview was turned off).
-    pub fn clear(&self) {
-        self.frame.lock().unwrap_or_else(PoisonError::into_inner).take();
+    /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more.
+    pub fn close(&self) {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        slot.0 += 1;
+        slot.1 = None;
         self.in_flight.store(false, Ordering::Release);
     }
 
@@ -92,7 +110,12 @@ impl PreviewSlot {
         if self.in_flight.load(Ordering::Acquire) {
             return None;
         }
-        let frame = self.frame.lock().unwrap_or_else(PoisonError::into_inner).take()?;
+        let frame = self
+            .frame
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .1
+            .take()?;
         self.in_flight.store(true, Ordering::Release);
         Some(frame)
     }

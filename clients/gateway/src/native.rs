@@ -9,7 +9,7 @@
 //! - `{"type":"preview","camera":"front","max_fps":5,"width":320}` turns the camera preview on (see
 //!   `web_preview`), `{"type":"preview_off"}` off; `{"type":"preview_ack"}` says a preview frame arrived.
 //!
-//! Gateway → page: `welcome` (arms), `session` (open/retrying/refused), `feedback`, `error`, `preview`
+//! Gateway → page: `welcome` (arms, cameras), `session` (open/retrying/refused), `feedback`, `error`, `preview`
 //! (`on` with the settings, `off` with the reason), and while the preview is on, binary messages of one JPEG.
 
 use crate::conn::{Handler, Wiring};
@@ -156,12 +156,14 @@ impl PageHandler {
         }
     }
 
-    /// Tells the page which arms exist (for the picker); called once after connecting.
-    pub fn welcome(&self, arms: &[String]) {
+    /// Tells the page which arms (for the picker) and cameras (for the preview) exist; called once after
+    /// connecting.
+    pub fn welcome(&self, arms: &[String], cameras: &[String]) {
         self.wiring.out.text(
             json!({
                 "type": "welcome",
                 "arms": arms,
+                "cameras": cameras,
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
             })
@@ -197,7 +199,7 @@ impl PageHandler {
         if let Some(task) = self.preview.take() {
             task.abort();
         }
-        self.wiring.preview.clear();
+        self.wiring.preview.close();
     }
 }
 

@@ -112,6 +112,7 @@ pub fn shrink(jpeg: &[u8], max_width_px: u32, quality: u8) -> Result<Vec<u8>, St
 /// server does not have, an error and `preview off`), then fills `slot` at most `max_fps` times a second
 /// until aborted.
 pub fn spawn(upstream: Upstream, params: PreviewParams, slot: Arc<PreviewSlot>, out: Out) -> JoinHandle<()> {
+    let generation = slot.open();
     tokio::spawn(async move {
         let camera = params.camera.clone();
         match upstream.camera_names().await {
@@ -166,7 +167,7 @@ pub fn spawn(upstream: Upstream, params: PreviewParams, slot: Arc<PreviewSlot>, 
             };
             match result {
                 Ok(shrunk) => {
-                    slot.put(shrunk.into());
+                    slot.put(generation, shrunk.into());
                     warned = false;
                 }
                 Err(e) if !warned => {
