@@ -52,6 +52,7 @@
       bytes: 0,
       url: null,
       offReason: '',
+      gatewayState: 'off', // what the gateway last said: on / off
     },
   };
   // For tests and debugging from the console.
@@ -191,6 +192,7 @@
         onFeedback(msg);
         break;
       case 'preview':
+        state.preview.gatewayState = msg.state;
         // The gateway stopped it (unknown camera, no camera list): nothing to tell it back.
         if (msg.state === 'off' && msg.reason !== 'asked') previewOff(msg.reason, false);
         else renderPreview();
