@@ -4,6 +4,7 @@
 // dataset on disk. Prints "N passed, M failed".
 import { chromium } from 'playwright-core';
 import { mkdirSync, readdirSync, statSync } from 'node:fs';
+import { createServer, connect } from 'node:net';
 import { join, dirname } from 'node:path';
 import { fileURLToPath } from 'node:url';
 
@@ -73,7 +74,7 @@ const browser = await chromium.launch({
 const server = new ServerView();
 await server.ready;
 
-async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent } = {}) {
+async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent, base = BASE } = {}) {
   const context = await browser.newContext({ ignoreHTTPSErrors: true, userAgent, viewport: { width: 412, height: 915 } });
   if (shim) {
     await context.addInitScript({ path: join(here, 'webxr-shim.js') });
@@ -84,7 +85,7 @@ async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent } = {})
   const page = await context.newPage();
   page.on('dialog', (d) => d.accept());
   page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
-  await page.goto(token === null ? `${BASE}/` : `${BASE}/?token=${encodeURIComponent(token)}`);
+  await page.goto(token === null ? `${base}/` : `${base}/?token=${encodeURIComponent(token)}`);
   return { context, page };
 }
 const pageState = (page, expr) => page.evaluate(expr);
@@ -328,6 +329,53 @@ await check('without WebXR (iPhone Safari) the page says what to use', async () 
     `the rosbridge port ${ROSBRIDGE_PORT} in the notice`);
   assert(await p.isDisabled('#start-ar'), 'Start AR stays enabled without WebXR');
   await context.close();
+});
+
+// A slow link for real: a TCP relay in front of the gateway's HTTPS port that delays every chunk by `delayMs`
+// each way (TLS passes through untouched). Chromium's own network emulation does not delay WebSocket frames.
+async function slowLink() {
+  const link = { delayMs: 0, sockets: new Set() };
+  link.server = createServer((client) => {
+    const gateway = connect(Number(HTTPS_PORT), '127.0.0.1');
+    for (const [from, to] of [[client, gateway], [gateway, client]]) {
+      link.sockets.add(from);
+      // One delay for every chunk and a delay that only grows keep the bytes in order.
+      from.on('data', (chunk) => (link.delayMs ? setTimeout(() => to.write(chunk), link.delayMs) : to.write(chunk)));
+      from.on('close', () => setTimeout(() => to.destroy(), link.delayMs));
+      from.on('error', () => to.destroy());
+    }
+  });
+  await new Promise((resolve) => link.server.listen(0, '127.0.0.1', resolve));
+  link.base = `https://127.0.0.1:${link.server.address().port}`;
+  link.close = () => { for (const s of link.sockets) s.destroy(); link.server.close(); };
+  return link;
+}
+
+// Last: this phone takes the arm over from the first one.
+await check('on a slow link the page turns the preview off itself', async () => {
+  const link = await slowLink();
+  const { context, page: p } = await phonePage({ base: link.base });
+  try {
+    await waitPage(p, () => !document.querySelector('#take-over').hidden, 'the take-over offer (the arm is held)');
+    await p.click('#take-over');
+    await waitPage(p, () => window.phone2act.sessionOpen, 'session open after taking over');
+    await p.click('#start-ar');
+    await p.check('#preview-on');
+    await waitPage(p, () => window.phone2act.preview.shown > 0 && window.phone2act.feedbackCount > 20, 'a preview frame and feedback');
+    assert(await p.isChecked('#preview-on'), `the preview went off on a fast link: ${await p.textContent('#st-preview')}`);
+    // 300 ms each way: the control round trip (a few ms here) goes to 600 ms, over the 150 ms limit.
+    link.delayMs = 300;
+    await waitPage(p, () => !window.phone2act.preview.want, 'the page to turn the preview off', 20000);
+    const reason = await pageState(p, () => window.phone2act.preview.offReason);
+    assert(/slow link: control round trip \d+ ms/.test(reason), `turned off for another reason: ${reason}`);
+    assert(!(await p.isChecked('#preview-on')), 'the toggle still says on');
+    assert((await p.textContent('#st-preview')).includes(reason), 'the reason is not shown');
+    await p.screenshot({ path: join(OUT_DIR, 'phone-page-preview-slow-link.png'), fullPage: true });
+    console.log(`  turned off: ${reason}`);
+  } finally {
+    await context.close();
+    link.close();
+  }
 });
 
 server.close();
