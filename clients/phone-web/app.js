@@ -72,7 +72,7 @@
   function previewVerdict(nowMs, since, lastFrameAt, rttLog) {
     const late = lastFrameAt > since ? nowMs - lastFrameAt : nowMs - since;
     const limit = lastFrameAt > since ? PREVIEW.lateMs : PREVIEW.firstFrameMs;
-    if (late > limit) return `slow link: no camera frame for ${(late / 1000).toFixed(1)} s`;
+    if (late > limit) return `no camera frame for ${(late / 1000).toFixed(1)} s`;
     const recent = rttLog.filter(([at]) => nowMs - at <= PREVIEW.rttWindowMs).map(([, ms]) => ms);
     if (recent.length >= PREVIEW.rttMinCount) {
       recent.sort((a, b) => a - b);

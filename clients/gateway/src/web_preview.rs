@@ -171,8 +171,12 @@ pub fn spawn(upstream: Upstream, params: PreviewParams, slot: Arc<PreviewSlot>, 
                     warned = false;
                 }
                 Err(e) if !warned => {
+                    // Once per stall, so the operator learns why the image froze (the page's own rule then
+                    // turns the preview off).
                     warned = true;
                     tracing::warn!(camera, error = %e, "phone page preview: camera image unavailable");
+                    let message = format!("camera {camera}: no preview image: {e}");
+                    out.text(json!({"type": "error", "message": message}).to_string());
                 }
                 Err(_) => {}
             }
