@@ -125,7 +125,9 @@ await check('holding the clutch while moving the phone moves the sim arm', async
   await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
   await page.mouse.down();
   await server.until((s) => s.engaged, 'clutch engaged on the server');
-  assert((await page.textContent('#st-clutch')).startsWith('ENGAGED'), 'clutch state not shown as engaged');
+  // The page learns it from its own feedback, which may come a frame after the server view's status.
+  await waitPage(page, () => document.querySelector('#st-clutch').textContent.startsWith('ENGAGED'),
+    'the clutch shown as engaged');
   // Phone 8 cm forward (-Z in WebXR's frame) over 1.2 s.
   await page.evaluate(() => window.__xr.moveTo([0, 1.4, -0.08], 1200));
   const moved = await server.until((s) => dist(s.ee_m, before) > 0.05, 'the measured end effector to move 5 cm');
@@ -242,6 +244,13 @@ await check('the camera preview shows the scene, off until asked, and stops when
   assert(!(await page.isChecked('#preview-on')), 'the preview is on by default');
   const early = await pageState(page, () => window.phone2act.preview.received);
   assert(early === 0, `${early} preview frames arrived before the page asked`);
+  // A measurement, not a check: the control round trip over 2 s without and with the preview.
+  const rttMedian = () => page.evaluate(() => {
+    const ms = window.phone2act.rttLog.map(([, rtt]) => rtt).sort((a, b) => a - b);
+    return ms.length ? ms[Math.floor(ms.length / 2)] : NaN;
+  });
+  await sleep(2000);
+  const rttOff = await rttMedian();
   await page.check('#preview-on');
   await waitPage(page, () => window.phone2act.preview.shown >= 3 && !document.querySelector('#preview').hidden,
     'three decoded preview frames');
@@ -261,8 +270,12 @@ await check('the camera preview shows the scene, off until asked, and stops when
   console.log(`  preview ${img.w}x${img.h}, shown ${img.shownW}x${img.shownH}; area: ${stats.levels} grey levels, std ${stats.std.toFixed(1)}; screenshot in ${OUT_DIR}`);
   // Control went on meanwhile.
   const fb = await pageState(page, () => window.phone2act.feedbackCount);
-  await sleep(300);
+  await sleep(2000);
   assert((await pageState(page, () => window.phone2act.feedbackCount)) > fb, 'feedback stopped with the preview on');
+  const p = await pageState(page, () => window.phone2act.preview);
+  const fps = (p.frameTimes.length - 1) * 1000 / (p.frameTimes[p.frameTimes.length - 1] - p.frameTimes[0]);
+  console.log(`  control round trip median over 2 s: ${rttOff.toFixed(1)} ms preview off, ${(await rttMedian()).toFixed(1)} ms on; `
+    + `preview ${fps.toFixed(1)} fps, last frame ${p.bytes} bytes`);
 
   await page.uncheck('#preview-on');
   await waitPage(page, () => window.phone2act.preview.gatewayState === 'off', 'the gateway to confirm the preview is off');
