@@ -261,3 +261,43 @@ pub async fn run<H, F>(
     drop(out);
     let _ = tokio::time::timeout(Duration::from_secs(1), writer).await;
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_preview_slot_keeps_one_frame_and_waits_for_the_ack() {
+        let slot = PreviewSlot::default();
+        let preview = slot.open();
+        assert!(!slot.busy());
+        slot.put(preview, Bytes::from_static(b"old"));
+        slot.put(preview, Bytes::from_static(b"new"));
+        assert!(slot.busy());
+        // Latest wins: one frame, the newest.
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"new"[..]));
+        assert_eq!(slot.take_sendable(), None);
+        // On its way and not acknowledged: busy, and the next frame waits.
+        assert!(slot.busy());
+        slot.put(preview, Bytes::from_static(b"next"));
+        assert_eq!(slot.take_sendable(), None);
+        slot.ack();
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"next"[..]));
+    }
+
+    #[test]
+    fn a_stopped_preview_leaves_nothing_to_send() {
+        let slot = PreviewSlot::default();
+        let stopped = slot.open();
+        slot.put(stopped, Bytes::from_static(b"waiting"));
+        slot.close();
+        assert!(!slot.busy());
+        assert_eq!(slot.take_sendable(), None);
+        // A fetch of the stopped preview that finishes late stores nothing, even after a new one started.
+        let current = slot.open();
+        slot.put(stopped, Bytes::from_static(b"late"));
+        assert_eq!(slot.take_sendable(), None);
+        slot.put(current, Bytes::from_static(b"fresh"));
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"fresh"[..]));
+    }
+}
