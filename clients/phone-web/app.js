@@ -38,9 +38,52 @@
     feedbackCount: 0,
     errors: [],
     wasOpen: false,
+    cameras: [],
+    // [arrival ms, round trip ms] of recent feedback, for the preview's slow-link rule.
+    rttLog: [],
+    preview: {
+      want: false, // the operator turned it on (and the page has not turned it off since)
+      camera: localStorage.getItem('phone2act.camera') || '',
+      since: 0, // when it was asked for
+      lastFrameAt: 0,
+      received: 0, // binary messages that arrived, wanted or not
+      shown: 0,
+      frameTimes: [],
+      bytes: 0,
+      url: null,
+      offReason: '',
+      gatewayState: 'off', // what the gateway last said: on / off
+    },
   };
   // For tests and debugging from the console.
   window.phone2act = state;
+
+  // The camera preview: small and slow on purpose (the recorder has the full images), and it gives way to
+  // control. The gateway sends a frame only after the page acknowledged the previous one; the page turns the
+  // preview off itself on a slow link, when either
+  //  - no frame arrived for 3 s (5 s after asking, for the first one), i.e. 15 frame periods at 5 fps; or
+  //  - the control round trip (pose sample -> feedback) has a median above 150 ms over the last 2 s (at
+  //    least 10 round trips): the operator's control is suffering, and the images are the first to go.
+  const PREVIEW = {
+    maxFps: 5, width: 320, firstFrameMs: 5000, lateMs: 3000, rttWindowMs: 2000, rttLimitMs: 150, rttMinCount: 10,
+  };
+
+  // Why the preview should be turned off now, or null. Pure, so that it can be checked with made-up numbers.
+  function previewVerdict(nowMs, since, lastFrameAt, rttLog) {
+    const late = lastFrameAt > since ? nowMs - lastFrameAt : nowMs - since;
+    const limit = lastFrameAt > since ? PREVIEW.lateMs : PREVIEW.firstFrameMs;
+    if (late > limit) return `no camera frame for ${(late / 1000).toFixed(1)} s`;
+    const recent = rttLog.filter(([at]) => nowMs - at <= PREVIEW.rttWindowMs).map(([, ms]) => ms);
+    if (recent.length >= PREVIEW.rttMinCount) {
+      recent.sort((a, b) => a - b);
+      const median = recent[Math.floor(recent.length / 2)];
+      if (median > PREVIEW.rttLimitMs) {
+        return `slow link: control round trip ${median.toFixed(0)} ms (over ${PREVIEW.rttLimitMs} ms)`;
+      }
+    }
+    return null;
+  }
+  state.previewVerdict = previewVerdict;
 
   function nowNs() {
     return Math.round(performance.now() * 1e6);
@@ -76,6 +119,10 @@
       setPill($('st-conn'), 'gateway ok', 'ok');
     };
     ws.onmessage = (ev) => {
+      if (typeof ev.data !== 'string') {
+        onPreviewFrame(ev.data);
+        return;
+      }
       let msg;
       try { msg = JSON.parse(ev.data); } catch (_) { return; }
       onMessage(msg);
@@ -118,6 +165,7 @@
         sel.value = state.arm;
         state.rosbridgePort = msg.rosbridge_port;
         renderNoXr();
+        setCameras(msg.cameras || []);
         // After a reconnect this phone takes its arm back: its old stream may not have timed out yet.
         hello(state.wasOpen);
         break;
@@ -143,6 +191,12 @@
       case 'feedback':
         onFeedback(msg);
         break;
+      case 'preview':
+        state.preview.gatewayState = msg.state;
+        // The gateway stopped it (unknown camera, no camera list): nothing to tell it back.
+        if (msg.state === 'off' && msg.reason !== 'asked') previewOff(msg.reason, false);
+        else renderPreview();
+        break;
       case 'error':
         state.errors.push(msg.message);
         if (msg.fatal) {
@@ -167,6 +221,9 @@
       if (rtt >= 0 && rtt < 10000) {
         state.rtts.push(rtt);
         if (state.rtts.length > 100) state.rtts.shift();
+        const now = performance.now();
+        state.rttLog.push([now, rtt]);
+        while (state.rttLog.length && now - state.rttLog[0][0] > PREVIEW.rttWindowMs) state.rttLog.shift();
       }
     }
     if (fb.error) notice(fb.error);
@@ -236,6 +293,107 @@
         avg < 30 ? 'ok' : avg < 80 ? 'warn' : 'bad');
     }
   }
+
+  // ---- camera preview -----------------------------------------------------------------------------------
+
+  function setCameras(cameras) {
+    state.cameras = cameras;
+    const sel = $('preview-camera');
+    sel.innerHTML = '';
+    for (const c of cameras) {
+      const o = document.createElement('option');
+      o.value = c;
+      o.textContent = c;
+      sel.appendChild(o);
+    }
+    if (!cameras.includes(state.preview.camera)) state.preview.camera = cameras[0] || '';
+    sel.value = state.preview.camera;
+    $('preview-box').hidden = cameras.length === 0;
+    // After a reconnect the gateway has forgotten the preview: ask again.
+    if (state.preview.want && state.preview.camera) askPreview();
+    else if (state.preview.want) previewOff('this server has no camera');
+  }
+
+  function askPreview() {
+    const p = state.preview;
+    p.since = performance.now();
+    p.lastFrameAt = 0;
+    p.frameTimes = [];
+    send({ type: 'preview', camera: p.camera, max_fps: PREVIEW.maxFps, width: PREVIEW.width });
+    renderPreview();
+  }
+
+  // Off, by the operator (reason empty) or by the page or gateway (reason shown).
+  function previewOff(reason, tellGateway = true) {
+    const p = state.preview;
+    const was = p.want && tellGateway;
+    p.want = false;
+    p.offReason = reason || '';
+    $('preview-on').checked = false;
+    $('preview').hidden = true;
+    if (was) send({ type: 'preview_off' });
+    renderPreview();
+  }
+
+  function onPreviewFrame(data) {
+    const p = state.preview;
+    p.received += 1;
+    // Tells the gateway the frame is off the link, so it may send the next one.
+    send({ type: 'preview_ack' });
+    if (!p.want) return;
+    const now = performance.now();
+    p.lastFrameAt = now;
+    p.frameTimes.push(now);
+    while (p.frameTimes.length && now - p.frameTimes[0] > 2000) p.frameTimes.shift();
+    p.bytes = data.size;
+    const img = $('preview');
+    const old = p.url;
+    p.url = URL.createObjectURL(new Blob([data], { type: 'image/jpeg' }));
+    img.onload = () => {
+      p.shown += 1;
+      img.hidden = !p.want;
+      if (old) URL.revokeObjectURL(old);
+    };
+    img.onerror = () => { if (old) URL.revokeObjectURL(old); };
+    img.src = p.url;
+    renderPreview();
+  }
+
+  function renderPreview() {
+    const p = state.preview;
+    const pill = $('st-preview');
+    if (!p.want) {
+      setPill(pill, p.offReason ? `preview off · ${p.offReason}` : 'preview off', p.offReason ? 'warn' : '');
+      return;
+    }
+    if (!p.lastFrameAt) {
+      setPill(pill, `${p.camera}: starting…`, 'warn');
+      return;
+    }
+    const n = p.frameTimes.length;
+    const fps = n > 1 ? ((n - 1) * 1000) / (p.frameTimes[n - 1] - p.frameTimes[0]) : 0;
+    setPill(pill, `${p.camera} · ${fps.toFixed(1)} fps · ${(p.bytes / 1024).toFixed(0)} kB`, 'ok');
+  }
+
+  $('preview-on').addEventListener('change', (e) => {
+    if (e.target.checked && state.preview.camera) {
+      state.preview.want = true;
+      state.preview.offReason = '';
+      askPreview();
+    } else {
+      previewOff('');
+    }
+  });
+  $('preview-camera').addEventListener('change', (e) => {
+    state.preview.camera = e.target.value;
+    localStorage.setItem('phone2act.camera', state.preview.camera);
+    if (state.preview.want) askPreview();
+  });
+  setInterval(() => {
+    if (!state.preview.want || !state.connected) return;
+    const why = previewVerdict(performance.now(), state.preview.since, state.preview.lastFrameAt, state.rttLog);
+    if (why) previewOff(why);
+  }, 500);
 
   // ---- buttons ------------------------------------------------------------------------------------------
 

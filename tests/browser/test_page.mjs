@@ -3,7 +3,8 @@
 // an independent path: a rosbridge subscription to the gateway's status topic (System.WatchStatus) and the
 // dataset on disk. Prints "N passed, M failed".
 import { chromium } from 'playwright-core';
-import { readdirSync, statSync } from 'node:fs';
+import { mkdirSync, readdirSync, statSync } from 'node:fs';
+import { createServer, connect } from 'node:net';
 import { join, dirname } from 'node:path';
 import { fileURLToPath } from 'node:url';
 
@@ -12,6 +13,9 @@ const { HTTPS_PORT, ROSBRIDGE_PORT, PAIRING_TOKEN, STACK_DIR } = process.env;
 if (!HTTPS_PORT || !ROSBRIDGE_PORT || !PAIRING_TOKEN) throw new Error('run through tests/browser/run.sh');
 const BASE = `https://127.0.0.1:${HTTPS_PORT}`;
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+// Screenshots go here (kept after the run, ignored by git).
+const OUT_DIR = process.env.BROWSER_OUT || join(here, 'out');
+mkdirSync(OUT_DIR, { recursive: true });
 
 // ---- server-side view: rosbridge subscription to /phone2act/status ----------------------------------------
 class ServerView {
@@ -70,7 +74,7 @@ const browser = await chromium.launch({
 const server = new ServerView();
 await server.ready;
 
-async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent } = {}) {
+async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent, base = BASE } = {}) {
   const context = await browser.newContext({ ignoreHTTPSErrors: true, userAgent, viewport: { width: 412, height: 915 } });
   if (shim) {
     await context.addInitScript({ path: join(here, 'webxr-shim.js') });
@@ -81,7 +85,7 @@ async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent } = {})
   const page = await context.newPage();
   page.on('dialog', (d) => d.accept());
   page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
-  await page.goto(token === null ? `${BASE}/` : `${BASE}/?token=${encodeURIComponent(token)}`);
+  await page.goto(token === null ? `${base}/` : `${base}/?token=${encodeURIComponent(token)}`);
   return { context, page };
 }
 const pageState = (page, expr) => page.evaluate(expr);
@@ -121,7 +125,9 @@ await check('holding the clutch while moving the phone moves the sim arm', async
   await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
   await page.mouse.down();
   await server.until((s) => s.engaged, 'clutch engaged on the server');
-  assert((await page.textContent('#st-clutch')).startsWith('ENGAGED'), 'clutch state not shown as engaged');
+  // The page learns it from its own feedback, which may come a frame after the server view's status.
+  await waitPage(page, () => document.querySelector('#st-clutch').textContent.startsWith('ENGAGED'),
+    'the clutch shown as engaged');
   // Phone 8 cm forward (-Z in WebXR's frame) over 1.2 s.
   await page.evaluate(() => window.__xr.moveTo([0, 1.4, -0.08], 1200));
   const moved = await server.until((s) => dist(s.ee_m, before) > 0.05, 'the measured end effector to move 5 cm');
@@ -211,6 +217,109 @@ await check('REC then DISCARD throws the episode away', async () => {
   assert(server.status.recording.saved === saved, 'a discarded episode was saved');
 });
 
+// Luminance statistics of a PNG (a screenshot), decoded by the browser itself: no image library in the test.
+async function pngStats(p, png) {
+  return p.evaluate(async (b64) => {
+    const img = new Image();
+    img.src = `data:image/png;base64,${b64}`;
+    await img.decode();
+    const c = document.createElement('canvas');
+    [c.width, c.height] = [img.naturalWidth, img.naturalHeight];
+    const g = c.getContext('2d');
+    g.drawImage(img, 0, 0);
+    const d = g.getImageData(0, 0, c.width, c.height).data;
+    let sum = 0; let sum2 = 0; const levels = new Set();
+    for (let i = 0; i < d.length; i += 4) {
+      const y = 0.299 * d[i] + 0.587 * d[i + 1] + 0.114 * d[i + 2];
+      sum += y; sum2 += y * y; levels.add(Math.round(y / 8));
+    }
+    const n = d.length / 4;
+    return { w: c.width, h: c.height, mean: sum / n, std: Math.sqrt(Math.max(0, sum2 / n - (sum / n) ** 2)), levels: levels.size };
+  }, png.toString('base64'));
+}
+
+await check('the camera preview shows the scene, off until asked, and stops when turned off', async () => {
+  assert(await page.isVisible('#preview-box'), 'no preview controls although the server has a camera');
+  assert(await page.isHidden('#preview'), 'a preview image is shown before it was asked for');
+  assert(!(await page.isChecked('#preview-on')), 'the preview is on by default');
+  const early = await pageState(page, () => window.phone2act.preview.received);
+  assert(early === 0, `${early} preview frames arrived before the page asked`);
+  // A measurement, not a check: the control round trip over 2 s without and with the preview.
+  const rttMedian = () => page.evaluate(() => {
+    const ms = window.phone2act.rttLog.map(([, rtt]) => rtt).sort((a, b) => a - b);
+    return ms.length ? ms[Math.floor(ms.length / 2)] : NaN;
+  });
+  await sleep(2000);
+  const rttOff = await rttMedian();
+  await page.check('#preview-on');
+  await waitPage(page, () => window.phone2act.preview.shown >= 3 && !document.querySelector('#preview').hidden,
+    'three decoded preview frames');
+  const img = await page.evaluate(() => {
+    const i = document.querySelector('#preview');
+    return { w: i.naturalWidth, h: i.naturalHeight, shownW: i.width, shownH: i.height };
+  });
+  // The server's camera is 640x480; the page asks for at most 320 px wide.
+  assert(img.w > 0 && img.w <= 320 && Math.abs(img.w / img.h - 640 / 480) < 0.02,
+    `preview decoded as ${img.w}x${img.h}, not the camera's 4:3 within 320 px`);
+  assert(/front · [\d.]+ fps · \d+ kB/.test(await page.textContent('#st-preview')), 'preview rate and size not shown');
+  await page.screenshot({ path: join(OUT_DIR, 'phone-page-preview.png'), fullPage: true });
+  const shot = await page.locator('#preview').screenshot({ path: join(OUT_DIR, 'phone-page-preview-area.png') });
+  const stats = await pngStats(page, shot);
+  // The sim render (table, ball, basket, arm) has many grey levels; a blank or single-colour area has one or two.
+  assert(stats.levels >= 8 && stats.std > 8, `the preview area looks uniform: ${JSON.stringify(stats)}`);
+  console.log(`  preview ${img.w}x${img.h}, shown ${img.shownW}x${img.shownH}; area: ${stats.levels} grey levels, std ${stats.std.toFixed(1)}; screenshot in ${OUT_DIR}`);
+  // Control went on meanwhile.
+  const fb = await pageState(page, () => window.phone2act.feedbackCount);
+  await sleep(2000);
+  assert((await pageState(page, () => window.phone2act.feedbackCount)) > fb, 'feedback stopped with the preview on');
+  const p = await pageState(page, () => window.phone2act.preview);
+  const fps = (p.frameTimes.length - 1) * 1000 / (p.frameTimes[p.frameTimes.length - 1] - p.frameTimes[0]);
+  console.log(`  control round trip median over 2 s: ${rttOff.toFixed(1)} ms preview off, ${(await rttMedian()).toFixed(1)} ms on; `
+    + `preview ${fps.toFixed(1)} fps, last frame ${p.bytes} bytes`);
+
+  await page.uncheck('#preview-on');
+  await waitPage(page, () => window.phone2act.preview.gatewayState === 'off', 'the gateway to confirm the preview is off');
+  const n = await pageState(page, () => window.phone2act.preview.received);
+  // 1.5 s is 7 periods at 5 fps: a preview still running would have sent frames by then even on a loaded machine.
+  await sleep(1500);
+  const m = await pageState(page, () => window.phone2act.preview.received);
+  assert(m === n, `${m - n} preview frames arrived after the preview was turned off`);
+  assert(await page.isHidden('#preview'), 'the preview image stays on screen after turning it off');
+});
+
+await check('the preview turns itself off on a slow link (its rule, with made-up numbers)', async () => {
+  const verdicts = await page.evaluate(() => {
+    const v = window.phone2act.previewVerdict;
+    const log = (n, ms, now) => Array.from({ length: n }, (_, i) => [now - i * 100, ms]);
+    return {
+      fresh: v(10000, 1000, 9800, log(15, 20, 10000)),
+      firstFrameComing: v(4000, 0, 0, []),
+      firstFrameLate: v(6000, 0, 0, []),
+      framesLate: v(10000, 1000, 6500, []),
+      slowRoundTrip: v(10000, 1000, 9800, log(15, 200, 10000)),
+      fewSlowRoundTrips: v(10000, 1000, 9800, log(5, 400, 10000)),
+      oldSlowRoundTrips: v(20000, 1000, 19800, log(15, 400, 10000)),
+    };
+  });
+  assert(verdicts.fresh === null, `fresh frames and a fast round trip: ${verdicts.fresh}`);
+  assert(verdicts.firstFrameComing === null, `4 s for the first frame is allowed: ${verdicts.firstFrameComing}`);
+  assert(/no camera frame for 6.0 s/.test(verdicts.firstFrameLate), `first frame late: ${verdicts.firstFrameLate}`);
+  assert(/no camera frame for 3.5 s/.test(verdicts.framesLate), `frames late: ${verdicts.framesLate}`);
+  assert(/round trip 200 ms/.test(verdicts.slowRoundTrip), `slow round trip: ${verdicts.slowRoundTrip}`);
+  assert(verdicts.fewSlowRoundTrips === null, `5 round trips are too few to judge: ${verdicts.fewSlowRoundTrips}`);
+  assert(verdicts.oldSlowRoundTrips === null, `round trips older than 2 s count: ${verdicts.oldSlowRoundTrips}`);
+});
+
+await check('an unknown camera is refused with a clear message and control carries on', async () => {
+  await page.evaluate(() => window.phone2act.ws.send(JSON.stringify({ type: 'preview', camera: 'rear' })));
+  await waitPage(page, () => window.phone2act.errors.some((e) => /unknown camera "rear"/.test(e)), 'the error');
+  const err = (await pageState(page, () => window.phone2act.errors)).find((e) => /rear/.test(e));
+  assert(/front/.test(err), `the error does not name the cameras there are: ${err}`);
+  const fb = await pageState(page, () => window.phone2act.feedbackCount);
+  await sleep(300);
+  assert((await pageState(page, () => window.phone2act.feedbackCount)) > fb, 'feedback stopped after the refusal');
+});
+
 await check('a wrong token is refused with a clear message', async () => {
   const { context, page: p } = await phonePage({ token: 'wrong-token' });
   await waitPage(p, () => /not paired/.test(document.querySelector('#st-conn').textContent), 'refusal');
@@ -233,6 +342,53 @@ await check('without WebXR (iPhone Safari) the page says what to use', async () 
     `the rosbridge port ${ROSBRIDGE_PORT} in the notice`);
   assert(await p.isDisabled('#start-ar'), 'Start AR stays enabled without WebXR');
   await context.close();
+});
+
+// A slow link for real: a TCP relay in front of the gateway's HTTPS port that delays every chunk by `delayMs`
+// each way (TLS passes through untouched). Chromium's own network emulation does not delay WebSocket frames.
+async function slowLink() {
+  const link = { delayMs: 0, sockets: new Set() };
+  link.server = createServer((client) => {
+    const gateway = connect(Number(HTTPS_PORT), '127.0.0.1');
+    for (const [from, to] of [[client, gateway], [gateway, client]]) {
+      link.sockets.add(from);
+      // One delay for every chunk and a delay that only grows keep the bytes in order.
+      from.on('data', (chunk) => (link.delayMs ? setTimeout(() => to.write(chunk), link.delayMs) : to.write(chunk)));
+      from.on('close', () => setTimeout(() => to.destroy(), link.delayMs));
+      from.on('error', () => to.destroy());
+    }
+  });
+  await new Promise((resolve) => link.server.listen(0, '127.0.0.1', resolve));
+  link.base = `https://127.0.0.1:${link.server.address().port}`;
+  link.close = () => { for (const s of link.sockets) s.destroy(); link.server.close(); };
+  return link;
+}
+
+// Last: this phone takes the arm over from the first one.
+await check('on a slow link the page turns the preview off itself', async () => {
+  const link = await slowLink();
+  const { context, page: p } = await phonePage({ base: link.base });
+  try {
+    await waitPage(p, () => !document.querySelector('#take-over').hidden, 'the take-over offer (the arm is held)');
+    await p.click('#take-over');
+    await waitPage(p, () => window.phone2act.sessionOpen, 'session open after taking over');
+    await p.click('#start-ar');
+    await p.check('#preview-on');
+    await waitPage(p, () => window.phone2act.preview.shown > 0 && window.phone2act.feedbackCount > 20, 'a preview frame and feedback');
+    assert(await p.isChecked('#preview-on'), `the preview went off on a fast link: ${await p.textContent('#st-preview')}`);
+    // 300 ms each way: the control round trip (a few ms here) goes to 600 ms, over the 150 ms limit.
+    link.delayMs = 300;
+    await waitPage(p, () => !window.phone2act.preview.want, 'the page to turn the preview off', 20000);
+    const reason = await pageState(p, () => window.phone2act.preview.offReason);
+    assert(/slow link: control round trip \d+ ms/.test(reason), `turned off for another reason: ${reason}`);
+    assert(!(await p.isChecked('#preview-on')), 'the toggle still says on');
+    assert((await p.textContent('#st-preview')).includes(reason), 'the reason is not shown');
+    await p.screenshot({ path: join(OUT_DIR, 'phone-page-preview-slow-link.png'), fullPage: true });
+    console.log(`  turned off: ${reason}`);
+  } finally {
+    await context.close();
+    link.close();
+  }
 });
 
 server.close();

@@ -4,13 +4,20 @@
 //!
 //! Writes go through their own task so that a phone that stops reading never stalls the reading side (and
 //! with it the pose path); when the queue is full, messages are dropped rather than buffered.
+//!
+//! The phone page's camera preview has its own slot of one frame (latest wins) beside that queue: the writer
+//! sends it only when no control message is waiting and the page has acknowledged the previous frame, so at
+//! most one preview frame is ever on the link and feedback never waits behind a queue of images.
 
 use crate::session::SessionEvent;
+use axum::body::Bytes;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, close_code};
 use futures_util::{SinkExt, StreamExt};
 use phone2act_proto::v1::SystemStatus;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{Notify, mpsc, watch};
 
 /// Outgoing queue depth per socket.
 const OUT_QUEUE: usize = 256;
@@ -40,6 +47,80 @@ impl Out {
     }
 }
 
+/// One socket's camera preview frame waiting to go out: a slot of one (a newer frame replaces an unsent
+/// one), sent only when the control queue is empty and the page has acknowledged the frame before.
+#[derive(Debug, Default)]
+pub struct PreviewSlot {
+    /// The preview's generation (a new one at every start and stop, so a fetch that finishes after its
+    /// preview was stopped stores nothing) and the frame waiting.
+    frame: Mutex<(u64, Option<Bytes>)>,
+    /// A frame went out and the page has not acknowledged it yet.
+    in_flight: AtomicBool,
+    changed: Notify,
+}
+
+impl PreviewSlot {
+    /// Starts a new preview; its frames are put with the generation returned.
+    pub fn open(&self) -> u64 {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        slot.0 += 1;
+        slot.1 = None;
+        slot.0
+    }
+
+    /// Offers a frame of preview `generation`; it replaces one not sent yet. Ignored once that preview has
+    /// been stopped.
+    pub fn put(&self, generation: u64, jpeg: Bytes) {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        if slot.0 == generation {
+            slot.1 = Some(jpeg);
+            drop(slot);
+            self.changed.notify_one();
+        }
+    }
+
+    /// True while a frame waits in the slot or is on its way to the page: fetching another now would only
+    /// replace it.
+    pub fn busy(&self) -> bool {
+        self.in_flight.load(Ordering::Acquire)
+            || self
+                .frame
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .1
+                .is_some()
+    }
+
+    /// The page has the last frame sent.
+    pub fn ack(&self) {
+        self.in_flight.store(false, Ordering::Release);
+        self.changed.notify_one();
+    }
+
+    /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more.
+    pub fn close(&self) {
+        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        slot.0 += 1;
+        slot.1 = None;
+        self.in_flight.store(false, Ordering::Release);
+    }
+
+    /// The frame to send now, if there is one and the previous one was acknowledged.
+    fn take_sendable(&self) -> Option<Bytes> {
+        if self.in_flight.load(Ordering::Acquire) {
+            return None;
+        }
+        let frame = self
+            .frame
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .1
+            .take()?;
+        self.in_flight.store(true, Ordering::Release);
+        Some(frame)
+    }
+}
+
 /// What a protocol does with the socket's input.
 pub trait Handler: Send {
     /// One text message within the size limit.
@@ -62,6 +143,40 @@ pub struct Wiring {
     pub out: Out,
     pub session_events: mpsc::Sender<SessionEvent>,
     pub status_events: mpsc::Sender<Box<SystemStatus>>,
+    /// The camera preview's frame slot (only the phone page fills it).
+    pub preview: Arc<PreviewSlot>,
+}
+
+/// Writes control messages as they come and, when none is waiting, the preview frame if the page took the
+/// last one; ends after a close frame or a failed write.
+async fn write_loop<S>(mut sink: S, mut out_rx: mpsc::Receiver<Message>, preview: Arc<PreviewSlot>)
+where
+    S: futures_util::Sink<Message> + Unpin,
+{
+    loop {
+        let msg = match out_rx.try_recv() {
+            Ok(msg) => msg,
+            Err(mpsc::error::TryRecvError::Disconnected) => break,
+            Err(mpsc::error::TryRecvError::Empty) => {
+                if let Some(jpeg) = preview.take_sendable() {
+                    Message::Binary(jpeg)
+                } else {
+                    tokio::select! {
+                        msg = out_rx.recv() => match msg {
+                            Some(msg) => msg,
+                            None => break,
+                        },
+                        () = preview.changed.notified() => continue,
+                    }
+                }
+            }
+        };
+        let closing = matches!(msg, Message::Close(_));
+        if sink.send(msg).await.is_err() || closing {
+            break;
+        }
+    }
+    let _ = sink.close().await;
 }
 
 /// Runs one socket until the peer leaves, the handler closes it, or shutdown.
@@ -74,17 +189,10 @@ pub async fn run<H, F>(
     H: Handler,
     F: FnOnce(Wiring) -> H,
 {
-    let (mut sink, mut stream) = socket.split();
-    let (out_tx, mut out_rx) = mpsc::channel::<Message>(OUT_QUEUE);
-    let writer = tokio::spawn(async move {
-        while let Some(msg) = out_rx.recv().await {
-            let closing = matches!(msg, Message::Close(_));
-            if sink.send(msg).await.is_err() || closing {
-                break;
-            }
-        }
-        let _ = sink.close().await;
-    });
+    let (sink, mut stream) = socket.split();
+    let (out_tx, out_rx) = mpsc::channel::<Message>(OUT_QUEUE);
+    let preview = Arc::new(PreviewSlot::default());
+    let writer = tokio::spawn(write_loop(sink, out_rx, preview.clone()));
     let (session_tx, mut session_rx) = mpsc::channel(64);
     let (status_tx, mut status_rx) = mpsc::channel(4);
     let out = Out(out_tx);
@@ -92,6 +200,7 @@ pub async fn run<H, F>(
         out: out.clone(),
         session_events: session_tx,
         status_events: status_tx,
+        preview,
     });
     let mut last_heard = Instant::now();
     let mut ping = tokio::time::interval(PING_INTERVAL);
@@ -151,4 +260,44 @@ pub async fn run<H, F>(
     drop(handler);
     drop(out);
     let _ = tokio::time::timeout(Duration::from_secs(1), writer).await;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_preview_slot_keeps_one_frame_and_waits_for_the_ack() {
+        let slot = PreviewSlot::default();
+        let preview = slot.open();
+        assert!(!slot.busy());
+        slot.put(preview, Bytes::from_static(b"old"));
+        slot.put(preview, Bytes::from_static(b"new"));
+        assert!(slot.busy());
+        // Latest wins: one frame, the newest.
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"new"[..]));
+        assert_eq!(slot.take_sendable(), None);
+        // On its way and not acknowledged: busy, and the next frame waits.
+        assert!(slot.busy());
+        slot.put(preview, Bytes::from_static(b"next"));
+        assert_eq!(slot.take_sendable(), None);
+        slot.ack();
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"next"[..]));
+    }
+
+    #[test]
+    fn a_stopped_preview_leaves_nothing_to_send() {
+        let slot = PreviewSlot::default();
+        let stopped = slot.open();
+        slot.put(stopped, Bytes::from_static(b"waiting"));
+        slot.close();
+        assert!(!slot.busy());
+        assert_eq!(slot.take_sendable(), None);
+        // A fetch of the stopped preview that finishes late stores nothing, even after a new one started.
+        let current = slot.open();
+        slot.put(stopped, Bytes::from_static(b"late"));
+        assert_eq!(slot.take_sendable(), None);
+        slot.put(current, Bytes::from_static(b"fresh"));
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"fresh"[..]));
+    }
 }

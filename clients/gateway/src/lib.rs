@@ -34,6 +34,7 @@ pub mod takeover;
 pub mod tls;
 mod upstream;
 mod web;
+mod web_preview;
 
 pub use config::{GatewayConfig, TopicConfig};
 pub use server::{Gateway, GatewayInfo, Listeners};

@@ -6,18 +6,24 @@
 //!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
 //!   `{"record":"start","task":"…"}`, `{"record":"stop"}`, `{"record":"discard"}`.
 //!
-//! Gateway → page: `welcome` (arms), `session` (open/retrying/refused), `feedback`, `error`.
+//! - `{"type":"preview","camera":"front","max_fps":5,"width":320}` turns the camera preview on (see
+//!   `web_preview`), `{"type":"preview_off"}` off; `{"type":"preview_ack"}` says a preview frame arrived.
+//!
+//! Gateway → page: `welcome` (arms, cameras), `session` (open/retrying/refused), `feedback`, `error`, `preview`
+//! (`on` with the settings, `off` with the reason), and while the preview is on, binary messages of one JPEG.
 
 use crate::conn::{Handler, Wiring};
 use crate::feedback::page_feedback;
 use crate::rosbridge::parse_json;
 use crate::session::{Session, SessionEvent};
 use crate::shared::Shared;
+use crate::web_preview::{self, PreviewRequest};
 use phone2act_proto::v1::{ButtonEvent, PhoneSample, Pose, TrackingState, clutch_command, record_command};
 use phone2act_proto::{MAX_TASK_BYTES, buttons};
 use serde::Deserialize;
 use serde_json::{Value, json};
 use std::sync::Arc;
+use tokio::task::JoinHandle;
 
 #[derive(Debug, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
@@ -38,6 +44,9 @@ enum PageMsg {
         #[serde(default)]
         buttons: Vec<Value>,
     },
+    Preview(PreviewRequest),
+    PreviewOff,
+    PreviewAck,
 }
 
 #[derive(Debug, Deserialize)]
@@ -131,6 +140,8 @@ pub struct PageHandler {
     shared: Arc<Shared>,
     wiring: Wiring,
     session: Option<Session>,
+    /// The camera preview's fetch task, while the page wants one.
+    preview: Option<JoinHandle<()>>,
     close: bool,
 }
 
@@ -140,16 +151,19 @@ impl PageHandler {
             shared,
             wiring,
             session: None,
+            preview: None,
             close: false,
         }
     }
 
-    /// Tells the page which arms exist (for the picker); called once after connecting.
-    pub fn welcome(&self, arms: &[String]) {
+    /// Tells the page which arms (for the picker) and cameras (for the preview) exist; called once after
+    /// connecting.
+    pub fn welcome(&self, arms: &[String], cameras: &[String]) {
         self.wiring.out.text(
             json!({
                 "type": "welcome",
                 "arms": arms,
+                "cameras": cameras,
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
             })
@@ -179,6 +193,19 @@ impl PageHandler {
             ..PhoneSample::default()
         });
         self.session = Some(session);
+    }
+
+    fn stop_preview(&mut self) {
+        if let Some(task) = self.preview.take() {
+            task.abort();
+        }
+        self.wiring.preview.close();
+    }
+}
+
+impl Drop for PageHandler {
+    fn drop(&mut self) {
+        self.stop_preview();
     }
 }
 
@@ -216,6 +243,26 @@ impl Handler for PageHandler {
                 }
                 Err(e) => self.error(&e, Some(seq)),
             },
+            Ok(PageMsg::Preview(request)) => match request.check() {
+                Ok(params) => {
+                    self.stop_preview();
+                    self.preview = Some(web_preview::spawn(
+                        self.shared.upstream.clone(),
+                        params,
+                        self.wiring.preview.clone(),
+                        self.wiring.out.clone(),
+                    ));
+                }
+                // A bad request leaves a running preview as it was.
+                Err(e) => self.error(&e, None),
+            },
+            Ok(PageMsg::PreviewOff) => {
+                self.stop_preview();
+                self.wiring
+                    .out
+                    .text(json!({"type": "preview", "state": "off", "reason": "asked"}).to_string());
+            }
+            Ok(PageMsg::PreviewAck) => self.wiring.preview.ack(),
             Err(e) => self.error(&e, None),
         }
     }

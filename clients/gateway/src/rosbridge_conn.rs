@@ -17,8 +17,8 @@ use crate::takeover::Claim;
 use crate::upstream::Upstream;
 use phone2act_proto::buttons;
 use phone2act_proto::v1::{
-    ButtonEvent, GetObservationRequest, GetStatusRequest, ImageEncoding, PhoneSample, Pose, SystemStatus,
-    TrackingState, WatchStatusRequest, clutch_command,
+    ButtonEvent, GetStatusRequest, PhoneSample, Pose, SystemStatus, TrackingState, WatchStatusRequest,
+    clutch_command,
 };
 use serde_json::Value;
 use std::collections::{HashMap, HashSet};
@@ -462,28 +462,16 @@ fn spawn_camera_poller(
     tokio::spawn(async move {
         let mut warned = false;
         loop {
-            let request = GetObservationRequest {
-                arms: Vec::new(),
-                image_encoding: ImageEncoding::Jpeg.into(),
-                cameras: vec![camera.clone()],
-            };
-            match upstream.policy().get_observation(request).await {
-                Ok(observation) => {
-                    let frame = observation
-                        .into_inner()
-                        .frames
-                        .into_iter()
-                        .find(|f| f.camera == camera);
-                    if let Some(frame) = frame.filter(|f| !f.data.is_empty()) {
-                        let msg = ros_topics::compressed_image(&camera, &frame.data, wall_now_ns());
-                        out.text(rosbridge::publish(&topic, msg));
-                    }
+            match upstream.camera_jpeg(&camera).await {
+                Ok(Some(jpeg)) => {
+                    let msg = ros_topics::compressed_image(&camera, &jpeg, wall_now_ns());
+                    out.text(rosbridge::publish(&topic, msg));
                 }
                 Err(status) if !warned => {
                     warned = true;
                     tracing::warn!(camera, %status, "rosbridge: camera image unavailable");
                 }
-                Err(_) => {}
+                Ok(None) | Err(_) => {}
             }
             tokio::time::sleep(period).await;
         }

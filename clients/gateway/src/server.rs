@@ -441,20 +441,22 @@ async fn page_socket(
                 until.saturating_duration_since(Instant::now()).as_secs_f64() / 3600.0
             );
         }
-        let arms = match tokio::time::timeout(
-            Duration::from_secs(2),
-            shared.upstream.system().list_arms(ListArmsRequest {}),
-        )
-        .await
-        {
+        let mut system = shared.upstream.system();
+        let (arms, cameras) = tokio::join!(
+            tokio::time::timeout(Duration::from_secs(2), system.list_arms(ListArmsRequest {})),
+            tokio::time::timeout(Duration::from_secs(2), shared.upstream.camera_names()),
+        );
+        let arms = match arms {
             Ok(Ok(response)) => response.into_inner().arms.into_iter().map(|a| a.arm).collect(),
             _ => vec![shared.config.default_arm.clone()],
         };
+        // Without the list the page offers no preview; the arms still work.
+        let cameras = cameras.ok().and_then(Result::ok).unwrap_or_default();
         let max = shared.config.max_message_bytes;
         let stop = shared.shutdown.clone();
         conn::run(socket, max, stop, |wiring| {
             let handler = PageHandler::new(shared, wiring);
-            handler.welcome(&arms);
+            handler.welcome(&arms, &cameras);
             handler
         })
         .await;

@@ -7,6 +7,7 @@
 use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
+use phone2act_proto::v1::{GetObservationRequest, ImageEncoding, ListCamerasRequest};
 use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
 
 use crate::GatewayError;
@@ -48,5 +49,33 @@ impl Upstream {
     /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
     pub fn policy(&self) -> PolicyClient<AuthChannel> {
         self.0.policy_raw()
+    }
+
+    /// The newest frame of `camera` as a JPEG, through `Policy.GetObservation` (read-only: it takes no
+    /// control). `None` while the server has no frame of it (the call skips camera names it does not know,
+    /// so callers that must tell "unknown" from "not yet" ask [`Self::camera_names`]). Shared by the
+    /// rosbridge image topics and the phone page's preview.
+    pub async fn camera_jpeg(&self, camera: &str) -> Result<Option<Vec<u8>>, tonic::Status> {
+        let request = GetObservationRequest {
+            arms: Vec::new(),
+            image_encoding: ImageEncoding::Jpeg.into(),
+            cameras: vec![camera.to_owned()],
+        };
+        let observation = self.policy().get_observation(request).await?.into_inner();
+        Ok(observation
+            .frames
+            .into_iter()
+            .find(|f| f.camera == camera && !f.data.is_empty())
+            .map(|f| f.data))
+    }
+
+    /// The names of the server's cameras.
+    pub async fn camera_names(&self) -> Result<Vec<String>, tonic::Status> {
+        let cameras = self
+            .system()
+            .list_cameras(ListCamerasRequest {})
+            .await?
+            .into_inner();
+        Ok(cameras.cameras.into_iter().map(|c| c.camera).collect())
     }
 }

@@ -260,9 +260,13 @@ impl Policy for PolicyService {
         } else {
             req.arms
         };
-        let observed = self
-            .sessions
-            .observe(&arms, &req.cameras, frame_encoding(req.image_encoding, 0))?;
+        let sessions = Arc::clone(&self.sessions);
+        let encoding = frame_encoding(req.image_encoding, 0);
+        // JPEG-encoding camera frames takes milliseconds each (far more in a debug build): off the async
+        // workers that carry the teleop streams, so a camera view polling this never delays control.
+        let observed = tokio::task::spawn_blocking(move || sessions.observe(&arms, &req.cameras, encoding))
+            .await
+            .map_err(|e| Status::internal(format!("observation failed: {e}")))??;
         Ok(Response::new(observation(self.sessions.app(), observed)))
     }
 
