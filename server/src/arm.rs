@@ -512,11 +512,13 @@ impl ArmController {
     /// last decision: what the recorder turns into the episode's clutch and gate events.
     pub fn clutch_and_gate(&self) -> (bool, u64, u64, String) {
         let inner = self.lock();
+        let a = &inner.arbiter;
+        let counters = a.counters();
         (
-            inner.driver == Driver::Teleop && inner.teleop.engaged(),
-            inner.commands_rejected,
-            inner.commands_clamped,
-            inner.last_decision.reason.clone(),
+            a.engaged(),
+            counters.rejected,
+            counters.clamped,
+            a.last_decision().reason.clone(),
         )
     }
 
