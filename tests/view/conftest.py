@@ -9,6 +9,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+
 REPO = Path(__file__).resolve().parents[2]
 
 # One server launcher for every Python suite: loaded under its own name so pytest does not see two conftests.
@@ -21,7 +23,7 @@ _spec.loader.exec_module(suite)
 
 def read_rrd(path: Path) -> dict[str, dict[str, list[Any]]]:
     """Every entity of the first recording in `path`: column name ("Transform3D:translation",
-    "server_time", ...) -> values, rows in the order they were logged (static rows have no time)."""
+    "server_time" in ns, ...) -> values, rows in the order they were logged (static rows have no time)."""
     try:
         from rerun.chunk import RrdReader  # rerun-sdk >= 0.41
     except ImportError:
@@ -33,5 +35,13 @@ def read_rrd(path: Path) -> dict[str, dict[str, list[Any]]]:
         for name in batch.schema.names:
             if name == "rerun.controls.RowId":
                 continue
-            cols[name].extend(batch.column(name).to_pylist())
+            col = batch.column(name)
+            if pa.types.is_temporal(col.type):  # timelines as integer nanoseconds
+                col = col.cast(pa.int64())
+            cols[name].extend(col.to_pylist())
     return out
+
+
+def texts(rrd: dict[str, dict[str, list[Any]]], entity: str) -> list[str]:
+    """The `TextLog` messages of `entity`, in order."""
+    return [t[0] for t in rrd[entity]["TextLog:text"]]

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import read_rrd, suite
+from conftest import read_rrd, suite, texts
 from phone2act import Client
 
 # A rendered camera of the sim scene, small so three encoders' worth of work never loads the machine.
@@ -131,6 +131,14 @@ def test_view_saves_cameras_poses_and_events_of_an_episode(server: suite.Server,
             c.episodes.discard()
             assert suite.wait_until(lambda: (episodes / "episode_000001.discarded.rrd").exists(), TIMEOUT_S), \
                 view.lines
+            # A re-record: the take is thrown away and the same index starts again, in one recorder change.
+            c.episodes.start("the second take counts")
+            assert suite.wait_until(lambda: c.episodes.status().frames_recorded >= 5, TIMEOUT_S)
+            time.sleep(0.5)  # the view's watch (20 Hz) sends a frame count above the new take's first one
+            c.episodes.rerecord()
+            assert suite.wait_until(lambda: c.episodes.status().frames_recorded >= 5, TIMEOUT_S)
+            assert c.episodes.stop().episode_index == 1
+            assert suite.wait_until(lambda: (episodes / "episode_000001.rrd").exists(), TIMEOUT_S), view.lines
     finally:
         code = view.stop()
     assert code == 0, "\n".join(view.lines)
@@ -163,26 +171,35 @@ def test_view_saves_cameras_poses_and_events_of_an_episode(server: suite.Server,
     assert all(len(g) == 2 for g in ep["/arms/main/gripper"]["Scalars:scalars"])
 
     # Events: the clutch cycle, the rejected jump, and the episode's own boundaries.
-    arm_events = [t[0] for t in ep["/events/main"]["TextLog:text"]]
+    arm_events = texts(ep, "/events/main")
     assert arm_events.count("clutch engaged") >= 2 and arm_events.count("clutch released") >= 2, arm_events
     assert any(re.match(r"gate rejected \d+ command", e) for e in arm_events), arm_events
-    recording = [t[0] for t in ep["/events/recording"]["TextLog:text"]]
+    recording = texts(ep, "/events/recording")
     assert recording[0].startswith("episode 0 started: 'view test"), recording
-    assert recording[-1].startswith("episode 0 saved"), recording
-    # Every row of the episode file lies between its start and its stop on the server's clock.
-    times = [t for cols in ep.values() for t in cols.get("server_time", []) if t is not None]
-    assert times and max(times) - min(times) < saved.duration_s + 5.0
+    assert re.fullmatch(rf"episode 0 saved: {saved.length_frames} frames, .* s, task 'view test.*'", recording[-1]), \
+        recording
+    # The file starts at the episode's start: the arm's state when the view first saw it (logged before the
+    # episode) is in --save's file, not in this one.
+    assert not any(e.startswith("first seen") for e in arm_events), arm_events
 
     # The discarded take: its own file, ending with the discard.
     gone = read_rrd(episodes / "episode_000001.discarded.rrd")
-    assert [t[0] for t in gone["/events/recording"]["TextLog:text"]][-1].startswith("episode 1 discarded")
+    assert texts(gone, "/events/recording")[-1].startswith("episode 1 discarded")
 
-    # --save holds all of it: both episodes' boundaries and the frames in between.
+    # The re-recorded take: its discarded first try under the next free name, then the saved episode 1.
+    retake = texts(read_rrd(episodes / "episode_000001.discarded.1.rrd"), "/events/recording")
+    assert retake[0].startswith("episode 1 started: 'the second take") and retake[-1] == "episode 1 discarded"
+    one = texts(read_rrd(episodes / "episode_000001.rrd"), "/events/recording")
+    assert one[0].startswith("episode 1 started") and one[-1].startswith("episode 1 saved: "), one
+
+    # --save holds all of it: every boundary, and the frames in between.
     all_ = read_rrd(everything)
-    text = [t[0] for t in all_["/events/recording"]["TextLog:text"]]
-    assert [e.split(":")[0].split(" (")[0] for e in text] == [
-        "episode 0 started", "episode 0 saved", "episode 1 started", "episode 1 discarded"], text
+    text = texts(all_, "/events/recording")
+    assert [e.split(":")[0] for e in text] == [
+        "episode 0 started", "episode 0 saved", "episode 1 started", "episode 1 discarded",
+        "episode 1 started", "episode 1 discarded", "episode 1 started", "episode 1 saved"], text
     assert len(all_["/cameras/front"]["EncodedImage:blob"]) >= len(blobs)
+    assert texts(all_, "/events/main")[0].startswith("first seen")
 
 
 def test_view_refuses_to_run_without_an_output(server: suite.Server) -> None:

@@ -12,6 +12,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 import rerun as rr
@@ -36,6 +37,11 @@ def workspaces_from_config(path: Path) -> dict[str, Workspace]:
             gate.get("workspace_min_m", [0.10, -0.25, 0.02]), gate.get("workspace_max_m", [0.40, 0.25, 0.35])
         )
     return out
+
+
+def _cpu_s() -> float:
+    t = os.times()
+    return t.user + t.system
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -104,10 +110,12 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     code = 0
+    started, cpu_started = time.monotonic(), _cpu_s()
     try:
         view.log_static()
         view.start()
         print(f"phone2act-view: {args.url} at {rate_hz:g} Hz", file=sys.stderr, flush=True)
+        started, cpu_started = time.monotonic(), _cpu_s()  # the steady state, without imports and setup
         view.run(stop, args.duration_s)
     except Phone2ActError as e:
         print(f"phone2act-view: {e}", file=sys.stderr)
@@ -119,9 +127,11 @@ def main(argv: list[str] | None = None) -> int:
         view.close()
         client.close()
     s = view.stats
+    wall_s = time.monotonic() - started
     print(f"phone2act-view: {s.observations} observations ({s.skipped_observations} skipped for newer ones), "
           f"{s.frames} camera frames, {s.statuses} status snapshots ({s.skipped_statuses} skipped), "
-          f"{len(s.events)} events, {len(view.out.saved_episodes)} episode files", file=sys.stderr)
+          f"{len(s.events)} events, {len(view.out.saved_episodes)} episode files; "
+          f"cpu {_cpu_s() - cpu_started:.2f} s over {wall_s:.1f} s", file=sys.stderr)
     return code
 
 

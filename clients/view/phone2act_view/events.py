@@ -146,7 +146,7 @@ class EpisodeTracker:
             if cur.phase == common_pb2.RECORDING_PHASE_SAVING:
                 return out  # the outcome shows when the recorder is idle again
             if cur.episodes_saved > saved_before:
-                out.append(EpisodeEvent("saved", index, task, frames, f"episode {index} saved ({frames}+ frames)"))
+                out.append(EpisodeEvent("saved", index, task, frames, f"episode {index} saved"))
             else:
                 why = f": {cur.warning}" if cur.warning else ""
                 out.append(EpisodeEvent("discarded", index, task, frames, f"episode {index} discarded{why}"))

@@ -209,7 +209,10 @@ class View:
         self._calls.append(status_call)
         _pump(self.inbox, "observations", observations, lambda m: self.inbox.put_latest("observation", m))
         _pump(self.inbox, "status", lambda: status_call, lambda m: self.inbox.put_latest("status", m))
-        _pump(self.inbox, "episodes", lambda: self.client.episodes.watch(interval_s=5.0), self.inbox.put_recorder)
+        # The recorder signals its phase changes, not each frame: at the view's rate the watch also carries
+        # the frame count, whose drop is how a re-record (discard and start, coalesced into one change) shows.
+        _pump(self.inbox, "episodes", lambda: self.client.episodes.watch(interval_s=1.0 / self.rate_hz),
+              self.inbox.put_recorder)
 
     def close(self) -> None:
         with self.inbox.cond:
@@ -278,9 +281,21 @@ class View:
         for e in self._episodes.update(r):
             if e.kind == "started":
                 self.out.start_episode(e.index, e.task)
-            self._event("events/recording", e.level, e.text)
+            text = self._saved_text(e.index) if e.kind == "saved" else e.text
+            self._event("events/recording", e.level, text)
             if e.kind in ("saved", "discarded"):
                 self.out.end_episode(e.kind)
+
+    def _saved_text(self, index: int) -> str:
+        # The recorder's changes carry no final length (its watch stream is not sent per frame): ask for it.
+        try:
+            info = next((e for e in self.client.episodes.list() if e.episode_index == index), None)
+        except Exception as err:  # noqa: BLE001 - the event is still worth logging without its length
+            log.warning("episode %d: cannot list episodes: %s", index, err)
+            info = None
+        if info is None:
+            return f"episode {index} saved"
+        return f"episode {index} saved: {info.length_frames} frames, {info.duration_s:.2f} s, task {info.task!r}"
 
     def on_observation(self, o: Any) -> None:
         self.stats.observations += 1
