@@ -21,9 +21,11 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import grpc
 import numpy as np
 import rerun as rr
 from phone2act import Client
+from phone2act.errors import from_rpc_error
 from phone2act.v1 import common_pb2, system_pb2
 
 from phone2act_view.events import ERROR, INFO, WARN, EpisodeTracker, arm_events
@@ -95,7 +97,9 @@ class Inbox:
             return recorder, latest
 
 
-def _pump(inbox: Inbox, name: str, items: Callable[[], Iterable[Any]], put: Callable[[Any], None]) -> None:
+def _pump(
+    inbox: Inbox, name: str, target: str, items: Callable[[], Iterable[Any]], put: Callable[[Any], None]
+) -> None:
     def run() -> None:
         try:
             for item in items():
@@ -104,6 +108,9 @@ def _pump(inbox: Inbox, name: str, items: Callable[[], Iterable[Any]], put: Call
                 put(item)
             if not inbox.closed:
                 inbox.fail(ConnectionError(f"{name}: the server ended the stream"))
+        except grpc.RpcError as e:  # a raw stub's stream: the SDK's error, which says what and where
+            if not inbox.closed:
+                inbox.fail(from_rpc_error(e, name, target))
         except BaseException as e:  # noqa: BLE001 - handed to the main loop, which reports it
             if not inbox.closed:
                 inbox.fail(e)
@@ -207,12 +214,13 @@ class View:
 
         status_call = self.client.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=1.0 / self.rate_hz))
         self._calls.append(status_call)
-        _pump(self.inbox, "observations", observations, lambda m: self.inbox.put_latest("observation", m))
-        _pump(self.inbox, "status", lambda: status_call, lambda m: self.inbox.put_latest("status", m))
+        target, inbox = self.client.target, self.inbox
+        _pump(inbox, "Policy.Session", target, observations, lambda m: inbox.put_latest("observation", m))
+        _pump(inbox, "System.WatchStatus", target, lambda: status_call, lambda m: inbox.put_latest("status", m))
         # The recorder signals its phase changes, not each frame: at the view's rate the watch also carries
         # the frame count, whose drop is how a re-record (discard and start, coalesced into one change) shows.
-        _pump(self.inbox, "episodes", lambda: self.client.episodes.watch(interval_s=1.0 / self.rate_hz),
-              self.inbox.put_recorder)
+        recorder_changes = self.client.episodes.watch(interval_s=1.0 / self.rate_hz)
+        _pump(inbox, "Episodes.Watch", target, lambda: recorder_changes, inbox.put_recorder)
 
     def close(self) -> None:
         with self.inbox.cond:
