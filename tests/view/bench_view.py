@@ -3,7 +3,8 @@ and with a `phone2act-view` attached to each server it starts, and reports each 
 with the view's CPU use (user + system time over its wall time, which the view prints when it exits).
 
     cargo build --release -p phone2act-tests --bin control-bench
-    python tests/view/bench_view.py --bench target/release/control-bench --seconds 8 --rounds 2
+    tests/view/run.sh   # once: creates the venv with the view installed (~/.cache/phone2act/view-venv)
+    ~/.cache/phone2act/view-venv/bin/python tests/view/bench_view.py --seconds 8 --rounds 3
 
 control-bench starts its servers in-process on ports it does not print: the script finds them in the
 kernel's socket table (`ss -ltnp`, the bench's own pid) as they open, and starts a view on each one
