@@ -214,3 +214,32 @@ def test_view_reports_an_unreachable_server(tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "phone2act_view", "--url", f"127.0.0.1:{port}", "--save",
                         str(tmp_path / "x.rrd")], check=False, capture_output=True, text=True, timeout=TIMEOUT_S)
     assert r.returncode == 1 and "cannot connect" in r.stderr, r.stderr
+
+
+def test_view_streams_to_a_rerun_viewer_with_connect(server: suite.Server, tmp_path: Path) -> None:
+    """`--connect` against rerun's own gRPC receiver (the `rerun` binary rerun-sdk installs, headless with
+    `--save`): what the receiver got holds the camera and the poses."""
+    port = suite.free_port()
+    received = tmp_path / "received.rrd"
+    receiver = subprocess.Popen(
+        [str(Path(sys.executable).parent / "rerun"), "--bind", "127.0.0.1", "--port", str(port), "--save",
+         str(received)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        def listening() -> bool:
+            import socket
+
+            with socket.socket() as s:
+                return s.connect_ex(("127.0.0.1", port)) == 0
+
+        assert suite.wait_until(listening, TIMEOUT_S), "rerun's receiver did not listen"
+        r = subprocess.run([sys.executable, "-m", "phone2act_view", "--url", server.target, "--connect",
+                            f"rerun+http://127.0.0.1:{port}/proxy", "--duration-s", "3"], check=False,
+                           capture_output=True, text=True, timeout=TIMEOUT_S * 2)
+        assert r.returncode == 0, r.stderr
+    finally:
+        receiver.terminate()
+        receiver.wait(timeout=TIMEOUT_S)
+    got = read_rrd(received)
+    # 3 s at 20 Hz is 60 rows; a tenth of that on a machine loaded 10x over.
+    assert len(got["/cameras/front"]["EncodedImage:blob"]) >= 6, sorted(got)
+    assert len(got["/world/main/ee"]["Transform3D:translation"]) >= 6
