@@ -32,6 +32,7 @@ echo "rust: ${passed} passed, 0 failed"
 cargo build --release -p phone2act-cli --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
 tests/python/run.sh
+tests/view/run.sh
 # The LeRobot plugins, the closed loop (its short CI version: 2 demonstrations, a few training steps, one trial
 # per evaluation path) and the conformance checks use lerobot 0.6, which needs Python >= 3.12 (Debian 12 ships
 # 3.11): they run wherever such a Python exists (this machine kind has one under pyenv) and are reported as
