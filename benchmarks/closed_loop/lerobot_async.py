@@ -122,10 +122,12 @@ def robot_client_command(
     actions_per_chunk: int,
     chunk_size_threshold: float = 0.5,
 ) -> list[str]:
+    """The robot client's command line. The model path is made absolute: the policy server loads it from its own
+    working directory, and a path that does not exist there is taken for a Hugging Face Hub id."""
     cmd = [str(python), "-m", "lerobot.async_inference.robot_client", "--robot.type=phone2act",
            f"--robot.server={robot_server}", f"--robot.arm={arm}", f"--robot.camera_names=[{','.join(cameras)}]",
            f"--robot.fps={fps}", f"--server_address={policy_server}", "--policy_type=act",
-           f"--pretrained_name_or_path={model}", "--policy_device=cpu", f"--actions_per_chunk={actions_per_chunk}",
+           f"--pretrained_name_or_path={Path(model).resolve()}", "--policy_device=cpu", f"--actions_per_chunk={actions_per_chunk}",
            f"--chunk_size_threshold={chunk_size_threshold}", f"--fps={fps}", f"--task={task}"]
     if token:
         cmd.append(f"--robot.token={token}")
