@@ -406,13 +406,14 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
                 if not client.running():
                     raise RuntimeError(f"seed {seed}: the robot client stopped by itself; see {client.log_path}")
             finally:
-                rc = client.interrupt()
+                rc = client.stop()
             if rc != STOPPED_BY_SIGINT:
                 raise RuntimeError(f"seed {seed}: the robot client exited with {rc} on Ctrl-C; see {client.log_path}")
             ok = ok or scene_success(c)
             result.trials += 1
             result.successes += int(ok)
-            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0})
+            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0,
+                                     "ctrl_c": client.ctrl_c_sent})
     result.seconds = time.monotonic() - start
     return result
 
