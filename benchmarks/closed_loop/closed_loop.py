@@ -380,8 +380,8 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
         cmd = robot_client_command(
             python, robot_server=server.target, token=token, arm=ARM, cameras=[CAMERA], fps=args.fps,
             policy_server=policy_server.address, model=model, task=TASK,
-            # The whole chunk, and a new observation once half of it is played: as the Policy API path
-            # replaces its 20-step chunks every 10 steps.
+            # The whole chunk, and (by default) a new observation once half of it is played: with the default
+            # model (chunks of 20, 10 steps executed) the cadence of the Policy API path.
             actions_per_chunk=policy_chunk_size(model), chunk_size_threshold=args.async_threshold,
         )
         for seed in tqdm(seeds, desc="eval: async inference", unit="trial"):
@@ -389,8 +389,9 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
             sent0 = c.arm(ARM).commands_sent
             client = RobotClient(cmd, workdir, workdir / "robot_client.log")
             try:
-                # Starting two Python processes' worth of torch and lerobot, and loading the policy, is not the
-                # trial's time: the trial starts when the first action reaches the arm.
+                # Starting a Python process with torch and lerobot, and loading the policy in the server, is not
+                # the trial's time: the trial starts when the first action reaches the arm. 300 s: both take
+                # about 10 s here under a training run's load.
                 deadline = time.monotonic() + 300.0
                 while c.arm(ARM).commands_sent == sent0:
                     if not client.running() or time.monotonic() > deadline:
