@@ -366,6 +366,12 @@ def evaluate_plugin(args, server: Server, token: str, model: Path, seeds: list[i
 # --- stage 4c: evaluation through lerobot's async inference ------------------------------------------------
 
 
+def gate_decisions(client) -> int:
+    """Commands the arm's safety gate has decided on: passed (possibly clamped) or refused."""
+    state = client.arm(ARM)
+    return state.commands_sent + state.commands_rejected
+
+
 def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[int], log_dir: Path) -> PathResult:
     """lerobot's own policy server (one for the whole evaluation) and one robot client per trial, both unchanged,
     the client driving the arm through the `phone2act` robot plugin. A client runs until interrupted: it gets
@@ -386,14 +392,15 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
         )
         for seed in tqdm(seeds, desc="eval: async inference", unit="trial"):
             reset_scene(c, seed)
-            sent0 = c.arm(ARM).commands_sent
+            gated0 = gate_decisions(c)
             client = RobotClient(cmd, workdir, workdir / "robot_client.log")
             try:
                 # Starting a Python process with torch and lerobot, and loading the policy in the server, is not
-                # the trial's time: the trial starts when the first action reaches the arm. 300 s: both take
-                # about 10 s here under a training run's load.
+                # the trial's time: the trial starts when the first action reaches the safety gate (which may
+                # refuse it: an under-trained policy's jumps are refused, the arm holds, the trial goes on). 300 s:
+                # both take about 10 s here under a training run's load.
                 deadline = time.monotonic() + 300.0
-                while c.arm(ARM).commands_sent == sent0:
+                while gate_decisions(c) == gated0:
                     if not client.running() or time.monotonic() > deadline:
                         raise RuntimeError(f"seed {seed}: the robot client drove nothing; see {client.log_path}")
                     time.sleep(0.1)

@@ -17,6 +17,7 @@ import random
 import signal
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -134,6 +135,15 @@ def robot_client_command(
     return cmd
 
 
+def _with_default_sigint(cmd: list[str]) -> list[str]:
+    """`cmd`, exec'd with SIGINT at its default disposition. A shell without job control starts background
+    commands with SIGINT ignored, exec keeps it ignored, and Python then installs no KeyboardInterrupt handler:
+    the client would not stop on Ctrl-C at all (seen when the benchmark ran as `run.sh … &`). The same process
+    (pid) then runs `cmd` itself."""
+    reset = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])"
+    return [sys.executable, "-c", reset, *cmd]
+
+
 class RobotClient:
     """`python -m lerobot.async_inference.robot_client`: it runs until interrupted, as a user stops it."""
 
@@ -143,7 +153,8 @@ class RobotClient:
         self._log = log_path.open("a")
         self._log.write(f"--- {' '.join(cmd)}\n")
         self._log.flush()
-        self.proc = subprocess.Popen(cmd, cwd=workdir, stdout=self._log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(_with_default_sigint(cmd), cwd=workdir, stdout=self._log,
+                                     stderr=subprocess.STDOUT)
         # How many Ctrl-C it took to end it (see `stop`).
         self.ctrl_c_sent = 0
 

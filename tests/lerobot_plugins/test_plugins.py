@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import math
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -395,8 +396,6 @@ class StateLog:
 def test_async_inference_drives_the_arm_and_holds_after_ctrl_c(server: Server, tmp_path: Path) -> None:
     """lerobot's async inference unchanged: its policy server serves a (random, untrained) ACT, its robot client
     drives the arm through the `phone2act` plugin; Ctrl-C stops the client and the arm holds."""
-    import signal
-
     from lerobot_robot_phone2act import ABSOLUTE_EE_NAMES, ArmWatch
     from lerobot_robot_phone2act.arm_watch import absolute_target
 
