@@ -11,7 +11,9 @@ Stages, each logged under the run's output directory:
      reset with the arm at home: (a) this process runs the policy and pushes its chunks through the Policy API
      (joint steps, the dataset's action layout, anchored on the observation they answer);
      (b) lerobot's own `lerobot-rollout` (base strategy: lerobot 0.6's entry point for running a trained
-     policy on a real robot) drives the `phone2act` robot plugin. Success is the scene's, read with Scene.Get.
+     policy on a real robot) drives the `phone2act` robot plugin; (c) lerobot's async inference: its policy
+     server (one for the evaluation) and one robot client per trial, interrupted with Ctrl-C at the trial's end,
+     drive the plugin (lerobot_async.py). Success is the scene's, read with Scene.Get.
 """
 
 from __future__ import annotations
@@ -30,6 +32,14 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from lerobot_async import (
+    STOPPED_BY_SIGINT,
+    PolicyServer,
+    RobotClient,
+    policy_chunk_size,
+    robot_client_command,
+    stop_process,
+)
 from tqdm import tqdm
 
 ARM = "main"
@@ -128,13 +138,7 @@ class Server:
             raise RuntimeError(f"phone2act serve did not start; see {self.log_path}")
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        stop_process(self.proc)
 
 
 # --- the scene (Scene API) -----------------------------------------------------------------------------------
@@ -249,8 +253,8 @@ class ChunkPolicy:
 
     def __init__(self, model: Path) -> None:
         import torch
-        from lerobot.policies import get_policy_class, make_pre_post_processors
         from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies import get_policy_class, make_pre_post_processors
 
         cfg = PreTrainedConfig.from_pretrained(model)
         cfg.device = "cpu"
@@ -359,6 +363,69 @@ def evaluate_plugin(args, server: Server, token: str, model: Path, seeds: list[i
     return result
 
 
+# --- stage 4c: evaluation through lerobot's async inference ------------------------------------------------
+
+
+def gate_decisions(client) -> int:
+    """Commands the arm's safety gate has decided on: passed (possibly clamped) or refused."""
+    state = client.arm(ARM)
+    return state.commands_sent + state.commands_rejected
+
+
+def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[int], log_dir: Path) -> PathResult:
+    """lerobot's own policy server (one for the whole evaluation) and one robot client per trial, both unchanged,
+    the client driving the arm through the `phone2act` robot plugin. A client runs until interrupted: it gets
+    `--episode-time-s` from its first command to the arm (or until the scene reports success), then Ctrl-C."""
+    from phone2act import Client
+
+    result = PathResult("async inference, robot plugin")
+    workdir = log_dir / "async"
+    python = Path(sys.executable)
+    start = time.monotonic()
+    with Client(server.target, token=token) as c, PolicyServer(python, workdir, args.fps) as policy_server:
+        cmd = robot_client_command(
+            python, robot_server=server.target, token=token, arm=ARM, cameras=[CAMERA], fps=args.fps,
+            policy_server=policy_server.address, model=model, task=TASK,
+            # The whole chunk, and (by default) a new observation once half of it is played: with the default
+            # model (chunks of 20, 10 steps executed) the cadence of the Policy API path.
+            actions_per_chunk=policy_chunk_size(model), chunk_size_threshold=args.async_threshold,
+        )
+        for seed in tqdm(seeds, desc="eval: async inference", unit="trial"):
+            reset_scene(c, seed)
+            gated0 = gate_decisions(c)
+            client = RobotClient(cmd, workdir, workdir / "robot_client.log")
+            try:
+                # Starting a Python process with torch and lerobot, and loading the policy in the server, is not
+                # the trial's time: the trial starts when the first action reaches the safety gate (which may
+                # refuse it: an under-trained policy's jumps are refused, the arm holds, the trial goes on). 300 s:
+                # both take about 10 s here under a training run's load.
+                deadline = time.monotonic() + 300.0
+                while gate_decisions(c) == gated0:
+                    if not client.running() or time.monotonic() > deadline:
+                        raise RuntimeError(f"seed {seed}: the robot client drove nothing; see {client.log_path}")
+                    time.sleep(0.1)
+                t0 = time.monotonic()
+                ok = False
+                while time.monotonic() - t0 < args.episode_time_s and client.running():
+                    if scene_success(c):
+                        ok = True
+                        break
+                    time.sleep(0.2)
+                if not client.running():
+                    raise RuntimeError(f"seed {seed}: the robot client stopped by itself; see {client.log_path}")
+            finally:
+                rc = client.stop()
+            if rc != STOPPED_BY_SIGINT:
+                raise RuntimeError(f"seed {seed}: the robot client exited with {rc} on Ctrl-C; see {client.log_path}")
+            ok = ok or scene_success(c)
+            result.trials += 1
+            result.successes += int(ok)
+            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0,
+                                     "ctrl_c": client.ctrl_c_sent})
+    result.seconds = time.monotonic() - start
+    return result
+
+
 # --- the table -----------------------------------------------------------------------------------------------
 
 
@@ -386,7 +453,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
     p.add_argument("--train-steps", type=int, default=20_000)
     p.add_argument("--eval-trials", type=int, default=50)
-    p.add_argument("--paths", default="api,plugin", help="evaluation paths: api, plugin or both")
+    p.add_argument("--paths", default="api,plugin",
+                   help="evaluation paths, comma-separated: api (Policy API, chunks), plugin (lerobot-rollout), "
+                        "async (lerobot's async inference)")
+    p.add_argument("--async-threshold", type=float, default=0.5,
+                   help="async path: the robot client's chunk_size_threshold (new observation when this fraction "
+                        "of the chunk is left)")
     p.add_argument("--image-px", type=int, default=96)
     p.add_argument("--fps", type=int, default=20)
     p.add_argument("--episode-time-s", type=float, default=20.0)
@@ -406,8 +478,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+PATHS = ("api", "plugin", "async")
+
+
 def main(argv: list[str]) -> int:
     args = parse_args(argv)
+    paths = args.paths.split(",")
+    unknown = [p for p in paths if p not in PATHS]
+    if unknown:
+        raise SystemExit(f"--paths: unknown {unknown}; choose among {', '.join(PATHS)}")
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     token = secrets.token_hex(16)
@@ -434,11 +513,12 @@ def main(argv: list[str]) -> int:
             model, train_s, steps = train(args, dataset_root, out)
         seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
         results = []
-        paths = args.paths.split(",")
         if "api" in paths:
             results.append(evaluate_policy_api(args, server, token, model, seeds))
         if "plugin" in paths:
             results.append(evaluate_plugin(args, server, token, model, seeds, out))
+        if "async" in paths:
+            results.append(evaluate_async(args, server, token, model, seeds, out))
     finally:
         server.stop()
     text = table(n_demos, train_s, steps, results)

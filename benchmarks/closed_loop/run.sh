@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # The closed loop in one command: record demonstrations with the scripted operator through the phone path,
 # train ACT with lerobot-train on the rendered camera and the arm state, evaluate on held-out ball positions
-# through the Policy API (chunks) and through the LeRobot robot plugin (lerobot-rollout), print the table.
+# through the Policy API (chunks) and through the LeRobot robot plugin (lerobot-rollout; with `--paths` also
+# lerobot's async inference, policy server <-> robot client), print the table.
 #
 #   benchmarks/closed_loop/run.sh [--demos N] [--train-steps K] [--eval-trials M] [--short] [--out DIR] [...]
 #
-# --short is the CI version: 2 demonstrations, 20 training steps, 1 trial per path. Other options go to
-# closed_loop.py (`--help` lists them). Output (dataset, model, logs, results.md/json): --out, default
+# --short is the CI version: 2 demonstrations, 20 training steps, 1 trial on each of the three paths. Other
+# options go to closed_loop.py (`--help` lists them). Output (dataset, model, logs, results.md/json): --out, default
 # target/closed-loop/<UTC time>. Python: the lerobot 0.6.1 venv of tests/lerobot_plugins/setup-venv.sh.
 # Binaries: release builds from cargo, unless PHONE2ACT_BIN / PHONE2ACT_OPERATOR name them.
 # Nothing is downloaded beyond that venv: no pretrained backbone, HF_HUB_OFFLINE, no hub push, no wandb.
@@ -28,7 +29,7 @@ while (($#)); do
 done
 if ((short)); then
   # Given first, so explicit options after --short still win (argparse keeps the last value).
-  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 "${args[@]}")
+  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 --paths api,plugin,async "${args[@]}")
 fi
 out="${out:-$REPO/target/closed-loop/$(date -u +%Y%m%dT%H%M%SZ)}"
 

@@ -8,14 +8,17 @@ compared at 2 mm: the sim has no noise, so a settled arm sits on its target to w
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
+import signal
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
+import grpc
 import numpy as np
 import pytest
 from conftest import REPO, Server, wait_until
@@ -24,6 +27,9 @@ from phone2act.v1 import common_pb2, policy_pb2
 
 sys.path.insert(0, str(REPO / "clients" / "replay"))
 from phone2act_replay import load_episode, path_errors, target_path_errors
+
+sys.path.insert(0, str(REPO / "benchmarks" / "closed_loop"))
+from lerobot_async import PolicyServer, RobotClient, robot_client_command
 
 SETTLE_S = 5.0
 FPS = 20
@@ -326,3 +332,140 @@ def test_lerobot_record_with_both_plugins(tmp_path: Path) -> None:
     # matches the targets' within the same lag and step.
     reach_f, reach_t = np.ptp(follower[5:, :3], axis=0), np.ptp(targets[:, :3], axis=0)
     assert np.abs(reach_f - reach_t).max() < 3.2e-3, (reach_f, reach_t)
+
+
+def random_act_policy(out: Path, state_dim: int, camera: str, image_hw: tuple[int, int], action_mean: list[float],
+                      action_std: float) -> None:
+    """A tiny ACT with random weights (no training) for the plugin's features, saved as lerobot saves a trained
+    one: the model, and lerobot's own pre/post-processors whose normalisation stats put the actions around
+    `action_mean`, `action_std` per normalised unit."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    image_key = f"observation.images.{camera}"
+    cfg = ACTConfig(
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (state_dim,)),
+                        image_key: PolicyFeature(FeatureType.VISUAL, (3, *image_hw))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (len(action_mean),))},
+        device="cpu", chunk_size=10, n_action_steps=10, dim_model=16, n_heads=2, dim_feedforward=32,
+        n_encoder_layers=1, n_decoder_layers=1, use_vae=False, pretrained_backbone_weights=None,
+    )
+    torch.manual_seed(0)
+    policy = ACTPolicy(cfg)
+    stats = {
+        "observation.state": {"mean": torch.zeros(state_dim), "std": torch.ones(state_dim)},
+        image_key: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)},
+        "action": {"mean": torch.tensor(action_mean), "std": torch.full((len(action_mean),), action_std)},
+    }
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+    for part in (policy, pre, post):
+        part.save_pretrained(out)
+
+
+def in_workspace(p: common_pb2.Vec3) -> bool:
+    # The server's default workspace box (server/core/src/config.rs, GateConfig::default).
+    lo, hi = (0.10, -0.25, 0.02), (0.40, 0.25, 0.35)
+    return all(lo[i] <= v <= hi[i] for i, v in enumerate((p.x, p.y, p.z)))
+
+
+class StateLog:
+    """Every state of one arm that `System.WatchStatus` reports (every 20 ms), until `close`."""
+
+    def __init__(self, c: Client, arm: str) -> None:
+        from phone2act.v1 import system_pb2
+
+        self.states: list[common_pb2.ArmState] = []
+        self._call = c.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=0.02))
+        self._thread = threading.Thread(target=self._run, args=(arm,), daemon=True)
+        self._thread.start()
+
+    def _run(self, arm: str) -> None:
+        with contextlib.suppress(grpc.RpcError):  # cancelled by `close`
+            for status in self._call:
+                self.states.extend(s for s in status.arms if s.arm == arm)
+
+    def close(self) -> list[common_pb2.ArmState]:
+        self._call.cancel()
+        self._thread.join(timeout=5.0)
+        return self.states
+
+
+def test_async_inference_drives_the_arm_and_holds_after_ctrl_c(server: Server, tmp_path: Path) -> None:
+    """lerobot's async inference unchanged: its policy server serves a (random, untrained) ACT, its robot client
+    drives the arm through the `phone2act` plugin; Ctrl-C stops the client and the arm holds."""
+    from lerobot_robot_phone2act import ABSOLUTE_EE_NAMES, ArmWatch
+    from lerobot_robot_phone2act.arm_watch import absolute_target
+
+    with Client(server.target) as c:
+        state_dim = len(c.observe(arms=["main"]).arms[0].state_names)
+        before = c.arm("main")
+    # The policy's actions centre on a goal 2 cm (towards the workspace's middle) from the arm's current target,
+    # so an arm that reaches it was driven by the policy and by nothing else.
+    start = absolute_target(before)
+    goal = list(start)
+    goal[1] += 0.02 if goal[1] < 0.0 else -0.02
+    # Around it, the random network's outputs spread by at most 1.6 mm: its action head sees LayerNorm'd features
+    # (each |x| <= sqrt(15) over 16 dims) through a 16-wide row of weights initialised within ±1/4, so it outputs
+    # at most ~16 normalised units, i.e. 1.6 mm at 0.1 mm per unit (and 1.6e-3 in the 6D rotation and gripper).
+    model = tmp_path / "model"
+    random_act_policy(model, state_dim, "front", (48, 64), goal, action_std=1e-4)
+    assert ABSOLUTE_EE_NAMES[1] == "y"  # the goal's offset is in y
+
+    with Client(server.target) as c, PolicyServer(Path(sys.executable), tmp_path / "async", FPS) as policy_server:
+        watch, states = ArmWatch(c, "main"), StateLog(c, "main")
+        client = RobotClient(
+            robot_client_command(Path(sys.executable), robot_server=server.target, token=None, arm="main",
+                                 cameras=["front"], fps=FPS, policy_server=policy_server.address, model=model,
+                                 task="go to the goal", actions_per_chunk=10),
+            tmp_path / "async", tmp_path / "async" / "robot_client.log",
+        )
+        try:
+            def at_goal(s: common_pb2.ArmState) -> bool:
+                p = s.robot_from_ee.position_m
+                return math.dist((p.x, p.y, p.z), goal[:3]) < 3e-3 and s.owner == common_pb2.CONTROL_SOURCE_POLICY
+
+            # Two Python processes import torch and lerobot (12 s each, measured on this machine under a full
+            # training run), the server loads 45 MB of weights, then infers; 120 s is several times all of it.
+            # Within 3 mm: the policy's 1.6 mm spread plus the sim's lag settling (well under 1 mm once there).
+            driven = watch.wait(at_goal, 120.0)
+            assert client.running(), client.log_path.read_text()[-4000:]
+            # It keeps driving: commands still flow a second later (20 control periods).
+            time.sleep(1.0)
+            assert client.running(), client.log_path.read_text()[-4000:]
+            assert c.arm("main").commands_sent > driven.commands_sent
+        except BaseException:
+            client.stop()  # never leave it driving
+            raise
+        # Ctrl-C: the client's `finally` disconnects the robot, which releases the arm at once (at worst the
+        # server's 1 s silence timeout would); then the process ends by the SIGINT it did not handle, or, when
+        # lerobot's own exit deadlocks (see `RobotClient.stop`), by a second Ctrl-C.
+        client.ctrl_c()
+        held = watch.wait(lambda s: s.owner == common_pb2.CONTROL_SOURCE_NONE, SETTLE_S)
+        rc = client.stop()
+        log = client.log_path.read_text()
+        assert rc == -signal.SIGINT, log[-4000:]
+        if client.ctrl_c_sent == 1:
+            assert "Client stopped" in log, log[-4000:]
+        # The arm holds: no command after the release moves it.
+        time.sleep(1.0)  # 20 periods of the client's 20 Hz loop: a client still sending would show here
+        after = c.arm("main")
+        watch.close()
+        seen = states.close()
+    assert after.commands_sent == held.commands_sent, (held.commands_sent, after.commands_sent)
+    assert absolute_target(after) == absolute_target(held)
+    # ... and sits on the last target it was given: 1 s is 20 time constants of the sim's lag.
+    p, q = after.robot_from_ee.position_m, after.robot_from_target.position_m
+    assert math.dist((p.x, p.y, p.z), (q.x, q.y, q.z)) < 1e-3
+    # Every command passed the safety gate: what reached the arm lies in its workspace (the gate's clamp) and
+    # the gate counted it; refusals and clamps are allowed, a target outside the box is not.
+    assert after.commands_sent > before.commands_sent
+    # The status stream reports every 20 ms over the 2 s and more above: 20 states is a fifth of that.
+    assert len(seen) > 20, len(seen)
+    outside = [s.robot_from_target.position_m for s in seen if not in_workspace(s.robot_from_target.position_m)]
+    assert not outside, outside[:3]
+    print(f"\nasync inference: {after.commands_sent - before.commands_sent} commands, "
+          f"{after.commands_rejected - before.commands_rejected} refused, "
+          f"{after.commands_clamped - before.commands_clamped} clamped by the gate; stopped by {client.ctrl_c_sent} Ctrl-C")
