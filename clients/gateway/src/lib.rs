@@ -80,16 +80,3 @@ pub async fn serve(
         .run(shutdown)
         .await
 }
-
-/// Serves on listeners the caller bound (for tests: port 0); endpoints without a listener are not served.
-pub async fn serve_with_listeners(
-    config: GatewayConfig,
-    server_url: String,
-    grpc_token: Option<String>,
-    listeners: Listeners,
-    shutdown: impl Future<Output = ()> + Send + 'static,
-) -> Result<(), GatewayError> {
-    Gateway::with_listeners(config, &server_url, grpc_token.as_deref(), listeners)?
-        .run(shutdown)
-        .await
-}
