@@ -7,12 +7,10 @@ use crate::arm::{ArmController, ArmError, RevocationSink, now_s};
 use nalgebra::Isometry3;
 use phone2act_clock::monotonic_ns;
 use phone2act_core::{ActionMode, ReplaceReport};
-use phone2act_proto::v1;
 use phone2act_recorder::jpeg::JpegError;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
-use tokio::sync::mpsc;
 
 /// Observations a session remembers for anchoring chunks (at 50 Hz, about 2.5 s).
 pub const OBSERVATION_MEMORY: usize = 128;
@@ -147,7 +145,8 @@ pub struct PolicySession {
     arms: Vec<String>,
     cameras: Vec<String>,
     encoding: FrameEncoding,
-    events: mpsc::Sender<v1::PolicyEvent>,
+    /// Where the arms tell the session it lost control (the service layer turns that into a wire event).
+    revocations: Arc<dyn RevocationSink>,
     anchors: Mutex<VecDeque<ObservationAnchor>>,
     /// 128 random bits in `SessionReady.session_id`: `PushChunk` must name them, so a session id is a
     /// capability that only the session's own client holds, not a small integer anyone can guess.
@@ -160,21 +159,6 @@ pub struct PolicySessions {
     app: Arc<App>,
     open: Mutex<HashMap<u64, Arc<PolicySession>>>,
     observations: AtomicU64,
-}
-
-/// A session hears that it lost an arm on its event channel.
-impl RevocationSink for mpsc::Sender<v1::PolicyEvent> {
-    fn revoked(&self, arm: &str, reason: &str) {
-        // Latest wins: if the session's event queue is full it is stalled anyway and will see the closed
-        // ownership on its next chunk.
-        let _ = self.try_send(
-            v1::policy_event::Event::Revoked(v1::ControlRevoked {
-                arm: arm.to_owned(),
-                reason: reason.to_owned(),
-            })
-            .into(),
-        );
-    }
 }
 
 fn random_secret() -> Result<String, PolicyError> {
@@ -209,12 +193,12 @@ impl PolicySessions {
         self.open.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Opens a session that sends its events to `events`, claiming its arms if it asks for control (all or
+    /// Opens a session that hears of lost control through `revocations`, claiming its arms if it asks for control (all or
     /// none: an arm it cannot take releases the ones already taken).
     pub fn open(
         &self,
         request: SessionRequest,
-        events: mpsc::Sender<v1::PolicyEvent>,
+        revocations: Arc<dyn RevocationSink>,
     ) -> Result<Arc<PolicySession>, PolicyError> {
         let arms = if request.arms.is_empty() {
             self.app.arm_names()
@@ -240,7 +224,7 @@ impl PolicySessions {
             arms,
             cameras: request.cameras,
             encoding: request.encoding,
-            events,
+            revocations,
             anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
             secret: random_secret()?,
         });
@@ -249,7 +233,7 @@ impl PolicySessions {
                 if let Err(e) = arm.claim_for_policy(
                     id,
                     &session.name,
-                    Arc::new(session.events.clone()),
+                    Arc::clone(&session.revocations),
                     request.silence_timeout_s,
                 ) {
                     for done in &controllers[..k] {
@@ -445,12 +429,6 @@ impl PolicySession {
         format!("{}.{}", self.id, self.secret)
     }
 
-    /// Queues an event for the policy. Latest wins: a policy that is busy inferring misses an event rather
-    /// than queueing it.
-    pub fn notify(&self, event: v1::policy_event::Event) {
-        let _ = self.events.try_send(event.into());
-    }
-
     /// Gives up control of every arm the session drives; they hold.
     pub fn release(&self, app: &App, reason: &str) {
         for name in &self.arms {
@@ -492,14 +470,18 @@ mod tests {
     use super::*;
 
     fn session() -> PolicySession {
-        let (events, _) = mpsc::channel(1);
+        #[derive(Debug)]
+        struct Nobody;
+        impl RevocationSink for Nobody {
+            fn revoked(&self, _arm: &str, _reason: &str) {}
+        }
         PolicySession {
             id: 7,
             name: "p".into(),
             arms: vec!["left".into()],
             cameras: Vec::new(),
             encoding: FrameEncoding::None,
-            events,
+            revocations: Arc::new(Nobody),
             anchors: Mutex::new(VecDeque::new()),
             secret: "ab".repeat(16),
         }

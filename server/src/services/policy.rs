@@ -2,6 +2,7 @@
 //! rules (anchoring, claiming, scheduling) live in [`crate::policy_session`]. Chunks go through the arm
 //! controller's chunk executor and the same safety gate and bridge as teleop.
 
+use crate::arm::RevocationSink;
 use crate::policy_session::{ChunkRequest, FrameEncoding, PolicySession, PolicySessions, SessionRequest};
 use crate::services::convert::observation;
 use phone2act_proto::convert_policy::{action_mode, requested_encoding};
@@ -121,9 +122,31 @@ fn push(
     })
 }
 
-fn send_observation(sessions: &PolicySessions, session: &PolicySession) {
+/// The session's event queue, shared with the arm controllers (revocations).
+#[derive(Debug, Clone)]
+struct Events(mpsc::Sender<v1::PolicyEvent>);
+
+impl Events {
+    /// Latest wins: a policy that is busy inferring misses an event rather than queueing it.
+    fn notify(&self, event: v1::policy_event::Event) {
+        let _ = self.0.try_send(event.into());
+    }
+}
+
+/// A session hears that it lost an arm on its event channel. If the queue is full the session is stalled
+/// anyway and will see the closed ownership on its next chunk.
+impl RevocationSink for Events {
+    fn revoked(&self, arm: &str, reason: &str) {
+        self.notify(v1::policy_event::Event::Revoked(v1::ControlRevoked {
+            arm: arm.to_owned(),
+            reason: reason.to_owned(),
+        }));
+    }
+}
+
+fn send_observation(sessions: &PolicySessions, session: &PolicySession, events: &Events) {
     match sessions.observe_for(session) {
-        Ok(o) => session.notify(v1::policy_event::Event::Observation(observation(
+        Ok(o) => events.notify(v1::policy_event::Event::Observation(observation(
             sessions.app(),
             o,
         ))),
@@ -160,7 +183,8 @@ impl Policy for PolicyService {
         let control = request.request_control;
         let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(16);
         let sessions = Arc::clone(&self.sessions);
-        let session = sessions.open(request, tx.clone())?;
+        let events = Events(tx.clone());
+        let session = sessions.open(request, Arc::new(events.clone()))?;
         let app = sessions.app();
         let ready = v1::SessionReady {
             session_id: session.capability(),
@@ -181,7 +205,7 @@ impl Policy for PolicyService {
             return Err(Status::internal("event queue"));
         }
         if control {
-            session.notify(v1::policy_event::Event::Granted(v1::ControlGranted {
+            events.notify(v1::policy_event::Event::Granted(v1::ControlGranted {
                 arms: session.arms().to_vec(),
             }));
         }
@@ -209,11 +233,11 @@ impl Policy for PolicyService {
             ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             loop {
                 tokio::select! {
-                    _ = ticker.tick(), if rate_hz > 0.0 => send_observation(&sessions, &session),
+                    _ = ticker.tick(), if rate_hz > 0.0 => send_observation(&sessions, &session, &events),
                     msg = inbound.message() => match msg {
                         Ok(Some(v1::PolicyRequest { request: Some(request) })) => match request {
                             v1::policy_request::Request::Chunk(chunk) => {
-                                session.notify(match push(&sessions, &session, &chunk) {
+                                events.notify(match push(&sessions, &session, &chunk) {
                                     Ok(accepted) => v1::policy_event::Event::Accepted(accepted),
                                     Err(status) => v1::policy_event::Event::Rejected(v1::ChunkRejected {
                                         arm: chunk.arm.clone(),
@@ -222,7 +246,7 @@ impl Policy for PolicyService {
                                     }),
                                 });
                             }
-                            v1::policy_request::Request::Observe(_) => send_observation(&sessions, &session),
+                            v1::policy_request::Request::Observe(_) => send_observation(&sessions, &session, &events),
                             v1::policy_request::Request::Release(_) => session.release(sessions.app(), "released"),
                             v1::policy_request::Request::Hello(_) => {
                                 let _ = out_tx.send(Err(Status::invalid_argument("PolicyHello sent twice"))).await;
