@@ -727,7 +727,8 @@ mod tests {
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
     use proptest::prelude::*;
 
-    const PHONE: u64 = 1;
+    // Not 1: a session accessor that made up `Some(1)` would pass every test with a phone numbered 1.
+    const PHONE: u64 = 41;
     const POLICY: u64 = 7;
 
     fn at(x: f64, y: f64, z: f64) -> Isometry3<f64> {
@@ -824,6 +825,63 @@ mod tests {
         assert_eq!(a.driver(), Driver::Teleop);
         assert!(fx.reindexed);
         a
+    }
+
+    #[test]
+    fn readiness_names_the_reason_the_arm_may_not_move() {
+        let measured = |capture_time_s| {
+            Some(Measured {
+                robot_from_ee: home(),
+                capture_time_s,
+            })
+        };
+        let robot = |health, feedback| Robot { health, feedback };
+        // A bridge still connecting that already measured a pose is not ready because it connects; one that
+        // measured nothing yet is not ready because nothing was measured (the more useful reason).
+        assert_eq!(
+            robot(BridgeHealth::Connecting, measured(1.0)).not_ready(1.0),
+            Some(NotReady::Connecting)
+        );
+        assert_eq!(
+            robot(BridgeHealth::Connecting, None).not_ready(1.0),
+            Some(NotReady::NoFeedback)
+        );
+        assert_eq!(
+            robot(BridgeHealth::Ready, None).not_ready(1.0),
+            Some(NotReady::NoFeedback)
+        );
+        // 0.75 s old at t = 3 is fresh (a ratio, 3 / 2.25, would read as stale); 1.5 s old is stale, and says
+        // how old.
+        assert_eq!(robot(BridgeHealth::Ready, measured(2.25)).not_ready(3.0), None);
+        assert_eq!(
+            robot(BridgeHealth::Ready, measured(1.5)).not_ready(3.0),
+            Some(NotReady::StaleFeedback { age_s: 1.5 })
+        );
+        assert_eq!(
+            robot(BridgeHealth::Disconnected("cable".into()), measured(3.0)).not_ready(3.0),
+            Some(NotReady::Disconnected("cable".into()))
+        );
+    }
+
+    #[test]
+    fn engaged_only_while_the_phone_drives_with_its_clutch_in() {
+        let mut a = phone_driving();
+        assert!(a.engaged());
+        let robot = ready(home(), 1.1);
+        a.handle(
+            round(
+                Some(Isometry3::identity()),
+                vec![TeleopButton::Clutch(ClutchKind::Disengage)],
+            ),
+            &robot,
+            1.1,
+        )
+        .unwrap();
+        assert_eq!(a.teleop_session(), Some(PHONE));
+        assert!(!a.engaged(), "clutch out: the phone floats, the arm holds");
+        let (b, _) = phone_bound_policy_driving();
+        assert_eq!(b.driver(), Driver::Policy);
+        assert!(!b.engaged(), "a policy drives: no phone is engaged");
     }
 
     #[test]
@@ -1144,7 +1202,7 @@ mod tests {
         let refused = a.handle(Input::Homed { gripper: 0.0 }, &ready(home(), 1.1), 1.1);
         assert_eq!(
             refused.unwrap_err().to_string(),
-            "is driven by a phone (teleop session 1); release it before homing the arm"
+            "is driven by a phone (teleop session 41); release it before homing the arm"
         );
         let (a, _) = phone_bound_policy_driving();
         assert_eq!(
