@@ -451,7 +451,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--demos", type=int, default=100)
     p.add_argument("--seed", type=int, default=0, help="first training seed")
     p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
-    p.add_argument("--train-steps", type=int, default=20_000)
+    p.add_argument("--train-steps", type=int, default=5_000)
     p.add_argument("--eval-trials", type=int, default=50)
     p.add_argument("--paths", default="api,plugin",
                    help="evaluation paths, comma-separated: api (Policy API, chunks), plugin (lerobot-rollout), "
@@ -463,7 +463,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--fps", type=int, default=20)
     p.add_argument("--episode-time-s", type=float, default=20.0)
     p.add_argument("--reset-time-s", type=float, default=1.0)
-    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--batch-size", type=int, default=16)
     p.add_argument("--lr", type=float, default=1e-4, help="learning rate of the whole policy, backbone included")
     p.add_argument("--vae", action=argparse.BooleanOptionalAction, default=False,
                    help="train ACT with its variational objective (lerobot's default)")
