@@ -17,6 +17,7 @@ use phone2act_core::{
     ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, TeleopConfig, TeleopRound,
     TickNeed,
 };
+use phone2act_recorder::events::ArmActivity;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -508,20 +509,6 @@ impl ArmController {
         self.lock().arbiter.tick_need()
     }
 
-    /// Whether the operator's clutch is in, the gate's rejected and clamped counters, and the reason of its
-    /// last decision: what the recorder turns into the episode's clutch and gate events.
-    pub fn clutch_and_gate(&self) -> (bool, u64, u64, String) {
-        let inner = self.lock();
-        let a = &inner.arbiter;
-        let counters = a.counters();
-        (
-            a.engaged(),
-            counters.rejected,
-            counters.clamped,
-            a.last_decision().reason.clone(),
-        )
-    }
-
     /// A snapshot for the API.
     pub fn snapshot(&self) -> ArmSnapshot {
         let feedback = self.bridge.feedback();
@@ -592,6 +579,16 @@ impl ArmController {
             .ok()?;
         let mut inner = self.lock();
         let (target, gripper) = inner.arbiter.target();
+        // Read with the target, under the same lock: the recorder's events then describe the very command
+        // the frame's action records, and a tick locks each arm once.
+        let counters = inner.arbiter.counters();
+        let activity = ArmActivity {
+            arm: self.name.clone(),
+            engaged: inner.arbiter.engaged(),
+            rejected: counters.rejected,
+            clamped: counters.clamped,
+            last_reason: inner.arbiter.last_decision().reason.clone(),
+        };
         let action = if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
             let seed = inner
                 .joint_seed
@@ -611,6 +608,7 @@ impl ArmController {
             task_success: feedback.task_success,
             robot_from_ee: feedback.robot_from_ee,
             capture_time_ns: feedback.capture_time_ns,
+            activity,
         })
     }
 }
@@ -628,6 +626,8 @@ pub struct ArmSample {
     pub robot_from_ee: Isometry3<f64>,
     /// Server monotonic time of the feedback.
     pub capture_time_ns: i64,
+    /// The clutch and the gate's counters when the action's target was read (the episode's events).
+    pub activity: ArmActivity,
 }
 
 /// Runs every arm's tick task until shutdown.

@@ -5,7 +5,6 @@
 use crate::arm::ArmController;
 use crate::config::Config;
 use phone2act_recorder::error::RecorderError;
-use phone2act_recorder::events::ArmActivity;
 use phone2act_recorder::recorder::{RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
@@ -39,14 +38,7 @@ impl RobotSource for ArmsSource {
         let mut activity = Vec::with_capacity(self.arms.len());
         for arm in &self.arms {
             let sample = arm.state_and_action()?;
-            let (engaged, rejected, clamped, last_reason) = arm.clutch_and_gate();
-            activity.push(ArmActivity {
-                arm: arm.name.clone(),
-                engaged,
-                rejected,
-                clamped,
-                last_reason,
-            });
+            activity.push(sample.activity);
             state.extend(sample.state);
             action.extend(sample.action);
             oldest_ns = oldest_ns.min(sample.capture_time_ns);
