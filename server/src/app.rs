@@ -29,7 +29,8 @@ pub struct CameraRuntime {
 /// How a camera is doing right now.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CameraHealth {
-    /// A frame arrived within three frame periods.
+    /// A frame arrived within three frame periods, or the camera is a generated one parked for want of
+    /// readers (it draws on the next read).
     pub live: bool,
     pub frames_captured: u64,
     /// Age of the newest frame; `None` before the first.
@@ -50,13 +51,12 @@ impl CameraRuntime {
     /// Health snapshot.
     pub fn health(&self) -> CameraHealth {
         let now = monotonic_ns();
-        let age_s = self
-            .slot
-            .latest()
-            .map(|f| (now - f.capture_time_ns) as f64 * 1e-9);
+        // A peek, not a read: a status watcher must not keep an unwatched camera drawing.
+        let age_s = self.slot.peek().map(|f| (now - f.capture_time_ns) as f64 * 1e-9);
         let freshness_s = 3.0 / self.config.fps;
         CameraHealth {
-            live: age_s.is_some_and(|a| a <= freshness_s),
+            // A parked generated camera is idle, not dead: the next read draws a frame.
+            live: age_s.is_some_and(|a| a <= freshness_s) || (age_s.is_some() && self.slot.parked()),
             frames_captured: self.slot.frames_captured(),
             last_frame_age_s: age_s,
         }
