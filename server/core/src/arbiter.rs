@@ -322,9 +322,10 @@ impl Arbiter {
         self.driver
     }
 
-    /// True if the driving phone's clutch is engaged.
+    /// True if the driving phone's clutch is engaged: a phone drives exactly while its clutch is in (every
+    /// way out of driving disengages; the property test checks it after every input).
     pub fn engaged(&self) -> bool {
-        self.driver == Driver::Teleop && self.teleop.engaged()
+        self.driver == Driver::Teleop
     }
 
     /// The bound phone session.
@@ -377,7 +378,7 @@ impl Arbiter {
     /// How soon the next [`Input::Tick`] is needed. Between inputs nothing else can change the arm.
     pub fn tick_need(&self) -> TickNeed {
         match self.driver {
-            Driver::Teleop if self.teleop.engaged() => TickNeed::Periodic,
+            Driver::Teleop => TickNeed::Periodic,
             Driver::Policy => match (&self.policy, self.executor.end_time_s()) {
                 (_, Some(end_s)) if end_s > self.latest_s => TickNeed::Periodic,
                 // The silence timeout counts from the chunk's arrival or the end of the plan, whichever is
@@ -387,16 +388,14 @@ impl Arbiter {
                 ),
                 (None, _) => TickNeed::Idle,
             },
-            Driver::Teleop | Driver::None => TickNeed::Idle,
+            Driver::None => TickNeed::Idle,
         }
     }
 
     /// Applies one input at `now_s` with the bridge reporting `robot`.
     pub fn handle(&mut self, input: Input, robot: &Robot, now_s: f64) -> Result<Effects, ArbiterError> {
         // Inputs from several threads may arrive slightly out of clock order: the later time stands.
-        if now_s > self.latest_s {
-            self.latest_s = now_s;
-        }
+        self.latest_s = self.latest_s.max(now_s);
         let now = self.latest_s;
         let mut fx = Effects::default();
         match input {
@@ -1162,6 +1161,112 @@ mod tests {
     }
 
     #[test]
+    fn while_a_policy_drives_the_phone_neither_grips_nor_overwrites_its_verdict() {
+        let invalid = |a: &mut Arbiter, robot: &Robot, now_s: f64| {
+            let round = TeleopRound {
+                pose: Some(Err("quaternion norm 2, not 1".to_owned())),
+                tracking_ok: true,
+                buttons: vec![TeleopButton::Gripper(GripperCommand::Set(1.0))],
+            };
+            a.handle(
+                Input::Teleop {
+                    session: PHONE,
+                    round,
+                },
+                robot,
+                now_s,
+            )
+            .unwrap()
+        };
+        // Nobody drives: the malformed pose is a refused command (counted, shown), and the gripper follows.
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        let fx = invalid(&mut a, &robot, 1.0);
+        assert_eq!(a.last_decision().verdict, GateVerdict::RejectedInvalid);
+        assert_eq!(a.counters().rejected, 1);
+        assert!(fx.phone_error.contains("quaternion"), "{fx:?}");
+        assert_eq!(
+            fx.commands.len(),
+            1,
+            "the gripper button sends with nobody driving"
+        );
+        assert!((fx.commands[0].gripper - 1.0).abs() < 1e-12);
+
+        // A policy drives: the phone hears about its pose, but the verdict on display stays the policy's and
+        // the gripper stays where the policy put it.
+        let (mut b, robot) = phone_bound_policy_driving();
+        let policy_verdict = b.last_decision().clone();
+        let fx = invalid(&mut b, &robot, 1.0);
+        assert!(fx.phone_error.contains("quaternion"), "{fx:?}");
+        assert!(fx.commands.is_empty(), "{fx:?}");
+        assert_eq!(b.last_decision(), &policy_verdict);
+        assert_eq!(b.counters().rejected, 0);
+    }
+
+    #[test]
+    fn each_gate_decision_counts_once_in_its_own_counter() {
+        // An arm 1 cm under the workspace ceiling (0.35 m); the default landscape mapping turns the phone's +y
+        // into the robot's +z.
+        let under_ceiling = at(0.25, 0.0, 0.34);
+        let mut a = Arbiter::new(
+            &TeleopConfig::default(),
+            ChunkConfig::default(),
+            under_ceiling,
+            0.0,
+        )
+        .unwrap();
+        let robot = ready(under_ceiling, 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        a.handle(engage(Isometry3::identity()), &robot, 1.0).unwrap();
+        let counts = |a: &Arbiter| (a.counters().clamped, a.counters().rejected);
+        assert_eq!(counts(&a), (0, 0));
+        // Lifted 3 cm: clamped at the ceiling.
+        let fx = a
+            .handle(round(Some(at(0.0, 0.03, 0.0)), vec![]), &robot, 1.02)
+            .unwrap();
+        assert_eq!(a.last_decision().verdict, GateVerdict::Clamped, "{fx:?}");
+        assert!((fx.commands[0].robot_from_target.translation.z - 0.35).abs() < 1e-12);
+        assert_eq!(counts(&a), (1, 0));
+        // 13 cm sideways (phone +x is robot −y), inside the box: a jump, refused.
+        let fx = a
+            .handle(round(Some(at(0.13, 0.0, 0.0)), vec![]), &robot, 1.04)
+            .unwrap();
+        assert_eq!(a.last_decision().verdict, GateVerdict::RejectedJump, "{fx:?}");
+        assert!(fx.commands.is_empty());
+        assert_eq!(counts(&a), (1, 1));
+        // Back in the box: accepted, no count.
+        a.handle(round(Some(at(0.0, 0.0, 0.0)), vec![]), &robot, 1.06)
+            .unwrap();
+        assert_eq!(a.last_decision().verdict, GateVerdict::Accepted);
+        assert_eq!(counts(&a), (1, 1));
+    }
+
+    #[test]
+    fn a_plan_that_ends_now_needs_only_its_silence_deadline() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let Input::Chunk { session, mut chunk } = chunk(1.0, &[at(0.251, 0.0, 0.2), at(0.252, 0.0, 0.2)])
+        else {
+            unreachable!()
+        };
+        // Binary fractions: the plan ends at exactly 1.5 s.
+        chunk.step_period_s = 0.25;
+        a.handle(Input::Chunk { session, chunk }, &robot, 1.0).unwrap();
+        assert_eq!(a.tick_need(), TickNeed::Periodic);
+        a.handle(Input::Tick, &robot, 1.25).unwrap();
+        assert_eq!(
+            a.tick_need(),
+            TickNeed::Periodic,
+            "the second step plays until 1.5"
+        );
+        a.handle(Input::Tick, &robot, 1.5).unwrap();
+        // The last window has closed: only the silence deadline is left, 0.5 s after the plan's end.
+        assert_eq!(a.tick_need(), TickNeed::At(2.0));
+    }
+
+    #[test]
     fn a_refused_chunk_changes_nothing() {
         let mut a = arbiter();
         let robot = ready(home(), 1.0);
@@ -1518,6 +1623,9 @@ mod tests {
             if a.driver() == Driver::Teleop {
                 prop_assert!(a.teleop_session().is_some() && a.policy_owner().is_none());
             }
+            // A phone drives exactly while its planner is engaged: every way out of driving disengages, and
+            // an engaged planner that no longer drove would re-engage without a clutch press.
+            prop_assert_eq!(a.teleop.engaged(), a.driver() == Driver::Teleop);
 
             if let Input::Homed { .. } = &input {
                 // A teleport only while nobody drives; afterwards the arm holds where it landed.
@@ -1537,6 +1645,21 @@ mod tests {
             if let Some(r) = &fx.revoked {
                 self.revoked.push(r.session);
             }
+            // Each gate decision counts once, in its own counter.
+            let verdict = fx.decision.as_ref().map(|d| d.verdict);
+            let rejected = matches!(
+                verdict,
+                Some(GateVerdict::RejectedJump | GateVerdict::RejectedInvalid)
+            );
+            prop_assert_eq!(
+                a.counters().rejected,
+                before.counters().rejected + u64::from(rejected)
+            );
+            let clamped = verdict == Some(GateVerdict::Clamped);
+            prop_assert_eq!(
+                a.counters().clamped,
+                before.counters().clamped + u64::from(clamped)
+            );
             if let Input::ClaimPolicy { session, .. } = &input {
                 self.revoked.retain(|s| s != session);
                 self.plan_end_s = f64::NEG_INFINITY;
