@@ -297,27 +297,47 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
     }
 }
 
+/// The frames whose robot sample is new. A recorder tick that found no new sample since the last one (the
+/// sim's thread starved on a loaded machine: the tick counts as held) repeats the previous state bit for bit:
+/// the pose of an earlier moment, not the motion at i/fps. A moving or settling sim arm never repeats a
+/// state exactly (its joints approach their targets through a first-order lag), and an arm at rest loses
+/// nothing by keeping one frame of its rest.
+fn fresh_frames(states: &[Vec<f64>]) -> Vec<usize> {
+    (0..states.len())
+        .filter(|&i| i == 0 || states[i] != states[i - 1])
+        .collect()
+}
+
 /// The replayed path against the recorded one, compared geometrically: the best overall time offset (the two
 /// recordings start at different moments relative to the motion), then, for every recorded frame, the
 /// nearest pose on the replayed path within ±2 frames of it. A recorder tick that wakes late on a loaded
 /// machine samples the same path a few milliseconds further along; comparing against the path rather than
-/// the sample at i/fps keeps that jitter out of a bound meant for the commands.
+/// the sample at i/fps keeps that jitter out of a bound meant for the commands. Held frames (see
+/// [`fresh_frames`]) are left out on both sides: the replayed path is interpolated between its fresh
+/// samples, and only fresh recorded frames are compared.
 fn path_errors(layout: &ArmLayout, original: &Episode, replayed: &Episode) -> (f64, f64, f64) {
     let a: Vec<Isometry3<f64>> = original.states.iter().map(|s| ee(layout, s)).collect();
     let b: Vec<Isometry3<f64>> = replayed.states.iter().map(|s| ee(layout, s)).collect();
+    let (fresh_a, fresh_b) = (fresh_frames(&original.states), fresh_frames(&replayed.states));
     let at = |x: f64| -> Isometry3<f64> {
-        let x = x.clamp(0.0, (b.len() - 1) as f64);
-        let (j, f) = (x.floor() as usize, x.fract());
-        let k = (j + 1).min(b.len() - 1);
-        let p = b[j].translation.vector.lerp(&b[k].translation.vector, f);
+        // The fresh samples around frame position x (both the last one past the end).
+        let k = fresh_b.partition_point(|&j| (j as f64) <= x).max(1) - 1;
+        let (j0, j1) = (fresh_b[k], fresh_b[(k + 1).min(fresh_b.len() - 1)]);
+        let f = if j1 > j0 {
+            ((x - j0 as f64) / (j1 - j0) as f64).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let p = b[j0].translation.vector.lerp(&b[j1].translation.vector, f);
         let r = |m: &Isometry3<f64>| phone2act_core::layout::rot6d_from_rotation(&m.rotation);
-        let (rj, rk) = (r(&b[j]), r(&b[k]));
-        let mix: [f64; 6] = std::array::from_fn(|c| rj[c] + (rk[c] - rj[c]) * f);
+        let (r0, r1) = (r(&b[j0]), r(&b[j1]));
+        let mix: [f64; 6] = std::array::from_fn(|c| r0[c] + (r1[c] - r0[c]) * f);
         Isometry3::from_parts(Translation3::from(p), rotation_from_rot6d(mix).unwrap())
     };
     let cost = |offset: f64| -> f64 {
-        (0..a.len())
-            .map(|i| (a[i].translation.vector - at(i as f64 + offset).translation.vector).norm_squared())
+        fresh_a
+            .iter()
+            .map(|&i| (a[i].translation.vector - at(i as f64 + offset).translation.vector).norm_squared())
             .sum()
     };
     // Over −2..+6 frames in 0.05 steps: the replay's recording starts just before its first chunk.
@@ -326,10 +346,10 @@ fn path_errors(layout: &ArmLayout, original: &Episode, replayed: &Episode) -> (f
         .min_by(|x, y| cost(*x).total_cmp(&cost(*y)))
         .unwrap();
     let (mut dp, mut da) = (0.0f64, 0.0f64);
-    for (i, pose) in a.iter().enumerate() {
+    for &i in &fresh_a {
         // Nearest in a metric that weighs 2 mm like 1°, the two bounds.
         let (p, r) = (-40..=40)
-            .map(|k| pose_distance(pose, &at(i as f64 + offset + f64::from(k) * 0.05)))
+            .map(|k| pose_distance(&a[i], &at(i as f64 + offset + f64::from(k) * 0.05)))
             .min_by(|x, y| {
                 let c = |(p, r): (f64, f64)| (p / 2e-3).powi(2) + (r.to_degrees()).powi(2);
                 c(*x).total_cmp(&c(*y))
@@ -442,11 +462,14 @@ async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay, setup
     let (offset, dp, da) = path_errors(layout, original, &replayed);
     println!(
         "{how:?}: executed targets within {roundings:.1} float32 roundings and {joint_rad:.1e} joint rad of the \
-         recorded ones; offset {offset:.2} frames, max {:.3} mm / {:.3}° (held+late ticks: original {}, replay {})",
+         recorded ones; offset {offset:.2} frames, max {:.3} mm / {:.3}° (held+late ticks: original {}, replay {}; \
+         repeated robot samples: original {}, replay {})",
         dp * 1e3,
         da.to_degrees(),
         original.stalled_ticks,
-        replayed.stalled_ticks
+        replayed.stalled_ticks,
+        original.states.len() - fresh_frames(&original.states).len(),
+        replayed.states.len() - fresh_frames(&replayed.states).len()
     );
     assert!(
         roundings <= MAX_ACTION_ROUNDINGS && joint_rad <= MAX_JOINT_ACTION_MISS_RAD,

@@ -5,6 +5,7 @@
 
 use crate::app::App;
 use crate::services::convert;
+use crate::services::error::{self, RequestError, check_len};
 use phone2act_bridges::remote::Downstream;
 use phone2act_proto::v1;
 use phone2act_proto::v1::bridge_server::Bridge;
@@ -40,24 +41,19 @@ const MAX_JOINTS: usize = 64;
 const MAX_NAME_BYTES: usize = 128;
 
 /// Refuses a hello whose sizes are out of bounds, with a short message.
-fn check_hello(hello: &v1::BridgeHello) -> Result<(), Status> {
+fn check_hello(hello: &v1::BridgeHello) -> Result<(), RequestError> {
     if hello.joint_names.len() > MAX_JOINTS {
-        return Err(Status::invalid_argument(format!(
+        return Err(RequestError::Refused(format!(
             "{} joint names, the limit is {MAX_JOINTS}",
             hello.joint_names.len()
         )));
     }
-    let long = std::iter::once(("arm", &hello.arm))
-        .chain(std::iter::once(("bridge_name", &hello.bridge_name)))
-        .chain(hello.joint_names.iter().map(|n| ("joint name", n)))
-        .find(|(_, n)| n.len() > MAX_NAME_BYTES);
-    if let Some((what, n)) = long {
-        return Err(Status::invalid_argument(format!(
-            "a {what} is {} bytes, the limit is {MAX_NAME_BYTES}",
-            n.len()
-        )));
-    }
-    Ok(())
+    check_len("arm", &hello.arm, MAX_NAME_BYTES)?;
+    check_len("bridge_name", &hello.bridge_name, MAX_NAME_BYTES)?;
+    hello
+        .joint_names
+        .iter()
+        .try_for_each(|n| check_len("a joint name", n, MAX_NAME_BYTES))
 }
 
 #[tonic::async_trait]
@@ -73,15 +69,15 @@ impl Bridge for BridgeService {
             Some(v1::BridgeUpstream {
                 message: Some(v1::bridge_upstream::Message::Hello(h)),
             }) => h,
-            Some(_) => return Err(Status::invalid_argument("the first message must be BridgeHello")),
-            None => return Err(Status::invalid_argument("the stream ended before BridgeHello")),
+            Some(_) => return Err(RequestError::NoHello("the first message must be BridgeHello").into()),
+            None => return Err(RequestError::NoHello("the stream ended before BridgeHello").into()),
         };
         check_hello(&hello)?;
         let remote = self.app.find_remote_bridge(&hello.arm)?;
         let handle = Arc::new(
             remote
                 .attach(hello.joint_names.clone(), hello.supports_orientation)
-                .map_err(|e| Status::invalid_argument(e.to_string()))?,
+                .map_err(|e| error::remote(&e))?,
         );
         // Debug formatting escapes control characters: a bridge name cannot forge log lines.
         tracing::info!(arm = %hello.arm, bridge = ?hello.bridge_name, "remote bridge attached");
@@ -92,7 +88,7 @@ impl Bridge for BridgeService {
                 expected_feedback_hz: 50.0,
             },
         ))))
-        .map_err(|_| Status::internal("stream queue"))?;
+        .map_err(|_| RequestError::Internal("stream queue".to_owned()))?;
 
         let down_handle = Arc::clone(&handle);
         let down_tx = tx.clone();
@@ -112,7 +108,7 @@ impl Bridge for BridgeService {
                         }
                         Ok(None) => continue,
                         Err(e) => {
-                            let _ = down_tx.blocking_send(Err(Status::aborted(e.to_string())));
+                            let _ = down_tx.blocking_send(Err(error::remote(&e)));
                             break;
                         }
                     };
@@ -121,7 +117,7 @@ impl Bridge for BridgeService {
                     }
                 }
             })
-            .map_err(|e| Status::internal(format!("cannot start bridge thread: {e}")))?;
+            .map_err(|e| RequestError::Internal(format!("cannot start bridge thread: {e}")))?;
 
         let mut shutdown = self.app.shutdown_signal();
         let up_tx = tx;
@@ -142,7 +138,7 @@ impl Bridge for BridgeService {
                                 .report_health(convert::bridge_health(report))
                                 .map_err(|e| e.to_string()),
                             v1::bridge_upstream::Message::Hello(_) => {
-                                Err("BridgeHello sent twice".to_owned())
+                                Err(RequestError::HelloTwice("BridgeHello").to_string())
                             }
                         };
                         if let Err(e) = result {
@@ -150,9 +146,10 @@ impl Bridge for BridgeService {
                             // READY: the stream ends with the reason, and the arm holds until it attaches again.
                             tracing::warn!(error = %e, "remote bridge message refused; ending its stream");
                             let _ = up_tx
-                                .send(Err(Status::invalid_argument(format!(
+                                .send(Err(RequestError::Refused(format!(
                                     "refused: {e}; the arm holds until the bridge attaches again"
-                                ))))
+                                ))
+                                .into()))
                                 .await;
                             break;
                         }

@@ -1,6 +1,7 @@
 //! `phone2act.v1.Cameras`: remote cameras push frames into a configured camera's latest-frame slot.
 
 use crate::app::App;
+use crate::services::error::RequestError;
 use phone2act_clock::monotonic_ns;
 use phone2act_proto::convert_camera::{FrameError, PushedPixels, pushed_pixels};
 use phone2act_proto::v1;
@@ -71,10 +72,11 @@ impl Cameras for CamerasService {
         while let Some(frame) = inbound.message().await? {
             let cam = if let Some(cam) = bound {
                 if frame.camera != summary.camera {
-                    return Err(Status::invalid_argument(format!(
+                    return Err(RequestError::Refused(format!(
                         "this stream is bound to camera {:?}, got a frame for {:?}",
                         summary.camera, frame.camera
-                    )));
+                    ))
+                    .into());
                 }
                 cam
             } else {
@@ -101,11 +103,12 @@ impl Cameras for CamerasService {
                     // Any bad frame ends the stream with the reason: a sender whose frames are being thrown
                     // away must hear it, not get an OK with a counter at the end.
                     tracing::debug!(camera = %summary.camera, error = %e, "pushed frame refused");
-                    return Err(Status::invalid_argument(format!(
+                    return Err(RequestError::Refused(format!(
                         "frame {} refused after {} accepted: {e}",
                         summary.frames_accepted + 1,
                         summary.frames_accepted
-                    )));
+                    ))
+                    .into());
                 }
             }
         }

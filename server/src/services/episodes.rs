@@ -9,7 +9,7 @@ use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
 
@@ -107,17 +107,7 @@ impl Episodes for EpisodesService {
         &self,
         request: Request<v1::WatchEpisodesRequest>,
     ) -> Result<Response<Self::WatchStream>, Status> {
-        let interval_s = request.into_inner().interval_s;
-        if !interval_s.is_finite() || interval_s < 0.0 {
-            return Err(Status::invalid_argument(format!(
-                "interval_s must be >= 0, got {interval_s}"
-            )));
-        }
-        let interval = Duration::from_secs_f64(if interval_s == 0.0 {
-            0.5
-        } else {
-            interval_s.clamp(0.01, 3600.0)
-        });
+        let interval = super::error::watch_interval(request.into_inner().interval_s, 0.5)?;
         let (tx, rx) = tokio::sync::mpsc::channel(1);
         let app = Arc::clone(&self.app);
         let mut shutdown = app.shutdown_signal();

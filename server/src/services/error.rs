@@ -8,10 +8,94 @@ use crate::arm::ArmError;
 use crate::policy_session::PolicyError;
 use crate::recording::RecordingError;
 use phone2act_bridges::BridgeError;
+use phone2act_bridges::remote::RemoteError;
 use phone2act_core::ArbiterError;
 use phone2act_proto::ConvertError;
 use phone2act_recorder::error::RecorderError;
+use std::time::Duration;
 use tonic::Status;
+
+/// A request that breaks the API's contract before any domain code runs: what the services' own checks find
+/// (the first message of a stream, sizes, ranges, a missing field). Built in the services, mapped here like
+/// every other error.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    /// A stream's first message is not the hello it must start with, or the stream ended before it.
+    #[error("{0}")]
+    NoHello(&'static str),
+    /// A stream sent its hello again.
+    #[error("{0} sent twice")]
+    HelloTwice(&'static str),
+    #[error("no first sample within {timeout_s} s: a phone session starts by naming its arm")]
+    NoFirstSample { timeout_s: u64 },
+    #[error("{field} is {len} bytes, the limit is {limit}")]
+    TooLong {
+        field: &'static str,
+        len: usize,
+        limit: usize,
+    },
+    /// A number outside its documented range; `range` says the range in the API's words.
+    #[error("{field} must be {range}, got {value}")]
+    OutOfRange {
+        field: &'static str,
+        range: String,
+        value: f64,
+    },
+    #[error("missing {0}")]
+    Missing(&'static str),
+    /// A request-specific refusal whose message says what was wrong (a pushed frame, a bridge's message).
+    #[error("{0}")]
+    Refused(String),
+    /// The server could not do its part (a queue or thread it needs); not the client's fault.
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl From<RequestError> for Status {
+    fn from(e: RequestError) -> Self {
+        let message = e.to_string();
+        match e {
+            RequestError::NoFirstSample { .. } => Status::deadline_exceeded(message),
+            RequestError::Internal(_) => Status::internal(message),
+            RequestError::NoHello(_)
+            | RequestError::HelloTwice(_)
+            | RequestError::TooLong { .. }
+            | RequestError::OutOfRange { .. }
+            | RequestError::Missing(_)
+            | RequestError::Refused(_) => Status::invalid_argument(message),
+        }
+    }
+}
+
+/// A `WatchStatus`/`Watch` interval: 0 means `default_s`; anything else must be a finite, non-negative number
+/// of seconds, and is kept within 0.01 s..1 h.
+pub fn watch_interval(interval_s: f64, default_s: f64) -> Result<Duration, RequestError> {
+    if !interval_s.is_finite() || interval_s < 0.0 {
+        return Err(RequestError::OutOfRange {
+            field: "interval_s",
+            range: ">= 0".to_owned(),
+            value: interval_s,
+        });
+    }
+    let interval_s = if interval_s == 0.0 {
+        default_s
+    } else {
+        interval_s.clamp(0.01, 3600.0)
+    };
+    Ok(Duration::from_secs_f64(interval_s))
+}
+
+/// Refuses a string longer than `limit` bytes.
+pub fn check_len(field: &'static str, value: &str, limit: usize) -> Result<(), RequestError> {
+    if value.len() > limit {
+        return Err(RequestError::TooLong {
+            field,
+            len: value.len(),
+            limit,
+        });
+    }
+    Ok(())
+}
 
 impl From<ArmError> for Status {
     fn from(e: ArmError) -> Self {
@@ -40,6 +124,18 @@ impl From<ArmError> for Status {
             | ArmError::JointModeUnsupported { .. }
             | ArmError::LerobotLayoutUnsupported { .. } => Status::failed_precondition(message),
         }
+    }
+}
+
+/// A remote bridge's attachment refused or ended (both types are foreign here: a function, not a `From`).
+pub fn remote(e: &RemoteError) -> Status {
+    let message = e.to_string();
+    match e {
+        RemoteError::NoJoints | RemoteError::JointNamesMismatch { .. } | RemoteError::InvalidFeedback(_) => {
+            Status::invalid_argument(message)
+        }
+        // The attachment ended under the bridge (replaced, detached, shut down): it may attach again.
+        RemoteError::Superseded | RemoteError::Detached | RemoteError::ShutDown => Status::aborted(message),
     }
 }
 
@@ -208,6 +304,80 @@ mod tests {
         ];
         for (status, code, message) in cases {
             assert_eq!((status.code(), status.message()), (code, message));
+        }
+    }
+
+    #[test]
+    fn a_request_that_breaks_the_contract_is_invalid_unless_the_server_failed() {
+        let cases: Vec<(Status, Code, &str)> = vec![
+            (
+                RequestError::NoHello("the stream ended before BridgeHello").into(),
+                Code::InvalidArgument,
+                "the stream ended before BridgeHello",
+            ),
+            (
+                RequestError::HelloTwice("PolicyHello").into(),
+                Code::InvalidArgument,
+                "PolicyHello sent twice",
+            ),
+            (
+                RequestError::NoFirstSample { timeout_s: 5 }.into(),
+                Code::DeadlineExceeded,
+                "no first sample within 5 s: a phone session starts by naming its arm",
+            ),
+            (
+                check_len("client_name", &"x".repeat(65), 64).unwrap_err().into(),
+                Code::InvalidArgument,
+                "client_name is 65 bytes, the limit is 64",
+            ),
+            (
+                RequestError::Missing("chunk").into(),
+                Code::InvalidArgument,
+                "missing chunk",
+            ),
+            (
+                RequestError::Internal("event queue".into()).into(),
+                Code::Internal,
+                "event queue",
+            ),
+            (
+                remote(&RemoteError::Superseded),
+                Code::Aborted,
+                "another bridge attached to this arm and replaced this one",
+            ),
+            (
+                remote(&RemoteError::NoJoints),
+                Code::InvalidArgument,
+                "a bridge must name at least one joint",
+            ),
+        ];
+        for (status, code, message) in cases {
+            assert_eq!((status.code(), status.message()), (code, message));
+        }
+        assert!(
+            check_len("client_name", &"x".repeat(64), 64).is_ok(),
+            "the limit itself is allowed"
+        );
+    }
+
+    #[test]
+    fn a_watch_interval_is_a_finite_non_negative_number_of_seconds() {
+        assert_eq!(
+            watch_interval(0.0, 0.5).unwrap(),
+            Duration::from_millis(500),
+            "0 is the default"
+        );
+        assert_eq!(watch_interval(0.2, 0.5).unwrap(), Duration::from_millis(200));
+        assert_eq!(
+            watch_interval(1e-6, 0.5).unwrap(),
+            Duration::from_millis(10),
+            "at most 100 per second"
+        );
+        assert_eq!(watch_interval(1e9, 0.5).unwrap(), Duration::from_secs(3600));
+        for bad in [-0.1, f64::NAN, f64::INFINITY] {
+            let status = Status::from(watch_interval(bad, 0.5).unwrap_err());
+            assert_eq!(status.code(), Code::InvalidArgument);
+            assert_eq!(status.message(), format!("interval_s must be >= 0, got {bad}"));
         }
     }
 }

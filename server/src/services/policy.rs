@@ -5,6 +5,7 @@
 use crate::arm::RevocationSink;
 use crate::policy_session::{ChunkRequest, FrameEncoding, PolicySession, PolicySessions, SessionRequest};
 use crate::services::convert::observation;
+use crate::services::error::{RequestError, check_len};
 use phone2act_proto::convert_policy::{action_mode, requested_encoding};
 use phone2act_proto::v1;
 use phone2act_proto::v1::policy_server::Policy;
@@ -44,21 +45,17 @@ impl PolicyService {
 type EventStream = Pin<Box<dyn Stream<Item = Result<v1::PolicyEvent, Status>> + Send>>;
 
 /// Checks a hello's bounds and turns it into a session request.
-fn session_request(hello: v1::PolicyHello) -> Result<SessionRequest, Status> {
+fn session_request(hello: v1::PolicyHello) -> Result<SessionRequest, RequestError> {
     if !hello.observation_rate_hz.is_finite()
         || !(0.0..=MAX_OBSERVATION_RATE_HZ).contains(&hello.observation_rate_hz)
     {
-        return Err(Status::invalid_argument(format!(
-            "observation_rate_hz must be in 0..={MAX_OBSERVATION_RATE_HZ}, got {}",
-            hello.observation_rate_hz
-        )));
+        return Err(RequestError::OutOfRange {
+            field: "observation_rate_hz",
+            range: format!("in 0..={MAX_OBSERVATION_RATE_HZ}"),
+            value: hello.observation_rate_hz,
+        });
     }
-    if hello.policy_name.len() > MAX_POLICY_NAME_BYTES {
-        return Err(Status::invalid_argument(format!(
-            "policy_name is {} bytes, the limit is {MAX_POLICY_NAME_BYTES}",
-            hello.policy_name.len()
-        )));
-    }
+    check_len("policy_name", &hello.policy_name, MAX_POLICY_NAME_BYTES)?;
     // 0 is proto3's "unset": the documented default. Anything else outside the range is refused: a
     // negative or NaN timeout means nothing, and a huge one lets a hung policy keep an arm forever.
     let silence_timeout_s = if hello.silence_timeout_s == 0.0 {
@@ -66,10 +63,11 @@ fn session_request(hello: v1::PolicyHello) -> Result<SessionRequest, Status> {
     } else if (MIN_SILENCE_TIMEOUT_S..=MAX_SILENCE_TIMEOUT_S).contains(&hello.silence_timeout_s) {
         hello.silence_timeout_s
     } else {
-        return Err(Status::invalid_argument(format!(
-            "silence_timeout_s must be in {MIN_SILENCE_TIMEOUT_S}..={MAX_SILENCE_TIMEOUT_S} s (0 for the 1 s default), got {}",
-            hello.silence_timeout_s
-        )));
+        return Err(RequestError::OutOfRange {
+            field: "silence_timeout_s",
+            range: format!("in {MIN_SILENCE_TIMEOUT_S}..={MAX_SILENCE_TIMEOUT_S} s (0 for the 1 s default)"),
+            value: hello.silence_timeout_s,
+        });
     };
     Ok(SessionRequest {
         arms: hello.arms,
@@ -168,15 +166,12 @@ impl Policy for PolicyService {
                 request: Some(v1::policy_request::Request::Hello(h)),
             }) => h,
             Some(_) => {
-                return Err(Status::invalid_argument(
+                return Err(RequestError::NoHello(
                     "the first message of a policy session must be a PolicyHello",
-                ));
+                )
+                .into());
             }
-            None => {
-                return Err(Status::invalid_argument(
-                    "the stream ended before its PolicyHello",
-                ));
-            }
+            None => return Err(RequestError::NoHello("the stream ended before its PolicyHello").into()),
         };
         let rate_hz = hello.observation_rate_hz;
         let request = session_request(hello)?;
@@ -202,7 +197,7 @@ impl Policy for PolicyService {
         };
         if tx.try_send(v1::policy_event::Event::Ready(ready).into()).is_err() {
             sessions.close(&session);
-            return Err(Status::internal("event queue"));
+            return Err(RequestError::Internal("event queue".to_owned()).into());
         }
         if control {
             events.notify(v1::policy_event::Event::Granted(v1::ControlGranted {
@@ -249,7 +244,7 @@ impl Policy for PolicyService {
                             v1::policy_request::Request::Observe(_) => send_observation(&sessions, &session, &events),
                             v1::policy_request::Request::Release(_) => session.release(sessions.app(), "released"),
                             v1::policy_request::Request::Hello(_) => {
-                                let _ = out_tx.send(Err(Status::invalid_argument("PolicyHello sent twice"))).await;
+                                let _ = out_tx.send(Err(RequestError::HelloTwice("PolicyHello").into())).await;
                                 break;
                             }
                         },
@@ -290,7 +285,7 @@ impl Policy for PolicyService {
         // workers that carry the teleop streams, so a camera view polling this never delays control.
         let observed = tokio::task::spawn_blocking(move || sessions.observe(&arms, &req.cameras, encoding))
             .await
-            .map_err(|e| Status::internal(format!("observation failed: {e}")))??;
+            .map_err(|e| RequestError::Internal(format!("observation failed: {e}")))??;
         Ok(Response::new(observation(self.sessions.app(), observed)))
     }
 
@@ -300,9 +295,7 @@ impl Policy for PolicyService {
     ) -> Result<Response<v1::ChunkAccepted>, Status> {
         let req = request.into_inner();
         let session = self.sessions.find(&req.session_id)?;
-        let chunk = req
-            .chunk
-            .ok_or_else(|| Status::invalid_argument("missing chunk"))?;
+        let chunk = req.chunk.ok_or(RequestError::Missing("chunk"))?;
         Ok(Response::new(push(&self.sessions, &session, &chunk)?))
     }
 }

@@ -22,12 +22,7 @@ impl SceneService {
     }
 
     fn arm(&self, name: &str) -> Result<Arc<ArmController>, Status> {
-        self.app.arm(name).ok_or_else(|| {
-            Status::not_found(format!(
-                "unknown arm {name:?}; configured arms: {}",
-                self.app.arm_names().join(", ")
-            ))
-        })
+        Ok(self.app.find_arm(name)?)
     }
 }
 

@@ -7,7 +7,6 @@ use phone2act_proto::v1;
 use phone2act_proto::v1::system_server::System;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::Duration;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
 
@@ -64,23 +63,13 @@ impl System for SystemService {
         &self,
         request: Request<v1::WatchStatusRequest>,
     ) -> Result<Response<Self::WatchStatusStream>, Status> {
-        let interval_s = request.into_inner().interval_s;
-        if !interval_s.is_finite() || interval_s < 0.0 {
-            return Err(Status::invalid_argument(format!(
-                "interval_s must be >= 0, got {interval_s}"
-            )));
-        }
-        let interval_s = if interval_s == 0.0 {
-            0.1
-        } else {
-            interval_s.clamp(0.01, 3600.0)
-        };
+        let interval = super::error::watch_interval(request.into_inner().interval_s, 0.1)?;
         let app = Arc::clone(&self.app);
         // Bounded: one snapshot in flight; a slow client simply sees fewer snapshots.
         let (tx, rx) = tokio::sync::mpsc::channel(1);
         let mut shutdown = app.shutdown_signal();
         tokio::spawn(async move {
-            let mut ticker = tokio::time::interval(Duration::from_secs_f64(interval_s));
+            let mut ticker = tokio::time::interval(interval);
             ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
             let mut sequence = 0u64;
             loop {

@@ -4,6 +4,7 @@
 
 use crate::app::App;
 use crate::services::convert::current_recording_status;
+use crate::services::error::{RequestError, check_len};
 use futures_util::FutureExt;
 use phone2act_clock::monotonic_ns;
 use phone2act_core::TeleopRound;
@@ -52,23 +53,13 @@ impl Teleop for TeleopService {
         let mut inbound = request.into_inner();
         let first = tokio::time::timeout(FIRST_SAMPLE_TIMEOUT, inbound.message())
             .await
-            .map_err(|_| {
-                Status::deadline_exceeded(format!(
-                    "no first sample within {} s: a phone session starts by naming its arm",
-                    FIRST_SAMPLE_TIMEOUT.as_secs()
-                ))
+            .map_err(|_| RequestError::NoFirstSample {
+                timeout_s: FIRST_SAMPLE_TIMEOUT.as_secs(),
             })??
-            .ok_or_else(|| Status::invalid_argument("the stream ended before its first sample"))?;
-        if first.client_name.len() > MAX_CLIENT_NAME_BYTES {
-            return Err(Status::invalid_argument(format!(
-                "client_name is {} bytes, the limit is {MAX_CLIENT_NAME_BYTES}",
-                first.client_name.len()
-            )));
-        }
+            .ok_or(RequestError::NoHello("the stream ended before its first sample"))?;
+        check_len("client_name", &first.client_name, MAX_CLIENT_NAME_BYTES)?;
         if first.arm.is_empty() {
-            return Err(Status::invalid_argument(
-                "the first sample must name the arm (field `arm`)",
-            ));
+            return Err(RequestError::NoHello("the first sample must name the arm (field `arm`)").into());
         }
         let arm = self.app.find_arm(&first.arm)?;
         let session = self.app.next_session_id();
