@@ -5,8 +5,8 @@
 #   tests/scripts/idle-cpu.sh [BINARY] [SECONDS]
 #
 # BINARY defaults to target/release/phone2act. Two configurations are measured: `minimal` (one simulated
-# arm, no camera, no gateway: what the server itself costs) and `default` (the embedded default config, whose
-# rendered camera and gateway run whether or not anyone is connected).
+# arm, no camera, no gateway: what the server itself costs) and `default` (the embedded default config: its
+# rendered camera parks 2 s after its last reader, and its gateway waits for phones).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 bin="${1:-$PWD/target/release/phone2act}"
