@@ -664,6 +664,8 @@ impl Drop for TeleopSession {
 
 /// Button-event constructors (shared with the gateway and the server's tests).
 pub use phone2act_proto::buttons;
+/// The short name of a recording phase, as status displays show it.
+pub use phone2act_proto::convert_episode::phase_name;
 
 /// An open policy session.
 #[derive(Debug)]

@@ -202,15 +202,6 @@ async fn connect(conn: &Conn) -> anyhow::Result<phone2act_sdk::Client> {
         .with_context(|| format!("is `phone2act serve` running at {}?", conn.url))
 }
 
-fn phase_name(phase: i32) -> &'static str {
-    match phone2act_sdk::proto::RecordingPhase::try_from(phase) {
-        Ok(phone2act_sdk::proto::RecordingPhase::Recording) => "recording",
-        Ok(phone2act_sdk::proto::RecordingPhase::Paused) => "paused",
-        Ok(phone2act_sdk::proto::RecordingPhase::Saving) => "saving",
-        _ => "idle",
-    }
-}
-
 fn print_status(status: &phone2act_sdk::proto::SystemStatus) {
     for line in status_lines(status, None) {
         outln!("{line}");
@@ -272,7 +263,7 @@ fn status_lines(
             "  recorder {} ({}) {}  episode {}  {} frames  {:.1} s  held {} paused {} late {} dropped {}  saved {}  {}",
             rec.dataset_root,
             rec.dataset_format,
-            phase_name(rec.phase),
+            phone2act_sdk::phase_name(rec.phase),
             rec.episode_index,
             rec.frames_recorded,
             rec.duration_s,
