@@ -41,6 +41,23 @@ pub const MAX_FRAME_BYTES: usize = 8 << 20;
 /// How long in-flight streams get to finish after shutdown is requested.
 pub const SHUTDOWN_GRACE: Duration = Duration::from_millis(700);
 
+/// HTTP/2 flow-control window of one stream: what a client may send that the service has not read yet
+/// (hyper's default, set here because [`HTTP2_CONNECTION_WINDOW_BYTES`] is sized against it).
+pub const HTTP2_STREAM_WINDOW_BYTES: u32 = 1 << 20;
+
+/// HTTP/2 flow-control window of one connection, all its streams together.
+///
+/// Why not hyper's 1 MiB: h2 (>= 0.4.16) closes the whole connection with GOAWAY `ENHANCE_YOUR_CALM`
+/// ("too_many_data_frames") once the small DATA frames it holds unread cost more than a budget of half the
+/// connection window, each frame under 256 bytes counting `256 - its length`. A teleop sample is one DATA
+/// frame of about 44-90 bytes, so with 1 MiB windows the budget (512 KiB) ran out after ~2 500 unread
+/// samples, a quarter of what the stream window lets a phone send: a phone streaming as fast as it can
+/// lost its connection whenever the server fell ~20 ms behind (issue 17; the client saw "h2 protocol error:
+/// error reading a body from connection", the server logged "too many small DATA frames"). With 16 MiB the
+/// budget is 8 MiB, more than a full stream window of samples of 29 bytes or more can cost
+/// (1 MiB / 29 * 227 < 7.9 MiB), so flow control holds such a client back before h2 would drop it.
+pub const HTTP2_CONNECTION_WINDOW_BYTES: u32 = 16 << 20;
+
 /// Errors that stop the server.
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
@@ -175,6 +192,8 @@ pub async fn serve_app_with_local(
 
     let router = Server::builder()
         .tcp_nodelay(true)
+        .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(reflection_alpha)

@@ -223,9 +223,7 @@ fn main() -> anyhow::Result<()> {
         while t0.elapsed().as_secs_f64() < seconds.min(5.0) {
             let t = t0.elapsed().as_secs_f64();
             if let Err(e) = session.send_pose(phone_pose(t, 0.0), vec![], 0).await {
-                // Reported, and the phases after this one still run. Seen now and then with and without the
-                // bench reading its feedback: the HTTP/2 connection fails ("error reading a body from
-                // connection"), not the server ending the session.
+                // Reported, and the phases after this one still run.
                 println!(
                     "  flood ended early after {sent} samples: {}",
                     ended_because(&mut session, e).await
