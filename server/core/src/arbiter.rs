@@ -1161,6 +1161,127 @@ mod tests {
     }
 
     #[test]
+    fn a_stale_phone_stream_ending_leaves_the_new_phone_bound() {
+        let mut a = phone_driving();
+        let robot = ready(home(), 1.1);
+        a.handle(
+            Input::BindTeleop {
+                session: 2,
+                take_over: true,
+            },
+            &robot,
+            1.1,
+        )
+        .unwrap();
+        // The replaced phone's stream ends late: the new phone keeps the arm.
+        a.handle(Input::UnbindTeleop { session: PHONE }, &robot, 1.2)
+            .unwrap();
+        assert_eq!(a.teleop_session(), Some(2));
+        // The new phone drives, then its stream ends: the arm holds and says why; the arm is free again.
+        a.handle(
+            Input::Teleop {
+                session: 2,
+                round: TeleopRound {
+                    pose: Some(Ok(Isometry3::identity())),
+                    tracking_ok: true,
+                    buttons: vec![TeleopButton::Clutch(ClutchKind::Engage)],
+                },
+            },
+            &robot,
+            1.2,
+        )
+        .unwrap();
+        assert_eq!(a.driver(), Driver::Teleop);
+        let fx = a.handle(Input::UnbindTeleop { session: 2 }, &robot, 1.3).unwrap();
+        assert!(fx.commands.is_empty());
+        assert_eq!(a.driver(), Driver::None);
+        assert_eq!(a.teleop_session(), None);
+        assert_eq!(a.last_decision().reason, "phone disconnected: the arm holds");
+        // A third phone binds without having to take over.
+        a.handle(bind_phone(), &robot, 1.4).unwrap();
+        assert_eq!(a.teleop_session(), Some(PHONE));
+    }
+
+    #[test]
+    fn engaging_sends_the_hold_target_and_shows_the_clutch_decision() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(bind_phone(), &robot, 1.0).unwrap();
+        let fx = a.handle(engage(Isometry3::identity()), &robot, 1.0).unwrap();
+        // The press holds the arm where it is; the round's pose, the new zero, then commands the same pose.
+        assert_eq!(fx.commands.len(), 2, "{fx:?}");
+        assert_close(&fx.commands[0].robot_from_target, &home());
+        assert_close(&fx.commands[1].robot_from_target, &home());
+        assert!(fx.decision.is_some(), "{fx:?}");
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+                &robot,
+                1.02,
+            )
+            .unwrap();
+        assert!(
+            fx.decision.is_some(),
+            "releasing the clutch shows its decision: {fx:?}"
+        );
+    }
+
+    #[test]
+    fn the_gripper_target_is_what_was_last_sent() {
+        let mut a = phone_driving();
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Gripper(GripperCommand::Set(0.75))]),
+                &ready(home(), 1.02),
+                1.02,
+            )
+            .unwrap();
+        assert!((fx.commands[0].gripper - 0.75).abs() < 1e-12);
+        assert!((a.target().1 - 0.75).abs() < 1e-12, "{:?}", a.target());
+    }
+
+    #[test]
+    fn a_silent_phone_and_a_silent_policy_are_shown_as_held() {
+        let mut a = phone_driving();
+        a.handle(Input::Tick, &ready(home(), 3.0), 3.0).unwrap();
+        assert_eq!(
+            a.last_decision().verdict,
+            GateVerdict::HeldStale,
+            "{:?}",
+            a.last_decision()
+        );
+
+        let mut b = arbiter();
+        let robot = ready(home(), 1.0);
+        let fx = b.handle(claim(), &robot, 1.0).unwrap();
+        assert!(fx.reindexed, "a claim re-indexes the phone's floating zero");
+        assert_eq!(b.last_decision().reason, "policy p in control");
+        let fx = b.handle(Input::Tick, &robot, 1.6).unwrap();
+        assert!(fx.revoked.is_some());
+        assert_eq!(b.last_decision().verdict, GateVerdict::HeldStale);
+        assert!(
+            b.last_decision().reason.starts_with("policy silent for"),
+            "{:?}",
+            b.last_decision()
+        );
+    }
+
+    #[test]
+    fn a_chunk_that_starts_later_restarts_the_silence_clock_when_it_arrives() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        // 0.4 s after the claim (silence timeout 0.5 s) a chunk arrives whose first step is 0.2 s ahead.
+        let fx = a.handle(chunk(1.6, &[at(0.251, 0.0, 0.2)]), &robot, 1.4).unwrap();
+        assert!(fx.commands.is_empty(), "nothing due yet");
+        // 0.55 s after the claim but 0.15 s after the chunk: the policy is not silent.
+        let fx = a.handle(Input::Tick, &robot, 1.55).unwrap();
+        assert!(fx.revoked.is_none(), "{fx:?}");
+        let fx = a.handle(Input::Tick, &robot, 1.6).unwrap();
+        assert_eq!(fx.commands.len(), 1);
+    }
+
+    #[test]
     fn while_a_policy_drives_the_phone_neither_grips_nor_overwrites_its_verdict() {
         let invalid = |a: &mut Arbiter, robot: &Robot, now_s: f64| {
             let round = TeleopRound {
