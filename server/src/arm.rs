@@ -3,9 +3,9 @@
 //! time under a lock, and carries out what it returns: commands go to [`Bridge::send`] in order, a revoked
 //! policy session is told, and the tick task is woken when the arbiter needs ticks.
 //!
-//! The critical section is a `parking_lot::Mutex` (it does not poison: see the `inner` field) held for microseconds
-//! and never across an `.await`, so the control path is a straight function call from the gRPC handler to
-//! the bridge (which never blocks).
+//! The critical section is a `parking_lot::Mutex` (it does not poison: see the `inner` field) held for
+//! microseconds and never across an `.await`, so the control path is a straight function call from the gRPC
+//! handler to the bridge (which never blocks).
 
 use nalgebra::Isometry3;
 use parking_lot::Mutex;
