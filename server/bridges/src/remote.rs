@@ -452,6 +452,24 @@ mod tests {
     }
 
     #[test]
+    fn a_wake_for_something_else_does_not_end_the_wait_early() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        let waiter = Arc::clone(&handle);
+        let timeout = Duration::from_millis(300);
+        let start = Instant::now();
+        let t = std::thread::spawn(move || waiter.next_command(timeout));
+        std::thread::sleep(Duration::from_millis(30));
+        // Notifies the waiter, which takes only commands: it must go back to waiting.
+        remote.control(Control::Enable).unwrap();
+        assert_eq!(t.join().unwrap(), Ok(None));
+        // A lower bound only: a loaded machine makes the wait end later, never earlier than its deadline.
+        assert!(start.elapsed() >= timeout, "{:?}", start.elapsed());
+        // The control request stayed queued for `next`.
+        assert_eq!(handle.next(SHORT), Ok(Some(Downstream::Control(Control::Enable))));
+    }
+
+    #[test]
     fn feedback_and_health_flow_up_and_bad_feedback_is_refused() {
         let remote = RemoteBridge::new("main");
         let handle = remote.attach(names(), true).unwrap();
