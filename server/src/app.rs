@@ -6,6 +6,7 @@ use crate::config::{BridgeKind, CameraConfig, CameraKind, Config};
 use crate::recording::RecordingError;
 use crate::runtime::blocking;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+use parking_lot::{Mutex, RwLock};
 use phone2act_bridges::Bridge;
 use phone2act_bridges::remote::RemoteBridge;
 use phone2act_clock::monotonic_ns;
@@ -13,8 +14,8 @@ use phone2act_proto::convert_episode::RecordAction;
 use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::recorder::{Recorder, RecorderStatus};
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use tokio::sync::watch;
 
@@ -73,7 +74,7 @@ pub struct App {
     remote_bridges: HashMap<String, Arc<RemoteBridge>>,
     sessions: AtomicU64,
     /// Read-locked for every use; write-locked only to close it at shutdown.
-    recorder: std::sync::RwLock<Option<Recorder>>,
+    recorder: RwLock<Option<Recorder>>,
     shutdown_tx: watch::Sender<bool>,
     /// The recorder's status version, published by one thread for every `Episodes.Watch` stream.
     recorder_version: std::sync::OnceLock<watch::Receiver<u64>>,
@@ -255,7 +256,7 @@ impl App {
         let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Self {
-            recorder: std::sync::RwLock::new(Some(recorder)),
+            recorder: RwLock::new(Some(recorder)),
             config,
             started: Instant::now(),
             arms,
@@ -347,7 +348,7 @@ impl App {
         &self,
         f: impl FnOnce(&Recorder) -> Result<R, RecordingError>,
     ) -> Result<R, RecordingError> {
-        let guard = self.recorder.read().unwrap_or_else(PoisonError::into_inner);
+        let guard = self.recorder.read();
         match guard.as_ref() {
             Some(recorder) => f(recorder),
             None => Err(RecordingError::Closed),
@@ -427,16 +428,11 @@ impl App {
     pub fn stop(&self) {
         self.begin_shutdown();
         for cam in &self.cameras {
-            if let Some(capture) = cam.capture.lock().unwrap_or_else(PoisonError::into_inner).take() {
+            if let Some(capture) = cam.capture.lock().take() {
                 capture.stop();
             }
         }
-        if let Some(recorder) = self
-            .recorder
-            .write()
-            .unwrap_or_else(PoisonError::into_inner)
-            .take()
-        {
+        if let Some(recorder) = self.recorder.write().take() {
             // A graceful stop keeps the episode in progress: saving is as cheap as closing files.
             if matches!(
                 recorder.status().phase,

@@ -3,11 +3,12 @@
 //! time under a lock, and carries out what it returns: commands go to [`Bridge::send`] in order, a revoked
 //! policy session is told, and the tick task is woken when the arbiter needs ticks.
 //!
-//! The critical section is a `std::sync::Mutex` (the workspace has no `parking_lot`) held for microseconds
-//! and never across an `.await`, so the control path is a straight function call from the gRPC handler to
-//! the bridge (which never blocks).
+//! The critical section is a `parking_lot::Mutex` (it does not poison: see the `inner` field) held for
+//! microseconds and never across an `.await`, so the control path is a straight function call from the gRPC
+//! handler to the bridge (which never blocks).
 
 use nalgebra::Isometry3;
+use parking_lot::Mutex;
 use phone2act_bridges::sim::SceneState;
 use phone2act_bridges::{Bridge, BridgeError, Feedback, Health};
 use phone2act_clock::monotonic_ns;
@@ -18,8 +19,8 @@ use phone2act_core::{
     TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 use tokio::sync::Notify;
 
@@ -134,6 +135,8 @@ pub struct ArmController {
     pub action_mode: ActionMode,
     /// Forward/inverse kinematics for joint actions (arms whose joints are the SO-101's).
     kinematics: Option<So101Kinematics>,
+    /// Not poisoned by a panicking holder: a panic under the lock leaves the arbiter between two inputs, never
+    /// half way through a send, so the next caller carries on with it.
     inner: Mutex<Inner>,
     /// Wakes this arm's tick task when the arbiter starts needing ticks.
     wake: Notify,
@@ -226,11 +229,6 @@ impl ArmController {
         Ok(self)
     }
 
-    fn lock(&self) -> MutexGuard<'_, Inner> {
-        // A panic under the lock leaves the arbiter between two inputs, never half way through a send.
-        self.inner.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// Hands `input` to the arbiter with the bridge's state read now, and carries out the effects. Returns
     /// them and the time the last command was handed to the bridge.
     fn apply(&self, input: Input) -> Result<(Effects, Option<i64>), ArbiterError> {
@@ -247,7 +245,7 @@ impl ArmController {
         // One feedback read and one clock read serve the readiness check and the planner.
         let robot = robot_of(self.bridge.health(), self.bridge.feedback().as_ref());
         let now = now_s();
-        let mut inner = self.lock();
+        let mut inner = self.inner.lock();
         let handled = self.handle_locked(&mut inner, input, &robot, now, sink)?;
         drop(inner);
         Ok(self.finish(handled))
@@ -342,16 +340,13 @@ impl ArmController {
     pub fn note_round(&self, samples: u64, latency_ns: Option<i64>) {
         self.samples_received.fetch_add(samples, Ordering::Relaxed);
         if let Some(ns) = latency_ns {
-            self.latencies_ns
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .push(ns);
+            self.latencies_ns.lock().push(ns);
         }
     }
 
     /// Recent control-path latencies (ns, unordered) and the count of all latencies ever recorded.
     pub fn latencies_ns(&self) -> (Vec<u32>, u64) {
-        let ring = self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner);
+        let ring = self.latencies_ns.lock();
         (ring.values_ns.clone(), ring.total)
     }
 
@@ -367,7 +362,7 @@ impl ArmController {
 
     /// Clears the latency ring (between benchmark phases).
     pub fn reset_latencies(&self) {
-        *self.latencies_ns.lock().unwrap_or_else(PoisonError::into_inner) = LatencyRing::default();
+        *self.latencies_ns.lock() = LatencyRing::default();
     }
 
     /// Processes one round of teleop input for the bound session.
@@ -463,7 +458,7 @@ impl ArmController {
     /// from it, so a phone or policy that takes the arm next starts where the arm now is.
     pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, ArmError> {
         // Held across the reset so that no source can start driving between the check and the teleport.
-        let mut inner = self.lock();
+        let mut inner = self.inner.lock();
         // An arm without a scene says so whoever drives it; its refusal changes nothing.
         if let Err(BridgeError::Unsupported(_)) = self.bridge.scene() {
             return self
@@ -506,7 +501,7 @@ impl ArmController {
 
     /// How soon the arm needs a tick.
     fn tick_need(&self) -> TickNeed {
-        self.lock().arbiter.tick_need()
+        self.inner.lock().arbiter.tick_need()
     }
 
     /// A snapshot for the API.
@@ -526,7 +521,7 @@ impl ArmController {
             BridgeHealth::Error(m) => (BridgeHealth::Error(m.clone()), m),
             BridgeHealth::Disconnected(m) => (BridgeHealth::Disconnected(m.clone()), m),
         };
-        let inner = self.lock();
+        let inner = self.inner.lock();
         let a = &inner.arbiter;
         let owner_id = match a.driver() {
             phone2act_core::Driver::None => String::new(),
@@ -577,7 +572,7 @@ impl ArmController {
                 feedback.gripper_position,
             )
             .ok()?;
-        let mut inner = self.lock();
+        let mut inner = self.inner.lock();
         let (target, gripper) = inner.arbiter.target();
         // Read with the target, under the same lock: the recorder's events then describe the very command
         // the frame's action records, and a tick locks each arm once.

@@ -5,12 +5,13 @@
 use crate::app::{App, LookupError};
 use crate::arm::{ArmController, ArmError, RevocationSink, now_s};
 use nalgebra::Isometry3;
+use parking_lot::Mutex;
 use phone2act_clock::monotonic_ns;
 use phone2act_core::{ActionMode, ReplaceReport};
 use phone2act_recorder::jpeg::JpegError;
 use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 
 /// Observations a session remembers for anchoring chunks (at 50 Hz, about 2.5 s).
 pub const OBSERVATION_MEMORY: usize = 128;
@@ -157,6 +158,8 @@ pub struct PolicySession {
 #[derive(Debug)]
 pub struct PolicySessions {
     app: Arc<App>,
+    /// A map of Arcs: an insert or remove that panicked left it whole, so the lock's lack of poisoning is
+    /// safe here.
     open: Mutex<HashMap<u64, Arc<PolicySession>>>,
     observations: AtomicU64,
 }
@@ -186,11 +189,6 @@ impl PolicySessions {
     /// The server the sessions run on.
     pub fn app(&self) -> &Arc<App> {
         &self.app
-    }
-
-    fn sessions(&self) -> std::sync::MutexGuard<'_, HashMap<u64, Arc<PolicySession>>> {
-        // A map of Arcs: an insert or remove that panicked left it whole.
-        self.open.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Opens a session that hears of lost control through `revocations`, claiming its arms if it asks for control (all or
@@ -243,7 +241,7 @@ impl PolicySessions {
                 }
             }
         }
-        self.sessions().insert(id, Arc::clone(&session));
+        self.open.lock().insert(id, Arc::clone(&session));
         Ok(session)
     }
 
@@ -251,7 +249,8 @@ impl PolicySessions {
     pub fn find(&self, capability: &str) -> Result<Arc<PolicySession>, PolicyError> {
         let (id, secret) = capability.split_once('.').ok_or(PolicyError::UnknownSession)?;
         let id: u64 = id.parse().map_err(|_| PolicyError::UnknownSession)?;
-        self.sessions()
+        self.open
+            .lock()
             .get(&id)
             .filter(|s| same_secret(&s.secret, secret))
             .cloned()
@@ -261,7 +260,7 @@ impl PolicySessions {
     /// Ends `session`: its arms hold and its id stops working.
     pub fn close(&self, session: &PolicySession) {
         session.release(&self.app, "session ended");
-        self.sessions().remove(&session.id);
+        self.open.lock().remove(&session.id);
     }
 
     /// Builds an observation of `arms` with the latest frames of `cameras` (every camera when empty).
@@ -439,7 +438,7 @@ impl PolicySession {
     }
 
     fn remember(&self, anchor: ObservationAnchor) {
-        let mut anchors = self.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut anchors = self.anchors.lock();
         if anchors.len() == OBSERVATION_MEMORY {
             anchors.pop_front();
         }
@@ -448,7 +447,7 @@ impl PolicySession {
 
     /// The time and pose of `arm` in observation `id`.
     fn anchor(&self, id: u64, arm: &str) -> Result<(f64, Isometry3<f64>), PolicyError> {
-        let anchors = self.anchors.lock().unwrap_or_else(PoisonError::into_inner);
+        let anchors = self.anchors.lock();
         let anchor = anchors
             .iter()
             .find(|a| a.id == id)

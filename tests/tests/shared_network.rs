@@ -5,13 +5,14 @@
 //! that only 127.0.0.1 is this machine, so no other machine's address is ever used.
 
 use futures_util::{SinkExt, StreamExt};
+use parking_lot::Mutex;
 use phone2act_gateway::GatewayConfig;
 use phone2act_sdk::Client;
 use phone2act_sdk::proto as v1;
 use phone2act_tests::{TestServer, default_config, pos};
 use serde_json::Value;
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use tokio::net::{TcpSocket, TcpStream};
 use tokio_tungstenite::WebSocketStream;
@@ -44,7 +45,7 @@ struct LogWriter(Arc<Mutex<Vec<u8>>>);
 
 impl std::io::Write for LogWriter {
     fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
-        self.0.lock().unwrap().extend_from_slice(data);
+        self.0.lock().extend_from_slice(data);
         Ok(data.len())
     }
     fn flush(&mut self) -> std::io::Result<()> {
@@ -53,7 +54,7 @@ impl std::io::Write for LogWriter {
 }
 
 fn log_text() -> String {
-    String::from_utf8_lossy(&log().lock().unwrap()).into_owned()
+    String::from_utf8_lossy(&log().lock()).into_owned()
 }
 
 mod common;

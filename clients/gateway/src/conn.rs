@@ -13,9 +13,10 @@ use crate::session::SessionEvent;
 use axum::body::Bytes;
 use axum::extract::ws::{CloseFrame, Message, WebSocket, close_code};
 use futures_util::{SinkExt, StreamExt};
+use parking_lot::Mutex;
 use phone2act_proto::v1::SystemStatus;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use tokio::sync::{Notify, mpsc, watch};
 
@@ -62,7 +63,7 @@ pub struct PreviewSlot {
 impl PreviewSlot {
     /// Starts a new preview; its frames are put with the generation returned.
     pub fn open(&self) -> u64 {
-        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut slot = self.frame.lock();
         slot.0 += 1;
         slot.1 = None;
         slot.0
@@ -71,7 +72,7 @@ impl PreviewSlot {
     /// Offers a frame of preview `generation`; it replaces one not sent yet. Ignored once that preview has
     /// been stopped.
     pub fn put(&self, generation: u64, jpeg: Bytes) {
-        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut slot = self.frame.lock();
         if slot.0 == generation {
             slot.1 = Some(jpeg);
             drop(slot);
@@ -82,13 +83,7 @@ impl PreviewSlot {
     /// True while a frame waits in the slot or is on its way to the page: fetching another now would only
     /// replace it.
     pub fn busy(&self) -> bool {
-        self.in_flight.load(Ordering::Acquire)
-            || self
-                .frame
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .1
-                .is_some()
+        self.in_flight.load(Ordering::Acquire) || self.frame.lock().1.is_some()
     }
 
     /// The page has the last frame sent.
@@ -99,7 +94,7 @@ impl PreviewSlot {
 
     /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more.
     pub fn close(&self) {
-        let mut slot = self.frame.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut slot = self.frame.lock();
         slot.0 += 1;
         slot.1 = None;
         self.in_flight.store(false, Ordering::Release);
@@ -110,12 +105,7 @@ impl PreviewSlot {
         if self.in_flight.load(Ordering::Acquire) {
             return None;
         }
-        let frame = self
-            .frame
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .1
-            .take()?;
+        let frame = self.frame.lock().1.take()?;
         self.in_flight.store(true, Ordering::Release);
         Some(frame)
     }

@@ -6,6 +6,7 @@
 //! Semantics are deliberately simple: the clutch and gripper toggle flags, the pose of the last sample is
 //! echoed as the "measured" end effector, unknown arms are refused with NOT_FOUND.
 
+use parking_lot::Mutex;
 use phone2act_proto::v1::system_server::{System, SystemServer};
 use phone2act_proto::v1::teleop_server::{Teleop, TeleopServer};
 use phone2act_proto::v1::{
@@ -16,7 +17,7 @@ use phone2act_proto::v1::{
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::Stream;
@@ -139,22 +140,22 @@ impl MockServer {
 
     /// Every sample received so far.
     pub fn received(&self) -> Vec<Received> {
-        self.state.lock().expect("mock poisoned").received.clone()
+        self.state.lock().received.clone()
     }
 
     /// The current state of `arm`.
     pub fn arm(&self, arm: &str) -> Option<ArmState> {
-        self.state.lock().expect("mock poisoned").arms.get(arm).cloned()
+        self.state.lock().arms.get(arm).cloned()
     }
 
     /// The recorder state (driven by RecordCommand buttons).
     pub fn recording(&self) -> RecordingStatus {
-        self.state.lock().expect("mock poisoned").recording.clone()
+        self.state.lock().recording.clone()
     }
 
     /// Teleop streams opened since start.
     pub fn streams_opened(&self) -> u64 {
-        self.state.lock().expect("mock poisoned").streams_opened
+        self.state.lock().streams_opened
     }
 
     /// Polls `check` until it holds or `timeout` passes.
@@ -172,7 +173,7 @@ impl MockServer {
 
 impl Drop for MockServer {
     fn drop(&mut self) {
-        self.state.lock().expect("mock poisoned").killed = true;
+        self.state.lock().killed = true;
         self.stop.send_replace(true);
     }
 }
@@ -186,7 +187,7 @@ fn idle() -> RecordingStatus {
 
 impl Mock {
     fn apply(&self, arm: &str, sample: &PhoneSample, arrival_ns: i64) -> TeleopFeedback {
-        let mut state = self.state.lock().expect("mock poisoned");
+        let mut state = self.state.lock();
         if self.record_samples {
             state.received.push(Received {
                 arm: arm.to_owned(),
@@ -278,7 +279,7 @@ impl Teleop for Mock {
         let arrival_ns = self.epoch.elapsed().as_nanos() as i64;
         let arm = first.arm.clone();
         {
-            let mut state = self.state.lock().expect("mock poisoned");
+            let mut state = self.state.lock();
             if !state.arms.contains_key(&arm) {
                 return Err(Status::not_found(format!("unknown arm '{arm}'")));
             }
@@ -289,7 +290,7 @@ impl Teleop for Mock {
         tokio::spawn(async move {
             let _ = tx.try_send(Ok(mock.apply(&arm, &first, arrival_ns)));
             while let Ok(Some(sample)) = inbound.message().await {
-                if mock.state.lock().expect("mock poisoned").killed {
+                if mock.state.lock().killed {
                     let _ = tx.try_send(Err(Status::unavailable("mock server stopped")));
                     return;
                 }
@@ -307,7 +308,7 @@ impl System for Mock {
     type WatchStatusStream = StatusStream;
 
     async fn list_arms(&self, _: Request<ListArmsRequest>) -> Result<Response<ListArmsResponse>, Status> {
-        let state = self.state.lock().expect("mock poisoned");
+        let state = self.state.lock();
         let mut arms: Vec<ArmState> = state.arms.values().cloned().collect();
         arms.sort_by(|a, b| a.arm.cmp(&b.arm));
         Ok(Response::new(ListArmsResponse { arms }))
@@ -354,7 +355,7 @@ impl System for Mock {
 
 impl Mock {
     fn snapshot(&self, sequence: u64) -> SystemStatus {
-        let state = self.state.lock().expect("mock poisoned");
+        let state = self.state.lock();
         let mut arms: Vec<ArmState> = state.arms.values().cloned().collect();
         arms.sort_by(|a, b| a.arm.cmp(&b.arm));
         SystemStatus {

@@ -7,9 +7,9 @@
 //! admitted, a rosbridge URL with `?token=` is admitted, everything else is refused and logged with the
 //! address and how to pair it. Time is an argument so the rules are tested without sleeping.
 
+use parking_lot::Mutex;
 use std::collections::HashMap;
 use std::net::IpAddr;
-use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 /// Paired addresses kept at most; a LAN has far fewer phones, and the bound keeps a flood of page visits
@@ -86,7 +86,7 @@ impl Pairing {
             return None;
         }
         let until = now + self.pair_for;
-        let mut table = self.paired_until.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut table = self.paired_until.lock();
         table.retain(|_, t| *t > now);
         if table.len() >= MAX_PAIRED
             && !table.contains_key(&ip)
@@ -114,12 +114,7 @@ impl Pairing {
         if token_ok {
             return Admission::Token;
         }
-        match self
-            .paired_until
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .get(&ip)
-        {
+        match self.paired_until.lock().get(&ip) {
             Some(until) if *until > now => Admission::Paired(*until),
             _ => Admission::Refused,
         }
@@ -127,7 +122,7 @@ impl Pairing {
 
     /// True when a refusal of `ip` should be logged now (at most once per [`LOG_EVERY`] per address).
     pub fn should_log_refusal(&self, ip: IpAddr, now: Instant) -> bool {
-        let mut logged = self.last_logged.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut logged = self.last_logged.lock();
         logged.retain(|_, t| now.duration_since(*t) < LOG_EVERY);
         if logged.contains_key(&ip) || logged.len() >= MAX_PAIRED {
             return false;
@@ -189,7 +184,7 @@ mod tests {
             let addr = IpAddr::from(std::net::Ipv4Addr::from(0x0a00_0000 + i));
             p.pair(addr, t0 + Duration::from_millis(u64::from(i)));
         }
-        assert_eq!(p.paired_until.lock().unwrap().len(), MAX_PAIRED);
+        assert_eq!(p.paired_until.lock().len(), MAX_PAIRED);
         // The newest survives, the oldest went first.
         let newest = IpAddr::from(std::net::Ipv4Addr::from(0x0a00_0000 + MAX_PAIRED as u32 + 9));
         assert!(

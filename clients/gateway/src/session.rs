@@ -6,10 +6,11 @@
 //! they are carried over into the newer sample, because a lost "stop recording" is worse than a late one.
 
 use crate::upstream::Upstream;
+use parking_lot::Mutex;
 use phone2act_proto::PendingSample;
 use phone2act_proto::v1::{PhoneSample, TeleopFeedback};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{Notify, mpsc};
 use tokio::task::JoinHandle;
@@ -57,7 +58,7 @@ impl Slot {
     /// Offers a sample. A pending one is folded into it ([`PendingSample::push`]: the newest pose wins, every
     /// button event survives in order).
     pub fn put(&self, sample: PhoneSample) {
-        let mut state = self.state.lock().expect("slot poisoned");
+        let mut state = self.state.lock();
         if !state.pending.is_empty() {
             self.superseded.fetch_add(1, Ordering::Relaxed);
         }
@@ -70,7 +71,7 @@ impl Slot {
     pub async fn take(&self) -> Option<PhoneSample> {
         loop {
             {
-                let mut state = self.state.lock().expect("slot poisoned");
+                let mut state = self.state.lock();
                 if let Some(sample) = state.pending.take() {
                     return Some(sample);
                 }
@@ -84,7 +85,7 @@ impl Slot {
 
     /// Ends the request stream after any pending sample has been taken.
     pub fn close(&self) {
-        self.state.lock().expect("slot poisoned").closed = true;
+        self.state.lock().closed = true;
         self.notify.notify_one();
     }
 
@@ -196,7 +197,7 @@ async fn run(upstream: Upstream, arm: String, slot: Arc<Slot>, events: mpsc::Sen
                 .await;
             return;
         }
-        if slot.state.lock().expect("slot poisoned").closed {
+        if slot.state.lock().closed {
             return;
         }
         tracing::warn!(arm, code = ?status.code(), message = status.message(), "teleop stream lost, retrying");

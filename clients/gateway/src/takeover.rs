@@ -8,9 +8,9 @@
 //! socket is open. The new connection inherits the holder's last volume state, because the app keeps its
 //! toggles across reconnects and is the source of truth. Time is an argument.
 
+use parking_lot::Mutex;
 use std::collections::HashMap;
 use std::net::IpAddr;
-use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 #[derive(Debug, Clone, Copy)]
@@ -41,13 +41,9 @@ pub struct Holders {
 }
 
 impl Holders {
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, Holder>> {
-        self.arms.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// The rule above, for connection `conn` from `peer` wanting `arm` at `now`.
     pub fn claim(&self, arm: &str, conn: u64, peer: IpAddr, now: Instant, silence: Duration) -> Claim {
-        match self.lock().get(arm) {
+        match self.arms.lock().get(arm) {
             None => Claim::Bind,
             Some(h) if h.conn == conn => Claim::Bind,
             Some(h) if h.peer != peer => Claim::Held { by: h.peer },
@@ -60,7 +56,7 @@ impl Holders {
 
     /// `conn` now holds `arm` (the server accepted its stream).
     pub fn hold(&self, arm: &str, conn: u64, peer: IpAddr, now: Instant, volume: Option<[i64; 2]>) {
-        self.lock().insert(
+        self.arms.lock().insert(
             arm.to_owned(),
             Holder {
                 conn,
@@ -73,7 +69,7 @@ impl Holders {
 
     /// `conn` sent input for `arm`; recorded only if it holds the arm.
     pub fn heard(&self, arm: &str, conn: u64, now: Instant, volume: Option<[i64; 2]>) {
-        if let Some(h) = self.lock().get_mut(arm)
+        if let Some(h) = self.arms.lock().get_mut(arm)
             && h.conn == conn
         {
             h.last_input = now;
@@ -85,7 +81,7 @@ impl Holders {
 
     /// `conn` lost or left `arm`.
     pub fn release(&self, arm: &str, conn: u64) {
-        let mut arms = self.lock();
+        let mut arms = self.arms.lock();
         if arms.get(arm).is_some_and(|h| h.conn == conn) {
             arms.remove(arm);
         }
@@ -93,7 +89,7 @@ impl Holders {
 
     /// `conn` closed.
     pub fn release_all(&self, conn: u64) {
-        self.lock().retain(|_, h| h.conn != conn);
+        self.arms.lock().retain(|_, h| h.conn != conn);
     }
 }
 

@@ -9,6 +9,7 @@ use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::scene_client::SceneClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
+#[allow(clippy::disallowed_types)] // std's Mutex: switched to parking_lot after the flood branch lands
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::sync::{Notify, mpsc};
@@ -478,6 +479,7 @@ struct OutboxState {
 /// The depth-1 latest-wins outbox between [`TeleopSession`] and its gRPC request stream: the stream takes the
 /// pending sample when HTTP/2 flow control lets it send, and a sample offered meanwhile is folded into the
 /// pending one ([`PendingSample::push`]) so the newest pose is what goes out and no button event is lost.
+#[allow(clippy::disallowed_types)] // std's Mutex: switched to parking_lot after the flood branch lands
 #[derive(Debug, Default)]
 struct Outbox {
     state: Mutex<OutboxState>,

@@ -17,7 +17,8 @@ pub mod sim;
 pub mod so101;
 
 use nalgebra::Isometry3;
-use std::sync::{Arc, Condvar, Mutex, PoisonError};
+use parking_lot::{Condvar, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// A target for the robot, already through the safety gate.
@@ -144,7 +145,7 @@ impl<T> Default for LatestSlot<T> {
 impl<T> LatestSlot<T> {
     /// Stores `value`, replacing any value not yet taken. Returns true if an older value was superseded.
     pub fn put(&self, value: T) -> bool {
-        let mut guard = self.value.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut guard = self.value.lock();
         let superseded = guard.0.replace(value).is_some();
         if superseded {
             guard.1 += 1;
@@ -156,22 +157,19 @@ impl<T> LatestSlot<T> {
 
     /// Takes the value if there is one.
     pub fn take(&self) -> Option<T> {
-        self.value.lock().unwrap_or_else(PoisonError::into_inner).0.take()
+        self.value.lock().0.take()
     }
 
     /// Takes the value, waiting up to `timeout` for one.
     pub fn take_wait(&self, timeout: Duration) -> Option<T> {
-        let guard = self.value.lock().unwrap_or_else(PoisonError::into_inner);
-        let (mut guard, _) = self
-            .ready
-            .wait_timeout_while(guard, timeout, |v| v.0.is_none())
-            .unwrap_or_else(PoisonError::into_inner);
+        let mut guard = self.value.lock();
+        self.ready.wait_while_for(&mut guard, |v| v.0.is_none(), timeout);
         guard.0.take()
     }
 
     /// Values replaced before anyone took them, since creation.
     pub fn superseded(&self) -> u64 {
-        self.value.lock().unwrap_or_else(PoisonError::into_inner).1
+        self.value.lock().1
     }
 }
 

@@ -15,8 +15,9 @@
 //! after it. A new attach replaces the old one; the old handle's waits end with [`RemoteError::Superseded`].
 
 use crate::{Bridge, BridgeError, Command, Control, Feedback, Health};
+use parking_lot::{Condvar, Mutex};
 use std::collections::VecDeque;
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock, PoisonError};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Control requests waiting for the remote beyond this are dropped oldest first; they are rare and a
@@ -71,10 +72,6 @@ struct Shared {
 }
 
 impl Shared {
-    fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// Ok if `generation` is the live attachment.
     fn check(state: &State, generation: u64) -> Result<(), RemoteError> {
         if state.shut_down {
@@ -143,7 +140,7 @@ impl RemoteBridge {
         if joint_names.is_empty() {
             return Err(RemoteError::NoJoints);
         }
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         if state.shut_down {
             return Err(RemoteError::ShutDown);
         }
@@ -178,7 +175,7 @@ impl RemoteBridge {
 
     /// True while a remote bridge is attached.
     pub fn is_attached(&self) -> bool {
-        let state = self.shared.lock();
+        let state = self.shared.state.lock();
         state.attached && !state.shut_down
     }
 }
@@ -194,11 +191,11 @@ impl Bridge for RemoteBridge {
     }
 
     fn supports_orientation(&self) -> bool {
-        self.shared.lock().supports_orientation
+        self.shared.state.lock().supports_orientation
     }
 
     fn send(&self, command: Command) {
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         if !state.attached || state.shut_down {
             return;
         }
@@ -208,12 +205,12 @@ impl Bridge for RemoteBridge {
     }
 
     fn feedback(&self) -> Option<Feedback> {
-        self.shared.lock().feedback.clone()
+        self.shared.state.lock().feedback.clone()
     }
 
     /// Ready only once the attached bridge has sent valid feedback: joint names alone measure nothing.
     fn health(&self) -> Health {
-        let state = self.shared.lock();
+        let state = self.shared.state.lock();
         match (&state.health, &state.feedback_problem, &state.feedback) {
             (Health::Ready, Some(problem), _) => Health::Error(format!("invalid feedback: {problem}")),
             (Health::Ready, None, None) => Health::Connecting,
@@ -223,7 +220,7 @@ impl Bridge for RemoteBridge {
 
     /// Forwards the request to the attached bridge.
     fn control(&self, request: Control) -> Result<(), BridgeError> {
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         if !state.attached || state.shut_down {
             return Err(BridgeError::Connect {
                 target: format!("remote bridge for arm {}", self.arm),
@@ -240,7 +237,7 @@ impl Bridge for RemoteBridge {
     }
 
     fn shutdown(&self) {
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         if state.shut_down {
             return;
         }
@@ -267,48 +264,41 @@ impl AttachHandle {
     /// Waits up to `timeout` for the next message: pending control requests first, then the newest command.
     /// `Ok(None)` on timeout; an error once this attachment is over (detached, replaced, shut down).
     pub fn next(&self, timeout: Duration) -> Result<Option<Downstream>, RemoteError> {
-        let deadline = Instant::now() + timeout;
-        let mut state = self.shared.lock();
-        loop {
-            Shared::check(&state, self.generation)?;
-            if let Some(control) = state.controls.pop_front() {
-                return Ok(Some(Downstream::Control(control)));
-            }
-            if let Some(command) = state.command.take() {
-                return Ok(Some(Downstream::Command(command)));
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Ok(None);
-            }
-            state = self
-                .shared
-                .changed
-                .wait_timeout(state, deadline - now)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
-        }
+        self.take_within(timeout, |state| {
+            state
+                .controls
+                .pop_front()
+                .map(Downstream::Control)
+                .or_else(|| state.command.take().map(Downstream::Command))
+        })
     }
 
     /// Like [`Self::next`] but only commands (control requests stay queued for `next`).
     pub fn next_command(&self, timeout: Duration) -> Result<Option<Command>, RemoteError> {
+        self.take_within(timeout, |state| state.command.take())
+    }
+
+    /// Waits until `take` finds something, this attachment ends (an error) or `timeout` passes (`Ok(None)`).
+    /// The state is looked at once more after the deadline, so a message that arrived with it is not left
+    /// for the next call.
+    fn take_within<T>(
+        &self,
+        timeout: Duration,
+        mut take: impl FnMut(&mut State) -> Option<T>,
+    ) -> Result<Option<T>, RemoteError> {
         let deadline = Instant::now() + timeout;
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
+        let mut timed_out = false;
         loop {
             Shared::check(&state, self.generation)?;
-            if let Some(command) = state.command.take() {
-                return Ok(Some(command));
+            if let Some(found) = take(&mut state) {
+                return Ok(Some(found));
             }
-            let now = Instant::now();
-            if now >= deadline {
+            if timed_out {
                 return Ok(None);
             }
-            state = self
-                .shared
-                .changed
-                .wait_timeout(state, deadline - now)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
+            // Any wake-up (a notify or a spurious one) looks again; only the deadline ends the wait.
+            timed_out = self.shared.changed.wait_until(&mut state, deadline).timed_out();
         }
     }
 
@@ -330,7 +320,7 @@ impl AttachHandle {
                 feedback.joint_positions_rad.len()
             ))
         };
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         Shared::check(&state, self.generation)?;
         if let Some(problem) = problem {
             state.feedback_problem = Some(problem.clone());
@@ -343,7 +333,7 @@ impl AttachHandle {
 
     /// Reports the remote robot's health (errors, reconnects to its own robot).
     pub fn report_health(&self, health: Health) -> Result<(), RemoteError> {
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         Shared::check(&state, self.generation)?;
         state.health = health;
         Ok(())
@@ -352,7 +342,7 @@ impl AttachHandle {
     /// Ends this attachment: health becomes Disconnected, feedback is cleared, the arm holds (no further
     /// commands reach anyone). Does nothing if a newer attach already replaced this one. Idempotent.
     pub fn detach(&self) {
-        let mut state = self.shared.lock();
+        let mut state = self.shared.state.lock();
         if state.generation != self.generation || !state.attached || state.shut_down {
             return;
         }
@@ -368,7 +358,7 @@ impl AttachHandle {
 
     /// True while this is the live attachment.
     pub fn is_current(&self) -> bool {
-        Shared::check(&self.shared.lock(), self.generation).is_ok()
+        Shared::check(&self.shared.state.lock(), self.generation).is_ok()
     }
 }
 
@@ -459,6 +449,24 @@ mod tests {
         remote.send(command(9));
         assert_eq!(t.join().unwrap(), Ok(Some(command(9))));
         assert!(start.elapsed() < Duration::from_secs(1));
+    }
+
+    #[test]
+    fn a_wake_for_something_else_does_not_end_the_wait_early() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        let waiter = Arc::clone(&handle);
+        let timeout = Duration::from_millis(300);
+        let start = Instant::now();
+        let t = std::thread::spawn(move || waiter.next_command(timeout));
+        std::thread::sleep(Duration::from_millis(30));
+        // Notifies the waiter, which takes only commands: it must go back to waiting.
+        remote.control(Control::Enable).unwrap();
+        assert_eq!(t.join().unwrap(), Ok(None));
+        // A lower bound only: a loaded machine makes the wait end later, never earlier than its deadline.
+        assert!(start.elapsed() >= timeout, "{:?}", start.elapsed());
+        // The control request stayed queued for `next`.
+        assert_eq!(handle.next(SHORT), Ok(Some(Downstream::Control(Control::Enable))));
     }
 
     #[test]

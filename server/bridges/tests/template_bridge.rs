@@ -4,12 +4,13 @@
 
 // template: start
 use nalgebra::{Isometry3, Translation3};
+use parking_lot::Mutex;
 use phone2act_bridges::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use serde::Deserialize;
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 /// `[arms.example]` in the server config.
@@ -79,7 +80,7 @@ impl ExampleBridge {
 
 impl Inner {
     fn set_health(&self, health: Health) {
-        *self.health.lock().unwrap_or_else(PoisonError::into_inner) = health;
+        *self.health.lock() = health;
     }
 
     /// One request, one reply line.
@@ -119,7 +120,7 @@ impl Inner {
                         self.set_health(Health::Error(format!("bad POS reply {reply:?}")));
                         continue;
                     };
-                    *self.feedback.lock().unwrap_or_else(PoisonError::into_inner) = Some(Feedback {
+                    *self.feedback.lock() = Some(Feedback {
                         capture_time_ns: self.epoch.elapsed().as_nanos() as i64,
                         joint_positions_rad: vec![x / 1000.0, y / 1000.0, z / 1000.0],
                         robot_from_ee: Isometry3::from_parts(
@@ -154,18 +155,10 @@ impl Bridge for ExampleBridge {
         self.inner.slot.put(command);
     }
     fn feedback(&self) -> Option<Feedback> {
-        self.inner
-            .feedback
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        self.inner.feedback.lock().clone()
     }
     fn health(&self) -> Health {
-        self.inner
-            .health
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        self.inner.health.lock().clone()
     }
     fn control(&self, request: Control) -> Result<(), BridgeError> {
         match request {
@@ -180,7 +173,7 @@ impl Bridge for ExampleBridge {
     }
     fn shutdown(&self) {
         self.inner.stop.store(true, Ordering::SeqCst);
-        if let Some(t) = self.thread.lock().unwrap_or_else(PoisonError::into_inner).take() {
+        if let Some(t) = self.thread.lock().take() {
             let _ = t.join();
         }
     }

@@ -1,9 +1,10 @@
 //! The `phone2act` binary as a user runs it: `serve` in a subprocess, the episode/status/dataset commands
 //! against it, bad config files, a taken port, and SIGTERM.
 
+use parking_lot::Mutex;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_phone2act");
@@ -47,7 +48,7 @@ fn serve_logging(config: &std::path::Path, log: Arc<Mutex<Vec<String>>>) -> Serv
             if let Some(addr) = line.strip_prefix("phone2act: gRPC on ") {
                 let _ = tx.send(addr.to_owned());
             }
-            log.lock().unwrap().push(line);
+            log.lock().push(line);
         }
     });
     let addr = rx
@@ -365,7 +366,6 @@ fn empty_until_the_first_episode_quiet_encoders_and_a_resumed_list() {
     drop(server);
     let svt: Vec<String> = log
         .lock()
-        .unwrap()
         .iter()
         .filter(|l| l.starts_with("Svt["))
         .cloned()

@@ -142,9 +142,7 @@ fn capture(
     if let Some(p) = &cfg.input_format {
         opts.set("input_format", p);
     }
-    let guard = crate::video::CODEC_LOCK
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let guard = crate::video::CODEC_LOCK.lock();
     let ctx =
         format::open_with(&cfg.url, &fmt, opts).map_err(|e| err(&format!("cannot open {}", cfg.url), &e))?;
     let format::context::Context::Input(mut input) = ctx else {

@@ -2,9 +2,10 @@
 //! newest frame (latest wins), stamped with its capture time on the process monotonic clock. Generated
 //! sources draw only while someone reads their slot.
 
+use parking_lot::{Condvar, Mutex};
 use phone2act_clock::{ClockFn, monotonic_ns};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -76,13 +77,9 @@ impl FrameSlot {
         }
     }
 
-    fn lock(&self) -> MutexGuard<'_, SlotState> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// Replaces the newest frame.
     pub fn publish(&self, frame: Frame) {
-        let mut state = self.lock();
+        let mut state = self.state.lock();
         state.latest = Some(frame);
         self.frames_captured.fetch_add(1, Ordering::Relaxed);
         drop(state);
@@ -92,35 +89,30 @@ impl FrameSlot {
     /// The newest frame, if any; a read that keeps an on-demand source rendering. If the source has parked,
     /// this wakes it and waits (at most 250 ms) for its next frame.
     pub fn latest(&self) -> Option<Frame> {
-        let mut state = self.lock();
+        let mut state = self.state.lock();
         state.last_read_ns = (self.clock)();
         if state.parked {
             let before = self.frames_captured.load(Ordering::Relaxed);
             self.changed.notify_all();
-            let deadline = Instant::now() + WAKE_TIMEOUT;
-            while self.frames_captured.load(Ordering::Relaxed) == before {
-                let Some(left) = deadline.checked_duration_since(Instant::now()) else {
-                    break;
-                };
-                state = self
-                    .changed
-                    .wait_timeout(state, left)
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .0;
-            }
+            // `publish` counts under the lock, so the count cannot move between the check and the wait.
+            self.changed.wait_while_for(
+                &mut state,
+                |_| self.frames_captured.load(Ordering::Relaxed) == before,
+                WAKE_TIMEOUT,
+            );
         }
         state.latest.clone()
     }
 
     /// The newest frame without counting as a read (health checks must not keep a camera rendering).
     pub fn peek(&self) -> Option<Frame> {
-        self.lock().latest.clone()
+        self.state.lock().latest.clone()
     }
 
     /// Whether an on-demand source is parked for want of readers (it is healthy, and renders on the next
     /// read).
     pub fn parked(&self) -> bool {
-        self.lock().parked
+        self.state.lock().parked
     }
 
     /// Frames published since start.
@@ -131,7 +123,7 @@ impl FrameSlot {
     /// Called by an on-demand source after each frame: if nobody has read for [`IDLE_AFTER_NS`], parks until a
     /// reader comes or `stop` is set, and says whether it parked (so the source can restart its pacing).
     fn park_while_unread(&self, stop: &AtomicBool) -> bool {
-        let mut state = self.lock();
+        let mut state = self.state.lock();
         if (self.clock)() - state.last_read_ns <= IDLE_AFTER_NS {
             return false;
         }
@@ -139,11 +131,7 @@ impl FrameSlot {
         state.parked = true;
         // Woken by a reader; the timeout only bounds how late a stop request is seen.
         while state.last_read_ns == parked_at_ns && !stop.load(Ordering::Relaxed) {
-            state = self
-                .changed
-                .wait_timeout(state, Duration::from_millis(100))
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
+            self.changed.wait_for(&mut state, Duration::from_millis(100));
         }
         state.parked = false;
         true

@@ -42,9 +42,7 @@ pub fn frames_at(path: &Path, times_s: &[f64], max_width_px: u32) -> Result<Vec<
     // FFmpeg's own AV1 decoder needs a hardware accelerator; dav1d decodes in software.
     let av1 = context.id() == ffmpeg::codec::Id::AV1;
     let mut decoder = {
-        let _guard = crate::video::CODEC_LOCK
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let _guard = crate::video::CODEC_LOCK.lock();
         match ffmpeg::decoder::find_by_name("libdav1d").filter(|_| av1) {
             Some(codec) => context
                 .decoder()

@@ -13,10 +13,11 @@ use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
 use crate::events::ArmActivity;
 use crate::spec::DatasetSpec;
+use parking_lot::{Condvar, Mutex};
 use phone2act_clock::monotonic_ns;
 use serde::Serialize;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -127,10 +128,6 @@ pub struct Recorder {
     thread: Option<JoinHandle<()>>,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
 fn unix_ns() -> i64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -206,9 +203,9 @@ impl Recorder {
 
     /// Starts recording an episode of `task`.
     pub fn start_episode(&self, task: &str) -> Result<RecorderStatus, RecorderError> {
-        let mut ds = lock(&self.shared.dataset);
+        let mut ds = self.shared.dataset.lock();
         {
-            let t = lock(&self.shared.tick);
+            let t = self.shared.tick.lock();
             if let Some(a) = &t.active {
                 return Err(RecorderError::AlreadyRecording(a.writer.index));
             }
@@ -216,7 +213,7 @@ impl Recorder {
         let writer = ds.begin_episode(task, self.shared.sync.queue_frames)?;
         let saved = ds.total_episodes();
         drop(ds);
-        let mut t = lock(&self.shared.tick);
+        let mut t = self.shared.tick.lock();
         t.saved = saved;
         if let Some(a) = &t.active {
             return Err(RecorderError::AlreadyRecording(a.writer.index));
@@ -240,7 +237,7 @@ impl Recorder {
     }
 
     fn take_active(&self) -> Result<Active, RecorderError> {
-        let mut t = lock(&self.shared.tick);
+        let mut t = self.shared.tick.lock();
         let a = t.active.take().ok_or(RecorderError::NotRecording)?;
         t.phase = Phase::Saving;
         bump(&self.shared, &mut t);
@@ -250,8 +247,8 @@ impl Recorder {
     fn set_idle(&self, warning: Option<String>) {
         // The episode's encoders are gone: give their memory back (see `memory`).
         crate::memory::release_freed_memory();
-        let saved = lock(&self.shared.dataset).total_episodes();
-        let mut t = lock(&self.shared.tick);
+        let saved = self.shared.dataset.lock().total_episodes();
+        let mut t = self.shared.tick.lock();
         t.saved = saved;
         t.phase = Phase::Idle;
         t.warning = warning;
@@ -261,7 +258,7 @@ impl Recorder {
     /// Stops recording and saves the episode. Returns when it is committed to disk.
     pub fn stop_episode(&self) -> Result<EpisodeSummary, RecorderError> {
         let t0 = std::time::Instant::now();
-        let mut ds = lock(&self.shared.dataset);
+        let mut ds = self.shared.dataset.lock();
         let active = self.take_active()?;
         let summary = EpisodeSummary {
             index: active.writer.index,
@@ -318,7 +315,7 @@ impl Recorder {
 
     /// Throws away the episode being recorded; returns its frame count.
     pub fn discard_episode(&self) -> Result<u64, RecorderError> {
-        let mut ds = lock(&self.shared.dataset);
+        let mut ds = self.shared.dataset.lock();
         let active = self.take_active()?;
         let frames = active.writer.frames();
         ds.abort_episode(active.writer);
@@ -335,7 +332,10 @@ impl Recorder {
             .map(crate::dataset::check_task)
             .transpose()?
             .map(str::to_owned);
-        let current = lock(&self.shared.tick)
+        let current = self
+            .shared
+            .tick
+            .lock()
             .active
             .as_ref()
             .map(|a| a.writer.task.clone())
@@ -346,23 +346,21 @@ impl Recorder {
 
     /// Saved episodes.
     pub fn episodes(&self) -> Vec<EpisodeSummary> {
-        lock(&self.shared.dataset).episodes()
+        self.shared.dataset.lock().episodes()
     }
 
     /// The current status.
     pub fn status(&self) -> RecorderStatus {
-        let t = lock(&self.shared.tick);
+        let t = self.shared.tick.lock();
         status_of(&self.shared, &t)
     }
 
     /// Waits until the status version is above `since` (or `timeout` passes) and returns the status.
     pub fn watch(&self, since: u64, timeout: Duration) -> RecorderStatus {
-        let t = lock(&self.shared.tick);
-        let (t, _) = self
-            .shared
+        let mut t = self.shared.tick.lock();
+        self.shared
             .changed
-            .wait_timeout_while(t, timeout, |t| t.version <= since)
-            .unwrap_or_else(PoisonError::into_inner);
+            .wait_while_for(&mut t, |t| t.version <= since, timeout);
         let v = t.version;
         drop(t);
         let mut s = self.status();
@@ -381,9 +379,9 @@ impl Recorder {
         if let Some(h) = self.thread.take() {
             let _ = h.join();
         }
-        let active = lock(&self.shared.tick).active.take();
+        let active = self.shared.tick.lock().active.take();
         if let Some(a) = active {
-            lock(&self.shared.dataset).abort_episode(a.writer);
+            self.shared.dataset.lock().abort_episode(a.writer);
         }
     }
 }
@@ -445,7 +443,7 @@ fn tick_loop(shared: &Shared) {
         // a longer stall is skipped and counted as late ticks, never written as a gap.
         let missed = (now - next) / period_ns;
         next += (missed + 1) * period_ns;
-        let mut t = lock(&shared.tick);
+        let mut t = shared.tick.lock();
         if missed * period_ns <= tol_ns {
             for _ in 0..missed {
                 tick(shared, &mut t, now);

@@ -22,7 +22,7 @@ use std::thread::JoinHandle;
 /// process-wide tables when an instance is created (SVT-AV1 1.4 among them) and are not safe to initialise
 /// from several threads at once; a heap corruption was seen with three cameras starting together. Opening
 /// takes milliseconds, once per episode and camera, so the lock costs nothing measurable.
-pub static CODEC_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+pub static CODEC_LOCK: parking_lot::Mutex<()> = parking_lot::Mutex::new(());
 
 /// Keeps SVT-AV1's own log (about 20 banner lines per encoder, so per episode and camera) to errors,
 /// unless the user set `SVT_LOG`. The library reads the variable when an encoder is created; call this at
@@ -126,9 +126,7 @@ impl VideoEncoder {
         for (k, v) in &settings.extra {
             opts.set(k, v);
         }
-        let guard = CODEC_LOCK
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let guard = CODEC_LOCK.lock();
         let encoder = enc
             .open_with(opts)
             .map_err(|e| ff_err(path, "cannot open encoder for", e));
@@ -265,9 +263,7 @@ impl Drop for VideoEncoder {
         if let Some(encoder) = self.encoder.take() {
             if self.eof_sent {
                 // Encoder teardown frees what creation set up: same lock.
-                let guard = CODEC_LOCK
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                let guard = CODEC_LOCK.lock();
                 drop(encoder);
                 drop(guard);
             } else {
@@ -291,9 +287,7 @@ fn discard_encoder(mut encoder: encoder::Video, frames: u64, width: u32, height:
     let _ = encoder.send_eof();
     let mut packet = Packet::empty();
     while encoder.receive_packet(&mut packet).is_ok() {}
-    let guard = CODEC_LOCK
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let guard = CODEC_LOCK.lock();
     drop(encoder);
     drop(guard);
 }

@@ -279,7 +279,7 @@ fn bad_input_gets_a_clear_status_and_leaves_the_dataset_intact() {
     ));
 
     // An episode with no frames: the robot never reports, so every tick is paused.
-    *rig.robot.silent.lock().unwrap() = true;
+    *rig.robot.silent.lock() = true;
     rec.start_episode("nothing").unwrap();
     let s = wait_for(&rec, T, "pause", |s| s.phase == Phase::Paused);
     assert!(s.warning.as_deref().unwrap().contains("robot"), "{s:?}");
@@ -292,7 +292,7 @@ fn bad_input_gets_a_clear_status_and_leaves_the_dataset_intact() {
     let s = rec.status();
     assert_eq!(s.phase, Phase::Idle);
     assert!(s.warning.unwrap().contains("no frames"));
-    *rig.robot.silent.lock().unwrap() = false;
+    *rig.robot.silent.lock() = false;
 
     // Discard.
     rec.start_episode("discard me").unwrap();
@@ -354,7 +354,7 @@ fn a_stale_robot_is_held_then_pauses() {
     let s = wait_for(&rec, T, "pause", |s| s.phase == Phase::Paused);
     assert!(s.held_ticks >= 3, "held within the 0.25 s tolerance first: {s:?}");
     assert!(s.warning.unwrap().contains("robot sample is"));
-    *rig.robot.frozen_at_ns.lock().unwrap() = None;
+    *rig.robot.frozen_at_ns.lock() = None;
     let s = wait_for(&rec, T, "resume", |s| s.phase == Phase::Recording);
     assert!(s.warning.unwrap().contains("resumed"));
     rec.stop_episode().unwrap();

@@ -14,10 +14,11 @@ use super::feedback::{EulerConvention, FeedbackPacket};
 use super::gripper::parse_modbus_write_register;
 use super::protocol::{Firmware, RobotMode, split_command, split_top_level};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use parking_lot::Mutex;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tracing::debug;
@@ -160,12 +161,6 @@ struct Shared {
     stop: AtomicBool,
 }
 
-impl Shared {
-    fn state(&self) -> std::sync::MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-}
-
 /// The running emulator. Dropping it stops every thread and closes every socket.
 #[derive(Debug)]
 pub struct DobotEmulator {
@@ -271,7 +266,7 @@ impl DobotEmulator {
 
     /// The current state, advanced to now.
     pub fn snapshot(&self) -> EmulatorSnapshot {
-        let mut s = self.shared.state();
+        let mut s = self.shared.state.lock();
         s.advance(Instant::now(), self.shared.config.max_speed_m_s);
         EmulatorSnapshot {
             mode: s.mode,
@@ -285,18 +280,13 @@ impl DobotEmulator {
             digital_outputs: s.digital_outputs,
             tool_outputs: s.tool_outputs,
             gripper_register: s.gripper_register,
-            active_clients: self
-                .shared
-                .clients
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .len(),
+            active_clients: self.shared.clients.lock().len(),
         }
     }
 
     /// Puts the robot in the error state (mode 9) with `error_id`, halting it where it is.
     pub fn inject_error(&self, error_id: i32) {
-        let mut s = self.shared.state();
+        let mut s = self.shared.state.lock();
         s.advance(Instant::now(), self.shared.config.max_speed_m_s);
         s.error_ids.push(error_id);
         s.mode = RobotMode::Error;
@@ -306,8 +296,7 @@ impl DobotEmulator {
 
     /// Closes every client connection; the listeners stay open so clients can reconnect.
     pub fn drop_connections(&self) {
-        let clients =
-            std::mem::take(&mut *self.shared.clients.lock().unwrap_or_else(PoisonError::into_inner));
+        let clients = std::mem::take(&mut *self.shared.clients.lock());
         for c in clients {
             let _ = c.shutdown(Shutdown::Both);
         }
@@ -315,14 +304,14 @@ impl DobotEmulator {
 
     /// Corrupts the next feedback packet sent.
     pub fn corrupt_next_feedback(&self, corruption: Corruption) {
-        self.shared.state().corruption = Some(corruption);
+        self.shared.state.lock().corruption = Some(corruption);
     }
 
     /// Stops every thread and closes every socket. Idempotent.
     pub fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::SeqCst);
         self.drop_connections();
-        let threads = std::mem::take(&mut *self.threads.lock().unwrap_or_else(PoisonError::into_inner));
+        let threads = std::mem::take(&mut *self.threads.lock());
         for t in threads {
             let _ = t.join();
         }
@@ -345,11 +334,7 @@ fn accept_loop(shared: &Arc<Shared>, listener: &TcpListener, kind: PortKind) {
                 if kind != PortKind::Http
                     && let Ok(clone) = stream.try_clone()
                 {
-                    shared
-                        .clients
-                        .lock()
-                        .unwrap_or_else(PoisonError::into_inner)
-                        .push(clone);
+                    shared.clients.lock().push(clone);
                 }
                 let shared = Arc::clone(shared);
                 let spawned = std::thread::Builder::new()
@@ -382,7 +367,6 @@ fn forget_client(shared: &Shared, stream: &TcpStream) {
     shared
         .clients
         .lock()
-        .unwrap_or_else(PoisonError::into_inner)
         .retain(|c| c.peer_addr().ok() != Some(addr) || c.local_addr().ok() != Some(local));
 }
 
@@ -473,7 +457,7 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> String {
         return reply(-10000, "", command);
     };
     let lname = name.to_ascii_lowercase();
-    let mut s = shared.state();
+    let mut s = shared.state.lock();
     s.advance(Instant::now(), config.max_speed_m_s);
     let is_motion = matches!(lname.as_str(), "servop" | "movl" | "movj");
     // V3 keeps motion commands on the motion port and settings on the dashboard.
@@ -691,7 +675,7 @@ fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
     let mut next = Instant::now();
     while !shared.stop.load(Ordering::SeqCst) {
         let (packet, corruption) = {
-            let mut s = shared.state();
+            let mut s = shared.state.lock();
             s.advance(Instant::now(), config.max_speed_m_s);
             if s.mode == RobotMode::Running && s.remaining_s <= 0.0 {
                 s.mode = RobotMode::Enabled;
@@ -785,7 +769,7 @@ fn serve_http(shared: &Arc<Shared>, mut stream: TcpStream) {
     let accepted = frame.as_deref().and_then(parse_modbus_write_register);
     let (status, text) = match accepted {
         Some((_slave, _register, value)) => {
-            shared.state().gripper_register = Some(value);
+            shared.state.lock().gripper_register = Some(value);
             ("200 OK", "{\"status\":\"ok\"}")
         }
         None => ("400 Bad Request", "{\"status\":\"bad frame\"}"),

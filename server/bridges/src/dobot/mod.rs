@@ -21,12 +21,13 @@ use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Healt
 use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
 use gripper::GripperOutput;
 use nalgebra::{Isometry3, Translation3};
+use parking_lot::Mutex;
 use protocol::{Firmware, Reply, RobotMode, ServoParams, Terminator, error_text, parse_reply};
 use serde::{Deserialize, Serialize};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use tracing::{debug, info, warn};
@@ -312,10 +313,6 @@ struct Inner {
     clock: ClockFn,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
 /// The Dobot CR5 bridge. Create with [`DobotBridge::start`].
 #[derive(Debug)]
 pub struct DobotBridge {
@@ -374,7 +371,7 @@ impl DobotBridge {
             .name("dobot-command".into())
             .spawn(move || worker.command_loop())
             .map_err(BridgeError::Io)?;
-        *lock(&inner.command_thread) = Some(handle);
+        *inner.command_thread.lock() = Some(handle);
         Ok(Arc::new(Self { inner }))
     }
 
@@ -384,7 +381,7 @@ impl DobotBridge {
 
     /// Counters and the last faults seen.
     pub fn stats(&self) -> DobotStats {
-        let s = lock(&self.inner.status);
+        let s = self.inner.status.lock();
         DobotStats {
             servo_sent: self.inner.servo_sent.load(Ordering::Relaxed),
             servo_rejected: self.inner.servo_rejected.load(Ordering::Relaxed),
@@ -439,7 +436,7 @@ impl Inner {
         let generation = self.generation.fetch_add(1, Ordering::SeqCst) + 1;
         self.close_sockets();
         {
-            let mut s = lock(&self.status);
+            let mut s = self.status.lock();
             s.link = Link::Connecting;
             s.last_packet_at = None;
             s.robot_mode = None;
@@ -460,18 +457,18 @@ impl Inner {
             TcpStream::connect_timeout(&feedback_addr, Duration::from_secs_f64(cfg.connect_timeout_s))
                 .map_err(|e| self.connect_error(cfg.feedback_port, &e))?;
         feedback.set_read_timeout(Some(Duration::from_millis(50)))?;
-        *lock(&self.feedback_socket) = Some(feedback.try_clone()?);
-        *lock(&self.dashboard) = Some(dashboard);
-        *lock(&self.motion) = motion;
+        *self.feedback_socket.lock() = Some(feedback.try_clone()?);
+        *self.dashboard.lock() = Some(dashboard);
+        *self.motion.lock() = motion;
 
-        if let Some(old) = lock(&self.feedback_thread).take() {
+        if let Some(old) = self.feedback_thread.lock().take() {
             let _ = old.join();
         }
         let reader = Arc::clone(self);
         let handle = std::thread::Builder::new()
             .name("dobot-feedback".into())
             .spawn(move || reader.feedback_loop(feedback, generation))?;
-        *lock(&self.feedback_thread) = Some(handle);
+        *self.feedback_thread.lock() = Some(handle);
 
         if cfg.clear_error_on_start {
             self.dashboard_ok("ClearError()")?;
@@ -482,7 +479,7 @@ impl Inner {
             // in health and can be retried with Control::ClearError / Control::Enable.
             if let Err(e) = self.dashboard_ok("EnableRobot()") {
                 warn!(error = %e, "dobot: EnableRobot refused");
-                lock(&self.status).last_command_error = Some(e.to_string());
+                self.status.lock().last_command_error = Some(e.to_string());
             }
         }
         // Wait for packets sent after the start-up commands, so health reflects them when this returns. The
@@ -498,18 +495,18 @@ impl Inner {
             }
             std::thread::sleep(Duration::from_millis(2));
         }
-        let mut s = lock(&self.status);
+        let mut s = self.status.lock();
         s.link = Link::Up;
         info!(host = %cfg.host, firmware = ?cfg.firmware, motion_port, "dobot: connected");
         Ok(())
     }
 
     fn close_sockets(&self) {
-        if let Some(s) = lock(&self.feedback_socket).take() {
+        if let Some(s) = self.feedback_socket.lock().take() {
             let _ = s.shutdown(Shutdown::Both);
         }
         for conn in [&self.dashboard, &self.motion] {
-            if let Some(c) = lock(conn).take() {
+            if let Some(c) = conn.lock().take() {
                 let _ = c.stream.shutdown(Shutdown::Both);
             }
         }
@@ -519,14 +516,14 @@ impl Inner {
     /// others fail too, and their errors say less.
     fn close(&self, why: String) {
         self.close_sockets();
-        let mut s = lock(&self.status);
+        let mut s = self.status.lock();
         if !matches!(s.link, Link::Down(_)) {
             s.link = Link::Down(why);
         }
     }
 
     fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
-        let mut guard = lock(&self.dashboard);
+        let mut guard = self.dashboard.lock();
         let conn = guard
             .as_mut()
             .ok_or_else(|| BridgeError::Protocol("dashboard not connected".into()))?;
@@ -557,12 +554,12 @@ impl Inner {
     }
 
     fn motion_request(&self, command: &str) -> Result<Reply, LinkError> {
-        let mut motion = lock(&self.motion);
+        let mut motion = self.motion.lock();
         if let Some(conn) = motion.as_mut() {
             return conn.request(command);
         }
         drop(motion);
-        let mut dashboard = lock(&self.dashboard);
+        let mut dashboard = self.dashboard.lock();
         let conn = dashboard
             .as_mut()
             .ok_or_else(|| LinkError::Protocol("not connected".into()))?;
@@ -570,7 +567,7 @@ impl Inner {
     }
 
     fn health(&self) -> Health {
-        let s = lock(&self.status);
+        let s = self.status.lock();
         match &s.link {
             Link::Connecting => return Health::Connecting,
             Link::Down(why) => return Health::Disconnected(why.clone()),
@@ -639,7 +636,7 @@ impl Inner {
                     Err(e) => {
                         self.packets_rejected.fetch_add(1, Ordering::Relaxed);
                         warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
-                        lock(&self.status).last_packet_error = Some(e.to_string());
+                        self.status.lock().last_packet_error = Some(e.to_string());
                     }
                 }
             }
@@ -649,7 +646,7 @@ impl Inner {
     fn on_packet(&self, packet: &FeedbackPacket) {
         self.packets_ok.fetch_add(1, Ordering::Relaxed);
         let convention = {
-            let mut s = lock(&self.status);
+            let mut s = self.status.lock();
             s.last_packet_at = Some(Instant::now());
             let mode = RobotMode::from_code(packet.robot_mode);
             if s.robot_mode != Some(mode) {
@@ -674,7 +671,7 @@ impl Inner {
                 let high = (packet.digital_outputs >> (index - 1)) & 1 == 1;
                 if high == *closed_high { 1.0 } else { 0.0 }
             }
-            _ => lock(&self.gripper_sent).unwrap_or(0.0),
+            _ => self.gripper_sent.lock().unwrap_or(0.0),
         };
         let feedback = Feedback {
             capture_time_ns: (self.clock)(),
@@ -684,7 +681,7 @@ impl Inner {
             applied_seq: self.applied_seq.load(Ordering::SeqCst),
             task_success: false,
         };
-        *lock(&self.feedback) = Some(feedback);
+        *self.feedback.lock() = Some(feedback);
     }
 
     fn verify_convention(s: &mut Status, packet: &FeedbackPacket, configured: Option<EulerConvention>) {
@@ -737,7 +734,7 @@ impl Inner {
     /// command thread: the feedback thread must never wait on the dashboard.
     fn fetch_fault_detail(&self) {
         let needed = {
-            let s = lock(&self.status);
+            let s = self.status.lock();
             matches!(s.link, Link::Up)
                 && s.robot_mode.is_some_and(RobotMode::is_fault)
                 && s.fault_detail.is_none()
@@ -751,12 +748,12 @@ impl Inner {
             Err(e) => format!("GetErrorID failed: {e}"),
         };
         warn!(%detail, "dobot: robot fault");
-        lock(&self.status).fault_detail = Some(detail);
+        self.status.lock().fault_detail = Some(detail);
     }
 
     /// True if the only fault is a previously rejected command: the next target may succeed and clear it.
     fn only_command_error(&self) -> bool {
-        let s = lock(&self.status);
+        let s = self.status.lock();
         s.last_command_error.is_some()
             && matches!(s.link, Link::Up)
             && s.convention_error.is_none()
@@ -775,7 +772,7 @@ impl Inner {
             warn!(seq = command.seq, "dobot: non-finite target dropped; arm holds");
             return;
         }
-        let convention = lock(&self.status).convention;
+        let convention = self.status.lock().convention;
         let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
         let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
         let text = protocol::servo_p(&pose_mm_deg, self.config.servo_params());
@@ -783,7 +780,7 @@ impl Inner {
             Ok(reply) if reply.error_id == 0 => {
                 self.servo_sent.fetch_add(1, Ordering::Relaxed);
                 self.applied_seq.store(command.seq, Ordering::SeqCst);
-                lock(&self.status).last_command_error = None;
+                self.status.lock().last_command_error = None;
             }
             Ok(reply) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
@@ -793,11 +790,11 @@ impl Inner {
                     error_text(reply.error_id)
                 );
                 warn!(seq = command.seq, "dobot: {m}");
-                lock(&self.status).last_command_error = Some(m);
+                self.status.lock().last_command_error = Some(m);
             }
             Err(LinkError::Protocol(m)) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
-                lock(&self.status).last_command_error = Some(format!("ServoP: {m}"));
+                self.status.lock().last_command_error = Some(format!("ServoP: {m}"));
             }
             Err(e) => {
                 warn!(error = %e, "dobot: motion connection failed");
@@ -813,7 +810,7 @@ impl Inner {
         let v3 = self.config.firmware == Firmware::V3;
         let (command, reported) = match &self.config.gripper {
             GripperOutput::None => {
-                *lock(&self.gripper_sent) = Some(target);
+                *self.gripper_sent.lock() = Some(target);
                 return;
             }
             GripperOutput::Do { index, closed_high } => {
@@ -848,25 +845,33 @@ impl Inner {
                     (f64::from(value) - f64::from(*open_value))
                         / (f64::from(*closed_value) - f64::from(*open_value))
                 };
-                if lock(&self.gripper_sent).is_some_and(|g| (g - reported).abs() < 1e-3) {
+                if self
+                    .gripper_sent
+                    .lock()
+                    .is_some_and(|g| (g - reported).abs() < 1e-3)
+                {
                     return;
                 }
                 let frame = gripper::modbus_write_register(*slave, *register, value);
                 let body = gripper::modbus_http_body(&frame);
                 let timeout = Duration::from_secs_f64(self.config.reply_timeout_s);
                 match gripper::http_post_json(&self.config.host, *port, path, &body, timeout) {
-                    Ok(200) => *lock(&self.gripper_sent) = Some(reported),
+                    Ok(200) => *self.gripper_sent.lock() = Some(reported),
                     Ok(status) => warn!(status, "dobot: gripper endpoint refused the frame"),
                     Err(e) => warn!(error = %e, "dobot: gripper endpoint unreachable"),
                 }
                 return;
             }
         };
-        if lock(&self.gripper_sent).is_some_and(|g| (g - reported).abs() < 1e-9) {
+        if self
+            .gripper_sent
+            .lock()
+            .is_some_and(|g| (g - reported).abs() < 1e-9)
+        {
             return;
         }
         match self.dashboard_ok(&command) {
-            Ok(_) => *lock(&self.gripper_sent) = Some(reported),
+            Ok(_) => *self.gripper_sent.lock() = Some(reported),
             Err(e) => warn!(error = %e, "dobot: gripper output failed"),
         }
     }
@@ -877,9 +882,9 @@ impl Inner {
         }
         self.generation.fetch_add(1, Ordering::SeqCst);
         self.close_sockets();
-        lock(&self.status).link = Link::Down("bridge shut down".into());
+        self.status.lock().link = Link::Down("bridge shut down".into());
         for slot in [&self.command_thread, &self.feedback_thread] {
-            let handle = lock(slot).take();
+            let handle = slot.lock().take();
             if let Some(h) = handle
                 && h.thread().id() != std::thread::current().id()
             {
@@ -903,7 +908,7 @@ impl Bridge for DobotBridge {
     }
 
     fn feedback(&self) -> Option<Feedback> {
-        lock(&self.inner.feedback).clone()
+        self.inner.feedback.lock().clone()
     }
 
     fn health(&self) -> Health {
@@ -925,7 +930,7 @@ impl Bridge for DobotBridge {
                 self.inner.dashboard_ok("ClearError()")?;
             }
             Control::Reconnect => {
-                lock(&self.inner.status).reconnects += 1;
+                self.inner.status.lock().reconnects += 1;
                 if let Err(e) = self.inner.connect() {
                     self.inner.close(format!("reconnect failed: {e}"));
                     return Err(e);
@@ -933,7 +938,7 @@ impl Bridge for DobotBridge {
             }
         }
         // A fresh start: the next rejected command will set it again.
-        lock(&self.inner.status).last_command_error = None;
+        self.inner.status.lock().last_command_error = None;
         Ok(())
     }
 

@@ -14,13 +14,14 @@ use nix::fcntl::{FcntlArg, OFlag, fcntl};
 use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
 use nix::pty::openpty;
 use nix::sys::termios::{SetArg, cfmakeraw, tcgetattr, tcsetattr};
+use parking_lot::Mutex;
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{ErrorKind, Read, Write};
 use std::os::fd::{AsFd, OwnedFd};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -259,25 +260,21 @@ impl FeetechEmulator {
         &self.path
     }
 
-    fn lock(&self) -> MutexGuard<'_, BusState> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// A copy of one servo's state, advanced to now.
     pub fn servo(&self, id: u8) -> Option<ServoState> {
-        let mut s = self.lock();
+        let mut s = self.state.lock();
         s.advance();
         s.servos.get(&id).cloned()
     }
 
     /// Packets handled so far.
     pub fn packets(&self) -> u64 {
-        self.lock().packets
+        self.state.lock().packets
     }
 
     /// Changes one servo (fault injection, moving the shaft by hand, speed).
     pub fn with_servo<R>(&self, id: u8, f: impl FnOnce(&mut ServoState) -> R) -> Option<R> {
-        let mut s = self.lock();
+        let mut s = self.state.lock();
         s.advance();
         s.servos.get_mut(&id).map(f)
     }
@@ -293,7 +290,7 @@ impl FeetechEmulator {
     /// Stops the emulator. Idempotent.
     pub fn shutdown(&self) {
         self.stop.store(true, Ordering::SeqCst);
-        let thread = self.thread.lock().unwrap_or_else(PoisonError::into_inner).take();
+        let thread = self.thread.lock().take();
         if let Some(t) = thread {
             let _ = t.join();
         }
@@ -366,7 +363,7 @@ fn reply_for(servo: &ServoState, params: &[u8]) -> Option<(Vec<u8>, Duration)> {
 }
 
 fn handle(state: &Mutex<BusState>, p: &protocol::Packet) -> Vec<(Vec<u8>, Duration)> {
-    let mut s = state.lock().unwrap_or_else(PoisonError::into_inner);
+    let mut s = state.lock();
     s.packets += 1;
     s.advance();
     let answers = |servo: &ServoState| servo.get(register::RESPONSE_STATUS_LEVEL) >= 1;

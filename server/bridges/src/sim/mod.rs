@@ -19,10 +19,11 @@ pub use render::Renderer;
 pub use world::{BallState, CommandOutcome, IkRequest, SceneSnapshot, SceneState, SimWorld};
 
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health};
+use parking_lot::Mutex;
 use phone2act_core::kinematics::SO101_ARM_JOINT_NAMES;
 use queue::BoundedQueue;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -95,25 +96,13 @@ impl SimBridge {
     /// Renders the scene from the configured camera into `out` as packed RGB8 (`width × height × 3` bytes).
     /// Safe to call from any thread; the world lock is held only to copy the state.
     pub fn render_rgb(&self, width: u32, height: u32, out: &mut Vec<u8>) {
-        let snapshot = self
-            .shared
-            .world
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .snapshot();
-        self.renderer
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .render(&snapshot, width, height, out);
+        let snapshot = self.shared.world.lock().snapshot();
+        self.renderer.lock().render(&snapshot, width, height, out);
     }
 
     /// The scene state (ball, gripper, links) right now.
     pub fn snapshot(&self) -> SceneSnapshot {
-        self.shared
-            .world
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .snapshot()
+        self.shared.world.lock().snapshot()
     }
 
     /// Commands dropped because the queue was full (the sim thread stalled for a long time), since start.
@@ -129,7 +118,7 @@ fn run(shared: &Shared, period: Duration) {
         let now = Instant::now();
         if now >= next_tick {
             let feedback = catch_up(shared, &mut batch, true);
-            *shared.feedback.lock().unwrap_or_else(PoisonError::into_inner) = feedback;
+            *shared.feedback.lock() = feedback;
             next_tick += period;
             if now > next_tick + period * MAX_TICK_BACKLOG {
                 next_tick = now + period;
@@ -149,9 +138,8 @@ fn run(shared: &Shared, period: Duration) {
 /// or was stamped after the present this batch advances to: the world never runs past a command it has not
 /// seen, unless its sender is preempted between stamping it and handing it over.
 fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Feedback> {
-    let lock = || shared.world.lock().unwrap_or_else(PoisonError::into_inner);
     let present_ns = {
-        let _world = lock();
+        let _world = shared.world.lock();
         shared.commands.drain_into(batch);
         (shared.clock)()
     };
@@ -160,14 +148,14 @@ fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Fee
         // should not wait for it. Only this thread advances the world or sets its joint targets, so the
         // seed taken here is still the one in force when the solution is applied.
         let request = {
-            let mut world = lock();
+            let mut world = shared.world.lock();
             world.advance_to_issue(&command, present_ns);
             world.ik_request()
         };
         let outcome = match request {
             Some(request) => {
                 let solution = request.solve(&command);
-                lock().apply_solution(&command, solution)
+                shared.world.lock().apply_solution(&command, solution)
             }
             None => CommandOutcome::Disabled,
         };
@@ -186,7 +174,7 @@ fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Fee
         }
     }
     tick.then(|| {
-        let mut world = lock();
+        let mut world = shared.world.lock();
         world.advance_to_ns(present_ns);
         world.feedback(present_ns)
     })
@@ -216,11 +204,7 @@ impl Bridge for SimBridge {
     }
 
     fn feedback(&self) -> Option<Feedback> {
-        self.shared
-            .feedback
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
+        self.shared.feedback.lock().clone()
     }
 
     fn health(&self) -> Health {
@@ -232,7 +216,7 @@ impl Bridge for SimBridge {
     }
 
     fn control(&self, request: Control) -> Result<(), BridgeError> {
-        let mut world = self.shared.world.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut world = self.shared.world.lock();
         match request {
             Control::Enable => world.set_enabled(true),
             Control::Disable => world.set_enabled(false),
@@ -243,19 +227,14 @@ impl Bridge for SimBridge {
     }
 
     fn scene(&self) -> Result<SceneState, BridgeError> {
-        Ok(self
-            .shared
-            .world
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .scene_state())
+        Ok(self.shared.world.lock().scene_state())
     }
 
     /// Draws a new scene (see [`SimWorld::reset_scene`]) and publishes the new state at once, so the next
     /// feedback anyone reads (the arm controller re-indexing a source, `ArmState.task_success`) is the reset
     /// world, not the one before it.
     fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, BridgeError> {
-        let mut world = self.shared.world.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut world = self.shared.world.lock();
         let now_ns = (self.shared.clock)();
         world.advance_to_ns(now_ns);
         if home_arm {
@@ -265,17 +244,13 @@ impl Bridge for SimBridge {
             self.shared.commands.drain_into(&mut stale);
         }
         world.reset_scene(seed, home_arm);
-        *self
-            .shared
-            .feedback
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner) = Some(world.feedback(now_ns));
+        *self.shared.feedback.lock() = Some(world.feedback(now_ns));
         Ok(world.scene_state())
     }
 
     fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::Release);
-        let handle = self.thread.lock().unwrap_or_else(PoisonError::into_inner).take();
+        let handle = self.thread.lock().take();
         if let Some(handle) = handle
             && handle.join().is_err()
         {

@@ -2,8 +2,8 @@
 //! put each one in force at the time it was issued; when the queue is full the oldest is dropped and
 //! counted, so a thread that never catches up still ends on the newest command (latest wins).
 
+use parking_lot::{Condvar, Mutex};
 use std::collections::VecDeque;
-use std::sync::{Condvar, Mutex, PoisonError};
 use std::time::Duration;
 
 /// Commands pending for the sim thread. At teleop's fastest phone rate (about 90 Hz) 64 commands are 0.7 s
@@ -28,7 +28,7 @@ impl<T> BoundedQueue<T> {
 
     /// Appends `value`; never blocks. Returns true if the queue was full and its oldest value was dropped.
     pub(super) fn push(&self, value: T) -> bool {
-        let mut guard = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut guard = self.state.lock();
         let dropped = guard.0.len() >= self.capacity;
         if dropped {
             guard.0.pop_front();
@@ -42,28 +42,19 @@ impl<T> BoundedQueue<T> {
 
     /// Moves every queued value, oldest first, to the end of `out`.
     pub(super) fn drain_into(&self, out: &mut Vec<T>) {
-        out.extend(
-            self.state
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .0
-                .drain(..),
-        );
+        out.extend(self.state.lock().0.drain(..));
     }
 
     /// Waits up to `timeout` for the queue to hold something; true if it does.
     pub(super) fn wait_nonempty(&self, timeout: Duration) -> bool {
-        let guard = self.state.lock().unwrap_or_else(PoisonError::into_inner);
-        let (guard, _) = self
-            .ready
-            .wait_timeout_while(guard, timeout, |s| s.0.is_empty())
-            .unwrap_or_else(PoisonError::into_inner);
+        let mut guard = self.state.lock();
+        self.ready.wait_while_for(&mut guard, |s| s.0.is_empty(), timeout);
         !guard.0.is_empty()
     }
 
     /// Values dropped because the queue was full, since creation.
     pub(super) fn dropped(&self) -> u64 {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner).1
+        self.state.lock().1
     }
 }
 

@@ -206,11 +206,11 @@ fn stream_and_compare(stall: bool) -> (usize, f64) {
     std::thread::sleep(Duration::from_millis(30));
     let start = bridge.feedback().unwrap().robot_from_ee;
     let mut commands = Vec::new();
-    let stalled = stall.then(|| bridge.shared.world.lock().unwrap());
+    let stalled = stall.then(|| bridge.shared.world.lock());
     for k in 1..=8u32 {
         let mut target = start;
         target.translation.vector += f64::from(k) * Vector3::new(0.004, -0.004, 0.003);
-        let held = (!stall).then(|| bridge.shared.world.lock().unwrap());
+        let held = (!stall).then(|| bridge.shared.world.lock());
         let command = Command {
             seq: u64::from(k),
             robot_from_target: target,
@@ -280,7 +280,7 @@ fn a_full_queue_drops_the_oldest_and_ends_on_the_newest() {
     let extra = 5;
     let mut target = start;
     {
-        let _stalled = bridge.shared.world.lock().unwrap();
+        let _stalled = bridge.shared.world.lock();
         for k in 1..=(queue::CAPACITY + extra) {
             target = start;
             target.translation.vector.z -= 0.0005 * k as f64;

@@ -17,13 +17,14 @@ use crate::feetech::{BusError, BusStats, FeetechBus};
 use crate::sim::ClockFn;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use calibration::{Calibration, MotorCalibration};
+use parking_lot::Mutex;
 use phone2act_core::kinematics::{
     IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, SO101_JOINT_NAMES, So101Joints, So101Kinematics,
 };
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use tracing::{info, warn};
@@ -195,10 +196,6 @@ struct Inner {
     clock: ClockFn,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
 /// The SO-101 bridge. Create with [`So101Bridge::start`].
 #[derive(Debug)]
 pub struct So101Bridge {
@@ -269,7 +266,7 @@ impl So101Bridge {
             .name("so101-cycle".into())
             .spawn(move || worker.run())
             .map_err(BridgeError::Io)?;
-        *lock(&inner.thread) = Some(handle);
+        *inner.thread.lock() = Some(handle);
         Ok(Arc::new(Self { inner }))
     }
 
@@ -278,7 +275,7 @@ impl So101Bridge {
     }
 
     pub fn stats(&self) -> So101Stats {
-        let s = lock(&self.inner.status);
+        let s = self.inner.status.lock();
         let cycles = self.inner.cycles.load(Ordering::Relaxed);
         So101Stats {
             cycles,
@@ -292,7 +289,10 @@ impl So101Bridge {
             } else {
                 s.bus_time_total.as_secs_f64() * 1e6 / cycles as f64
             },
-            bus: lock(&self.inner.bus)
+            bus: self
+                .inner
+                .bus
+                .lock()
                 .as_ref()
                 .map(FeetechBus::stats)
                 .unwrap_or_default(),
@@ -308,7 +308,7 @@ impl Drop for So101Bridge {
 
 impl Inner {
     fn with_bus<R>(&self, f: impl FnOnce(&mut FeetechBus) -> Result<R, BusError>) -> Result<R, BusError> {
-        let mut guard = lock(&self.bus);
+        let mut guard = self.bus.lock();
         let bus = guard.as_mut().ok_or_else(|| {
             BusError::Io(std::io::Error::new(
                 std::io::ErrorKind::NotConnected,
@@ -362,13 +362,13 @@ impl Inner {
             }
             Ok(())
         })?;
-        *lock(&self.goal_rad) = Some(self.arm_rad(&raw));
-        lock(&self.status).enabled = true;
+        *self.goal_rad.lock() = Some(self.arm_rad(&raw));
+        self.status.lock().enabled = true;
         Ok(())
     }
 
     fn disable(&self) -> Result<(), BusError> {
-        lock(&self.status).enabled = false;
+        self.status.lock().enabled = false;
         self.with_bus(|bus| {
             for &id in &self.ids {
                 bus.write_value(id, register::TORQUE_ENABLE, 0)?;
@@ -417,14 +417,14 @@ impl Inner {
 
     /// One control cycle: write the newest goal (if healthy), read positions, publish feedback.
     fn cycle(&self) {
-        if matches!(lock(&self.status).link, Link::Down(_)) {
+        if matches!(self.status.lock().link, Link::Down(_)) {
             // Keep the newest target from piling up as "superseded" while down; it will not be sent.
             let _ = self.slot.take();
             return;
         }
         let started = Instant::now();
         let healthy = {
-            let s = lock(&self.status);
+            let s = self.status.lock();
             s.cycle_error.is_none() && s.enabled
         };
         let mut result = Ok(());
@@ -446,8 +446,8 @@ impl Inner {
                     applied_seq: self.applied_seq.load(Ordering::SeqCst),
                     task_success: false,
                 };
-                *lock(&self.feedback) = Some(feedback);
-                let mut s = lock(&self.status);
+                *self.feedback.lock() = Some(feedback);
+                let mut s = self.status.lock();
                 s.bus_time_total += bus_time;
                 if s.cycle_error.take().is_some() {
                     info!("so101: bus answering again");
@@ -456,7 +456,7 @@ impl Inner {
             Err(e) => {
                 self.failed_cycles.fetch_add(1, Ordering::Relaxed);
                 let message = e.to_string();
-                let mut s = lock(&self.status);
+                let mut s = self.status.lock();
                 s.bus_time_total += bus_time;
                 if s.cycle_error.as_deref() != Some(message.as_str()) {
                     warn!(error = %message, "so101: bus cycle failed; arm holds its last goal");
@@ -465,7 +465,7 @@ impl Inner {
                 if e.is_link_failure() {
                     s.link = Link::Down(message);
                     drop(s);
-                    *lock(&self.bus) = None;
+                    *self.bus.lock() = None;
                 } else {
                     s.cycle_error = Some(message);
                 }
@@ -474,7 +474,7 @@ impl Inner {
     }
 
     fn write_goal(&self, command: &Command) -> Result<(), BusError> {
-        let seed = lock(&self.goal_rad).unwrap_or([0.0; SO101_ARM_DOF]);
+        let seed = self.goal_rad.lock().unwrap_or([0.0; SO101_ARM_DOF]);
         let weights = IkWeights {
             orientation: self.config.ik_orientation_weight,
         };
@@ -508,14 +508,14 @@ impl Inner {
             })
             .collect();
         self.with_bus(|bus| bus.sync_write(address, len, &items))?;
-        *lock(&self.goal_rad) = Some(solution.joints_rad);
+        *self.goal_rad.lock() = Some(solution.joints_rad);
         self.goals_written.fetch_add(1, Ordering::Relaxed);
         self.applied_seq.store(command.seq, Ordering::SeqCst);
         Ok(())
     }
 
     fn health(&self) -> Health {
-        let s = lock(&self.status);
+        let s = self.status.lock();
         if let Link::Down(why) = &s.link {
             return Health::Disconnected(why.clone());
         }
@@ -525,26 +525,26 @@ impl Inner {
         if !s.enabled {
             return Health::Error("torque disabled".into());
         }
-        if lock(&self.feedback).is_none() {
+        if self.feedback.lock().is_none() {
             return Health::Connecting;
         }
         Health::Ready
     }
 
     fn reconnect(&self) -> Result<(), BusError> {
-        *lock(&self.bus) = None;
+        *self.bus.lock() = None;
         let bus = FeetechBus::open(
             &self.config.port,
             self.config.baudrate,
             Duration::from_millis(self.config.timeout_ms),
         )?;
-        *lock(&self.bus) = Some(bus);
+        *self.bus.lock() = Some(bus);
         {
-            let mut s = lock(&self.status);
+            let mut s = self.status.lock();
             s.link = Link::Up;
             s.cycle_error = None;
         }
-        let was_enabled = lock(&self.status).enabled;
+        let was_enabled = self.status.lock().enabled;
         self.with_bus(|bus| {
             for &id in &self.ids {
                 bus.ping(id)?;
@@ -562,15 +562,15 @@ impl Inner {
         if self.stop.swap(true, Ordering::SeqCst) {
             return;
         }
-        let handle = lock(&self.thread).take();
+        let handle = self.thread.lock().take();
         if let Some(h) = handle
             && h.thread().id() != std::thread::current().id()
         {
             let _ = h.join();
         }
         // The servos keep their last goal with torque on: the arm holds.
-        *lock(&self.bus) = None;
-        lock(&self.status).link = Link::Down("bridge shut down".into());
+        *self.bus.lock() = None;
+        self.status.lock().link = Link::Down("bridge shut down".into());
     }
 }
 
@@ -637,7 +637,7 @@ impl Bridge for So101Bridge {
     }
 
     fn feedback(&self) -> Option<Feedback> {
-        lock(&self.inner.feedback).clone()
+        self.inner.feedback.lock().clone()
     }
 
     fn health(&self) -> Health {
@@ -652,7 +652,7 @@ impl Bridge for So101Bridge {
             Control::Enable => self.inner.enable(),
             Control::Disable => self.inner.disable(),
             Control::ClearError => {
-                lock(&self.inner.status).cycle_error = None;
+                self.inner.status.lock().cycle_error = None;
                 Ok(())
             }
             Control::Reconnect => self.inner.reconnect(),
@@ -660,7 +660,7 @@ impl Bridge for So101Bridge {
         result.map_err(|e| {
             let err = bus_error(&e);
             if e.is_link_failure() {
-                lock(&self.inner.status).link = Link::Down(e.to_string());
+                self.inner.status.lock().link = Link::Down(e.to_string());
             }
             err
         })

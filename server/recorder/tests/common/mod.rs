@@ -1,13 +1,13 @@
 //! Helpers shared by the recorder's integration tests.
 #![allow(dead_code)] // each test binary uses a different subset
 
+use parking_lot::Mutex;
 use phone2act_clock::monotonic_ns;
 use phone2act_recorder::synthetic::SyntheticRobot;
 use phone2act_recorder::{
     CameraSpec, DatasetSpec, Format, Recorder, RecorderStatus, RobotSample, RobotSource,
 };
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 /// A robot source the test controls: fresh samples (stamped now) unless silenced.
@@ -19,11 +19,11 @@ pub struct ManualRobot {
 
 impl RobotSource for ManualRobot {
     fn sample(&self) -> Option<RobotSample> {
-        if *self.silent.lock().unwrap() {
+        if *self.silent.lock() {
             return None;
         }
         let mut s = SyntheticRobot.sample()?;
-        if let Some(t) = *self.frozen_at_ns.lock().unwrap() {
+        if let Some(t) = *self.frozen_at_ns.lock() {
             s.capture_time_ns = t;
         }
         Some(s)
@@ -32,7 +32,7 @@ impl RobotSource for ManualRobot {
 
 impl ManualRobot {
     pub fn freeze(&self) {
-        *self.frozen_at_ns.lock().unwrap() = Some(monotonic_ns());
+        *self.frozen_at_ns.lock() = Some(monotonic_ns());
     }
 }
 
