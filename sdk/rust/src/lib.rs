@@ -2,6 +2,7 @@
 //! service handles (`system()`, and the raw generated clients for the other services) share it. An optional
 //! bearer token is attached to every call.
 
+use parking_lot::Mutex;
 use phone2act_proto::PendingSample;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_client::EpisodesClient;
@@ -9,8 +10,7 @@ use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::scene_client::SceneClient;
 use phone2act_proto::v1::system_client::SystemClient;
 use phone2act_proto::v1::teleop_client::TeleopClient;
-#[allow(clippy::disallowed_types)] // std's Mutex: switched to parking_lot after the flood branch lands
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{Notify, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
@@ -479,7 +479,6 @@ struct OutboxState {
 /// The depth-1 latest-wins outbox between [`TeleopSession`] and its gRPC request stream: the stream takes the
 /// pending sample when HTTP/2 flow control lets it send, and a sample offered meanwhile is folded into the
 /// pending one ([`PendingSample::push`]) so the newest pose is what goes out and no button event is lost.
-#[allow(clippy::disallowed_types)] // std's Mutex: switched to parking_lot after the flood branch lands
 #[derive(Debug, Default)]
 struct Outbox {
     state: Mutex<OutboxState>,
@@ -490,14 +489,9 @@ struct Outbox {
 }
 
 impl Outbox {
-    fn lock(&self) -> std::sync::MutexGuard<'_, OutboxState> {
-        // The state is a sample and two flags, consistent after any panic between statements.
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
-    }
-
     /// Folds `sample` in; false if another one was still pending.
     fn offer(&self, sample: v1::PhoneSample) -> Result<bool> {
-        let mut state = self.lock();
+        let mut state = self.state.lock();
         if state.gone {
             return Err(Error::Closed);
         }
@@ -513,7 +507,7 @@ impl Outbox {
         let mut sample = Some(sample);
         loop {
             {
-                let mut state = self.lock();
+                let mut state = self.state.lock();
                 if state.gone {
                     return Err(Error::Closed);
                 }
@@ -532,7 +526,7 @@ impl Outbox {
     async fn take(&self) -> Option<v1::PhoneSample> {
         loop {
             {
-                let mut state = self.lock();
+                let mut state = self.state.lock();
                 if let Some(sample) = state.pending.take() {
                     drop(state);
                     self.taken.notify_one();
@@ -547,7 +541,7 @@ impl Outbox {
     }
 
     fn close(&self) {
-        self.lock().closed = true;
+        self.state.lock().closed = true;
         self.put.notify_one();
     }
 }
@@ -557,7 +551,7 @@ struct OutboxTaker(Arc<Outbox>);
 
 impl Drop for OutboxTaker {
     fn drop(&mut self) {
-        self.0.lock().gone = true;
+        self.0.state.lock().gone = true;
         self.0.taken.notify_one();
     }
 }
