@@ -766,6 +766,14 @@ mod tests {
         }
     }
 
+    /// Phone `session` binds, taking over from any other phone.
+    fn take_over(session: u64) -> Input {
+        Input::BindTeleop {
+            session,
+            take_over: true,
+        }
+    }
+
     fn round(pose: Option<Isometry3<f64>>, buttons: Vec<TeleopButton>) -> Input {
         Input::Teleop {
             session: PHONE,
@@ -897,15 +905,7 @@ mod tests {
         );
         assert_eq!(err, Err(ArbiterError::PhoneBound));
         assert_eq!(a.teleop_session(), Some(PHONE));
-        a.handle(
-            Input::BindTeleop {
-                session: 2,
-                take_over: true,
-            },
-            &robot,
-            1.1,
-        )
-        .unwrap();
+        a.handle(take_over(2), &robot, 1.1).unwrap();
         assert_eq!(a.driver(), Driver::None);
         assert!(!a.engaged());
         // The replaced phone's samples are refused from now on.
@@ -1164,15 +1164,7 @@ mod tests {
     fn a_stale_phone_stream_ending_leaves_the_new_phone_bound() {
         let mut a = phone_driving();
         let robot = ready(home(), 1.1);
-        a.handle(
-            Input::BindTeleop {
-                session: 2,
-                take_over: true,
-            },
-            &robot,
-            1.1,
-        )
-        .unwrap();
+        a.handle(take_over(2), &robot, 1.1).unwrap();
         // The replaced phone's stream ends late: the new phone keeps the arm.
         a.handle(Input::UnbindTeleop { session: PHONE }, &robot, 1.2)
             .unwrap();
