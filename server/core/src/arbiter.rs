@@ -1017,6 +1017,11 @@ mod tests {
         assert!(fx.commands.is_empty());
         assert_eq!(a.driver(), Driver::None);
         assert_eq!(a.last_decision().verdict, GateVerdict::HeldStale);
+        // The phone is told, not only the status display.
+        assert!(
+            fx.phone_error.contains("estop") && fx.phone_error.contains("disengaged"),
+            "{fx:?}"
+        );
     }
 
     #[test]
