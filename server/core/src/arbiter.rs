@@ -1076,6 +1076,13 @@ mod tests {
             .unwrap();
         assert_eq!(fx.commands.len(), 1);
         assert_eq!(fx.commands[0].robot_from_target, moved);
+        // The first pose after the press is the phone's new zero: the round says it re-indexed (the recorder
+        // marks it), and the arm stays where it is.
+        let fx = a
+            .handle(round(Some(at(0.5, 0.5, 0.5)), vec![]), &ready(moved, 1.12), 1.12)
+            .unwrap();
+        assert!(fx.reindexed, "{fx:?}");
+        assert_close(&fx.commands[0].robot_from_target, &moved);
     }
 
     #[test]
