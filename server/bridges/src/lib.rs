@@ -1,6 +1,6 @@
 //! Robot bridges behind one [`Bridge`] trait: the simulated SO-101 arm, the Dobot CR5 over TCP, the SO-101 over
-//! a Feetech servo bus, and remote bridges attached over gRPC; plus the protocol emulators (Dobot controller,
-//! Feetech bus) that the tests and demos run against.
+//! a Feetech servo bus, and remote bridges attached over gRPC; plus, behind the `emulators` feature, the
+//! protocol emulators (Dobot controller, Feetech bus) that the tests and bridge-bench run against.
 //!
 //! Bridges run on their own threads and never block the caller: [`Bridge::send`] hands the command over without
 //! waiting (hardware bridges keep a latest-only slot, where a newer command replaces an unsent older one; the sim

@@ -1,6 +1,6 @@
 //! Command rates each hardware bridge sustains against its emulator.
 //!
-//! `cargo run --release -p phone2act-bridges --bin bridge-bench [-- --seconds 2]`
+//! `cargo run --release -p phone2act-bridges --features emulators --bin bridge-bench [-- --seconds 2]`
 //!
 //! Dobot: `ServoP` commands per second through the bridge (each waits for its reply), as fast as possible and
 //! paced at 125 Hz, plus the feedback packet rate. SO-101: sync write of six goals + sync read of six positions

@@ -11,6 +11,7 @@
 //! while the bridge is not ready, targets are dropped and the robot holds its last target. Recovery is on
 //! request: [`Control::ClearError`], [`Control::Enable`], [`Control::Reconnect`].
 
+#[cfg(feature = "emulators")]
 pub mod emulator;
 pub mod feedback;
 pub mod gripper;
