@@ -92,12 +92,13 @@ impl PreviewSlot {
         self.changed.notify_one();
     }
 
-    /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more.
+    /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more. A frame
+    /// already on the link stays in flight until the page acknowledges it (the page acknowledges every
+    /// binary message, wanted or not), so a preview restarted at once never puts a second frame beside it.
     pub fn close(&self) {
         let mut slot = self.frame.lock();
         slot.0 += 1;
         slot.1 = None;
-        self.in_flight.store(false, Ordering::Release);
     }
 
     /// The frame to send now, if there is one and the previous one was acknowledged.
@@ -289,5 +290,21 @@ mod tests {
         assert_eq!(slot.take_sendable(), None);
         slot.put(current, Bytes::from_static(b"fresh"));
         assert_eq!(slot.take_sendable().as_deref(), Some(&b"fresh"[..]));
+    }
+
+    #[test]
+    fn a_restarted_preview_waits_for_the_ack_of_the_frame_still_on_the_link() {
+        let slot = PreviewSlot::default();
+        let old = slot.open();
+        slot.put(old, Bytes::from_static(b"old"));
+        assert!(slot.take_sendable().is_some());
+        // The page switches camera while the old frame is on its way.
+        slot.close();
+        let new = slot.open();
+        slot.put(new, Bytes::from_static(b"new"));
+        assert_eq!(slot.take_sendable(), None, "one frame on the link at a time");
+        assert!(slot.busy());
+        slot.ack();
+        assert_eq!(slot.take_sendable().as_deref(), Some(&b"new"[..]));
     }
 }
