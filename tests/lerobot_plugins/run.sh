@@ -5,7 +5,7 @@
 # Server binary from cargo unless PHONE2ACT_BIN is set. Extra arguments go to pytest (-k teleop -x ...).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-REPO=$PWD
+source tests/scripts/python-suite.sh
 
 if ! VENV="$(tests/lerobot_plugins/setup-venv.sh | tail -n 1)" || [[ ! -x "$VENV/bin/python" ]]; then
   echo "lerobot plugins: cannot create the lerobot 0.6 venv (see above); tests NOT run" >&2
@@ -16,12 +16,7 @@ fi
 "$VENV/bin/python" -m pip install -q ./sdk/python ./clients/lerobot_robot_phone2act \
   ./clients/lerobot_teleoperator_phone2act ./clients/replay
 
-if [[ -z "${PHONE2ACT_BIN:-}" ]]; then
-  cargo build --release -p phone2act-cli --bin phone2act
-  PHONE2ACT_BIN="${CARGO_TARGET_DIR:-$REPO/target}/release/phone2act"
-fi
-export PHONE2ACT_BIN
-export SVT_LOG=1
+server_binary
 # lerobot must never reach for the Hub here: datasets are local, calibration files go to a scratch HF_HOME.
 export HF_HUB_OFFLINE=1
 HF_HOME="$(mktemp -d)"
