@@ -104,6 +104,16 @@ impl FrameSlot {
         state.latest.clone()
     }
 
+    /// Counts as a read without waiting: a parked source starts drawing, and a reader about to come (the
+    /// recorder at an episode's start) finds its frame ready instead of waiting for it.
+    pub fn touch(&self) {
+        let mut state = self.state.lock();
+        state.last_read_ns = (self.clock)();
+        if state.parked {
+            self.changed.notify_all();
+        }
+    }
+
     /// The newest frame without counting as a read (health checks must not keep a camera rendering).
     pub fn peek(&self) -> Option<Frame> {
         self.state.lock().latest.clone()
@@ -341,7 +351,6 @@ mod tests {
         let f = slot.latest().unwrap();
         assert_eq!(f.rgb.len(), 24);
         assert_eq!(u64::from(f.rgb[0]), f.seq % 256);
-        assert!(slot.frames_captured() >= 3);
     }
 
     static FAKE_NOW_NS: std::sync::atomic::AtomicI64 = std::sync::atomic::AtomicI64::new(0);
@@ -417,6 +426,22 @@ mod tests {
             );
             let _ = slot.latest();
         }
+        cam.stop();
+    }
+
+    #[test]
+    fn a_touch_wakes_a_parked_source_without_waiting_for_it() {
+        static NOW_NS: std::sync::atomic::AtomicI64 = std::sync::atomic::AtomicI64::new(0);
+        let slot = Arc::new(FrameSlot::with_clock(|| NOW_NS.load(Ordering::SeqCst)));
+        let cam = counting_camera(&slot);
+        NOW_NS.store(IDLE_AFTER_NS + 1, Ordering::SeqCst);
+        wait_for("the source to park", || slot.parked());
+        let parked_count = slot.frames_captured();
+        slot.touch();
+        wait_for("the source to draw again", || {
+            slot.frames_captured() > parked_count
+        });
+        assert!(!slot.parked());
         cam.stop();
     }
 

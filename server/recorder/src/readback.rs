@@ -370,7 +370,6 @@ mod tests {
                     .all(|v| v.rows.len() == 12 && v.rows[0].len() == 6)
             );
             assert_eq!(ep.videos.len(), 2);
-            assert!(ep.videos.iter().all(|v| v.path.is_file()));
         }
         // In v3.0 the three episodes share one video file: episode 1 starts after episode 0's 10 frames.
         let ep = read_episode(&fixture("lerobot_sample_v30"), 1).unwrap();

@@ -203,6 +203,11 @@ impl Recorder {
 
     /// Starts recording an episode of `task`.
     pub fn start_episode(&self, task: &str) -> Result<RecorderStatus, RecorderError> {
+        // Parked cameras start drawing now, all at once, rather than one by one inside the first tick (which
+        // would wait for each render under the tick lock).
+        for slot in &self.shared.cameras {
+            slot.touch();
+        }
         let mut ds = self.shared.dataset.lock();
         {
             let t = self.shared.tick.lock();
