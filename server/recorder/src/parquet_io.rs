@@ -5,6 +5,8 @@
 use crate::error::RecorderError;
 use crate::stats::{FeatureStats, QUANTILES, StatKind};
 use arrow_array::builder::{BooleanBuilder, Float64Builder, Int64Builder, ListBuilder, StringBuilder};
+use arrow_array::cast::AsArray;
+use arrow_array::types::{Float32Type, Float64Type, Int64Type};
 use arrow_array::{
     Array, ArrayRef, BooleanArray, FixedSizeListArray, Float32Array, Int64Array, LargeStringArray, ListArray,
     RecordBatch, StringArray,
@@ -263,6 +265,26 @@ pub fn write_tasks(path: &Path, tasks: &[String]) -> Result<(), RecorderError> {
         detail: e.to_string(),
     })?;
     write_batch(path, &batch)
+}
+
+/// The values of an int64 column (`-1` for a null), `None` if there is no such int64 column.
+pub(crate) fn int_column(batch: &RecordBatch, name: &str) -> Option<Vec<i64>> {
+    let ints = batch.column_by_name(name)?.as_primitive_opt::<Int64Type>()?;
+    Some(ints.iter().map(|v| v.unwrap_or(-1)).collect())
+}
+
+/// The values of a float32 or float64 array as f64 (NaN for a null), `None` for any other type.
+pub(crate) fn float_values(array: &ArrayRef) -> Option<Vec<f64>> {
+    if let Some(f) = array.as_primitive_opt::<Float32Type>() {
+        return Some(f.iter().map(|v| v.map_or(f64::NAN, f64::from)).collect());
+    }
+    let f = array.as_primitive_opt::<Float64Type>()?;
+    Some(f.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
+}
+
+/// [`float_values`] of the column `name`.
+pub(crate) fn float_column(batch: &RecordBatch, name: &str) -> Option<Vec<f64>> {
+    float_values(batch.column_by_name(name)?)
 }
 
 pub(crate) fn read_batches(path: &Path) -> Result<Vec<RecordBatch>, RecorderError> {

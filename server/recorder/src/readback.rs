@@ -4,10 +4,9 @@
 //! lerobot's loader finds them.
 
 use crate::error::RecorderError;
-use crate::parquet_io::read_batches;
+use crate::parquet_io::{float_values, int_column, read_batches};
+use arrow_array::ArrayRef;
 use arrow_array::cast::AsArray;
-use arrow_array::types::{Float32Type, Float64Type, Int64Type};
-use arrow_array::{ArrayRef, RecordBatch};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
@@ -64,26 +63,13 @@ pub struct Episode {
     pub videos: Vec<EpisodeVideo>,
 }
 
-fn ints(batch: &RecordBatch, name: &str) -> Option<Vec<i64>> {
-    let c = batch.column_by_name(name)?.as_primitive_opt::<Int64Type>()?;
-    Some(c.iter().map(|v| v.unwrap_or(-1)).collect())
-}
-
-fn floats(array: &ArrayRef) -> Option<Vec<f64>> {
-    if let Some(f) = array.as_primitive_opt::<Float32Type>() {
-        return Some(f.iter().map(|v| v.map_or(f64::NAN, f64::from)).collect());
-    }
-    let f = array.as_primitive_opt::<Float64Type>()?;
-    Some(f.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
-}
-
 /// Row `row` of a list or fixed-size-list column of floats.
 fn vector_at(column: &ArrayRef, row: usize) -> Option<Vec<f64>> {
     if let Some(l) = column.as_fixed_size_list_opt() {
-        return floats(&l.value(row));
+        return float_values(&l.value(row));
     }
     if let Some(l) = column.as_list_opt::<i32>() {
-        return floats(&l.value(row));
+        return float_values(&l.value(row));
     }
     None
 }
@@ -211,9 +197,10 @@ pub fn read_episode(root: &Path, index: u64) -> Result<Episode, ReadError> {
             path: data_path.clone(),
             detail,
         };
-        let episodes = ints(&batch, "episode_index").ok_or_else(|| bad("no int64 episode_index".into()))?;
-        let frames = ints(&batch, "frame_index").ok_or_else(|| bad("no int64 frame_index".into()))?;
-        let tasks = ints(&batch, "task_index");
+        let episodes =
+            int_column(&batch, "episode_index").ok_or_else(|| bad("no int64 episode_index".into()))?;
+        let frames = int_column(&batch, "frame_index").ok_or_else(|| bad("no int64 frame_index".into()))?;
+        let tasks = int_column(&batch, "task_index");
         let columns: Vec<ArrayRef> = keys
             .iter()
             .map(|k| {
@@ -285,11 +272,11 @@ fn locate_v30(
     for path in meta_files {
         for batch in read_batches(&path)? {
             let Some(row) =
-                ints(&batch, "episode_index").and_then(|e| e.iter().position(|&e| e == index as i64))
+                int_column(&batch, "episode_index").and_then(|e| e.iter().position(|&e| e == index as i64))
             else {
                 continue;
             };
-            let int_at = |name: &str| ints(&batch, name).map(|v| v[row]);
+            let int_at = |name: &str| int_column(&batch, name).map(|v| v[row]);
             let location = |prefix: &str| -> Result<Vec<(&'static str, String)>, ReadError> {
                 match (
                     int_at(&format!("{prefix}/chunk_index")),
@@ -313,7 +300,7 @@ fn locate_v30(
                 values.push(("video_key", key.clone()));
                 let from_s = batch
                     .column_by_name(&format!("{prefix}/from_timestamp"))
-                    .and_then(floats)
+                    .and_then(float_values)
                     .map_or(0.0, |v| v[row]);
                 videos.push(EpisodeVideo {
                     key: key.clone(),

@@ -2,9 +2,9 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
+use crate::parquet_io::{float_column, int_column};
 use arrow_array::RecordBatch;
 use arrow_array::cast::AsArray;
-use arrow_array::types::{Float32Type, Int64Type};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -80,21 +80,6 @@ fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>, String> {
     reader
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| format!("{}: {e}", path.display()))
-}
-
-fn int_column(batch: &RecordBatch, name: &str) -> Option<Vec<i64>> {
-    let col = batch.column_by_name(name)?;
-    let ints = col.as_primitive_opt::<Int64Type>()?;
-    Some(ints.iter().map(|v| v.unwrap_or(-1)).collect())
-}
-
-fn float_column(batch: &RecordBatch, name: &str) -> Option<Vec<f64>> {
-    let col = batch.column_by_name(name)?;
-    if let Some(f) = col.as_primitive_opt::<Float32Type>() {
-        return Some(f.iter().map(|v| f64::from(v.unwrap_or(f32::NAN))).collect());
-    }
-    col.as_primitive_opt::<arrow_array::types::Float64Type>()
-        .map(|f| f.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
 }
 
 /// Duration of the first video stream in seconds, and its frame count when the container knows it.
