@@ -60,8 +60,9 @@ pub fn frames_at(path: &Path, times_s: &[f64], max_width_px: u32) -> Result<Vec<
     let (mut current, mut spare) = (VideoFrame::empty(), VideoFrame::empty());
     let mut current_s: Option<f64> = None;
     let mut eof = false;
-    // Seeking helps only where keyframes are close (lerobot writes one every 2 frames); phone2act's AV1 has
-    // one per episode, where every seek would go back to the first frame: then decode straight on.
+    // Seeking helps only where keyframes are close (lerobot and phone2act write one every 2 frames); an AV1
+    // file recorded before the recorder asked SVT-AV1 for periodic keyframes has one per episode, where every
+    // seek would go back to the first frame: then decode straight on.
     let mut straight_on = false;
     let mut out = Vec::with_capacity(times_s.len());
     for &t_s in times_s {
@@ -216,8 +217,7 @@ mod tests {
         assert!(err.to_string().contains("cannot open"), "{err}");
     }
 
-    /// phone2act's own videos, both defaults: AV1 (one keyframe per file: decoded straight on) and H.264
-    /// (a keyframe every 2 frames: sought). Frame i is a flat grey of level 4i, so every frame found can be
+    /// phone2act's own videos, both defaults: AV1 and H.264, a keyframe every 2 frames (sought). Frame i is a flat grey of level 4i, so every frame found can be
     /// told from its neighbours.
     #[test]
     fn our_videos_give_the_frame_asked_for_in_both_codecs() {
