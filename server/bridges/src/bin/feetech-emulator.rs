@@ -11,6 +11,8 @@
 //! - `move ID RAW`: put a shaft at RAW (raw counts before the homing offset), as a hand would.
 //! - `speed ID COUNTS_PER_S`: how fast a servo with torque on moves to its goal (0 holds the shaft).
 //! - `get ID ADDRESS LEN`: a register value (LEN 1 or 2), e.g. `get 5 18 1` for `Phase`.
+//! - `set ID ADDRESS LEN VALUE`: a register as the factory would leave it, whatever `Lock` says (e.g.
+//!   `set 5 18 1 16` for a servo that arrives in multi-turn feedback mode).
 //! - `present ID`: `Present_Position` as the servo reports it (sign-magnitude decoded).
 //! - `ids`: the ids on the bus.
 
@@ -120,6 +122,15 @@ fn command(emulator: &FeetechEmulator, words: &[&str]) -> Result<String, String>
                 .map(|s| s.register(entry))
                 .unwrap_or_default();
             Ok(format!("ok {value}"))
+        }
+        ["set", id, address, len, value] => {
+            let entry = (parse_u8(address)?, parse_u8(len)?);
+            if !matches!(entry.1, 1 | 2) {
+                return Err("LEN must be 1 or 2".into());
+            }
+            let value = parse_u16(value)?;
+            emulator.with_servo(servo(id)?, |s| s.set_factory_register(entry, value));
+            Ok("ok".into())
         }
         ["present", id] => {
             let value = emulator

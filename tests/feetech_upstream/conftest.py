@@ -1,0 +1,64 @@
+"""The Feetech bus emulator (`feetech-emulator`, server/bridges) as a process on a pseudo-terminal, for lerobot's
+own Feetech client. Binaries come from $FEETECH_EMULATOR and $SO101_CHECK (run.sh builds and sets them)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+
+class Emulator:
+    """One emulated bus. `cmd` sends a line of the emulator's stdin protocol and returns what follows `ok`."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen(
+            [os.environ["FEETECH_EMULATOR"], *args],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+        )
+        assert self.proc.stdout is not None
+        self.port = self.proc.stdout.readline().strip()
+        assert self.port.startswith("/dev/"), f"emulator printed {self.port!r}"
+
+    def cmd(self, line: str) -> str:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+        answer = self.proc.stdout.readline().strip()
+        assert answer.startswith("ok"), f"{line!r}: {answer!r}"
+        return answer[2:].strip()
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+
+@pytest.fixture
+def start_emulator() -> Iterator:
+    started: list[Emulator] = []
+
+    def start(*args: str) -> Emulator:
+        e = Emulator(*args)
+        started.append(e)
+        return e
+
+    yield start
+    for e in started:
+        e.close()
+
+
+def so101_check(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    """phone2act's bring-up check (and, with --positions, the SO-101 bridge's joint angles)."""
+    return subprocess.run(
+        [os.environ["SO101_CHECK"], *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
