@@ -591,7 +591,7 @@ fn set_multi_turn(emulator: &FeetechEmulator, id: u8, other_phase_bits: u16) {
         s.set_factory_register(
             register::PHASE,
             u16::from(protocol::PHASE_MULTI_TURN_FEEDBACK) | other_phase_bits,
-        )
+        );
     });
 }
 

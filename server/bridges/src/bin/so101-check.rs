@@ -52,7 +52,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         .split(',')
                         .map(|s| s.trim().parse::<u8>())
                         .collect::<Result<_, _>>()?,
-                )
+                );
             }
             "-h" | "--help" => {
                 println!("{USAGE}");

@@ -230,7 +230,7 @@ fn stopping_bits(motor: usize, error: u8) -> u8 {
 }
 
 /// "servo 6 (gripper): overload (0x20)" for each motor with bits in `bits`, joined by "; ".
-fn describe_alarms(ids: &[u8; MOTORS], bits: &[u8; MOTORS]) -> Option<String> {
+fn describe_alarms(ids: [u8; MOTORS], bits: [u8; MOTORS]) -> Option<String> {
     let parts: Vec<String> = (0..MOTORS)
         .filter(|&i| bits[i] != 0)
         .map(|i| {
@@ -408,7 +408,7 @@ impl Inner {
         })
         .map_err(|e| bus_error(&e))?;
         let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
-        if let Some(why) = describe_alarms(&self.ids, &stopping) {
+        if let Some(why) = describe_alarms(self.ids, stopping) {
             return Err(BridgeError::Protocol(format!(
                 "{why}: an alarm that stops the arm; remove its cause (power-cycle the servo if it stays) and start again"
             )));
@@ -456,7 +456,7 @@ impl Inner {
             }
         }
         let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
-        if let Some(why) = describe_alarms(&self.ids, &stopping)
+        if let Some(why) = describe_alarms(self.ids, stopping)
             && s.alarm_stop.is_none()
         {
             s.alarm_stop = Some(why);
@@ -467,7 +467,7 @@ impl Inner {
     /// The alarms that keep the arm working, if any.
     fn warning_of(&self, s: &Status) -> Option<String> {
         let warnings: [u8; MOTORS] = std::array::from_fn(|i| s.alarms[i] & !stopping_bits(i, s.alarms[i]));
-        describe_alarms(&self.ids, &warnings)
+        describe_alarms(self.ids, warnings)
     }
 
     /// Goal = present, then torque on and lock (lerobot `enable_torque`).
