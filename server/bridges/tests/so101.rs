@@ -577,6 +577,9 @@ fn calibrate_binary_drives_the_procedure_from_the_keyboard() {
     assert!(pan.range_min < 1750 && pan.range_max > 2350, "{pan:?}");
 }
 
+// The tests below wait up to 2 s for what the 100 Hz cycle does within a few cycles: a loaded 2-core machine
+// delays a thread by far less than that.
+
 /// Wrist roll's joint angle (rad) at a single-turn raw position, from the rig's calibration.
 fn wrist_roll_rad(raw: u16) -> f64 {
     synthetic_calibration()

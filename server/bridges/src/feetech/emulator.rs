@@ -19,12 +19,15 @@
 //!   byte and in its `Status` register (65) for as long as the condition holds (memory table §3.2; the
 //!   Feetech SDK returns the byte with every reply). The emulator holds an injected alarm until it is cleared,
 //!   as a gripper squeezing an object holds overload and a 7.4 V servo on 12 V holds over-voltage.
-//! - broadcast PING: every servo answers, one status packet each, in ascending id order (how the Feetech SDK's
-//!   broadcast ping, as lerobot `FeetechMotorsBus._broadcast_ping` reads it, expects them: it collects the
-//!   bytes until its timeout of `3 ms × 252 + 16 ms` plus transfer time, then parses packets back to back).
-//! - writing `ID` (5, with `Lock` 0): the servo acknowledges under its old id, then answers to the new one
-//!   (lerobot `setup_motor` writes the id to the old one and expects the acknowledgement, then writes the
-//!   baud rate to the new one).
+//! - broadcast PING: every servo answers, one status packet each, back to back. lerobot's reader
+//!   (`FeetechMotorsBus._broadcast_ping`) collects every byte until its timeout of `3 ms × 252 + 16 ms` plus
+//!   the transfer time, then parses the packets in a row, so every answer must arrive within that window and
+//!   none may overlap another. The emulator sends them in ascending id order; Feetech documents no order, and
+//!   lerobot's reader accepts any.
+//! - writing `ID` (5, with `Lock` 0): the servo acknowledges under its old id, then answers to the new one.
+//!   feetech-servo-sdk 1.0.0 (`protocol_packet_handler.txRxPacket`) accepts only a status packet whose id is the
+//!   instruction's, and lerobot's `setup_motor` writes the id to the old one, requires that acknowledgement,
+//!   then writes the baud rate to the new id.
 
 use super::protocol::{
     self, BROADCAST_ID, Decoded, STS3215_FIRMWARE, STS3215_MODEL, decode_sign_magnitude,
