@@ -9,6 +9,7 @@ then reads the angles lerobot reads, the two agree on the calibration file and t
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -134,8 +135,6 @@ def test_so101_follower_calibrates_configures_observes_acts_and_phone2act_reads_
         for id_ in START:
             emu.cmd(f"speed {id_} 4000")
         # The emulated servo moves at 4000 counts/s; 5 s leaves room for a loaded machine.
-        import time
-
         deadline = time.monotonic() + 5
         while abs(robot.get_observation()["shoulder_pan.pos"] - 10.0) > 0.1:
             assert time.monotonic() < deadline, "shoulder_pan never reached 10 degrees"
@@ -193,7 +192,8 @@ def test_alarms_lerobot_keeps_reading_and_phone2act_warns_or_stops(
 
     check = so101_check("--port", emu.port, "--calibration", cal_file, "--positions")
     assert check.returncode == 0, check.stdout + check.stderr
-    assert "bridge warning: servo 1 (shoulder_pan): input voltage (0x01); servo 6 (gripper): overload (0x20)" in check.stdout
+    warning = "bridge warning: servo 1 (shoulder_pan): input voltage (0x01); servo 6 (gripper): overload (0x20)"
+    assert warning in check.stdout
     assert positions_line(check)["shoulder_pan.pos"] == pytest.approx(obs["shoulder_pan.pos"], abs=1e-9)
 
     # lerobot's handshake takes a servo reporting an alarm for a missing one: it will not connect.
