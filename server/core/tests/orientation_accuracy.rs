@@ -3,7 +3,7 @@
 //!
 //! The ground truth is built independently of both planners: each scripted phone motion is a known rotation
 //! about a known axis of the tracking frame, so while engaged the gripper must undergo the same rotation about
-//! `M·axis` in the robot frame, and nothing while clutched. Run with `--nocapture` to see the table that the
+//! `M·axis` in the robot frame, and nothing while clutched. Run with `--nocapture` to see the table that
 //! docs/benchmarks.md quotes.
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
