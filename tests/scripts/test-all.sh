@@ -4,6 +4,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 tests/scripts/install-deps.sh test
+# Every process this run starts carries the id, so the end of the run finds any a suite left behind.
+export PHONE2ACT_TEST_RUN_ID="${PHONE2ACT_TEST_RUN_ID:-$$-$(date +%s%N)}"
 export SVT_LOG=1
 cargo fmt --all -- --check
 cargo clippy --workspace --all-targets --quiet -- -D warnings
@@ -57,3 +59,5 @@ tests/browser/run.sh
 if ((have_lerobot06)); then
   tests/conformance/run.sh
 fi
+# A suite that leaves a process running (a server, a viewer, a receiver) fails the run.
+tests/scripts/leftover-processes.sh "$PHONE2ACT_TEST_RUN_ID"
