@@ -39,6 +39,23 @@ class Emulator:
         self.proc.wait()
 
 
+# How long lerobot waits for a servo's answer beyond the transfer time: 50 ms in lerobot (its
+# `patch_setPacketTimeout`), 500 ms here. A real servo answers within microseconds; the emulator is a process
+# that a loaded 2-core machine may deschedule for longer than 50 ms. Only the wait changes, not what is sent.
+PATIENCE_MS = 500
+
+
+@pytest.fixture(autouse=True)
+def patient_sdk(monkeypatch: pytest.MonkeyPatch) -> None:
+    import lerobot.motors.feetech.feetech as feetech
+
+    def set_packet_timeout(self, packet_length):  # noqa: N802 (the SDK's name)
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * (packet_length + 3.0) + PATIENCE_MS
+
+    monkeypatch.setattr(feetech, "patch_setPacketTimeout", set_packet_timeout)
+
+
 @pytest.fixture
 def start_emulator() -> Iterator:
     started: list[Emulator] = []
@@ -56,7 +73,7 @@ def start_emulator() -> Iterator:
 def so101_check(*args: str | Path) -> subprocess.CompletedProcess[str]:
     """phone2act's bring-up check (and, with --positions, the SO-101 bridge's joint angles)."""
     return subprocess.run(
-        [os.environ["SO101_CHECK"], *map(str, args)],
+        [os.environ["SO101_CHECK"], "--timeout-ms", str(PATIENCE_MS), *map(str, args)],
         capture_output=True,
         text=True,
         timeout=60,

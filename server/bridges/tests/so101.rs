@@ -578,7 +578,14 @@ fn calibrate_binary_drives_the_procedure_from_the_keyboard() {
 }
 
 // The tests below wait up to 2 s for what the 100 Hz cycle does within a few cycles: a loaded 2-core machine
-// delays a thread by far less than that.
+// delays a thread by far less than that. None of them has a silent servo, so each gives the servos
+// `PATIENT_TIMEOUT_MS` to answer: an emulator thread descheduled for longer than the rig's 50 ms must not
+// fail a test about something else.
+const PATIENT_TIMEOUT_MS: u64 = 500;
+
+fn patient(config: &mut So101Config) {
+    config.timeout_ms = PATIENT_TIMEOUT_MS;
+}
 
 /// Wrist roll's joint angle (rad) at a single-turn raw position, from the rig's calibration.
 fn wrist_roll_rad(raw: u16) -> f64 {
@@ -601,7 +608,13 @@ fn set_multi_turn(emulator: &FeetechEmulator, id: u8, other_phase_bits: u16) {
 #[test]
 fn multi_turn_feedback_left_on_reads_the_wrist_past_the_seam_at_its_angle() {
     // configure_motors off: the bridge must read the servo as the factory left it (Phase bit 4 set).
-    let rig = start_rig_with(|e| set_multi_turn(e, 5, 0), |c| c.configure_motors = false);
+    let rig = start_rig_with(
+        |e| set_multi_turn(e, 5, 0),
+        |c| {
+            patient(c);
+            c.configure_motors = false;
+        },
+    );
     let bridge = &rig.bridge;
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
@@ -629,7 +642,7 @@ fn multi_turn_feedback_left_on_reads_the_wrist_past_the_seam_at_its_angle() {
 #[test]
 fn configure_clears_the_multi_turn_bit_and_keeps_the_other_phase_bits() {
     // Bit 0 (drive direction) stands for whatever else the factory set.
-    let rig = start_rig_with(|e| set_multi_turn(e, 5, 0x01), |_| {});
+    let rig = start_rig_with(|e| set_multi_turn(e, 5, 0x01), patient);
     let bridge = &rig.bridge;
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
@@ -659,7 +672,7 @@ fn assert_arm_follows(rig: &Rig, first_seq: u64) {
 
 #[test]
 fn gripper_overload_latched_at_start_keeps_the_arm_working_and_status_says_so() {
-    let rig = start_rig_with(|e| e.latch_alarm(6, alarm::OVERLOAD), |_| {});
+    let rig = start_rig_with(|e| e.latch_alarm(6, alarm::OVERLOAD), patient);
     let bridge = &rig.bridge;
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
@@ -684,7 +697,7 @@ fn gripper_overload_latched_at_start_keeps_the_arm_working_and_status_says_so() 
 
 #[test]
 fn over_voltage_on_every_servo_keeps_the_arm_working_and_status_says_so() {
-    let rig = start_rig(|_| {});
+    let rig = start_rig(patient);
     let bridge = &rig.bridge;
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
@@ -704,7 +717,7 @@ fn over_voltage_on_every_servo_keeps_the_arm_working_and_status_says_so() {
 
 #[test]
 fn overheat_stops_the_arm_naming_the_servo_until_cleared() {
-    let rig = start_rig(|_| {});
+    let rig = start_rig(patient);
     let bridge = &rig.bridge;
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
@@ -757,7 +770,7 @@ fn an_alarm_that_stops_the_arm_fails_start_naming_the_servo() {
     let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
     emulator.latch_alarm(2, alarm::ANGLE_SENSOR);
     let mut config = So101Config::new(emulator.port_path().to_str().unwrap(), &cal_path);
-    config.timeout_ms = 50;
+    patient(&mut config);
     let err = So101Bridge::start(config).unwrap_err();
     assert!(
         err.to_string().contains("servo 2 (shoulder_lift): angle sensor"),
@@ -815,7 +828,7 @@ fn emulator_has_the_factory_registers_answers_broadcast_ping_and_changes_id() {
     let emulator = FeetechEmulator::start(&[(3, 1000), (1, 2000), (2, 3000)]).unwrap();
     let path = emulator.port_path().to_str().unwrap().to_owned();
     {
-        let mut bus = FeetechBus::open(&path, 1_000_000, Duration::from_millis(100)).unwrap();
+        let mut bus = FeetechBus::open(&path, 1_000_000, Duration::from_millis(PATIENT_TIMEOUT_MS)).unwrap();
         assert_eq!(bus.read_value(1, register::FIRMWARE_MAJOR_VERSION).unwrap(), 3);
         assert_eq!(bus.read_value(1, register::FIRMWARE_MINOR_VERSION).unwrap(), 10);
         assert_eq!(
