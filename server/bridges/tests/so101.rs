@@ -877,3 +877,56 @@ fn emulator_has_the_factory_registers_answers_broadcast_ping_and_changes_id() {
         .collect();
     assert_eq!(got, want);
 }
+
+#[test]
+fn check_binary_reports_firmware_phase_alarms_and_calibration_differences() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = synthetic_calibration();
+    let cal_path = dir.path().join("cal.json");
+    cal.save(&cal_path).unwrap();
+    let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
+    let check = || {
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_so101-check"))
+            .args(["--port", emulator.port_path().to_str().unwrap(), "--calibration"])
+            .arg(&cal_path)
+            .args(["--timeout-ms", &PATIENT_TIMEOUT_MS.to_string()])
+            .output()
+            .unwrap();
+        (
+            output.status.code(),
+            String::from_utf8_lossy(&output.stdout).into_owned(),
+        )
+    };
+    // Factory limits (0..4095), not the file's: a warning, the bridge writes the file's at start.
+    let (code, text) = check();
+    assert_eq!(code, Some(0), "{text}");
+    assert!(text.contains("servo 1 (shoulder_pan): firmware 3.10"), "{text}");
+    assert!(text.contains("WARN servo holds limits 0..4095"), "{text}");
+
+    set_multi_turn(&emulator, 5, 0);
+    emulator.latch_alarm(6, alarm::OVERLOAD);
+    let (code, text) = check();
+    assert_eq!(code, Some(0), "{text}");
+    assert!(
+        text.contains("servo 5 (wrist_roll)") && text.contains("WARN Phase 0x10 has bit 4"),
+        "{text}"
+    );
+    assert!(
+        text.contains("WARN alarm overload (0x20): the arm works"),
+        "{text}"
+    );
+
+    emulator.latch_alarm(3, alarm::OVERHEAT);
+    emulator.with_servo(4, |s| s.set_factory_register(register::FIRMWARE_MINOR_VERSION, 9));
+    let (code, text) = check();
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("servo 3 (elbow_flex)") && text.contains("FAIL alarm overheat (0x04): stops the arm"),
+        "{text}"
+    );
+    assert!(
+        text.contains("FAIL the servos run different firmware versions (3.9, 3.10)"),
+        "{text}"
+    );
+    assert!(text.contains("NOT READY"), "{text}");
+}
