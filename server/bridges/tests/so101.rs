@@ -728,6 +728,13 @@ fn overheat_stops_the_arm_naming_the_servo_until_cleared() {
         Duration::from_secs(2),
         || matches!(bridge.health(), Health::Error(m) if m.contains("servo 3 (elbow_flex): overheat")),
     );
+    // A second servo's alarm is named beside the first.
+    rig.emulator.latch_alarm(2, alarm::OVERCURRENT);
+    wait_for("both named", Duration::from_secs(2), || {
+        matches!(bridge.health(), Health::Error(m)
+            if m.contains("servo 2 (shoulder_lift): overcurrent") && m.contains("servo 3 (elbow_flex): overheat"))
+    });
+    rig.emulator.clear_alarm(2);
     let goal_before = rig.emulator.servo(1).unwrap().goal_position();
     stream_path(bridge, &START_JOINTS, &[0.4, -0.5, 0.4, 0.9, 0.0], 0, 20);
     assert_eq!(

@@ -410,7 +410,7 @@ impl Inner {
         let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
         if let Some(why) = describe_alarms(self.ids, stopping) {
             return Err(BridgeError::Protocol(format!(
-                "{why}: an alarm that stops the arm; remove its cause (power-cycle the servo if it stays) and start again"
+                "{why}: an alarm that stops the arm; remove its cause and start again"
             )));
         }
         self.update_alarms(alarms);
@@ -455,10 +455,9 @@ impl Inner {
                 warn!(servo = id, joint, alarm = %status_error_text(now), "so101: servo alarm; the arm keeps working");
             }
         }
+        // Names every alarm that stops the arm now; once they are gone, the last ones stay named until cleared.
         let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
-        if let Some(why) = describe_alarms(self.ids, stopping)
-            && s.alarm_stop.is_none()
-        {
+        if let Some(why) = describe_alarms(self.ids, stopping) {
             s.alarm_stop = Some(why);
         }
         s.alarms = alarms;
