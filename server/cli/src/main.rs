@@ -234,6 +234,9 @@ fn status_lines(
             if arm.engaged { "engaged" } else { "" },
             arm.gripper_position,
         ));
+        if !arm.health_message.is_empty() {
+            lines.push(format!("      {}", arm.health_message));
+        }
         let rate = previous
             .and_then(|p| Some((p, p.arms.iter().find(|a| a.arm == arm.arm)?)))
             .and_then(|(p, before)| {
