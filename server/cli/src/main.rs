@@ -4,7 +4,8 @@
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use phone2act_gateway::GatewayConfig;
-use phone2act_server::{Config, bind, run_with_local};
+use phone2act_server::config::ConfigSource;
+use phone2act_server::{bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -456,18 +457,19 @@ fn real_main() -> anyhow::Result<()> {
             listen,
             check,
         } => {
-            let origin = config
-                .as_ref()
-                .map_or_else(|| "<embedded default>".to_owned(), |p| p.display().to_string());
-            let mut config = match &config {
-                Some(path) => Config::load(path)?,
-                None => Config::embedded_default()?,
+            let source = match &config {
+                Some(path) => ConfigSource::file(path)?,
+                None => ConfigSource::embedded(),
             };
+            let origin = source.origin().to_owned();
+            let mut config = source.config(std::env::vars())?;
             if let Some(listen) = listen {
                 config.server.listen = listen;
             }
-            let gateway_config = GatewayConfig::from_table(&config.gateway)
-                .with_context(|| format!("in the configuration {origin}"))?;
+            let gateway_config: GatewayConfig =
+                source.gateway(std::env::vars(), |g: &GatewayConfig| {
+                    g.validate().map_err(|e| e.to_string())
+                })?;
             // Defaults filled in, so that `--check` and the datasets' provenance show the whole table.
             config.gateway = toml::Table::try_from(&gateway_config)
                 .context("cannot write the gateway configuration back as TOML")?;
@@ -480,6 +482,7 @@ fn real_main() -> anyhow::Result<()> {
                 outln!("{text}");
                 return Ok(());
             }
+            warn_if_local_addresses_skip_the_token(&config, &gateway_config);
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("phone2act-rt")
@@ -526,6 +529,24 @@ fn real_main() -> anyhow::Result<()> {
                 anyhow::Ok(())
             })
         }
+    }
+}
+
+/// The gateway forwards what it admits with the server's token, so with a token set the addresses it trusts as
+/// this machine drive the arms without one. That is what the Phone2Act app needs through `adb reverse`, and
+/// also what any local process, SSH tunnel or local proxy gets: say so once, with how to narrow it.
+fn warn_if_local_addresses_skip_the_token(config: &phone2act_server::Config, gateway: &GatewayConfig) {
+    if config.server.token.is_none() {
+        return;
+    }
+    if let Some(trusted) = gateway.trusted_local_addresses() {
+        tracing::warn!(
+            "server.token is set, but the phone gateway's rosbridge port ({}) admits {trusted} without a token: \
+             any process on this machine, or an SSH tunnel or proxy ending here, can drive the arms. Kept for the \
+             Phone2Act app through `adb reverse`; to require pairing or the token from this machine too, set \
+             [gateway] local_addresses = [] (docs/gateway-security.md)",
+            gateway.rosbridge_listen
+        );
     }
 }
 
