@@ -764,13 +764,16 @@ fn config_with(dir: &std::path::Path, name: &str, extra: &str) -> std::path::Pat
     path
 }
 
+/// Text appended to the default config, environment overrides, and what the one-line error must say.
+type Case = (String, Vec<(&'static str, String)>, &'static str);
+
 #[test]
 fn check_refuses_what_serve_refuses() {
     // Each of these used to pass `--check` and fail only in `serve` (or, for the empty root, in every save).
     let dir = tempfile::tempdir().unwrap();
     let a_file = dir.path().join("a-file");
     std::fs::write(&a_file, "x").unwrap();
-    let cases: Vec<(String, Vec<(&str, String)>, &str)> = vec![
+    let cases: Vec<Case> = vec![
         (
             String::new(),
             vec![("PHONE2ACT_RECORDER__FPS", "20.5".to_owned())],
