@@ -140,6 +140,21 @@ impl GatewayConfig {
         }
     }
 
+    /// What to log at start when the server requires a token: the gateway forwards what it admits with that
+    /// token, so the addresses it trusts as this machine drive the arms without one. That is what the
+    /// Phone2Act app needs through `adb reverse`, and also what any local process, SSH tunnel or local proxy
+    /// gets; the message says so and how to narrow it. `None` when no address is trusted that way.
+    pub fn local_trust_warning(&self) -> Option<String> {
+        let trusted = self.trusted_local_addresses()?;
+        Some(format!(
+            "the server requires a token, but the phone gateway's rosbridge port ({}) admits {trusted} without \
+             one: any process on this machine, or an SSH tunnel or proxy ending here, can drive the arms. Kept for \
+             the Phone2Act app through `adb reverse`; to require pairing or the token from this machine too, set \
+             [gateway] local_addresses = [] (docs/gateway-security.md)",
+            self.rosbridge_listen
+        ))
+    }
+
     /// The checks serde cannot make; every way of starting a gateway runs them.
     pub fn validate(&self) -> Result<(), GatewayError> {
         if crate::rosbridge::StatusLevel::parse(&self.rosbridge_status_level).is_none() {

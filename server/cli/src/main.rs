@@ -532,21 +532,12 @@ fn real_main() -> anyhow::Result<()> {
     }
 }
 
-/// The gateway forwards what it admits with the server's token, so with a token set the addresses it trusts as
-/// this machine drive the arms without one. That is what the Phone2Act app needs through `adb reverse`, and
-/// also what any local process, SSH tunnel or local proxy gets: say so once, with how to narrow it.
+/// Said once at start: with a server token, the addresses the gateway trusts as this machine skip it.
 fn warn_if_local_addresses_skip_the_token(config: &phone2act_server::Config, gateway: &GatewayConfig) {
-    if config.server.token.is_none() {
-        return;
-    }
-    if let Some(trusted) = gateway.trusted_local_addresses() {
-        tracing::warn!(
-            "server.token is set, but the phone gateway's rosbridge port ({}) admits {trusted} without a token: \
-             any process on this machine, or an SSH tunnel or proxy ending here, can drive the arms. Kept for the \
-             Phone2Act app through `adb reverse`; to require pairing or the token from this machine too, set \
-             [gateway] local_addresses = [] (docs/gateway-security.md)",
-            gateway.rosbridge_listen
-        );
+    if config.server.token.is_some()
+        && let Some(warning) = gateway.local_trust_warning()
+    {
+        tracing::warn!("{warning}");
     }
 }
 

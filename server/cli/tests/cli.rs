@@ -924,7 +924,7 @@ fn a_token_with_trusted_loopback_is_said_at_start_and_an_empty_list_trusts_none(
     let lines = serve_gateway_log(dir.path(), &[]);
     let warning: Vec<_> = lines
         .iter()
-        .filter(|l| l.contains("WARN") && l.contains("without a token"))
+        .filter(|l| l.contains("WARN") && l.contains("admits every loopback"))
         .collect();
     assert_eq!(warning.len(), 1, "{lines:#?}");
     assert!(
@@ -939,5 +939,8 @@ fn a_token_with_trusted_loopback_is_said_at_start_and_an_empty_list_trusts_none(
         lines.iter().any(|l| l.starts_with("phone2act: gRPC on ")),
         "{lines:#?}"
     );
-    assert!(!lines.iter().any(|l| l.contains("without a token")), "{lines:#?}");
+    assert!(
+        !lines.iter().any(|l| l.contains("local_addresses = []")),
+        "{lines:#?}"
+    );
 }
