@@ -720,7 +720,22 @@ fn parse_layered_inner<T: serde::de::DeserializeOwned>(
         // Name the overrides only when they are part of the problem: the file alone may be fine.
         let file_alone = toml::from_str::<T>(text).map(|v| validate(&v));
         let same_in_file = matches!(&file_alone, Ok(Err(m)) if *m == message);
-        let names: Vec<&str> = overrides.iter().map(|(k, _)| k.as_str()).collect();
+        // The overrides that alone bring the message about, else (a combination) all of them.
+        let alone: Vec<&str> = overrides
+            .iter()
+            .filter(|(var, raw)| {
+                let mut table = file_table.clone();
+                apply_override(&mut table, var, raw).is_ok()
+                    && T::deserialize(toml::Value::Table(table))
+                        .is_ok_and(|v| matches!(validate(&v), Err(m) if m == message))
+            })
+            .map(|(k, _)| k.as_str())
+            .collect();
+        let names: Vec<&str> = if alone.is_empty() {
+            overrides.iter().map(|(k, _)| k.as_str()).collect()
+        } else {
+            alone
+        };
         return Err(invalid(
             if same_in_file {
                 origin.to_owned()
@@ -1139,6 +1154,20 @@ mod tests {
         let err = with_env(SIM, &[("PHONE2ACT_RECORDER__FPS", "500")])
             .unwrap_err()
             .to_string();
+        assert!(
+            err.starts_with("test.toml (with PHONE2ACT_RECORDER__FPS): recorder.fps"),
+            "{err}"
+        );
+        // Only the override to blame is named, not every variable that happens to be set.
+        let err = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_RECORDER__FPS", "500"),
+                ("PHONE2ACT_SERVER__LISTEN", "127.0.0.1:7"),
+            ],
+        )
+        .unwrap_err()
+        .to_string();
         assert!(
             err.starts_with("test.toml (with PHONE2ACT_RECORDER__FPS): recorder.fps"),
             "{err}"

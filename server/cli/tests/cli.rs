@@ -813,8 +813,45 @@ fn check_refuses_what_serve_refuses() {
         assert!(err.contains(needle), "{extra} {env:?}: {err}");
         assert_eq!(err.lines().count(), 1, "one line: {err}");
     }
-    // Nothing was created in the working directory by the empty root (no journal, no dataset).
-    assert!(!std::path::Path::new("journal.json").exists());
+}
+
+#[test]
+fn serve_with_an_empty_root_refuses_to_start_and_writes_nothing() {
+    // `PHONE2ACT_RECORDER__ROOT= phone2act serve`: it used to start, fail every Stop with "I/O error on : No such
+    // file or directory" and leave a commit journal in the working directory.
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path());
+    let cwd = dir.path().join("cwd");
+    std::fs::create_dir(&cwd).unwrap();
+    let mut child = Command::new(BIN)
+        .args(["serve", "--listen", "127.0.0.1:0", "--config"])
+        .arg(&config)
+        .current_dir(&cwd)
+        .env("PHONE2ACT_RECORDER__ROOT", "")
+        .env("PHONE2ACT_GATEWAY__ENABLED", "false")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A server that starts runs until killed: give a refusal (milliseconds) a minute before calling it started.
+    let deadline = Instant::now() + Duration::from_mins(1);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("serve started with an empty recorder root");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("(with PHONE2ACT_RECORDER__ROOT): recorder.root is empty"),
+        "{err}"
+    );
+    assert!(!err.contains("gRPC on"), "{err}");
+    assert_eq!(std::fs::read_dir(&cwd).unwrap().count(), 0, "nothing written");
 }
 
 #[test]
