@@ -648,3 +648,56 @@ async fn every_non_unit_quaternion_is_reported_even_when_a_good_pose_follows_at_
     let expected: std::collections::BTreeSet<_> = (0..30).map(|i| format!("bad-{i}")).collect();
     assert_eq!(reported, expected, "every refused pose is reported, by its id");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_non_unit_quaternion_on_the_page_socket_is_reported_by_its_seq() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let gw = start_gateway(&server).await;
+    let token = gw.info.token.clone().unwrap();
+    let mut page = wss(&gw, &format!("/ws?token={token}")).await;
+    let sample = |seq: u64, w: f64| {
+        format!(
+            r#"{{"type":"sample","seq":{seq},"t_ns":{},"tracking":"tracking","pose":{{"p":[0.0,1.4,0.0],"q":[0,0,0,{w:?}]}},"buttons":[]}}"#,
+            seq * 16_000_000
+        )
+    };
+    for i in 0..30 {
+        send(&mut page, &sample(2 * i + 1, 2.0)).await;
+        send(&mut page, &sample(2 * i + 2, 1.0)).await;
+    }
+    // Refused by the gateway itself, so its error is queued after every error the poses caused.
+    send(
+        &mut page,
+        r#"{"type":"sample","seq":1000,"buttons":[{"gripper":2}]}"#,
+    )
+    .await;
+    let mut reported = std::collections::BTreeSet::new();
+    loop {
+        let msg = tokio::time::timeout(T, page.next())
+            .await
+            .expect("the marker's error arrives")
+            .unwrap()
+            .unwrap();
+        let Message::Text(text) = msg else { continue };
+        let v: Value = serde_json::from_str(&text).unwrap();
+        if v["type"] != "error" {
+            continue;
+        }
+        let seq = v["seq"].as_u64().unwrap_or_default();
+        if seq == 1000 {
+            break;
+        }
+        assert!(
+            seq % 2 == 1
+                && v["message"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .contains("quaternion norm 2"),
+            "only the bad poses are refused: {v}"
+        );
+        reported.insert(seq);
+    }
+    let expected: std::collections::BTreeSet<u64> = (0..30).map(|i| 2 * i + 1).collect();
+    assert_eq!(reported, expected, "every refused pose is reported, by its seq");
+}
