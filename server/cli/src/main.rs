@@ -468,7 +468,11 @@ fn real_main() -> anyhow::Result<()> {
             }
             let gateway_config: GatewayConfig =
                 source.gateway(std::env::vars(), |g: &GatewayConfig| {
-                    g.validate().map_err(|e| e.to_string())
+                    // The message names its `gateway.` key; the location is added by the caller.
+                    g.validate().map_err(|e| match e {
+                        phone2act_gateway::GatewayError::Config(message) => message,
+                        other => other.to_string(),
+                    })
                 })?;
             // Defaults filled in, so that `--check` and the datasets' provenance show the whole table.
             config.gateway = toml::Table::try_from(&gateway_config)
