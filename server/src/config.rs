@@ -329,7 +329,7 @@ impl Config {
         origin: &str,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        parse_layered(text, origin, overrides(env), Config::validate)
+        parse_layered(text, origin, &overrides(env), Config::validate)
     }
 
     /// The configuration as TOML, every default filled in and every secret replaced by [`REDACTED`]: what
@@ -656,7 +656,7 @@ impl ConfigSource {
         let section = parse_layered(
             &self.text,
             &self.origin,
-            overrides(env),
+            &overrides(env),
             |s: &GatewaySection<T>| validate(&s.gateway),
         )?;
         Ok(section.gateway)
@@ -687,12 +687,12 @@ fn overrides(env: impl IntoIterator<Item = (String, String)>) -> Vec<(String, St
 fn parse_layered<T: serde::de::DeserializeOwned>(
     text: &str,
     origin: &str,
-    overrides: Vec<(String, String)>,
+    overrides: &[(String, String)],
     validate: impl Fn(&T) -> Result<(), String>,
 ) -> Result<T, ConfigError> {
     let file_table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
-    let secrets = Secrets::collect(&file_table, &overrides);
-    parse_layered_inner(text, origin, &file_table, &overrides, validate).map_err(|e| secrets.redact(e))
+    let secrets = Secrets::collect(&file_table, overrides);
+    parse_layered_inner(text, origin, &file_table, overrides, validate).map_err(|e| secrets.redact(e))
 }
 
 fn parse_layered_inner<T: serde::de::DeserializeOwned>(
