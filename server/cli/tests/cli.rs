@@ -981,3 +981,97 @@ fn a_token_with_trusted_loopback_is_said_at_start_and_an_empty_list_trusts_none(
         "{lines:#?}"
     );
 }
+
+const FLIGHT_FIXTURES: [&str; 2] = [
+    concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/flight/phone-session.flight"
+    ),
+    concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/flight/policy-session.flight"
+    ),
+];
+
+#[test]
+fn replay_log_finds_the_committed_sessions_identical() {
+    let out = Command::new(BIN)
+        .arg("replay-log")
+        .args(FLIGHT_FIXTURES)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 2, "{stdout}");
+    for (line, file) in lines.iter().zip(FLIGHT_FIXTURES) {
+        assert!(line.starts_with(file), "{line}");
+        assert!(
+            line.contains(": identical; the log ends: the arm was shut down"),
+            "{line}"
+        );
+    }
+}
+
+#[test]
+fn replay_log_under_a_changed_gate_rule_names_the_first_differing_decision() {
+    let dir = tempfile::tempdir().unwrap();
+    // The shipped default with one rule changed: the phone session's wrist turn (up to 0.3 rad at 50 Hz,
+    // about 0.03 rad a round) passes the default 0.5 rad jump threshold and not one of 0.01 rad.
+    let config = dir.path().join("stricter.toml");
+    let mut table: toml::Table =
+        toml::from_str(&std::fs::read_to_string(write_config(dir.path())).unwrap()).unwrap();
+    let arm = &mut table["arms"].as_array_mut().unwrap()[0];
+    let teleop = arm
+        .as_table_mut()
+        .unwrap()
+        .entry("teleop")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    let gate = teleop
+        .as_table_mut()
+        .unwrap()
+        .entry("gate")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    gate.as_table_mut()
+        .unwrap()
+        .insert("jump_rotation_rad".into(), toml::Value::Float(0.01));
+    std::fs::write(&config, toml::to_string(&table).unwrap()).unwrap();
+    let out = Command::new(BIN)
+        .arg("replay-log")
+        .arg(FLIGHT_FIXTURES[0])
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stdout}{stderr}");
+    assert!(
+        stdout.contains(": first difference at input ") && stdout.contains("(Teleop {"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("decision differs"), "{stdout}");
+    assert!(
+        stdout.contains("replayed: Some(GateDecision { verdict: RejectedJump"),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("1 of 1 flight log(s) replayed differently"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn replay_log_refuses_a_file_that_is_not_a_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let bogus = dir.path().join("x.flight");
+    std::fs::write(&bogus, "hello").unwrap();
+    let out = Command::new(BIN).arg("replay-log").arg(&bogus).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("not a phone2act flight log"), "{stderr}");
+}
