@@ -2,6 +2,7 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
+use crate::dataset::timestamp_pairs;
 use crate::parquet_io::{float_column, int_column};
 use arrow_array::RecordBatch;
 use arrow_array::cast::AsArray;
@@ -96,6 +97,71 @@ fn video_duration_s(path: &Path) -> Result<(f64, i64), String> {
     Ok((duration_s, stream.frames()))
 }
 
+/// Presentation times of the first video stream's frames, in presentation order, as exact fractions of a
+/// second: `(pts, time base numerator, time base denominator)`. Reads packets only (no decoding).
+fn video_frame_times(path: &Path) -> Result<(Vec<i64>, i64, i64), String> {
+    crate::video::init_ffmpeg();
+    let mut input =
+        ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
+    let (index, tb) = {
+        let stream = input
+            .streams()
+            .best(ffmpeg_next::media::Type::Video)
+            .ok_or_else(|| format!("{} has no video stream", path.display()))?;
+        (stream.index(), stream.time_base())
+    };
+    let mut pts: Vec<i64> = input
+        .packets()
+        .filter(|(s, _)| s.index() == index)
+        .filter_map(|(_, p)| p.pts())
+        .collect();
+    pts.sort_unstable();
+    Ok((pts, i64::from(tb.numerator()), i64::from(tb.denominator())))
+}
+
+/// Frame k of an episode must be presented at exactly `(first + k) / fps` seconds of its file, where `first`
+/// is the episode's first frame in the file (`from_timestamp * fps`): the timestamp rule (see
+/// [`timestamp_pairs`]) places every timestamp at or just after that time, so a time base that does not
+/// hold `k / fps` exactly, or a `from_timestamp` off the frame grid, would pair it with a neighbour.
+fn check_presentation(
+    times: &(Vec<i64>, i64, i64),
+    from_s: f64,
+    frames: u64,
+    fps: u32,
+    what: &str,
+    report: &mut Report,
+) {
+    let (pts, num, den) = times;
+    let first = from_s * f64::from(fps);
+    // The metadata's float64 from_timestamp may be an ulp off the grid; a millionth of a frame is far below the
+    // timestamps' margin.
+    if (first - first.round()).abs() > 1e-6 || first < 0.0 {
+        report.problems.push(format!(
+            "{what}: from_timestamp {from_s} is not a whole number of frames at {fps} fps"
+        ));
+        return;
+    }
+    let first = first.round() as usize;
+    for k in 0..frames as usize {
+        let Some(&p) = pts.get(first + k) else {
+            report.problems.push(format!(
+                "{what}: the file has {} frames, the episode needs frame {}",
+                pts.len(),
+                first + k
+            ));
+            return;
+        };
+        // pts * num / den == (first + k) / fps, in integers.
+        if i128::from(p) * i128::from(*num) * i128::from(fps) != (first + k) as i128 * i128::from(*den) {
+            report.problems.push(format!(
+                "{what}: frame {k} is presented at {p} * {num}/{den} s, not at {}/{fps} s: its timestamp would pair with another frame",
+                first + k
+            ));
+            return;
+        }
+    }
+}
+
 /// Verifies the dataset at `root`.
 pub fn verify(root: &Path) -> Report {
     let mut report = Report::default();
@@ -135,6 +201,13 @@ pub fn verify(root: &Path) -> Report {
         report.problems.push("info.json has no positive fps".to_owned());
         return report;
     }
+    if fps.fract() != 0.0 || fps > 1000.0 {
+        report.problems.push(format!(
+            "info.json's fps {fps} is not a whole number of frames per second up to 1000"
+        ));
+        return report;
+    }
+    let fps_whole = fps as u32;
     let Some(features) = info["features"].as_object() else {
         report.problems.push("info.json has no features".to_owned());
         return report;
@@ -210,10 +283,15 @@ pub fn verify(root: &Path) -> Report {
                     ));
                 }
                 last_frame.insert(ep[row], fi[row]);
-                let want_ts = fi[row] as f64 / fps;
-                if (ts[row] - want_ts).abs() > 1e-4 && report.problems.len() < 50 {
+                // Read back as f64 from a float32 column: the cast is exact.
+                let pairing = u64::try_from(fi[row])
+                    .map_err(|_| "has a negative frame index".to_owned())
+                    .and_then(|k| timestamp_pairs(ts[row] as f32, k, fps_whole));
+                if let Err(why) = pairing
+                    && report.problems.len() < 50
+                {
                     report.problems.push(format!(
-                        "{rel}: episode {} frame {} has timestamp {:.6}, expected frame_index/fps = {want_ts:.6}",
+                        "{rel}: episode {} frame {}: timestamp {:.6} {why}",
                         ep[row], fi[row], ts[row]
                     ));
                 }
@@ -413,7 +491,24 @@ pub fn verify(root: &Path) -> Report {
         &mut report,
     );
     let mut durations: BTreeMap<PathBuf, Result<(f64, i64), String>> = BTreeMap::new();
+    let mut frame_times: BTreeMap<PathBuf, Result<(Vec<i64>, i64, i64), String>> = BTreeMap::new();
     for (ep, (len, videos)) in &episode_meta {
+        for (key, (path, from, _)) in videos {
+            let times = frame_times
+                .entry(path.clone())
+                .or_insert_with(|| video_frame_times(path));
+            // An unreadable file is reported once, below, by the duration probe.
+            if let Ok(times) = times {
+                check_presentation(
+                    times,
+                    *from,
+                    *len,
+                    fps_whole,
+                    &format!("episode {ep} {key}"),
+                    &mut report,
+                );
+            }
+        }
         match lengths.get(ep) {
             Some(rows) if rows != len => {
                 report.problems.push(format!(
