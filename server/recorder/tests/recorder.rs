@@ -51,7 +51,7 @@ fn record(rec: &Recorder, task: &str, frames: u64) -> phone2act_recorder::Episod
     rec.stop_episode().unwrap()
 }
 
-/// Checks the data rows of every episode: contiguous index, timestamp = frame_index / fps exactly.
+/// Checks the data rows of every episode: contiguous index, timestamps by the rule of `timestamp_s`.
 #[allow(clippy::float_cmp)] // exactness is the point
 fn check_v30_rows(root: &Path, fps: u32) -> u64 {
     let info = read_json(&root.join("meta/info.json"));
@@ -72,7 +72,10 @@ fn check_v30_rows(root: &Path, fps: u32) -> u64 {
                 fi_expected = 0;
             }
             assert_eq!(r.frame_index, fi_expected);
-            assert_eq!(r.timestamp, (r.frame_index as f64 / f64::from(fps)) as f32);
+            assert_eq!(
+                r.timestamp,
+                phone2act_recorder::dataset::timestamp_s(r.frame_index as u64, fps)
+            );
             fi_expected += 1;
             index += 1;
         }
