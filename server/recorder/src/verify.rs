@@ -2,7 +2,7 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
-use crate::dataset::timestamp_pairs;
+use crate::dataset::{TimestampMismatch, timestamp_pairs};
 use crate::parquet_io::{float_column, int_column};
 use arrow_array::RecordBatch;
 use arrow_array::cast::AsArray;
@@ -20,6 +20,9 @@ pub struct Report {
     pub frames: u64,
     /// Problems, each a sentence; empty when the dataset is valid.
     pub problems: Vec<String>,
+    /// What a valid dataset still gets wrong for some reader (timestamps that pair a frame with its
+    /// predecessor in GR00T's default reader), each a sentence.
+    pub warnings: Vec<String>,
     /// What the data files say of each episode, by episode index.
     pub per_episode: BTreeMap<i64, EpisodeFacts>,
     /// The task table (task index order), when it could be read.
@@ -237,6 +240,8 @@ pub fn verify(root: &Path) -> Report {
         report.problems.push("no parquet files under data/".to_owned());
     }
     let mut lengths: BTreeMap<i64, u64> = BTreeMap::new();
+    let mut before_frame = 0u64;
+    let mut first_before: Option<String> = None;
     let mut indices = Vec::new();
     let mut data_tasks: BTreeSet<i64> = BTreeSet::new();
     for path in &data_files {
@@ -283,17 +288,30 @@ pub fn verify(root: &Path) -> Report {
                     ));
                 }
                 last_frame.insert(ep[row], fi[row]);
-                // Read back as f64 from a float32 column: the cast is exact.
+                // Read back as f64 from a float32 column: the cast is exact. A negative frame index is reported
+                // as a gap above.
                 let pairing = u64::try_from(fi[row])
-                    .map_err(|_| "has a negative frame index".to_owned())
-                    .and_then(|k| timestamp_pairs(ts[row] as f32, k, fps_whole));
-                if let Err(why) = pairing
-                    && report.problems.len() < 50
-                {
-                    report.problems.push(format!(
-                        "{rel}: episode {} frame {}: timestamp {:.6} {why}",
-                        ep[row], fi[row], ts[row]
-                    ));
+                    .ok()
+                    .map(|k| timestamp_pairs(ts[row] as f32, k, fps_whole));
+                match pairing {
+                    Some(Err(why @ TimestampMismatch::BeyondTolerance { .. }))
+                        if report.problems.len() < 50 =>
+                    {
+                        report.problems.push(format!(
+                            "{rel}: episode {} frame {}: timestamp {:.6} {why}",
+                            ep[row], fi[row], ts[row]
+                        ));
+                    }
+                    Some(Err(why @ TimestampMismatch::BeforeFrame { .. })) => {
+                        before_frame += 1;
+                        first_before.get_or_insert_with(|| {
+                            format!(
+                                "{rel}: episode {} frame {}: timestamp {:.9} {why}",
+                                ep[row], fi[row], ts[row]
+                            )
+                        });
+                    }
+                    _ => {}
                 }
                 *lengths.entry(ep[row]).or_default() += 1;
                 indices.push(ix[row]);
@@ -319,6 +337,12 @@ pub fn verify(root: &Path) -> Report {
                 data_tasks.extend(t);
             }
         }
+    }
+    if let Some(first) = first_before {
+        report.warnings.push(format!(
+            "{before_frame} of {} frames have a timestamp below frame_index / fps (LeRobot's rounding): LeRobot reads them, GR00T's default reader pairs them with the previous frame. First: {first}",
+            indices.len()
+        ));
     }
     indices.sort_unstable();
     if indices.iter().enumerate().any(|(i, &ix)| ix != i as i64) {
@@ -702,6 +726,13 @@ mod tests {
             let root = golden(name);
             let report = verify(&root);
             assert!(report.ok(), "{name}: {:?}", report.problems);
+            // lerobot's nearest-float32 timestamps: 0.7 and 0.9 s lie below 7/10 and 9/10 s.
+            assert_eq!(report.warnings.len(), 1, "{name}: {:?}", report.warnings);
+            assert!(
+                report.warnings[0].starts_with("5 of 30 frames have a timestamp below"),
+                "{name}: {:?}",
+                report.warnings
+            );
             assert_eq!((report.episodes, report.frames), (3, 30), "{name}");
             // Per episode, from the rows: the frames add up, one task each, no `next.success` column.
             assert_eq!(report.per_episode.len(), 3, "{name}");

@@ -71,6 +71,7 @@ fn record(root: &Path, format: Format, codec: Option<&str>, episodes: &[u64]) ->
 fn check(root: &Path) {
     let report = phone2act_recorder::verify::verify(root);
     assert!(report.ok(), "{}", report.problems.join("\n"));
+    assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let mut data = Vec::new();
     collect(&root.join("data"), &mut data);
     assert!(!data.is_empty());

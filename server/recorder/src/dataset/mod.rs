@@ -561,30 +561,74 @@ pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
     }
 }
 
+/// Why a timestamp does not pair with its frame in every reader (see [`timestamp_pairs`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TimestampMismatch {
+    /// Below the frame's presentation time `k / fps` (LeRobot's own rounding does this for about 40 % of
+    /// frames): LeRobot and the nearest-frame readers still find frame k, a reader of the frame played at
+    /// that time (GR00T N1.5's torchcodec) finds frame k - 1.
+    BeforeFrame {
+        frame_index: u64,
+        fps: u32,
+        before_s: f64,
+    },
+    /// Farther after `k / fps` than LeRobot's tolerance: LeRobot refuses to decode it.
+    BeyondTolerance {
+        frame_index: u64,
+        fps: u32,
+        after_s: f64,
+    },
+}
+
+impl std::fmt::Display for TimestampMismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            TimestampMismatch::BeforeFrame {
+                frame_index,
+                fps,
+                before_s,
+            } => write!(
+                f,
+                "lies {:.2} µs before the frame's presentation time {frame_index}/{fps} s: a reader of the frame played at that time (GR00T's torchcodec) returns frame {}",
+                before_s * 1e6,
+                frame_index.saturating_sub(1)
+            ),
+            TimestampMismatch::BeyondTolerance {
+                frame_index,
+                fps,
+                after_s,
+            } => write!(
+                f,
+                "lies {:.1} µs after the frame's presentation time {frame_index}/{fps} s, beyond LeRobot's {} µs tolerance",
+                after_s * 1e6,
+                LEROBOT_TOLERANCE_S * 1e6
+            ),
+        }
+    }
+}
+
 /// Whether `timestamp` pairs with frame `frame_index` at `fps` in every reader: at or above the frame's
 /// presentation time `k / fps` (compared exactly: a float32 times a whole fps below 2^29 is exact in f64) and
 /// within LeRobot's tolerance of it, or within one float32 step where float32 is coarser than that tolerance
-/// (from 1024 s on). Returns how far above `k / fps` it lies, in seconds, or why it does not pair.
-pub fn timestamp_pairs(timestamp: f32, frame_index: u64, fps: u32) -> Result<f64, String> {
+/// (from 1024 s on). Returns how far above `k / fps` it lies, in seconds.
+pub fn timestamp_pairs(timestamp: f32, frame_index: u64, fps: u32) -> Result<f64, TimestampMismatch> {
     let scaled = f64::from(timestamp) * f64::from(fps);
     let k = frame_index as f64;
     let above_s = (scaled - k) / f64::from(fps);
     if scaled < k {
-        return Err(format!(
-            "lies {:.1} µs before the frame's presentation time {}/{fps} s: a reader of the frame played at that time (GR00T's torchcodec) returns frame {}",
-            -above_s * 1e6,
+        return Err(TimestampMismatch::BeforeFrame {
             frame_index,
-            frame_index.saturating_sub(1)
-        ));
+            fps,
+            before_s: -above_s,
+        });
     }
     let step_s = f64::from(timestamp.next_up() - timestamp);
     if above_s >= LEROBOT_TOLERANCE_S.max(step_s) {
-        return Err(format!(
-            "lies {:.1} µs after the frame's presentation time {}/{fps} s, beyond LeRobot's {} µs tolerance",
-            above_s * 1e6,
+        return Err(TimestampMismatch::BeyondTolerance {
             frame_index,
-            LEROBOT_TOLERANCE_S * 1e6
-        ));
+            fps,
+            after_s: above_s,
+        });
     }
     Ok(above_s)
 }
@@ -623,6 +667,16 @@ impl EpisodeWriter {
     /// previous frame go to the events sidecar.
     pub fn note_activity(&mut self, arms: &[ArmActivity]) -> Result<(), RecorderError> {
         self.events.observe(arms, self.frames)
+    }
+
+    /// Writes one of the recorder's timeline events at the frame about to be pushed.
+    pub fn note_timeline(
+        &mut self,
+        kind: crate::events::EventKind,
+        count: u64,
+        detail: String,
+    ) -> Result<(), RecorderError> {
+        self.events.note(kind, self.frames, count, detail)
     }
 
     /// Length of the state vector.
