@@ -354,6 +354,7 @@ impl Recorder {
             paused_ticks: active.paused,
             late_ticks: active.late,
             start_unix_ns: active.start_unix_ns,
+            first_frame_time_ns: self.shared.clock.time_ns(active.first_tick),
             ..EpisodeSummary::default()
         };
         if let Some(e) = active.error {

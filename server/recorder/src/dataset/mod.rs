@@ -51,12 +51,16 @@ pub struct EpisodeSummary {
     pub held_ticks: u64,
     /// Ticks not recorded because a source was stale beyond tolerance (the episode was paused).
     pub paused_ticks: u64,
-    /// Ticks skipped because the recorder stalled longer than the hold tolerance (machine overloaded);
-    /// not recorded, never a gap. Shorter stalls are caught up and counted in `held_ticks`.
+    /// Frames recorded with a sample captured farther from the frame's time than the sample tolerance
+    /// (see [`crate::timeline`]); each is a `late_tick` event in the episode's sidecar.
     pub late_ticks: u64,
     /// Video frames that did not fit in an encoder queue (replaced by a repeat of the previous frame).
     pub dropped_frames: u64,
     pub start_unix_ns: i64,
+    /// The instant frame 0 stands for, on the process monotonic clock (frame i: plus i / fps, plus the
+    /// paused ticks before it); 0 in provenance written before it was recorded.
+    #[serde(default)]
+    pub first_frame_time_ns: i64,
     pub save_latency_s: f64,
 }
 
