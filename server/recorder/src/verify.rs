@@ -100,9 +100,12 @@ fn video_duration_s(path: &Path) -> Result<(f64, i64), String> {
     Ok((duration_s, stream.frames()))
 }
 
+/// A video's frame presentation times: `(pts in presentation order, time base numerator, denominator)`.
+type FrameTimes = (Vec<i64>, i64, i64);
+
 /// Presentation times of the first video stream's frames, in presentation order, as exact fractions of a
-/// second: `(pts, time base numerator, time base denominator)`. Reads packets only (no decoding).
-fn video_frame_times(path: &Path) -> Result<(Vec<i64>, i64, i64), String> {
+/// second. Reads packets only (no decoding).
+fn video_frame_times(path: &Path) -> Result<FrameTimes, String> {
     crate::video::init_ffmpeg();
     let mut input =
         ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
@@ -127,7 +130,7 @@ fn video_frame_times(path: &Path) -> Result<(Vec<i64>, i64, i64), String> {
 /// [`timestamp_pairs`]) places every timestamp at or just after that time, so a time base that does not
 /// hold `k / fps` exactly, or a `from_timestamp` off the frame grid, would pair it with a neighbour.
 fn check_presentation(
-    times: &(Vec<i64>, i64, i64),
+    times: &FrameTimes,
     from_s: f64,
     frames: u64,
     fps: u32,
@@ -515,7 +518,7 @@ pub fn verify(root: &Path) -> Report {
         &mut report,
     );
     let mut durations: BTreeMap<PathBuf, Result<(f64, i64), String>> = BTreeMap::new();
-    let mut frame_times: BTreeMap<PathBuf, Result<(Vec<i64>, i64, i64), String>> = BTreeMap::new();
+    let mut frame_times: BTreeMap<PathBuf, Result<FrameTimes, String>> = BTreeMap::new();
     for (ep, (len, videos)) in &episode_meta {
         for (key, (path, from, _)) in videos {
             let times = frame_times

@@ -110,7 +110,7 @@ struct Stress {
 impl Stress {
     fn start() -> Stress {
         let stop = Arc::new(AtomicBool::new(false));
-        let n = std::thread::available_parallelism().map_or(2, |n| n.get()) * 2;
+        let n = std::thread::available_parallelism().map_or(2, std::num::NonZero::get) * 2;
         let threads = (0..n)
             .map(|_| {
                 let stop = Arc::clone(&stop);
@@ -192,7 +192,7 @@ fn under_cpu_stress_every_frame_holds_its_own_instant_or_is_counted_late() {
     let stress = Stress::start();
     rec.start_episode("follow the sine").unwrap();
     // Long enough for both injected stalls (one per 2 s of reads).
-    std::thread::sleep(Duration::from_millis(5_000));
+    std::thread::sleep(Duration::from_secs(5));
     let summary = rec.stop_episode().unwrap();
     drop(stress);
     rec.close().unwrap();
