@@ -44,10 +44,14 @@ fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_recorder::camera::Capture
 }
 
 fn record(root: &Path, format: Format, codec: Option<&str>, episodes: &[u64]) -> u64 {
+    record_at(root, format, codec, episodes, FPS)
+}
+
+fn record_at(root: &Path, format: Format, codec: Option<&str>, episodes: &[u64], fps: u32) -> u64 {
     let slot = Arc::new(FrameSlot::default());
     let cam = distinct_camera(&slot);
     let mut s = spec(root, format, &["pairing"], SIZE);
-    s.fps = FPS;
+    s.fps = fps;
     s.video_codec = codec.map(str::to_owned);
     let rec = Recorder::open(
         s,
@@ -134,5 +138,27 @@ fn v21_frames_pair_with_their_timestamps() {
         "frame-pairing-v21",
         &root,
         json!({"episodes": 2, "tasks": ["pair every frame"], "frames": frames, "distinct_frames": true}),
+    );
+}
+
+/// A video whose frames are not presented at k / fps (here: a 30 fps recording under a 20 fps dataset's
+/// name) pairs its timestamps with other frames: `verify` says which frame is presented when.
+#[test]
+fn verify_refuses_a_video_whose_frames_are_not_at_k_over_fps() {
+    let dir = tempfile::tempdir().unwrap();
+    let at_20 = dir.path().join("at20");
+    let at_30 = dir.path().join("at30");
+    record(&at_20, Format::V21, None, &[12]);
+    record_at(&at_30, Format::V21, None, &[40], 30);
+    check(&at_20);
+    let video = "videos/chunk-000/observation.images.pairing/episode_000000.mp4";
+    std::fs::copy(at_30.join(video), at_20.join(video)).unwrap();
+    let report = phone2act_recorder::verify::verify(&at_20);
+    let text = report.problems.join("\n");
+    assert!(
+        text.contains(
+            "episode 0 observation.images.pairing: frame 1 is presented at 512 * 1/15360 s, not at 1/20 s"
+        ),
+        "{text}"
     );
 }
