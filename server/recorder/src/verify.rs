@@ -565,6 +565,20 @@ pub fn verify(root: &Path) -> Report {
             }
         }
     }
+    // GR00T N1.6 snaps a step's time to a multiple of 1 / (frames / duration): a file whose rate comes out
+    // above fps in float64 puts some of those times an ulp before their frame.
+    for (path, times) in &frame_times {
+        if let (Ok((pts, _, _)), Some(Ok((duration_s, _)))) = (times, durations.get(path))
+            && !pts.is_empty()
+            && pts.len() as f64 / duration_s > fps
+        {
+            report.warnings.push(format!(
+                "video {}: {} frames over {duration_s} s make an average rate above {fps} fps in float64: GR00T N1.6's reader pairs some steps with the previous frame",
+                path.strip_prefix(root).unwrap_or(path).display(),
+                pts.len()
+            ));
+        }
+    }
     report
 }
 
