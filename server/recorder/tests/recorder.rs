@@ -362,7 +362,24 @@ fn a_stale_robot_is_held_then_pauses() {
     *rig.robot.frozen_at_ns.lock() = None;
     let s = wait_for(&rec, T, "resume", |s| s.phase == Phase::Recording);
     assert!(s.warning.unwrap().contains("resumed"));
-    rec.stop_episode().unwrap();
+    wait_for(&rec, T, "a frame after the pause", |t| {
+        t.frames_recorded > s.frames_recorded
+    });
+    let saved = rec.stop_episode().unwrap();
+    // The sidecar says where the episode's time jumps, by how many ticks, and which frames were late.
+    let events = phone2act_recorder::events::read_events(&root, 0)
+        .unwrap()
+        .unwrap();
+    let kinds = |k| events.iter().filter(move |e| e.kind == k);
+    use phone2act_recorder::events::EventKind;
+    let paused: Vec<_> = kinds(EventKind::Paused).collect();
+    assert_eq!(paused.len(), 1, "{events:?}");
+    assert_eq!(paused[0].count, saved.paused_ticks);
+    assert!(
+        paused[0].detail.contains("robot sample has sent nothing"),
+        "{events:?}"
+    );
+    assert_eq!(kinds(EventKind::LateTick).count() as u64, saved.late_ticks);
 }
 
 #[test]
