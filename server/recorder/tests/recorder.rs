@@ -5,6 +5,7 @@ mod common;
 
 use common::{ManualRobot, publish_for_conformance, read_json, spec, wait_for};
 use phone2act_recorder::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
+use phone2act_recorder::events::EventKind;
 use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::{Format, Phase, Recorder, RecorderError};
 use serde_json::json;
@@ -371,7 +372,6 @@ fn a_stale_robot_is_held_then_pauses() {
         .unwrap()
         .unwrap();
     let kinds = |k| events.iter().filter(move |e| e.kind == k);
-    use phone2act_recorder::events::EventKind;
     let paused: Vec<_> = kinds(EventKind::Paused).collect();
     assert_eq!(paused.len(), 1, "{events:?}");
     assert_eq!(paused[0].count, saved.paused_ticks);
