@@ -4,7 +4,9 @@
 Reads from ARCHITECTURE.md, so the document and the check cannot drift apart:
   - each crate's "may depend on" row (workspace arrows, from `cargo metadata --no-deps`);
   - the third-party rules ("reached only through", "never reached from"; on the resolved graph);
-  - the known exceptions, which are reported but not failed, and fail once they no longer exist.
+  - the known exceptions, which are reported but not failed, and fail once they no longer exist;
+  - every workspace crate builds with the workspace lints (`[lints] workspace = true` in its Cargo.toml), so
+    no crate escapes the pedantic lints or `unsafe_code = "deny"`.
 
 Usage: tests/scripts/check-deps.py [--metadata FILE --no-deps-metadata FILE]
 (the two files, `cargo metadata --format-version 1` with and without --no-deps, replace running cargo).
@@ -17,6 +19,7 @@ import pathlib
 import re
 import subprocess
 import sys
+import tomllib
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 TICKED = re.compile(r"`([^`]+)`")
@@ -100,6 +103,14 @@ def check(allowed, rules, exceptions, no_deps_meta, meta):
             f"bad arrow: {source} -> {target} ({kind} dependency); ARCHITECTURE.md lets {source} depend on "
             f"{', '.join(sorted(permitted)) or 'nothing in the workspace'}"
         )
+    for package in sorted(no_deps_meta["packages"], key=lambda p: p["name"]):
+        manifest = pathlib.Path(package["manifest_path"])
+        lints = tomllib.loads(manifest.read_text()).get("lints", {})
+        if lints.get("workspace") is not True:
+            errors.append(
+                f"{package['name']}: {manifest.relative_to(ROOT) if manifest.is_relative_to(ROOT) else manifest} "
+                f"has no `[lints] workspace = true`: every crate builds with the workspace lints"
+            )
     for source, target in sorted(exceptions - used_exceptions):
         errors.append(
             f"known exception {source} -> {target} no longer exists: remove it from ARCHITECTURE.md"

@@ -86,6 +86,24 @@ def config_path(server: suite.Server) -> Path:
     return server.root.parent / "config.toml"
 
 
+def stop_process_group(process: subprocess.Popen) -> None:
+    """Ends a process started with `start_new_session=True` together with every child it started."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            process.wait(timeout=TIMEOUT_S / 3)
+            # The launcher is gone; its children may still be ending.
+            os.killpg(process.pid, signal.SIGKILL)
+        except subprocess.TimeoutExpired:
+            continue
+        except ProcessLookupError:
+            return
+        return
+
+
 def hold(c: Client, arm: str, engaged: bool) -> None:
     """Wait until the server reports the clutch state, then keep it long enough for the view to sample it:
     the view's status stream runs at 20 Hz, and 1 s is 20 snapshots, of which it needs one."""
@@ -223,7 +241,7 @@ def test_view_streams_to_a_rerun_viewer_with_connect(server: suite.Server, tmp_p
     received = tmp_path / "received.rrd"
     receiver = subprocess.Popen(
         [str(Path(sys.executable).parent / "rerun"), "--bind", "127.0.0.1", "--port", str(port), "--save",
-         str(received)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+         str(received)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         def listening() -> bool:
             import socket
@@ -237,8 +255,9 @@ def test_view_streams_to_a_rerun_viewer_with_connect(server: suite.Server, tmp_p
                            capture_output=True, text=True, timeout=TIMEOUT_S * 2)
         assert r.returncode == 0, r.stderr
     finally:
-        receiver.terminate()
-        receiver.wait(timeout=TIMEOUT_S)
+        # The `rerun` entry point is a launcher whose native viewer is a child of its own: ending only the
+        # launcher left the receiver running after the suite. Its own session lets the whole group end.
+        stop_process_group(receiver)
     got = read_rrd(received)
     # 3 s at 20 Hz is 60 rows; a tenth of that on a machine loaded 10x over.
     assert len(got["/cameras/front"]["EncodedImage:blob"]) >= 6, sorted(got)

@@ -373,7 +373,7 @@ mod tests {
             Duration::from_millis(10),
             "at most 100 per second"
         );
-        assert_eq!(watch_interval(1e9, 0.5).unwrap(), Duration::from_secs(3600));
+        assert_eq!(watch_interval(1e9, 0.5).unwrap(), Duration::from_hours(1));
         for bad in [-0.1, f64::NAN, f64::INFINITY] {
             let status = Status::from(watch_interval(bad, 0.5).unwrap_err());
             assert_eq!(status.code(), Code::InvalidArgument);
