@@ -118,8 +118,9 @@ pub enum Timing {
     Stale { age_ns: Option<i64> },
 }
 
-/// Judges `pick` for the tick at `tick_ns`: on time within `tolerance_ns`; late (still recorded) beyond it
-/// up to `hold_ns` before, or when only a later sample remains; stale beyond `hold_ns`.
+/// Judges `pick` for the tick at `tick_ns`: on time when captured at or before it within `tolerance_ns`;
+/// late (still recorded) beyond that up to `hold_ns` before, or when only a later sample remains; stale
+/// beyond `hold_ns`.
 pub fn judge<T>(pick: &Pick<'_, T>, tick_ns: i64, tolerance_ns: i64, hold_ns: i64) -> Timing {
     match *pick {
         Pick::AtOrBefore { time_ns, .. } => {
@@ -134,15 +135,10 @@ pub fn judge<T>(pick: &Pick<'_, T>, tick_ns: i64, tolerance_ns: i64, hold_ns: i6
         }
         // The sample that was current at the tick was evicted: the oldest one held is the closest known, and
         // writing it keeps every later frame at its own time, where skipping the tick would shift them all.
-        Pick::After { time_ns, .. } => {
-            let off_ns = time_ns - tick_ns;
-            if off_ns <= tolerance_ns {
-                // Within the tolerance even so (a source that sent its first sample just after the tick).
-                Timing::OnTime
-            } else {
-                Timing::Late { off_ns }
-            }
-        }
+        // It is from the tick's future, so late however close.
+        Pick::After { time_ns, .. } => Timing::Late {
+            off_ns: time_ns - tick_ns,
+        },
         Pick::Empty => Timing::Stale { age_ns: None },
     }
 }
@@ -256,6 +252,11 @@ mod tests {
         assert_eq!(
             judge(&evicted.pick(400 * MS), 400 * MS, tol, hold),
             Timing::Late { off_ns: 100 * MS }
+        );
+        assert_eq!(
+            judge(&evicted.pick(499 * MS), 499 * MS, tol, hold),
+            Timing::Late { off_ns: MS },
+            "a sample from the tick's future is late however close"
         );
         assert_eq!(
             judge(&TimedRing::<i64>::new(1).pick(0), 0, tol, hold),
