@@ -452,6 +452,9 @@ fn real_main() -> anyhow::Result<()> {
             action: DatasetAction::Verify { path },
         } => {
             let report = phone2act_recorder::verify::verify(&path);
+            for warning in &report.warnings {
+                outln!("warning: {warning}");
+            }
             if report.ok() {
                 outln!(
                     "{}: valid LeRobot {} dataset, {} episodes, {} frames",

@@ -557,8 +557,14 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
         episodes.stop().await.unwrap();
     });
 
-    // The sidecar: engage, rejection, release, engage, release, in that order.
-    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    // The sidecar: engage, rejection, release, engage, release, in that order (besides the recorder's own
+    // timeline events, which depend on how fast this machine renders the camera).
+    let events: Vec<_> = phone2act_recorder::events::read_events(&ds, 0)
+        .unwrap()
+        .unwrap()
+        .into_iter()
+        .filter(|e| !matches!(e.kind, EventKind::LateTick | EventKind::Paused))
+        .collect();
     let kinds: Vec<EventKind> = events.iter().map(|e| e.kind).collect();
     assert_eq!(
         kinds,
@@ -609,7 +615,11 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
             (kind.as_str().unwrap().to_owned(), e.frame_index)
         })
         .collect();
-    assert_eq!(plotted_events(&html), listed);
+    let plotted: Vec<(String, u64)> = plotted_events(&html)
+        .into_iter()
+        .filter(|(kind, _)| kind != "late_tick" && kind != "paused")
+        .collect();
+    assert_eq!(plotted, listed);
     assert!(!html.contains("No events recorded"));
     // A panel per dimension: every state and every action dimension is drawn, the measured end-effector pose
     // and gripper with the commanded ones (`ee_x` with `x`, ...), the joints alone.
@@ -729,9 +739,10 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
     assert!(ok, "{err}");
     drop(server);
     let ds = dir.path().join("ds");
-    // Nobody touched the clutch: a sidecar with no events (not a missing one).
-    let events = std::fs::read_to_string(ds.join("meta/phone2act/events/episode_000000.jsonl")).unwrap();
-    assert_eq!(events, "");
+    // Nobody touched the clutch: a sidecar with no arm events (not a missing one). The recorder's own
+    // timeline events depend on how fast this machine renders the camera.
+    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    assert!(events.iter().all(|e| e.arm.is_empty()), "{events:?}");
     let (ok, out, err) = plot(&["ds", "--episode", "0"], dir.path());
     assert!(ok, "{err}");
     let html = std::fs::read_to_string(dir.path().join(out.trim())).unwrap();
@@ -739,7 +750,10 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
         html.contains("LeRobot v2.1") && html.contains("hold still"),
         "no facts"
     );
-    assert!(html.contains("0 events from meta/phone2act/events/episode_000000.jsonl"));
+    assert!(html.contains(&format!(
+        "{} events from meta/phone2act/events/episode_000000.jsonl",
+        events.len()
+    )));
     assert!(!panel_attr(&html, "data-state").is_empty());
     let frames = phone2act_recorder::readback::read_episode(&ds, 0)
         .unwrap()
