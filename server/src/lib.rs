@@ -2,9 +2,6 @@
 //! for a [`Config`] on a given listener until a shutdown future resolves. The `phone2act` binary is a thin
 //! CLI around it; tests start it in-process on an ephemeral port.
 
-// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
-#![warn(unreachable_pub)]
-
 pub mod app;
 pub mod arm;
 pub mod config;

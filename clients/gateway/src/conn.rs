@@ -29,18 +29,18 @@ const PING_INTERVAL: Duration = Duration::from_secs(5);
 
 /// The sending half a handler writes to.
 #[derive(Clone, Debug)]
-pub struct Out(mpsc::Sender<Message>);
+pub(crate) struct Out(mpsc::Sender<Message>);
 
 impl Out {
     /// Queues a text frame; dropped if the peer is not reading.
-    pub fn text(&self, text: String) {
+    pub(crate) fn text(&self, text: String) {
         if self.0.try_send(Message::Text(text.into())).is_err() {
             tracing::debug!("outgoing queue full, message dropped");
         }
     }
 
     /// Queues a close frame.
-    pub fn close(&self, code: u16, reason: &str) {
+    pub(crate) fn close(&self, code: u16, reason: &str) {
         let _ = self.0.try_send(Message::Close(Some(CloseFrame {
             code,
             reason: reason.to_owned().into(),
@@ -51,7 +51,7 @@ impl Out {
 /// One socket's camera preview frame waiting to go out: a slot of one (a newer frame replaces an unsent
 /// one), sent only when the control queue is empty and the page has acknowledged the frame before.
 #[derive(Debug, Default)]
-pub struct PreviewSlot {
+pub(crate) struct PreviewSlot {
     /// The preview's generation (a new one at every start and stop, so a fetch that finishes after its
     /// preview was stopped stores nothing) and the frame waiting.
     frame: Mutex<(u64, Option<Bytes>)>,
@@ -62,7 +62,7 @@ pub struct PreviewSlot {
 
 impl PreviewSlot {
     /// Starts a new preview; its frames are put with the generation returned.
-    pub fn open(&self) -> u64 {
+    pub(crate) fn open(&self) -> u64 {
         let mut slot = self.frame.lock();
         slot.0 += 1;
         slot.1 = None;
@@ -71,7 +71,7 @@ impl PreviewSlot {
 
     /// Offers a frame of preview `generation`; it replaces one not sent yet. Ignored once that preview has
     /// been stopped.
-    pub fn put(&self, generation: u64, jpeg: Bytes) {
+    pub(crate) fn put(&self, generation: u64, jpeg: Bytes) {
         let mut slot = self.frame.lock();
         if slot.0 == generation {
             slot.1 = Some(jpeg);
@@ -82,12 +82,12 @@ impl PreviewSlot {
 
     /// True while a frame waits in the slot or is on its way to the page: fetching another now would only
     /// replace it.
-    pub fn busy(&self) -> bool {
+    pub(crate) fn busy(&self) -> bool {
         self.in_flight.load(Ordering::Acquire) || self.frame.lock().1.is_some()
     }
 
     /// The page has the last frame sent.
-    pub fn ack(&self) {
+    pub(crate) fn ack(&self) {
         self.in_flight.store(false, Ordering::Release);
         self.changed.notify_one();
     }
@@ -95,7 +95,7 @@ impl PreviewSlot {
     /// Stops the preview: the waiting frame is dropped and no frame of it is accepted any more. A frame
     /// already on the link stays in flight until the page acknowledges it (the page acknowledges every
     /// binary message, wanted or not), so a preview restarted at once never puts a second frame beside it.
-    pub fn close(&self) {
+    pub(crate) fn close(&self) {
         let mut slot = self.frame.lock();
         slot.0 += 1;
         slot.1 = None;
@@ -113,7 +113,7 @@ impl PreviewSlot {
 }
 
 /// What a protocol does with the socket's input.
-pub trait Handler: Send {
+pub(crate) trait Handler: Send {
     /// One text message within the size limit.
     fn on_text(&mut self, text: &str);
     /// A message larger than the configured limit (refused, connection kept).
@@ -130,7 +130,7 @@ pub trait Handler: Send {
 
 /// Channels a handler needs besides `Out`.
 #[derive(Debug)]
-pub struct Wiring {
+pub(crate) struct Wiring {
     pub out: Out,
     pub session_events: mpsc::Sender<SessionEvent>,
     pub status_events: mpsc::Sender<Box<SystemStatus>>,
@@ -171,7 +171,7 @@ where
 }
 
 /// Runs one socket until the peer leaves, the handler closes it, or shutdown.
-pub async fn run<H, F>(
+pub(crate) async fn run<H, F>(
     socket: WebSocket,
     max_message_bytes: usize,
     mut shutdown: watch::Receiver<bool>,

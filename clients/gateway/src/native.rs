@@ -139,7 +139,7 @@ fn to_sample(
 }
 
 /// State of one page socket.
-pub struct PageHandler {
+pub(crate) struct PageHandler {
     shared: Arc<Shared>,
     wiring: Wiring,
     session: Option<Session>,
@@ -149,7 +149,7 @@ pub struct PageHandler {
 }
 
 impl PageHandler {
-    pub fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
         Self {
             shared,
             wiring,
@@ -161,7 +161,7 @@ impl PageHandler {
 
     /// Tells the page which arms (for the picker) and cameras (for the preview) exist; called once after
     /// connecting.
-    pub fn welcome(&self, arms: &[String], cameras: &[String]) {
+    pub(crate) fn welcome(&self, arms: &[String], cameras: &[String]) {
         self.wiring.out.text(
             json!({
                 "type": "welcome",

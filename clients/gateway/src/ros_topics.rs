@@ -13,17 +13,17 @@ use base64::Engine as _;
 use phone2act_proto::v1::{ArmState, Pose, SystemStatus};
 use serde_json::{Value, json};
 
-pub const JOINT_STATES: &str = "/joint_states";
-pub const TF: &str = "/tf";
+pub(crate) const JOINT_STATES: &str = "/joint_states";
+pub(crate) const TF: &str = "/tf";
 const CAMERA_PREFIX: &str = "/cameras/";
 const CAMERA_SUFFIX: &str = "/image/compressed";
 
-pub const JOINT_STATE_TYPE: &str = "sensor_msgs/JointState";
-pub const TF_TYPE: &str = "tf2_msgs/TFMessage";
-pub const COMPRESSED_IMAGE_TYPE: &str = "sensor_msgs/CompressedImage";
+pub(crate) const JOINT_STATE_TYPE: &str = "sensor_msgs/JointState";
+pub(crate) const TF_TYPE: &str = "tf2_msgs/TFMessage";
+pub(crate) const COMPRESSED_IMAGE_TYPE: &str = "sensor_msgs/CompressedImage";
 
 /// The services this gateway answers (everything else gets a failed `service_response`).
-pub const SERVICES: [&str; 4] = [
+pub(crate) const SERVICES: [&str; 4] = [
     "/rosapi/topics",
     "/rosapi/topic_type",
     "/rosapi/services",
@@ -32,7 +32,7 @@ pub const SERVICES: [&str; 4] = [
 
 /// A topic the gateway publishes from the server's state, besides the per-arm mapped topics.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Builtin {
+pub(crate) enum Builtin {
     JointStates,
     Tf,
     /// The compressed image of the named camera.
@@ -41,7 +41,7 @@ pub enum Builtin {
 
 impl Builtin {
     /// Recognises a normalised absolute topic.
-    pub fn resolve(topic: &str) -> Option<Self> {
+    pub(crate) fn resolve(topic: &str) -> Option<Self> {
         match topic {
             JOINT_STATES => Some(Self::JointStates),
             TF => Some(Self::Tf),
@@ -54,7 +54,7 @@ impl Builtin {
     }
 
     /// The normalised (`pkg/Type`) message type.
-    pub fn msg_type(&self) -> &'static str {
+    pub(crate) fn msg_type(&self) -> &'static str {
         match self {
             Self::JointStates => JOINT_STATE_TYPE,
             Self::Tf => TF_TYPE,
@@ -64,38 +64,38 @@ impl Builtin {
 }
 
 /// The topic a camera's images are published on.
-pub fn camera_topic(camera: &str) -> String {
+pub(crate) fn camera_topic(camera: &str) -> String {
     format!("{CAMERA_PREFIX}{camera}{CAMERA_SUFFIX}")
 }
 
 /// `pkg/Type` → `pkg/msg/Type`, the spelling ROS 2 tools list.
-pub fn ros2_type(msg_type: &str) -> String {
+pub(crate) fn ros2_type(msg_type: &str) -> String {
     msg_type.replacen('/', "/msg/", 1)
 }
 
 /// `builtin_interfaces/Time` from nanoseconds since the Unix epoch.
-pub fn stamp(wall_ns: i64) -> Value {
+pub(crate) fn stamp(wall_ns: i64) -> Value {
     json!({"sec": wall_ns.div_euclid(1_000_000_000), "nanosec": wall_ns.rem_euclid(1_000_000_000)})
 }
 
 /// The TF frame of an arm's base (ROS-Industrial's `base_link`, prefixed by the arm as multi-arm URDFs do).
-pub fn base_frame(arm: &str) -> String {
+pub(crate) fn base_frame(arm: &str) -> String {
     format!("{arm}_base_link")
 }
 
 /// The TF frame of an arm's measured end effector (ROS-Industrial's `tool0`).
-pub fn ee_frame(arm: &str) -> String {
+pub(crate) fn ee_frame(arm: &str) -> String {
     format!("{arm}_tool0")
 }
 
 /// The TF frame of an arm's target after the safety gate.
-pub fn target_frame(arm: &str) -> String {
+pub(crate) fn target_frame(arm: &str) -> String {
     format!("{arm}_target")
 }
 
 /// `sensor_msgs/JointState` of every arm that reports joints; joint names are prefixed by the arm so two
 /// arms of one model stay distinct. Positions in radians; no velocities or efforts (the server has none).
-pub fn joint_states(status: &SystemStatus, wall_ns: i64) -> Value {
+pub(crate) fn joint_states(status: &SystemStatus, wall_ns: i64) -> Value {
     let mut names = Vec::new();
     let mut positions_rad = Vec::new();
     for arm in &status.arms {
@@ -143,7 +143,7 @@ fn arm_transforms(arm: &ArmState, wall_ns: i64) -> [Value; 2] {
 }
 
 /// `tf2_msgs/TFMessage`: per arm, base → measured end effector and base → target.
-pub fn tf(status: &SystemStatus, wall_ns: i64) -> Value {
+pub(crate) fn tf(status: &SystemStatus, wall_ns: i64) -> Value {
     let transforms: Vec<Value> = status
         .arms
         .iter()
@@ -153,7 +153,7 @@ pub fn tf(status: &SystemStatus, wall_ns: i64) -> Value {
 }
 
 /// `sensor_msgs/CompressedImage` of a JPEG, `data` base64 as rosbridge sends `uint8[]`.
-pub fn compressed_image(camera: &str, jpeg: &[u8], wall_ns: i64) -> Value {
+pub(crate) fn compressed_image(camera: &str, jpeg: &[u8], wall_ns: i64) -> Value {
     json!({
         "header": {"stamp": stamp(wall_ns), "frame_id": format!("{camera}_optical_frame")},
         "format": "jpeg",
@@ -164,7 +164,7 @@ pub fn compressed_image(camera: &str, jpeg: &[u8], wall_ns: i64) -> Value {
 /// Every topic a client can use on this gateway, with its `pkg/Type`: for each arm the server reports, its
 /// input and output topics (under its namespace, or at the root for the default arm), then the builtins
 /// and one image topic per camera. Arms no topic reaches (no namespace, not the default) are left out.
-pub fn catalogue(
+pub(crate) fn catalogue(
     topics: &TopicConfig,
     default_arm: &str,
     arms: &[String],
@@ -205,7 +205,7 @@ pub fn catalogue(
 }
 
 /// The `values` of a `rosapi` call, or `None` for a service this gateway does not provide.
-pub fn rosapi_values(
+pub(crate) fn rosapi_values(
     service: &str,
     args: &Value,
     catalogue: &[(String, &'static str)],
@@ -230,7 +230,7 @@ pub fn rosapi_values(
 }
 
 /// True if the service needs the server's arm and camera lists.
-pub fn needs_catalogue(service: &str) -> bool {
+pub(crate) fn needs_catalogue(service: &str) -> bool {
     matches!(service, "/rosapi/topics" | "/rosapi/topic_type")
 }
 

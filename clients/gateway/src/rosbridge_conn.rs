@@ -64,7 +64,7 @@ impl Drop for Subscription {
 }
 
 /// State of one rosbridge socket.
-pub struct RosbridgeHandler {
+pub(crate) struct RosbridgeHandler {
     shared: Arc<Shared>,
     wiring: Wiring,
     /// This socket's id in the gateway's arm-holder registry, and the address it came from.
@@ -82,7 +82,7 @@ pub struct RosbridgeHandler {
 }
 
 impl RosbridgeHandler {
-    pub fn new(shared: Arc<Shared>, wiring: Wiring, peer: IpAddr) -> Self {
+    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring, peer: IpAddr) -> Self {
         // Validated when the gateway starts.
         let level = StatusLevel::parse(&shared.config.rosbridge_status_level).unwrap_or(StatusLevel::None);
         let conn = shared.next_connection();

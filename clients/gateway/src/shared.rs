@@ -12,7 +12,7 @@ use tokio::sync::watch;
 
 /// State shared by every socket.
 #[derive(Debug)]
-pub struct Shared {
+pub(crate) struct Shared {
     pub config: GatewayConfig,
     pub upstream: Upstream,
     pub token: Option<String>,
@@ -26,12 +26,12 @@ pub struct Shared {
 
 impl Shared {
     /// A fresh id for a socket.
-    pub fn next_connection(&self) -> u64 {
+    pub(crate) fn next_connection(&self) -> u64 {
         self.connections.fetch_add(1, Ordering::Relaxed)
     }
 
     /// How long a rosbridge arm holder must be silent before its own address may take the arm over.
-    pub fn takeover_silence(&self) -> Duration {
+    pub(crate) fn takeover_silence(&self) -> Duration {
         Duration::from_millis(self.config.takeover_silence_ms)
     }
 }

@@ -18,18 +18,18 @@ use std::time::Duration;
 use tokio::task::JoinHandle;
 
 /// Default and highest preview rate: enough to see the scene; the recorder has the full rate.
-pub const DEFAULT_MAX_FPS: f64 = 5.0;
-pub const MAX_FPS: f64 = 10.0;
+pub(crate) const DEFAULT_MAX_FPS: f64 = 5.0;
+pub(crate) const MAX_FPS: f64 = 10.0;
 /// Default and allowed preview widths, in pixels.
-pub const DEFAULT_WIDTH_PX: u32 = 320;
-pub const MIN_WIDTH_PX: u32 = 16;
-pub const MAX_WIDTH_PX: u32 = 640;
+pub(crate) const DEFAULT_WIDTH_PX: u32 = 320;
+pub(crate) const MIN_WIDTH_PX: u32 = 16;
+pub(crate) const MAX_WIDTH_PX: u32 = 640;
 /// JPEG quality of the preview: about 10 kB for 320x240, legible on a phone screen.
-pub const DEFAULT_QUALITY: u8 = 60;
+pub(crate) const DEFAULT_QUALITY: u8 = 60;
 
 /// The page's request, as it arrives.
 #[derive(Debug, Deserialize)]
-pub struct PreviewRequest {
+pub(crate) struct PreviewRequest {
     camera: String,
     #[serde(default)]
     max_fps: Option<f64>,
@@ -41,7 +41,7 @@ pub struct PreviewRequest {
 
 /// A checked request.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PreviewParams {
+pub(crate) struct PreviewParams {
     pub camera: String,
     pub max_fps: f64,
     pub width_px: u32,
@@ -50,7 +50,7 @@ pub struct PreviewParams {
 
 impl PreviewRequest {
     /// Applies the defaults and refuses what is out of range (nothing is clamped silently).
-    pub fn check(self) -> Result<PreviewParams, String> {
+    pub(crate) fn check(self) -> Result<PreviewParams, String> {
         if self.camera.is_empty() || self.camera.len() > 64 {
             return Err("preview camera name must be 1 to 64 characters".into());
         }
@@ -81,7 +81,7 @@ impl PreviewRequest {
 
 /// Decodes `jpeg` at the largest of 1, 1/2, 1/4, 1/8 of its size that is at most `max_width_px` wide (1/8
 /// if none is: a camera wider than 8 × 640 px) and re-encodes it at `quality`.
-pub fn shrink(jpeg: &[u8], max_width_px: u32, quality: u8) -> Result<Vec<u8>, String> {
+pub(crate) fn shrink(jpeg: &[u8], max_width_px: u32, quality: u8) -> Result<Vec<u8>, String> {
     let mut decoder = jpeg_decoder::Decoder::new(jpeg);
     decoder.read_info().map_err(|e| format!("camera JPEG: {e}"))?;
     let info = decoder.info().ok_or("camera JPEG has no header")?;
@@ -111,7 +111,12 @@ pub fn shrink(jpeg: &[u8], max_width_px: u32, quality: u8) -> Result<Vec<u8>, St
 /// Starts the preview of `params.camera` for one page socket: says `preview on` (or, for a camera the
 /// server does not have, an error and `preview off`), then fills `slot` at most `max_fps` times a second
 /// until aborted.
-pub fn spawn(upstream: Upstream, params: PreviewParams, slot: Arc<PreviewSlot>, out: Out) -> JoinHandle<()> {
+pub(crate) fn spawn(
+    upstream: Upstream,
+    params: PreviewParams,
+    slot: Arc<PreviewSlot>,
+    out: Out,
+) -> JoinHandle<()> {
     let generation = slot.open();
     tokio::spawn(async move {
         let camera = params.camera.clone();

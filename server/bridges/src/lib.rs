@@ -7,9 +7,6 @@
 //! keeps a small bounded queue so that it can put each command in force at its issue time), and
 //! [`Bridge::feedback`] returns the newest measured state.
 
-// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
-#![warn(unreachable_pub)]
-
 pub mod dobot;
 pub mod feetech;
 pub mod remote;

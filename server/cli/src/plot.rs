@@ -297,7 +297,7 @@ fn camera_strip(episode: &Episode, out: &mut String) -> anyhow::Result<usize> {
 
 /// Writes the page for episode `index` of the dataset at `root` to `out` (default: `episode_NNNNNN.html`
 /// in the current directory, never inside the dataset, which lerobot would then upload). Returns the path.
-pub fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Result<PathBuf> {
+pub(crate) fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Result<PathBuf> {
     let episode = read_episode(root, index)?;
     let events = read_events(root, index)?;
     let written_by_phone2act = root.join(phone2act_recorder::dataset::PROVENANCE_FILE).is_file();

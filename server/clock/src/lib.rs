@@ -3,9 +3,6 @@
 //! two of them can be subtracted. Pure code takes time as an argument (`phone2act-core` reads no clock);
 //! the edges read it here and nowhere else (`clippy.toml` refuses `Instant::now` in the core).
 
-// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
-#![warn(unreachable_pub)]
-
 use std::sync::OnceLock;
 use std::time::Instant;
 

@@ -2,9 +2,6 @@
 //! and the action/state vector layouts. No I/O, no tokio, no clock reads: every time is an argument, so
 //! everything here is deterministic and property-testable.
 
-// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
-#![warn(unreachable_pub)]
-
 pub mod arbiter;
 pub mod chunk;
 pub mod config;

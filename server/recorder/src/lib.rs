@@ -2,9 +2,6 @@
 //! (one thread per camera), and LeRobot dataset writers (v3.0, and v2.1 with GR00T's modality.json). Threads,
 //! not tokio; crash-safe by construction (see [`dataset`] for the commit design).
 
-// A `pub` item no other crate can reach is dead API or should say `pub(crate)`.
-#![warn(unreachable_pub)]
-
 pub mod avcapture;
 pub mod camera;
 pub mod dataset;

@@ -11,7 +11,7 @@ use tokio::net::TcpStream;
 use tokio_tungstenite::WebSocketStream;
 
 /// A gateway serving until dropped.
-pub struct RunningGateway {
+pub(crate) struct RunningGateway {
     pub info: GatewayInfo,
     _dir: tempfile::TempDir,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
@@ -28,7 +28,7 @@ impl Drop for RunningGateway {
 /// Starts a gateway reaching its server through `client` (holding the server's token as `phone2act serve`
 /// hands it over) on ephemeral ports, with its certificate in a temporary directory; `tweak` adjusts the
 /// configuration first.
-pub async fn start_gateway(
+pub(crate) async fn start_gateway(
     client: phone2act_sdk::Client,
     tweak: impl FnOnce(&mut GatewayConfig),
 ) -> RunningGateway {
@@ -59,7 +59,7 @@ pub async fn start_gateway(
 
 /// The page socket `path` over `tcp` (already connected to the gateway's HTTPS port), trusting only the
 /// gateway's own certificate.
-pub async fn wss_over(
+pub(crate) async fn wss_over(
     info: &GatewayInfo,
     tcp: TcpStream,
     path: &str,

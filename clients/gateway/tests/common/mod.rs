@@ -14,7 +14,7 @@ use tokio::sync::oneshot;
 use tokio_tungstenite::WebSocketStream;
 use tokio_tungstenite::tungstenite::Message;
 
-pub struct Harness {
+pub(crate) struct Harness {
     pub mock: MockServer,
     pub info: GatewayInfo,
     pub _dir: tempfile::TempDir,
@@ -30,7 +30,7 @@ impl Drop for Harness {
     }
 }
 
-pub async fn start(arms: &[&str], tweak: impl FnOnce(&mut GatewayConfig)) -> Harness {
+pub(crate) async fn start(arms: &[&str], tweak: impl FnOnce(&mut GatewayConfig)) -> Harness {
     let mock = MockServer::start(arms, Instant::now(), true).await.unwrap();
     let dir = tempfile::tempdir().unwrap();
     let mut config = GatewayConfig {
@@ -64,14 +64,14 @@ pub async fn start(arms: &[&str], tweak: impl FnOnce(&mut GatewayConfig)) -> Har
     }
 }
 
-pub type Plain = WebSocketStream<TcpStream>;
-pub type Tls = WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>>;
+pub(crate) type Plain = WebSocketStream<TcpStream>;
+pub(crate) type Tls = WebSocketStream<tokio_rustls::client::TlsStream<TcpStream>>;
 
-pub async fn rosbridge(h: &Harness) -> Plain {
+pub(crate) async fn rosbridge(h: &Harness) -> Plain {
     plain(&format!("ws://{}/", h.info.rosbridge_addr.unwrap())).await
 }
 
-pub async fn plain(url: &str) -> Plain {
+pub(crate) async fn plain(url: &str) -> Plain {
     let hostport = url
         .trim_start_matches("ws://")
         .split('/')
@@ -83,7 +83,7 @@ pub async fn plain(url: &str) -> Plain {
 }
 
 /// A `wss://` client that trusts exactly the gateway's certificate and checks the host name `localhost`.
-pub async fn wss(h: &Harness, path_and_query: &str) -> Tls {
+pub(crate) async fn wss(h: &Harness, path_and_query: &str) -> Tls {
     let pem = std::fs::read(h.info.cert_path.as_ref().unwrap()).unwrap();
     let mut roots = rustls::RootCertStore::empty();
     for cert in rustls::pki_types::CertificateDer::pem_slice_iter(&pem) {
@@ -108,7 +108,7 @@ pub async fn wss(h: &Harness, path_and_query: &str) -> Tls {
 
 use rustls::pki_types::pem::PemObject;
 
-pub async fn send<S>(ws: &mut WebSocketStream<S>, text: &str)
+pub(crate) async fn send<S>(ws: &mut WebSocketStream<S>, text: &str)
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin,
 {
@@ -116,7 +116,7 @@ where
 }
 
 /// The next JSON text message, or `None` on timeout or close.
-pub async fn next_json<S>(ws: &mut WebSocketStream<S>, timeout: Duration) -> Option<Value>
+pub(crate) async fn next_json<S>(ws: &mut WebSocketStream<S>, timeout: Duration) -> Option<Value>
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin,
 {
@@ -131,7 +131,7 @@ where
 }
 
 /// Reads until a message matches `pred` (skipping others), or `None`.
-pub async fn wait_json<S>(
+pub(crate) async fn wait_json<S>(
     ws: &mut WebSocketStream<S>,
     timeout: Duration,
     pred: impl Fn(&Value) -> bool,
@@ -149,7 +149,7 @@ where
     None
 }
 
-pub fn pose_msg(topic: &str, x: f64) -> String {
+pub(crate) fn pose_msg(topic: &str, x: f64) -> String {
     format!(
         r#"{{"op":"publish","topic":"{topic}","type":"geometry_msgs/PoseStamped","msg":{{"header":{{"stamp":{{"sec":1763726400,"nanosec":5000000}},"frame_id":"phone_ar_frame"}},"pose":{{"position":{{"x":{x},"y":0.0,"z":0.0}},"orientation":{{"x":0.0,"y":0.0,"z":0.0,"w":1.0}}}}}}}}"#
     )

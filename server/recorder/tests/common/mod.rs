@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 /// A robot source the test controls: fresh samples (stamped now) unless silenced.
 #[derive(Default)]
-pub struct ManualRobot {
+pub(crate) struct ManualRobot {
     pub silent: Mutex<bool>,
     pub frozen_at_ns: Mutex<Option<i64>>,
 }
@@ -31,12 +31,12 @@ impl RobotSource for ManualRobot {
 }
 
 impl ManualRobot {
-    pub fn freeze(&self) {
+    pub(crate) fn freeze(&self) {
         *self.frozen_at_ns.lock() = Some(monotonic_ns());
     }
 }
 
-pub fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u32)) -> DatasetSpec {
+pub(crate) fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u32)) -> DatasetSpec {
     DatasetSpec {
         root: root.to_owned(),
         format,
@@ -60,7 +60,7 @@ pub fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u32)) -> 
 }
 
 /// Polls until `cond(status)` or panics after `timeout`.
-pub fn wait_for(
+pub(crate) fn wait_for(
     rec: &Recorder,
     timeout: Duration,
     what: &str,
@@ -80,7 +80,7 @@ pub fn wait_for(
     }
 }
 
-pub fn copy_dir(src: &Path, dst: &Path) {
+pub(crate) fn copy_dir(src: &Path, dst: &Path) {
     std::fs::create_dir_all(dst).unwrap();
     for e in std::fs::read_dir(src).unwrap() {
         let e = e.unwrap();
@@ -96,7 +96,7 @@ pub fn copy_dir(src: &Path, dst: &Path) {
 /// Copies a finished dataset to `$PHONE2ACT_CONFORMANCE_DIR/<name>` (with what the test expects) so that
 /// tests/conformance/run.sh loads it with the real lerobot. Returns the copy.
 #[allow(clippy::needless_pass_by_value)] // callers build the JSON inline
-pub fn publish_for_conformance(name: &str, root: &Path, expect: serde_json::Value) -> Option<PathBuf> {
+pub(crate) fn publish_for_conformance(name: &str, root: &Path, expect: serde_json::Value) -> Option<PathBuf> {
     let dir = PathBuf::from(std::env::var_os("PHONE2ACT_CONFORMANCE_DIR")?);
     let dst = dir.join(name);
     let _ = std::fs::remove_dir_all(&dst);
@@ -105,12 +105,12 @@ pub fn publish_for_conformance(name: &str, root: &Path, expect: serde_json::Valu
     Some(dst)
 }
 
-pub fn read_json(p: &Path) -> serde_json::Value {
+pub(crate) fn read_json(p: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
 }
 
 /// The cached lerobot venv's python, if the conformance venv was installed.
-pub fn lerobot_python() -> Option<(PathBuf, PathBuf)> {
+pub(crate) fn lerobot_python() -> Option<(PathBuf, PathBuf)> {
     let cache = std::env::var_os("PHONE2ACT_CACHE_DIR")
         .map(PathBuf::from)
         .or_else(|| {
@@ -126,7 +126,7 @@ pub fn lerobot_python() -> Option<(PathBuf, PathBuf)> {
 
 /// Runs tests/conformance/check.py on `dirs` with the real lerobot when the venv exists; returns None
 /// when it does not (the datasets are still published for run.sh).
-pub fn lerobot_check(dirs: &[PathBuf], v21: bool) -> Option<(bool, String)> {
+pub(crate) fn lerobot_check(dirs: &[PathBuf], v21: bool) -> Option<(bool, String)> {
     let (py, v21_dir) = lerobot_python()?;
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/conformance/check.py");
     let cache = tempfile::tempdir().unwrap();
