@@ -10,6 +10,8 @@ pub mod chunk;
 pub mod config;
 pub mod gate;
 pub mod gripper;
+pub mod joint_limit;
+pub mod joint_motion;
 pub mod kinematics;
 pub mod layout;
 pub mod planner;
@@ -24,6 +26,8 @@ pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, 
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
 pub use gate::{GateDecision, GateVerdict, SafetyGate};
 pub use gripper::{Gripper, GripperCommand, GripperError};
+pub use joint_limit::{JointRateLimiter, LimitedStep};
+pub use joint_motion::{JointCounters, JointLimitConfig, PlannedJoints, So101JointStage};
 pub use layout::{
     ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, LerobotSo101Units, RELATIVE_STEP_WIDTH,
     absolute_action, joint_action, relative_step, step_from_target, target_from_joint_step, target_from_step,
