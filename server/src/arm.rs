@@ -15,8 +15,8 @@ use phone2act_clock::monotonic_ns;
 use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
     ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
-    ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, TeleopConfig, TeleopRound,
-    TickNeed,
+    ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, So101JointStage, TeleopConfig,
+    TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
@@ -61,6 +61,8 @@ pub enum ArmError {
         "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
     )]
     LerobotLayoutUnsupported { arm: String },
+    #[error("arm {arm}: joint limits are enforced in the server only for SO-101 joints")]
+    JointStageUnsupported { arm: String },
     #[error("arm {arm:?} {source}")]
     Refused {
         arm: String,
@@ -111,10 +113,14 @@ struct Inner {
     arbiter: Arbiter,
     /// The owning policy session's event sink (the arbiter knows only its id).
     policy_sink: Option<(u64, Arc<dyn RevocationSink>)>,
-    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
-    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
-    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
+    /// The last joint action computed for a joint arm without a joint stage (a remote bridge with SO-101
+    /// joints): the seed of the next, so the recorder's inverse kinematics follows its own solutions.
     joint_seed: Option<Vec<f64>>,
+    /// SO-101 arms (sim, so101): every command's joints are solved and rate-limited here, once; the bridge
+    /// drives to them and the recorder records them.
+    joints: Option<So101JointStage>,
+    /// `seq` of the last command handed to the bridge (a catch-up command repeats it: same target).
+    last_seq: u64,
 }
 
 /// One input handled under the lock, with what is left to do once it is released.
@@ -209,12 +215,40 @@ impl ArmController {
                 arbiter,
                 policy_sink: None,
                 joint_seed: None,
+                joints: None,
+                last_seq: 0,
             }),
             wake: Notify::new(),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
             ticks: AtomicU64::new(0),
         })
+    }
+
+    /// Solves this SO-101 arm's commands in the server: each target once, seeded with the joints last
+    /// commanded, through the joint speed limits `max_velocity_rad_s` (five, rad/s), with the bridge's IK
+    /// orientation weight. See `phone2act_core::joint_motion`.
+    pub fn with_joint_stage(
+        self,
+        max_velocity_rad_s: Vec<f64>,
+        orientation_weight: f64,
+    ) -> Result<Self, ArmError> {
+        if self.kinematics.is_none() {
+            return Err(ArmError::JointStageUnsupported {
+                arm: self.name.clone(),
+            });
+        }
+        let mut stage = So101JointStage::new(max_velocity_rad_s, orientation_weight).map_err(|source| {
+            ArmError::Config {
+                arm: self.name.clone(),
+                source,
+            }
+        })?;
+        if let Some(feedback) = self.bridge.feedback() {
+            stage.reset(&feedback.joint_positions_rad, now_s());
+        }
+        self.inner.lock().joints = Some(stage);
+        Ok(self)
     }
 
     /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
@@ -242,11 +276,13 @@ impl ArmController {
         input: Input,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<(Effects, Option<i64>), ArbiterError> {
-        // One feedback read and one clock read serve the readiness check and the planner.
-        let robot = robot_of(self.bridge.health(), self.bridge.feedback().as_ref());
+        // One feedback read and one clock read serve the readiness check, the planner and the joint stage.
+        let feedback = self.bridge.feedback();
+        let robot = robot_of(self.bridge.health(), feedback.as_ref());
         let now = now_s();
         let mut inner = self.inner.lock();
-        let handled = self.handle_locked(&mut inner, input, &robot, now, sink)?;
+        let measured_joints = feedback.as_ref().map(|f| f.joint_positions_rad.as_slice());
+        let handled = self.handle_locked(&mut inner, input, &robot, measured_joints, now, sink)?;
         drop(inner);
         Ok(self.finish(handled))
     }
@@ -258,25 +294,30 @@ impl ArmController {
         inner: &mut Inner,
         input: Input,
         robot: &Robot,
+        measured_joints: Option<&[f64]>,
         now: f64,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<Handled, ArbiterError> {
-        let need_before = inner.arbiter.tick_need();
+        let need_before = self.tick_need_locked(inner);
         let effects = inner.arbiter.handle(input, robot, now)?;
         if sink.is_some() {
             inner.policy_sink = sink;
         }
+        // A new source starts from where the arm is, as the arbiter's planner does.
+        if let (Some(stage), Some(joints)) = (inner.joints.as_mut(), measured_joints)
+            && (effects.reindexed || stage.commanded().is_none())
+        {
+            stage.reset(joints, now);
+        }
         let mut command_time_ns = None;
         // Sent under the lock, so the bridge sees commands in `seq` order.
         for c in &effects.commands {
-            let issue_time_ns = monotonic_ns();
-            self.bridge.send(phone2act_bridges::Command {
-                seq: c.seq,
-                robot_from_target: c.robot_from_target,
-                gripper_target: c.gripper,
-                issue_time_ns,
-            });
-            command_time_ns = Some(issue_time_ns);
+            command_time_ns = Some(self.send_locked(inner, c.seq, &c.robot_from_target, c.gripper));
+        }
+        // The last command did not get there within the joint limits: solve it again next tick.
+        if effects.commands.is_empty() && inner.joints.as_ref().is_some_and(So101JointStage::behind) {
+            let (target, gripper) = inner.arbiter.target();
+            command_time_ns = Some(self.send_locked(inner, inner.last_seq, &target, gripper));
         }
         let sink = effects.revoked.as_ref().and_then(|r| {
             inner
@@ -284,7 +325,7 @@ impl ArmController {
                 .take_if(|(session, _)| *session == r.session)
                 .map(|(_, sink)| sink)
         });
-        if inner.arbiter.tick_need() != need_before {
+        if self.tick_need_locked(inner) != need_before {
             self.wake.notify_one();
         }
         Ok(Handled {
@@ -292,6 +333,27 @@ impl ArmController {
             command_time_ns,
             revoked: sink,
         })
+    }
+
+    /// Hands one command to the bridge, with its joints when this arm has a joint stage. Returns the issue
+    /// time.
+    fn send_locked(&self, inner: &mut Inner, seq: u64, target: &Isometry3<f64>, gripper: f64) -> i64 {
+        let issue_time_ns = monotonic_ns();
+        let joint_targets_rad = inner.joints.as_mut().map(|stage| {
+            stage
+                .plan(target, issue_time_ns as f64 * 1e-9)
+                .joints_rad
+                .to_vec()
+        });
+        self.bridge.send(phone2act_bridges::Command {
+            seq,
+            robot_from_target: *target,
+            gripper_target: gripper,
+            issue_time_ns,
+            joint_targets_rad,
+        });
+        inner.last_seq = seq;
+        issue_time_ns
     }
 
     /// Tells a revoked policy session that it lost the arm (without the lock: the sink must not be called
@@ -479,8 +541,19 @@ impl ArmController {
                 gripper: feedback.gripper_position,
             };
             // Nobody drives (checked above under this lock): the arbiter accepts, sends nothing, revokes nobody.
+            let now = now_s();
+            if let Some(stage) = inner.joints.as_mut() {
+                stage.reset(&feedback.joint_positions_rad, now);
+            }
             let handled = self
-                .handle_locked(&mut inner, homed, &robot, now_s(), None)
+                .handle_locked(
+                    &mut inner,
+                    homed,
+                    &robot,
+                    Some(&feedback.joint_positions_rad),
+                    now,
+                    None,
+                )
                 .map_err(|e| self.refused(e))?;
             inner.joint_seed = None;
             drop(inner);
@@ -501,7 +574,16 @@ impl ArmController {
 
     /// How soon the arm needs a tick.
     fn tick_need(&self) -> TickNeed {
-        self.inner.lock().arbiter.tick_need()
+        self.tick_need_locked(&self.inner.lock())
+    }
+
+    /// The arbiter's need, and ticks at the rate while the joint stage is still catching up with the target.
+    fn tick_need_locked(&self, inner: &Inner) -> TickNeed {
+        if inner.joints.as_ref().is_some_and(So101JointStage::behind) {
+            TickNeed::Periodic
+        } else {
+            inner.arbiter.tick_need()
+        }
     }
 
     /// A snapshot for the API.
@@ -555,6 +637,22 @@ impl ArmController {
                 .as_ref()
                 .map_or(-1.0, |f| (now_ns - f.capture_time_ns) as f64 * 1e-9),
             counters: a.counters(),
+            joint_counters: inner
+                .joints
+                .as_ref()
+                .map(So101JointStage::counters)
+                .unwrap_or_default(),
+            joint_targets_rad: inner
+                .joints
+                .as_ref()
+                .and_then(So101JointStage::commanded)
+                .map(|q| q.to_vec())
+                .unwrap_or_default(),
+            joint_targets_time_ns: inner
+                .joints
+                .as_ref()
+                .filter(|j| j.commanded().is_some())
+                .map_or(0, |j| (j.commanded_time_s() * 1e9).round() as i64),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
         }
     }
@@ -582,9 +680,17 @@ impl ArmController {
             engaged: inner.arbiter.engaged(),
             rejected: counters.rejected,
             clamped: counters.clamped,
+            joint_limited: inner.joints.as_ref().map_or(0, |j| j.counters().limited),
             last_reason: inner.arbiter.last_decision().reason.clone(),
         };
-        let action = if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
+        let commanded = inner.joints.as_ref().and_then(So101JointStage::commanded);
+        let action = if let (ActionMode::Joint, Some(joints)) = (self.action_mode, commanded) {
+            // Exactly the joints the bridge was sent: no second solve with another seed.
+            drop(inner);
+            let mut native = joints.to_vec();
+            native.push(gripper);
+            self.layout.joint_step_from_native(&native)
+        } else if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
             let seed = inner
                 .joint_seed
                 .take()

@@ -123,7 +123,7 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
                     spans.push((arm, from, e.timestamp));
                 }
             }
-            EventKind::GateRejected | EventKind::GateClamped => {}
+            EventKind::GateRejected | EventKind::GateClamped | EventKind::JointLimited => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -223,7 +223,8 @@ fn panel_svg(
             }
             let color = match e.kind {
                 EventKind::GateRejected => REJECTED_COLOR,
-                EventKind::GateClamped => CLAMPED_COLOR,
+                // Both shorten a command: the gate in task space, the joint limits in joint space.
+                EventKind::GateClamped | EventKind::JointLimited => CLAMPED_COLOR,
                 EventKind::ClutchEngage | EventKind::ClutchRelease => ENGAGED_COLOR,
             };
             chart.draw_series(std::iter::once(PathElement::new(

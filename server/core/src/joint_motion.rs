@@ -193,6 +193,11 @@ impl So101JointStage {
         self.limiter.last().and_then(to_joints)
     }
 
+    /// Time of the last command (or reset), s.
+    pub fn commanded_time_s(&self) -> f64 {
+        self.limiter.last_time_s()
+    }
+
     /// True while the last command did not reach its target (the limiter shortened it, or the orientation
     /// still turns): the caller should solve the same target again each period until it is false.
     pub fn behind(&self) -> bool {
