@@ -317,7 +317,7 @@ async fn drive_by_policy(mode: ActionMode) -> (Report, (f64, f64), v1::ArmState)
         tokio::time::sleep(Duration::from_secs_f64(horizon as f64 / FPS)).await;
     }
     // Let the last steps arrive at the limit.
-    tokio::time::sleep(Duration::from_millis(1000)).await;
+    tokio::time::sleep(Duration::from_secs(1)).await;
     stop.store(true, Ordering::Relaxed);
     let samples = watcher.await.unwrap();
     client.episodes().stop().await.unwrap();

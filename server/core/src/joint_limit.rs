@@ -143,6 +143,8 @@ impl JointRateLimiter {
 }
 
 #[cfg(test)]
+// Exact equality is the property: a step that fits, or no step, passes bit for bit.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use proptest::prelude::*;

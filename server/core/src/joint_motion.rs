@@ -117,8 +117,6 @@ pub struct PlannedJoints {
     pub orientation_error_rad: f64,
     /// The rate limiter shortened the step.
     pub limited: bool,
-    /// The target orientation is more than a period's turn away: this command turns part of the way.
-    pub orientation_capped: bool,
     /// The arm could not turn toward the target orientation from here (see the module documentation).
     pub orientation_unreachable: bool,
     /// The target was not finite: the arm holds.
@@ -179,9 +177,10 @@ impl So101JointStage {
         let joints = to_joints(measured_rad).map(|q| clamp_to_limits(&q));
         match joints {
             Some(q) => self.limiter.reset(&q, time_s),
+            // Not an SO-101's joints: no start, so the next command is not limited from a wrong one.
             None => {
                 self.limiter = JointRateLimiter::new(self.limiter.max_velocity_rad_s().to_vec())
-                    .expect("speeds were validated")
+                    .expect("speeds were validated");
             }
         }
         self.turn_axis = None;
@@ -233,7 +232,6 @@ impl So101JointStage {
                 position_error_m: f64::INFINITY,
                 orientation_error_rad: f64::INFINITY,
                 limited: false,
-                orientation_capped: false,
                 orientation_unreachable: false,
                 invalid_input: true,
             };
@@ -278,7 +276,6 @@ impl So101JointStage {
             position_error_m: (target.translation.vector - achieved.translation.vector).norm(),
             orientation_error_rad: target.rotation.angle_to(&achieved.rotation),
             limited: step.limited,
-            orientation_capped: capped,
             orientation_unreachable: missed,
             invalid_input: false,
         }
@@ -312,6 +309,8 @@ fn to_joints(v: &[f64]) -> Option<So101Joints> {
 }
 
 #[cfg(test)]
+// Exact equality is the property: no time, or a non-finite target, leaves the joints bit for bit.
+#[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
     use crate::kinematics::{SO101_JOINT_LIMITS_RAD, within_limits};

@@ -529,24 +529,23 @@ impl Inner {
 
     /// Makes `command` the target the goal ramps toward: its joint targets, or the IK of its pose.
     fn accept(&self, command: &Command) {
-        let joints = match command.joint_targets_rad.as_deref() {
-            Some(given) => match So101Joints::try_from(given) {
-                Ok(joints) if joints.iter().all(|q| q.is_finite()) => Some(clamp_to_limits(&joints)),
-                _ => None,
-            },
-            None => {
-                let seed = self.goal_rad.lock().unwrap_or([0.0; SO101_ARM_DOF]);
-                let weights = IkWeights {
-                    orientation: self.config.ik_orientation_weight,
-                };
-                let solution = self
-                    .kinematics
-                    .inverse(&command.robot_from_target, &seed, weights);
-                if !solution.position_reached && !solution.invalid_input {
-                    self.unreachable.fetch_add(1, Ordering::Relaxed);
-                }
-                (!solution.invalid_input).then_some(solution.joints_rad)
+        let joints = if let Some(given) = command.joint_targets_rad.as_deref() {
+            So101Joints::try_from(given)
+                .ok()
+                .filter(|joints| joints.iter().all(|q| q.is_finite()))
+                .map(|joints| clamp_to_limits(&joints))
+        } else {
+            let seed = self.goal_rad.lock().unwrap_or([0.0; SO101_ARM_DOF]);
+            let weights = IkWeights {
+                orientation: self.config.ik_orientation_weight,
+            };
+            let solution = self
+                .kinematics
+                .inverse(&command.robot_from_target, &seed, weights);
+            if !solution.position_reached && !solution.invalid_input {
+                self.unreachable.fetch_add(1, Ordering::Relaxed);
             }
+            (!solution.invalid_input).then_some(solution.joints_rad)
         };
         let Some(joints) = joints.filter(|_| command.gripper_target.is_finite()) else {
             warn!(seq = command.seq, "so101: non-finite target dropped; arm holds");
