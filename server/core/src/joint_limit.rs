@@ -223,6 +223,32 @@ mod tests {
     }
 
     #[test]
+    fn a_vector_of_another_width_than_the_limits_is_a_new_start() {
+        // The start has the limits' width, the request not: nothing to limit it from, even in no time.
+        let mut l = limiter(&[1.0, 1.0]);
+        l.reset(&[0.0, 0.0], 0.0);
+        let s = l.step(&[5.0, 5.0, 5.0], 0.0);
+        assert_eq!((s.joints_rad, s.limited), (vec![5.0, 5.0, 5.0], false));
+        // The start and the request agree with each other but not with the limits.
+        let mut l = limiter(&[1.0, 1.0]);
+        l.reset(&[0.0, 0.0, 0.0], 0.0);
+        let s = l.step(&[5.0, 5.0, 5.0], 0.0);
+        assert_eq!((s.joints_rad, s.limited), (vec![5.0, 5.0, 5.0], false));
+    }
+
+    #[test]
+    fn scale_says_what_a_step_would_take_without_taking_it() {
+        let mut l = limiter(&[1.0, 2.0]);
+        assert_eq!(l.scale(&[9.0, 9.0], 1.0), 1.0, "no start: nothing to limit");
+        l.reset(&[0.0, 0.0], 0.0);
+        assert!((l.scale(&[0.5, 0.5], 0.25) - 0.5).abs() < 1e-12);
+        assert_eq!(l.scale(&[0.1, 0.1], 0.25), 1.0);
+        assert_eq!(l.scale(&[f64::NAN, 0.1], 0.25), 0.0);
+        assert_eq!(l.last(), Some(&[0.0, 0.0][..]));
+        assert_eq!(l.last_time_s(), 0.0);
+    }
+
+    #[test]
     fn a_non_finite_request_holds() {
         let mut l = limiter(&[1.0, 1.0]);
         l.reset(&[0.1, 0.2], 0.0);
