@@ -8,6 +8,10 @@ not compile). A missed deletion is a state change no test notices; it is either 
 statement to list as equivalent in benchmarks/mutants/EQUIVALENT.md.
 
     benchmarks/mutants/delete_statements.py server/core/src/arbiter.rs
+    benchmarks/mutants/delete_statements.py server/core/src/joint_limit.rs joint_limit   # only the limiter's tests
+
+A second argument is a test-name filter (as for `cargo test`): the core crate's other tests then do not run,
+which for a small file is most of the time.
 
 Not in CI: one build and test run per statement (about 10 s each on two cores, niced).
 """
@@ -54,7 +58,7 @@ def statements(lines):
 
 
 def main():
-    if len(sys.argv) != 2:
+    if len(sys.argv) not in (2, 3):
         sys.exit(__doc__)
     rel = sys.argv[1]
     root = subprocess.run(["git", "rev-parse", "--show-toplevel"], capture_output=True, text=True, check=True).stdout.strip()
@@ -67,8 +71,11 @@ def main():
             shutil.copy2(os.path.join(root, f), dst)
     target = os.path.join(root, "target", "mutants", "deletions")
     env = dict(os.environ, CARGO_TARGET_DIR=target, CARGO_PROFILE_DEV_DEBUG="0", CARGO_PROFILE_TEST_DEBUG="0")
-    cmd = ["nice", "-n", "19", "cargo", "test", "-q", "-p", "phone2act-core", "--lib"]
+    cmd = ["nice", "-n", "19", "cargo", "test", "-q", "-p", "phone2act-core", "--lib"] + sys.argv[2:]
     path = os.path.join(scratch, rel)
+    # copy2 kept the file's old time; an interrupted earlier run may have left the shared target dir built from
+    # a mutated copy with a newer one, which cargo would take as up to date.
+    os.utime(path)
     original = open(path).read()
     lines = original.split("\n")
     base = subprocess.run(cmd, cwd=scratch, env=env, capture_output=True, text=True)

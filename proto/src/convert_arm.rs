@@ -114,6 +114,10 @@ pub fn arm_state_to_proto(s: &ArmSnapshot) -> v1::ArmState {
         commands_sent: s.counters.sent,
         commands_rejected: s.counters.rejected,
         commands_clamped: s.counters.clamped,
+        commands_joint_limited: s.joint_counters.limited,
+        commands_orientation_unreachable: s.joint_counters.orientation_unreachable,
+        joint_targets_rad: s.joint_targets_rad.clone(),
+        joint_targets_time_ns: s.joint_targets_time_ns,
         task_success: s.task_success,
     }
 }

@@ -129,6 +129,9 @@ impl App {
                 arm: arm.name.clone(),
                 message,
             };
+            let joint_speeds = arm
+                .joint_speeds_rad_s()
+                .map_err(|e| arm_err(format!("joint_limits: {e}")))?;
             let bridge: Arc<dyn Bridge> = match arm.bridge {
                 BridgeKind::Sim => {
                     let sim = phone2act_bridges::sim::SimBridge::start_with_clock(
@@ -158,10 +161,12 @@ impl App {
                         .map_err(|e| arm_err(e.to_string()))?
                 }
                 BridgeKind::So101 => {
-                    let cfg = arm
+                    let mut cfg = arm
                         .so101
                         .clone()
                         .ok_or_else(|| arm_err("bridge \"so101\" needs an [arms.so101] table".into()))?;
+                    // The servos ramp at the same limits the server's commands keep.
+                    cfg.max_velocity_rad_s.clone_from(&joint_speeds);
                     phone2act_bridges::so101::So101Bridge::start_with_clock(cfg, monotonic_ns)
                         .map_err(|e| arm_err(e.to_string()))?
                 }
@@ -177,6 +182,19 @@ impl App {
                 fallback_pose(),
             )
             .map_err(|e| arm_err(e.to_string()))?;
+            // Arms whose kinematics the server knows get their joints solved and rate-limited here; the
+            // Dobot's controller and remote bridges solve their own (docs/joint-limits.md).
+            let orientation_weight = match arm.bridge {
+                BridgeKind::Sim => Some(arm.sim.as_ref().map_or(1.0, |c| c.ik_orientation_weight)),
+                BridgeKind::So101 => arm.so101.as_ref().map(|c| c.ik_orientation_weight),
+                BridgeKind::Dobot | BridgeKind::Remote => None,
+            };
+            let controller = match orientation_weight {
+                Some(weight) => controller
+                    .with_joint_stage(joint_speeds, weight)
+                    .map_err(|e| arm_err(e.to_string()))?,
+                None => controller,
+            };
             let controller = match arm.dataset_layout {
                 crate::config::DatasetLayout::Phone2act => controller,
                 crate::config::DatasetLayout::LerobotSo101 => {

@@ -17,7 +17,7 @@ use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
     ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
     ChunkStep, Effects, FlightEntry, FlightHeader, Input, LayoutError, Measured, Outcome, ReplaceReport,
-    Robot, TeleopConfig, TeleopRound, TickNeed,
+    Robot, So101JointStage, TeleopConfig, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
@@ -68,6 +68,8 @@ pub enum ArmError {
         #[source]
         source: crate::flight_log::FlightLogError,
     },
+    #[error("arm {arm}: joint limits are enforced in the server only for SO-101 joints")]
+    JointStageUnsupported { arm: String },
     #[error("arm {arm:?} {source}")]
     Refused {
         arm: String,
@@ -118,12 +120,27 @@ struct Inner {
     arbiter: Arbiter,
     /// The owning policy session's event sink (the arbiter knows only its id).
     policy_sink: Option<(u64, Arc<dyn RevocationSink>)>,
-    /// The last joint action computed (joint arms): the seed of the next, so the recorder's inverse kinematics
-    /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
-    /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
+    /// The last joint action computed for a joint arm without a joint stage (a remote bridge with SO-101
+    /// joints): the seed of the next, so the recorder's inverse kinematics follows its own solutions.
     joint_seed: Option<Vec<f64>>,
     /// The flight recorder, when on: every input handed to the arbiter, in order, under this lock.
     flight: Option<FlightLogWriter>,
+    /// SO-101 arms (sim, so101): every command's joints are solved and rate-limited here, once; the bridge
+    /// drives to them and the recorder records them.
+    joints: Option<So101JointStage>,
+    /// `seq` of the last command handed to the bridge (a catch-up command repeats it: same target).
+    last_seq: u64,
+}
+
+impl Inner {
+    /// The arbiter's need, and ticks at the rate while the joint stage is still catching up with the target.
+    fn tick_need(&self) -> TickNeed {
+        if self.joints.as_ref().is_some_and(So101JointStage::behind) {
+            TickNeed::Periodic
+        } else {
+            self.arbiter.tick_need()
+        }
+    }
 }
 
 /// One input handled under the lock, with what is left to do once it is released.
@@ -222,6 +239,8 @@ impl ArmController {
                 policy_sink: None,
                 joint_seed: None,
                 flight: None,
+                joints: None,
+                last_seq: 0,
             }),
             wake: Notify::new(),
             latencies_ns: Mutex::new(LatencyRing::default()),
@@ -242,6 +261,32 @@ impl ArmController {
         })?;
         tracing::info!(arm = %self.name, path = %log.path().display(), "flight log on");
         self.inner.lock().flight = Some(log);
+        Ok(self)
+    }
+
+    /// Solves this SO-101 arm's commands in the server: each target once, seeded with the joints last
+    /// commanded, through the joint speed limits `max_velocity_rad_s` (five, rad/s), with the bridge's IK
+    /// orientation weight. See `phone2act_core::joint_motion`.
+    pub fn with_joint_stage(
+        self,
+        max_velocity_rad_s: Vec<f64>,
+        orientation_weight: f64,
+    ) -> Result<Self, ArmError> {
+        if self.kinematics.is_none() {
+            return Err(ArmError::JointStageUnsupported {
+                arm: self.name.clone(),
+            });
+        }
+        let mut stage = So101JointStage::new(max_velocity_rad_s, orientation_weight).map_err(|source| {
+            ArmError::Config {
+                arm: self.name.clone(),
+                source,
+            }
+        })?;
+        if let Some(feedback) = self.bridge.feedback() {
+            stage.reset(&feedback.joint_positions_rad, now_s());
+        }
+        self.inner.lock().joints = Some(stage);
         Ok(self)
     }
 
@@ -270,11 +315,13 @@ impl ArmController {
         input: Input,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<(Effects, Option<i64>), ArbiterError> {
-        // One feedback read and one clock read serve the readiness check and the planner.
-        let robot = robot_of(self.bridge.health(), self.bridge.feedback().as_ref());
+        // One feedback read and one clock read serve the readiness check, the planner and the joint stage.
+        let feedback = self.bridge.feedback();
+        let robot = robot_of(self.bridge.health(), feedback.as_ref());
         let now = now_s();
         let mut inner = self.inner.lock();
-        let handled = self.handle_locked(&mut inner, input, &robot, now, sink)?;
+        let measured_joints = feedback.as_ref().map(|f| f.joint_positions_rad.as_slice());
+        let handled = self.handle_locked(&mut inner, input, &robot, measured_joints, now, sink)?;
         drop(inner);
         Ok(self.finish(handled))
     }
@@ -286,10 +333,11 @@ impl ArmController {
         inner: &mut Inner,
         input: Input,
         robot: &Robot,
+        measured_joints: Option<&[f64]>,
         now: f64,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<Handled, ArbiterError> {
-        let need_before = inner.arbiter.tick_need();
+        let need_before = inner.tick_need();
         let logged = inner.flight.is_some().then(|| input.clone());
         let result = inner.arbiter.handle(input, robot, now);
         if let (Some(input), Some(log)) = (logged, inner.flight.as_mut()) {
@@ -304,17 +352,21 @@ impl ArmController {
         if sink.is_some() {
             inner.policy_sink = sink;
         }
+        // A new source starts from where the arm is, as the arbiter's planner does.
+        if let (Some(stage), Some(joints)) = (inner.joints.as_mut(), measured_joints)
+            && (effects.reindexed || stage.commanded().is_none())
+        {
+            stage.reset(joints, now);
+        }
         let mut command_time_ns = None;
         // Sent under the lock, so the bridge sees commands in `seq` order.
         for c in &effects.commands {
-            let issue_time_ns = monotonic_ns();
-            self.bridge.send(phone2act_bridges::Command {
-                seq: c.seq,
-                robot_from_target: c.robot_from_target,
-                gripper_target: c.gripper,
-                issue_time_ns,
-            });
-            command_time_ns = Some(issue_time_ns);
+            command_time_ns = Some(self.send_locked(inner, c.seq, &c.robot_from_target, c.gripper));
+        }
+        // The last command did not get there within the joint limits: solve it again next tick.
+        if effects.commands.is_empty() && inner.joints.as_ref().is_some_and(So101JointStage::behind) {
+            let (target, gripper) = inner.arbiter.target();
+            command_time_ns = Some(self.send_locked(inner, inner.last_seq, &target, gripper));
         }
         let sink = effects.revoked.as_ref().and_then(|r| {
             inner
@@ -322,7 +374,7 @@ impl ArmController {
                 .take_if(|(session, _)| *session == r.session)
                 .map(|(_, sink)| sink)
         });
-        if inner.arbiter.tick_need() != need_before {
+        if inner.tick_need() != need_before {
             self.wake.notify_one();
         }
         Ok(Handled {
@@ -330,6 +382,27 @@ impl ArmController {
             command_time_ns,
             revoked: sink,
         })
+    }
+
+    /// Hands one command to the bridge, with its joints when this arm has a joint stage. Returns the issue
+    /// time.
+    fn send_locked(&self, inner: &mut Inner, seq: u64, target: &Isometry3<f64>, gripper: f64) -> i64 {
+        let issue_time_ns = monotonic_ns();
+        let joint_targets_rad = inner.joints.as_mut().map(|stage| {
+            stage
+                .plan(target, issue_time_ns as f64 * 1e-9)
+                .joints_rad
+                .to_vec()
+        });
+        self.bridge.send(phone2act_bridges::Command {
+            seq,
+            robot_from_target: *target,
+            gripper_target: gripper,
+            issue_time_ns,
+            joint_targets_rad,
+        });
+        inner.last_seq = seq;
+        issue_time_ns
     }
 
     /// Tells a revoked policy session that it lost the arm (without the lock: the sink must not be called
@@ -517,8 +590,19 @@ impl ArmController {
                 gripper: feedback.gripper_position,
             };
             // Nobody drives (checked above under this lock): the arbiter accepts, sends nothing, revokes nobody.
+            let now = now_s();
+            if let Some(stage) = inner.joints.as_mut() {
+                stage.reset(&feedback.joint_positions_rad, now);
+            }
             let handled = self
-                .handle_locked(&mut inner, homed, &robot, now_s(), None)
+                .handle_locked(
+                    &mut inner,
+                    homed,
+                    &robot,
+                    Some(&feedback.joint_positions_rad),
+                    now,
+                    None,
+                )
                 .map_err(|e| self.refused(e))?;
             inner.joint_seed = None;
             drop(inner);
@@ -539,7 +623,7 @@ impl ArmController {
 
     /// How soon the arm needs a tick.
     fn tick_need(&self) -> TickNeed {
-        self.inner.lock().arbiter.tick_need()
+        self.inner.lock().tick_need()
     }
 
     /// A snapshot for the API.
@@ -594,6 +678,22 @@ impl ArmController {
                 .as_ref()
                 .map_or(-1.0, |f| (now_ns - f.capture_time_ns) as f64 * 1e-9),
             counters: a.counters(),
+            joint_counters: inner
+                .joints
+                .as_ref()
+                .map(So101JointStage::counters)
+                .unwrap_or_default(),
+            joint_targets_rad: inner
+                .joints
+                .as_ref()
+                .and_then(So101JointStage::commanded)
+                .map(|q| q.to_vec())
+                .unwrap_or_default(),
+            joint_targets_time_ns: inner
+                .joints
+                .as_ref()
+                .filter(|j| j.commanded().is_some())
+                .map_or(0, |j| (j.commanded_time_s() * 1e9).round() as i64),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
         }
     }
@@ -621,9 +721,17 @@ impl ArmController {
             engaged: inner.arbiter.engaged(),
             rejected: counters.rejected,
             clamped: counters.clamped,
+            joint_limited: inner.joints.as_ref().map_or(0, |j| j.counters().limited),
             last_reason: inner.arbiter.last_decision().reason.clone(),
         };
-        let action = if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
+        let commanded = inner.joints.as_ref().and_then(So101JointStage::commanded);
+        let action = if let (ActionMode::Joint, Some(joints)) = (self.action_mode, commanded) {
+            // Exactly the joints the bridge was sent: no second solve with another seed.
+            drop(inner);
+            let mut native = joints.to_vec();
+            native.push(gripper);
+            self.layout.joint_step_from_native(&native)
+        } else if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {
             let seed = inner
                 .joint_seed
                 .take()

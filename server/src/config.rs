@@ -160,6 +160,10 @@ pub struct ArmConfig {
     /// Out-of-process bridge settings (bridge = "remote").
     #[serde(default)]
     pub remote: Option<RemoteArmConfig>,
+    /// Joint speed limits (`[arms.<name>.joint_limits]`); each robot's data-sheet speed by default (see
+    /// docs/joint-limits.md).
+    #[serde(default)]
+    pub joint_limits: phone2act_core::JointLimitConfig,
 }
 
 /// A remote arm: the joints its bridge will report, so the dataset layout is known before it attaches.
@@ -549,9 +553,30 @@ impl Config {
 }
 
 impl ArmConfig {
+    /// The speed limit of each arm joint (rad/s): `joint_limits.max_velocity_rad_s`, or the robot's default.
+    pub fn joint_speeds_rad_s(&self) -> Result<Vec<f64>, phone2act_core::ConfigError> {
+        use phone2act_core::joint_motion::{
+            CR5_MAX_VELOCITY_RAD_S, REMOTE_DEFAULT_MAX_VELOCITY_RAD_S, STS3215_MAX_VELOCITY_RAD_S,
+        };
+        let (joints, default_rad_s) = match self.bridge {
+            BridgeKind::Sim | BridgeKind::So101 => (
+                phone2act_core::kinematics::SO101_ARM_DOF,
+                STS3215_MAX_VELOCITY_RAD_S,
+            ),
+            BridgeKind::Dobot => (6, CR5_MAX_VELOCITY_RAD_S),
+            BridgeKind::Remote => (
+                self.remote.as_ref().map_or(0, |r| r.joint_names.len()),
+                REMOTE_DEFAULT_MAX_VELOCITY_RAD_S,
+            ),
+        };
+        self.joint_limits.resolve(joints, default_rad_s)
+    }
+
     /// Ranges serde cannot check, for this arm and the bridge section it uses.
     fn validate(&self) -> Result<(), String> {
         self.teleop.validate().map_err(|e| format!("teleop: {e}"))?;
+        self.joint_speeds_rad_s()
+            .map_err(|e| format!("joint_limits: {e}"))?;
         self.chunk.validate().map_err(|e| format!("chunk: {e}"))?;
         if self.chunk.max_steps == 0 || self.chunk.max_steps > MAX_CHUNK_STEPS {
             return Err(format!(

@@ -383,6 +383,7 @@ mod tests {
             robot_from_target: Isometry3::translation(0.2, 0.0, 0.1),
             gripper_target: 0.0,
             issue_time_ns: 0,
+            joint_targets_rad: None,
         }
     }
 

@@ -34,6 +34,7 @@ fn command(seq: u64, pose: Isometry3<f64>, gripper: f64) -> Command {
         robot_from_target: pose,
         gripper_target: gripper,
         issue_time_ns: 0,
+        joint_targets_rad: None,
     }
 }
 

@@ -10,6 +10,7 @@ use phone2act_bridges::{Bridge, BridgeError, Command, Control, Health};
 use phone2act_core::kinematics::{SO101_JOINT_NAMES, So101Joints, So101Kinematics};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicI64, Ordering};
 use std::time::{Duration, Instant};
 
 /// Ranges centred on 2047 (homing done), about ±88° for the body joints.
@@ -65,11 +66,27 @@ struct Rig {
 }
 
 fn start_rig(configure: impl FnOnce(&mut So101Config)) -> Rig {
-    start_rig_with(|_| {}, configure)
+    start_rig_full(|_| {}, configure, phone2act_clock::monotonic_ns)
 }
 
 /// As [`start_rig`], with `factory` changing the servos before the bridge first sees them.
 fn start_rig_with(factory: impl FnOnce(&FeetechEmulator), configure: impl FnOnce(&mut So101Config)) -> Rig {
+    start_rig_full(factory, configure, phone2act_clock::monotonic_ns)
+}
+
+/// As [`start_rig`], with the bridge reading `clock`.
+fn start_rig_with_clock(
+    configure: impl FnOnce(&mut So101Config),
+    clock: phone2act_bridges::sim::ClockFn,
+) -> Rig {
+    start_rig_full(|_| {}, configure, clock)
+}
+
+fn start_rig_full(
+    factory: impl FnOnce(&FeetechEmulator),
+    configure: impl FnOnce(&mut So101Config),
+    clock: phone2act_bridges::sim::ClockFn,
+) -> Rig {
     let dir = tempfile::tempdir().unwrap();
     let cal = synthetic_calibration();
     let cal_path = dir.path().join("follower.json");
@@ -83,7 +100,7 @@ fn start_rig_with(factory: impl FnOnce(&FeetechEmulator), configure: impl FnOnce
     // Generous for a loaded test machine: the emulator thread must be scheduled within it.
     config.timeout_ms = 50;
     configure(&mut config);
-    let bridge = So101Bridge::start(config).unwrap();
+    let bridge = So101Bridge::start_with_clock(config, clock).unwrap();
     Rig {
         emulator,
         bridge,
@@ -106,6 +123,7 @@ fn command(seq: u64, pose: Isometry3<f64>, gripper: f64) -> Command {
         robot_from_target: pose,
         gripper_target: gripper,
         issue_time_ns: 0,
+        joint_targets_rad: None,
     }
 }
 
@@ -936,4 +954,73 @@ fn check_binary_reports_firmware_phase_alarms_and_calibration_differences() {
         "{text}"
     );
     assert!(text.contains("NOT READY"), "{text}");
+}
+
+/// The bridge's clock in [`a_joint_jump_reaches_the_servos_as_a_ramp`]: time moves only when the test moves it.
+static RAMP_CLOCK_NS: AtomicI64 = AtomicI64::new(1_000_000_000);
+
+fn ramp_clock() -> i64 {
+    RAMP_CLOCK_NS.load(Ordering::SeqCst)
+}
+
+/// A joint target 1.5 rad away, sent at once, reaches the servos' goal registers as a ramp: no goal moves a
+/// joint more than its speed limit allows for the time that passed. The bridge's clock is the test's, moved
+/// 10 ms at a time, so the bound does not depend on how the threads of a loaded machine are scheduled: a
+/// late cycle sees no more time than the test gave it.
+#[test]
+fn a_joint_jump_reaches_the_servos_as_a_ramp() {
+    let rig = start_rig_with_clock(|_| {}, ramp_clock);
+    let bridge = &rig.bridge;
+    wait_for("feedback", Duration::from_secs(5), || bridge.feedback().is_some());
+    let cal = synthetic_calibration();
+    let goal_rad = |i: usize| {
+        let motor = cal.get(SO101_JOINT_NAMES[i]).unwrap();
+        let raw = rig.emulator.servo(motor.id).unwrap().goal_position();
+        motor.raw_to_deg(u16::try_from(raw).unwrap()).to_radians()
+    };
+    let from: So101Joints = std::array::from_fn(goal_rad);
+    let mut to = from;
+    to[0] += 1.0;
+    to[4] -= 1.5;
+    bridge.send(Command {
+        joint_targets_rad: Some(to.to_vec()),
+        ..command(1, So101Kinematics::new().forward(&to), 0.0)
+    });
+    let limit_rad_s = bridge.config().max_velocity_rad_s.clone();
+    let period_ns = 10_000_000;
+    // One encoder count: the goal is written in whole counts.
+    let count_rad = (360.0f64 / 4096.0).to_radians();
+    let mut previous = from;
+    let mut steps = 0;
+    for _ in 0..500 {
+        let cycles = bridge.stats().cycles;
+        RAMP_CLOCK_NS.fetch_add(period_ns, Ordering::SeqCst);
+        // The cycle running when the clock moved may have read the old time; the one after it reads the new.
+        wait_for("two cycles", Duration::from_secs(10), || {
+            bridge.stats().cycles >= cycles + 2
+        });
+        let now: So101Joints = std::array::from_fn(goal_rad);
+        for j in 0..5 {
+            let allowed = limit_rad_s[j] * period_ns as f64 * 1e-9 + count_rad;
+            assert!(
+                (now[j] - previous[j]).abs() <= allowed,
+                "joint {j} goal moved {} rad in one 10 ms period (limit {allowed})",
+                now[j] - previous[j]
+            );
+        }
+        // Goals are whole encoder counts: a change is a new goal written.
+        if now.map(f64::to_bits) != previous.map(f64::to_bits) {
+            steps += 1;
+        }
+        previous = now;
+        if (0..5).all(|j| (now[j] - to[j]).abs() <= count_rad) {
+            break;
+        }
+    }
+    assert!(
+        (0..5).all(|j| (previous[j] - to[j]).abs() <= count_rad),
+        "the ramp did not arrive: {previous:?} vs {to:?}"
+    );
+    // 1.5 rad at 4.7 rad/s in 10 ms periods is 32 steps.
+    assert!(steps >= 30, "{steps} goal changes: not a ramp");
 }

@@ -79,6 +79,7 @@ fn teleop_session(bridge: &dyn Bridge, config: &TeleopConfig, n: u64) -> Outcome
                 robot_from_target: target,
                 gripper_target: gripper,
                 issue_time_ns: 0,
+                joint_targets_rad: None,
             });
         }
         std::thread::sleep(Duration::from_millis(20));

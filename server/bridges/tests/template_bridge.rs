@@ -228,6 +228,7 @@ fn the_template_bridge_follows_targets_and_reports_refusals() {
         robot_from_target: target,
         gripper_target: 0.0,
         issue_time_ns: 0,
+        joint_targets_rad: None,
     });
     while !bridge.feedback().is_some_and(|f| {
         f.applied_seq == 3 && (f.robot_from_ee.translation.vector - target.translation.vector).norm() < 1e-6
@@ -243,6 +244,7 @@ fn the_template_bridge_follows_targets_and_reports_refusals() {
         robot_from_target: Isometry3::translation(5.0, 0.0, 0.0),
         gripper_target: 0.0,
         issue_time_ns: 0,
+        joint_targets_rad: None,
     });
     while !matches!(bridge.health(), Health::Error(m) if m.contains("out of range")) {
         assert!(

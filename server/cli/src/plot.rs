@@ -125,7 +125,11 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
                     spans.push((arm, from, e.timestamp));
                 }
             }
-            EventKind::GateRejected | EventKind::GateClamped | EventKind::LateTick | EventKind::Paused => {}
+            EventKind::GateRejected
+            | EventKind::GateClamped
+            | EventKind::JointLimited
+            | EventKind::LateTick
+            | EventKind::Paused => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -225,7 +229,8 @@ fn panel_svg(
             }
             let color = match e.kind {
                 EventKind::GateRejected => REJECTED_COLOR,
-                EventKind::GateClamped => CLAMPED_COLOR,
+                // Both shorten a command: the gate in task space, the joint limits in joint space.
+                EventKind::GateClamped | EventKind::JointLimited => CLAMPED_COLOR,
                 EventKind::ClutchEngage | EventKind::ClutchRelease => ENGAGED_COLOR,
                 // The recorder's timeline: frames that are not at their own time, and where time jumps.
                 EventKind::LateTick | EventKind::Paused => TIMELINE_COLOR,

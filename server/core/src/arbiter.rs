@@ -255,6 +255,11 @@ pub struct ArmSnapshot {
     /// Negative without feedback.
     pub feedback_age_s: f64,
     pub counters: Counters,
+    /// What the joint stage changed (arms whose joints the server solves; zero for the others).
+    pub joint_counters: crate::joint_motion::JointCounters,
+    /// The joints last commanded and their issue time (server monotonic ns); empty and 0 for other arms.
+    pub joint_targets_rad: Vec<f64>,
+    pub joint_targets_time_ns: i64,
     pub task_success: bool,
 }
 

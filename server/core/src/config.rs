@@ -18,6 +18,12 @@ pub enum ConfigError {
     NotPositive { name: &'static str, value: f64 },
     #[error("{name} must be finite, got {value}")]
     NotFinite { name: &'static str, value: f64 },
+    #[error("{name} needs {expected} values (or one for all), got {got}")]
+    WrongLength {
+        name: &'static str,
+        expected: usize,
+        got: usize,
+    },
     #[error("workspace axis {axis}: min {min_m} m must be below max {max_m} m")]
     EmptyWorkspace { axis: char, min_m: f64, max_m: f64 },
 }

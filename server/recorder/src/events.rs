@@ -29,6 +29,8 @@ pub struct ArmActivity {
     pub rejected: u64,
     /// Commands the safety gate clamped into the workspace so far.
     pub clamped: u64,
+    /// Commands the joint speed limits shortened so far (arms whose joints the server solves).
+    pub joint_limited: u64,
     /// The reason of the gate's last decision (kept as the event's detail).
     pub last_reason: String,
 }
@@ -46,6 +48,8 @@ pub enum EventKind {
     /// The recorder's own: `count` ticks before this frame were not recorded because a source had sent
     /// nothing within the hold tolerance, so the episode's time jumps here by `count / fps`. `arm` is empty.
     Paused,
+    /// The joint speed limits shortened commands: the arm followed at its limit, behind the target.
+    JointLimited,
 }
 
 /// One line of the sidecar.
@@ -88,7 +92,9 @@ pub fn transitions(
     for now in current {
         let before = previous
             .and_then(|p| p.iter().find(|b| b.arm == now.arm))
-            .filter(|b| b.rejected <= now.rejected && b.clamped <= now.clamped);
+            .filter(|b| {
+                b.rejected <= now.rejected && b.clamped <= now.clamped && b.joint_limited <= now.joint_limited
+            });
         let Some(before) = before else {
             if now.engaged {
                 events.push(event(
@@ -118,6 +124,15 @@ pub fn transitions(
         }
         if clamped > 0 {
             events.push(event(now, EventKind::GateClamped, clamped, reason));
+        }
+        let joint_limited = now.joint_limited - before.joint_limited;
+        if joint_limited > 0 {
+            events.push(event(
+                now,
+                EventKind::JointLimited,
+                joint_limited,
+                "joint speed limit",
+            ));
         }
     }
     events
@@ -225,8 +240,20 @@ mod tests {
             engaged,
             rejected,
             clamped,
+            joint_limited: 0,
             last_reason: "jump of 120 mm".into(),
         }
+    }
+
+    #[test]
+    fn joint_limited_commands_are_events_too() {
+        let before = arm(true, 0, 0);
+        let mut now = arm(true, 0, 0);
+        now.joint_limited = 4;
+        let e = transitions(Some(&[before]), &[now.clone()], 12, 20);
+        assert_eq!(kinds(&e), [(EventKind::JointLimited, 4)]);
+        assert_eq!(e[0].detail, "joint speed limit");
+        assert!(transitions(Some(&[now.clone()]), &[now], 13, 20).is_empty());
     }
 
     fn kinds(events: &[EpisodeEvent]) -> Vec<(EventKind, u64)> {

@@ -123,7 +123,8 @@ impl From<ArmError> for Status {
             ArmError::Config { .. }
             | ArmError::JointModeUnsupported { .. }
             | ArmError::LerobotLayoutUnsupported { .. }
-            | ArmError::FlightLog { .. } => Status::failed_precondition(message),
+            | ArmError::FlightLog { .. }
+            | ArmError::JointStageUnsupported { .. } => Status::failed_precondition(message),
         }
     }
 }

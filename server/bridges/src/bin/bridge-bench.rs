@@ -67,6 +67,7 @@ fn command(seq: u64, pose: Isometry3<f64>) -> Command {
         robot_from_target: pose,
         gripper_target: 0.0,
         issue_time_ns: 0,
+        joint_targets_rad: None,
     }
 }
 

@@ -767,6 +767,7 @@ mod tests {
             robot_from_target: target,
             gripper_target: 1.0,
             issue_time_ns: 0,
+            joint_targets_rad: None,
         });
         world.step(0.5);
         let b = render(&world, &mut renderer, 160, 120);

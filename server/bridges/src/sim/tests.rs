@@ -22,6 +22,7 @@ fn hold(bridge: &SimBridge, seq: &mut u64, target: Isometry3<f64>, gripper: f64,
             robot_from_target: target,
             gripper_target: gripper,
             issue_time_ns: 0,
+            joint_targets_rad: None,
         });
         std::thread::sleep(Duration::from_millis(20));
     }
@@ -216,6 +217,7 @@ fn stream_and_compare(stall: bool) -> (usize, f64) {
             robot_from_target: target,
             gripper_target: if k > 4 { 1.0 } else { 0.0 },
             issue_time_ns: local_monotonic_ns(),
+            joint_targets_rad: None,
         };
         bridge.send(command.clone());
         drop(held);
@@ -289,6 +291,7 @@ fn a_full_queue_drops_the_oldest_and_ends_on_the_newest() {
                 robot_from_target: target,
                 gripper_target: 0.0,
                 issue_time_ns: local_monotonic_ns(),
+                joint_targets_rad: None,
             });
         }
     }

@@ -90,9 +90,39 @@ pub struct IkRequest {
 }
 
 impl IkRequest {
+    /// The joints the command asks for: its joint targets when the server solved them (then the solution
+    /// reports their forward kinematics against the command's pose), otherwise the IK of its pose.
     pub fn solve(&self, command: &Command) -> IkSolution {
-        self.kinematics
-            .inverse(&command.robot_from_target, &self.seed, self.weights)
+        match command.joint_targets_rad.as_deref().map(<So101Joints>::try_from) {
+            Some(Ok(joints)) => self.given(&joints, &command.robot_from_target),
+            // Joint targets of another width are no SO-101's: refused like a non-finite pose.
+            Some(Err(_)) => IkSolution {
+                invalid_input: true,
+                ..self.given(&self.seed, &command.robot_from_target)
+            },
+            None => self
+                .kinematics
+                .inverse(&command.robot_from_target, &self.seed, self.weights),
+        }
+    }
+
+    fn given(&self, joints: &So101Joints, target: &Isometry3<f64>) -> IkSolution {
+        let solver = &self.kinematics.solver;
+        let invalid_input = !joints.iter().all(|q| q.is_finite());
+        let joints_rad = clamp_to_limits(joints);
+        let achieved = self.kinematics.forward(&joints_rad);
+        let position_error_m = (target.translation.vector - achieved.translation.vector).norm();
+        let orientation_error_rad = target.rotation.angle_to(&achieved.rotation);
+        IkSolution {
+            joints_rad,
+            achieved,
+            position_error_m,
+            orientation_error_rad,
+            iterations: 0,
+            position_reached: position_error_m <= solver.position_tolerance_m,
+            orientation_reached: orientation_error_rad <= solver.orientation_tolerance_rad,
+            invalid_input,
+        }
     }
 }
 
@@ -437,6 +467,7 @@ mod tests {
             robot_from_target: target,
             gripper_target: gripper,
             issue_time_ns: 0,
+            joint_targets_rad: None,
         }
     }
 
@@ -521,6 +552,7 @@ mod tests {
                     robot_from_target: target,
                     gripper_target: if k > 4 { 1.0 } else { 0.0 },
                     issue_time_ns: t0_ns + i64::from(k) * 20_000_000,
+                    joint_targets_rad: None,
                 }
             })
             .collect();

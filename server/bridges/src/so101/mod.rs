@@ -1,8 +1,11 @@
 //! LeRobot SO-101 bridge over a Feetech STS3215 bus.
 //!
-//! One thread runs a fixed-rate cycle (100 Hz by default): take the newest target, solve the inverse
-//! kinematics seeded with the previous goal (position first, orientation weighted), sync-write the six goal
-//! positions, sync-read the six present positions and publish forward kinematics as [`Feedback`]. Joint angles
+//! One thread runs a fixed-rate cycle (100 Hz by default): take the newest target (its joint targets when the
+//! server solved them, otherwise the inverse kinematics seeded with the previous goal, position first,
+//! orientation weighted), move the goal toward it by at most what each joint's speed limit allows since the
+//! last cycle, sync-write the six goal positions, sync-read the six present positions and publish forward
+//! kinematics as [`Feedback`]. A target farther than one cycle's travel reaches the servos as a ramp over
+//! several cycles, whoever sent it. Joint angles
 //! are lerobot's `DEGREES` values (0 at the middle of each calibrated range), which is the zero of the "new
 //! calib" URDF; the gripper uses lerobot's `RANGE_0_100`.
 //!
@@ -28,8 +31,11 @@ use crate::sim::ClockFn;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
 use calibration::{Calibration, MotorCalibration, multi_turn_feedback};
 use parking_lot::Mutex;
+use phone2act_core::JointRateLimiter;
+use phone2act_core::joint_motion::STS3215_MAX_VELOCITY_RAD_S;
 use phone2act_core::kinematics::{
     IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, SO101_JOINT_NAMES, So101Joints, So101Kinematics,
+    clamp_to_limits,
 };
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -76,6 +82,15 @@ pub struct So101Config {
     pub configure_motors: bool,
     #[serde(default = "default_true")]
     pub enable_on_start: bool,
+    /// Largest speed of each arm joint (rad/s) the goal ramps at. Not a key of `[arms.so101]`: the server
+    /// sets it from the arm's `[arms.<name>.joint_limits]`, so the servos and the server's commands share
+    /// one limit.
+    #[serde(skip, default = "default_max_velocity_rad_s")]
+    pub max_velocity_rad_s: Vec<f64>,
+}
+
+fn default_max_velocity_rad_s() -> Vec<f64> {
+    vec![STS3215_MAX_VELOCITY_RAD_S; SO101_ARM_DOF]
 }
 
 fn default_baudrate() -> u32 {
@@ -112,6 +127,7 @@ impl So101Config {
             gripper_closed_pct: 0.0,
             configure_motors: true,
             enable_on_start: true,
+            max_velocity_rad_s: default_max_velocity_rad_s(),
         }
     }
 
@@ -125,6 +141,14 @@ impl So101Config {
         }
         if !(1..=1000).contains(&self.timeout_ms) {
             return bad(format!("timeout_ms {} outside [1, 1000]", self.timeout_ms));
+        }
+        if self.max_velocity_rad_s.len() != SO101_ARM_DOF
+            || JointRateLimiter::new(self.max_velocity_rad_s.clone()).is_err()
+        {
+            return bad(format!(
+                "max_velocity_rad_s {:?} is not {SO101_ARM_DOF} finite positive speeds",
+                self.max_velocity_rad_s
+            ));
         }
         if !(0.0..=1.0).contains(&self.ik_orientation_weight) {
             return bad(format!(
@@ -245,6 +269,17 @@ fn describe_alarms(ids: [u8; MOTORS], bits: [u8; MOTORS]) -> Option<String> {
     (!parts.is_empty()).then(|| parts.join("; "))
 }
 
+/// The goal the servos are ramped toward.
+#[derive(Debug)]
+struct Ramp {
+    /// Starts at the present positions when torque comes on; its last value is the goal last written.
+    limiter: JointRateLimiter,
+    /// Joints, gripper target and seq of the newest command; `None` before any.
+    target: Option<(So101Joints, f64, u64)>,
+    /// True until the goal written equals the target.
+    moving: bool,
+}
+
 #[derive(Debug)]
 struct Inner {
     config: So101Config,
@@ -258,6 +293,8 @@ struct Inner {
     status: Mutex<Status>,
     /// Goal joints of the last command (IK seed), radians.
     goal_rad: Mutex<Option<So101Joints>>,
+    /// The newest command's joints and the limiter that ramps the written goal toward them.
+    ramp: Mutex<Ramp>,
     applied_seq: AtomicU64,
     stop: AtomicBool,
     thread: Mutex<Option<JoinHandle<()>>>,
@@ -324,6 +361,12 @@ impl So101Bridge {
                 alarm_stop: None,
             }),
             goal_rad: Mutex::new(None),
+            ramp: Mutex::new(Ramp {
+                limiter: JointRateLimiter::new(config.max_velocity_rad_s.clone())
+                    .map_err(|e| BridgeError::Config(format!("so101: {e}")))?,
+                target: None,
+                moving: false,
+            }),
             applied_seq: AtomicU64::new(0),
             stop: AtomicBool::new(false),
             thread: Mutex::new(None),
@@ -494,7 +537,15 @@ impl Inner {
             }
             Ok(())
         })?;
-        *self.goal_rad.lock() = Some(self.arm_rad(&raw));
+        let present = self.arm_rad(&raw);
+        *self.goal_rad.lock() = Some(present);
+        {
+            // Torque off, the arm may have been moved by hand: ramps start where it is, toward nothing.
+            let mut ramp = self.ramp.lock();
+            ramp.limiter.reset(&present, (self.clock)() as f64 * 1e-9);
+            ramp.target = None;
+            ramp.moving = false;
+        }
         self.status.lock().enabled = true;
         Ok(())
     }
@@ -562,7 +613,10 @@ impl Inner {
         let mut result = Ok(());
         let command = self.slot.take();
         if let Some(command) = command.as_ref().filter(|_| healthy) {
-            result = self.write_goal(command);
+            self.accept(command);
+        }
+        if healthy {
+            result = self.write_goal();
         }
         let read = result.and_then(|()| self.with_bus(|bus| read_positions(bus, self.ids)));
         let bus_time = started.elapsed();
@@ -606,26 +660,50 @@ impl Inner {
         }
     }
 
-    fn write_goal(&self, command: &Command) -> Result<(), BusError> {
-        let seed = self.goal_rad.lock().unwrap_or([0.0; SO101_ARM_DOF]);
-        let weights = IkWeights {
-            orientation: self.config.ik_orientation_weight,
+    /// Makes `command` the target the goal ramps toward: its joint targets, or the IK of its pose.
+    fn accept(&self, command: &Command) {
+        let joints = if let Some(given) = command.joint_targets_rad.as_deref() {
+            So101Joints::try_from(given)
+                .ok()
+                .filter(|joints| joints.iter().all(|q| q.is_finite()))
+                .map(|joints| clamp_to_limits(&joints))
+        } else {
+            let seed = self.goal_rad.lock().unwrap_or([0.0; SO101_ARM_DOF]);
+            let weights = IkWeights {
+                orientation: self.config.ik_orientation_weight,
+            };
+            let solution = self
+                .kinematics
+                .inverse(&command.robot_from_target, &seed, weights);
+            if !solution.position_reached && !solution.invalid_input {
+                self.unreachable.fetch_add(1, Ordering::Relaxed);
+            }
+            (!solution.invalid_input).then_some(solution.joints_rad)
         };
-        let solution = self
-            .kinematics
-            .inverse(&command.robot_from_target, &seed, weights);
-        if solution.invalid_input || !command.gripper_target.is_finite() {
+        let Some(joints) = joints.filter(|_| command.gripper_target.is_finite()) else {
             warn!(seq = command.seq, "so101: non-finite target dropped; arm holds");
+            return;
+        };
+        *self.goal_rad.lock() = Some(joints);
+        let mut ramp = self.ramp.lock();
+        ramp.target = Some((joints, command.gripper_target, command.seq));
+        ramp.moving = true;
+    }
+
+    /// Writes the next goal of the ramp toward the target, if it is not there yet.
+    fn write_goal(&self) -> Result<(), BusError> {
+        let mut ramp = self.ramp.lock();
+        let Some((target, gripper_target, seq)) = ramp.target.filter(|_| ramp.moving) else {
             return Ok(());
-        }
-        if !solution.position_reached {
-            self.unreachable.fetch_add(1, Ordering::Relaxed);
-        }
+        };
+        let now_s = (self.clock)() as f64 * 1e-9;
+        let before = ramp.limiter.clone();
+        let step = ramp.limiter.step(&target, now_s);
         let mut raw = [0u16; MOTORS];
-        for (i, q) in solution.joints_rad.iter().enumerate() {
+        for (i, q) in step.joints_rad.iter().enumerate() {
             raw[i] = self.calibration[i].deg_to_raw(q.to_degrees());
         }
-        raw[MOTORS - 1] = self.gripper_raw(command.gripper_target);
+        raw[MOTORS - 1] = self.gripper_raw(gripper_target);
         let (address, len) = register::GOAL_POSITION;
         let items: Vec<(u8, Vec<u8>)> = self
             .ids
@@ -640,10 +718,14 @@ impl Inner {
                 )
             })
             .collect();
-        self.with_bus(|bus| bus.sync_write(address, len, &items))?;
-        *self.goal_rad.lock() = Some(solution.joints_rad);
+        if let Err(e) = self.with_bus(|bus| bus.sync_write(address, len, &items)) {
+            // Not written: the next cycle ramps from the goal the servos still hold.
+            ramp.limiter = before;
+            return Err(e);
+        }
+        ramp.moving = step.limited;
         self.goals_written.fetch_add(1, Ordering::Relaxed);
-        self.applied_seq.store(command.seq, Ordering::SeqCst);
+        self.applied_seq.store(seq, Ordering::SeqCst);
         Ok(())
     }
 

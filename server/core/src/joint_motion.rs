@@ -1,0 +1,556 @@
+//! Joint targets for arms whose kinematics the server knows (the SO-101, simulated or on its servo bus): the
+//! one place a gated task-space target becomes the joints a bridge drives to, the joints the recorder
+//! records as the action, and the joints the next target is solved from.
+//!
+//! Each command is solved once, seeded with the joints last commanded (not the lagging measured ones), and
+//! then passes the [`JointRateLimiter`]. Two rules keep the solution continuous:
+//!
+//! - **The orientation aimed at moves at most one period's turn.** The solver aims at the target orientation
+//!   turned toward from the commanded tool orientation by at most what the slowest arm joint turns in the
+//!   time since the last command (never more than [`MAX_AIM_STEP_RAD`]). A damped least-squares solve from a
+//!   seed to an orientation this close stays on the seed's branch; aimed at a target 180° away it picks
+//!   whichever side the arithmetic favours, which was the jump. Past 180° minus [`TURN_HYSTERESIS_RAD`] the
+//!   turn keeps the direction it had, so a target that stays near the far side does not swing the wrist back
+//!   and forth.
+//! - **Position first, then as much orientation as fits the joint limits.** If the solution needs a joint
+//!   step longer than the limit allows in the period, the orientation step is halved and the solve repeated
+//!   (down to position only, which from a commanded pose that already meets the position needs no motion);
+//!   only a step that the position itself needs is shortened by the limiter's common factor. So the tool
+//!   leaves the target's position only when the target's position moves faster than the joints can follow.
+//!
+//! A 5-DoF arm reaches only part of the orientations at a position. For the rest the arm keeps the position
+//! and turns as far toward the target as the null space of the position task allows, and stays there:
+//! [`PlannedJoints::orientation_unreachable`] says so and [`JointCounters::orientation_unreachable`] counts
+//! the commands. The same joints go to the sim, to the SO-101 servos and into the recorded action, so the
+//! three agree.
+
+use crate::config::ConfigError;
+use crate::joint_limit::JointRateLimiter;
+use crate::kinematics::{IkWeights, SO101_ARM_DOF, So101Joints, So101Kinematics, clamp_to_limits};
+use nalgebra::{Isometry3, Unit, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+
+/// Largest speed of an SO-101 joint, rad/s. Feetech's STS3215 data sheet gives a no-load speed of 0.222 s per
+/// 60° at 12 V (45 rpm = 4.71 rad/s; the 7.4 V variant 0.192 s/60°, 5.45 rad/s), and a bench test of the
+/// servo in the SO-ARM100 repository (TheRobotStudio/SO-ARM100 issue 134) measured 46 rpm. No-load is an
+/// upper bound: a loaded servo is slower, so the arm follows commands at this speed rather than lagging
+/// behind them unseen.
+pub const STS3215_MAX_VELOCITY_RAD_S: f64 = 4.7;
+
+/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6 in Dobot's CR5 specifications (user guide,
+/// "Technical specifications", maximum joint speed).
+pub const CR5_MAX_VELOCITY_RAD_S: f64 = PI;
+
+/// Joint speed assumed for a remote bridge, whose robot the server does not know: 1 rad/s (57°/s), below
+/// the rated speed of common desktop and collaborative arms, so that a remote robot is never asked for more
+/// than it can do without its owner saying so.
+pub const REMOTE_DEFAULT_MAX_VELOCITY_RAD_S: f64 = 1.0;
+
+/// Largest orientation step aimed at in one solve, rad. Well below 90°, so the aim is always on the near
+/// side of the commanded orientation, however long the time since the last command.
+pub const MAX_AIM_STEP_RAD: f64 = 0.5;
+
+/// Within this of a half turn the remaining turn keeps its direction (rad, about 20°).
+pub const TURN_HYSTERESIS_RAD: f64 = 0.35;
+
+/// An orientation aim missed by more than this counts as unreachable (rad, about 0.6°).
+pub const ORIENTATION_REACHED_RAD: f64 = 0.01;
+
+/// Halvings of the orientation step tried before falling back to position only.
+const ORIENTATION_HALVINGS: usize = 3;
+
+/// A commanded joint move smaller than this (rad) means the arm has arrived.
+const SETTLED_RAD: f64 = 1e-6;
+
+/// `[arms.<name>.joint_limits]`: per-joint speed limits of an arm.
+#[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct JointLimitConfig {
+    /// Largest speed of each arm joint (rad/s), base to tool, gripper excluded. One value applies to every
+    /// joint; empty means the robot's default ([`STS3215_MAX_VELOCITY_RAD_S`] for an SO-101,
+    /// [`CR5_MAX_VELOCITY_RAD_S`] for a CR5, [`REMOTE_DEFAULT_MAX_VELOCITY_RAD_S`] for a remote bridge).
+    pub max_velocity_rad_s: Vec<f64>,
+}
+
+impl JointLimitConfig {
+    /// The speed of each of `joints` joints, `default_rad_s` where none is configured. Refuses a list of
+    /// another length and a speed that is not finite and positive.
+    pub fn resolve(&self, joints: usize, default_rad_s: f64) -> Result<Vec<f64>, ConfigError> {
+        let speeds = match self.max_velocity_rad_s.as_slice() {
+            [] => vec![default_rad_s; joints],
+            [one] => vec![*one; joints],
+            many if many.len() == joints => many.to_vec(),
+            many => {
+                return Err(ConfigError::WrongLength {
+                    name: "max_velocity_rad_s",
+                    expected: joints,
+                    got: many.len(),
+                });
+            }
+        };
+        // The limiter refuses what is not a speed.
+        JointRateLimiter::new(speeds.clone())?;
+        Ok(speeds)
+    }
+}
+
+/// Commands the joint stage changed, since start.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct JointCounters {
+    /// Commands the rate limiter shortened.
+    pub limited: u64,
+    /// Commands whose orientation the arm could not turn to from where it was (a 5-DoF arm's unreachable
+    /// orientations, or a joint at its range limit).
+    pub orientation_unreachable: u64,
+}
+
+/// The joints one command sends, and what was given up to send them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlannedJoints {
+    pub joints_rad: So101Joints,
+    /// The tool pose these joints put the arm in.
+    pub achieved: Isometry3<f64>,
+    /// Distance from the achieved tool position to the target's.
+    pub position_error_m: f64,
+    /// Angle from the achieved tool orientation to the target's.
+    pub orientation_error_rad: f64,
+    /// The rate limiter shortened the step.
+    pub limited: bool,
+    /// The arm could not turn toward the target orientation from here (see the module documentation).
+    pub orientation_unreachable: bool,
+    /// The target was not finite: the arm holds.
+    pub invalid_input: bool,
+}
+
+/// The joint stage of one SO-101 (see the module documentation). Pure: time is an argument.
+#[derive(Debug, Clone)]
+pub struct So101JointStage {
+    kinematics: So101Kinematics,
+    orientation_weight: f64,
+    limiter: JointRateLimiter,
+    /// The slowest joint's speed: the turn one period of the wrist is sure to manage.
+    aim_speed_rad_s: f64,
+    /// Direction of the turn in progress, kept through the half-turn (see [`TURN_HYSTERESIS_RAD`]).
+    turn_axis: Option<Vector3<f64>>,
+    counters: JointCounters,
+    behind: bool,
+}
+
+impl So101JointStage {
+    /// A stage with these joint speeds (five, rad/s) and IK orientation weight (0 = position only, 1 = as
+    /// much orientation as the arm allows; the bridge's `ik_orientation_weight`).
+    pub fn new(max_velocity_rad_s: Vec<f64>, orientation_weight: f64) -> Result<Self, ConfigError> {
+        if max_velocity_rad_s.len() != SO101_ARM_DOF {
+            return Err(ConfigError::WrongLength {
+                name: "max_velocity_rad_s",
+                expected: SO101_ARM_DOF,
+                got: max_velocity_rad_s.len(),
+            });
+        }
+        if !(0.0..=1.0).contains(&orientation_weight) {
+            return Err(ConfigError::NotFinite {
+                name: "ik_orientation_weight",
+                value: orientation_weight,
+            });
+        }
+        let limiter = JointRateLimiter::new(max_velocity_rad_s)?;
+        let aim_speed_rad_s = limiter
+            .max_velocity_rad_s()
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        Ok(Self {
+            kinematics: So101Kinematics::new(),
+            orientation_weight,
+            limiter,
+            aim_speed_rad_s,
+            turn_axis: None,
+            counters: JointCounters::default(),
+            behind: false,
+        })
+    }
+
+    /// Starts from the measured joints at `time_s` (at start, and whenever the arm's source changes or it was
+    /// teleported): the next command is solved and limited from there.
+    pub fn reset(&mut self, measured_rad: &[f64], time_s: f64) {
+        let joints = to_joints(measured_rad).map(|q| clamp_to_limits(&q));
+        match joints {
+            Some(q) => self.limiter.reset(&q, time_s),
+            // Not an SO-101's joints: no start, so the next command is not limited from a wrong one.
+            None => {
+                self.limiter = JointRateLimiter::new(self.limiter.max_velocity_rad_s().to_vec())
+                    .expect("speeds were validated");
+            }
+        }
+        self.turn_axis = None;
+        self.behind = false;
+    }
+
+    /// The joints last commanded (or reset to).
+    pub fn commanded(&self) -> Option<So101Joints> {
+        self.limiter.last().and_then(to_joints)
+    }
+
+    /// Time of the last command (or reset), s.
+    pub fn commanded_time_s(&self) -> f64 {
+        self.limiter.last_time_s()
+    }
+
+    /// True while the last command did not reach its target (the limiter shortened it, or the orientation
+    /// still turns): the caller should solve the same target again each period until it is false.
+    pub fn behind(&self) -> bool {
+        self.behind
+    }
+
+    pub fn counters(&self) -> JointCounters {
+        self.counters
+    }
+
+    /// The joint speeds in force.
+    pub fn max_velocity_rad_s(&self) -> &[f64] {
+        self.limiter.max_velocity_rad_s()
+    }
+
+    /// The joints to command for `target` at `time_s`.
+    pub fn plan(&mut self, target: &Isometry3<f64>, time_s: f64) -> PlannedJoints {
+        let seed = self
+            .commanded()
+            .unwrap_or_else(|| clamp_to_limits(&[0.0; SO101_ARM_DOF]));
+        let dt = self.limiter.elapsed_s(time_s);
+        let from = self.kinematics.forward(&seed);
+        let finite = target
+            .translation
+            .vector
+            .iter()
+            .chain(target.rotation.coords.iter())
+            .all(|v| v.is_finite());
+        if !finite {
+            return PlannedJoints {
+                joints_rad: seed,
+                achieved: from,
+                position_error_m: f64::INFINITY,
+                orientation_error_rad: f64::INFINITY,
+                limited: false,
+                orientation_unreachable: false,
+                invalid_input: true,
+            };
+        }
+        let (axis, wanted_rad) = self.turn_toward(&from.rotation, &target.rotation);
+        let mut aim_rad = wanted_rad.min(self.aim_speed_rad_s * dt).min(MAX_AIM_STEP_RAD);
+        let capped = aim_rad < wanted_rad;
+        let mut solution = None;
+        for attempt in 0..=ORIENTATION_HALVINGS + 1 {
+            let position_only = attempt > ORIENTATION_HALVINGS || self.orientation_weight <= 0.0;
+            let aim = UnitQuaternion::from_axis_angle(&axis, aim_rad) * from.rotation;
+            let goal = Isometry3::from_parts(target.translation, aim);
+            let weights = if position_only {
+                IkWeights::POSITION_ONLY
+            } else {
+                IkWeights::FULL
+            };
+            let ik = self.kinematics.inverse(&goal, &seed, weights);
+            let fits = self.limiter.scale(&ik.joints_rad, time_s) >= 1.0;
+            let missed = !position_only && ik.orientation_error_rad > ORIENTATION_REACHED_RAD;
+            solution = Some((ik, missed));
+            if fits || position_only {
+                break;
+            }
+            aim_rad *= 0.5;
+        }
+        let (ik, missed) = solution.expect("at least one solve");
+        let step = self.limiter.step(&ik.joints_rad, time_s);
+        let joints_rad = to_joints(&step.joints_rad).expect("the limiter keeps the width");
+        let achieved = self.kinematics.forward(&joints_rad);
+        let moved = joints_rad
+            .iter()
+            .zip(&seed)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        self.behind = step.limited || (capped && moved > SETTLED_RAD);
+        self.counters.limited += u64::from(step.limited);
+        self.counters.orientation_unreachable += u64::from(missed);
+        PlannedJoints {
+            joints_rad,
+            achieved,
+            position_error_m: (target.translation.vector - achieved.translation.vector).norm(),
+            orientation_error_rad: target.rotation.angle_to(&achieved.rotation),
+            limited: step.limited,
+            orientation_unreachable: missed,
+            invalid_input: false,
+        }
+    }
+
+    /// The axis and angle of the turn from `from` toward `to` that this stage aims along, scaled by the
+    /// orientation weight; remembers the direction for the half-turn rule.
+    fn turn_toward(
+        &mut self,
+        from: &UnitQuaternion<f64>,
+        to: &UnitQuaternion<f64>,
+    ) -> (Unit<Vector3<f64>>, f64) {
+        let weight = self.orientation_weight;
+        let Some((axis, angle)) = (to * from.inverse()).axis_angle() else {
+            self.turn_axis = None;
+            return (Vector3::z_axis(), 0.0);
+        };
+        let (axis, angle) = match self.turn_axis {
+            Some(previous) if angle > PI - TURN_HYSTERESIS_RAD && previous.dot(&axis) < 0.0 => {
+                (-axis, 2.0 * PI - angle)
+            }
+            _ => (axis, angle),
+        };
+        self.turn_axis = Some(axis.into_inner());
+        (axis, angle * weight)
+    }
+}
+
+fn to_joints(v: &[f64]) -> Option<So101Joints> {
+    v.try_into().ok()
+}
+
+#[cfg(test)]
+// Exact equality is the property: no time, or a non-finite target, leaves the joints bit for bit.
+#[allow(clippy::float_cmp)]
+mod tests {
+    use super::*;
+    use crate::kinematics::{SO101_JOINT_LIMITS_RAD, within_limits};
+    use proptest::prelude::*;
+
+    const PERIOD_S: f64 = 0.02;
+
+    fn stage() -> So101JointStage {
+        So101JointStage::new(vec![STS3215_MAX_VELOCITY_RAD_S; SO101_ARM_DOF], 1.0).unwrap()
+    }
+
+    fn largest_step_ratio(before: &So101Joints, after: &So101Joints, dt: f64) -> f64 {
+        before
+            .iter()
+            .zip(after)
+            .map(|(a, b)| (a - b).abs() / (STS3215_MAX_VELOCITY_RAD_S * dt))
+            .fold(0.0, f64::max)
+    }
+
+    /// The reported case: the tool held still while the target turns a full circle about the vertical. A
+    /// solver chasing the whole target from the previous solution flips branch on the way (the old path: more
+    /// than a second's worth of a servo's travel in one 20 ms frame); the stage never exceeds the limit and
+    /// keeps the position.
+    #[test]
+    fn a_full_turn_about_the_vertical_neither_jumps_nor_moves_the_tool() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let home = k.forward(&start);
+        let frames = 400;
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let mut previous = start;
+        let mut chased = start;
+        let mut largest_chase_step: f64 = 0.0;
+        let mut largest_ratio: f64 = 0.0;
+        let mut largest_position_error: f64 = 0.0;
+        for frame in 1..=frames {
+            let turn = 2.0 * PI * f64::from(frame) / f64::from(frames);
+            let target = Isometry3::from_parts(
+                home.translation,
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), turn) * home.rotation,
+            );
+            let old = k.inverse(&target, &chased, IkWeights::FULL);
+            largest_chase_step = largest_chase_step.max(
+                old.joints_rad
+                    .iter()
+                    .zip(&chased)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max),
+            );
+            chased = old.joints_rad;
+            let planned = s.plan(&target, f64::from(frame) * PERIOD_S);
+            assert!(within_limits(&planned.joints_rad));
+            largest_ratio = largest_ratio.max(largest_step_ratio(&previous, &planned.joints_rad, PERIOD_S));
+            largest_position_error = largest_position_error.max(planned.position_error_m);
+            previous = planned.joints_rad;
+        }
+        println!(
+            "full turn: chasing solver's largest step {largest_chase_step:.3} rad; stage: largest step {largest_ratio:.3} of the limit, position error {:.3} mm",
+            largest_position_error * 1e3
+        );
+        assert!(
+            largest_chase_step > STS3215_MAX_VELOCITY_RAD_S * PERIOD_S * 3.0,
+            "the chasing solver no longer jumps ({largest_chase_step} rad): this test lost its point"
+        );
+        assert!(largest_ratio <= 1.0 + 1e-9, "{largest_ratio}");
+        assert!(largest_position_error < 2e-4, "{largest_position_error}");
+        assert!(
+            s.counters().orientation_unreachable > 0,
+            "a 5-DoF arm cannot follow this turn"
+        );
+    }
+
+    #[test]
+    fn a_far_target_is_approached_at_the_limit_and_reached() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let goal = [0.8, 0.2, 0.1, 0.5, 1.0];
+        let target = k.forward(&goal);
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let mut previous = start;
+        let mut t = 0.0;
+        let mut limited = 0;
+        for _ in 0..200 {
+            t += PERIOD_S;
+            let p = s.plan(&target, t);
+            assert!(largest_step_ratio(&previous, &p.joints_rad, PERIOD_S) <= 1.0 + 1e-9);
+            limited += u64::from(p.limited);
+            previous = p.joints_rad;
+            if !s.behind() {
+                break;
+            }
+        }
+        assert!(!s.behind(), "still behind after 4 s");
+        assert!(limited > 5 && s.counters().limited == limited, "{limited}");
+        let done = s.plan(&target, t + PERIOD_S);
+        assert!(
+            done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-2,
+            "{done:?}"
+        );
+    }
+
+    #[test]
+    fn no_time_no_motion_and_a_non_finite_target_holds() {
+        let k = So101Kinematics::new();
+        let start = [0.1, -0.4, 0.6, 0.9, 0.2];
+        let mut s = stage();
+        s.reset(&start, 1.0);
+        let moved = Isometry3::translation(0.01, 0.0, 0.0) * k.forward(&start);
+        assert_eq!(s.plan(&moved, 1.0).joints_rad, start);
+        let bad = Isometry3::translation(f64::NAN, 0.0, 0.0);
+        let p = s.plan(&bad, 2.0);
+        assert!(p.invalid_input);
+        assert_eq!(p.joints_rad, start);
+        assert_eq!(s.commanded(), Some(start));
+    }
+
+    #[test]
+    fn configured_speeds_resolve_per_joint() {
+        let none = JointLimitConfig::default();
+        assert_eq!(none.resolve(3, 2.0).unwrap(), vec![2.0; 3]);
+        let one = JointLimitConfig {
+            max_velocity_rad_s: vec![1.5],
+        };
+        assert_eq!(one.resolve(2, 2.0).unwrap(), vec![1.5; 2]);
+        let each = JointLimitConfig {
+            max_velocity_rad_s: vec![1.0, 2.0],
+        };
+        assert_eq!(each.resolve(2, 9.0).unwrap(), vec![1.0, 2.0]);
+        assert!(matches!(
+            each.resolve(3, 9.0),
+            Err(ConfigError::WrongLength {
+                expected: 3,
+                got: 2,
+                ..
+            })
+        ));
+        let zero = JointLimitConfig {
+            max_velocity_rad_s: vec![0.0],
+        };
+        assert!(zero.resolve(2, 1.0).is_err());
+        assert!(So101JointStage::new(vec![1.0; 4], 1.0).is_err());
+        assert!(So101JointStage::new(vec![1.0; 5], 1.5).is_err());
+    }
+
+    fn joints_strategy() -> impl Strategy<Value = So101Joints> {
+        let r = |i: usize| (SO101_JOINT_LIMITS_RAD[i].0 * 0.8)..(SO101_JOINT_LIMITS_RAD[i].1 * 0.8);
+        (r(0), r(1), r(2), r(3), r(4)).prop_map(|(a, b, c, d, e)| [a, b, c, d, e])
+    }
+
+    /// One target move as the task-space gate lets it through: a position step of at most its 6 cm jump
+    /// threshold (in any direction, so toward and past the edge of reach) and a turn of at most its 0.5 rad.
+    #[derive(Debug, Clone)]
+    struct Move {
+        dp: [f64; 3],
+        axis: [f64; 3],
+        turn_rad: f64,
+        dt_s: f64,
+        repeat: usize,
+    }
+
+    fn move_strategy(position: bool) -> impl Strategy<Value = Move> {
+        let d = if position { 0.034 } else { 0.0 };
+        let dp = -d..=d;
+        (
+            prop::array::uniform3(dp),
+            prop::array::uniform3(-1.0f64..1.0),
+            -0.5f64..0.5,
+            0.0f64..0.06,
+            1usize..30,
+        )
+            .prop_map(|(dp, axis, turn_rad, dt_s, repeat)| Move {
+                dp,
+                axis,
+                turn_rad,
+                dt_s,
+                repeat,
+            })
+    }
+
+    /// Runs `moves` (each repeated: a steady turn about one axis for up to 30 frames, 15 rad in all, so full
+    /// turns about arbitrary axes are among them) and checks every command. Returns the largest position
+    /// error of the commands.
+    fn run(start: So101Joints, moves: &[Move]) -> Result<f64, TestCaseError> {
+        let k = So101Kinematics::new();
+        let mut target = k.forward(&start);
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let mut t = 0.0;
+        let mut previous = start;
+        let mut largest_error: f64 = 0.0;
+        for m in moves {
+            let axis = Vector3::from(m.axis);
+            let turn = if axis.norm() > 1e-3 {
+                UnitQuaternion::from_scaled_axis(axis.normalize() * m.turn_rad)
+            } else {
+                UnitQuaternion::identity()
+            };
+            for _ in 0..m.repeat {
+                target = Isometry3::from_parts(
+                    (target.translation.vector + Vector3::from(m.dp)).into(),
+                    turn * target.rotation,
+                );
+                t += m.dt_s;
+                let p = s.plan(&target, t);
+                prop_assert!(within_limits(&p.joints_rad), "{p:?}");
+                let ratio = largest_step_ratio(&previous, &p.joints_rad, m.dt_s);
+                prop_assert!(
+                    ratio <= 1.0 + 1e-9 || m.dt_s == 0.0 && p.joints_rad == previous,
+                    "step {ratio} of the limit"
+                );
+                largest_error = largest_error.max(p.position_error_m);
+                previous = p.joints_rad;
+            }
+        }
+        Ok(largest_error)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(if cfg!(debug_assertions) { 12 } else { 256 }))]
+
+        /// Any target sequence the gate passes (positions at and past the edge of reach included): no joint
+        /// step exceeds its limit.
+        #[test]
+        fn no_command_exceeds_the_joint_limits(start in joints_strategy(),
+                                               moves in prop::collection::vec(move_strategy(true), 1..6)) {
+            run(start, &moves)?;
+        }
+
+        /// The position held, the orientation anything (full turns about any axis, orientations the 5-DoF arm
+        /// cannot reach): every command keeps the tool within 0.2 mm of the position, twice the solver's
+        /// position tolerance (1e-4 m). It holds because the orientation step is shrunk until the solution
+        /// fits the limits, down to position only, which from a pose that meets the position needs no motion:
+        /// the limiter never has to cut a step short between two solutions.
+        #[test]
+        fn a_held_position_stays_held_whatever_the_orientation(start in joints_strategy(),
+                                                               moves in prop::collection::vec(move_strategy(false), 1..6)) {
+            let error = run(start, &moves)?;
+            prop_assert!(error < 2e-4, "position error {error} m");
+        }
+    }
+}
