@@ -8,6 +8,7 @@ use phone2act_server::{Config, bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+mod fleet;
 mod plot;
 
 #[derive(Parser, Debug)]
@@ -105,6 +106,25 @@ enum DatasetAction {
     Verify {
         /// Dataset root directory.
         path: PathBuf,
+    },
+    /// Upload a dataset to S3-compatible storage (s3://bucket/prefix); an existing remote copy of the same
+    /// dataset gets only the episodes it lacks, a different one is refused with nothing written.
+    Push {
+        /// Dataset root directory.
+        path: PathBuf,
+        /// s3://bucket/prefix
+        url: String,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
+    /// Download a dataset from S3-compatible storage into a directory.
+    Pull {
+        /// s3://bucket/prefix
+        url: String,
+        /// Destination directory.
+        path: PathBuf,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
     },
     /// Plot an episode into one HTML page: camera frames, state and action per dimension over time, clutch
     /// and gate events marked.
@@ -424,6 +444,18 @@ fn real_main() -> anyhow::Result<()> {
         Command::Dataset {
             action: DatasetAction::Info { path },
         } => dataset_info(&path),
+        Command::Dataset {
+            action: DatasetAction::Push { path, url, remote },
+        } => {
+            outln!("{}", fleet::push(&path, &url, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
+            action: DatasetAction::Pull { url, path, remote },
+        } => {
+            outln!("{}", fleet::pull(&url, &path, &remote)?);
+            Ok(())
+        }
         Command::Dataset {
             action: DatasetAction::Plot { path, episode, out },
         } => {

@@ -98,6 +98,7 @@ struct Active {
     last_robot_ns: Option<i64>,
     last_seq: Vec<Option<u64>>,
     error: Option<RecorderError>,
+    operator: String,
 }
 
 struct TickState {
@@ -119,6 +120,14 @@ struct Shared {
     camera_names: Vec<String>,
     fps: u32,
     sync: SyncConfig,
+    commit_hook: Mutex<Option<Arc<dyn CommitHook>>>,
+}
+
+/// Told about every committed episode, on the recorder's thread and under its dataset lock (so before the
+/// next commit can replace any file): an uploader takes its snapshot here. Must return quickly.
+pub trait CommitHook: Send + Sync {
+    /// `files`: dataset-relative, in the order the commit made them visible (`info.json` last).
+    fn committed(&self, episode: &EpisodeSummary, files: &[String]);
 }
 
 /// A recorder over one dataset. Dropping it (or [`Recorder::close`]) stops the tick thread; an episode
@@ -189,6 +198,7 @@ impl Recorder {
             camera_names,
             fps,
             sync,
+            commit_hook: Mutex::new(None),
         });
         let s2 = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
@@ -201,8 +211,18 @@ impl Recorder {
         })
     }
 
+    /// Sets the hook told about every committed episode (see [`CommitHook`]).
+    pub fn set_commit_hook(&self, hook: Arc<dyn CommitHook>) {
+        *self.shared.commit_hook.lock() = Some(hook);
+    }
+
     /// Starts recording an episode of `task`.
     pub fn start_episode(&self, task: &str) -> Result<RecorderStatus, RecorderError> {
+        self.start_episode_by(task, "")
+    }
+
+    /// Starts recording an episode of `task` by `operator` (recorded in the episode's provenance).
+    pub fn start_episode_by(&self, task: &str, operator: &str) -> Result<RecorderStatus, RecorderError> {
         // Parked cameras start drawing now, all at once, rather than one by one inside the first tick (which
         // would wait for each render under the tick lock).
         for slot in &self.shared.cameras {
@@ -233,6 +253,7 @@ impl Recorder {
             start_unix_ns: unix_ns(),
             last_robot_ns: None,
             error: None,
+            operator: operator.trim().to_owned(),
         });
         t.phase = Phase::Recording;
         t.warning = None;
@@ -272,6 +293,7 @@ impl Recorder {
             paused_ticks: active.paused,
             late_ticks: active.late,
             start_unix_ns: active.start_unix_ns,
+            operator: active.operator.clone(),
             ..EpisodeSummary::default()
         };
         if let Some(e) = active.error {
@@ -291,6 +313,9 @@ impl Recorder {
             return Err(RecorderError::EmptyEpisode(index));
         }
         let r = ds.commit_episode(active.writer, summary);
+        if let (Ok(s), Some(hook)) = (&r, self.shared.commit_hook.lock().as_ref()) {
+            hook.committed(s, ds.last_commit_files());
+        }
         drop(ds);
         match r {
             Ok(mut s) => {

@@ -214,13 +214,14 @@ impl Credentials {
             .or_else(|| env("HOME").map(|h| PathBuf::from(h).join(".aws/credentials")))
             .ok_or_else(|| StorageError::Config("no credentials file (HOME is not set)".into()))?;
         let text = std::fs::read_to_string(&file).map_err(|e| StorageError::io(&file, e))?;
-        profile_credentials(&text, &profile).ok_or_else(|| {
-            StorageError::Config(format!(
-                "profile {profile:?} in {} has no aws_access_key_id and aws_secret_access_key",
-                file.display()
-            ))
-        })
-        .map(Some)
+        profile_credentials(&text, &profile)
+            .ok_or_else(|| {
+                StorageError::Config(format!(
+                    "profile {profile:?} in {} has no aws_access_key_id and aws_secret_access_key",
+                    file.display()
+                ))
+            })
+            .map(Some)
     }
 }
 
@@ -267,7 +268,10 @@ mod tests {
         let u = StorageUrl::parse("s3://fleet/lab/a/").unwrap();
         assert_eq!((u.bucket.as_str(), u.prefix.as_str()), ("fleet", "lab/a"));
         assert_eq!(u.join("st-1").to_string(), "s3://fleet/lab/a/st-1");
-        assert_eq!(StorageUrl::parse("s3://b").unwrap().join("x").to_string(), "s3://b/x");
+        assert_eq!(
+            StorageUrl::parse("s3://b").unwrap().join("x").to_string(),
+            "s3://b/x"
+        );
         assert!(StorageUrl::parse("https://b/x").is_err());
         assert!(StorageUrl::parse("s3:///x").is_err());
         assert!(StorageUrl::parse("s3://b/../x").is_err());

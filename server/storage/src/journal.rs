@@ -85,8 +85,8 @@ impl UploadJournal {
     }
 
     pub fn save(&self, root: &Path) -> Result<(), StorageError> {
-        let bytes = serde_json::to_vec(self)
-            .map_err(|e| StorageError::Corrupt(format!("upload journal: {e}")))?;
+        let bytes =
+            serde_json::to_vec(self).map_err(|e| StorageError::Corrupt(format!("upload journal: {e}")))?;
         write_atomic(&Self::dir(root).join(JOURNAL_FILE), &bytes)
     }
 

@@ -149,20 +149,14 @@ impl Remote {
                 ClientOptions::new()
                     .with_timeout(opts.request_timeout.unwrap_or(Duration::from_mins(2)))
                     .with_connect_timeout(Duration::from_secs(10))
-                    .with_allow_http(
-                        opts.endpoint
-                            .as_deref()
-                            .is_some_and(|e| e.starts_with("http://")),
-                    ),
+                    .with_allow_http(opts.endpoint.as_deref().is_some_and(|e| e.starts_with("http://"))),
             );
         if let Some(ep) = &opts.endpoint {
             // Path-style (bucket in the path) is what MinIO, moto and most on-premise S3 expect.
             b = b.with_endpoint(ep).with_virtual_hosted_style_request(false);
         }
         if let Some(c) = &opts.credentials {
-            b = b
-                .with_access_key_id(&c.key_id)
-                .with_secret_access_key(&c.secret);
+            b = b.with_access_key_id(&c.key_id).with_secret_access_key(&c.secret);
             if let Some(t) = &c.token {
                 b = b.with_token(t);
             }
@@ -221,9 +215,7 @@ impl Remote {
         match self.head(rel).await? {
             None => Ok(false),
             Some(o) if o.size_bytes != size_bytes => Ok(false),
-            Some(RemoteObject {
-                sha256: Some(s), ..
-            }) => Ok(s == sha256),
+            Some(RemoteObject { sha256: Some(s), .. }) => Ok(s == sha256),
             Some(_) => Ok(self.sha256_of(rel).await?.as_deref() == Some(sha256)),
         }
     }

@@ -27,7 +27,10 @@ fn read_info(root: &Path) -> Result<Value, StorageError> {
 fn incompatibility(local: &Value, remote: &Value) -> Option<String> {
     for key in ["codebase_version", "fps", "robot_type", "chunks_size"] {
         if local[key] != remote[key] {
-            return Some(format!("{key} differs: local {} vs remote {}", local[key], remote[key]));
+            return Some(format!(
+                "{key} differs: local {} vs remote {}",
+                local[key], remote[key]
+            ));
         }
     }
     let (lf, rf) = (&local["features"], &remote["features"]);
@@ -58,7 +61,11 @@ fn incompatibility(local: &Value, remote: &Value) -> Option<String> {
 /// never changes once written (data, videos, episode metadata) must be byte-identical; otherwise nothing
 /// is written. Then the missing files go up in commit order, `info.json` last, skipping every object
 /// already there intact.
-pub async fn push(root: &Path, remote: &Remote, max_bytes_per_s: Option<u64>) -> Result<PushReport, StorageError> {
+pub async fn push(
+    root: &Path,
+    remote: &Remote,
+    max_bytes_per_s: Option<u64>,
+) -> Result<PushReport, StorageError> {
     let local_info = read_info(root)?;
     let local_episodes = local_info["total_episodes"].as_u64().unwrap_or(0);
     let files = order::dataset_files(root).map_err(|e| StorageError::io(root, e))?;
@@ -165,6 +172,10 @@ mod tests {
         assert!(incompatibility(&a, &b).unwrap().starts_with("fps differs"));
         let mut c = a.clone();
         c["features"]["action"]["shape"] = json!([6]);
-        assert!(incompatibility(&a, &c).unwrap().contains("feature action differs"));
+        assert!(
+            incompatibility(&a, &c)
+                .unwrap()
+                .contains("feature action differs")
+        );
     }
 }
