@@ -59,6 +59,9 @@ pub struct Config {
     /// binary that starts the gateway reads and validates this table as the gateway's own config type.
     #[serde(default)]
     pub gateway: toml::Table,
+    /// `[storage]`: upload every committed episode to S3-compatible object storage (see docs/fleet.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub storage: Option<phone2act_storage::StorageConfig>,
 }
 
 /// gRPC listener and access.
@@ -469,6 +472,9 @@ impl Config {
                 "recorder.robot_type must be 1..={MAX_NAME_CHARS} characters, got {}",
                 self.recorder.robot_type.len()
             )));
+        }
+        if let Some(storage) = &self.storage {
+            storage.validate().map_err(invalid)?;
         }
         Ok(())
     }

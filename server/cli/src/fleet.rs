@@ -68,3 +68,32 @@ pub fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<String> 
         dir.display()
     ))
 }
+
+/// `storage: s3://... (station st-...): 12 uploaded, 1 pending; last error: ...`
+pub fn storage_line(s: &phone2act_sdk::proto::StorageStatus) -> String {
+    let mut line = format!(
+        "storage: {} (station {}): {} episodes uploaded, {} pending, {} objects put ({} bytes)",
+        s.url, s.station_id, s.episodes_uploaded, s.episodes_pending, s.objects_put, s.bytes_put
+    );
+    if !s.last_error.is_empty() {
+        line.push_str("; last error: ");
+        line.push_str(&s.last_error);
+    }
+    line
+}
+
+/// `  [uploaded]`, `  [failed: reason]`, ... after an episode line; empty when storage is off.
+pub fn upload_suffix(ep: &phone2act_sdk::proto::EpisodeInfo) -> String {
+    use phone2act_sdk::proto::UploadState;
+    let mut s = match ep.upload_state() {
+        UploadState::Unspecified => String::new(),
+        UploadState::Pending => "  [pending]".into(),
+        UploadState::Uploading => "  [uploading]".into(),
+        UploadState::Uploaded => "  [uploaded]".into(),
+        UploadState::Failed => format!("  [failed: {}]", ep.upload_error),
+    };
+    if !ep.operator.is_empty() {
+        s = format!("  by {}{s}", ep.operator);
+    }
+    s
+}

@@ -81,6 +81,9 @@ enum EpisodeAction {
         /// Task text stored with every frame.
         #[arg(long)]
         task: String,
+        /// Who records it (kept in the episode's provenance).
+        #[arg(long, env = "PHONE2ACT_OPERATOR", default_value = "")]
+        operator: String,
     },
     /// Stop and save the episode in progress.
     Stop,
@@ -391,8 +394,8 @@ fn real_main() -> anyhow::Result<()> {
             let client = connect(&conn).await?;
             let mut episodes = client.episodes();
             match action {
-                EpisodeAction::Start { task } => {
-                    let s = episodes.start(&task).await?;
+                EpisodeAction::Start { task, operator } => {
+                    let s = episodes.start_by(&task, &operator).await?;
                     outln!("recording episode {} ({:?})", s.episode_index, s.task);
                 }
                 EpisodeAction::Stop => {
@@ -415,9 +418,12 @@ fn real_main() -> anyhow::Result<()> {
                 EpisodeAction::List => {
                     let list = episodes.list().await?;
                     outln!("{} episodes in {}", list.episodes.len(), list.dataset_root);
+                    if let Some(s) = &list.storage {
+                        outln!("{}", fleet::storage_line(s));
+                    }
                     for ep in list.episodes {
                         outln!(
-                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}",
+                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}{}",
                             ep.episode_index,
                             ep.length_frames,
                             ep.duration_s,
@@ -425,7 +431,8 @@ fn real_main() -> anyhow::Result<()> {
                             ep.paused_ticks,
                             ep.late_ticks,
                             ep.dropped_frames,
-                            ep.task
+                            ep.task,
+                            fleet::upload_suffix(&ep)
                         );
                     }
                 }
@@ -436,7 +443,14 @@ fn real_main() -> anyhow::Result<()> {
             let client = connect(&conn).await?;
             let mut system = client.system();
             match watch {
-                None => print_status(&system.status().await?),
+                None => {
+                    print_status(&system.status().await?);
+                    if let Ok(list) = client.episodes().list().await
+                        && let Some(s) = &list.storage
+                    {
+                        outln!("{}", fleet::storage_line(s));
+                    }
+                }
                 Some(interval_s) => watch_status(&mut system, interval_s).await?,
             }
             anyhow::Ok(())

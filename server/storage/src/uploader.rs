@@ -77,7 +77,7 @@ struct Shared {
 /// the one in flight); the journal keeps what is left for the next start.
 pub struct Uploader {
     shared: Arc<Shared>,
-    thread: Option<JoinHandle<()>>,
+    thread: Mutex<Option<JoinHandle<()>>>,
 }
 
 impl Uploader {
@@ -125,7 +125,7 @@ impl Uploader {
             .map_err(|e| StorageError::Start(e.to_string()))?;
         Ok(Uploader {
             shared,
-            thread: Some(thread),
+            thread: Mutex::new(Some(thread)),
         })
     }
 
@@ -188,10 +188,11 @@ impl Uploader {
     }
 
     /// Stops the thread (the journal keeps what is left).
-    pub fn shutdown(&mut self) {
+    pub fn shutdown(&self) {
         self.shared.stop.store(true, Ordering::Relaxed);
         self.shared.wake.notify_one();
-        if let Some(h) = self.thread.take() {
+        let thread = self.thread.lock().take();
+        if let Some(h) = thread {
             let _ = h.join();
         }
     }
