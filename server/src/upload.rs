@@ -25,7 +25,11 @@ pub fn start(config: &Config, station_id: &str) -> Result<Option<Arc<Uploader>>,
     let url = StorageUrl::parse(&storage.url)
         .map_err(StorageError::Config)?
         .join(station_id);
-    let credentials = Credentials::resolve(storage.profile.as_deref(), &|k| std::env::var(k).ok())?;
+    let credentials = Credentials::resolve_with_file(
+        storage.profile.as_deref(),
+        storage.credentials_file.as_deref(),
+        &|k| std::env::var(k).ok(),
+    )?;
     let remote = Remote::new(
         &url,
         &RemoteOptions {

@@ -20,6 +20,10 @@ done
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
 mkdir -p "$PHONE2ACT_CONFORMANCE_DIR"
+# The real S3 server (moto, from PyPI) the storage tests start on loopback (tests/tests/fleet.rs,
+# server/cli/tests/fleet.rs); without it they skip, loudly.
+PHONE2ACT_MOTO_SERVER="$(tests/scripts/s3-server.sh)"
+export PHONE2ACT_MOTO_SERVER
 set +e
 cargo test --workspace 2>&1 | tee /tmp/phone2act-cargo-test.log
 rc=${PIPESTATUS[0]}

@@ -4,10 +4,10 @@
 use crate::app::App;
 use crate::recording::RecordingError;
 use crate::runtime::blocking;
-use crate::services::error::RequestError;
 use crate::services::convert::{
     current_recording_status, episode, episode_with_upload, recording_status, storage_status,
 };
+use crate::services::error::RequestError;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;

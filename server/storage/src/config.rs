@@ -26,6 +26,10 @@ pub struct StorageConfig {
     /// is not set.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub profile: Option<String>,
+    /// An AWS shared credentials file to read `profile` (default `default`) from, instead of the
+    /// environment: a station's own key file, kept out of the config (which never holds a secret).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub credentials_file: Option<PathBuf>,
     /// Upload bandwidth cap; unlimited when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_upload_bytes_per_s: Option<u64>,
@@ -44,6 +48,20 @@ fn default_true() -> bool {
 }
 
 impl StorageConfig {
+    /// `url` with every other key at its default.
+    pub fn new(url: impl Into<String>) -> Self {
+        StorageConfig {
+            url: url.into(),
+            endpoint: None,
+            region: None,
+            profile: None,
+            credentials_file: None,
+            max_upload_bytes_per_s: None,
+            retain_local: true,
+            station_id: None,
+        }
+    }
+
     /// What is wrong with the table, if anything (checked at load, before anything starts).
     pub fn validate(&self) -> Result<(), String> {
         StorageUrl::parse(&self.url).map_err(|e| format!("storage.url: {e}"))?;
@@ -195,6 +213,18 @@ impl Credentials {
         profile: Option<&str>,
         env: &dyn Fn(&str) -> Option<String>,
     ) -> Result<Option<Credentials>, StorageError> {
+        Self::resolve_with_file(profile, None, env)
+    }
+
+    /// Like [`Credentials::resolve`]; an explicit `credentials_file` comes first.
+    pub fn resolve_with_file(
+        profile: Option<&str>,
+        credentials_file: Option<&Path>,
+        env: &dyn Fn(&str) -> Option<String>,
+    ) -> Result<Option<Credentials>, StorageError> {
+        if let Some(file) = credentials_file {
+            return read_profile(file, profile.unwrap_or("default")).map(Some);
+        }
         if let Some(key_id) = env("AWS_ACCESS_KEY_ID").filter(|s| !s.is_empty()) {
             let secret = env("AWS_SECRET_ACCESS_KEY").ok_or_else(|| {
                 StorageError::Config("AWS_ACCESS_KEY_ID is set but AWS_SECRET_ACCESS_KEY is not".into())
@@ -213,16 +243,18 @@ impl Credentials {
             .map(PathBuf::from)
             .or_else(|| env("HOME").map(|h| PathBuf::from(h).join(".aws/credentials")))
             .ok_or_else(|| StorageError::Config("no credentials file (HOME is not set)".into()))?;
-        let text = std::fs::read_to_string(&file).map_err(|e| StorageError::io(&file, e))?;
-        profile_credentials(&text, &profile)
-            .ok_or_else(|| {
-                StorageError::Config(format!(
-                    "profile {profile:?} in {} has no aws_access_key_id and aws_secret_access_key",
-                    file.display()
-                ))
-            })
-            .map(Some)
+        read_profile(&file, &profile).map(Some)
     }
+}
+
+fn read_profile(file: &Path, profile: &str) -> Result<Credentials, StorageError> {
+    let text = std::fs::read_to_string(file).map_err(|e| StorageError::io(file, e))?;
+    profile_credentials(&text, profile).ok_or_else(|| {
+        StorageError::Config(format!(
+            "profile {profile:?} in {} has no aws_access_key_id and aws_secret_access_key",
+            file.display()
+        ))
+    })
 }
 
 /// The `[profile]` section of an AWS shared credentials file (INI).

@@ -111,6 +111,17 @@ pub fn describe(e: &object_store::Error) -> String {
         }
         src = s.source();
     }
+    // S3 answers with an XML body: keep its error code, not the markup (request ids, host ids).
+    if let Some(start) = text.find("<?xml") {
+        let code = text[start..]
+            .split_once("<Code>")
+            .and_then(|(_, r)| r.split_once("</Code>"))
+            .map(|(c, _)| c.to_owned());
+        text.truncate(start);
+        if let Some(code) = code {
+            text.push_str(&code);
+        }
+    }
     let hint = if text.contains("NoSuchBucket") {
         Some("the bucket does not exist: create it, or fix storage.url")
     } else if text.contains("InvalidAccessKeyId")
