@@ -75,8 +75,8 @@ print(k["AccessKeyId"], k["SecretAccessKey"])
             &[],
         );
         let mut it = out.split_whitespace();
-        m.key_id = it.next().expect("key id").to_owned();
-        m.secret = it.next().expect("secret").to_owned();
+        it.next().expect("key id").clone_into(&mut m.key_id);
+        it.next().expect("secret").clone_into(&mut m.secret);
         m
     }
 
@@ -99,7 +99,7 @@ print(k["AccessKeyId"], k["SecretAccessKey"])
             .expect("moto_server starts");
         self.child = Some(child);
         // Up when it answers HTTP; moto starts in about a second, far longer on a loaded machine.
-        let deadline = Instant::now() + Duration::from_secs(60);
+        let deadline = Instant::now() + Duration::from_mins(1);
         while Instant::now() < deadline {
             if let Ok(mut s) = TcpStream::connect(("127.0.0.1", self.port)) {
                 let _ = write!(s, "GET /moto-api/ HTTP/1.0\r\n\r\n");

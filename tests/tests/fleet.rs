@@ -130,7 +130,7 @@ async fn an_episode_recorded_with_storage_appears_remotely_complete() {
 
     assert_eq!(record(&client, "pick the cube", "alice", 800).await, 0);
     assert_eq!(record(&client, "place the cube", "bob", 600).await, 1);
-    let list = wait_list(&client, Duration::from_secs(120), "both episodes uploaded", |l| {
+    let list = wait_list(&client, Duration::from_mins(2), "both episodes uploaded", |l| {
         all_uploaded(l, 2)
     })
     .await;
@@ -185,7 +185,7 @@ async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_f
     let server = TestServer::start(config.clone()).await.unwrap();
     let client = server.client().await.unwrap();
     record(&client, "pick", "carol", 500).await;
-    let list = wait_list(&client, Duration::from_secs(60), "a failed upload", |l| {
+    let list = wait_list(&client, Duration::from_mins(1), "a failed upload", |l| {
         l.episodes
             .first()
             .is_some_and(|e| e.upload_state() == v1::UploadState::Failed)
@@ -206,7 +206,7 @@ async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_f
     config.storage = Some(storage(&moto, &right, "st-b"));
     let server = TestServer::start(config).await.unwrap();
     let client = server.client().await.unwrap();
-    let list = wait_list(&client, Duration::from_secs(60), "a missing-bucket error", |l| {
+    let list = wait_list(&client, Duration::from_mins(1), "a missing-bucket error", |l| {
         l.episodes
             .first()
             .is_some_and(|e| e.upload_error.contains("bucket does not exist"))
@@ -217,7 +217,7 @@ async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_f
 
     // Create it: both episodes go up without anyone touching the server (backoff is capped at 30 s).
     moto.create_bucket(BUCKET);
-    wait_list(&client, Duration::from_secs(120), "uploads after the fix", |l| {
+    wait_list(&client, Duration::from_mins(2), "uploads after the fix", |l| {
         all_uploaded(l, 2)
     })
     .await;
@@ -247,7 +247,7 @@ async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
 
     // Kill the storage as soon as the first object of the episode is there.
     let remote = remote(&moto, "st-c");
-    let deadline = Instant::now() + Duration::from_secs(120);
+    let deadline = Instant::now() + Duration::from_mins(2);
     let first = loop {
         let listed = remote.list().await.unwrap_or_default();
         if !listed.is_empty() {
@@ -263,7 +263,7 @@ async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
     );
     // A reader of what was remote saw no episode: the files before info.json count none.
     assert!(first.len() < phone2act_storage::order::dataset_files(&root).unwrap().len());
-    wait_list(&client, Duration::from_secs(60), "the outage reported", |l| {
+    wait_list(&client, Duration::from_mins(1), "the outage reported", |l| {
         l.episodes
             .first()
             .is_some_and(|e| e.upload_state() == v1::UploadState::Failed)
@@ -274,7 +274,7 @@ async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
     // every poll a reader sees whole episodes only.
     moto.restart();
     moto.create_bucket(BUCKET);
-    let deadline = Instant::now() + Duration::from_secs(180);
+    let deadline = Instant::now() + Duration::from_mins(3);
     loop {
         remote_is_consistent(&remote, 1).await.unwrap();
         let list = client.episodes().list().await.unwrap();

@@ -455,11 +455,11 @@ impl Dataset {
         summary.index = index;
         summary.task.clone_from(&task);
         summary.duration_s = frames as f64 / f64::from(fps);
-        summary.station_id = self.spec.provenance["station_id"]
+        self.spec.provenance["station_id"]
             .as_str()
             .unwrap_or_default()
-            .to_owned();
-        summary.software_version = env!("CARGO_PKG_VERSION").to_owned();
+            .clone_into(&mut summary.station_id);
+        env!("CARGO_PKG_VERSION").clone_into(&mut summary.software_version);
 
         // Per-episode stats, in info.json feature order.
         let mut stats: Vec<(String, FeatureStats)> = vec![
