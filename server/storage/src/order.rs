@@ -14,7 +14,8 @@ pub fn rank(rel: &str) -> u8 {
         _ if rel.starts_with("videos/") => 0,
         _ if rel.starts_with("meta/episodes/") => 2,
         _ if rel.starts_with("data/") => 3,
-        _ if rel.starts_with("meta/phone2act_") || rel.starts_with("meta/events/") => 6,
+        // phone2act's sidecars (events, quantiles, provenance), ignored by lerobot.
+        _ if rel.starts_with("meta/phone2act") => 6,
         _ => 5,
     }
 }
@@ -75,6 +76,7 @@ mod tests {
             "meta/episodes.jsonl",
             "data/chunk-000/episode_000000.parquet",
             "meta/phone2act_provenance.json",
+            "meta/phone2act/events/episode_000000.jsonl",
             "meta/episodes/chunk-000/file-000.parquet",
             "videos/observation.images.front/chunk-000/file-000.mp4",
             "meta/tasks.parquet",
@@ -91,6 +93,7 @@ mod tests {
                 "data/chunk-000/episode_000000.parquet",
                 "meta/episodes.jsonl",
                 "meta/stats.json",
+                "meta/phone2act/events/episode_000000.jsonl",
                 "meta/phone2act_provenance.json",
                 "meta/info.json",
             ]
