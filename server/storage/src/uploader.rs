@@ -218,7 +218,23 @@ pub fn committed_episodes(root: &Path) -> Result<u64, StorageError> {
     }
 }
 
+/// Lowers the calling thread's CPU priority (nice +10) so hashing and TLS never compete with the control
+/// path or the encoders on a busy machine. Linux only; a failure just leaves the default priority.
+#[allow(unsafe_code)]
+fn lower_thread_priority() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: gettid and setpriority take and return plain integers; on Linux PRIO_PROCESS with a thread id
+    // changes that thread only.
+    unsafe {
+        let tid = libc::gettid();
+        if libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, 10) != 0 {
+            tracing::debug!("storage: could not lower the upload thread's priority");
+        }
+    }
+}
+
 fn run(shared: &Arc<Shared>, remote: &Remote, rate: Option<u64>) {
+    lower_thread_priority();
     let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
         Ok(rt) => rt,
         Err(e) => {
