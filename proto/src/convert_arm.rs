@@ -40,6 +40,13 @@ pub fn pose_from_proto(pose: &v1::Pose) -> Result<Isometry3<f64>, PoseFromWireEr
     )?)
 }
 
+/// Checks wire pose values as [`pose_from_proto`] will on the server (finite, a quaternion within
+/// `phone2act_core::pose::QUATERNION_NORM_TOLERANCE` of unit norm): a client-facing edge that folds samples
+/// latest-wins, such as the gateway, refuses a bad one at once, so its error cannot be lost to a newer pose.
+pub fn check_wire_pose(position_m: [f64; 3], quat_xyzw: [f64; 4]) -> Result<(), PoseError> {
+    phone2act_core::validate_pose(position_m, quat_xyzw).map(|_| ())
+}
+
 impl From<GateVerdict> for v1::GateVerdict {
     fn from(verdict: GateVerdict) -> Self {
         match verdict {

@@ -514,7 +514,8 @@ impl ArmController {
             BridgeHealth::Connecting => (BridgeHealth::Connecting, not_ready.unwrap_or_default()),
             // READY means movable: a bridge that is up but has no fresh measured pose is not.
             BridgeHealth::Ready => match not_ready {
-                None => (BridgeHealth::Ready, String::new()),
+                // Ready, and what the operator should still know (a servo alarm the arm works through).
+                None => (BridgeHealth::Ready, self.bridge.warning().unwrap_or_default()),
                 Some(why) if feedback.is_none() => (BridgeHealth::Connecting, why),
                 Some(why) => (BridgeHealth::Error(why.clone()), why),
             },
@@ -697,6 +698,64 @@ mod tests {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
         done()
+    }
+
+    /// A simulator whose bridge reports a warning, as the SO-101 bridge does for a servo alarm it works through.
+    #[derive(Debug)]
+    struct Warned(Arc<SimBridge>);
+
+    impl Bridge for Warned {
+        fn kind(&self) -> &'static str {
+            self.0.kind()
+        }
+        fn joint_names(&self) -> &[String] {
+            self.0.joint_names()
+        }
+        fn send(&self, command: phone2act_bridges::Command) {
+            self.0.send(command);
+        }
+        fn feedback(&self) -> Option<Feedback> {
+            self.0.feedback()
+        }
+        fn health(&self) -> Health {
+            self.0.health()
+        }
+        fn warning(&self) -> Option<String> {
+            Some("servo 6 (gripper): overload (0x20)".into())
+        }
+        fn control(&self, request: phone2act_bridges::Control) -> Result<(), phone2act_bridges::BridgeError> {
+            self.0.control(request)
+        }
+        fn shutdown(&self) {
+            self.0.shutdown();
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_ready_bridge_warning_is_the_arm_health_message() {
+        let config = crate::config::Config::embedded_default().unwrap();
+        let a = &config.arms[0];
+        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
+        let arm = ArmController::new(
+            "main",
+            "sim",
+            Arc::new(Warned(bridge)),
+            &a.teleop,
+            &a.chunk,
+            ActionMode::Absolute,
+            Isometry3::identity(),
+        )
+        .unwrap();
+        // 10 s for a 50 Hz simulator to report once: a starved 2-core machine stalls for far less.
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().health
+                == BridgeHealth::Ready)
+            .await
+        );
+        assert_eq!(
+            arm.snapshot().health_message,
+            "servo 6 (gripper): overload (0x20)"
+        );
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

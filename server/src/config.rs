@@ -314,62 +314,25 @@ pub const REDACTED: &str = "<redacted>";
 impl Config {
     /// The embedded default, with environment overrides applied.
     pub fn embedded_default() -> Result<Self, ConfigError> {
-        Self::from_toml_str(EMBEDDED_DEFAULT, "<embedded default>", std::env::vars())
+        ConfigSource::embedded().config(std::env::vars())
     }
 
     /// Reads `path`, applying environment overrides from the process environment.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.to_owned(),
-            source,
-        })?;
-        Self::from_toml_str(&text, &path.display().to_string(), std::env::vars())
+        ConfigSource::file(path)?.config(std::env::vars())
     }
 
     /// Parses TOML text; `origin` names it in errors; `env` supplies `PHONE2ACT_*` overrides.
     ///
     /// Errors in the text carry the line and column in the text; an error that only an override causes
-    /// names the environment variable instead (the merged table has no lines a user could look up).
+    /// names the environment variable instead (the merged table has no lines a user could look up). No error
+    /// shows the value of a secret.
     pub fn from_toml_str(
         text: &str,
         origin: &str,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        let file_table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
-        let mut overrides: Vec<(String, String)> = env
-            .into_iter()
-            .filter(|(k, _)| k.starts_with(ENV_PREFIX) && k.contains("__"))
-            .collect();
-        overrides.sort();
-        if overrides.is_empty() {
-            let config: Config = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
-            config.validate(origin)?;
-            return Ok(config);
-        }
-        let mut table = file_table.clone();
-        for (var, raw) in &overrides {
-            apply_override(&mut table, var, raw)?;
-        }
-        let config = match Config::deserialize(toml::Value::Table(table)) {
-            Ok(config) => config,
-            Err(merged) => return Err(blame(text, origin, &file_table, &overrides, &merged)),
-        };
-        if let Err(ConfigError::Invalid { message, .. }) = config.validate(origin) {
-            // Name the overrides only when they are part of the problem: the file alone may be fine.
-            let file_alone = toml::from_str::<Config>(text).map(|c| c.validate(origin));
-            let same_in_file =
-                matches!(&file_alone, Ok(Err(ConfigError::Invalid { message: m, .. })) if *m == message);
-            let names: Vec<&str> = overrides.iter().map(|(k, _)| k.as_str()).collect();
-            return Err(ConfigError::Invalid {
-                origin: if same_in_file {
-                    origin.to_owned()
-                } else {
-                    format!("{origin} (with {})", names.join(", "))
-                },
-                message,
-            });
-        }
-        Ok(config)
+        parse_layered(text, origin, overrides(env), Config::validate)
     }
 
     /// The configuration as TOML, every default filled in and every secret replaced by [`REDACTED`]: what
@@ -380,98 +343,171 @@ impl Config {
         toml::to_string(&value)
     }
 
-    fn validate(&self, origin: &str) -> Result<(), ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            origin: origin.to_owned(),
-            message,
-        };
+    /// Every check `serve` would otherwise meet only while starting (bridge tables, camera sources, the
+    /// recorder's rules, the dataset root), so that `serve --check` refuses exactly what `serve` refuses.
+    fn validate(&self) -> Result<(), String> {
         if self.arms.is_empty() {
-            return Err(invalid(
+            return Err(
                 "no arms: add one, e.g. `[[arms]]` with `name = \"main\"` and `bridge = \"sim\"` \
                  (server/config/reference.toml lists every key)"
                     .to_owned(),
-            ));
+            );
         }
         if self.arms.len() > MAX_ARMS || self.cameras.len() > MAX_CAMERAS {
-            return Err(invalid(format!(
+            return Err(format!(
                 "{} arms and {} cameras configured; at most {MAX_ARMS} arms and {MAX_CAMERAS} cameras",
                 self.arms.len(),
                 self.cameras.len()
-            )));
+            ));
         }
         let mut names = std::collections::HashSet::new();
         for arm in &self.arms {
             if arm.name.is_empty() || !arm.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
-                return Err(invalid(format!(
+                return Err(format!(
                     "arm name {:?} must be non-empty ASCII letters, digits or '_'",
                     arm.name
-                )));
+                ));
             }
             if arm.name.len() > MAX_NAME_CHARS {
-                return Err(invalid(format!(
+                return Err(format!(
                     "arm name {:?} is longer than {MAX_NAME_CHARS} characters",
                     arm.name
-                )));
+                ));
             }
             if !names.insert(arm.name.as_str()) {
-                return Err(invalid(format!("arm name {:?} appears twice", arm.name)));
+                return Err(format!("arm name {:?} appears twice", arm.name));
             }
             arm.validate()
-                .map_err(|message| invalid(format!("arm {:?}: {message}", arm.name)))?;
+                .map_err(|message| format!("arm {:?}: {message}", arm.name))?;
         }
         let mut cams = std::collections::HashSet::new();
         for cam in &self.cameras {
             if cam.name.is_empty() || !cam.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
-                return Err(invalid(format!(
+                return Err(format!(
                     "camera name {:?} must be non-empty ASCII letters, digits or '_'",
                     cam.name
-                )));
+                ));
             }
             if cam.name.len() > MAX_NAME_CHARS {
-                return Err(invalid(format!(
+                return Err(format!(
                     "camera name {:?} is longer than {MAX_NAME_CHARS} characters",
                     cam.name
-                )));
+                ));
             }
             if !cams.insert(cam.name.as_str()) {
-                return Err(invalid(format!("camera name {:?} appears twice", cam.name)));
+                return Err(format!("camera name {:?} appears twice", cam.name));
             }
             if cam.width == 0 || cam.height == 0 || cam.width % 2 == 1 || cam.height % 2 == 1 {
-                return Err(invalid(format!(
+                return Err(format!(
                     "camera {:?}: width and height must be even and non-zero (yuv420p), got {}x{}",
                     cam.name, cam.width, cam.height
-                )));
+                ));
             }
             if cam.width > MAX_CAMERA_WIDTH || cam.height > MAX_CAMERA_HEIGHT {
-                return Err(invalid(format!(
+                return Err(format!(
                     "camera {:?}: {}x{} is larger than {MAX_CAMERA_WIDTH}x{MAX_CAMERA_HEIGHT}",
                     cam.name, cam.width, cam.height
-                )));
+                ));
             }
             if !(1.0..=120.0).contains(&cam.fps) {
-                return Err(invalid(format!(
+                return Err(format!(
                     "camera {:?}: fps must be in 1..=120, got {}",
                     cam.name, cam.fps
-                )));
+                ));
             }
             if cam.kind == CameraKind::V4l2 && cam.device.is_none() {
-                return Err(invalid(format!(
-                    "camera {:?}: kind \"v4l2\" needs `device`",
-                    cam.name
-                )));
+                return Err(format!("camera {:?}: kind \"v4l2\" needs `device`", cam.name));
+            }
+            if cam.kind == CameraKind::SimRender {
+                self.check_sim_render(cam)?;
             }
         }
         if !(1.0..=60.0).contains(&self.recorder.fps) {
-            return Err(invalid(format!(
+            return Err(format!(
                 "recorder.fps must be in 1..=60, got {}",
                 self.recorder.fps
-            )));
+            ));
         }
+        if self.recorder.fps.fract() != 0.0 {
+            return Err(format!(
+                "recorder.fps must be a whole number (LeRobot datasets store an integer rate), got {}",
+                self.recorder.fps
+            ));
+        }
+        self.check_root()?;
+        let cameras: Vec<_> = self
+            .cameras
+            .iter()
+            .map(|c| phone2act_recorder::spec::CameraSpec {
+                name: c.name.clone(),
+                width: c.width,
+                height: c.height,
+            })
+            .collect();
+        phone2act_recorder::spec::check_cameras(
+            &cameras,
+            self.recorder.video_codec.as_deref(),
+            self.recorder.format,
+        )
+        .map_err(|e| format!("recorder: {e}"))?;
         if self.recorder.robot_type.is_empty() || self.recorder.robot_type.len() > MAX_NAME_CHARS {
-            return Err(invalid(format!(
+            return Err(format!(
                 "recorder.robot_type must be 1..={MAX_NAME_CHARS} characters, got {}",
                 self.recorder.robot_type.len()
-            )));
+            ));
+        }
+        Ok(())
+    }
+
+    /// A `sim_render` camera shows a simulated arm: the one it names, else the first.
+    fn check_sim_render(&self, cam: &CameraConfig) -> Result<(), String> {
+        let sims: Vec<&str> = self
+            .arms
+            .iter()
+            .filter(|a| a.bridge == BridgeKind::Sim)
+            .map(|a| a.name.as_str())
+            .collect();
+        match &cam.arm {
+            None if sims.is_empty() => Err(format!(
+                "camera {:?}: kind \"sim_render\" needs an arm with bridge = \"sim\", and none is configured",
+                cam.name
+            )),
+            Some(arm) if !sims.contains(&arm.as_str()) => Err(format!(
+                "camera {:?}: arm = {arm:?} is not a simulated arm (simulated arms: {})",
+                cam.name,
+                if sims.is_empty() {
+                    "none".to_owned()
+                } else {
+                    sims.join(", ")
+                }
+            )),
+            _ => Ok(()),
+        }
+    }
+
+    /// The dataset root must be a directory, or a path one can be created at: an empty path passes
+    /// `create_dir_all` and then fails every save, and a file in the way fails every start.
+    fn check_root(&self) -> Result<(), String> {
+        let root = &self.recorder.root;
+        if root.as_os_str().is_empty() {
+            return Err(
+                "recorder.root is empty (an unset shell variable in PHONE2ACT_RECORDER__ROOT?): name the \
+                 dataset directory"
+                    .to_owned(),
+            );
+        }
+        if let Some(existing) = root.ancestors().find(|a| !a.as_os_str().is_empty() && a.exists())
+            && !existing.is_dir()
+        {
+            return Err(if existing == root.as_path() {
+                format!("recorder.root {} is a file, not a directory", root.display())
+            } else {
+                format!(
+                    "recorder.root {} cannot be created: {} is a file",
+                    root.display(),
+                    existing.display()
+                )
+            });
         }
         if let Some(storage) = &self.storage {
             storage.validate().map_err(invalid)?;
@@ -512,6 +548,48 @@ impl ArmConfig {
         if let Some(so101) = &self.so101 {
             so101.validate().map_err(|e| format!("so101: {e}"))?;
         }
+        match self.bridge {
+            BridgeKind::Dobot if self.dobot.is_none() => {
+                return Err(
+                    "bridge \"dobot\" needs an [arms.dobot] table (at least `host`, the controller's address)"
+                        .to_owned(),
+                );
+            }
+            BridgeKind::So101 if self.so101.is_none() => {
+                return Err(
+                    "bridge \"so101\" needs an [arms.so101] table (at least `port` and `calibration_file`)"
+                        .to_owned(),
+                );
+            }
+            _ => {}
+        }
+        // Joint targets need the SO-101's kinematics: its bridges, or a remote one reporting its joints.
+        let so101_joints = match self.bridge {
+            BridgeKind::Sim | BridgeKind::So101 => true,
+            BridgeKind::Dobot => false,
+            BridgeKind::Remote => self.remote.as_ref().is_some_and(|r| {
+                r.joint_names
+                    .iter()
+                    .map(String::as_str)
+                    .eq(phone2act_core::kinematics::SO101_ARM_JOINT_NAMES.iter().copied())
+            }),
+        };
+        if self.action_mode == phone2act_core::ActionMode::Joint && !so101_joints {
+            return Err(format!(
+                "action_mode = \"joint\" needs an SO-101 arm (bridge \"sim\" or \"so101\", or a remote one with \
+                 joint_names {:?}); bridge \"{}\" moves by end-effector targets",
+                phone2act_core::kinematics::SO101_ARM_JOINT_NAMES,
+                self.bridge.as_str()
+            ));
+        }
+        if self.dataset_layout == DatasetLayout::LerobotSo101
+            && (self.action_mode != phone2act_core::ActionMode::Joint || !so101_joints)
+        {
+            return Err(
+                "dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
+                    .to_owned(),
+            );
+        }
         if self.bridge == BridgeKind::Remote {
             let joints = self.remote.as_ref().map_or(0, |r| r.joint_names.len());
             if joints == 0 {
@@ -530,23 +608,169 @@ impl ArmConfig {
     }
 }
 
+/// Where a configuration's text comes from: a file, or the embedded default. The server's keys and the
+/// `[gateway]` table are both read from it, so both locate their errors the same way.
+#[derive(Debug, Clone)]
+pub struct ConfigSource {
+    text: String,
+    origin: String,
+}
+
+impl ConfigSource {
+    /// Reads `path`.
+    pub fn file(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Ok(Self {
+            text,
+            origin: path.display().to_string(),
+        })
+    }
+
+    /// The embedded default.
+    pub fn embedded() -> Self {
+        Self {
+            text: EMBEDDED_DEFAULT.to_owned(),
+            origin: "<embedded default>".to_owned(),
+        }
+    }
+
+    /// How errors name this source: the file's path, or `<embedded default>`.
+    pub fn origin(&self) -> &str {
+        &self.origin
+    }
+
+    /// The server's configuration, with `env`'s `PHONE2ACT_*` overrides applied.
+    pub fn config(&self, env: impl IntoIterator<Item = (String, String)>) -> Result<Config, ConfigError> {
+        Config::from_toml_str(&self.text, &self.origin, env)
+    }
+
+    /// The `[gateway]` table as the gateway's config type `T` (defaults for what it leaves out), with the
+    /// `PHONE2ACT_GATEWAY__*` overrides applied and `validate` run: its errors name the file's line or the
+    /// variable exactly as the server's own keys do. `Config` keeps the table opaque (the server library is no
+    /// client of itself), so the binary that starts the gateway calls this with the gateway's type.
+    pub fn gateway<T>(
+        &self,
+        env: impl IntoIterator<Item = (String, String)>,
+        validate: impl Fn(&T) -> Result<(), String>,
+    ) -> Result<T, ConfigError>
+    where
+        T: serde::de::DeserializeOwned + Default,
+    {
+        let section = parse_layered(
+            &self.text,
+            &self.origin,
+            overrides(env),
+            |s: &GatewaySection<T>| validate(&s.gateway),
+        )?;
+        Ok(section.gateway)
+    }
+}
+
+/// Only the `[gateway]` table of a configuration; every other key is the server's and ignored here.
+#[derive(Deserialize)]
+#[serde(bound(deserialize = "T: serde::de::DeserializeOwned + Default"))]
+struct GatewaySection<T> {
+    #[serde(default)]
+    gateway: T,
+}
+
+/// The `PHONE2ACT_*` overrides among `env`, in a stable order.
+fn overrides(env: impl IntoIterator<Item = (String, String)>) -> Vec<(String, String)> {
+    let mut overrides: Vec<(String, String)> = env
+        .into_iter()
+        .filter(|(k, _)| k.starts_with(ENV_PREFIX) && k.contains("__"))
+        .collect();
+    overrides.sort();
+    overrides
+}
+
+/// Parses `text` as `T`, applies `overrides`, runs `validate`, and locates what fails: a file error by its
+/// line (and the file alone when the overrides are not part of the problem), an override error by its
+/// variable. Every message is cleared of the secrets the text or the overrides hold.
+fn parse_layered<T: serde::de::DeserializeOwned>(
+    text: &str,
+    origin: &str,
+    overrides: Vec<(String, String)>,
+    validate: impl Fn(&T) -> Result<(), String>,
+) -> Result<T, ConfigError> {
+    let file_table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
+    let secrets = Secrets::collect(&file_table, &overrides);
+    parse_layered_inner(text, origin, &file_table, &overrides, validate).map_err(|e| secrets.redact(e))
+}
+
+fn parse_layered_inner<T: serde::de::DeserializeOwned>(
+    text: &str,
+    origin: &str,
+    file_table: &toml::Table,
+    overrides: &[(String, String)],
+    validate: impl Fn(&T) -> Result<(), String>,
+) -> Result<T, ConfigError> {
+    let invalid = |origin: String, message: String| ConfigError::Invalid { origin, message };
+    if overrides.is_empty() {
+        let value: T = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
+        validate(&value).map_err(|m| invalid(origin.to_owned(), m))?;
+        return Ok(value);
+    }
+    let mut table = file_table.clone();
+    for (var, raw) in overrides {
+        apply_override(&mut table, var, raw)?;
+    }
+    let value = match T::deserialize(toml::Value::Table(table)) {
+        Ok(value) => value,
+        Err(merged) => return Err(blame::<T>(text, origin, file_table, overrides, &merged)),
+    };
+    if let Err(message) = validate(&value) {
+        // Name the overrides only when they are part of the problem: the file alone may be fine.
+        let file_alone = toml::from_str::<T>(text).map(|v| validate(&v));
+        let same_in_file = matches!(&file_alone, Ok(Err(m)) if *m == message);
+        // The overrides that alone bring the message about, else (a combination) all of them.
+        let alone: Vec<&str> = overrides
+            .iter()
+            .filter(|(var, raw)| {
+                let mut table = file_table.clone();
+                apply_override(&mut table, var, raw).is_ok()
+                    && T::deserialize(toml::Value::Table(table))
+                        .is_ok_and(|v| matches!(validate(&v), Err(m) if m == message))
+            })
+            .map(|(k, _)| k.as_str())
+            .collect();
+        let names: Vec<&str> = if alone.is_empty() {
+            overrides.iter().map(|(k, _)| k.as_str()).collect()
+        } else {
+            alone
+        };
+        return Err(invalid(
+            if same_in_file {
+                origin.to_owned()
+            } else {
+                format!("{origin} (with {})", names.join(", "))
+            },
+            message,
+        ));
+    }
+    Ok(value)
+}
+
 /// Names the input that caused `merged`, the error of the configuration with overrides applied: the file
 /// (with its line) when the file alone fails the same way, else the first override that breaks a file that
 /// parses on its own.
-fn blame(
+fn blame<T: serde::de::DeserializeOwned>(
     text: &str,
     origin: &str,
     file_table: &toml::Table,
     overrides: &[(String, String)],
     merged: &toml::de::Error,
 ) -> ConfigError {
-    match toml::from_str::<Config>(text) {
+    match toml::from_str::<T>(text) {
         Err(e) if e.message() == merged.message() => return parse_error(&e, text, origin),
         Ok(_) => {
             for (var, raw) in overrides {
                 let mut table = file_table.clone();
                 if apply_override(&mut table, var, raw).is_ok()
-                    && let Err(e) = Config::deserialize(toml::Value::Table(table))
+                    && let Err(e) = T::deserialize(toml::Value::Table(table))
                 {
                     return ConfigError::Env {
                         var: var.clone(),
@@ -564,10 +788,78 @@ fn blame(
     }
 }
 
-/// Keys whose values are credentials.
+/// The secret values of one configuration (file and overrides), to clear from its error messages: a type
+/// error quotes the value it could not use, and a token is no less secret for being mistyped.
+struct Secrets(Vec<String>);
+
+impl Secrets {
+    fn collect(file: &toml::Table, overrides: &[(String, String)]) -> Self {
+        fn walk(value: &toml::Value, secret: bool, out: &mut Vec<String>) {
+            match value {
+                toml::Value::Table(table) => {
+                    for (key, v) in table {
+                        walk(v, secret || is_secret_key(key), out);
+                    }
+                }
+                toml::Value::Array(items) => items.iter().for_each(|v| walk(v, secret, out)),
+                toml::Value::String(s) if secret => out.push(s.clone()),
+                other if secret => out.push(other.to_string()),
+                _ => {}
+            }
+        }
+        let mut found = Vec::new();
+        for (key, v) in file {
+            walk(v, is_secret_key(key), &mut found);
+        }
+        for (var, raw) in overrides {
+            if var.rsplit("__").next().is_some_and(is_secret_key) {
+                found.push(raw.clone());
+            }
+        }
+        // Longest first, so that a secret containing another is cleared whole.
+        found.retain(|s| !s.is_empty());
+        found.sort_by_key(|s| std::cmp::Reverse(s.len()));
+        Self(found)
+    }
+
+    fn clear(&self, message: String) -> String {
+        self.0
+            .iter()
+            .fold(message, |m, secret| m.replace(secret.as_str(), REDACTED))
+    }
+
+    fn redact(&self, error: ConfigError) -> ConfigError {
+        match error {
+            ConfigError::Parse {
+                origin,
+                line,
+                column,
+                message,
+            } => ConfigError::Parse {
+                origin,
+                line,
+                column,
+                message: self.clear(message),
+            },
+            ConfigError::Invalid { origin, message } => ConfigError::Invalid {
+                origin,
+                message: self.clear(message),
+            },
+            ConfigError::Env { var, message } => ConfigError::Env {
+                var,
+                message: self.clear(message),
+            },
+            read @ ConfigError::Read { .. } => read,
+        }
+    }
+}
+
+/// Keys whose values are credentials (`server.token`, `gateway.token`, and any later `*_token`, `*password*`,
+/// `*secret*`); `require_token` and `rosbridge_require_token` are switches about a token, not one.
 fn is_secret_key(key: &str) -> bool {
     let key = key.to_ascii_lowercase();
-    key == "token" || key.ends_with("_token") || key.contains("password") || key.contains("secret")
+    !key.contains("require")
+        && (key == "token" || key.ends_with("_token") || key.contains("password") || key.contains("secret"))
 }
 
 fn redact_secrets(value: &mut toml::Value) {
@@ -664,7 +956,13 @@ fn apply_override(table: &mut toml::Table, var: &str, raw: &str) -> Result<(), C
             _ => return Err(err(format!("`{walked}` is a value, not a table"))),
         };
     }
-    cursor.insert(last.clone(), parse_env_value(raw));
+    // A secret is a string whatever it looks like: `123456789012345`, `0x1f`, `1e9` and `true` are tokens too.
+    let value = if is_secret_key(last) {
+        toml::Value::String(raw.to_owned())
+    } else {
+        parse_env_value(raw)
+    };
+    cursor.insert(last.clone(), value);
     Ok(())
 }
 
@@ -912,6 +1210,20 @@ mod tests {
             err.starts_with("test.toml (with PHONE2ACT_RECORDER__FPS): recorder.fps"),
             "{err}"
         );
+        // Only the override to blame is named, not every variable that happens to be set.
+        let err = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_RECORDER__FPS", "500"),
+                ("PHONE2ACT_SERVER__LISTEN", "127.0.0.1:7"),
+            ],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.starts_with("test.toml (with PHONE2ACT_RECORDER__FPS): recorder.fps"),
+            "{err}"
+        );
     }
 
     #[test]
@@ -959,6 +1271,207 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`first` is not one of them"), "{err}");
+    }
+
+    #[test]
+    fn an_empty_root_is_refused_at_start_and_names_the_variable() {
+        // `PHONE2ACT_RECORDER__ROOT= phone2act serve`: an unset shell variable used to start a server whose
+        // every save failed on the empty path.
+        let err = with_env(SIM, &[("PHONE2ACT_RECORDER__ROOT", "")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("test.toml (with PHONE2ACT_RECORDER__ROOT): recorder.root is empty"),
+            "{err}"
+        );
+        let err = parse(&format!("{SIM}[recorder]\nroot = \"\"\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml: recorder.root is empty"), "{err}");
+    }
+
+    #[test]
+    fn what_serve_refuses_at_start_the_config_refuses() {
+        let dir = std::env::temp_dir().join(format!("phone2act-config-root-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("a-file");
+        std::fs::write(&file, "x").unwrap();
+        let dobot = "[[arms]]\nname = \"d\"\nbridge = \"dobot\"\n[arms.dobot]\nhost = \"h\"\n";
+        let cam = |kind: &str, extra: &str| {
+            format!("[[cameras]]\nname = \"c\"\nkind = \"{kind}\"\nwidth = 64\nheight = 64\n{extra}")
+        };
+        for (text, needle) in [
+            (format!("{SIM}[recorder]\nfps = 20.5\n"), "recorder.fps must be a whole number"),
+            (
+                format!("{dobot}{}", cam("sim_render", "")),
+                "kind \"sim_render\" needs an arm with bridge = \"sim\"",
+            ),
+            (
+                format!("{SIM}{dobot}{}", cam("sim_render", "arm = \"d\"\n")),
+                "arm = \"d\" is not a simulated arm (simulated arms: main)",
+            ),
+            (
+                "[[arms]]\nname = \"d\"\nbridge = \"dobot\"\n".to_owned(),
+                "bridge \"dobot\" needs an [arms.dobot] table",
+            ),
+            (
+                "[[arms]]\nname = \"s\"\nbridge = \"so101\"\n".to_owned(),
+                "bridge \"so101\" needs an [arms.so101] table",
+            ),
+            (
+                "[[arms]]\nname = \"d\"\nbridge = \"dobot\"\naction_mode = \"joint\"\n[arms.dobot]\nhost = \"h\"\n"
+                    .to_owned(),
+                "action_mode = \"joint\" needs an SO-101 arm",
+            ),
+            (
+                format!("{SIM}dataset_layout = \"lerobot_so101\"\n"),
+                "dataset_layout = \"lerobot_so101\" needs",
+            ),
+            (
+                format!(
+                    "{SIM}[[cameras]]\nname = \"small\"\nkind = \"test_pattern\"\nwidth = 64\nheight = 48\n"
+                ),
+                "SVT-AV1 needs at least 64x64",
+            ),
+            (
+                format!("{SIM}[recorder]\nroot = {:?}\n", file.display().to_string()),
+                "is a file, not a directory",
+            ),
+            (
+                format!(
+                    "{SIM}[recorder]\nroot = {:?}\n",
+                    file.join("ds").display().to_string()
+                ),
+                "cannot be created",
+            ),
+        ] {
+            let err = parse(&text).map(|_| ()).unwrap_err().to_string();
+            assert!(err.contains(needle), "{text}\n=> {err}");
+        }
+        // The same sizes with a codec that takes them, and a named simulated arm, are fine.
+        let small = format!(
+            "{SIM}[[cameras]]\nname = \"small\"\nkind = \"sim_render\"\narm = \"main\"\nwidth = 64\nheight = 48\n\
+             [recorder]\nvideo_codec = \"h264\"\nroot = {:?}\n",
+            dir.join("new").display().to_string()
+        );
+        let small = parse(&small);
+        let _ = std::fs::remove_dir_all(&dir);
+        small.unwrap();
+    }
+
+    #[test]
+    fn secrets_from_the_environment_are_strings_whatever_they_look_like() {
+        for secret in [
+            "123456789012345",
+            "0x1f",
+            "1e9",
+            "true",
+            "[1, 2]",
+            "inf",
+            "2026-01-01",
+        ] {
+            let config = with_env(
+                SIM,
+                &[
+                    ("PHONE2ACT_SERVER__TOKEN", secret),
+                    ("PHONE2ACT_GATEWAY__TOKEN", secret),
+                ],
+            )
+            .unwrap_or_else(|e| panic!("{secret}: {e}"));
+            assert_eq!(config.server.token.as_deref(), Some(secret));
+            assert_eq!(config.gateway["token"].as_str(), Some(secret));
+        }
+        // Switches about a token stay switches.
+        let config = with_env(SIM, &[("PHONE2ACT_GATEWAY__REQUIRE_TOKEN", "false")]).unwrap();
+        assert_eq!(config.gateway["require_token"].as_bool(), Some(false));
+    }
+
+    #[test]
+    fn no_error_prints_a_secret() {
+        let err = parse(&format!("[server]\ntoken = 123456789012345\n{SIM}"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml:2:"), "{err}");
+        assert!(
+            !err.contains("123456789012345") && err.contains(REDACTED),
+            "{err}"
+        );
+        // A secret that happens to appear in another error's text is cleared there too.
+        let err = with_env(
+            &format!("{SIM}[recorder]\nrobot_type = \"\"\n"),
+            &[("PHONE2ACT_SERVER__TOKEN", "1..=64 characters")],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(!err.contains("1..=64 characters"), "{err}");
+    }
+
+    /// A stand-in for the gateway's config type: the server crate cannot see it.
+    #[derive(Debug, Default, Deserialize, PartialEq)]
+    #[serde(default, deny_unknown_fields)]
+    struct Gateway {
+        port: u16,
+        level: String,
+        token: Option<String>,
+    }
+
+    fn gateway(text: &str, env: &[(&str, &str)]) -> Result<Gateway, ConfigError> {
+        let source = ConfigSource {
+            text: text.to_owned(),
+            origin: "test.toml".to_owned(),
+        };
+        let env = env.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned()));
+        source.gateway(env, |g: &Gateway| {
+            if g.level == "loud" {
+                Err("gateway.level must be quiet".to_owned())
+            } else {
+                Ok(())
+            }
+        })
+    }
+
+    #[test]
+    fn gateway_errors_name_the_line_or_the_variable_like_the_servers_own() {
+        let text = format!("{SIM}\n[gateway]\nport = 1\nprot = 2\n");
+        let err = gateway(&text, &[]).unwrap_err().to_string();
+        assert!(err.starts_with("test.toml:7:1: unknown field `prot`"), "{err}");
+        // An unrelated override does not move the blame off the file's line.
+        let err = gateway(&text, &[("PHONE2ACT_RECORDER__FPS", "30")])
+            .unwrap_err()
+            .to_string();
+        assert!(err.starts_with("test.toml:7:1:"), "{err}");
+        let text = format!("{SIM}[gateway]\nport = 1\n");
+        let err = gateway(&text, &[("PHONE2ACT_GATEWAY__PORT", "fast")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("environment override PHONE2ACT_GATEWAY__PORT: "),
+            "{err}"
+        );
+        let err = gateway(&text, &[("PHONE2ACT_GATEWAY__LEVEL", "loud")])
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            err,
+            "test.toml (with PHONE2ACT_GATEWAY__LEVEL): gateway.level must be quiet"
+        );
+        let err = gateway(&format!("{text}level = \"loud\"\n"), &[])
+            .unwrap_err()
+            .to_string();
+        assert_eq!(err, "test.toml: gateway.level must be quiet");
+        // No table at all: the type's defaults; a token override is a string.
+        let g = gateway(SIM, &[("PHONE2ACT_GATEWAY__TOKEN", "0x10")]).unwrap();
+        assert_eq!(
+            g,
+            Gateway {
+                token: Some("0x10".to_owned()),
+                ..Gateway::default()
+            }
+        );
+        let err = gateway(&format!("{text}token = 0x10\n"), &[])
+            .unwrap_err()
+            .to_string();
+        assert!(!err.contains("0x10") && !err.contains("16"), "{err}");
     }
 
     #[test]

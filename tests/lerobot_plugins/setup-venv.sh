@@ -5,9 +5,10 @@
 set -euo pipefail
 cache="${PHONE2ACT_CACHE_DIR:-$HOME/.cache/phone2act}"
 venv="$cache/lerobot06-venv"
-# The `dataset` extra: lerobot-record and lerobot-replay need it; `training`: lerobot-train (the closed-loop
+# The `dataset` extra: lerobot-record and lerobot-replay need it; `feetech`: feetech-servo-sdk, for lerobot's own
+# Feetech client against the bus emulator (tests/feetech_upstream); `training`: lerobot-train (the closed-loop
 # benchmark, benchmarks/closed_loop).
-spec="lerobot[dataset,training]==0.6.1"
+spec="lerobot[dataset,training,feetech]==0.6.1"
 mkdir -p "$cache"
 # A marker file written last (holding what was installed) means an interrupted or outdated install is redone
 # instead of half-used.

@@ -15,7 +15,9 @@
   - "pickle" (2025-06-11 .. 2025-09-10): every message is `torch.save` output; a msgpack request cannot be loaded,
     so every answer is `torch.save({"error": ...})`, a zip archive holding `archive/data.pkl`. Built here with
     zipfile + pickle in torch's archive layout (no torch needed); `stream=True` sends a bare pickle instead (the
-    pre-1.6 torch.save format).
+    pre-1.6 torch.save format);
+  - "pickle-june" (the June-2025 server, the one N1.6's own client warns about): the request cannot be loaded and
+    the server's except-branch answers the bare bytes `b"ERROR"` to everything.
   Any handler exception becomes `{"error": str(e)}`, the token check and the unknown-endpoint error are as upstream.
 """
 
@@ -147,6 +149,8 @@ class PolicyStandIn(_RepServer):
     # --- transport and dispatch, as both dialects' servers do it ---------------------------------------------
 
     def answer(self, raw: bytes) -> bytes:
+        if self.wire == "pickle-june":
+            return b"ERROR"
         if self.wire == "pickle":
             # torch.load cannot read a msgpack request; the server's except-branch answers with its own format.
             return torch_save_like({"error": "invalid load key, '\\x82'."}, self.stream)

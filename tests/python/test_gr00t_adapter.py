@@ -284,6 +284,18 @@ def test_wrong_shape_answer_is_refused_before_anything_moves(gserver: Server) ->
             assert c.arm("main").commands_sent == before
 
 
+def test_a_shape_refusal_stops_the_loop_at_once(gserver: Server) -> None:
+    """The model's shape is the same at every step: asking again until the failure limit only repeats the error."""
+    bad = packb({"action.single_arm": np.zeros((16, 4), np.float32),
+                 "action.gripper": np.zeros((16, 1), np.float32)})
+    with StandIn(action_bytes=bad) as standin, Client(gserver.target) as c:
+        session, adapter = open_adapter(c, standin)
+        with session, pytest.raises(ChunkShapeError, match=r"expected \(horizon, 5\)"):
+            adapter.run(max_chunks=3)
+        assert adapter.stats.chunks == 0 and adapter.stats.errors == 1
+        assert sum(b"get_action" in r for r in standin.requests) == 1
+
+
 def test_wrong_dialect_stops_with_advice_and_nothing_moves(gserver: Server) -> None:
     with PolicyStandIn(N16, video=("webcam",), state=("single_arm", "gripper"),
                        action=("single_arm", "gripper")) as standin, Client(gserver.target) as c:
@@ -347,6 +359,24 @@ def test_command_line_names_a_pickle_era_server(gserver: Server, stream: bool) -
     assert "this GR00T server uses the pre-2025-09-10 pickle wire format" in out.stderr
     assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in out.stderr
     assert "Traceback" not in out.stderr and "ExtraData" not in out.stderr
+
+
+def test_command_line_names_a_june_2025_server(gserver: Server) -> None:
+    with PolicyStandIn("pickle-june") as standin:
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--task", TASK)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert 'bare b"ERROR"' in out.stderr and "pre-2025-09-10 pickle wire format" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr and "not a GR00T msgpack message" not in out.stderr
+
+
+def test_command_line_forced_version_the_server_contradicts(gserver: Server) -> None:
+    with PolicyStandIn(N15, video=("webcam",)) as standin:
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--gr00t-version", "n1.6",
+                      "--camera", "webcam", "--task", TASK, "--chunks", "1")
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "--gr00t-version n1.6 does not match" in out.stderr and "The version is the mistake" in out.stderr
+    # Not the embodiment check's prefixed keys, which read as a wrong --config.
+    assert "the adapter sends" not in out.stderr and standin.observations == []
 
 
 def test_command_line_errors_are_sentences(gserver: Server) -> None:

@@ -30,6 +30,7 @@ from phone2act_gr00t import (
     Gr00tTimeout,
     ObservationError,
     action_mode_of,
+    check_forced_wire,
 )
 from phone2act_gr00t.wire import decode_reply, packb, request, unpackb
 
@@ -293,6 +294,56 @@ def test_pickle_era_server_is_named_not_a_msgpack_traceback(stream: bool) -> Non
     # What msgpack alone makes of these bytes: the bare traceback this replaces.
     with pytest.raises((msgpack.ExtraData, ValueError)):
         msgpack.unpackb(torch_save_like({"error": "x"}, stream))
+
+
+def test_june_2025_server_answering_bare_error_is_named() -> None:
+    """The June-2025 (pickle-era) server answers `b"ERROR"` to a request it cannot unpickle: named as that server."""
+    with PolicyStandIn("pickle-june") as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        with pytest.raises(Gr00tProtocolError) as err:
+            c.detect_wire()
+        msg = str(err.value)
+        assert 'bare b"ERROR"' in msg and "pre-2025-09-10 pickle wire format" in msg, msg
+        assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in msg
+        assert "not a GR00T msgpack message" not in msg
+        c.close()
+
+
+@pytest.mark.parametrize(("forced", "server", "advice"), [
+    (N16, N15, "run with --gr00t-version n1.5"),
+    (N16_SIM, N15, "run with --gr00t-version n1.5"),
+    (N15, N16, "run with --gr00t-version n1.6 (or n1.6-sim"),
+])
+def test_a_forced_version_the_server_contradicts_is_named_as_the_mistake(forced: str, server: str,
+                                                                         advice: str) -> None:
+    with PolicyStandIn(server, video=("front",)) as standin:
+        c = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        config = c.modality_config()
+        with pytest.raises(Gr00tProtocolError) as err:
+            check_forced_wire(forced, config, standin.endpoint)
+        msg = str(err.value)
+        assert f"--gr00t-version {forced} does not match" in msg and "The version is the mistake" in msg, msg
+        assert advice in msg, msg
+        # The matching version, and a server that tells nothing, pass.
+        check_forced_wire(server, config, standin.endpoint)
+        check_forced_wire(forced, None, standin.endpoint)
+        c.close()
+
+
+def test_an_absolute_model_on_a_relative_arm_is_told_to_set_absolute() -> None:
+    """A model fine-tuned on a phone2act dataset answers the recorded absolute targets (9 arm columns)."""
+    layout = ArmLayout("main", STATE, ("delta_x", "delta_y", "delta_z", "delta_rx", "delta_ry", "delta_rz", "gripper"))
+    answer = {"action.arm": np.zeros((16, 9), np.float32), "action.gripper": np.zeros((16, 1), np.float32)}
+    with pytest.raises(ChunkShapeError) as err:
+        Embodiment.phone2act(layout).chunk_steps(answer, layout, modes={"main": DELTA_EE})
+    msg = str(err.value)
+    assert "expected (horizon, 6)" in msg and "trained on absolute targets" in msg, msg
+    assert "Set action_mode = \"absolute\" on arm 'main'" in msg, msg
+    # Another width is only a shape error: nothing suggests a mode.
+    answer["action.arm"] = np.zeros((16, 4), np.float32)
+    with pytest.raises(ChunkShapeError) as err:
+        Embodiment.phone2act(layout).chunk_steps(answer, layout, modes={"main": DELTA_EE})
+    assert "action_mode" not in str(err.value)
 
 
 def test_bytes_of_no_known_format_are_refused_readably() -> None:

@@ -47,12 +47,14 @@ have_lerobot06=0
 if tests/lerobot_plugins/setup-venv.sh --which-python >/dev/null; then
   have_lerobot06=1
   tests/lerobot_plugins/run.sh
+  # lerobot's own Feetech client against the Feetech bus emulator, and the SO-101 bridge against lerobot.
+  tests/feetech_upstream/run.sh
   rm -rf target/closed-loop/ci
   benchmarks/closed_loop/run.sh --short --out target/closed-loop/ci
   # The operator's demonstrations (lerobot's SO-101 layout) are read back by the conformance checks too.
   cp -r target/closed-loop/ci/dataset "$PHONE2ACT_CONFORMANCE_DIR/closed-loop-ci"
 else
-  echo "lerobot plugins, closed loop, conformance: SKIPPED: no Python >= 3.12 for lerobot 0.6 (install one," \
+  echo "lerobot plugins, feetech upstream, closed loop, conformance: SKIPPED: no Python >= 3.12 for lerobot 0.6 (install one," \
     "e.g. with pyenv)" >&2
 fi
 tests/scripts/test-packaging.sh

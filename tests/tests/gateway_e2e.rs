@@ -586,3 +586,118 @@ async fn the_app_as_its_source_behaves_reconnects_and_double_connects_without_su
     drop(gw);
     server.shutdown().await.unwrap();
 }
+
+/// A pose publish with the given orientation and id, in the app's shape.
+fn pose_with_orientation(id: &str, q: [f64; 4]) -> String {
+    format!(
+        r#"{{"op":"publish","id":"{id}","topic":"/Phone2Act/ar_pose","type":"geometry_msgs/PoseStamped","msg":{{"header":{{"stamp":"now","frame_id":"phone_ar_frame"}},"pose":{{"position":{{"x":0.0,"y":0.0,"z":0.0}},"orientation":{{"x":{:?},"y":{:?},"z":{:?},"w":{:?}}}}}}}}}"#,
+        q[0], q[1], q[2], q[3]
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_non_unit_quaternion_is_reported_even_when_a_good_pose_follows_at_once() {
+    // Poses fold latest-wins between the socket and the server: a refused pose followed at once by a good one
+    // used to be replaced before the server read it, and its error was never reported (18 of 30).
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let gw = start_gateway(&server).await;
+    let mut app = rosbridge(&gw).await;
+    send(&mut app, r#"{"op":"set_level","level":"error"}"#).await;
+    for i in 0..30 {
+        send(
+            &mut app,
+            &pose_with_orientation(&format!("bad-{i}"), [0.0, 0.0, 0.0, 2.0]),
+        )
+        .await;
+        send(
+            &mut app,
+            &pose_with_orientation(&format!("good-{i}"), [0.0, 0.0, 0.0, 1.0]),
+        )
+        .await;
+    }
+    // A message the gateway refuses itself: its status is queued after every status the poses caused.
+    send(
+        &mut app,
+        r#"{"op":"publish","id":"marker","topic":"/phone2act/gripper","type":"std_msgs/Float32","msg":{"data":5.0}}"#,
+    )
+    .await;
+    let mut reported = std::collections::BTreeSet::new();
+    loop {
+        let msg = tokio::time::timeout(T, app.next())
+            .await
+            .expect("the marker's status arrives")
+            .unwrap()
+            .unwrap();
+        let Message::Text(text) = msg else { continue };
+        let v: Value = serde_json::from_str(&text).unwrap();
+        if v["op"] != "status" {
+            continue;
+        }
+        let id = v["id"].as_str().unwrap_or_default().to_owned();
+        if id == "marker" {
+            break;
+        }
+        let text = v["msg"].as_str().unwrap_or_default();
+        assert!(
+            id.starts_with("bad-") && text.contains("quaternion norm 2"),
+            "only the bad poses are refused: {v}"
+        );
+        reported.insert(id);
+    }
+    let expected: std::collections::BTreeSet<_> = (0..30).map(|i| format!("bad-{i}")).collect();
+    assert_eq!(reported, expected, "every refused pose is reported, by its id");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_non_unit_quaternion_on_the_page_socket_is_reported_by_its_seq() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let gw = start_gateway(&server).await;
+    let token = gw.info.token.clone().unwrap();
+    let mut page = wss(&gw, &format!("/ws?token={token}")).await;
+    let sample = |seq: u64, w: f64| {
+        format!(
+            r#"{{"type":"sample","seq":{seq},"t_ns":{},"tracking":"tracking","pose":{{"p":[0.0,1.4,0.0],"q":[0,0,0,{w:?}]}},"buttons":[]}}"#,
+            seq * 16_000_000
+        )
+    };
+    for i in 0..30 {
+        send(&mut page, &sample(2 * i + 1, 2.0)).await;
+        send(&mut page, &sample(2 * i + 2, 1.0)).await;
+    }
+    // Refused by the gateway itself, so its error is queued after every error the poses caused.
+    send(
+        &mut page,
+        r#"{"type":"sample","seq":1000,"buttons":[{"gripper":2}]}"#,
+    )
+    .await;
+    let mut reported = std::collections::BTreeSet::new();
+    loop {
+        let msg = tokio::time::timeout(T, page.next())
+            .await
+            .expect("the marker's error arrives")
+            .unwrap()
+            .unwrap();
+        let Message::Text(text) = msg else { continue };
+        let v: Value = serde_json::from_str(&text).unwrap();
+        if v["type"] != "error" {
+            continue;
+        }
+        let seq = v["seq"].as_u64().unwrap_or_default();
+        if seq == 1000 {
+            break;
+        }
+        assert!(
+            seq % 2 == 1
+                && v["message"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .contains("quaternion norm 2"),
+            "only the bad poses are refused: {v}"
+        );
+        reported.insert(seq);
+    }
+    let expected: std::collections::BTreeSet<u64> = (0..30).map(|i| 2 * i + 1).collect();
+    assert_eq!(reported, expected, "every refused pose is reported, by its seq");
+}

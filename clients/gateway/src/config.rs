@@ -70,8 +70,11 @@ pub struct GatewayConfig {
     /// Addresses always let in on rosbridge without a token or pairing (a robot PC's own tablet, a lab
     /// machine running roslibpy). Exact addresses, IPv4 or IPv6.
     pub allow: Vec<IpAddr>,
-    /// Addresses that count as this machine and are always let in. Default (absent): every loopback
-    /// address. Tests narrow it to `["127.0.0.1"]` so that a client bound to 127.0.0.2 plays a phone.
+    /// Addresses that count as this machine and are let in on rosbridge without a token or pairing. Default
+    /// (absent): every loopback address, so the Phone2Act app reaches the arm through `adb reverse`. `[]`
+    /// trusts no address: loopback clients then pair or carry the token like any other (see
+    /// `docs/gateway-security.md`). Tests narrow it to `["127.0.0.1"]` so that a client bound to 127.0.0.2
+    /// plays a phone.
     pub local_addresses: Option<Vec<IpAddr>>,
     /// A rosbridge connection from the same address as the one holding an arm takes the arm over once
     /// the holder has sent nothing for this long (the app's second tap on "connect" leaves the old socket
@@ -116,6 +119,40 @@ impl GatewayConfig {
             .map_err(|e: toml::de::Error| GatewayError::Config(format!("[gateway]: {}", e.message())))?;
         config.validate()?;
         Ok(config)
+    }
+
+    /// The addresses rosbridge admits without a token or pairing because they count as this machine, as text
+    /// for a start-up warning; `None` when rosbridge admits no address that way. With a server token set,
+    /// these addresses drive the arms without any credential.
+    pub fn trusted_local_addresses(&self) -> Option<String> {
+        if !self.enabled || !self.rosbridge || self.rosbridge_require_token {
+            return None;
+        }
+        match &self.local_addresses {
+            None => Some("every loopback address (127.0.0.0/8, ::1)".to_owned()),
+            Some(list) if list.is_empty() => None,
+            Some(list) => Some(
+                list.iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            ),
+        }
+    }
+
+    /// What to log at start when the server requires a token: the gateway forwards what it admits with that
+    /// token, so the addresses it trusts as this machine drive the arms without one. That is what the
+    /// Phone2Act app needs through `adb reverse`, and also what any local process, SSH tunnel or local proxy
+    /// gets; the message says so and how to narrow it. `None` when no address is trusted that way.
+    pub fn local_trust_warning(&self) -> Option<String> {
+        let trusted = self.trusted_local_addresses()?;
+        Some(format!(
+            "the server requires a token, but the phone gateway's rosbridge port ({}) admits {trusted} without \
+             one: any process on this machine, or an SSH tunnel or proxy ending here, can drive the arms. Kept for \
+             the Phone2Act app through `adb reverse`; to require pairing or the token from this machine too, set \
+             [gateway] local_addresses = [] (docs/gateway-security.md)",
+            self.rosbridge_listen
+        ))
     }
 
     /// The checks serde cannot make; every way of starting a gateway runs them.
@@ -306,6 +343,33 @@ mod tests {
                 .unwrap_err()
                 .to_string();
             assert!(err.contains(needle), "{text}: {err}");
+        }
+    }
+
+    #[test]
+    fn only_a_trusting_rosbridge_names_its_trusted_addresses() {
+        let default = GatewayConfig::default();
+        assert!(default.trusted_local_addresses().unwrap().contains("loopback"));
+        let narrowed = GatewayConfig {
+            local_addresses: Some(vec!["127.0.0.1".parse().unwrap()]),
+            ..GatewayConfig::default()
+        };
+        assert_eq!(narrowed.trusted_local_addresses().as_deref(), Some("127.0.0.1"));
+        for quiet in [
+            GatewayConfig {
+                local_addresses: Some(Vec::new()),
+                ..GatewayConfig::default()
+            },
+            GatewayConfig {
+                rosbridge_require_token: true,
+                ..GatewayConfig::default()
+            },
+            GatewayConfig {
+                rosbridge: false,
+                ..GatewayConfig::default()
+            },
+        ] {
+            assert_eq!(quiet.trusted_local_addresses(), None, "{quiet:?}");
         }
     }
 

@@ -119,6 +119,9 @@ fn to_sample(
     if let Some(pose) = pose {
         let p = finite(pose.p).ok_or("pose position contains NaN, infinity or null")?;
         let q = finite(pose.q).ok_or("pose orientation contains NaN, infinity or null")?;
+        // Refused here, not only by the server: samples fold latest-wins on the way, so a newer pose could
+        // replace this one before the server reads it and its error would be lost.
+        phone2act_proto::convert_arm::check_wire_pose(p, q).map_err(|e| format!("pose refused: {e}"))?;
         // Raw WebXR viewer pose (+X right, +Y up, -Z forward): the server's planner maps axes.
         sample.tracking_from_phone = Some(Pose::from_parts(p, q));
         sample.tracking = match tracking.unwrap_or("tracking") {
@@ -360,5 +363,15 @@ mod tests {
         assert!(sample(r#"{"type":"sample","seq":1,"buttons":[{"gripper":2}]}"#).is_err());
         assert!(sample(r#"{"type":"sample","seq":1,"buttons":[{"jump":true}]}"#).is_err());
         assert!(serde_json::from_value::<PageMsg>(json!({"type": "dance"})).is_err());
+    }
+
+    #[test]
+    fn a_non_unit_quaternion_is_refused_here_with_the_servers_tolerance() {
+        // Refused by the gateway itself: a newer sample folded over it would hide the server's error.
+        let err = sample(r#"{"type":"sample","seq":1,"pose":{"p":[0,0,0],"q":[0,0,0,2]}}"#).unwrap_err();
+        assert!(err.contains("quaternion norm 2"), "{err}");
+        // Within the tolerance the server renormalises, so the gateway passes it on.
+        assert!(sample(r#"{"type":"sample","seq":1,"pose":{"p":[0,0,0],"q":[0,0,0,1.0009]}}"#).is_ok());
+        assert!(sample(r#"{"type":"sample","seq":1,"pose":{"p":[0,0,0],"q":[0,0,0,1.0011]}}"#).is_err());
     }
 }

@@ -3,9 +3,10 @@
 //!
 //! The Phone2Act app cannot send a token, so a phone is admitted by its address: opening the phone page with
 //! the pairing token (the printed URL or QR code) pairs the address the page came from for
-//! [`crate::GatewayConfig::pair_for_s`]. This machine's own addresses and the `allow` list are always
-//! admitted, a rosbridge URL with `?token=` is admitted, everything else is refused and logged with the
-//! address and how to pair it. Time is an argument so the rules are tested without sleeping.
+//! [`crate::GatewayConfig::pair_for_s`]. The addresses that count as this machine
+//! ([`crate::GatewayConfig::local_addresses`], every loopback address unless narrowed; `[]` trusts none) and
+//! the `allow` list are admitted, a rosbridge URL with `?token=` is admitted, everything else is refused and
+//! logged with the address and how to pair it. Time is an argument so the rules are tested without sleeping.
 
 use parking_lot::Mutex;
 use std::collections::HashMap;
@@ -174,6 +175,23 @@ mod tests {
         // Pairing disabled: the page admits nothing on rosbridge.
         assert_eq!(p.pair(ip("127.0.0.2"), t0), None);
         assert_eq!(p.admit(ip("127.0.0.2"), false, true, t0), Admission::Refused);
+    }
+
+    #[test]
+    fn an_empty_local_list_trusts_no_loopback_address() {
+        // `local_addresses = []`: loopback proves nothing, so it pairs or carries the token like a phone.
+        let p = Pairing::new(Some(Vec::new()), Vec::new(), Duration::from_mins(1));
+        let t0 = Instant::now();
+        for lo in ["127.0.0.1", "::1", "::ffff:127.0.0.1"] {
+            assert!(!p.is_local(ip(lo)), "{lo}");
+            assert_eq!(p.admit(ip(lo), false, true, t0), Admission::Refused, "{lo}");
+            assert_eq!(p.admit(ip(lo), true, true, t0), Admission::Token, "{lo}");
+        }
+        let until = p.pair(ip("127.0.0.1"), t0).unwrap();
+        assert_eq!(
+            p.admit(ip("127.0.0.1"), false, true, t0),
+            Admission::Paired(until)
+        );
     }
 
     #[test]

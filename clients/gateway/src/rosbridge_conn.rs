@@ -298,6 +298,10 @@ impl RosbridgeHandler {
         match role {
             TopicRole::Pose => {
                 let pose = rosbridge::parse_pose_stamped(msg)?;
+                // The server refuses it too, but only the sample it reads: poses fold latest-wins on the
+                // way, so a newer pose could replace this one and its error would never be reported.
+                phone2act_proto::convert_arm::check_wire_pose(pose.position_m, pose.quat_xyzw)
+                    .map_err(|e| WireError(format!("{topic}: pose refused: {e}")))?;
                 if topic.contains("Phone2Act/") || topic.contains("bros2/") {
                     self.client_name = "phone2act-android";
                     self.client_name.clone_into(&mut sample.client_name);

@@ -7,6 +7,7 @@ from phone2act_gr00t.embodiment import (
     Embodiment,
     EmbodimentMismatch,
     Group,
+    NonFiniteActionError,
     ObservationError,
 )
 from phone2act_gr00t.modes import ActionModeError, action_mode_of
@@ -19,6 +20,7 @@ from phone2act_gr00t.wire import (
     Gr00tProtocolError,
     Gr00tTimeout,
     ModalityConfig,
+    check_forced_wire,
     packb,
     unpackb,
 )
@@ -41,9 +43,11 @@ __all__ = [
     "Group",
     "MissingTaskError",
     "ModalityConfig",
+    "NonFiniteActionError",
     "ObservationError",
     "StepResult",
     "action_mode_of",
+    "check_forced_wire",
     "packb",
     "unpackb",
 ]

@@ -13,6 +13,7 @@ from phone2act_gr00t import (
     N16,
     N16_SIM,
     ActionModeError,
+    ChunkShapeError,
     Embodiment,
     EmbodimentMismatch,
     Gr00tAdapter,
@@ -21,6 +22,7 @@ from phone2act_gr00t import (
     Gr00tProtocolError,
     Gr00tTimeout,
     MissingTaskError,
+    check_forced_wire,
 )
 
 
@@ -57,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             gr00t.ping()
             wire, modality = args.gr00t_version, gr00t.modality_config()
+            check_forced_wire(wire, modality, args.gr00t)
     except (Gr00tTimeout, Gr00tError) as e:
         print(f"phone2act_gr00t: {e}", file=sys.stderr)
         return 2
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
             if stats.chunks == 0 and stats.last_error:
                 print(f"phone2act_gr00t: {stats.last_error}", file=sys.stderr)
                 return 1
-    except (Gr00tProtocolError, EmbodimentMismatch, ActionModeError, MissingTaskError) as e:
+    except (Gr00tProtocolError, EmbodimentMismatch, ActionModeError, MissingTaskError, ChunkShapeError) as e:
         print(f"phone2act_gr00t: {e}", file=sys.stderr)
         return 2
     except Phone2ActError as e:

@@ -19,7 +19,7 @@ import numpy as np
 from phone2act import Phone2ActError, PolicySession
 from phone2act.v1 import policy_pb2
 
-from phone2act_gr00t.embodiment import Embodiment, ObservationError
+from phone2act_gr00t.embodiment import ChunkShapeError, Embodiment, NonFiniteActionError, ObservationError
 from phone2act_gr00t.modes import action_mode_of
 from phone2act_gr00t.wire import (
     CHECKED_AGAINST,
@@ -166,8 +166,9 @@ class Gr00tAdapter:
         """Loop until `should_stop()`, `max_chunks`, the operator taking over, or too many failures in a row.
 
         A late or failing policy is logged and retried with a fresh observation; meanwhile the arm holds. A server
-        that speaks another wire format (Gr00tProtocolError) or a missing instruction stops the loop at once:
-        retrying cannot fix either.
+        that speaks another wire format (Gr00tProtocolError), an answer whose shape does not fit the arm
+        (ChunkShapeError: the model's shape is the same at every step) or a missing instruction stops the loop at
+        once: retrying cannot fix any of them. An answer holding NaN is a bad answer and is retried.
         """
         failures = 0
         while not should_stop() and (max_chunks is None or self.stats.chunks < max_chunks):
@@ -183,6 +184,18 @@ class Gr00tAdapter:
                 # Ask again when about half the chunk has played (the usual receding-horizon cadence).
                 time.sleep(max(0.0, 0.5 * r.horizon * self.step_period_s - r.inference_s))
             except Gr00tProtocolError as e:
+                self.stats.errors += 1
+                self.stats.last_error = str(e)
+                raise
+            except ChunkShapeError as e:
+                if isinstance(e, NonFiniteActionError):
+                    failures += 1
+                    self.stats.errors += 1
+                    self.stats.last_error = str(e)
+                    log.error("%s; no chunk pushed, the arm holds", e)
+                    if failures >= max_consecutive_failures:
+                        break
+                    continue
                 self.stats.errors += 1
                 self.stats.last_error = str(e)
                 raise

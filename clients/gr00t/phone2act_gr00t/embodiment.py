@@ -21,7 +21,7 @@ import numpy as np
 from phone2act import ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 
-from phone2act_gr00t.modes import DELTA, is_gripper, kind_of_mode
+from phone2act_gr00t.modes import ABSOLUTE, DELTA, RECORDED_ABSOLUTE_AXES, is_gripper, kind_of_mode
 from phone2act_gr00t.wire import N15, N16, N16_SIM, ModalityConfig
 
 LANGUAGE_KEY = "annotation.human.task_description"
@@ -29,6 +29,10 @@ LANGUAGE_KEY = "annotation.human.task_description"
 
 class ChunkShapeError(ValueError):
     """The policy's answer does not fit the arm's action layout."""
+
+
+class NonFiniteActionError(ChunkShapeError):
+    """The policy answered NaN or infinity: a bad answer, not a model that cannot fit the arm."""
 
 
 class ObservationError(ValueError):
@@ -226,9 +230,12 @@ class Embodiment:
             if a.ndim != 2 or a.shape[1] != n or a.shape[0] == 0:
                 raise ChunkShapeError(
                     f"action {group.key} has shape {a.shape}; expected (horizon, {n}) for {list(group.columns)}"
+                    + _absolute_model_hint(a, group, (modes or {}).get(group.arm))
                 )
-            if not np.issubdtype(a.dtype, np.number) or not np.all(np.isfinite(a)):
-                raise ChunkShapeError(f"action {group.key} holds non-finite or non-numeric values (dtype {a.dtype})")
+            if not np.issubdtype(a.dtype, np.number):
+                raise ChunkShapeError(f"action {group.key} holds non-numeric values (dtype {a.dtype})")
+            if not np.all(np.isfinite(a)):
+                raise NonFiniteActionError(f"action {group.key} holds non-finite values (NaN or infinity)")
             if horizon is not None and a.shape[0] != horizon:
                 raise ChunkShapeError(f"action {group.key} has horizon {a.shape[0]}, other groups {horizon}")
             horizon = a.shape[0]
@@ -257,6 +264,22 @@ class Embodiment:
         if max_steps:
             steps = {arm: s[:max_steps] for arm, s in steps.items()}
         return steps[next(iter(by_arm))] if single else steps
+
+
+def _absolute_model_hint(a: np.ndarray, group: Group, mode: int | None) -> str:
+    """What to change when the answer is as wide as the absolute targets a phone2act dataset records but the arm
+    takes another representation: the arm's configuration, not the model."""
+    if a.ndim < 1 or a.shape[-1] != len(RECORDED_ABSOLUTE_AXES) or any(is_gripper(c) for c in group.columns):
+        return ""
+    if mode is not None and kind_of_mode(mode) == ABSOLUTE:
+        return ""
+    taken = kind_of_mode(mode) if mode is not None else "non-absolute"
+    return (
+        f". {len(RECORDED_ABSOLUTE_AXES)} columns are the absolute end-effector targets a phone2act dataset records "
+        f"({' '.join(RECORDED_ABSOLUTE_AXES)}): this model was trained on absolute targets, and arm {group.arm!r} "
+        f"takes {taken} actions. Set action_mode = \"absolute\" on arm {group.arm!r} in the phone2act server's "
+        f"config (then restart it)"
+    )
 
 
 def frame_rgb(frame: common_pb2.CameraFrame) -> np.ndarray:

@@ -20,6 +20,9 @@ ABSOLUTE = "absolute"
 JOINT = "joint"
 # Absolute end-effector axis names: phone2act's `x y z` and 6D rotation `r00 r10 r20 r01 r11 r21` (the recorded
 # action layout, `server/core/src/layout.rs`), and other spellings (roll/pitch/yaw, rotation vector, quaternion).
+# The absolute end-effector action axes a phone2act dataset records (`server/core/src/layout.rs`), gripper aside:
+# an answer this wide for an arm that takes another representation comes from a model trained on absolute targets.
+RECORDED_ABSOLUTE_AXES = ("x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21")
 EE_AXES = {"x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21", "roll", "pitch", "yaw", "rx", "ry", "rz", "qx", "qy",
            "qz", "qw"}
 

@@ -16,7 +16,9 @@ Both dialects share the transport and the codec (`MsgSerializer` since 2025-09-1
   answers `action.<group>` keys (`N16_SIM`); its modality config looks the same, so that one is chosen by flag.
 
 Servers from 2025-06-11 to 2025-09-10 serialized with `torch.save` (a zip archive holding a pickle); their bytes
-are recognised and refused with a readable error instead of being handed to msgpack (or, worse, to pickle).
+are recognised and refused with a readable error instead of being handed to msgpack (or, worse, to pickle). Such a
+server cannot read a msgpack request at all: its except-branch answers the bare bytes `b"ERROR"` (the reply N1.6's
+own client names "Make sure we are running the correct policy server"), which is recognised as that server too.
 """
 
 from __future__ import annotations
@@ -126,9 +128,16 @@ def torch_era_format(data: bytes) -> str | None:
     return None
 
 
+# What a pickle-era server (2025-06-11 .. 2025-09-10) sends when it cannot load a request: a msgpack request
+# never loads with `torch.load`, so this is its answer to everything the adapter asks.
+PICKLE_ERA_ERROR_REPLY = b"ERROR"
+
+
 def decode_reply(data: bytes, endpoint: str, where: str) -> Any:
     """A reply's object, or Gr00tProtocolError saying which wire format the server spoke instead."""
     kind = torch_era_format(data)
+    if data == PICKLE_ERA_ERROR_REPLY:
+        kind = 'bare b"ERROR" (its answer to a request it cannot unpickle)'
     if kind is not None:
         raise Gr00tProtocolError(
             f"GR00T server at {where} answered {endpoint!r} with a {kind}: this GR00T server uses the "
@@ -167,6 +176,29 @@ def wire_of_modality_config(config: Any) -> str | None:
     if keys:
         return N15 if all(k.split(".", 1)[0] in ("video", "state", "action", "annotation") for k in keys) else N16
     return None
+
+
+def _family(wire: str) -> str:
+    # n1.6-sim has N1.6's modality config: the config tells N1.5 from N1.6, not the sim wrapper.
+    return N15 if wire == N15 else N16
+
+
+def check_forced_wire(forced: str, config: Any, where: str) -> None:
+    """Gr00tProtocolError when a forced `--gr00t-version` contradicts the dialect of the server's modality config.
+
+    Without this, the first symptom is the embodiment check naming prefixed keys (`state.arm` against `arm`), which
+    reads as a wrong `--config` when the version is the mistake.
+    """
+    detected = wire_of_modality_config(config)
+    if detected is None or _family(detected) == _family(forced):
+        return
+    advice = (f"--gr00t-version {N15}" if detected == N15
+              else f"--gr00t-version {N16} (or {N16_SIM} for a server started with --use-sim-policy-wrapper)")
+    raise Gr00tProtocolError(
+        f"--gr00t-version {forced} does not match the GR00T server at {where}: its get_modality_config is "
+        f"{'N1.5' if detected == N15 else 'N1.6'}'s ({CHECKED_AGAINST[_family(detected)]}). The version is the "
+        f"mistake, not the model or --config: run with {advice}, or leave --gr00t-version at auto"
+    )
 
 
 class Gr00tClient:

@@ -103,6 +103,11 @@ pub trait Bridge: Send + Sync {
     fn feedback(&self) -> Option<Feedback>;
     /// Current connection state.
     fn health(&self) -> Health;
+    /// Something the operator should know while the robot keeps working (a servo alarm that does not stop
+    /// the arm), naming the part and the reason. Shown beside a `Ready` health.
+    fn warning(&self) -> Option<String> {
+        None
+    }
     /// Enable, disable, clear an error, or reconnect.
     fn control(&self, request: Control) -> Result<(), BridgeError>;
     /// The task scene around the arm (the simulator's ball and basket). Real arms have none.

@@ -2,7 +2,7 @@
 //! only through the `Bridge` trait (and the calibration procedure).
 
 use nalgebra::Isometry3;
-use phone2act_bridges::feetech::protocol::register;
+use phone2act_bridges::feetech::protocol::{self, alarm, register};
 use phone2act_bridges::feetech::{BusError, FeetechBus, FeetechEmulator};
 use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration, run_calibration};
 use phone2act_bridges::so101::{So101Bridge, So101Config};
@@ -65,11 +65,17 @@ struct Rig {
 }
 
 fn start_rig(configure: impl FnOnce(&mut So101Config)) -> Rig {
+    start_rig_with(|_| {}, configure)
+}
+
+/// As [`start_rig`], with `factory` changing the servos before the bridge first sees them.
+fn start_rig_with(factory: impl FnOnce(&FeetechEmulator), configure: impl FnOnce(&mut So101Config)) -> Rig {
     let dir = tempfile::tempdir().unwrap();
     let cal = synthetic_calibration();
     let cal_path = dir.path().join("follower.json");
     cal.save(&cal_path).unwrap();
     let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
+    factory(&emulator);
     // Configured through a stable link, like /dev/serial/by-id/..., so a "replugged" bus can take its place.
     let link = dir.path().join("ttySO101");
     std::os::unix::fs::symlink(emulator.port_path(), &link).unwrap();
@@ -288,6 +294,7 @@ fn wrong_checksum_and_servo_alarm_are_clear_statuses() {
         bridge.health() == Health::Ready
     });
 
+    // Overload on an arm joint stops the arm until the operator clears it.
     rig.emulator.with_servo(4, |s| s.error_byte = 0x20);
     wait_for(
         "overload error",
@@ -295,6 +302,7 @@ fn wrong_checksum_and_servo_alarm_are_clear_statuses() {
         || matches!(bridge.health(), Health::Error(m) if m.contains("servo 4") && m.contains("overload")),
     );
     rig.emulator.with_servo(4, |s| s.error_byte = 0);
+    bridge.control(Control::ClearError).unwrap();
     wait_for("ready", Duration::from_secs(2), || {
         bridge.health() == Health::Ready
     });
@@ -567,4 +575,365 @@ fn calibrate_binary_drives_the_procedure_from_the_keyboard() {
     let pan = calibration.get("shoulder_pan").unwrap();
     assert_eq!(pan.homing_offset, 2500 - 2047);
     assert!(pan.range_min < 1750 && pan.range_max > 2350, "{pan:?}");
+}
+
+// The tests below wait up to 2 s for what the 100 Hz cycle does within a few cycles: a loaded 2-core machine
+// delays a thread by far less than that. None of them has a silent servo, so each gives the servos
+// `PATIENT_TIMEOUT_MS` to answer: an emulator thread descheduled for longer than the rig's 50 ms must not
+// fail a test about something else.
+const PATIENT_TIMEOUT_MS: u64 = 500;
+
+fn patient(config: &mut So101Config) {
+    config.timeout_ms = PATIENT_TIMEOUT_MS;
+}
+
+/// Wrist roll's joint angle (rad) at a single-turn raw position, from the rig's calibration.
+fn wrist_roll_rad(raw: u16) -> f64 {
+    synthetic_calibration()
+        .get("wrist_roll")
+        .unwrap()
+        .raw_to_deg(raw)
+        .to_radians()
+}
+
+fn set_multi_turn(emulator: &FeetechEmulator, id: u8, other_phase_bits: u16) {
+    emulator.with_servo(id, |s| {
+        s.set_factory_register(
+            register::PHASE,
+            u16::from(protocol::PHASE_MULTI_TURN_FEEDBACK) | other_phase_bits,
+        );
+    });
+}
+
+#[test]
+fn multi_turn_feedback_left_on_reads_the_wrist_past_the_seam_at_its_angle() {
+    // configure_motors off: the bridge must read the servo as the factory left it (Phase bit 4 set).
+    let rig = start_rig_with(
+        |e| set_multi_turn(e, 5, 0),
+        |c| {
+            patient(c);
+            c.configure_motors = false;
+        },
+    );
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    // The hand holds the wrist where it is put: the servo must not pull it back.
+    rig.emulator.with_servo(5, |s| s.speed_counts_s = 0.0);
+    for (shaft, single_turn) in [(4200.0, 104u16), (-50.0, 4046)] {
+        rig.emulator.set_actual_position(5, shaft);
+        // The emulator counts past the seam, as such a servo does.
+        assert_eq!(rig.emulator.servo(5).unwrap().present_position(), shaft as i32);
+        let want = wrist_roll_rad(single_turn);
+        wait_for(
+            &format!("wrist roll at raw {shaft}"),
+            Duration::from_secs(2),
+            || {
+                bridge
+                    .feedback()
+                    .is_some_and(|f| (f.joint_positions_rad[4] - want).abs() < 1e-9)
+            },
+        );
+    }
+    assert_eq!(bridge.health(), Health::Ready);
+}
+
+#[test]
+fn configure_clears_the_multi_turn_bit_and_keeps_the_other_phase_bits() {
+    // Bit 0 (drive direction) stands for whatever else the factory set.
+    let rig = start_rig_with(|e| set_multi_turn(e, 5, 0x01), patient);
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    assert_eq!(rig.emulator.servo(5).unwrap().register(register::PHASE), 0x01);
+    rig.emulator.with_servo(5, |s| s.speed_counts_s = 0.0);
+    rig.emulator.set_actual_position(5, 4200.0);
+    assert_eq!(rig.emulator.servo(5).unwrap().present_position(), 104);
+    let want = wrist_roll_rad(104);
+    wait_for("wrist roll past the seam", Duration::from_secs(2), || {
+        bridge
+            .feedback()
+            .is_some_and(|f| (f.joint_positions_rad[4] - want).abs() < 1e-9)
+    });
+}
+
+/// Streams a short path and waits until the arm has applied it: the arm is working.
+fn assert_arm_follows(rig: &Rig, first_seq: u64) {
+    let goal = [0.3, -0.6, 0.5, 1.0, 0.1];
+    let (seq, last) = stream_path(&rig.bridge, &START_JOINTS, &goal, first_seq, 20);
+    wait_for("the arm following", Duration::from_secs(3), || {
+        rig.bridge
+            .feedback()
+            .is_some_and(|f| f.applied_seq == seq && position_error_m(&f.robot_from_ee, &last) < 3e-3)
+    });
+}
+
+#[test]
+fn gripper_overload_latched_at_start_keeps_the_arm_working_and_status_says_so() {
+    let rig = start_rig_with(|e| e.latch_alarm(6, alarm::OVERLOAD), patient);
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    let warning = bridge
+        .warning()
+        .expect("a warning while the gripper is overloaded");
+    assert!(
+        warning.contains("servo 6 (gripper)") && warning.contains("overload"),
+        "{warning}"
+    );
+    assert_eq!(bridge.stats().alarms[5], alarm::OVERLOAD);
+    assert_arm_follows(&rig, 0);
+    assert_eq!(bridge.health(), Health::Ready);
+
+    // The gripper lets go: the warning goes with it.
+    rig.emulator.clear_alarm(6);
+    wait_for("warning cleared", Duration::from_secs(2), || {
+        bridge.warning().is_none()
+    });
+}
+
+#[test]
+fn over_voltage_on_every_servo_keeps_the_arm_working_and_status_says_so() {
+    let rig = start_rig(patient);
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    // 7.4 V servos on a 12 V supply: every servo reports it, all the time.
+    for id in 1..=6 {
+        rig.emulator.latch_alarm(id, alarm::VOLTAGE);
+    }
+    wait_for("voltage warning", Duration::from_secs(2), || {
+        bridge.warning().is_some_and(|w| {
+            w.contains("servo 1 (shoulder_pan): input voltage") && w.contains("servo 6 (gripper)")
+        })
+    });
+    assert_arm_follows(&rig, 0);
+    assert_eq!(bridge.health(), Health::Ready);
+}
+
+#[test]
+fn overheat_stops_the_arm_naming_the_servo_until_cleared() {
+    let rig = start_rig(patient);
+    let bridge = &rig.bridge;
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    rig.emulator.latch_alarm(3, alarm::OVERHEAT);
+    wait_for(
+        "stopped",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("servo 3 (elbow_flex): overheat")),
+    );
+    // A second servo's alarm is named beside the first.
+    rig.emulator.latch_alarm(2, alarm::OVERCURRENT);
+    wait_for("both named", Duration::from_secs(2), || {
+        matches!(bridge.health(), Health::Error(m)
+            if m.contains("servo 2 (shoulder_lift): overcurrent") && m.contains("servo 3 (elbow_flex): overheat"))
+    });
+    rig.emulator.clear_alarm(2);
+    let goal_before = rig.emulator.servo(1).unwrap().goal_position();
+    stream_path(bridge, &START_JOINTS, &[0.4, -0.5, 0.4, 0.9, 0.0], 0, 20);
+    assert_eq!(
+        rig.emulator.servo(1).unwrap().goal_position(),
+        goal_before,
+        "no goal may be written while an alarm stops the arm"
+    );
+    // The servo cooled down: the arm stays stopped until the operator clears it.
+    rig.emulator.clear_alarm(3);
+    let cycles = bridge.stats().cycles;
+    wait_for("a few more cycles", Duration::from_secs(2), || {
+        bridge.stats().cycles > cycles + 5
+    });
+    assert!(matches!(bridge.health(), Health::Error(m) if m.contains("servo 3")));
+    bridge.control(Control::ClearError).unwrap();
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    assert_arm_follows(&rig, 100);
+
+    // Clearing while the servo still reports it does not resume the arm.
+    rig.emulator.latch_alarm(3, alarm::OVERHEAT);
+    wait_for("stopped again", Duration::from_secs(2), || {
+        matches!(bridge.health(), Health::Error(_))
+    });
+    bridge.control(Control::ClearError).unwrap();
+    let cycles = bridge.stats().cycles;
+    wait_for("a few more cycles", Duration::from_secs(2), || {
+        bridge.stats().cycles > cycles + 5
+    });
+    assert!(matches!(bridge.health(), Health::Error(m) if m.contains("servo 3 (elbow_flex): overheat")));
+}
+
+#[test]
+fn an_alarm_that_stops_the_arm_fails_start_naming_the_servo() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = synthetic_calibration();
+    let cal_path = dir.path().join("cal.json");
+    cal.save(&cal_path).unwrap();
+    let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
+    emulator.latch_alarm(2, alarm::ANGLE_SENSOR);
+    let mut config = So101Config::new(emulator.port_path().to_str().unwrap(), &cal_path);
+    patient(&mut config);
+    let err = So101Bridge::start(config).unwrap_err();
+    assert!(
+        err.to_string().contains("servo 2 (shoulder_lift): angle sensor"),
+        "{err}"
+    );
+    // Nothing was configured or enabled on a servo that reports a broken encoder.
+    assert!(!emulator.servo(2).unwrap().torque_enabled());
+}
+
+#[test]
+fn alarm_actions_follow_the_memory_table_decision() {
+    use phone2act_bridges::so101::{AlarmAction, MOTORS, alarm_action};
+    let gripper = MOTORS - 1;
+    for motor in 0..MOTORS {
+        assert_eq!(alarm_action(motor, alarm::VOLTAGE), AlarmAction::Warn);
+        for bit in [
+            alarm::ANGLE_SENSOR,
+            alarm::OVERHEAT,
+            alarm::OVERCURRENT,
+            0x10,
+            0x40,
+            0x80,
+        ] {
+            assert_eq!(
+                alarm_action(motor, bit),
+                AlarmAction::Stop,
+                "motor {motor} bit {bit:#x}"
+            );
+        }
+        let overload = if motor == gripper {
+            AlarmAction::Warn
+        } else {
+            AlarmAction::Stop
+        };
+        assert_eq!(alarm_action(motor, alarm::OVERLOAD), overload, "motor {motor}");
+    }
+}
+
+/// One raw request, every byte that comes back within `wait`.
+fn raw_exchange(port: &mut dyn serialport::SerialPort, request: &[u8], wait: Duration) -> Vec<u8> {
+    port.write_all(request).unwrap();
+    let mut got = Vec::new();
+    let deadline = Instant::now() + wait;
+    let mut chunk = [0u8; 256];
+    while Instant::now() < deadline {
+        if let Ok(n) = port.read(&mut chunk) {
+            got.extend_from_slice(&chunk[..n]);
+        }
+    }
+    got
+}
+
+#[test]
+fn emulator_has_the_factory_registers_answers_broadcast_ping_and_changes_id() {
+    let emulator = FeetechEmulator::start(&[(3, 1000), (1, 2000), (2, 3000)]).unwrap();
+    let path = emulator.port_path().to_str().unwrap().to_owned();
+    {
+        let mut bus = FeetechBus::open(&path, 1_000_000, Duration::from_millis(PATIENT_TIMEOUT_MS)).unwrap();
+        assert_eq!(bus.read_value(1, register::FIRMWARE_MAJOR_VERSION).unwrap(), 3);
+        assert_eq!(bus.read_value(1, register::FIRMWARE_MINOR_VERSION).unwrap(), 10);
+        assert_eq!(
+            bus.read_value(1, register::MODEL_NUMBER).unwrap(),
+            protocol::STS3215_MODEL
+        );
+        assert_eq!(bus.read_value(2, register::MIN_POSITION_LIMIT).unwrap(), 0);
+        assert_eq!(bus.read_value(2, register::MAX_POSITION_LIMIT).unwrap(), 4095);
+        assert_eq!(bus.read_value(2, register::RETURN_DELAY_TIME).unwrap(), 250);
+
+        // A latched alarm is in every answer and in the Status register; the data still comes.
+        emulator.latch_alarm(2, alarm::OVERLOAD | alarm::VOLTAGE);
+        let replies = bus.sync_read_with_status(56, 2, &[1, 2, 3]).unwrap();
+        assert_eq!(
+            replies.iter().map(|r| r.error).collect::<Vec<_>>(),
+            vec![0, 0x21, 0]
+        );
+        assert_eq!(u16::from_le_bytes([replies[1].data[0], replies[1].data[1]]), 3000);
+        assert!(matches!(
+            bus.sync_read(56, 2, &[1, 2]),
+            Err(BusError::Servo { id: 2, error: 0x21 })
+        ));
+        bus.strict_status = false;
+        assert_eq!(bus.read_value(2, register::STATUS).unwrap(), 0x21);
+        emulator.clear_alarm(2);
+
+        // The id is EPROM: with the lock off, servo 3 becomes 7, acknowledging under its old id.
+        bus.write_value(3, register::LOCK, 0).unwrap();
+        bus.write_value(3, register::ID, 7).unwrap();
+        assert_eq!(bus.read_value(7, register::ID).unwrap(), 7);
+        assert!(matches!(bus.ping(3), Err(BusError::Timeout { id: 3, .. })));
+        assert_eq!(emulator.ids(), vec![1, 2, 7]);
+    }
+    // Broadcast ping: one status packet per servo, ascending ids, back to back.
+    let mut port = serialport::new(&path, 1_000_000)
+        .timeout(Duration::from_millis(5))
+        .open()
+        .unwrap();
+    let ping =
+        protocol::instruction_packet(protocol::BROADCAST_ID, protocol::instruction::PING, &[]).unwrap();
+    // Generous on a loaded machine: the emulator thread only has to be scheduled once within it.
+    let got = raw_exchange(port.as_mut(), &ping, Duration::from_millis(300));
+    let want: Vec<u8> = [1u8, 2, 7]
+        .iter()
+        .flat_map(|&id| protocol::status_packet(id, 0, &[]))
+        .collect();
+    assert_eq!(got, want);
+}
+
+#[test]
+fn check_binary_reports_firmware_phase_alarms_and_calibration_differences() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = synthetic_calibration();
+    let cal_path = dir.path().join("cal.json");
+    cal.save(&cal_path).unwrap();
+    let emulator = FeetechEmulator::start(&raw_for(&cal, &START_JOINTS, 3300)).unwrap();
+    let check = || {
+        let output = std::process::Command::new(env!("CARGO_BIN_EXE_so101-check"))
+            .args(["--port", emulator.port_path().to_str().unwrap(), "--calibration"])
+            .arg(&cal_path)
+            .args(["--timeout-ms", &PATIENT_TIMEOUT_MS.to_string()])
+            .output()
+            .unwrap();
+        (
+            output.status.code(),
+            String::from_utf8_lossy(&output.stdout).into_owned(),
+        )
+    };
+    // Factory limits (0..4095), not the file's: a warning, the bridge writes the file's at start.
+    let (code, text) = check();
+    assert_eq!(code, Some(0), "{text}");
+    assert!(text.contains("servo 1 (shoulder_pan): firmware 3.10"), "{text}");
+    assert!(text.contains("WARN servo holds limits 0..4095"), "{text}");
+
+    set_multi_turn(&emulator, 5, 0);
+    emulator.latch_alarm(6, alarm::OVERLOAD);
+    let (code, text) = check();
+    assert_eq!(code, Some(0), "{text}");
+    assert!(
+        text.contains("servo 5 (wrist_roll)") && text.contains("WARN Phase 0x10 has bit 4"),
+        "{text}"
+    );
+    assert!(
+        text.contains("WARN alarm overload (0x20): the arm works"),
+        "{text}"
+    );
+
+    emulator.latch_alarm(3, alarm::OVERHEAT);
+    emulator.with_servo(4, |s| s.set_factory_register(register::FIRMWARE_MINOR_VERSION, 9));
+    let (code, text) = check();
+    assert_eq!(code, Some(1), "{text}");
+    assert!(
+        text.contains("servo 3 (elbow_flex)") && text.contains("FAIL alarm overheat (0x04): stops the arm"),
+        "{text}"
+    );
+    assert!(
+        text.contains("FAIL the servos run different firmware versions (3.9, 3.10)"),
+        "{text}"
+    );
+    assert!(text.contains("NOT READY"), "{text}");
 }

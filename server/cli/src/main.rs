@@ -4,7 +4,8 @@
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use phone2act_gateway::GatewayConfig;
-use phone2act_server::{Config, bind, run_with_local};
+use phone2act_server::config::ConfigSource;
+use phone2act_server::{bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -257,6 +258,9 @@ fn status_lines(
             if arm.engaged { "engaged" } else { "" },
             arm.gripper_position,
         ));
+        if !arm.health_message.is_empty() {
+            lines.push(format!("      {}", arm.health_message));
+        }
         let rate = previous
             .and_then(|p| Some((p, p.arms.iter().find(|a| a.arm == arm.arm)?)))
             .and_then(|(p, before)| {
@@ -502,18 +506,23 @@ fn real_main() -> anyhow::Result<()> {
             listen,
             check,
         } => {
-            let origin = config
-                .as_ref()
-                .map_or_else(|| "<embedded default>".to_owned(), |p| p.display().to_string());
-            let mut config = match &config {
-                Some(path) => Config::load(path)?,
-                None => Config::embedded_default()?,
+            let source = match &config {
+                Some(path) => ConfigSource::file(path)?,
+                None => ConfigSource::embedded(),
             };
+            let origin = source.origin().to_owned();
+            let mut config = source.config(std::env::vars())?;
             if let Some(listen) = listen {
                 config.server.listen = listen;
             }
-            let gateway_config = GatewayConfig::from_table(&config.gateway)
-                .with_context(|| format!("in the configuration {origin}"))?;
+            let gateway_config: GatewayConfig =
+                source.gateway(std::env::vars(), |g: &GatewayConfig| {
+                    // The message names its `gateway.` key; the location is added by the caller.
+                    g.validate().map_err(|e| match e {
+                        phone2act_gateway::GatewayError::Config(message) => message,
+                        other => other.to_string(),
+                    })
+                })?;
             // Defaults filled in, so that `--check` and the datasets' provenance show the whole table.
             config.gateway = toml::Table::try_from(&gateway_config)
                 .context("cannot write the gateway configuration back as TOML")?;
@@ -526,6 +535,7 @@ fn real_main() -> anyhow::Result<()> {
                 outln!("{text}");
                 return Ok(());
             }
+            warn_if_local_addresses_skip_the_token(&config, &gateway_config);
             let runtime = tokio::runtime::Builder::new_multi_thread()
                 .enable_all()
                 .thread_name("phone2act-rt")
@@ -572,6 +582,15 @@ fn real_main() -> anyhow::Result<()> {
                 anyhow::Ok(())
             })
         }
+    }
+}
+
+/// Said once at start: with a server token, the addresses the gateway trusts as this machine skip it.
+fn warn_if_local_addresses_skip_the_token(config: &phone2act_server::Config, gateway: &GatewayConfig) {
+    if config.server.token.is_some()
+        && let Some(warning) = gateway.local_trust_warning()
+    {
+        tracing::warn!("{warning}");
     }
 }
 

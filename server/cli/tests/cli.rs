@@ -755,3 +755,229 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
     assert!(out.status.success(), "{text}");
     assert!(text.contains("valid LeRobot v2.1 dataset, 1 episodes"), "{text}");
 }
+
+/// The default config with `extra` appended (tables after the file's own), its dataset under `dir`.
+fn config_with(dir: &std::path::Path, name: &str, extra: &str) -> std::path::PathBuf {
+    let path = dir.join(name);
+    let text = std::fs::read_to_string(write_config(dir)).unwrap() + extra;
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// Text appended to the default config, environment overrides, and what the one-line error must say.
+type Case = (String, Vec<(&'static str, String)>, &'static str);
+
+#[test]
+fn check_refuses_what_serve_refuses() {
+    // Each of these used to pass `--check` and fail only in `serve` (or, for the empty root, in every save).
+    let dir = tempfile::tempdir().unwrap();
+    let a_file = dir.path().join("a-file");
+    std::fs::write(&a_file, "x").unwrap();
+    let cases: Vec<Case> = vec![
+        (
+            String::new(),
+            vec![("PHONE2ACT_RECORDER__FPS", "20.5".to_owned())],
+            "recorder.fps must be a whole number",
+        ),
+        (
+            "[[cameras]]\nname = \"scene\"\nkind = \"sim_render\"\narm = \"nope\"\n".into(),
+            vec![],
+            "arm = \"nope\" is not a simulated arm",
+        ),
+        (
+            "[[arms]]\nname = \"cr5\"\nbridge = \"dobot\"\n".into(),
+            vec![],
+            "bridge \"dobot\" needs an [arms.dobot] table",
+        ),
+        (
+            "[[cameras]]\nname = \"tiny\"\nkind = \"test_pattern\"\nwidth = 64\nheight = 48\n".into(),
+            vec![],
+            "SVT-AV1 needs at least 64x64",
+        ),
+        (
+            String::new(),
+            vec![("PHONE2ACT_RECORDER__ROOT", a_file.display().to_string())],
+            "is a file, not a directory",
+        ),
+        (
+            String::new(),
+            vec![("PHONE2ACT_RECORDER__ROOT", String::new())],
+            "(with PHONE2ACT_RECORDER__ROOT): recorder.root is empty",
+        ),
+    ];
+    for (i, (extra, env, needle)) in cases.iter().enumerate() {
+        let path = config_with(dir.path(), &format!("case{i}.toml"), extra);
+        let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+        let (code, err) = check_config(&path, &env);
+        assert_eq!(code, Some(1), "{extra} {env:?}: {err}");
+        assert!(err.contains(needle), "{extra} {env:?}: {err}");
+        assert_eq!(err.lines().count(), 1, "one line: {err}");
+    }
+}
+
+#[test]
+fn serve_with_an_empty_root_refuses_to_start_and_writes_nothing() {
+    // `PHONE2ACT_RECORDER__ROOT= phone2act serve`: it used to start, fail every Stop with "I/O error on : No such
+    // file or directory" and leave a commit journal in the working directory.
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path());
+    let cwd = dir.path().join("cwd");
+    std::fs::create_dir(&cwd).unwrap();
+    let mut child = Command::new(BIN)
+        .args(["serve", "--listen", "127.0.0.1:0", "--config"])
+        .arg(&config)
+        .current_dir(&cwd)
+        .env("PHONE2ACT_RECORDER__ROOT", "")
+        .env("PHONE2ACT_GATEWAY__ENABLED", "false")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A server that starts runs until killed: give a refusal (milliseconds) a minute before calling it started.
+    let deadline = Instant::now() + Duration::from_mins(1);
+    while child.try_wait().unwrap().is_none() {
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("serve started with an empty recorder root");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("(with PHONE2ACT_RECORDER__ROOT): recorder.root is empty"),
+        "{err}"
+    );
+    assert!(!err.contains("gRPC on"), "{err}");
+    assert_eq!(std::fs::read_dir(&cwd).unwrap().count(), 0, "nothing written");
+}
+
+#[test]
+fn gateway_errors_name_their_line_and_overrides_their_variable() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = config_with(
+        dir.path(),
+        "gw.toml",
+        "\n[gateway]\nprint_qr = false\nmax_message_bytes = \"big\"\n",
+    );
+    let text = std::fs::read_to_string(&path).unwrap();
+    let line = text
+        .lines()
+        .position(|l| l.starts_with("max_message_bytes"))
+        .unwrap()
+        + 1;
+    let (code, err) = check_config(&path, &[]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains(&format!("{}:{line}:", path.display())) && err.contains("expected usize"),
+        "line {line}: {err}"
+    );
+    let path = config_with(dir.path(), "gw2.toml", "\n[gateway]\nprint_qr = false\n");
+    let (code, err) = check_config(&path, &[("PHONE2ACT_GATEWAY__MAX_MESSAGE_BYTES", "big")]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("environment override PHONE2ACT_GATEWAY__MAX_MESSAGE_BYTES"),
+        "{err}"
+    );
+    assert!(
+        !err.contains(&path.display().to_string()),
+        "the file is not to blame: {err}"
+    );
+    let (code, err) = check_config(&path, &[("PHONE2ACT_GATEWAY__MAX_MESSAGE_BYTES", "10")]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("(with PHONE2ACT_GATEWAY__MAX_MESSAGE_BYTES)") && err.contains("got 10"),
+        "{err}"
+    );
+}
+
+#[test]
+fn secrets_that_look_like_numbers_are_taken_and_never_printed() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_config(dir.path());
+    for secret in ["123456789012345", "0x7f3a9c", "1e9", "true"] {
+        let out = Command::new(BIN)
+            .args(["serve", "--check", "--config"])
+            .arg(&path)
+            .env("PHONE2ACT_SERVER__TOKEN", secret)
+            .env("PHONE2ACT_GATEWAY__TOKEN", secret)
+            .output()
+            .unwrap();
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert!(out.status.success(), "{secret}: {stderr}");
+        let back: toml::Table = toml::from_str(&stdout).unwrap();
+        assert_eq!(back["server"]["token"].as_str(), Some("<redacted>"), "{secret}");
+        assert_eq!(back["gateway"]["token"].as_str(), Some("<redacted>"), "{secret}");
+        assert!(!stderr.contains(secret), "{secret}: {stderr}");
+        if secret.len() > 4 {
+            assert!(!stdout.contains(secret), "{secret}");
+        }
+    }
+    // A secret the file types as a number is refused, without the number.
+    let path = config_with(dir.path(), "num.toml", "\n[gateway]\ntoken = 987654321987\n");
+    let (code, err) = check_config(&path, &[]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("token") || err.contains("string"), "{err}");
+    assert!(!err.contains("987654321987"), "{err}");
+}
+
+/// `serve` with the gateway on ephemeral ports (rosbridge only) and `env`; stderr up to the gRPC address line.
+fn serve_gateway_log(dir: &std::path::Path, env: &[(&str, &str)]) -> Vec<String> {
+    let mut child = Command::new(BIN)
+        .args(["serve", "--listen", "127.0.0.1:0", "--config"])
+        .arg(write_config(dir))
+        .env("PHONE2ACT_SERVER__TOKEN", SECRET_TOKEN)
+        .env("PHONE2ACT_GATEWAY__HTTPS", "false")
+        .env("PHONE2ACT_GATEWAY__PRINT_QR", "false")
+        .env("PHONE2ACT_GATEWAY__ROSBRIDGE_LISTEN", "127.0.0.1:0")
+        .env("PHONE2ACT_GATEWAY__CERT_DIR", dir.join("gw"))
+        .envs(env.iter().copied())
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let mut lines = Vec::new();
+    for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+        let done = line.starts_with("phone2act: gRPC on ");
+        lines.push(line);
+        if done {
+            break;
+        }
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    lines
+}
+
+#[test]
+fn a_token_with_trusted_loopback_is_said_at_start_and_an_empty_list_trusts_none() {
+    let dir = tempfile::tempdir().unwrap();
+    let lines = serve_gateway_log(dir.path(), &[]);
+    let warning: Vec<_> = lines
+        .iter()
+        .filter(|l| l.contains("WARN") && l.contains("admits every loopback"))
+        .collect();
+    assert_eq!(warning.len(), 1, "{lines:#?}");
+    assert!(
+        warning[0].contains("every loopback address")
+            && warning[0].contains("local_addresses = []")
+            && !warning[0].contains(SECRET_TOKEN),
+        "{}",
+        warning[0]
+    );
+    let lines = serve_gateway_log(dir.path(), &[("PHONE2ACT_GATEWAY__LOCAL_ADDRESSES", "[]")]);
+    assert!(
+        lines.iter().any(|l| l.starts_with("phone2act: gRPC on ")),
+        "{lines:#?}"
+    );
+    assert!(
+        !lines.iter().any(|l| l.contains("local_addresses = []")),
+        "{lines:#?}"
+    );
+}

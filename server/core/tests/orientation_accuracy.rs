@@ -3,8 +3,8 @@
 //!
 //! The ground truth is built independently of both planners: each scripted phone motion is a known rotation
 //! about a known axis of the tracking frame, so while engaged the gripper must undergo the same rotation about
-//! `M·axis` in the robot frame, and nothing while clutched. Run with `--nocapture` to see the table that the
-//! README quotes.
+//! `M·axis` in the robot frame, and nothing while clutched. Run with `--nocapture` to see the table that
+//! docs/benchmarks.md quotes.
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 use phone2act_core::pose::{angle_between_rad, rotation_from_rpy, rpy_from_rotation, wrap_angle_rad};

@@ -174,6 +174,10 @@ impl DatasetSpec {
     /// Checks what can be checked without touching the disk.
     pub fn validate(&self) -> Result<(), RecorderError> {
         let bad = |m: String| Err(RecorderError::InvalidSpec(m));
+        // `create_dir_all("")` succeeds, and every save would then fail on the empty path.
+        if self.root.as_os_str().is_empty() {
+            return bad("the dataset root is empty: name a directory".into());
+        }
         if self.fps == 0 || self.fps > 240 {
             return bad(format!("fps {} is outside 1..=240", self.fps));
         }
@@ -188,27 +192,6 @@ impl DatasetSpec {
                 }
             }
         }
-        let mut seen = std::collections::HashSet::new();
-        for c in &self.cameras {
-            if c.name.is_empty() || c.name.contains('/') || !seen.insert(&c.name) {
-                return bad(format!(
-                    "camera name {:?} is empty, repeated or contains '/'",
-                    c.name
-                ));
-            }
-            if c.width < 16
-                || c.height < 16
-                || c.width % 2 != 0
-                || c.height % 2 != 0
-                || c.width > 8192
-                || c.height > 8192
-            {
-                return bad(format!(
-                    "camera {} size {}x{} must be even and between 16 and 8192 (yuv420p)",
-                    c.name, c.width, c.height
-                ));
-            }
-        }
         for g in &self.modality {
             if g.state_range.end > self.state_names.len()
                 || g.action_range.end > self.action_names.len()
@@ -221,24 +204,80 @@ impl DatasetSpec {
                 ));
             }
         }
-        let video = VideoSettings::parse(self.video_codec.as_deref(), self.format)?;
-        if video.encoder == "libsvtav1"
-            && let Some(c) = self.cameras.iter().find(|c| c.width < 64 || c.height < 64)
-        {
-            {
-                return bad(format!(
-                    "camera {} is {}x{}: SVT-AV1 needs at least 64x64 (use h264 for smaller)",
-                    c.name, c.width, c.height
-                ));
-            }
-        }
+        check_cameras(&self.cameras, self.video_codec.as_deref(), self.format)?;
         Ok(())
     }
+}
+
+/// The camera checks of [`DatasetSpec::validate`] (names, sizes, the encoder's smallest frame), on their own so
+/// that a configuration can be refused before anything starts, with the rules the recorder applies.
+pub fn check_cameras(
+    cameras: &[CameraSpec],
+    video_codec: Option<&str>,
+    format: Format,
+) -> Result<(), RecorderError> {
+    let bad = |m: String| Err(RecorderError::InvalidSpec(m));
+    let mut seen = std::collections::HashSet::new();
+    for c in cameras {
+        if c.name.is_empty() || c.name.contains('/') || !seen.insert(&c.name) {
+            return bad(format!(
+                "camera name {:?} is empty, repeated or contains '/'",
+                c.name
+            ));
+        }
+        if c.width < 16
+            || c.height < 16
+            || c.width % 2 != 0
+            || c.height % 2 != 0
+            || c.width > 8192
+            || c.height > 8192
+        {
+            return bad(format!(
+                "camera {} size {}x{} must be even and between 16 and 8192 (yuv420p)",
+                c.name, c.width, c.height
+            ));
+        }
+    }
+    let video = VideoSettings::parse(video_codec, format)?;
+    if video.encoder == "libsvtav1"
+        && let Some(c) = cameras.iter().find(|c| c.width < 64 || c.height < 64)
+    {
+        return bad(format!(
+            "camera {} is {}x{}: SVT-AV1 needs at least 64x64 (use h264 for smaller)",
+            c.name, c.width, c.height
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_empty_root_is_refused_before_anything_is_written() {
+        // `create_dir_all("")` succeeds, so an empty root used to open and then fail every save.
+        let spec = DatasetSpec {
+            root: PathBuf::new(),
+            format: Format::V30,
+            fps: 20,
+            robot_type: "test".into(),
+            video_codec: None,
+            state_names: vec!["a".into()],
+            action_names: vec!["b".into()],
+            cameras: Vec::new(),
+            modality: Vec::new(),
+            provenance: serde_json::Value::Null,
+            success: false,
+        };
+        let err = spec.validate().unwrap_err().to_string();
+        assert!(err.contains("dataset root is empty"), "{err}");
+        let named = DatasetSpec {
+            root: PathBuf::from("ds"),
+            ..spec
+        };
+        assert!(named.validate().is_ok());
+    }
 
     #[test]
     fn codec_defaults_follow_lerobot_and_gr00t() {

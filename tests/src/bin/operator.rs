@@ -1,6 +1,6 @@
 //! The scripted operator: records pick-and-place demonstrations on a simulated arm through the real phone
 //! path (`Teleop.Stream`, as a phone does), saving only the episodes that succeed. See
-//! `phone2act_tests::operator` for what it does and README "Scene and scripted operator" for how to use it.
+//! `phone2act_tests::operator` for what it does and docs/simulation.md for how to use it.
 //!
 //! `cargo run --release -p phone2act-tests --bin operator -- --server http://127.0.0.1:50051 --episodes 50 --seed 0`
 //!

@@ -120,6 +120,11 @@ fn main() -> Result<()> {
         .init();
     let args = Args::parse();
     let config = load(&args)?;
+    if args.grpc_token.is_some()
+        && let Some(warning) = config.local_trust_warning()
+    {
+        tracing::warn!("{warning}");
+    }
     // One thread: the gateway is light I/O for a handful of phones, and keeping a message's whole path
     // (socket read → slot → HTTP/2 write) on one thread avoids cross-thread wake-ups, which cost more
     // latency than anything the gateway computes.

@@ -217,7 +217,38 @@ impl FeetechBus {
 
     /// Reads `len` bytes at `address` from each of `ids` with one request. Returns the data in `ids` order, or
     /// the first failure (a servo that does not answer fails the whole read: a partial state is not a state).
+    /// With [`Self::strict_status`], a servo reporting an alarm fails it too.
     pub fn sync_read(&mut self, address: u8, len: u8, ids: &[u8]) -> Result<Vec<Vec<u8>>, BusError> {
+        Ok(self
+            .sync_read_packets(address, len, ids)?
+            .into_iter()
+            .map(|p| p.params)
+            .collect())
+    }
+
+    /// As [`Self::sync_read`], but an alarm is data, not a failure: each servo's answer comes with the error
+    /// byte of its status packet (alarm bits, [`protocol::alarm`]), whatever [`Self::strict_status`] says.
+    /// Servos keep answering while an alarm is latched, so this is how a caller sees an alarm without losing
+    /// the positions that came with it.
+    pub fn sync_read_with_status(
+        &mut self,
+        address: u8,
+        len: u8,
+        ids: &[u8],
+    ) -> Result<Vec<ServoReply>, BusError> {
+        let strict = std::mem::replace(&mut self.strict_status, false);
+        let result = self.sync_read_packets(address, len, ids);
+        self.strict_status = strict;
+        Ok(result?
+            .into_iter()
+            .map(|p| ServoReply {
+                data: p.params,
+                error: p.code,
+            })
+            .collect())
+    }
+
+    fn sync_read_packets(&mut self, address: u8, len: u8, ids: &[u8]) -> Result<Vec<Packet>, BusError> {
         self.send(&protocol::sync_read_packet(address, len, ids)?)?;
         let deadline = Instant::now() + self.timeout;
         let mut out = Vec::with_capacity(ids.len());
@@ -240,8 +271,15 @@ impl FeetechBus {
                     got: p.params.len(),
                 });
             }
-            out.push(p.params);
+            out.push(p);
         }
         Ok(out)
     }
+}
+
+/// One servo's answer to a sync read: its data and the error byte (alarm bits) of its status packet.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ServoReply {
+    pub data: Vec<u8>,
+    pub error: u8,
 }

@@ -1,14 +1,37 @@
 //! A bus of emulated STS3215 servos on a pseudo-terminal: open [`FeetechEmulator::port_path`] with any serial
 //! library and it answers PING, READ, WRITE, SYNC_READ and SYNC_WRITE as the servos do.
 //!
-//! Each servo has the STS3215 register map. `Present_Position = actual − Homing_Offset` (sign-magnitude, bit
-//! 11), goals are clamped to the position limits, and with torque on the shaft moves toward the goal at a fixed
-//! speed. EPROM writes are ignored while `Lock` is 1, as on the real servo. Faults can be injected per servo:
-//! silence, a corrupt checksum, an error byte.
+//! Each servo has the STS3215 register map with its factory values. `Present_Position = actual − Homing_Offset`
+//! (sign-magnitude, bit 11), goals are clamped to the position limits, and with torque on the shaft moves toward
+//! the goal at a fixed speed. EPROM writes are ignored while `Lock` is 1, as on the real servo. Faults can be
+//! injected per servo: silence, a corrupt checksum, an error byte, a latched alarm, the multi-turn feedback bit.
+//!
+//! What the real servo does and where that is written down:
+//! - factory values: firmware 3.10 and model 777 (see [`protocol::STS3215_FIRMWARE`],
+//!   [`protocol::STS3215_MODEL`]); position limits 0 and 4095, `Max_Temperature_Limit` 70 °C, status level 1,
+//!   baud code 0 (Feetech STS memory table §2.2, "Initial Value" column, wiki.aifitlab.com "Feetech STS Servo
+//!   – Memory Table Analysis"); `Return_Delay_Time` 250 (= 500 µs, lerobot `FeetechMotorsBus.configure_motors`
+//!   comment).
+//! - `Phase` bit 4 ([`protocol::PHASE_MULTI_TURN_FEEDBACK`]): with it set, `Present_Position` keeps counting
+//!   past the seam instead of wrapping to 0..4095 (memory table §3.1; lerobot PR #3373 shows readings out of
+//!   0..4095 on such servos). The count starts from the single-turn angle at power-on.
+//! - alarms ([`protocol::alarm`]): a servo keeps answering with the alarm bits in every status packet's error
+//!   byte and in its `Status` register (65) for as long as the condition holds (memory table §3.2; the
+//!   Feetech SDK returns the byte with every reply). The emulator holds an injected alarm until it is cleared,
+//!   as a gripper squeezing an object holds overload and a 7.4 V servo on 12 V holds over-voltage.
+//! - broadcast PING: every servo answers, one status packet each, back to back. lerobot's reader
+//!   (`FeetechMotorsBus._broadcast_ping`) collects every byte until its timeout of `3 ms × 252 + 16 ms` plus
+//!   the transfer time, then parses the packets in a row, so every answer must arrive within that window and
+//!   none may overlap another. The emulator sends them in ascending id order; Feetech documents no order, and
+//!   lerobot's reader accepts any.
+//! - writing `ID` (5, with `Lock` 0): the servo acknowledges under its old id, then answers to the new one.
+//!   feetech-servo-sdk 1.0.0 (`protocol_packet_handler.txRxPacket`) accepts only a status packet whose id is the
+//!   instruction's, and lerobot's `setup_motor` writes the id to the old one, requires that acknowledgement,
+//!   then writes the baud rate to the new id.
 
 use super::protocol::{
-    self, BROADCAST_ID, Decoded, STS3215_MODEL, decode_sign_magnitude, encode_sign_magnitude, instruction,
-    register, status_packet,
+    self, BROADCAST_ID, Decoded, STS3215_FIRMWARE, STS3215_MODEL, decode_sign_magnitude,
+    encode_sign_magnitude, instruction, register, status_packet,
 };
 use nix::fcntl::{FcntlArg, OFlag, fcntl};
 use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
@@ -39,6 +62,8 @@ pub struct ServoState {
     pub mute: bool,
     pub corrupt_checksums: bool,
     pub error_byte: u8,
+    /// Alarm bits the servo holds ([`protocol::alarm`]): in every status packet and the `Status` register.
+    alarm: u8,
     pub reply_delay: Duration,
 }
 
@@ -49,11 +74,16 @@ impl ServoState {
             let a = usize::from(entry.0);
             memory[a..a + usize::from(entry.1)].copy_from_slice(&protocol::value_bytes(value, entry.1));
         };
+        set(register::FIRMWARE_MAJOR_VERSION, u16::from(STS3215_FIRMWARE.0));
+        set(register::FIRMWARE_MINOR_VERSION, u16::from(STS3215_FIRMWARE.1));
         set(register::MODEL_NUMBER, STS3215_MODEL);
         set(register::ID, u16::from(id));
+        set(register::BAUD_RATE, 0);
         set(register::RESPONSE_STATUS_LEVEL, 1);
-        set(register::RETURN_DELAY_TIME, 0);
+        set(register::RETURN_DELAY_TIME, 250);
+        set(register::MIN_POSITION_LIMIT, 0);
         set(register::MAX_POSITION_LIMIT, 4095);
+        set(register::MAX_TEMPERATURE_LIMIT, 70);
         set(register::MAX_TORQUE_LIMIT, 1000);
         set(register::P_COEFFICIENT, 32);
         set(register::LOCK, 1);
@@ -67,6 +97,7 @@ impl ServoState {
             mute: false,
             corrupt_checksums: false,
             error_byte: 0,
+            alarm: 0,
             reply_delay: Duration::ZERO,
         };
         let goal = s.present_from_actual();
@@ -96,7 +127,13 @@ impl ServoState {
     }
 
     fn present_from_actual(&self) -> i32 {
-        (self.actual.round() as i32 - self.homing_offset()).rem_euclid(4096)
+        let present = self.actual.round() as i32 - self.homing_offset();
+        if self.get(register::PHASE) as u8 & protocol::PHASE_MULTI_TURN_FEEDBACK != 0 {
+            // The full angle, as far as the 15-bit magnitude reaches.
+            present.clamp(-0x7FFF, 0x7FFF)
+        } else {
+            present.rem_euclid(4096)
+        }
     }
 
     fn refresh_present(&mut self) {
@@ -138,6 +175,29 @@ impl ServoState {
             }
             self.memory[a] = *b;
         }
+        self.refresh_present();
+    }
+
+    /// The error byte of this servo's status packets.
+    fn status_error(&self) -> u8 {
+        self.error_byte | self.alarm
+    }
+
+    /// Latches alarm bits ([`protocol::alarm`]) until [`Self::clear_alarm`].
+    pub fn latch_alarm(&mut self, bits: u8) {
+        self.alarm |= bits;
+        self.set(register::STATUS, u16::from(self.alarm));
+    }
+
+    /// The condition is gone (the gripper let go, the supply is right): the servo reports no alarm.
+    pub fn clear_alarm(&mut self) {
+        self.alarm = 0;
+        self.set(register::STATUS, 0);
+    }
+
+    /// Sets a register as the factory left it, whatever `Lock` says (e.g. `Phase` bit 4 on some servos).
+    pub fn set_factory_register(&mut self, entry: (u8, u8), value: u16) {
+        self.set(entry, value);
         self.refresh_present();
     }
 
@@ -279,6 +339,21 @@ impl FeetechEmulator {
         s.servos.get_mut(&id).map(f)
     }
 
+    /// Latches alarm bits on one servo ([`ServoState::latch_alarm`]).
+    pub fn latch_alarm(&self, id: u8, bits: u8) {
+        self.with_servo(id, |s| s.latch_alarm(bits));
+    }
+
+    /// Clears one servo's alarms.
+    pub fn clear_alarm(&self, id: u8) {
+        self.with_servo(id, ServoState::clear_alarm);
+    }
+
+    /// The ids on the bus, ascending.
+    pub fn ids(&self) -> Vec<u8> {
+        self.state.lock().servos.keys().copied().collect()
+    }
+
     /// Moves a shaft as a hand would (works with torque off).
     pub fn set_actual_position(&self, id: u8, raw: f64) {
         self.with_servo(id, |s| {
@@ -353,7 +428,7 @@ fn reply_for(servo: &ServoState, params: &[u8]) -> Option<(Vec<u8>, Duration)> {
     if servo.mute {
         return None;
     }
-    let mut packet = status_packet(servo.id, servo.error_byte, params);
+    let mut packet = status_packet(servo.id, servo.status_error(), params);
     if servo.corrupt_checksums
         && let Some(last) = packet.last_mut()
     {
@@ -368,6 +443,12 @@ fn handle(state: &Mutex<BusState>, p: &protocol::Packet) -> Vec<(Vec<u8>, Durati
     s.advance();
     let answers = |servo: &ServoState| servo.get(register::RESPONSE_STATUS_LEVEL) >= 1;
     match p.code {
+        // BTreeMap order is ascending id, the order the servos answer a broadcast ping in.
+        instruction::PING if p.id == BROADCAST_ID => s
+            .servos
+            .values()
+            .filter_map(|servo| reply_for(servo, &[]))
+            .collect(),
         instruction::PING => match s.servos.get(&p.id) {
             Some(servo) => reply_for(servo, &[]).into_iter().collect(),
             None => Vec::new(),
@@ -388,17 +469,30 @@ fn handle(state: &Mutex<BusState>, p: &protocol::Packet) -> Vec<(Vec<u8>, Durati
                 }
                 return Vec::new();
             }
-            match s.servos.get_mut(&p.id) {
-                Some(servo) => {
-                    servo.write(address, data);
-                    if answers(servo) {
-                        reply_for(servo, &[]).into_iter().collect()
-                    } else {
-                        Vec::new()
-                    }
+            let Some(servo) = s.servos.get_mut(&p.id) else {
+                return Vec::new();
+            };
+            servo.write(address, data);
+            let reply = if answers(servo) {
+                reply_for(servo, &[]).into_iter().collect()
+            } else {
+                Vec::new()
+            };
+            // Acknowledged under the old id, then the servo answers to the new one.
+            let new_id = servo.get(register::ID) as u8;
+            if new_id != p.id && new_id <= protocol::MAX_ID && !s.servos.contains_key(&new_id) {
+                if let Some(mut moved) = s.servos.remove(&p.id) {
+                    moved.id = new_id;
+                    s.servos.insert(new_id, moved);
                 }
-                None => Vec::new(),
+            } else if new_id != p.id
+                && let Some(servo) = s.servos.get_mut(&p.id)
+            {
+                // Two servos on one id would answer on top of each other; a servo refusing an id already on the
+                // bus keeps its own (the emulator's choice: the real bus would just garble both answers).
+                servo.set(register::ID, u16::from(p.id));
             }
+            reply
         }
         instruction::SYNC_WRITE => {
             let [address, len, items @ ..] = p.params.as_slice() else {

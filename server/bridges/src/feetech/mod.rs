@@ -6,6 +6,6 @@ pub mod bus;
 pub mod emulator;
 pub mod protocol;
 
-pub use bus::{BusError, BusStats, FeetechBus};
+pub use bus::{BusError, BusStats, FeetechBus, ServoReply};
 #[cfg(feature = "emulators")]
 pub use emulator::FeetechEmulator;

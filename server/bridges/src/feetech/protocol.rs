@@ -23,6 +23,8 @@ pub mod instruction {
 /// STS3215 control table entries as `(address, bytes)` (lerobot `STS_SMS_SERIES_CONTROL_TABLE`).
 pub mod register {
     pub type Entry = (u8, u8);
+    pub const FIRMWARE_MAJOR_VERSION: Entry = (0, 1);
+    pub const FIRMWARE_MINOR_VERSION: Entry = (1, 1);
     pub const MODEL_NUMBER: Entry = (3, 2);
     pub const ID: Entry = (5, 1);
     pub const BAUD_RATE: Entry = (6, 1);
@@ -30,6 +32,9 @@ pub mod register {
     pub const RESPONSE_STATUS_LEVEL: Entry = (8, 1);
     pub const MIN_POSITION_LIMIT: Entry = (9, 2);
     pub const MAX_POSITION_LIMIT: Entry = (11, 2);
+    pub const MAX_TEMPERATURE_LIMIT: Entry = (13, 1);
+    pub const MAX_VOLTAGE_LIMIT: Entry = (14, 1);
+    pub const MIN_VOLTAGE_LIMIT: Entry = (15, 1);
     pub const MAX_TORQUE_LIMIT: Entry = (16, 2);
     pub const PHASE: Entry = (18, 1);
     pub const P_COEFFICIENT: Entry = (21, 1);
@@ -59,8 +64,20 @@ pub mod register {
     pub const FIRST_SRAM: u8 = 40;
 }
 
-/// Model number the STS3215 reports at address 3.
+/// Model number the STS3215 reports at address 3 (lerobot `MODEL_NUMBER_TABLE["sts3215"]`).
 pub const STS3215_MODEL: u16 = 777;
+/// Firmware version (major, minor) at addresses 0 and 1 of current STS3215s: lerobot's handshake requires every
+/// servo of a bus to report the same one, and SO-101 users report "3.10" as current, "3.9" as the version to
+/// upgrade from (huggingface/lerobot issues #1010 and #532).
+pub const STS3215_FIRMWARE: (u8, u8) = (3, 10);
+
+/// Decodes a `Present_Position` register into a single-turn position (0..4095). In multi-turn feedback mode
+/// ([`PHASE_MULTI_TURN_FEEDBACK`]) the servo counts on past the seam (4096 and beyond, or below 0); the same
+/// shaft angle in single-turn mode is that count modulo one turn, which is what lerobot reads once the bit is
+/// cleared.
+pub fn single_turn_position(raw: u16) -> u16 {
+    decode_sign_magnitude(raw, POSITION_SIGN_BIT).rem_euclid(i32::from(COUNTS_PER_TURN)) as u16
+}
 /// Encoder counts per turn.
 pub const COUNTS_PER_TURN: u16 = 4096;
 /// Sign bit of positions and velocities.
@@ -68,21 +85,49 @@ pub const POSITION_SIGN_BIT: u8 = 15;
 /// Sign bit of `Homing_Offset` (±2047).
 pub const HOMING_OFFSET_SIGN_BIT: u8 = 11;
 
-/// Status error bits (Feetech SDK `ERRBIT_*`).
-pub fn status_error_text(error: u8) -> String {
-    const BITS: [(u8, &str); 6] = [
-        (0x01, "input voltage"),
-        (0x02, "angle sensor"),
-        (0x04, "overheat"),
-        (0x08, "overcurrent"),
-        (0x20, "overload"),
-        (0x40, "instruction"),
+/// `Phase` (address 18) bit 4, angle feedback mode: 0 reports the single-turn angle (0..4095), 1 the full
+/// (multi-turn) angle, which leaves 0..4095 once the shaft passes the encoder's seam. Feetech STS memory table
+/// §3.1 "Servo Phase" (wiki.juxitech.com, "Magnetic Encoder STS Servo – Memory Table Analysis"); some STS3215s
+/// ship with it set, which is why lerobot clears it in `FeetechMotorsBus.configure_motors` (huggingface/lerobot
+/// PR #3373, "fix(feetech): motor position readings overflow").
+pub const PHASE_MULTI_TURN_FEEDBACK: u8 = 0x10;
+
+/// Alarm bits of a status packet's error byte, which are also the bits of the `Status` register (65).
+/// Feetech SDK `scservo_def`/`protocol_packet_handler` `ERRBIT_*`, and the STS memory table §3.2 "Servo
+/// Status" (bit 4 is listed as unused there; bits 6 and 7 are not listed at all).
+pub mod alarm {
+    /// Input voltage outside `Min_Voltage_Limit`..`Max_Voltage_Limit` (15, 14).
+    pub const VOLTAGE: u8 = 0x01;
+    /// The magnetic encoder (angle sensor) failed.
+    pub const ANGLE_SENSOR: u8 = 0x02;
+    /// Temperature above `Max_Temperature_Limit` (13).
+    pub const OVERHEAT: u8 = 0x04;
+    /// Current above `Protection_Current` (28).
+    pub const OVERCURRENT: u8 = 0x08;
+    /// Load above `Overload_Torque` (36) for longer than `Protection_Time` (35).
+    pub const OVERLOAD: u8 = 0x20;
+
+    /// Each documented bit and its name.
+    pub const NAMED: [(u8, &str); 5] = [
+        (VOLTAGE, "input voltage"),
+        (ANGLE_SENSOR, "angle sensor"),
+        (OVERHEAT, "overheat"),
+        (OVERCURRENT, "overcurrent"),
+        (OVERLOAD, "overload"),
     ];
-    let names: Vec<&str> = BITS
+}
+
+/// Names the alarm bits of a status error byte, e.g. `"input voltage, overheat (0x05)"`.
+pub fn status_error_text(error: u8) -> String {
+    let mut names: Vec<String> = alarm::NAMED
         .iter()
         .filter(|(b, _)| error & b != 0)
-        .map(|(_, n)| *n)
+        .map(|(_, n)| (*n).to_owned())
         .collect();
+    let known = alarm::NAMED.iter().fold(0u8, |acc, (b, _)| acc | b);
+    if error & !known != 0 {
+        names.push(format!("undocumented bits {:#04x}", error & !known));
+    }
     if names.is_empty() {
         format!("error {error:#04x}")
     } else {
@@ -327,9 +372,28 @@ mod tests {
     }
 
     #[test]
+    fn multi_turn_positions_wrap_to_one_turn() {
+        assert_eq!(single_turn_position(2000), 2000);
+        // 4200 is 104 counts past the seam; -50 is 50 counts before it.
+        assert_eq!(single_turn_position(4200), 104);
+        assert_eq!(
+            single_turn_position(encode_sign_magnitude(-50, POSITION_SIGN_BIT)),
+            4046
+        );
+        assert_eq!(
+            single_turn_position(encode_sign_magnitude(-4096, POSITION_SIGN_BIT)),
+            0
+        );
+    }
+
+    #[test]
     fn error_bits_are_named() {
         assert_eq!(status_error_text(0x20), "overload (0x20)");
         assert_eq!(status_error_text(0x05), "input voltage, overheat (0x05)");
-        assert_eq!(status_error_text(0x10), "error 0x10");
+        assert_eq!(status_error_text(0x10), "undocumented bits 0x10 (0x10)");
+        assert_eq!(
+            status_error_text(0x21 | 0x40),
+            "input voltage, overload, undocumented bits 0x40 (0x61)"
+        );
     }
 }

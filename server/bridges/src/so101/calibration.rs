@@ -4,8 +4,8 @@
 //! sweep) that writes the same values into the motors.
 
 use crate::feetech::protocol::{
-    COUNTS_PER_TURN, HOMING_OFFSET_SIGN_BIT, POSITION_SIGN_BIT, decode_sign_magnitude, encode_sign_magnitude,
-    register,
+    COUNTS_PER_TURN, HOMING_OFFSET_SIGN_BIT, PHASE_MULTI_TURN_FEEDBACK, encode_sign_magnitude, register,
+    single_turn_position,
 };
 use crate::feetech::{BusError, FeetechBus};
 use phone2act_core::kinematics::SO101_JOINT_NAMES;
@@ -177,6 +177,27 @@ impl Calibration {
     }
 }
 
+/// True if the servo reports its full (multi-turn) angle (`Phase` bit 4).
+pub fn multi_turn_feedback(bus: &mut FeetechBus, id: u8) -> Result<bool, BusError> {
+    Ok(bus.read_value(id, register::PHASE)? as u8 & PHASE_MULTI_TURN_FEEDBACK != 0)
+}
+
+/// Clears `Phase` bit 4 so the servo reports single-turn angles, as lerobot's `configure_motors` does (the bit
+/// is EPROM: torque off and `Lock` 0 first). Returns whether it was set. Reading before writing leaves the
+/// other phase bits (drive direction, ...) as the factory set them.
+pub fn clear_multi_turn_feedback(bus: &mut FeetechBus, id: u8) -> Result<bool, BusError> {
+    let phase = bus.read_value(id, register::PHASE)? as u8;
+    if phase & PHASE_MULTI_TURN_FEEDBACK == 0 {
+        return Ok(false);
+    }
+    bus.write_value(id, register::PHASE, u16::from(phase & !PHASE_MULTI_TURN_FEEDBACK))?;
+    tracing::info!(
+        servo = id,
+        "feetech: cleared Phase bit 4 (multi-turn angle feedback)"
+    );
+    Ok(true)
+}
+
 fn disable_torque(bus: &mut FeetechBus, id: u8) -> Result<(), BusError> {
     bus.write_value(id, register::TORQUE_ENABLE, 0)?;
     bus.write_value(id, register::LOCK, 0)
@@ -187,9 +208,7 @@ fn read_present(bus: &mut FeetechBus, ids: &[u8]) -> Result<Vec<u16>, BusError> 
     Ok(bus
         .sync_read(address, len, ids)?
         .iter()
-        .map(|b| {
-            decode_sign_magnitude(u16::from_le_bytes([b[0], b[1]]), POSITION_SIGN_BIT).clamp(0, 4095) as u16
-        })
+        .map(|b| single_turn_position(u16::from_le_bytes([b[0], b[1]])))
         .collect())
 }
 
@@ -209,6 +228,8 @@ pub fn run_calibration(
     for &id in &ids {
         disable_torque(bus, id)?;
         bus.write_value(id, register::OPERATING_MODE, 0)?;
+        // A multi-turn reading past the seam would record a range beyond 0..4095.
+        clear_multi_turn_feedback(bus, id)?;
     }
     at_middle();
     for &id in &ids {

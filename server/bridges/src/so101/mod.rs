@@ -6,17 +6,27 @@
 //! are lerobot's `DEGREES` values (0 at the middle of each calibrated range), which is the zero of the "new
 //! calib" URDF; the gripper uses lerobot's `RANGE_0_100`.
 //!
-//! A servo that does not answer, a corrupt reply or a servo alarm fails the cycle: health turns to `Error`
-//! naming the servo, no new goals are written (the servos hold the last one) and the next good read clears
-//! it. A failed port (adapter unplugged) is `Disconnected` until [`Control::Reconnect`].
+//! A servo that does not answer or a corrupt reply fails the cycle: health turns to `Error` naming the servo,
+//! no new goals are written (the servos hold the last one) and the next good read clears it. A failed port
+//! (adapter unplugged) is `Disconnected` until [`Control::Reconnect`].
+//!
+//! Servo alarms come with every answer and are sorted by [`alarm_action`]: a warning (over-voltage; overload on
+//! the gripper) keeps the arm working and is shown by [`Bridge::warning`] and logged once when it appears and
+//! when it clears; any other alarm stops the arm (no new goals, `Error` naming the servo and the alarm) until
+//! [`Control::ClearError`] once the servo no longer reports it.
+//!
+//! Positions are read as single-turn angles even from a servo left in multi-turn feedback mode (`Phase` bit 4,
+//! which configuring clears, as lerobot does).
 
 pub mod calibration;
 
-use crate::feetech::protocol::{POSITION_SIGN_BIT, decode_sign_magnitude, encode_sign_magnitude, register};
+use crate::feetech::protocol::{
+    POSITION_SIGN_BIT, alarm, encode_sign_magnitude, register, single_turn_position, status_error_text,
+};
 use crate::feetech::{BusError, BusStats, FeetechBus};
 use crate::sim::ClockFn;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
-use calibration::{Calibration, MotorCalibration};
+use calibration::{Calibration, MotorCalibration, multi_turn_feedback};
 use parking_lot::Mutex;
 use phone2act_core::kinematics::{
     IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, SO101_JOINT_NAMES, So101Joints, So101Kinematics,
@@ -152,6 +162,10 @@ pub struct So101Stats {
     /// Targets whose IK did not reach the position (out of reach); the closest pose was sent.
     pub unreachable_targets: u64,
     pub last_error: Option<String>,
+    /// The alarms that keep the arm working, as [`Bridge::warning`] shows them.
+    pub warning: Option<String>,
+    /// Each servo's alarm bits in the last good read, in motor order.
+    pub alarms: [u8; MOTORS],
     /// Mean work time of a cycle (IK, sync write, sync read), microseconds.
     pub mean_cycle_work_us: f64,
     pub bus: BusStats,
@@ -171,6 +185,64 @@ struct Status {
     last_error: Option<String>,
     enabled: bool,
     bus_time_total: Duration,
+    /// Each servo's alarm bits in the last good read.
+    alarms: [u8; MOTORS],
+    /// An alarm that stopped the arm, held until [`Control::ClearError`].
+    alarm_stop: Option<String>,
+}
+
+/// What a servo alarm does to the arm.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AlarmAction {
+    /// The arm keeps working; status and the log say so.
+    Warn,
+    /// No new goals until the operator clears it.
+    Stop,
+}
+
+/// Decides per alarm bit ([`alarm`]; Feetech STS memory table §3.2 "Servo Status", SDK `ERRBIT_*`) what it does
+/// to the arm, for the motor at `motor` (index in [`SO101_JOINT_NAMES`]):
+/// - input voltage: warn. The servo keeps driving; 7.4 V STS3215s on the 12 V supply of a 12 V arm report it
+///   all the time (huggingface/lerobot issue #1010), and lerobot's read and write loop ignores it.
+/// - overload on the gripper: warn. Squeezing an object is the gripper's job, and the servo limits its own
+///   torque (`Protective_Torque`) while the alarm holds.
+/// - overload on an arm joint: stop. The arm is pushing against something (a collision, a payload past what the
+///   joint holds); new goals would push harder.
+/// - angle sensor: stop. The encoder is the position feedback: forward kinematics and goals would be wrong.
+/// - overheat, overcurrent: stop. The servo is at its protection limit (by default it drops torque); driving on
+///   heats or loads it further.
+/// - bits the memory table does not document: stop, since what they mean is unknown.
+pub fn alarm_action(motor: usize, bit: u8) -> AlarmAction {
+    let gripper = motor == MOTORS - 1;
+    match bit {
+        alarm::VOLTAGE => AlarmAction::Warn,
+        alarm::OVERLOAD if gripper => AlarmAction::Warn,
+        _ => AlarmAction::Stop,
+    }
+}
+
+/// The bits of `error` from the motor at `motor` that stop the arm.
+fn stopping_bits(motor: usize, error: u8) -> u8 {
+    (0..8)
+        .map(|b| 1u8 << b)
+        .filter(|&bit| error & bit != 0 && alarm_action(motor, bit) == AlarmAction::Stop)
+        .fold(0, |acc, bit| acc | bit)
+}
+
+/// "servo 6 (gripper): overload (0x20)" for each motor with bits in `bits`, joined by "; ".
+fn describe_alarms(ids: [u8; MOTORS], bits: [u8; MOTORS]) -> Option<String> {
+    let parts: Vec<String> = (0..MOTORS)
+        .filter(|&i| bits[i] != 0)
+        .map(|i| {
+            format!(
+                "servo {} ({}): {}",
+                ids[i],
+                SO101_JOINT_NAMES[i],
+                status_error_text(bits[i])
+            )
+        })
+        .collect();
+    (!parts.is_empty()).then(|| parts.join("; "))
 }
 
 #[derive(Debug)]
@@ -248,6 +320,8 @@ impl So101Bridge {
                 last_error: None,
                 enabled: false,
                 bus_time_total: Duration::ZERO,
+                alarms: [0; MOTORS],
+                alarm_stop: None,
             }),
             goal_rad: Mutex::new(None),
             applied_seq: AtomicU64::new(0),
@@ -260,7 +334,7 @@ impl So101Bridge {
             clock,
             config,
         });
-        inner.prepare().map_err(|e| bus_error(&e))?;
+        inner.prepare()?;
         let worker = Arc::clone(&inner);
         let handle = std::thread::Builder::new()
             .name("so101-cycle".into())
@@ -278,6 +352,8 @@ impl So101Bridge {
         let s = self.inner.status.lock();
         let cycles = self.inner.cycles.load(Ordering::Relaxed);
         So101Stats {
+            warning: self.inner.warning_of(&s),
+            alarms: s.alarms,
             cycles,
             goals_written: self.inner.goals_written.load(Ordering::Relaxed),
             failed_cycles: self.inner.failed_cycles.load(Ordering::Relaxed),
@@ -318,28 +394,84 @@ impl Inner {
         f(bus)
     }
 
-    /// Start-up sequence on an open bus.
-    fn prepare(&self) -> Result<(), BusError> {
+    /// Start-up sequence on an open bus. An alarm that stops the arm fails it, naming the servo; a warning is
+    /// logged and shown, and the arm starts.
+    fn prepare(&self) -> Result<(), BridgeError> {
+        let mut alarms = [0u8; MOTORS];
         self.with_bus(|bus| {
-            for &id in &self.ids {
-                bus.ping(id)?;
+            // Alarms are read from every answer and judged here, not by the bus.
+            bus.strict_status = false;
+            for (i, &id) in self.ids.iter().enumerate() {
+                alarms[i] = bus.ping(id)?;
             }
-            if self.config.configure_motors {
-                for (i, &id) in self.ids.iter().enumerate() {
+            Ok(())
+        })
+        .map_err(|e| bus_error(&e))?;
+        let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
+        if let Some(why) = describe_alarms(self.ids, stopping) {
+            return Err(BridgeError::Protocol(format!(
+                "{why}: an alarm that stops the arm; remove its cause and start again"
+            )));
+        }
+        self.update_alarms(alarms);
+        self.with_bus(|bus| {
+            for (i, &id) in self.ids.iter().enumerate() {
+                if self.config.configure_motors {
                     configure_motor(bus, id, &self.calibration[i], i == MOTORS - 1)?;
+                } else if multi_turn_feedback(bus, id)? {
+                    warn!(
+                        servo = id,
+                        joint = SO101_JOINT_NAMES[i],
+                        "so101: Phase bit 4 (multi-turn angle feedback) is set and configure_motors is off; positions are read modulo one turn"
+                    );
                 }
             }
             Ok(())
-        })?;
+        })
+        .map_err(|e| bus_error(&e))?;
         if self.config.enable_on_start {
-            self.enable()?;
+            self.enable().map_err(|e| bus_error(&e))?;
         }
         Ok(())
     }
 
+    /// Records the alarm bits of a good read: logs each change once, and latches an alarm that stops the arm.
+    fn update_alarms(&self, alarms: [u8; MOTORS]) {
+        let mut s = self.status.lock();
+        if s.alarms == alarms {
+            return;
+        }
+        for i in 0..MOTORS {
+            let (was, now) = (s.alarms[i], alarms[i]);
+            if was == now {
+                continue;
+            }
+            let (id, joint) = (self.ids[i], SO101_JOINT_NAMES[i]);
+            if now == 0 {
+                info!(servo = id, joint, "so101: servo alarm cleared");
+            } else if stopping_bits(i, now) != 0 {
+                warn!(servo = id, joint, alarm = %status_error_text(now), "so101: servo alarm stops the arm");
+            } else {
+                warn!(servo = id, joint, alarm = %status_error_text(now), "so101: servo alarm; the arm keeps working");
+            }
+        }
+        // Names every alarm that stops the arm now; once they are gone, the last ones stay named until cleared.
+        let stopping: [u8; MOTORS] = std::array::from_fn(|i| stopping_bits(i, alarms[i]));
+        if let Some(why) = describe_alarms(self.ids, stopping) {
+            s.alarm_stop = Some(why);
+        }
+        s.alarms = alarms;
+    }
+
+    /// The alarms that keep the arm working, if any.
+    fn warning_of(&self, s: &Status) -> Option<String> {
+        let warnings: [u8; MOTORS] = std::array::from_fn(|i| s.alarms[i] & !stopping_bits(i, s.alarms[i]));
+        describe_alarms(self.ids, warnings)
+    }
+
     /// Goal = present, then torque on and lock (lerobot `enable_torque`).
     fn enable(&self) -> Result<(), BusError> {
-        let raw = self.with_bus(|bus| read_positions(bus, self.ids))?;
+        let (raw, _) = self.with_bus(|bus| read_positions(bus, self.ids))?;
         self.with_bus(|bus| {
             let (address, len) = register::GOAL_POSITION;
             let items: Vec<(u8, Vec<u8>)> = self
@@ -425,7 +557,7 @@ impl Inner {
         let started = Instant::now();
         let healthy = {
             let s = self.status.lock();
-            s.cycle_error.is_none() && s.enabled
+            s.cycle_error.is_none() && s.alarm_stop.is_none() && s.enabled
         };
         let mut result = Ok(());
         let command = self.slot.take();
@@ -436,7 +568,8 @@ impl Inner {
         let bus_time = started.elapsed();
         self.cycles.fetch_add(1, Ordering::Relaxed);
         match read {
-            Ok(raw) => {
+            Ok((raw, alarms)) => {
+                self.update_alarms(alarms);
                 let joints = self.arm_rad(&raw);
                 let feedback = Feedback {
                     capture_time_ns: (self.clock)(),
@@ -522,6 +655,11 @@ impl Inner {
         if let Some(e) = &s.cycle_error {
             return Health::Error(e.clone());
         }
+        if let Some(why) = &s.alarm_stop {
+            return Health::Error(format!(
+                "{why}: the arm holds; clear the error once the servo no longer reports it"
+            ));
+        }
         if !s.enabled {
             return Health::Error("torque disabled".into());
         }
@@ -539,6 +677,10 @@ impl Inner {
             Duration::from_millis(self.config.timeout_ms),
         )?;
         *self.bus.lock() = Some(bus);
+        self.with_bus(|bus| {
+            bus.strict_status = false;
+            Ok(())
+        })?;
         {
             let mut s = self.status.lock();
             s.link = Link::Up;
@@ -582,14 +724,20 @@ pub fn expand_home(path: &std::path::Path) -> PathBuf {
     }
 }
 
-fn read_positions(bus: &mut FeetechBus, ids: [u8; MOTORS]) -> Result<[u16; MOTORS], BusError> {
+/// Present positions (single-turn, 0..4095) and each servo's alarm bits.
+fn read_positions(
+    bus: &mut FeetechBus,
+    ids: [u8; MOTORS],
+) -> Result<([u16; MOTORS], [u8; MOTORS]), BusError> {
     let (address, len) = register::PRESENT_POSITION;
-    let data = bus.sync_read(address, len, &ids)?;
+    let replies = bus.sync_read_with_status(address, len, &ids)?;
     let mut raw = [0u16; MOTORS];
-    for (r, b) in raw.iter_mut().zip(&data) {
-        *r = decode_sign_magnitude(u16::from_le_bytes([b[0], b[1]]), POSITION_SIGN_BIT).clamp(0, 4095) as u16;
+    let mut alarms = [0u8; MOTORS];
+    for ((r, a), reply) in raw.iter_mut().zip(alarms.iter_mut()).zip(&replies) {
+        *r = single_turn_position(u16::from_le_bytes([reply.data[0], reply.data[1]]));
+        *a = reply.error;
     }
-    Ok(raw)
+    Ok((raw, alarms))
 }
 
 /// lerobot `configure()` for one motor plus its calibration (torque off while EPROM is written).
@@ -608,6 +756,7 @@ fn configure_motor(
     bus.write_value(id, register::P_COEFFICIENT, 16)?;
     bus.write_value(id, register::I_COEFFICIENT, 0)?;
     bus.write_value(id, register::D_COEFFICIENT, 32)?;
+    calibration::clear_multi_turn_feedback(bus, id)?;
     if gripper {
         bus.write_value(id, register::MAX_TORQUE_LIMIT, 500)?;
         bus.write_value(id, register::PROTECTION_CURRENT, 250)?;
@@ -644,6 +793,11 @@ impl Bridge for So101Bridge {
         self.inner.health()
     }
 
+    fn warning(&self) -> Option<String> {
+        let s = self.inner.status.lock();
+        self.inner.warning_of(&s)
+    }
+
     fn control(&self, request: Control) -> Result<(), BridgeError> {
         if self.inner.stop.load(Ordering::SeqCst) {
             return Err(BridgeError::Protocol("bridge is shut down".into()));
@@ -652,7 +806,11 @@ impl Bridge for So101Bridge {
             Control::Enable => self.inner.enable(),
             Control::Disable => self.inner.disable(),
             Control::ClearError => {
-                self.inner.status.lock().cycle_error = None;
+                let mut s = self.inner.status.lock();
+                s.cycle_error = None;
+                // Raised again by the next read if the servo still reports it.
+                s.alarm_stop = None;
+                s.alarms = [0; MOTORS];
                 Ok(())
             }
             Control::Reconnect => self.inner.reconnect(),
