@@ -510,7 +510,7 @@ impl Config {
             });
         }
         if let Some(storage) = &self.storage {
-            storage.validate().map_err(invalid)?;
+            storage.validate()?;
         }
         Ok(())
     }
