@@ -194,6 +194,12 @@ impl App {
                         .map_err(|e| arm_err(e.to_string()))?
                 }
             };
+            let controller = match &config.flight_log {
+                Some(flight) => controller
+                    .with_flight_log(&flight.dir, flight.max_bytes)
+                    .map_err(|e| arm_err(e.to_string()))?,
+                None => controller,
+            };
             arms.push(Arc::new(controller));
         }
         let mut cameras = Vec::new();

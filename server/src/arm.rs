@@ -7,6 +7,7 @@
 //! microseconds and never across an `.await`, so the control path is a straight function call from the gRPC
 //! handler to the bridge (which never blocks).
 
+use crate::flight_log::FlightLogWriter;
 use nalgebra::Isometry3;
 use parking_lot::Mutex;
 use phone2act_bridges::sim::SceneState;
@@ -15,8 +16,8 @@ use phone2act_clock::monotonic_ns;
 use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
     ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
-    ChunkStep, Effects, Input, LayoutError, Measured, ReplaceReport, Robot, TeleopConfig, TeleopRound,
-    TickNeed,
+    ChunkStep, Effects, FlightEntry, FlightHeader, Input, LayoutError, Measured, Outcome, ReplaceReport,
+    Robot, TeleopConfig, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
@@ -61,6 +62,12 @@ pub enum ArmError {
         "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
     )]
     LerobotLayoutUnsupported { arm: String },
+    #[error("arm {arm}: {source}")]
+    FlightLog {
+        arm: String,
+        #[source]
+        source: crate::flight_log::FlightLogError,
+    },
     #[error("arm {arm:?} {source}")]
     Refused {
         arm: String,
@@ -115,6 +122,8 @@ struct Inner {
     /// follows its solutions from one to the next as the bridge's does, rather than restarting from the
     /// lagging measured joints (which, for an orientation a 5-DoF arm cannot reach, lands elsewhere).
     joint_seed: Option<Vec<f64>>,
+    /// The flight recorder, when on: every input handed to the arbiter, in order, under this lock.
+    flight: Option<FlightLogWriter>,
 }
 
 /// One input handled under the lock, with what is left to do once it is released.
@@ -145,6 +154,8 @@ pub struct ArmController {
     samples_received: AtomicU64,
     /// Ticks run since start (an idle arm runs none).
     ticks: AtomicU64,
+    /// What the arbiter was made from: the start of a flight log.
+    flight_header: FlightHeader,
 }
 
 impl std::fmt::Debug for ArmController {
@@ -193,6 +204,7 @@ impl ArmController {
                 joints: bridge.joint_names().to_vec(),
             });
         }
+        let flight_header = FlightHeader::new(name, teleop, chunk, measured, gripper);
         let arbiter =
             Arbiter::new(teleop, chunk.clone(), measured, gripper).map_err(|source| ArmError::Config {
                 arm: name.to_owned(),
@@ -209,12 +221,28 @@ impl ArmController {
                 arbiter,
                 policy_sink: None,
                 joint_seed: None,
+                flight: None,
             }),
             wake: Notify::new(),
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
             ticks: AtomicU64::new(0),
+            flight_header,
         })
+    }
+
+    /// Logs every input of this arm's arbiter from now on to a new file in `dir` (see
+    /// [`crate::flight_log`]). Called before the arm takes any input, so the log replays from its start.
+    pub fn with_flight_log(self, dir: &std::path::Path, max_bytes: u64) -> Result<Self, ArmError> {
+        let log = FlightLogWriter::create(dir, &self.flight_header, max_bytes).map_err(|source| {
+            ArmError::FlightLog {
+                arm: self.name.clone(),
+                source,
+            }
+        })?;
+        tracing::info!(arm = %self.name, path = %log.path().display(), "flight log on");
+        self.inner.lock().flight = Some(log);
+        Ok(self)
     }
 
     /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
@@ -262,7 +290,17 @@ impl ArmController {
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<Handled, ArbiterError> {
         let need_before = inner.arbiter.tick_need();
-        let effects = inner.arbiter.handle(input, robot, now)?;
+        let logged = inner.flight.is_some().then(|| input.clone());
+        let result = inner.arbiter.handle(input, robot, now);
+        if let (Some(input), Some(log)) = (logged, inner.flight.as_mut()) {
+            log.record(FlightEntry {
+                now_s: now,
+                input,
+                robot: robot.clone(),
+                outcome: Outcome::of(&result),
+            });
+        }
+        let effects = result?;
         if sink.is_some() {
             inner.policy_sink = sink;
         }

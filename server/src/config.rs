@@ -54,6 +54,9 @@ pub struct Config {
     pub cameras: Vec<CameraConfig>,
     #[serde(default)]
     pub recorder: RecorderConfig,
+    /// The flight recorder: off unless this table is present.
+    #[serde(default)]
+    pub flight_log: Option<FlightLogConfig>,
     /// The `[gateway]` table of the phone gateway `phone2act serve` embeds (rosbridge v2 on ws://:9090, the
     /// phone page over HTTPS on :8443). Opaque here: the server library is not a client of itself, so the
     /// binary that starts the gateway reads and validates this table as the gateway's own config type.
@@ -236,6 +239,24 @@ fn default_camera_fps() -> f64 {
 /// Dataset format written by the recorder (`"v3.0"` or `"v2.1"` in the file): the recorder's own enum.
 pub use phone2act_recorder::spec::Format as DatasetFormat;
 
+/// The flight recorder: every input of every arm's arbiter, with its time, logged to one file per arm and
+/// server run, for `phone2act replay-log`.
+#[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct FlightLogConfig {
+    /// Directory of the logs (created at start).
+    pub dir: PathBuf,
+    /// Largest size of one log; past it the log ends (and says so), the arm goes on.
+    #[serde(default = "default_flight_log_max_bytes")]
+    pub max_bytes: u64,
+}
+
+/// 256 MiB: about an hour of a phone at 60 Hz with a policy's ticks (about 70 bytes a tick, 350 a phone
+/// round).
+fn default_flight_log_max_bytes() -> u64 {
+    256 << 20
+}
+
 /// The recorder.
 #[derive(Debug, Clone, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -308,6 +329,9 @@ pub const MAX_NAME_CHARS: usize = 64;
 /// Fastest simulated arm step rate, Hz: the simulation runs on its own thread at this rate.
 pub const MAX_SIM_STEP_HZ: f64 = 10_000.0;
 
+/// Smallest flight log accepted: below it a log ends within seconds.
+pub const MIN_FLIGHT_LOG_BYTES: u64 = 64 << 10;
+
 /// What replaces a secret (server token, gateway pairing token, ...) in printed or recorded configuration.
 pub const REDACTED: &str = "<redacted>";
 
@@ -332,7 +356,7 @@ impl Config {
         origin: &str,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        parse_layered(text, origin, overrides(env), Config::validate)
+        parse_layered(text, origin, &overrides(env), Config::validate)
     }
 
     /// The configuration as TOML, every default filled in and every secret replaced by [`REDACTED`]: what
@@ -359,6 +383,20 @@ impl Config {
                 self.arms.len(),
                 self.cameras.len()
             ));
+        }
+        if let Some(flight) = &self.flight_log {
+            if flight.dir.as_os_str().is_empty() {
+                return Err(
+                    "flight_log.dir is empty: name the directory of the logs, or remove [flight_log]"
+                        .to_owned(),
+                );
+            }
+            if flight.max_bytes < MIN_FLIGHT_LOG_BYTES {
+                return Err(format!(
+                    "flight_log.max_bytes = {} is below {MIN_FLIGHT_LOG_BYTES} (a few seconds of inputs)",
+                    flight.max_bytes
+                ));
+            }
         }
         let mut names = std::collections::HashSet::new();
         for arm in &self.arms {
@@ -662,7 +700,7 @@ impl ConfigSource {
         let section = parse_layered(
             &self.text,
             &self.origin,
-            overrides(env),
+            &overrides(env),
             |s: &GatewaySection<T>| validate(&s.gateway),
         )?;
         Ok(section.gateway)
@@ -693,12 +731,12 @@ fn overrides(env: impl IntoIterator<Item = (String, String)>) -> Vec<(String, St
 fn parse_layered<T: serde::de::DeserializeOwned>(
     text: &str,
     origin: &str,
-    overrides: Vec<(String, String)>,
+    overrides: &[(String, String)],
     validate: impl Fn(&T) -> Result<(), String>,
 ) -> Result<T, ConfigError> {
     let file_table: toml::Table = toml::from_str(text).map_err(|e| parse_error(&e, text, origin))?;
-    let secrets = Secrets::collect(&file_table, &overrides);
-    parse_layered_inner(text, origin, &file_table, &overrides, validate).map_err(|e| secrets.redact(e))
+    let secrets = Secrets::collect(&file_table, overrides);
+    parse_layered_inner(text, origin, &file_table, overrides, validate).map_err(|e| secrets.redact(e))
 }
 
 fn parse_layered_inner<T: serde::de::DeserializeOwned>(
@@ -1017,6 +1055,24 @@ mod tests {
                 .unwrap_err()
                 .to_string();
         assert!(err.contains("appears twice"), "{err}");
+    }
+
+    #[test]
+    fn a_flight_log_needs_a_directory_and_room_for_more_than_a_few_seconds() {
+        let arm = "[[arms]]\nname = \"a\"\nbridge = \"sim\"\n";
+        let ok = parse(&format!("{arm}[flight_log]\ndir = \"logs\"\n")).unwrap();
+        let flight = ok.flight_log.unwrap();
+        assert_eq!((flight.dir.to_str(), flight.max_bytes), (Some("logs"), 256 << 20));
+        assert!(parse(arm).unwrap().flight_log.is_none(), "off unless asked for");
+        let err = parse(&format!("{arm}[flight_log]\ndir = \"\"\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("flight_log.dir is empty"), "{err}");
+        let err = parse(&format!("{arm}[flight_log]\ndir = \"l\"\nmax_bytes = 65535\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("max_bytes = 65535 is below 65536"), "{err}");
+        parse(&format!("{arm}[flight_log]\ndir = \"l\"\nmax_bytes = 65536\n")).unwrap();
     }
 
     #[test]
@@ -1536,6 +1592,8 @@ profile = "lab"
 credentials_file = "creds"
 max_upload_bytes_per_s = 1000000
 station_id = "arm-1"
+[flight_log]
+dir = "logs"
 [gateway]
 cert_dir = "d"
 cert_file = "c.pem"

@@ -8,6 +8,7 @@
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod flight_log;
 pub mod policy_session;
 pub mod recording;
 pub mod runtime;

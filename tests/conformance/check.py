@@ -3,7 +3,8 @@
 Usage: python check.py DATASET_DIR...   (all of one codebase version: lerobot 0.4.x reads v3.0, 0.3.3 v2.1)
 
 For every dataset: load it with LeRobotDataset (local root, no network), iterate every frame with decoded
-video, and assert timestamps (frame_index / fps), indices, episode lengths, tasks and feature shapes against
+video, and assert timestamps (at or just after frame_index / fps, docs/timestamps.md), that every step decodes
+to frame k of its video in LeRobot's and each of GR00T's readers (`Pairing`), indices, episode lengths, tasks and feature shapes against
 meta/info.json. For v2.1 also run a GR00T-style check of meta/modality.json and meta/stats.json (mean, std,
 min, max, q01, q99 for every parquet column, consistent with the data). Statistics of the numeric columns
 (both formats) are checked against numpy over every frame read with pyarrow: quantiles are numpy's default
@@ -50,7 +51,7 @@ def v21_commit_window(root: Path, info: dict, n_frames: int, version: str) -> bo
     return sum(int(e["length"]) for e in lines) == n_frames == info["total_frames"] + int(lines[-1]["length"])
 
 
-def check_common(root: Path, info: dict, ds, version: str):
+def check_common(root: Path, info: dict, ds, version: str, pairing=None):
     fps = info["fps"]
     total_frames = info["total_frames"]
     total_episodes = info["total_episodes"]
@@ -90,9 +91,10 @@ def check_common(root: Path, info: dict, ds, version: str):
                 fail(f"row {i}: episode {ep} frame {fi} follows episode {last_ep}")
         last_ep, last_fi = ep, fi
         ep_len[ep] = fi + 1
-        expected_ts = np.float32(fi / fps)
-        if abs(ts - float(expected_ts)) > 1e-6:
-            fail(f"row {i}: timestamp {ts} != frame_index/fps {float(expected_ts)}")
+        # phone2act's rule (docs/timestamps.md): at or after fi/fps, within LeRobot's 1e-4 s. Compared exactly:
+        # a float32 times a whole fps is exact in float64.
+        if ts * fps < fi or ts - fi / fps >= 1e-4:
+            fail(f"row {i}: timestamp {ts!r} is not in [frame_index/fps, +1e-4 s) = [{fi / fps!r}, ...)")
         task = item.get("task")
         if not isinstance(task, str) or not task:
             fail(f"row {i}: task is {task!r}, not the task text")
@@ -102,6 +104,8 @@ def check_common(root: Path, info: dict, ds, version: str):
             if spec["dtype"] == "video":
                 h, w, c = spec["shape"]
                 t = item[key]
+                if pairing is not None:
+                    pairing.lerobot_frame(ep, fi, ts, key, t)
                 if tuple(t.shape) != (c, h, w):
                     fail(f"row {i}: {key} decoded to shape {tuple(t.shape)}, expected {(c, h, w)}")
                 if float(t.min()) < 0.0 or float(t.max()) > 1.0:
@@ -123,11 +127,230 @@ def check_common(root: Path, info: dict, ds, version: str):
     return ep_len, video_keys, in_window
 
 
+class Skip(Exception):
+    """A reader that cannot run here (not installable, or its FFmpeg lacks the codec): reported, loudly."""
+
+
+def _rgb_u8_from_chw_float(t) -> np.ndarray:
+    """LeRobot's decoded frame (float CHW in 0..1, uint8 / 255) back to the uint8 HWC pixels it came from."""
+    return np.clip(np.rint(t.numpy().transpose(1, 2, 0) * 255.0), 0, 255).astype(np.uint8)
+
+
+def gr00t_n15_torchcodec(path: str, ts: np.ndarray) -> np.ndarray:
+    """GR00T N1.5's default reader: the frame played at each timestamp."""
+    from torchcodec.decoders import VideoDecoder
+
+    decoder = VideoDecoder(path, device="cpu", dimension_order="NHWC", num_ffmpeg_threads=0)
+    return decoder.get_frames_played_at(seconds=[float(t) for t in ts]).data.numpy()
+
+
+def gr00t_n16_torchcodec(path: str, ts: np.ndarray) -> np.ndarray:
+    """GR00T N1.6's torchcodec reader: timestamps snapped to the nearest multiple of 1 / average_fps (refused
+    beyond 1 % of a frame), then the frame played at that time."""
+    from torchcodec.decoders import VideoDecoder
+
+    decoder = VideoDecoder(path, device="cpu", dimension_order="NHWC", num_ffmpeg_threads=0)
+    interval = 1.0 / decoder.metadata.average_fps
+    t = np.asarray(ts, dtype=np.float64)
+    snapped = np.round(t / interval) * interval
+    off = np.abs(snapped - t) / interval
+    if (off >= 0.01).any():
+        fail(f"GR00T N1.6 refuses timestamps {t[off >= 0.01][:3]} (more than 1 % of a frame off the grid)")
+    return decoder.get_frames_played_at(seconds=[float(x) for x in snapped]).data.numpy()
+
+
+def gr00t_decord(path: str, ts: np.ndarray) -> np.ndarray:
+    """GR00T's decord reader (N1.5's documented default): the frame whose start is nearest each timestamp."""
+    try:
+        import decord
+    except ImportError as e:
+        raise Skip(f"decord is not installed here ({e}); tests/conformance/setup-venv.sh installs it where a wheel exists")
+    try:
+        vr = decord.VideoReader(path)
+    except decord.DECORDError as e:
+        raise Skip(f"decord's bundled FFmpeg cannot open this file ({_codec(path)}): {str(e).splitlines()[0][:120]}")
+    starts = vr.get_frame_timestamp(range(len(vr)))[:, :1]
+    indices = np.abs(starts - np.asarray(ts, dtype=np.float64)).argmin(axis=0)
+    try:
+        return vr.get_batch(indices).asnumpy()
+    except decord.DECORDError as e:
+        # decord pads a frame's rows to its own alignment and then refuses to copy them out (a 48 px wide
+        # video): a decord limit whatever the timestamps.
+        first = str(e).splitlines()[0]
+        raise Skip(f"decord cannot copy out this file's {vr[0].shape[1]} px wide frames: {first[first.find('Check'):][:80]}")
+
+
+def _codec(path: str) -> str:
+    import av
+
+    with av.open(path) as c:
+        return c.streams.video[0].codec_context.name
+
+
+def gr00t_opencv(path: str, ts: np.ndarray) -> np.ndarray:
+    """GR00T N1.6's OpenCV reader: the nearest of arange(frames) / CAP_PROP_FPS, read after a frame seek."""
+    import cv2
+
+    cap = cv2.VideoCapture(path)
+    try:
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        ok, _ = cap.read()
+        if not ok:
+            raise Skip(f"opencv-python-headless's bundled FFmpeg cannot decode {_codec(path)}")
+        starts = (np.arange(n) / cap.get(cv2.CAP_PROP_FPS))[:, None]
+        indices = np.abs(starts - np.asarray(ts, dtype=np.float64)).argmin(axis=0)
+        out = []
+        for idx in indices:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, int(idx))
+            ok, frame = cap.read()
+            if not ok:
+                fail(f"OpenCV cannot read frame {idx}")
+            out.append(frame[..., ::-1])
+        return np.stack(out)
+    finally:
+        cap.release()
+
+
+def lerobot_pyav(path: str, ts: np.ndarray) -> np.ndarray:
+    """LeRobot's PyAV reader, the successor of torchvision's av reader (and GR00T's `torchvision_av`): seek to
+    the keyframe before the first timestamp, decode up to the last, take the nearest frame within 1e-4 s."""
+    import lerobot.datasets.video_utils as vu
+
+    try:
+        frames = vu.decode_video_frames(path, [float(t) for t in ts], 1e-4, backend="pyav")
+    except AttributeError as e:
+        # lerobot 0.3.3's pyav path goes through torchvision.io.VideoReader, which this torchvision lacks.
+        raise Skip(f"this lerobot's pyav reader needs torchvision's video reader: {e}")
+    return np.stack([_rgb_u8_from_chw_float(f) for f in frames])
+
+
+def torchvision_av(path: str, ts: np.ndarray) -> np.ndarray:
+    import torchvision
+
+    if not hasattr(torchvision.io, "VideoReader"):
+        raise Skip(
+            f"torchvision {torchvision.__version__} has no video reader (torchvision.io.VideoReader is gone from the "
+            "torchvision that lerobot 0.6's torch pins); its algorithm is checked as lerobot's pyav reader"
+        )
+    fail("torchvision's VideoReader exists here: add its check")
+
+
+# Every reader of GR00T and LeRobot that decodes by timestamp; decord last, since its bundled FFmpeg may
+# disturb torchcodec's once loaded.
+PAIRING_READERS = [
+    ("GR00T N1.5 torchcodec (get_frames_played_at)", gr00t_n15_torchcodec),
+    ("GR00T N1.6 torchcodec (snapped to the frame grid)", gr00t_n16_torchcodec),
+    ("GR00T N1.6 opencv (nearest frame start)", gr00t_opencv),
+    ("lerobot pyav / torchvision av (nearest loaded frame)", lerobot_pyav),
+    ("torchvision av (torchvision.io.VideoReader)", torchvision_av),
+    ("GR00T decord (nearest frame start)", gr00t_decord),
+]
+
+
+class Pairing:
+    """Step k of every episode must decode to frame k of its video in every reader: the frame LeRobot's
+    dataset returns for the row, and the frame each GR00T reader returns for `from_timestamp + timestamp`
+    (docs/timestamps.md), must be pixel-equal to frame k decoded by index (PyAV, every frame in presentation
+    order; torchcodec, decord and OpenCV decode the same pixels through FFmpeg)."""
+
+    def __init__(self, root: Path, info: dict, locate):
+        self.root, self.info, self.locate = root, info, locate
+        self.steps: dict = {}
+        self.lerobot: dict = {}
+        self.refs: dict = {}
+        expect_path = root / "phone2act_expect.json"
+        self.distinct = json.loads(expect_path.read_text()).get("distinct_frames", False) if expect_path.exists() else False
+
+    def lerobot_frame(self, ep: int, fi: int, ts: float, key: str, t):
+        self.steps.setdefault((ep, key), {})[fi] = ts
+        self.lerobot.setdefault((ep, key), {})[fi] = _rgb_u8_from_chw_float(t)
+
+    def reference(self, path: str) -> np.ndarray:
+        if path not in self.refs:
+            import av
+
+            with av.open(path) as c:
+                frames = sorted(((f.pts, f.to_ndarray(format="rgb24")) for f in c.decode(video=0)), key=lambda x: x[0])
+            self.refs[path] = np.stack([f for _, f in frames])
+        return self.refs[path]
+
+    def run(self):
+        fps = self.info["fps"]
+        results = {"lerobot (LeRobotDataset, its default reader)": [0, None]}
+        results.update({name: [0, None] for name, _ in PAIRING_READERS})
+        discriminating = total = 0
+        for (ep, key), steps in sorted(self.steps.items()):
+            n = len(steps)
+            if sorted(steps) != list(range(n)):
+                fail(f"episode {ep} {key}: steps {sorted(steps)[:5]}... are not 0..{n - 1}")
+            path, from_s = self.locate(ep, key)
+            ref = self.reference(str(path))
+            first = round(from_s * fps)
+            if first + n > len(ref):
+                fail(f"episode {ep} {key}: {path} has {len(ref)} frames, the episode needs {first + n}")
+            for k in range(n):
+                j = first + k
+                total += 1
+                if all(not np.array_equal(ref[j], ref[i]) for i in (j - 1, j + 1) if 0 <= i < len(ref)):
+                    discriminating += 1
+            times = np.asarray([from_s + steps[k] for k in range(n)], dtype=np.float64)
+
+            def compare(name, frames):
+                if len(frames) != n:
+                    fail(f"{name}: episode {ep} {key}: {len(frames)} frames for {n} steps")
+                for k in range(n):
+                    j = first + k
+                    if not np.array_equal(frames[k], ref[j]):
+                        near = [i - first for i in (j - 1, j + 1) if 0 <= i < len(ref) and np.array_equal(frames[k], ref[i])]
+                        got = f"frame {near[0]}" if near else "no neighbouring frame"
+                        fail(f"{name}: episode {ep} {key} step {k} (time {times[k]!r}) decoded {got}, not frame {k}")
+                results[name][0] += n
+
+            compare("lerobot (LeRobotDataset, its default reader)", [self.lerobot[(ep, key)][k] for k in range(n)])
+            for name, reader in PAIRING_READERS:
+                if results[name][1] is not None:
+                    continue
+                try:
+                    compare(name, reader(str(path), times))
+                except Skip as why:
+                    results[name][1] = str(why)
+        if self.distinct and discriminating != total:
+            fail(f"only {discriminating} of {total} steps differ from both neighbours: the pairing check cannot see an off-by-one there")
+        for name, (steps, skipped) in results.items():
+            if skipped is not None:
+                print(f"SKIP pairing {self.root.name}: {name}: {skipped}", flush=True)
+            else:
+                print(f"pairing {self.root.name}: {name}: frame k at step k for {steps} steps ({discriminating} of {total} distinguishable from their neighbours)", flush=True)
+
+
+def v30_locate(root: Path, info: dict, ds):
+    def locate(ep: int, key: str):
+        row = ds.meta.episodes[ep]
+        path = root / info["video_path"].format(
+            video_key=key, chunk_index=row[f"videos/{key}/chunk_index"], file_index=row[f"videos/{key}/file_index"]
+        )
+        return path, float(row[f"videos/{key}/from_timestamp"])
+
+    return locate
+
+
+def v21_locate(root: Path, info: dict):
+    def locate(ep: int, key: str):
+        path = root / info["video_path"].format(
+            episode_chunk=ep // info["chunks_size"], video_key=key, episode_index=ep
+        )
+        return path, 0.0
+
+    return locate
+
+
 def check_v30(root: Path, info: dict):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("local/" + root.name, root=root)
-    ep_len, video_keys, _ = check_common(root, info, ds, "v3.0")
+    pairing = Pairing(root, info, v30_locate(root, info, ds))
+    ep_len, video_keys, _ = check_common(root, info, ds, "v3.0", pairing)
+    pairing.run()
     eps = ds.meta.episodes
     for e in range(info["total_episodes"]):
         row = eps[e]
@@ -181,7 +404,9 @@ def check_v21(root: Path, info: dict):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset("local/" + root.name, root=root)
-    ep_len, _, in_window = check_common(root, info, ds, "v2.1")
+    pairing = Pairing(root, info, v21_locate(root, info))
+    ep_len, _, in_window = check_common(root, info, ds, "v2.1", pairing)
+    pairing.run()
     check_gr00t(root, info, ep_len, in_window)
 
 

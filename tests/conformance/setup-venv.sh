@@ -17,4 +17,18 @@ if [[ ! -f "$v21/.phone2act-ready" ]]; then
   "$venv/bin/python" -m pip install --quiet --no-deps --target "$v21" lerobot==0.3.3 datasets==3.6.0 >&2
   touch "$v21/.phone2act-ready"
 fi
+# GR00T's decord reader, in a side directory of its own: decord bundles its own FFmpeg libraries, so it is put
+# on PYTHONPATH only for the conformance checks (which import it after every torchcodec check), never into the
+# venv that the plugin tests and the closed loop share. No decord wheel exists for some platforms: the frame
+# pairing check then reports the decord reader as skipped.
+backends="$(dirname "$venv")/gr00t-video-backends"
+if [[ ! -f "$backends/.phone2act-ready" ]]; then
+  echo "conformance: installing decord 0.6.0 (GR00T's video reader) into $backends" >&2
+  rm -rf "$backends"
+  if "$venv/bin/python" -m pip install --quiet --no-deps --target "$backends" decord==0.6.0 >&2; then
+    touch "$backends/.phone2act-ready"
+  else
+    echo "conformance: decord cannot be installed here; GR00T's decord reader will be reported as SKIPPED" >&2
+  fi
+fi
 echo "$venv"

@@ -37,6 +37,8 @@ echo "rust: ${passed} passed, 0 failed"
 # The Python, rosbridge and browser suites drive the release binary as a user would.
 cargo build --release -p phone2act-cli --bin phone2act
 export PHONE2ACT_BIN="$PWD/target/release/phone2act"
+# The committed sessions replay on this checkout's control core to the same commands and gate decisions.
+"$PHONE2ACT_BIN" replay-log tests/fixtures/flight/*.flight
 tests/python/run.sh
 tests/view/run.sh
 # The LeRobot plugins, the closed loop (its short CI version: 2 demonstrations, a few training steps, one trial

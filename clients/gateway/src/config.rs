@@ -4,7 +4,7 @@
 //! LAN can reach: rosbridge on `0.0.0.0:9090` (what the Phone2Act app expects) and the phone page on
 //! `https://0.0.0.0:8443` with a self-signed certificate and a pairing token.
 
-use crate::GatewayError;
+use crate::error::GatewayError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::net::{IpAddr, SocketAddr};

@@ -18,6 +18,7 @@
 
 pub mod config;
 mod conn;
+mod error;
 pub mod feedback;
 /// A stand-in server for tests and `gateway-bench` only: not in the product (`--features mock`).
 #[cfg(feature = "mock")]
@@ -37,28 +38,9 @@ mod web;
 mod web_preview;
 
 pub use config::{GatewayConfig, TopicConfig};
+pub use error::GatewayError;
 pub use server::{Gateway, GatewayInfo, Listeners};
 use std::future::Future;
-use std::net::SocketAddr;
-
-/// Errors that stop the gateway from starting or serving.
-#[derive(Debug, thiserror::Error)]
-pub enum GatewayError {
-    #[error("cannot listen on {addr}: {source}")]
-    Bind {
-        addr: SocketAddr,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("invalid server URL {0}")]
-    ServerUrl(String),
-    #[error("TLS: {0}")]
-    Tls(String),
-    #[error("gateway config: {0}")]
-    Config(String),
-    #[error("gateway server failed: {0}")]
-    Serve(String),
-}
 
 /// Binds the listeners `config` enables and serves until `shutdown` resolves.
 ///

@@ -3,6 +3,7 @@
 
 use crate::config::{GatewayConfig, HARD_MAX_MESSAGE_BYTES};
 use crate::conn;
+use crate::error::GatewayError;
 use crate::native::PageHandler;
 use crate::pairing::{Admission, Pairing};
 use crate::rosbridge::{self, StatusLevel};
@@ -11,7 +12,7 @@ use crate::shared::Shared;
 use crate::takeover::Holders;
 use crate::tls;
 use crate::upstream::Upstream;
-use crate::{GatewayError, web};
+use crate::web;
 use axum::Router;
 use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{WebSocket, WebSocketUpgrade, close_code};

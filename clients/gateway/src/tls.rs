@@ -5,8 +5,8 @@
 //! WebXR only exists in a secure context, which on a LAN means HTTPS; a browser can only open `wss://` from
 //! an HTTPS page, so the page and its socket share this one TLS server.
 
-use crate::GatewayError;
 use crate::config::GatewayConfig;
+use crate::error::GatewayError;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};

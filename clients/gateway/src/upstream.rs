@@ -10,7 +10,7 @@ use phone2act_proto::v1::teleop_client::TeleopClient;
 use phone2act_proto::v1::{GetObservationRequest, ImageEncoding, ListCamerasRequest};
 use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
 
-use crate::GatewayError;
+use crate::error::GatewayError;
 
 /// The shared connection to the server.
 #[derive(Clone, Debug)]

@@ -11,6 +11,7 @@ use std::path::PathBuf;
 
 mod fleet;
 mod plot;
+mod replay_log;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -57,6 +58,17 @@ enum Command {
     Dataset {
         #[command(subcommand)]
         action: DatasetAction,
+    },
+    /// Re-run the control core on flight logs (written with `[flight_log]` on) and check that every command
+    /// and gate decision comes out identical; exit 1 naming the first input where one does not.
+    ReplayLog {
+        /// Flight logs (`<arm>-<unix time>.flight`).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Replay under this configuration's teleop and chunk settings for the log's arm, instead of the
+        /// settings the log recorded.
+        #[arg(long)]
+        config: Option<PathBuf>,
     },
 }
 
@@ -462,6 +474,7 @@ fn real_main() -> anyhow::Result<()> {
         Command::Dataset {
             action: DatasetAction::Info { path },
         } => dataset_info(&path),
+        Command::ReplayLog { files, config } => replay_log::run(&files, config.as_deref()),
         Command::Dataset {
             action: DatasetAction::Push { path, url, remote },
         } => {
@@ -485,6 +498,9 @@ fn real_main() -> anyhow::Result<()> {
             action: DatasetAction::Verify { path },
         } => {
             let report = phone2act_recorder::verify::verify(&path);
+            for warning in &report.warnings {
+                outln!("warning: {warning}");
+            }
             if report.ok() {
                 outln!(
                     "{}: valid LeRobot {} dataset, {} episodes, {} frames",

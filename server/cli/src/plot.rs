@@ -22,6 +22,8 @@ const ACTION_COLOR: RGBColor = RGBColor(255, 127, 14);
 const ENGAGED_COLOR: RGBColor = RGBColor(44, 160, 44);
 const REJECTED_COLOR: RGBColor = RGBColor(214, 39, 40);
 const CLAMPED_COLOR: RGBColor = RGBColor(188, 128, 189);
+/// Late frames and pauses of the recorder's timeline.
+const TIMELINE_COLOR: RGBColor = RGBColor(120, 120, 120);
 
 /// One panel: a state dimension, an action dimension, or both when they name the same quantity.
 #[derive(Debug, PartialEq, Eq)]
@@ -123,7 +125,7 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
                     spans.push((arm, from, e.timestamp));
                 }
             }
-            EventKind::GateRejected | EventKind::GateClamped => {}
+            EventKind::GateRejected | EventKind::GateClamped | EventKind::LateTick | EventKind::Paused => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -225,6 +227,8 @@ fn panel_svg(
                 EventKind::GateRejected => REJECTED_COLOR,
                 EventKind::GateClamped => CLAMPED_COLOR,
                 EventKind::ClutchEngage | EventKind::ClutchRelease => ENGAGED_COLOR,
+                // The recorder's timeline: frames that are not at their own time, and where time jumps.
+                EventKind::LateTick | EventKind::Paused => TIMELINE_COLOR,
             };
             chart.draw_series(std::iter::once(PathElement::new(
                 vec![(e.timestamp, y0), (e.timestamp, y1)],

@@ -557,8 +557,14 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
         episodes.stop().await.unwrap();
     });
 
-    // The sidecar: engage, rejection, release, engage, release, in that order.
-    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    // The sidecar: engage, rejection, release, engage, release, in that order (besides the recorder's own
+    // timeline events, which depend on how fast this machine renders the camera).
+    let events: Vec<_> = phone2act_recorder::events::read_events(&ds, 0)
+        .unwrap()
+        .unwrap()
+        .into_iter()
+        .filter(|e| !matches!(e.kind, EventKind::LateTick | EventKind::Paused))
+        .collect();
     let kinds: Vec<EventKind> = events.iter().map(|e| e.kind).collect();
     assert_eq!(
         kinds,
@@ -609,7 +615,11 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
             (kind.as_str().unwrap().to_owned(), e.frame_index)
         })
         .collect();
-    assert_eq!(plotted_events(&html), listed);
+    let plotted: Vec<(String, u64)> = plotted_events(&html)
+        .into_iter()
+        .filter(|(kind, _)| kind != "late_tick" && kind != "paused")
+        .collect();
+    assert_eq!(plotted, listed);
     assert!(!html.contains("No events recorded"));
     // A panel per dimension: every state and every action dimension is drawn, the measured end-effector pose
     // and gripper with the commanded ones (`ee_x` with `x`, ...), the joints alone.
@@ -729,9 +739,10 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
     assert!(ok, "{err}");
     drop(server);
     let ds = dir.path().join("ds");
-    // Nobody touched the clutch: a sidecar with no events (not a missing one).
-    let events = std::fs::read_to_string(ds.join("meta/phone2act/events/episode_000000.jsonl")).unwrap();
-    assert_eq!(events, "");
+    // Nobody touched the clutch: a sidecar with no arm events (not a missing one). The recorder's own
+    // timeline events depend on how fast this machine renders the camera.
+    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    assert!(events.iter().all(|e| e.arm.is_empty()), "{events:?}");
     let (ok, out, err) = plot(&["ds", "--episode", "0"], dir.path());
     assert!(ok, "{err}");
     let html = std::fs::read_to_string(dir.path().join(out.trim())).unwrap();
@@ -739,7 +750,10 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
         html.contains("LeRobot v2.1") && html.contains("hold still"),
         "no facts"
     );
-    assert!(html.contains("0 events from meta/phone2act/events/episode_000000.jsonl"));
+    assert!(html.contains(&format!(
+        "{} events from meta/phone2act/events/episode_000000.jsonl",
+        events.len()
+    )));
     assert!(!panel_attr(&html, "data-state").is_empty());
     let frames = phone2act_recorder::readback::read_episode(&ds, 0)
         .unwrap()
@@ -980,4 +994,98 @@ fn a_token_with_trusted_loopback_is_said_at_start_and_an_empty_list_trusts_none(
         !lines.iter().any(|l| l.contains("local_addresses = []")),
         "{lines:#?}"
     );
+}
+
+const FLIGHT_FIXTURES: [&str; 2] = [
+    concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/flight/phone-session.flight"
+    ),
+    concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/flight/policy-session.flight"
+    ),
+];
+
+#[test]
+fn replay_log_finds_the_committed_sessions_identical() {
+    let out = Command::new(BIN)
+        .arg("replay-log")
+        .args(FLIGHT_FIXTURES)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 2, "{stdout}");
+    for (line, file) in lines.iter().zip(FLIGHT_FIXTURES) {
+        assert!(line.starts_with(file), "{line}");
+        assert!(
+            line.contains(": identical; the log ends: the arm was shut down"),
+            "{line}"
+        );
+    }
+}
+
+#[test]
+fn replay_log_under_a_changed_gate_rule_names_the_first_differing_decision() {
+    let dir = tempfile::tempdir().unwrap();
+    // The shipped default with one rule changed: the phone session's wrist turn (up to 0.3 rad at 50 Hz,
+    // about 0.03 rad a round) passes the default 0.5 rad jump threshold and not one of 0.01 rad.
+    let config = dir.path().join("stricter.toml");
+    let mut table: toml::Table =
+        toml::from_str(&std::fs::read_to_string(write_config(dir.path())).unwrap()).unwrap();
+    let arm = &mut table["arms"].as_array_mut().unwrap()[0];
+    let teleop = arm
+        .as_table_mut()
+        .unwrap()
+        .entry("teleop")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    let gate = teleop
+        .as_table_mut()
+        .unwrap()
+        .entry("gate")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    gate.as_table_mut()
+        .unwrap()
+        .insert("jump_rotation_rad".into(), toml::Value::Float(0.01));
+    std::fs::write(&config, toml::to_string(&table).unwrap()).unwrap();
+    let out = Command::new(BIN)
+        .arg("replay-log")
+        .arg(FLIGHT_FIXTURES[0])
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stdout}{stderr}");
+    assert!(
+        stdout.contains(": first difference at input ") && stdout.contains("(Teleop {"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("decision differs"), "{stdout}");
+    assert!(
+        stdout.contains("replayed: Some(GateDecision { verdict: RejectedJump"),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("1 of 1 flight log(s) replayed differently"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn replay_log_refuses_a_file_that_is_not_a_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let bogus = dir.path().join("x.flight");
+    std::fs::write(&bogus, "hello").unwrap();
+    let out = Command::new(BIN).arg("replay-log").arg(&bogus).output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("not a phone2act flight log"), "{stderr}");
 }

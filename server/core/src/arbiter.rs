@@ -25,6 +25,7 @@ use crate::gate::{GateDecision, GateVerdict, SafetyGate};
 use crate::gripper::GripperCommand;
 use crate::teleop::{ClutchKind, TeleopArm};
 use nalgebra::Isometry3;
+use serde::{Deserialize, Serialize};
 
 /// Feedback older than this means the robot's pose is not known: nothing may start moving it. Bridges
 /// report at 50 Hz or more (Dobot 125 Hz, SO-101 at its `rate_hz`, sim and remote 50 Hz), so a second is
@@ -40,7 +41,7 @@ pub enum Driver {
 }
 
 /// The bridge's connection state, as the arbiter needs it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub enum BridgeHealth {
     Ready,
     Connecting,
@@ -49,14 +50,14 @@ pub enum BridgeHealth {
 }
 
 /// The robot's last measured end-effector pose and when it was captured (same clock as `now_s`).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Measured {
     pub robot_from_ee: Isometry3<f64>,
     pub capture_time_s: f64,
 }
 
 /// What the bridge reports at the moment of an input.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Robot {
     pub health: BridgeHealth,
     pub feedback: Option<Measured>,
@@ -142,7 +143,7 @@ pub enum ArbiterError {
 }
 
 /// One button event of a phone, already decoded.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum TeleopButton {
     Clutch(ClutchKind),
     Gripper(GripperCommand),
@@ -151,7 +152,7 @@ pub enum TeleopButton {
 }
 
 /// The teleop input of one processing round: the newest pose and every button event since the last round.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct TeleopRound {
     /// Newest pose (already validated) or the validation error.
     pub pose: Option<Result<Isometry3<f64>, String>>,
@@ -160,7 +161,7 @@ pub struct TeleopRound {
 }
 
 /// An input to the arbiter.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Input {
     /// A phone asks for the arm; `take_over` replaces a bound phone.
     BindTeleop { session: u64, take_over: bool },
@@ -187,7 +188,7 @@ pub enum Input {
 }
 
 /// A command for the bridge; it passed the safety gate of the source that made it.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Command {
     /// Increases by one per command: the caller sends in this order.
     pub seq: u64,
@@ -196,7 +197,7 @@ pub struct Command {
 }
 
 /// A policy session lost the arm.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Revocation {
     pub session: u64,
     pub policy: String,
@@ -204,7 +205,7 @@ pub struct Revocation {
 }
 
 /// What the caller must do after one input.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Effects {
     /// Commands to hand to the bridge, in order.
     pub commands: Vec<Command>,

@@ -17,14 +17,14 @@ use serde::{Deserialize, Serialize};
 const TIME_EPSILON_S: f64 = 1e-9;
 
 /// One step of a chunk: where the end effector should be, and the gripper target (0 open, 1 closed).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize)]
 pub struct ChunkStep {
     pub robot_from_target: Isometry3<f64>,
     pub gripper: f64,
 }
 
 /// A policy's chunk, already converted from action vectors to targets.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 pub struct ActionChunk {
     pub steps: Vec<ChunkStep>,
     /// Time of step 0 on the caller's clock (s).
@@ -115,7 +115,7 @@ pub enum ChunkError {
 }
 
 /// What [`ChunkExecutor::replace`] did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
 pub struct ReplaceReport {
     /// Steps of the new chunk now on the schedule.
     pub scheduled: usize,

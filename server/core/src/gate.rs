@@ -28,7 +28,7 @@ pub const MAX_VELOCITY_INTERVAL_S: f64 = 0.25;
 const ROTATION_ROUNDING_RAD: f64 = 1e-12;
 
 /// What the gate did with one command (mirrors `phone2act.v1.GateVerdict`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 pub enum GateVerdict {
     Accepted,
     Clamped,
@@ -49,7 +49,7 @@ impl GateVerdict {
 }
 
 /// The gate's decision on one command, with the reason in words (mirrors `phone2act.v1.GateDecision`).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GateDecision {
     pub verdict: GateVerdict,
     /// Empty when accepted unchanged.

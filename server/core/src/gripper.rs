@@ -3,7 +3,7 @@
 use crate::config::GripperConfig;
 
 /// A gripper command from the phone or a script.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum GripperCommand {
     /// Open if more than half closed, else close (the Android app's volume key, a phone button).
     Toggle,

@@ -8,6 +8,7 @@
 pub mod arbiter;
 pub mod chunk;
 pub mod config;
+pub mod flight;
 pub mod gate;
 pub mod gripper;
 pub mod kinematics;
@@ -22,6 +23,10 @@ pub use arbiter::{
 };
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
+pub use flight::{
+    Divergence, FLIGHT_FORMAT_VERSION, FlightEntry, FlightHeader, Outcome, ReplayCounts, ReplayError,
+    Replayer, replay,
+};
 pub use gate::{GateDecision, GateVerdict, SafetyGate};
 pub use gripper::{Gripper, GripperCommand, GripperError};
 pub use layout::{

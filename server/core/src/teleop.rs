@@ -17,7 +17,7 @@ use crate::pose::check_pose;
 use nalgebra::Isometry3;
 
 /// A clutch input.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum ClutchKind {
     /// Flip between engaged and disengaged (the Android app's volume key).
     Toggle,

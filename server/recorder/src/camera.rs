@@ -1,7 +1,9 @@
-//! Camera sources. Each source runs on its own thread and publishes into a [`FrameSlot`] that keeps only the
-//! newest frame (latest wins), stamped with its capture time on the process monotonic clock. Generated
-//! sources draw only while someone reads their slot.
+//! Camera sources. Each source runs on its own thread and publishes into a [`FrameSlot`], which hands readers
+//! the newest frame (latest wins) and keeps the last [`HISTORY_FRAMES`] with their capture times on the
+//! process monotonic clock, so that the recorder can take the frame of an instant that has just passed (see
+//! [`crate::timeline`]). Generated sources draw only while someone reads their slot.
 
+use crate::timeline::TimedRing;
 use parking_lot::{Condvar, Mutex};
 use phone2act_clock::{ClockFn, monotonic_ns};
 use std::sync::Arc;
@@ -42,11 +44,19 @@ pub struct FrameSlot {
 #[derive(Debug)]
 struct SlotState {
     latest: Option<Frame>,
+    /// The last [`HISTORY_FRAMES`] frames by capture time (their pixels are shared with `latest` and the
+    /// encoders through the `Arc`).
+    history: TimedRing<Frame>,
     /// When a reader last asked for a frame (process clock); starts at the slot's creation so that a new
     /// source runs for [`IDLE_AFTER_NS`] before it first parks.
     last_read_ns: i64,
     parked: bool,
 }
+
+/// Frames a slot keeps for the recorder: 8 periods of the camera (267 ms at 30 fps, longer than the hold
+/// tolerance), so a recorder tick written late still finds the frame of its time. Memory: 8 frames of
+/// `width * height * 3` bytes per camera (7.4 MB at 640x480), given back to one frame when the source parks.
+pub const HISTORY_FRAMES: usize = 8;
 
 /// How long a generated source keeps rendering after its last reader: longer than any reader's period (the
 /// recorder reads every tick, a policy or the phone preview at its own rate), short enough that an idle
@@ -68,6 +78,7 @@ impl FrameSlot {
         FrameSlot {
             state: Mutex::new(SlotState {
                 latest: None,
+                history: TimedRing::new(HISTORY_FRAMES),
                 last_read_ns: clock(),
                 parked: false,
             }),
@@ -80,6 +91,7 @@ impl FrameSlot {
     /// Replaces the newest frame.
     pub fn publish(&self, frame: Frame) {
         let mut state = self.state.lock();
+        state.history.push(frame.capture_time_ns, frame.clone());
         state.latest = Some(frame);
         self.frames_captured.fetch_add(1, Ordering::Relaxed);
         drop(state);
@@ -102,6 +114,17 @@ impl FrameSlot {
             );
         }
         state.latest.clone()
+    }
+
+    /// Runs `f` on the recent frames by capture time (see [`HISTORY_FRAMES`]); counts as a read, without
+    /// waiting for a parked source (the recorder has woken it at the episode's start).
+    pub fn with_history<R>(&self, f: impl FnOnce(&TimedRing<Frame>) -> R) -> R {
+        let mut state = self.state.lock();
+        state.last_read_ns = (self.clock)();
+        if state.parked {
+            self.changed.notify_all();
+        }
+        f(&state.history)
     }
 
     /// Counts as a read without waiting: a parked source starts drawing, and a reader about to come (the
@@ -139,6 +162,8 @@ impl FrameSlot {
         }
         let parked_at_ns = state.last_read_ns;
         state.parked = true;
+        // Nobody reads: the history's memory goes back, and a reader after the wake waits for a fresh frame.
+        state.history.keep_newest();
         // Woken by a reader; the timeout only bounds how late a stop request is seen.
         while state.last_read_ns == parked_at_ns && !stop.load(Ordering::Relaxed) {
             self.changed.wait_for(&mut state, Duration::from_millis(100));

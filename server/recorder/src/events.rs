@@ -1,5 +1,5 @@
 //! The per-episode events sidecar: clutch cycles and safety-gate decisions, at the frame where the recorder
-//! saw them, in `meta/phone2act/events/episode_{index:06}.jsonl` (one JSON object per line). lerobot and
+//! saw them, and the recorder's own timeline events (a late frame, a pause), in `meta/phone2act/events/episode_{index:06}.jsonl` (one JSON object per line). lerobot and
 //! GR00T read only the files they know, so they ignore it; `phone2act dataset plot` marks them on the time
 //! axis.
 //!
@@ -40,6 +40,12 @@ pub enum EventKind {
     ClutchRelease,
     GateRejected,
     GateClamped,
+    /// The recorder's own: the frame holds a sample captured farther from its time than the tolerance (see
+    /// [`crate::timeline`]); `detail` names the sources and how far. `arm` is empty.
+    LateTick,
+    /// The recorder's own: `count` ticks before this frame were not recorded because a source had sent
+    /// nothing within the hold tolerance, so the episode's time jumps here by `count / fps`. `arm` is empty.
+    Paused,
 }
 
 /// One line of the sidecar.
@@ -172,6 +178,30 @@ impl EventWriter {
         }
         self.previous = Some(arms.to_vec());
         Ok(())
+    }
+
+    /// Writes one of the recorder's own events ([`EventKind::LateTick`], [`EventKind::Paused`]) at
+    /// `frame_index`.
+    pub(crate) fn note(
+        &mut self,
+        kind: EventKind,
+        frame_index: u64,
+        count: u64,
+        detail: String,
+    ) -> Result<(), RecorderError> {
+        let e = EpisodeEvent {
+            frame_index,
+            timestamp: frame_index as f64 / f64::from(self.fps),
+            arm: String::new(),
+            kind,
+            count,
+            detail,
+        };
+        let mut line = serde_json::to_vec(&e).map_err(|e| RecorderError::io(&self.path, e.into()))?;
+        line.push(b'\n');
+        self.file
+            .write_all(&line)
+            .map_err(|e| RecorderError::io(&self.path, e))
     }
 
     /// Flushes and fsyncs the file; returns its path, ready to be renamed into the dataset.

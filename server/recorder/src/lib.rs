@@ -21,6 +21,7 @@ pub mod recorder;
 pub mod spec;
 pub mod stats;
 pub mod synthetic;
+pub mod timeline;
 pub mod verify;
 pub mod video;
 

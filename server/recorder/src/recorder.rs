@@ -1,18 +1,24 @@
-//! The recorder: a tick thread at the dataset fps on the monotonic clock that samples the robot and every
-//! camera's latest frame, gates them on freshness, and appends one frame per tick to the episode being
-//! recorded. `timestamp = frame_index / fps` exactly, so a tick that cannot be recorded (a stale source,
-//! an overloaded machine) is skipped and counted, never written as a gap.
+//! The recorder: a tick thread on a fixed grid at the dataset fps on the monotonic clock, and a sampler
+//! thread that keeps the robot's recent samples with their capture times. Frame i of an episode is the tick
+//! at `first_tick + i / fps`: it holds the robot sample and each camera's frame captured at or before that
+//! instant (see [`crate::timeline`]), whenever the tick thread gets to write it, so a late wake-up writes the
+//! ticks it missed each at its own time. `timestamp` follows `frame_index` (see
+//! [`crate::dataset::timestamp_s`]).
 //!
-//! Freshness: a source whose newest sample is not newer than at the previous tick is *held* (its last
-//! value reused, counted in `held_ticks`) as long as the sample is younger than `hold_tolerance_s`; beyond
-//! that the episode is *paused* (ticks not recorded, counted in `paused_ticks`, phase `Paused`, and the
-//! warning names the source) until the source is fresh again.
+//! What could not be kept at its time is counted. A tick whose sample was captured farther from it than
+//! `sample_tolerance_s` is still written (skipping it would shift every later frame off its time) and
+//! counted as a late tick, with a `late_tick` event in the episode's sidecar. A source that has sent nothing
+//! within `hold_tolerance_s` before a tick *pauses* the episode: those ticks are not recorded (counted in
+//! `paused_ticks`, phase `Paused`, the warning names the source) and a `paused` event marks the frame where
+//! the episode's time jumps. A tick that reuses the previous tick's sample of a source (a camera slower than
+//! the dataset) is counted as held.
 
-use crate::camera::FrameSlot;
+use crate::camera::{Frame, FrameSlot};
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
 use crate::error::RecorderError;
-use crate::events::ArmActivity;
+use crate::events::{ArmActivity, EventKind};
 use crate::spec::DatasetSpec;
+use crate::timeline::{Pick, TickClock, TimedRing, Timing, judge};
 use parking_lot::{Condvar, Mutex};
 use phone2act_clock::monotonic_ns;
 use serde::Serialize;
@@ -73,17 +79,33 @@ pub struct RecorderStatus {
 /// Sync gate settings.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct SyncConfig {
-    /// A source whose newest sample is older than this pauses the episode.
+    /// A source that has sent nothing within this before a tick pauses the episode.
     pub hold_tolerance_s: f64,
+    /// A tick whose sample of a source was captured farther than this from the tick is recorded but counted
+    /// as late.
+    pub sample_tolerance_s: f64,
+    /// How long after its time a tick is written, so that samples captured just before it have arrived.
+    pub settle_s: f64,
+    /// How often the sampler thread reads the robot while an episode is recorded.
+    pub sample_period_s: f64,
+    /// Robot samples kept (the sampler keeps only new ones: at 200 Hz, 2.5 s).
+    pub robot_history: usize,
     /// Encoder queue length per camera, in frames.
     pub queue_frames: usize,
 }
 
 impl SyncConfig {
-    /// Defaults for `fps`: hold up to 0.25 s (5 ticks at 20 fps), half a second of encoder queue.
+    /// Defaults for `fps`: hold up to 0.25 s (5 ticks at 20 fps); late beyond 0.1 s, two periods of a 20 fps
+    /// camera (a camera slower than the dataset is held, not late); ticks written 20 ms after their time; the
+    /// robot read every 5 ms (the simulator's step, faster than any bridge's feedback) and 512 samples kept;
+    /// half a second of encoder queue.
     pub fn for_fps(fps: u32) -> Self {
         SyncConfig {
             hold_tolerance_s: 0.25,
+            sample_tolerance_s: 0.1,
+            settle_s: 0.02,
+            sample_period_s: 0.005,
+            robot_history: 512,
             queue_frames: (fps as usize / 2).max(4),
         }
     }
@@ -91,8 +113,13 @@ impl SyncConfig {
 
 struct Active {
     writer: EpisodeWriter,
+    /// The tick that is the episode's frame 0.
+    first_tick: u64,
     held: u64,
     paused: u64,
+    /// Ticks paused since the last recorded frame, and why (the `paused` event of the next frame).
+    paused_run: u64,
+    pause_why: String,
     late: u64,
     start_unix_ns: i64,
     last_robot_ns: Option<i64>,
@@ -116,6 +143,12 @@ struct Shared {
     changed: Condvar,
     stop: AtomicBool,
     robot: Arc<dyn RobotSource>,
+    /// The robot's recent samples by capture time, filled by the sampler thread.
+    robot_history: Mutex<TimedRing<RobotSample>>,
+    /// Whether the sampler reads the robot (while an episode is recorded); it waits on `sampler_wake`.
+    sampling: Mutex<bool>,
+    sampler_wake: Condvar,
+    clock: TickClock,
     cameras: Vec<Arc<FrameSlot>>,
     camera_names: Vec<String>,
     fps: u32,
@@ -135,6 +168,7 @@ pub trait CommitHook: Send + Sync {
 pub struct Recorder {
     shared: Arc<Shared>,
     thread: Option<JoinHandle<()>>,
+    sampler: Option<JoinHandle<()>>,
 }
 
 fn unix_ns() -> i64 {
@@ -194,6 +228,10 @@ impl Recorder {
             changed: Condvar::new(),
             stop: AtomicBool::new(false),
             robot,
+            robot_history: Mutex::new(TimedRing::new(sync.robot_history)),
+            sampling: Mutex::new(false),
+            sampler_wake: Condvar::new(),
+            clock: TickClock::new(monotonic_ns(), fps),
             cameras: slots,
             camera_names,
             fps,
@@ -205,10 +243,18 @@ impl Recorder {
             .name("recorder-tick".into())
             .spawn(move || tick_loop(&s2))
             .map_err(|e| RecorderError::io("recorder tick thread", e))?;
-        Ok(Recorder {
-            shared,
+        let mut recorder = Recorder {
+            shared: Arc::clone(&shared),
             thread: Some(thread),
-        })
+            sampler: None,
+        };
+        let s3 = Arc::clone(&shared);
+        let sampler = std::thread::Builder::new()
+            .name("recorder-sampler".into())
+            .spawn(move || sample_loop(&s3))
+            .map_err(|e| RecorderError::io("recorder sampler thread", e))?;
+        recorder.sampler = Some(sampler);
+        Ok(recorder)
     }
 
     /// Sets the hook told about every committed episode (see [`CommitHook`]).
@@ -223,11 +269,28 @@ impl Recorder {
 
     /// Starts recording an episode of `task` by `operator` (recorded in the episode's provenance).
     pub fn start_episode_by(&self, task: &str, operator: &str) -> Result<RecorderStatus, RecorderError> {
-        // Parked cameras start drawing now, all at once, rather than one by one inside the first tick (which
-        // would wait for each render under the tick lock).
+        // Parked cameras start drawing now, all at once; each first frame is then waited for here (not under
+        // the tick lock), so that frame 0 has a frame captured before it.
         for slot in &self.shared.cameras {
             slot.touch();
         }
+        for slot in &self.shared.cameras {
+            let _ = slot.latest();
+        }
+        {
+            // Samples left from before (the sampler was idle) say nothing of the robot now: an episode starts
+            // from what the robot reports at its start.
+            // The tick lock is never taken under the history's (the tick thread takes them the other way).
+            let idle = self.shared.tick.lock().active.is_none();
+            let mut history = self.shared.robot_history.lock();
+            if idle {
+                *history = TimedRing::new(self.shared.sync.robot_history);
+            }
+            if let Some(sample) = self.shared.robot.sample() {
+                history.push(sample.capture_time_ns, sample);
+            }
+        }
+        self.set_sampling(true);
         let mut ds = self.shared.dataset.lock();
         {
             let t = self.shared.tick.lock();
@@ -235,7 +298,14 @@ impl Recorder {
                 return Err(RecorderError::AlreadyRecording(a.writer.index));
             }
         }
-        let writer = ds.begin_episode(task, self.shared.sync.queue_frames)?;
+        let writer = match ds.begin_episode(task, self.shared.sync.queue_frames) {
+            Ok(w) => w,
+            Err(e) => {
+                drop(ds);
+                self.set_sampling(self.shared.tick.lock().active.is_some());
+                return Err(e);
+            }
+        };
         let saved = ds.total_episodes();
         drop(ds);
         let mut t = self.shared.tick.lock();
@@ -244,11 +314,16 @@ impl Recorder {
             return Err(RecorderError::AlreadyRecording(a.writer.index));
         }
         tracing::info!(episode = writer.index, task = %writer.task, "recording started");
+        // The first tick not yet written: the tick thread writes tick i only once `settle_s` has passed it.
+        let first_tick = self.shared.clock.first_at_or_after(monotonic_ns());
         t.active = Some(Active {
             last_seq: vec![None; self.shared.cameras.len()],
             writer,
+            first_tick,
             held: 0,
             paused: 0,
+            paused_run: 0,
+            pause_why: String::new(),
             late: 0,
             start_unix_ns: unix_ns(),
             last_robot_ns: None,
@@ -267,7 +342,14 @@ impl Recorder {
         let a = t.active.take().ok_or(RecorderError::NotRecording)?;
         t.phase = Phase::Saving;
         bump(&self.shared, &mut t);
+        drop(t);
+        self.set_sampling(false);
         Ok(a)
+    }
+
+    fn set_sampling(&self, on: bool) {
+        *self.shared.sampling.lock() = on;
+        self.shared.sampler_wake.notify_all();
     }
 
     fn set_idle(&self, warning: Option<String>) {
@@ -294,6 +376,7 @@ impl Recorder {
             late_ticks: active.late,
             start_unix_ns: active.start_unix_ns,
             operator: active.operator.clone(),
+            first_frame_time_ns: self.shared.clock.time_ns(active.first_tick),
             ..EpisodeSummary::default()
         };
         if let Some(e) = active.error {
@@ -406,7 +489,11 @@ impl Recorder {
 
     fn shutdown(&mut self) {
         self.shared.stop.store(true, Ordering::Relaxed);
+        self.shared.sampler_wake.notify_all();
         if let Some(h) = self.thread.take() {
+            let _ = h.join();
+        }
+        if let Some(h) = self.sampler.take() {
             let _ = h.join();
         }
         let active = self.shared.tick.lock().active.take();
@@ -458,51 +545,88 @@ fn status_of(shared: &Shared, t: &TickState) -> RecorderStatus {
     }
 }
 
-fn tick_loop(shared: &Shared) {
-    let period_ns = 1_000_000_000 / i64::from(shared.fps);
-    let tol_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
-    let mut next = monotonic_ns() + period_ns;
+/// Reads the robot every `sample_period_s` while an episode is recorded, keeping each new sample with its
+/// capture time; idle otherwise. A reader of its own, so that a tick thread that wakes late still finds the
+/// samples of the ticks it missed.
+fn sample_loop(shared: &Shared) {
+    let period = Duration::from_secs_f64(shared.sync.sample_period_s.max(1e-4));
     while !shared.stop.load(Ordering::Relaxed) {
-        let now = monotonic_ns();
-        if now < next {
-            std::thread::sleep(Duration::from_nanos((next - now) as u64).min(Duration::from_millis(50)));
-            continue;
-        }
-        // Woke up late (an overloaded machine). Within the hold tolerance the missed ticks are recorded
-        // now, holding the newest samples (counted as held), so recorded time keeps pace with wall time;
-        // a longer stall is skipped and counted as late ticks, never written as a gap.
-        let missed = (now - next) / period_ns;
-        next += (missed + 1) * period_ns;
-        let mut t = shared.tick.lock();
-        if missed * period_ns <= tol_ns {
-            for _ in 0..missed {
-                tick(shared, &mut t, now);
+        {
+            let mut on = shared.sampling.lock();
+            if !*on {
+                // The timeout only bounds how late a stop is seen.
+                shared.sampler_wake.wait_for(&mut on, Duration::from_millis(100));
+                continue;
             }
-        } else if let Some(a) = &mut t.active {
-            a.late += missed as u64;
         }
-        tick(shared, &mut t, now);
-        drop(t);
+        if let Some(sample) = shared.robot.sample() {
+            shared.robot_history.lock().push(sample.capture_time_ns, sample);
+        }
+        std::thread::sleep(period);
     }
 }
 
-fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
+fn tick_loop(shared: &Shared) {
+    let settle_ns = (shared.sync.settle_s * 1e9) as i64;
+    let mut next = shared.clock.ticks_through(monotonic_ns());
+    while !shared.stop.load(Ordering::Relaxed) {
+        let now = monotonic_ns();
+        let due = shared.clock.ticks_through(now - settle_ns);
+        if due <= next {
+            let wait_ns = shared.clock.time_ns(next) + settle_ns - now;
+            std::thread::sleep(Duration::from_nanos(wait_ns.max(0) as u64).min(Duration::from_millis(50)));
+            continue;
+        }
+        // Woke up late (an overloaded machine): every tick missed is written now, each with the samples of
+        // its own time.
+        let mut t = shared.tick.lock();
+        for i in next..due {
+            tick(shared, &mut t, i);
+        }
+        drop(t);
+        next = due;
+    }
+}
+
+/// A source's sample for one tick: why the tick cannot be recorded, or how late it is.
+fn timing_note(what: &str, timing: Timing, stale: &mut Option<String>, late: &mut Vec<String>) {
+    match timing {
+        Timing::OnTime => {}
+        Timing::Late { off_ns } => late.push(format!("{what} {:.0} ms off", off_ns as f64 / 1e6)),
+        Timing::Stale { age_ns: None } => {
+            stale.get_or_insert_with(|| format!("{what}: nothing received yet"));
+        }
+        Timing::Stale { age_ns: Some(age_ns) } => {
+            stale.get_or_insert_with(|| format!("{what} has sent nothing for {:.2} s", age_ns as f64 / 1e9));
+        }
+    }
+}
+
+fn picked<T: Clone>(pick: &Pick<'_, T>) -> Option<T> {
+    match pick {
+        Pick::AtOrBefore { sample, .. } | Pick::After { sample, .. } => Some((*sample).clone()),
+        Pick::Empty => None,
+    }
+}
+
+fn tick(shared: &Shared, t: &mut TickState, index: u64) {
     let Some(a) = &mut t.active else { return };
-    if a.error.is_some() {
+    if a.error.is_some() || index < a.first_tick {
         return;
     }
-    let tol_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
+    let tick_ns = shared.clock.time_ns(index);
+    let tol_ns = (shared.sync.sample_tolerance_s * 1e9) as i64;
+    let hold_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
     let dims = (a.writer_state_dims(), a.writer_action_dims());
     let mut stale: Option<String> = None;
-    let sample = shared.robot.sample();
+    let mut late = Vec::new();
+    let (timing, sample) = {
+        let history = shared.robot_history.lock();
+        let pick = history.pick(tick_ns);
+        (judge(&pick, tick_ns, tol_ns, hold_ns), picked(&pick))
+    };
+    timing_note("robot sample", timing, &mut stale, &mut late);
     match &sample {
-        None => stale = Some("robot: no sample yet".into()),
-        Some(s) if now_ns - s.capture_time_ns > tol_ns => {
-            stale = Some(format!(
-                "robot sample is {:.2} s old",
-                (now_ns - s.capture_time_ns) as f64 / 1e9
-            ));
-        }
         Some(s) if (s.state.len(), s.action.len()) != dims => {
             stale = Some(format!(
                 "robot sample has {} state and {} action values, the dataset expects {} and {}",
@@ -517,25 +641,19 @@ fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
         }
         _ => {}
     }
-    let mut frames = Vec::with_capacity(shared.cameras.len());
+    let mut frames: Vec<Option<Frame>> = Vec::with_capacity(shared.cameras.len());
     for (slot, name) in shared.cameras.iter().zip(&shared.camera_names) {
-        let f = slot.latest();
-        match &f {
-            None => stale = stale.or_else(|| Some(format!("camera {name}: no frame yet"))),
-            Some(f) if now_ns - f.capture_time_ns > tol_ns => {
-                stale = stale.or_else(|| {
-                    Some(format!(
-                        "camera {name} has sent nothing for {:.2} s",
-                        (now_ns - f.capture_time_ns) as f64 / 1e9
-                    ))
-                });
-            }
-            _ => {}
-        }
-        frames.push(f);
+        let (timing, frame) = slot.with_history(|history| {
+            let pick = history.pick(tick_ns);
+            (judge(&pick, tick_ns, tol_ns, hold_ns), picked(&pick))
+        });
+        timing_note(&format!("camera {name}"), timing, &mut stale, &mut late);
+        frames.push(frame);
     }
     if let Some(why) = stale {
         a.paused += 1;
+        a.paused_run += 1;
+        a.pause_why.clone_from(&why);
         let msg = format!("recording paused: {why}");
         if t.phase != Phase::Paused || t.warning.as_deref() != Some(&msg) {
             if t.phase != Phase::Paused {
@@ -567,9 +685,18 @@ fn tick(shared: &Shared, t: &mut TickState, now_ns: i64) {
     if held {
         a.held += 1;
     }
-    let pushed = a
-        .writer
-        .note_activity(&s.arms)
+    let mut pushed = Ok(());
+    if a.paused_run > 0 {
+        let why = std::mem::take(&mut a.pause_why);
+        pushed = a.writer.note_timeline(EventKind::Paused, a.paused_run, why);
+        a.paused_run = 0;
+    }
+    if !late.is_empty() {
+        a.late += 1;
+        pushed = pushed.and_then(|()| a.writer.note_timeline(EventKind::LateTick, 1, late.join(", ")));
+    }
+    let pushed = pushed
+        .and_then(|()| a.writer.note_activity(&s.arms))
         .and_then(|()| a.writer.push_row(&s.state, &s.action, s.success));
     if let Err(e) = pushed {
         let msg = format!("recording failed, the episode cannot be saved: {e}");

@@ -2,6 +2,7 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
+use crate::dataset::{TimestampMismatch, timestamp_pairs};
 use crate::parquet_io::{float_column, int_column};
 use arrow_array::RecordBatch;
 use arrow_array::cast::AsArray;
@@ -19,6 +20,9 @@ pub struct Report {
     pub frames: u64,
     /// Problems, each a sentence; empty when the dataset is valid.
     pub problems: Vec<String>,
+    /// What a valid dataset still gets wrong for some reader (timestamps that pair a frame with its
+    /// predecessor in GR00T's default reader), each a sentence.
+    pub warnings: Vec<String>,
     /// What the data files say of each episode, by episode index.
     pub per_episode: BTreeMap<i64, EpisodeFacts>,
     /// The task table (task index order), when it could be read.
@@ -96,6 +100,74 @@ fn video_duration_s(path: &Path) -> Result<(f64, i64), String> {
     Ok((duration_s, stream.frames()))
 }
 
+/// A video's frame presentation times: `(pts in presentation order, time base numerator, denominator)`.
+type FrameTimes = (Vec<i64>, i64, i64);
+
+/// Presentation times of the first video stream's frames, in presentation order, as exact fractions of a
+/// second. Reads packets only (no decoding).
+fn video_frame_times(path: &Path) -> Result<FrameTimes, String> {
+    crate::video::init_ffmpeg();
+    let mut input =
+        ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
+    let (index, tb) = {
+        let stream = input
+            .streams()
+            .best(ffmpeg_next::media::Type::Video)
+            .ok_or_else(|| format!("{} has no video stream", path.display()))?;
+        (stream.index(), stream.time_base())
+    };
+    let mut pts: Vec<i64> = input
+        .packets()
+        .filter(|(s, _)| s.index() == index)
+        .filter_map(|(_, p)| p.pts())
+        .collect();
+    pts.sort_unstable();
+    Ok((pts, i64::from(tb.numerator()), i64::from(tb.denominator())))
+}
+
+/// Frame k of an episode must be presented at exactly `(first + k) / fps` seconds of its file, where `first`
+/// is the episode's first frame in the file (`from_timestamp * fps`): the timestamp rule (see
+/// [`timestamp_pairs`]) places every timestamp at or just after that time, so a time base that does not
+/// hold `k / fps` exactly, or a `from_timestamp` off the frame grid, would pair it with a neighbour.
+fn check_presentation(
+    times: &FrameTimes,
+    from_s: f64,
+    frames: u64,
+    fps: u32,
+    what: &str,
+    report: &mut Report,
+) {
+    let (pts, num, den) = times;
+    let first = from_s * f64::from(fps);
+    // The metadata's float64 from_timestamp may be an ulp off the grid; a millionth of a frame is far below the
+    // timestamps' margin.
+    if (first - first.round()).abs() > 1e-6 || first < 0.0 {
+        report.problems.push(format!(
+            "{what}: from_timestamp {from_s} is not a whole number of frames at {fps} fps"
+        ));
+        return;
+    }
+    let first = first.round() as usize;
+    for k in 0..frames as usize {
+        let Some(&p) = pts.get(first + k) else {
+            report.problems.push(format!(
+                "{what}: the file has {} frames, the episode needs frame {}",
+                pts.len(),
+                first + k
+            ));
+            return;
+        };
+        // pts * num / den == (first + k) / fps, in integers.
+        if i128::from(p) * i128::from(*num) * i128::from(fps) != (first + k) as i128 * i128::from(*den) {
+            report.problems.push(format!(
+                "{what}: frame {k} is presented at {p} * {num}/{den} s, not at {}/{fps} s: its timestamp would pair with another frame",
+                first + k
+            ));
+            return;
+        }
+    }
+}
+
 /// Verifies the dataset at `root`.
 pub fn verify(root: &Path) -> Report {
     let mut report = Report::default();
@@ -135,6 +207,13 @@ pub fn verify(root: &Path) -> Report {
         report.problems.push("info.json has no positive fps".to_owned());
         return report;
     }
+    if fps.fract() != 0.0 || fps > 1000.0 {
+        report.problems.push(format!(
+            "info.json's fps {fps} is not a whole number of frames per second up to 1000"
+        ));
+        return report;
+    }
+    let fps_whole = fps as u32;
     let Some(features) = info["features"].as_object() else {
         report.problems.push("info.json has no features".to_owned());
         return report;
@@ -164,6 +243,8 @@ pub fn verify(root: &Path) -> Report {
         report.problems.push("no parquet files under data/".to_owned());
     }
     let mut lengths: BTreeMap<i64, u64> = BTreeMap::new();
+    let mut before_frame = 0u64;
+    let mut first_before: Option<String> = None;
     let mut indices = Vec::new();
     let mut data_tasks: BTreeSet<i64> = BTreeSet::new();
     for path in &data_files {
@@ -210,12 +291,30 @@ pub fn verify(root: &Path) -> Report {
                     ));
                 }
                 last_frame.insert(ep[row], fi[row]);
-                let want_ts = fi[row] as f64 / fps;
-                if (ts[row] - want_ts).abs() > 1e-4 && report.problems.len() < 50 {
-                    report.problems.push(format!(
-                        "{rel}: episode {} frame {} has timestamp {:.6}, expected frame_index/fps = {want_ts:.6}",
-                        ep[row], fi[row], ts[row]
-                    ));
+                // Read back as f64 from a float32 column: the cast is exact. A negative frame index is reported
+                // as a gap above.
+                let pairing = u64::try_from(fi[row])
+                    .ok()
+                    .map(|k| timestamp_pairs(ts[row] as f32, k, fps_whole));
+                match pairing {
+                    Some(Err(why @ TimestampMismatch::BeyondTolerance { .. }))
+                        if report.problems.len() < 50 =>
+                    {
+                        report.problems.push(format!(
+                            "{rel}: episode {} frame {}: timestamp {:.6} {why}",
+                            ep[row], fi[row], ts[row]
+                        ));
+                    }
+                    Some(Err(why @ TimestampMismatch::BeforeFrame { .. })) => {
+                        before_frame += 1;
+                        first_before.get_or_insert_with(|| {
+                            format!(
+                                "{rel}: episode {} frame {}: timestamp {:.9} {why}",
+                                ep[row], fi[row], ts[row]
+                            )
+                        });
+                    }
+                    _ => {}
                 }
                 *lengths.entry(ep[row]).or_default() += 1;
                 indices.push(ix[row]);
@@ -241,6 +340,12 @@ pub fn verify(root: &Path) -> Report {
                 data_tasks.extend(t);
             }
         }
+    }
+    if let Some(first) = first_before {
+        report.warnings.push(format!(
+            "{before_frame} of {} frames have a timestamp below frame_index / fps (LeRobot's rounding): LeRobot reads them, GR00T's default reader pairs them with the previous frame. First: {first}",
+            indices.len()
+        ));
     }
     indices.sort_unstable();
     if indices.iter().enumerate().any(|(i, &ix)| ix != i as i64) {
@@ -413,7 +518,24 @@ pub fn verify(root: &Path) -> Report {
         &mut report,
     );
     let mut durations: BTreeMap<PathBuf, Result<(f64, i64), String>> = BTreeMap::new();
+    let mut frame_times: BTreeMap<PathBuf, Result<FrameTimes, String>> = BTreeMap::new();
     for (ep, (len, videos)) in &episode_meta {
+        for (key, (path, from, _)) in videos {
+            let times = frame_times
+                .entry(path.clone())
+                .or_insert_with(|| video_frame_times(path));
+            // An unreadable file is reported once, below, by the duration probe.
+            if let Ok(times) = times {
+                check_presentation(
+                    times,
+                    *from,
+                    *len,
+                    fps_whole,
+                    &format!("episode {ep} {key}"),
+                    &mut report,
+                );
+            }
+        }
         match lengths.get(ep) {
             Some(rows) if rows != len => {
                 report.problems.push(format!(
@@ -441,6 +563,20 @@ pub fn verify(root: &Path) -> Report {
                 }
                 Err(e) => report.problems.push(format!("episode {ep} {key}: {e}")),
             }
+        }
+    }
+    // GR00T N1.6 snaps a step's time to a multiple of 1 / (frames / duration): a file whose rate comes out
+    // above fps in float64 puts some of those times an ulp before their frame.
+    for (path, times) in &frame_times {
+        if let (Ok((pts, _, _)), Some(Ok((duration_s, _)))) = (times, durations.get(path))
+            && !pts.is_empty()
+            && pts.len() as f64 / duration_s > fps
+        {
+            report.warnings.push(format!(
+                "video {}: {} frames over {duration_s} s make an average rate above {fps} fps in float64: GR00T N1.6's reader pairs some steps with the previous frame",
+                path.strip_prefix(root).unwrap_or(path).display(),
+                pts.len()
+            ));
         }
     }
     report
@@ -607,6 +743,13 @@ mod tests {
             let root = golden(name);
             let report = verify(&root);
             assert!(report.ok(), "{name}: {:?}", report.problems);
+            // lerobot's nearest-float32 timestamps: 0.7 and 0.9 s lie below 7/10 and 9/10 s.
+            assert_eq!(report.warnings.len(), 1, "{name}: {:?}", report.warnings);
+            assert!(
+                report.warnings[0].starts_with("5 of 30 frames have a timestamp below"),
+                "{name}: {:?}",
+                report.warnings
+            );
             assert_eq!((report.episodes, report.frames), (3, 30), "{name}");
             // Per episode, from the rows: the frames add up, one task each, no `next.success` column.
             assert_eq!(report.per_episode.len(), 3, "{name}");

@@ -64,6 +64,8 @@ pub struct VideoEncoder {
     height: u32,
     path: PathBuf,
     packet: Packet,
+    /// The newest encoded packet, not yet written (see [`VideoEncoder::finish`]).
+    held: Option<Packet>,
 }
 
 fn ff_err(path: &Path, what: &str, e: ffmpeg::Error) -> RecorderError {
@@ -164,6 +166,7 @@ impl VideoEncoder {
             height,
             path: path.to_owned(),
             packet: Packet::empty(),
+            held: None,
         })
     }
 
@@ -237,9 +240,13 @@ impl VideoEncoder {
             // Every frame lasts exactly one period; without it the mp4 loses the last frame's duration.
             self.packet.set_duration(1);
             self.packet.rescale_ts(self.encoder_tb, self.stream_tb);
-            self.packet
-                .write_interleaved(&mut self.octx)
-                .map_err(|e| ff_err(&self.path, "cannot write", e))?;
+            // Written one packet late: the last one is only known at the flush (see `finish`).
+            let packet = std::mem::replace(&mut self.packet, Packet::empty());
+            if let Some(previous) = self.held.replace(packet) {
+                previous
+                    .write_interleaved(&mut self.octx)
+                    .map_err(|e| ff_err(&self.path, "cannot write", e))?;
+            }
         }
         Ok(())
     }
@@ -251,6 +258,18 @@ impl VideoEncoder {
             .send_eof()
             .map_err(|e| ff_err(&self.path, "cannot flush", e))?;
         self.drain()?;
+        if let Some(mut last) = self.held.take() {
+            // The last frame lasts one tick of the stream's time base longer than a period (65 µs at 30 fps).
+            // Readers derive the average rate as frames / duration; with the exact duration float64 can put it
+            // an ulp above fps (22 frames at 30 fps give 30.000000000000004), and GR00T N1.6, which snaps
+            // timestamps to multiples of 1 / average rate, then lands an ulp before frame k's start and reads
+            // frame k - 1. One tick more keeps the rate 1 / (frames * ticks per period) below fps: every
+            // snapped time falls inside its frame, drifting less than 1 % of a frame by the end (GR00T's
+            // refusal threshold) up to 156 fps.
+            last.set_duration(last.duration() + 1);
+            last.write_interleaved(&mut self.octx)
+                .map_err(|e| ff_err(&self.path, "cannot write", e))?;
+        }
         self.octx
             .write_trailer()
             .map_err(|e| ff_err(&self.path, "cannot finish", e))?;
@@ -514,6 +533,44 @@ mod tests {
             .filter(|(s, _)| s.index() == stream)
             .map(|(_, p)| p.is_key())
             .collect()
+    }
+
+    /// GR00T N1.6 snaps a step's timestamp to `k / average_rate`, the rate a reader derives as frames divided
+    /// by the stream's duration in float64. For every length, that snapped time must fall inside frame k
+    /// (at or after its start, before the next), and stay within GR00T's 1 % of a frame of `k / fps`.
+    #[test]
+    fn frames_over_duration_never_puts_a_snapped_time_before_its_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        let settings = VideoSettings::parse(Some("h264"), Format::V21).unwrap();
+        for fps in [20u32, 30] {
+            // 22 frames at 30 fps: an exact duration gives an average rate an ulp above 30.
+            for n in [1u64, 2, 5, 22, 23, 61] {
+                let path = dir.path().join(format!("{fps}-{n}.mp4"));
+                let mut enc = VideoEncoder::create(&path, 64, 64, fps, &settings).unwrap();
+                for i in 0..n {
+                    enc.push_rgb(&vec![(i * 9) as u8; 64 * 64 * 3], 64, 64).unwrap();
+                }
+                enc.finish().unwrap();
+                let input = format::input(&path).unwrap();
+                let stream = input.streams().best(ffmpeg::media::Type::Video).unwrap();
+                let tb =
+                    f64::from(stream.time_base().numerator()) / f64::from(stream.time_base().denominator());
+                let ticks_per_frame = i64::from(stream.time_base().denominator()) / i64::from(fps);
+                let tick_s = 1.0 / f64::from(stream.time_base().denominator());
+                let duration_s = stream.duration() as f64 * tb;
+                let average_rate = n as f64 / duration_s;
+                for k in 0..n {
+                    let snapped_s = k as f64 * (1.0 / average_rate);
+                    let start_s = (k as i64 * ticks_per_frame) as f64 * tick_s;
+                    let next_s = ((k as i64 + 1) * ticks_per_frame) as f64 * tick_s;
+                    assert!(
+                        start_s <= snapped_s && snapped_s < next_s,
+                        "{fps} fps, {n} frames, frame {k}: snapped {snapped_s} outside [{start_s}, {next_s})"
+                    );
+                    assert!((snapped_s - k as f64 / f64::from(fps)) * f64::from(fps) < 0.01);
+                }
+            }
+        }
     }
 
     /// lerobot's loader seeks to the key frame before each sampled frame and decodes from there: with a GOP of

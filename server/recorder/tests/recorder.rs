@@ -5,6 +5,7 @@ mod common;
 
 use common::{ManualRobot, publish_for_conformance, read_json, spec, wait_for};
 use phone2act_recorder::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
+use phone2act_recorder::events::EventKind;
 use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::{Format, Phase, Recorder, RecorderError};
 use serde_json::json;
@@ -51,7 +52,7 @@ fn record(rec: &Recorder, task: &str, frames: u64) -> phone2act_recorder::Episod
     rec.stop_episode().unwrap()
 }
 
-/// Checks the data rows of every episode: contiguous index, timestamp = frame_index / fps exactly.
+/// Checks the data rows of every episode: contiguous index, timestamps by the rule of `timestamp_s`.
 #[allow(clippy::float_cmp)] // exactness is the point
 fn check_v30_rows(root: &Path, fps: u32) -> u64 {
     let info = read_json(&root.join("meta/info.json"));
@@ -72,7 +73,10 @@ fn check_v30_rows(root: &Path, fps: u32) -> u64 {
                 fi_expected = 0;
             }
             assert_eq!(r.frame_index, fi_expected);
-            assert_eq!(r.timestamp, (r.frame_index as f64 / f64::from(fps)) as f32);
+            assert_eq!(
+                r.timestamp,
+                phone2act_recorder::dataset::timestamp_s(r.frame_index as u64, fps)
+            );
             fi_expected += 1;
             index += 1;
         }
@@ -353,11 +357,29 @@ fn a_stale_robot_is_held_then_pauses() {
     rig.robot.freeze();
     let s = wait_for(&rec, T, "pause", |s| s.phase == Phase::Paused);
     assert!(s.held_ticks >= 3, "held within the 0.25 s tolerance first: {s:?}");
-    assert!(s.warning.unwrap().contains("robot sample is"));
+    // Frozen for more than 0.1 s (the sample tolerance) and up to 0.25 s: recorded, but counted as late.
+    assert!(s.late_ticks >= 1, "{s:?}");
+    assert!(s.warning.unwrap().contains("robot sample has sent nothing for"));
     *rig.robot.frozen_at_ns.lock() = None;
     let s = wait_for(&rec, T, "resume", |s| s.phase == Phase::Recording);
     assert!(s.warning.unwrap().contains("resumed"));
-    rec.stop_episode().unwrap();
+    wait_for(&rec, T, "a frame after the pause", |t| {
+        t.frames_recorded > s.frames_recorded
+    });
+    let saved = rec.stop_episode().unwrap();
+    // The sidecar says where the episode's time jumps, by how many ticks, and which frames were late.
+    let events = phone2act_recorder::events::read_events(&root, 0)
+        .unwrap()
+        .unwrap();
+    let kinds = |k| events.iter().filter(move |e| e.kind == k);
+    let paused: Vec<_> = kinds(EventKind::Paused).collect();
+    assert_eq!(paused.len(), 1, "{events:?}");
+    assert_eq!(paused[0].count, saved.paused_ticks);
+    assert!(
+        paused[0].detail.contains("robot sample has sent nothing"),
+        "{events:?}"
+    );
+    assert_eq!(kinds(EventKind::LateTick).count() as u64, saved.late_ticks);
 }
 
 #[test]

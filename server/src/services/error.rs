@@ -122,7 +122,8 @@ impl From<ArmError> for Status {
             // Configuration mistakes are found at start; a request never causes them.
             ArmError::Config { .. }
             | ArmError::JointModeUnsupported { .. }
-            | ArmError::LerobotLayoutUnsupported { .. } => Status::failed_precondition(message),
+            | ArmError::LerobotLayoutUnsupported { .. }
+            | ArmError::FlightLog { .. } => Status::failed_precondition(message),
         }
     }
 }

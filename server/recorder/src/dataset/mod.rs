@@ -51,12 +51,16 @@ pub struct EpisodeSummary {
     pub held_ticks: u64,
     /// Ticks not recorded because a source was stale beyond tolerance (the episode was paused).
     pub paused_ticks: u64,
-    /// Ticks skipped because the recorder stalled longer than the hold tolerance (machine overloaded);
-    /// not recorded, never a gap. Shorter stalls are caught up and counted in `held_ticks`.
+    /// Frames recorded with a sample captured farther from the frame's time than the sample tolerance
+    /// (see [`crate::timeline`]); each is a `late_tick` event in the episode's sidecar.
     pub late_ticks: u64,
     /// Video frames that did not fit in an encoder queue (replaced by a repeat of the previous frame).
     pub dropped_frames: u64,
     pub start_unix_ns: i64,
+    /// The instant frame 0 stands for, on the process monotonic clock (frame i: plus i / fps, plus the
+    /// paused ticks before it); 0 in provenance written before it was recorded.
+    #[serde(default)]
+    pub first_frame_time_ns: i64,
     pub save_latency_s: f64,
     /// Who recorded it (set at start, e.g. `phone2act episode start --operator`); empty when unknown.
     #[serde(default, skip_serializing_if = "String::is_empty")]
@@ -559,10 +563,105 @@ pub fn check_task(task: &str) -> Result<&str, RecorderError> {
     Ok(task)
 }
 
-/// `frame_index / fps` as float32, computed in f64 first so it is the nearest float32 to the exact value.
+/// How far past `k / fps` frame k's timestamp is put (see `docs/timestamps.md`): far above the rounding error
+/// of any reader's float64 (or short float32) arithmetic on the frame's presentation time, and together with
+/// float32's spacing (at most 61 µs below 1024 s) still inside LeRobot's 100 µs tolerance.
+pub const TIMESTAMP_MARGIN_S: f64 = 20e-6;
+
+/// Frame `frame_index`'s `timestamp`: the smallest float32 at or above `frame_index / fps +`
+/// [`TIMESTAMP_MARGIN_S`], and 0 for frame 0. Never below the frame's presentation time `k / fps` (its pts), so
+/// a reader that asks for "the frame shown at this time" (torchcodec's `get_frames_played_at`, a floor of
+/// `t * fps`) finds frame k, where the nearest float32 (LeRobot's own rounding) lies below `k / fps` for about
+/// 40 % of frames and finds frame k - 1. Readers that take the nearest frame are indifferent.
 pub fn timestamp_s(frame_index: u64, fps: u32) -> f32 {
-    (frame_index as f64 / f64::from(fps)) as f32
+    if frame_index == 0 {
+        // Every reader computes frame 0's presentation time as exactly 0: no rounding to guard against.
+        return 0.0;
+    }
+    // The f64 quotient is off by at most half an f64 ulp, far below the margin.
+    let target = frame_index as f64 / f64::from(fps) + TIMESTAMP_MARGIN_S;
+    let nearest = target as f32;
+    if f64::from(nearest) >= target {
+        nearest
+    } else {
+        nearest.next_up()
+    }
 }
+
+/// Why a timestamp does not pair with its frame in every reader (see [`timestamp_pairs`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TimestampMismatch {
+    /// Below the frame's presentation time `k / fps` (LeRobot's own rounding does this for about 40 % of
+    /// frames): LeRobot and the nearest-frame readers still find frame k, a reader of the frame played at
+    /// that time (GR00T N1.5's torchcodec) finds frame k - 1.
+    BeforeFrame {
+        frame_index: u64,
+        fps: u32,
+        before_s: f64,
+    },
+    /// Farther after `k / fps` than LeRobot's tolerance: LeRobot refuses to decode it.
+    BeyondTolerance {
+        frame_index: u64,
+        fps: u32,
+        after_s: f64,
+    },
+}
+
+impl std::fmt::Display for TimestampMismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            TimestampMismatch::BeforeFrame {
+                frame_index,
+                fps,
+                before_s,
+            } => write!(
+                f,
+                "lies {:.2} µs before the frame's presentation time {frame_index}/{fps} s: a reader of the frame played at that time (GR00T's torchcodec) returns frame {}",
+                before_s * 1e6,
+                frame_index.saturating_sub(1)
+            ),
+            TimestampMismatch::BeyondTolerance {
+                frame_index,
+                fps,
+                after_s,
+            } => write!(
+                f,
+                "lies {:.1} µs after the frame's presentation time {frame_index}/{fps} s, beyond LeRobot's {} µs tolerance",
+                after_s * 1e6,
+                LEROBOT_TOLERANCE_S * 1e6
+            ),
+        }
+    }
+}
+
+/// Whether `timestamp` pairs with frame `frame_index` at `fps` in every reader: at or above the frame's
+/// presentation time `k / fps` (compared exactly: a float32 times a whole fps below 2^29 is exact in f64) and
+/// within LeRobot's tolerance of it, or within one float32 step where float32 is coarser than that tolerance
+/// (from 1024 s on). Returns how far above `k / fps` it lies, in seconds.
+pub fn timestamp_pairs(timestamp: f32, frame_index: u64, fps: u32) -> Result<f64, TimestampMismatch> {
+    let scaled = f64::from(timestamp) * f64::from(fps);
+    let k = frame_index as f64;
+    let above_s = (scaled - k) / f64::from(fps);
+    if scaled < k {
+        return Err(TimestampMismatch::BeforeFrame {
+            frame_index,
+            fps,
+            before_s: -above_s,
+        });
+    }
+    let step_s = f64::from(timestamp.next_up() - timestamp);
+    if above_s >= LEROBOT_TOLERANCE_S.max(step_s) {
+        return Err(TimestampMismatch::BeyondTolerance {
+            frame_index,
+            fps,
+            after_s: above_s,
+        });
+    }
+    Ok(above_s)
+}
+
+/// LeRobot's default `tolerance_s` between a frame's timestamp and the decoded frame's time (0.3 to 0.6).
+pub const LEROBOT_TOLERANCE_S: f64 = 1e-4;
 
 impl EpisodeWriter {
     /// Appends frame `frames()` (state, executed action and task success as recorded) to the parquet and the
@@ -595,6 +694,16 @@ impl EpisodeWriter {
     /// previous frame go to the events sidecar.
     pub fn note_activity(&mut self, arms: &[ArmActivity]) -> Result<(), RecorderError> {
         self.events.observe(arms, self.frames)
+    }
+
+    /// Writes one of the recorder's timeline events at the frame about to be pushed.
+    pub fn note_timeline(
+        &mut self,
+        kind: crate::events::EventKind,
+        count: u64,
+        detail: String,
+    ) -> Result<(), RecorderError> {
+        self.events.note(kind, self.frames, count, detail)
     }
 
     /// Length of the state vector.
@@ -630,10 +739,89 @@ impl EpisodeWriter {
 mod tests {
     use super::*;
 
+    /// The exact rational comparison `t >= k / fps` for a float32 `t`, independent of `timestamp_pairs`:
+    /// float32 is m * 2^e with a 24-bit m, so `t * fps >= k` is decided in 128-bit integers.
+    fn at_or_after(t: f32, k: u64, fps: u32) -> bool {
+        if t == 0.0 {
+            return k == 0;
+        }
+        let bits = t.to_bits();
+        let exp = i32::try_from((bits >> 23) & 0xff).unwrap();
+        let mantissa = u128::from(bits & 0x7f_ffff) | if exp > 0 { 1 << 23 } else { 0 };
+        let shift = exp.max(1) - 127 - 23;
+        let lhs = mantissa * u128::from(fps);
+        let rhs = u128::from(k);
+        if shift >= 0 {
+            lhs << shift >= rhs
+        } else {
+            lhs >= rhs << -shift
+        }
+    }
+
     #[test]
-    #[allow(clippy::float_cmp)] // exactness is the point
-    fn timestamps_are_exact_multiples() {
-        assert_eq!(timestamp_s(3, 30), 0.1_f32);
-        assert_eq!(timestamp_s(20, 20), 1.0);
+    fn every_timestamp_is_at_or_after_its_frame_and_within_lerobots_tolerance() {
+        for fps in [1, 10, 15, 20, 24, 25, 30, 50, 60, 100, 120] {
+            // Ten minutes of frames, then a stride to the end of the range float32 can keep within 100 µs.
+            let frames =
+                (0..u64::from(fps) * 600).chain((u64::from(fps) * 600..u64::from(fps) * 1023).step_by(7));
+            for k in frames {
+                let t = timestamp_s(k, fps);
+                assert!(at_or_after(t, k, fps), "fps {fps} frame {k}: {t} < k/fps");
+                let above_s = f64::from(t) - k as f64 / f64::from(fps);
+                assert!(
+                    above_s < LEROBOT_TOLERANCE_S,
+                    "fps {fps} frame {k}: {above_s} s late"
+                );
+                assert!(timestamp_pairs(t, k, fps).is_ok(), "fps {fps} frame {k}");
+                // A reader that floors t * fps in f64 finds frame k, and rounding finds it too.
+                let scaled = f64::from(t) * f64::from(fps);
+                assert_eq!(scaled.floor() as u64, k, "fps {fps} frame {k}");
+                assert_eq!(scaled.round() as u64, k, "fps {fps} frame {k}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_reader_computing_pts_times_time_base_in_f64_still_finds_frame_k() {
+        // The mp4 muxer's time base is fps * 2^n (at least 10000); a reader computes pts * (1 / den) in f64,
+        // which can land an ulp above k / fps (3 * 0.1 > 0.3); the margin keeps the timestamp above it.
+        for fps in [10, 15, 20, 30, 60] {
+            let mut den = fps;
+            while den < 10_000 {
+                den *= 2;
+            }
+            let scale = den / fps;
+            let tb = 1.0 / f64::from(den);
+            for k in 1..u64::from(fps) * 300 {
+                let frame_start_s = (k * u64::from(scale)) as f64 * tb;
+                let t = f64::from(timestamp_s(k, fps));
+                assert!(t >= frame_start_s, "fps {fps} frame {k}: {t} < {frame_start_s}");
+                let next_start_s = ((k + 1) * u64::from(scale)) as f64 * tb;
+                assert!(t < next_start_s, "fps {fps} frame {k}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_nearest_float32_is_what_the_pairing_check_refuses() {
+        // LeRobot's rounding: below k / fps for a large share of frames at 20 fps, and each is caught.
+        let below = (1..2000u64)
+            .filter(|&k| {
+                let nearest = (k as f64 / 20.0) as f32;
+                let refused = timestamp_pairs(nearest, k, 20).is_err();
+                assert_eq!(refused, !at_or_after(nearest, k, 20), "frame {k}");
+                refused
+            })
+            .count();
+        assert!(
+            below > 500,
+            "{below} of 1999 nearest float32 timestamps lie below k/fps"
+        );
+        assert!(timestamp_pairs(timestamp_s(7, 20), 7, 20).is_ok());
+        assert!(
+            timestamp_pairs(0.35 + 2e-4, 7, 20).is_err(),
+            "beyond the tolerance"
+        );
+        assert!(timestamp_pairs(0.0, 0, 20).is_ok());
     }
 }
