@@ -78,6 +78,8 @@ pub struct App {
     shutdown_tx: watch::Sender<bool>,
     /// The recorder's status version, published by one thread for every `Episodes.Watch` stream.
     recorder_version: std::sync::OnceLock<watch::Receiver<u64>>,
+    /// `[storage]`: uploads every committed episode.
+    uploader: Option<Arc<phone2act_storage::Uploader>>,
 }
 
 impl std::fmt::Debug for App {
@@ -98,6 +100,8 @@ pub enum AppError {
     Arm { arm: String, message: String },
     #[error("recorder: {0}")]
     Recorder(#[from] RecordingError),
+    #[error("storage: {0}")]
+    Storage(#[from] phone2act_storage::StorageError),
 }
 
 /// A name that is not configured.
@@ -271,13 +275,25 @@ impl App {
                 capture: Mutex::new(capture),
             });
         }
-        let spec = crate::recording::dataset_spec(&config, &arms)?;
+        let mut spec = crate::recording::dataset_spec(&config, &arms)?;
+        let station_id = crate::upload::station_id(&config)?;
+        if let (Some(id), Some(p)) = (&station_id, spec.provenance.as_object_mut()) {
+            p.insert("station_id".into(), id.clone().into());
+        }
         let source = Arc::new(crate::recording::ArmsSource { arms: arms.clone() });
         let slots = cameras
             .iter()
             .map(|c| (c.config.name.clone(), Arc::clone(&c.slot)))
             .collect();
         let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
+        // After the recorder's open (which finishes an interrupted commit) and before anything can commit.
+        let uploader = match &station_id {
+            Some(id) => crate::upload::start(&config, id)?,
+            None => None,
+        };
+        if let Some(u) = &uploader {
+            recorder.set_commit_hook(Arc::new(crate::upload::UploadHook(Arc::clone(u))));
+        }
         let (shutdown_tx, _) = watch::channel(false);
         Ok(Self {
             recorder: RwLock::new(Some(recorder)),
@@ -289,7 +305,13 @@ impl App {
             sessions: AtomicU64::new(1),
             shutdown_tx,
             recorder_version: std::sync::OnceLock::new(),
+            uploader,
         })
+    }
+
+    /// The uploader, when `[storage]` is configured.
+    pub fn uploader(&self) -> Option<&phone2act_storage::Uploader> {
+        self.uploader.as_deref()
     }
 
     /// The configuration the server runs.
@@ -474,6 +496,10 @@ impl App {
             if let Err(e) = recorder.close() {
                 tracing::warn!("closing the recorder: {e}");
             }
+        }
+        // What is not remote yet stays in the upload journal for the next start.
+        if let Some(u) = &self.uploader {
+            u.shutdown();
         }
         for arm in &self.arms {
             arm.bridge.shutdown();

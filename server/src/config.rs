@@ -62,6 +62,9 @@ pub struct Config {
     /// binary that starts the gateway reads and validates this table as the gateway's own config type.
     #[serde(default)]
     pub gateway: toml::Table,
+    /// `[storage]`: upload every committed episode to S3-compatible object storage (see docs/fleet.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub storage: Option<phone2act_storage::StorageConfig>,
 }
 
 /// gRPC listener and access.
@@ -547,6 +550,9 @@ impl Config {
                     existing.display()
                 )
             });
+        }
+        if let Some(storage) = &self.storage {
+            storage.validate()?;
         }
         Ok(())
     }
@@ -1145,6 +1151,52 @@ mod tests {
     }
 
     #[test]
+    fn storage_is_optional_checked_and_overridable_from_the_environment() {
+        assert!(with_env(SIM, &[]).unwrap().storage.is_none());
+        let c = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_STORAGE__URL", "s3://fleet/lab"),
+                ("PHONE2ACT_STORAGE__MAX_UPLOAD_BYTES_PER_S", "500000"),
+            ],
+        )
+        .unwrap();
+        let s = c.storage.as_ref().unwrap();
+        assert_eq!(
+            (s.url.as_str(), s.max_upload_bytes_per_s),
+            ("s3://fleet/lab", Some(500_000))
+        );
+        assert!(s.retain_local);
+        assert!(c.to_redacted_toml().unwrap().contains("[storage]"));
+        for (key, value, expected) in [
+            ("URL", "https://fleet/lab", "storage.url"),
+            ("ENDPOINT", "minio:9000", "storage.endpoint"),
+            ("MAX_UPLOAD_BYTES_PER_S", "0", "storage.max_upload_bytes_per_s"),
+            ("STATION_ID", "a/b", "storage.station_id"),
+            ("RETAIN_LOCAL", "false", "storage.retain_local"),
+        ] {
+            let var = format!("PHONE2ACT_STORAGE__{key}");
+            let mut env = vec![(var.as_str(), value)];
+            if key != "URL" {
+                env.push(("PHONE2ACT_STORAGE__URL", "s3://fleet/lab"));
+            }
+            let err = with_env(SIM, &env).unwrap_err().to_string();
+            assert!(err.contains(expected), "{key}={value}: {err}");
+        }
+        // Keys are never secrets: a key named like one is refused, not silently accepted.
+        let err = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_STORAGE__URL", "s3://b"),
+                ("PHONE2ACT_STORAGE__SECRET_ACCESS_KEY", "x"),
+            ],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("secret_access_key"), "{err}");
+    }
+
+    #[test]
     fn huge_cameras_and_sizes_are_refused_with_the_limit() {
         let cam = |w: u32, h: u32| {
             format!("{SIM}[[cameras]]\nname = \"c\"\nkind = \"test_pattern\"\nwidth = {w}\nheight = {h}\n")
@@ -1557,6 +1609,14 @@ device = "/dev/video0"
 arm = "a"
 [recorder]
 video_codec = "libx264"
+[storage]
+url = "s3://b/p"
+endpoint = "http://127.0.0.1:9000"
+region = "eu-west-3"
+profile = "lab"
+credentials_file = "creds"
+max_upload_bytes_per_s = 1000000
+station_id = "arm-1"
 [flight_log]
 dir = "logs"
 [gateway]

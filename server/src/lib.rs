@@ -10,6 +10,7 @@ pub mod policy_session;
 pub mod recording;
 pub mod runtime;
 pub mod services;
+pub mod upload;
 
 use crate::app::App;
 pub use crate::config::Config;

@@ -12,7 +12,7 @@ cargo clippy --workspace --all-targets --quiet -- -D warnings
 tests/scripts/lint-proto.sh
 tests/scripts/check-deps.py
 # No import cycle between the modules of any crate (the script prints the graph when it finds one).
-for src in server/src server/cli/src server/core/src server/recorder/src server/bridges/src server/clock/src \
+for src in server/src server/cli/src server/core/src server/recorder/src server/bridges/src server/clock/src server/storage/src \
   proto/src sdk/rust/src clients/gateway/src; do
   tests/scripts/check-module-cycles.py "$src" >/dev/null || tests/scripts/check-module-cycles.py "$src"
 done
@@ -20,6 +20,10 @@ done
 export PHONE2ACT_CONFORMANCE_DIR="${PHONE2ACT_CONFORMANCE_DIR:-$PWD/target/conformance-datasets}"
 rm -rf "$PHONE2ACT_CONFORMANCE_DIR"
 mkdir -p "$PHONE2ACT_CONFORMANCE_DIR"
+# The real S3 server (moto, from PyPI) the storage tests start on loopback (tests/tests/fleet.rs,
+# server/cli/tests/fleet.rs); without it they skip, loudly.
+PHONE2ACT_MOTO_SERVER="$(tests/scripts/s3-server.sh)"
+export PHONE2ACT_MOTO_SERVER
 set +e
 cargo test --workspace 2>&1 | tee /tmp/phone2act-cargo-test.log
 rc=${PIPESTATUS[0]}

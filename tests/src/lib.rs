@@ -3,6 +3,7 @@
 //! pick-and-place demonstrations.
 
 pub mod operator;
+pub mod s3;
 
 use phone2act_sdk::Client;
 use phone2act_server::Config;

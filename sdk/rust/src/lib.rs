@@ -388,10 +388,16 @@ pub struct EpisodesApi {
 impl EpisodesApi {
     /// Starts recording an episode with `task`.
     pub async fn start(&mut self, task: &str) -> Result<v1::RecordingStatus> {
+        self.start_by(task, "").await
+    }
+
+    /// Starts recording an episode with `task` by `operator` (kept in the episode's provenance).
+    pub async fn start_by(&mut self, task: &str, operator: &str) -> Result<v1::RecordingStatus> {
         let response = self
             .inner
             .start(v1::StartEpisodeRequest {
                 task: task.to_owned(),
+                operator: operator.to_owned(),
             })
             .await?;
         response

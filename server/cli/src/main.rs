@@ -9,6 +9,7 @@ use phone2act_server::{bind, run_with_local};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+mod fleet;
 mod plot;
 mod replay_log;
 
@@ -93,6 +94,9 @@ enum EpisodeAction {
         /// Task text stored with every frame.
         #[arg(long)]
         task: String,
+        /// Who records it (kept in the episode's provenance).
+        #[arg(long, env = "PHONE2ACT_OPERATOR", default_value = "")]
+        operator: String,
     },
     /// Stop and save the episode in progress.
     Stop,
@@ -118,6 +122,25 @@ enum DatasetAction {
     Verify {
         /// Dataset root directory.
         path: PathBuf,
+    },
+    /// Upload a dataset to S3-compatible storage (s3://bucket/prefix); an existing remote copy of the same
+    /// dataset gets only the episodes it lacks, a different one is refused with nothing written.
+    Push {
+        /// Dataset root directory.
+        path: PathBuf,
+        /// s3://bucket/prefix
+        url: String,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
+    /// Download a dataset from S3-compatible storage into a directory.
+    Pull {
+        /// s3://bucket/prefix
+        url: String,
+        /// Destination directory.
+        path: PathBuf,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
     },
     /// Plot an episode into one HTML page: camera frames, state and action per dimension over time, clutch
     /// and gate events marked.
@@ -387,8 +410,8 @@ fn real_main() -> anyhow::Result<()> {
             let client = connect(&conn).await?;
             let mut episodes = client.episodes();
             match action {
-                EpisodeAction::Start { task } => {
-                    let s = episodes.start(&task).await?;
+                EpisodeAction::Start { task, operator } => {
+                    let s = episodes.start_by(&task, &operator).await?;
                     outln!("recording episode {} ({:?})", s.episode_index, s.task);
                 }
                 EpisodeAction::Stop => {
@@ -411,9 +434,12 @@ fn real_main() -> anyhow::Result<()> {
                 EpisodeAction::List => {
                     let list = episodes.list().await?;
                     outln!("{} episodes in {}", list.episodes.len(), list.dataset_root);
+                    if let Some(s) = &list.storage {
+                        outln!("{}", fleet::storage_line(s));
+                    }
                     for ep in list.episodes {
                         outln!(
-                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}",
+                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}{}",
                             ep.episode_index,
                             ep.length_frames,
                             ep.duration_s,
@@ -421,7 +447,8 @@ fn real_main() -> anyhow::Result<()> {
                             ep.paused_ticks,
                             ep.late_ticks,
                             ep.dropped_frames,
-                            ep.task
+                            ep.task,
+                            fleet::upload_suffix(&ep)
                         );
                     }
                 }
@@ -432,7 +459,14 @@ fn real_main() -> anyhow::Result<()> {
             let client = connect(&conn).await?;
             let mut system = client.system();
             match watch {
-                None => print_status(&system.status().await?),
+                None => {
+                    print_status(&system.status().await?);
+                    if let Ok(list) = client.episodes().list().await
+                        && let Some(s) = &list.storage
+                    {
+                        outln!("{}", fleet::storage_line(s));
+                    }
+                }
                 Some(interval_s) => watch_status(&mut system, interval_s).await?,
             }
             anyhow::Ok(())
@@ -441,6 +475,18 @@ fn real_main() -> anyhow::Result<()> {
             action: DatasetAction::Info { path },
         } => dataset_info(&path),
         Command::ReplayLog { files, config } => replay_log::run(&files, config.as_deref()),
+        Command::Dataset {
+            action: DatasetAction::Push { path, url, remote },
+        } => {
+            outln!("{}", fleet::push(&path, &url, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
+            action: DatasetAction::Pull { url, path, remote },
+        } => {
+            outln!("{}", fleet::pull(&url, &path, &remote)?);
+            Ok(())
+        }
         Command::Dataset {
             action: DatasetAction::Plot { path, episode, out },
         } => {

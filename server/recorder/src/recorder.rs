@@ -125,6 +125,7 @@ struct Active {
     last_robot_ns: Option<i64>,
     last_seq: Vec<Option<u64>>,
     error: Option<RecorderError>,
+    operator: String,
 }
 
 struct TickState {
@@ -152,6 +153,14 @@ struct Shared {
     camera_names: Vec<String>,
     fps: u32,
     sync: SyncConfig,
+    commit_hook: Mutex<Option<Arc<dyn CommitHook>>>,
+}
+
+/// Told about every committed episode, on the recorder's thread and under its dataset lock (so before the
+/// next commit can replace any file): an uploader takes its snapshot here. Must return quickly.
+pub trait CommitHook: Send + Sync {
+    /// `files`: dataset-relative, in the order the commit made them visible (`info.json` last).
+    fn committed(&self, episode: &EpisodeSummary, files: &[String]);
 }
 
 /// A recorder over one dataset. Dropping it (or [`Recorder::close`]) stops the tick thread; an episode
@@ -227,6 +236,7 @@ impl Recorder {
             camera_names,
             fps,
             sync,
+            commit_hook: Mutex::new(None),
         });
         let s2 = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
@@ -247,8 +257,18 @@ impl Recorder {
         Ok(recorder)
     }
 
+    /// Sets the hook told about every committed episode (see [`CommitHook`]).
+    pub fn set_commit_hook(&self, hook: Arc<dyn CommitHook>) {
+        *self.shared.commit_hook.lock() = Some(hook);
+    }
+
     /// Starts recording an episode of `task`.
     pub fn start_episode(&self, task: &str) -> Result<RecorderStatus, RecorderError> {
+        self.start_episode_by(task, "")
+    }
+
+    /// Starts recording an episode of `task` by `operator` (recorded in the episode's provenance).
+    pub fn start_episode_by(&self, task: &str, operator: &str) -> Result<RecorderStatus, RecorderError> {
         // Parked cameras start drawing now, all at once; each first frame is then waited for here (not under
         // the tick lock), so that frame 0 has a frame captured before it.
         for slot in &self.shared.cameras {
@@ -308,6 +328,7 @@ impl Recorder {
             start_unix_ns: unix_ns(),
             last_robot_ns: None,
             error: None,
+            operator: operator.trim().to_owned(),
         });
         t.phase = Phase::Recording;
         t.warning = None;
@@ -354,6 +375,7 @@ impl Recorder {
             paused_ticks: active.paused,
             late_ticks: active.late,
             start_unix_ns: active.start_unix_ns,
+            operator: active.operator.clone(),
             first_frame_time_ns: self.shared.clock.time_ns(active.first_tick),
             ..EpisodeSummary::default()
         };
@@ -374,6 +396,9 @@ impl Recorder {
             return Err(RecorderError::EmptyEpisode(index));
         }
         let r = ds.commit_episode(active.writer, summary);
+        if let (Ok(s), Some(hook)) = (&r, self.shared.commit_hook.lock().as_ref()) {
+            hook.committed(s, ds.last_commit_files());
+        }
         drop(ds);
         match r {
             Ok(mut s) => {

@@ -10,6 +10,7 @@ use phone2act_proto::convert_arm::{arm_state_to_proto, pose_from_proto, pose_to_
 use phone2act_proto::v1;
 use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::recorder::{Phase, RecorderStatus};
+use phone2act_storage::{EpisodeUpload, Uploader};
 
 /// Recorder status on the wire.
 pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingStatus {
@@ -63,6 +64,42 @@ pub fn episode(e: &EpisodeSummary) -> v1::EpisodeInfo {
         start_unix_ns: e.start_unix_ns,
         late_ticks: e.late_ticks,
         dropped_frames: e.dropped_frames,
+        operator: e.operator.clone(),
+        station_id: e.station_id.clone(),
+        ..v1::EpisodeInfo::default()
+    }
+}
+
+/// An episode with its upload state.
+pub fn episode_with_upload(e: &EpisodeSummary, uploader: Option<&Uploader>) -> v1::EpisodeInfo {
+    let mut info = episode(e);
+    if let Some(u) = uploader {
+        let state = u.episode(e.index);
+        info.upload_state = match &state {
+            EpisodeUpload::Pending => v1::UploadState::Pending,
+            EpisodeUpload::Uploading => v1::UploadState::Uploading,
+            EpisodeUpload::Uploaded => v1::UploadState::Uploaded,
+            EpisodeUpload::Failed(_) => v1::UploadState::Failed,
+        } as i32;
+        if let EpisodeUpload::Failed(reason) = state {
+            info.upload_error = reason;
+        }
+    }
+    info
+}
+
+/// The uploader's status on the wire.
+pub fn storage_status(u: &Uploader) -> v1::StorageStatus {
+    let s = u.status();
+    v1::StorageStatus {
+        url: s.url,
+        station_id: s.station_id,
+        episodes_uploaded: s.episodes_uploaded,
+        episodes_pending: s.episodes_pending,
+        last_error: s.last_error.unwrap_or_default(),
+        objects_put: s.objects_put,
+        objects_skipped: s.objects_skipped,
+        bytes_put: s.bytes_put,
     }
 }
 

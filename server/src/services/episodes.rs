@@ -4,7 +4,10 @@
 use crate::app::App;
 use crate::recording::RecordingError;
 use crate::runtime::blocking;
-use crate::services::convert::{current_recording_status, episode, recording_status};
+use crate::services::convert::{
+    current_recording_status, episode, episode_with_upload, recording_status, storage_status,
+};
+use crate::services::error::RequestError;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;
@@ -25,6 +28,9 @@ impl EpisodesService {
     }
 }
 
+/// Longest operator name kept in provenance.
+const MAX_OPERATOR_BYTES: usize = 128;
+
 type StatusStream = Pin<Box<dyn Stream<Item = Result<v1::RecordingStatus, Status>> + Send>>;
 
 #[tonic::async_trait]
@@ -33,10 +39,19 @@ impl Episodes for EpisodesService {
         &self,
         request: Request<v1::StartEpisodeRequest>,
     ) -> Result<Response<v1::StartEpisodeResponse>, Status> {
-        let task = request.into_inner().task;
+        let v1::StartEpisodeRequest { task, operator } = request.into_inner();
+        if operator.len() > MAX_OPERATOR_BYTES {
+            return Err(RequestError::TooLong {
+                field: "operator",
+                len: operator.len(),
+                limit: MAX_OPERATOR_BYTES,
+            }
+            .into());
+        }
         let app = &self.app;
-        let status =
-            blocking(|| app.with_recorder(|r| r.start_episode(&task).map_err(RecordingError::from)))?;
+        let status = blocking(|| {
+            app.with_recorder(|r| r.start_episode_by(&task, &operator).map_err(RecordingError::from))
+        })?;
         Ok(Response::new(v1::StartEpisodeResponse {
             status: Some(recording_status(&status, app.config())),
         }))
@@ -88,9 +103,14 @@ impl Episodes for EpisodesService {
         _: Request<v1::ListEpisodesRequest>,
     ) -> Result<Response<v1::ListEpisodesResponse>, Status> {
         let episodes = self.app.with_recorder(|r| Ok(r.episodes()))?;
+        let uploader = self.app.uploader();
         Ok(Response::new(v1::ListEpisodesResponse {
-            episodes: episodes.iter().map(episode).collect(),
+            episodes: episodes
+                .iter()
+                .map(|e| episode_with_upload(e, uploader))
+                .collect(),
             dataset_root: self.app.config().recorder.root.display().to_string(),
+            storage: uploader.map(storage_status),
         }))
     }
 

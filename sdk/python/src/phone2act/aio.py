@@ -218,8 +218,10 @@ class AsyncEpisodes:
         self._c = client
         self._stub = stub
 
-    async def start(self, task: str) -> common_pb2.RecordingStatus:
-        r = await self._c._call("Episodes.Start", self._stub.Start, episodes_pb2.StartEpisodeRequest(task=task))
+    async def start(self, task: str, operator: str = "") -> common_pb2.RecordingStatus:
+        """Start recording `task`; `operator` (who records it) goes into the episode's provenance."""
+        request = episodes_pb2.StartEpisodeRequest(task=task, operator=operator)
+        r = await self._c._call("Episodes.Start", self._stub.Start, request)
         return r.status
 
     async def stop(self) -> episodes_pb2.EpisodeInfo:

@@ -198,8 +198,10 @@ class Episodes:
         self._c = client
         self._stub = stub
 
-    def start(self, task: str) -> common_pb2.RecordingStatus:
-        r = self._c._call("Episodes.Start", self._stub.Start, episodes_pb2.StartEpisodeRequest(task=task))
+    def start(self, task: str, operator: str = "") -> common_pb2.RecordingStatus:
+        """Start recording `task`; `operator` (who records it) goes into the episode's provenance."""
+        request = episodes_pb2.StartEpisodeRequest(task=task, operator=operator)
+        r = self._c._call("Episodes.Start", self._stub.Start, request)
         return r.status
 
     def stop(self) -> episodes_pb2.EpisodeInfo:

@@ -78,14 +78,26 @@ impl Staging {
     }
 
     /// Writes `info.json` last (it is what makes the episode count official), then journals and performs
-    /// every rename.
-    pub(super) fn commit(mut self, episode_index: u64, info_json: &[u8]) -> Result<(), RecorderError> {
+    /// every rename. Returns the committed files, dataset-relative, in the order they became visible (what
+    /// an uploader must follow: see [`super::Dataset::last_commit_files`]).
+    pub(super) fn commit(
+        mut self,
+        episode_index: u64,
+        info_json: &[u8],
+    ) -> Result<Vec<String>, RecorderError> {
         self.write("info.json", info_json, "meta/info.json")?;
         sync_dir(&self.dir)?;
+        let files = self
+            .renames
+            .iter()
+            .filter_map(|(_, to)| to.strip_prefix(&self.root).ok())
+            .map(|p| p.to_string_lossy().replace('\\', "/"))
+            .collect();
         Journal {
             episode_index,
             renames: self.renames,
         }
-        .commit(&self.root.join(JOURNAL_FILE))
+        .commit(&self.root.join(JOURNAL_FILE))?;
+        Ok(files)
     }
 }

@@ -62,6 +62,15 @@ pub struct EpisodeSummary {
     #[serde(default)]
     pub first_frame_time_ns: i64,
     pub save_latency_s: f64,
+    /// Who recorded it (set at start, e.g. `phone2act episode start --operator`); empty when unknown.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub operator: String,
+    /// The recording station (`[storage] station_id`, see `DatasetSpec::provenance`); empty when unknown.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub station_id: String,
+    /// The phone2act version that recorded it.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub software_version: String,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -140,6 +149,8 @@ pub struct Dataset {
     provenance: Provenance,
     /// Dataset quantiles of the numeric columns (see [`crate::quantiles`]).
     quantiles: QuantileStore,
+    /// The files the last commit made visible, in order (see [`Dataset::last_commit_files`]).
+    last_commit_files: Vec<String>,
 }
 
 /// An episode being recorded into staging files.
@@ -182,6 +193,7 @@ impl Dataset {
             total_frames: 0,
             provenance: Provenance::default(),
             quantiles: QuantileStore::default(),
+            last_commit_files: Vec::new(),
         };
         let info_path = root.join("meta/info.json");
         if info_path.exists() {
@@ -315,6 +327,12 @@ impl Dataset {
         self.provenance.episodes.clone()
     }
 
+    /// The files (dataset-relative, `/`-separated) the last successful commit renamed into place, in the
+    /// order it did: an uploader that copies them in this order never shows a reader a half episode.
+    pub fn last_commit_files(&self) -> &[String] {
+        &self.last_commit_files
+    }
+
     /// Records the sync settings in the provenance sidecar.
     pub fn set_sync_provenance(&mut self, sync: Value) {
         self.provenance.sync = sync;
@@ -441,6 +459,11 @@ impl Dataset {
         summary.index = index;
         summary.task.clone_from(&task);
         summary.duration_s = frames as f64 / f64::from(fps);
+        self.spec.provenance["station_id"]
+            .as_str()
+            .unwrap_or_default()
+            .clone_into(&mut summary.station_id);
+        env!("CARGO_PKG_VERSION").clone_into(&mut summary.software_version);
 
         // Per-episode stats, in info.json feature order.
         let mut stats: Vec<(String, FeatureStats)> = vec![
@@ -507,7 +530,7 @@ impl Dataset {
             tasks: tasks.len(),
         };
         let info = meta::info_json(&self.spec, &self.video, self.layout.as_ref(), &totals);
-        staged.commit(index, &info)?;
+        self.last_commit_files = staged.commit(index, &info)?;
         tracing::debug!(
             episode = index,
             flush_ms,

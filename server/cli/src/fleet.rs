@@ -1,0 +1,99 @@
+//! `phone2act dataset push DIR URL` and `phone2act dataset pull URL DIR`: a dataset to and from
+//! S3-compatible object storage (see docs/fleet.md).
+
+use phone2act_storage::remote::RemoteOptions;
+use phone2act_storage::{Credentials, Remote, StorageUrl};
+use std::path::Path;
+
+/// Where the remote is and how to reach it; credentials come from the `AWS_*` variables or the profile.
+#[derive(clap::Args, Debug)]
+pub struct RemoteArgs {
+    /// S3-compatible endpoint (MinIO, R2, ...), e.g. http://127.0.0.1:9000; requests are then path-style.
+    #[arg(long, env = "AWS_ENDPOINT_URL")]
+    endpoint: Option<String>,
+    #[arg(long, env = "AWS_REGION")]
+    region: Option<String>,
+    /// Profile of the shared credentials file, used when AWS_ACCESS_KEY_ID is not set.
+    #[arg(long)]
+    profile: Option<String>,
+    /// Upload bandwidth cap.
+    #[arg(long)]
+    max_upload_bytes_per_s: Option<u64>,
+}
+
+fn remote(url: &str, args: &RemoteArgs) -> anyhow::Result<Remote> {
+    let url = StorageUrl::parse(url).map_err(anyhow::Error::msg)?;
+    let credentials = Credentials::resolve(args.profile.as_deref(), &|k| std::env::var(k).ok())?;
+    Ok(Remote::new(
+        &url,
+        &RemoteOptions {
+            endpoint: args.endpoint.clone(),
+            region: args.region.clone(),
+            credentials,
+            ..RemoteOptions::default()
+        },
+    )?)
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?)
+}
+
+/// Pushes `dir` to `url`; returns the line to print.
+pub fn push(dir: &Path, url: &str, args: &RemoteArgs) -> anyhow::Result<String> {
+    let remote = remote(url, args)?;
+    let t0 = std::time::Instant::now();
+    let r = runtime()?.block_on(phone2act_storage::push(dir, &remote, args.max_upload_bytes_per_s))?;
+    let s = t0.elapsed().as_secs_f64();
+    Ok(format!(
+        "pushed {} to {url}: {} episodes remote (was {}), {} objects put ({} bytes, {:.1} MB/s), {} already there",
+        dir.display(),
+        r.episodes_after,
+        r.episodes_before,
+        r.objects_put,
+        r.bytes_put,
+        r.bytes_put as f64 / s.max(1e-9) / 1e6,
+        r.objects_skipped
+    ))
+}
+
+/// Pulls `url` into `dir`; returns the line to print.
+pub fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<String> {
+    let remote = remote(url, args)?;
+    let episodes = runtime()?.block_on(phone2act_storage::pull(&remote, dir))?;
+    Ok(format!(
+        "pulled {url} into {}: {episodes} episodes",
+        dir.display()
+    ))
+}
+
+/// `storage: s3://... (station st-...): 12 uploaded, 1 pending; last error: ...`
+pub fn storage_line(s: &phone2act_sdk::proto::StorageStatus) -> String {
+    let mut line = format!(
+        "storage: {} (station {}): {} episodes uploaded, {} pending, {} objects put ({} bytes)",
+        s.url, s.station_id, s.episodes_uploaded, s.episodes_pending, s.objects_put, s.bytes_put
+    );
+    if !s.last_error.is_empty() {
+        line.push_str("; last error: ");
+        line.push_str(&s.last_error);
+    }
+    line
+}
+
+/// `  [uploaded]`, `  [failed: reason]`, ... after an episode line; empty when storage is off.
+pub fn upload_suffix(ep: &phone2act_sdk::proto::EpisodeInfo) -> String {
+    use phone2act_sdk::proto::UploadState;
+    let mut s = match ep.upload_state() {
+        UploadState::Unspecified => String::new(),
+        UploadState::Pending => "  [pending]".into(),
+        UploadState::Uploading => "  [uploading]".into(),
+        UploadState::Uploaded => "  [uploaded]".into(),
+        UploadState::Failed => format!("  [failed: {}]", ep.upload_error),
+    };
+    if !ep.operator.is_empty() {
+        s = format!("  by {}{s}", ep.operator);
+    }
+    s
+}

@@ -1,0 +1,292 @@
+//! Episodes flow to S3-compatible storage (issue 26), against a real S3 server on loopback (moto, see
+//! `phone2act_tests::s3`): an episode recorded with `[storage]` appears remotely complete; wrong
+//! credentials and a missing bucket are clear errors that leave everything local and complete once fixed;
+//! the storage server killed mid-upload and restarted finishes the upload with nothing half-visible.
+//!
+//! Timing: every wait below is a liveness bound (generous: a minute or more, for work that takes about a
+//! second on an idle machine), never a performance assertion, so a loaded two-core machine slows these tests
+//! down without failing them.
+
+use phone2act_sdk::proto as v1;
+use phone2act_storage::remote::RemoteOptions;
+use phone2act_storage::{Remote, StorageConfig, StorageUrl};
+use phone2act_tests::s3::{Moto, moto_server_path};
+use phone2act_tests::{TestServer, default_config};
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+const BUCKET: &str = "fleet";
+
+fn storage(moto: &Moto, creds: &Path, station: &str) -> StorageConfig {
+    let mut s = StorageConfig::new(format!("s3://{BUCKET}/lab"));
+    s.endpoint = Some(moto.endpoint());
+    s.credentials_file = Some(creds.to_owned());
+    s.station_id = Some(station.to_owned());
+    s
+}
+
+fn remote(moto: &Moto, station: &str) -> Remote {
+    let url = StorageUrl::parse(&format!("s3://{BUCKET}/lab/{station}")).unwrap();
+    let creds = phone2act_storage::Credentials::resolve(None, &|k| match k {
+        "AWS_ACCESS_KEY_ID" => Some(moto.key_id.clone()),
+        "AWS_SECRET_ACCESS_KEY" => Some(moto.secret.clone()),
+        _ => None,
+    })
+    .unwrap();
+    Remote::new(
+        &url,
+        &RemoteOptions {
+            endpoint: Some(moto.endpoint()),
+            credentials: creds,
+            max_retries: Some(0),
+            request_timeout: Some(Duration::from_secs(10)),
+            ..RemoteOptions::default()
+        },
+    )
+    .unwrap()
+}
+
+async fn record(client: &phone2act_sdk::Client, task: &str, operator: &str, ms: u64) -> u64 {
+    let mut episodes = client.episodes();
+    episodes.start_by(task, operator).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(ms)).await;
+    episodes.stop().await.unwrap().episode.unwrap().episode_index
+}
+
+/// Polls `Episodes.List` until `done` holds for it (or panics after `limit`, showing the last answer).
+async fn wait_list(
+    client: &phone2act_sdk::Client,
+    limit: Duration,
+    what: &str,
+    mut done: impl FnMut(&v1::ListEpisodesResponse) -> bool,
+) -> v1::ListEpisodesResponse {
+    let deadline = Instant::now() + limit;
+    loop {
+        let list = client.episodes().list().await.unwrap();
+        if done(&list) {
+            return list;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what}: not within {limit:?}: {list:#?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn all_uploaded(list: &v1::ListEpisodesResponse, n: usize) -> bool {
+    list.episodes.len() == n
+        && list
+            .episodes
+            .iter()
+            .all(|e| e.upload_state() == v1::UploadState::Uploaded)
+}
+
+/// A reader's view: when `meta/info.json` is remote, every file of the episodes it counts is remote too
+/// (phone2act's v3.0 layout: one data, one episode-metadata and one video file per camera per episode).
+async fn remote_is_consistent(remote: &Remote, cameras: usize) -> Result<(), String> {
+    let listed = remote.list().await.map_err(|e| e.to_string())?;
+    let Some(info) = remote
+        .get_bytes("meta/info.json")
+        .await
+        .map_err(|e| e.to_string())?
+    else {
+        return Ok(());
+    };
+    let info: serde_json::Value = serde_json::from_slice(&info).unwrap();
+    let n = info["total_episodes"].as_u64().unwrap() as usize;
+    let count = |prefix: &str| listed.iter().filter(|(k, _)| k.starts_with(prefix)).count();
+    let (data, meta, videos) = (count("data/"), count("meta/episodes/"), count("videos/"));
+    if data < n || meta < n || videos < n * cameras {
+        return Err(format!(
+            "info.json counts {n} episodes but only {data} data, {meta} episode-metadata and {videos} video files are remote"
+        ));
+    }
+    Ok(())
+}
+
+async fn pull_and_verify(remote: &Remote, dest: &Path, episodes: u64) {
+    let n = phone2act_storage::pull(remote, dest).await.unwrap();
+    assert_eq!(n, episodes);
+    let report = phone2act_recorder::verify::verify(dest);
+    assert!(report.ok(), "{:?}", report.problems);
+    assert_eq!(report.episodes, episodes);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_episode_recorded_with_storage_appears_remotely_complete() {
+    let Some(bin) = moto_server_path("an_episode_recorded_with_storage_appears_remotely_complete") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = dir.path().join("ds");
+    let mut config = default_config(&root);
+    config.storage = Some(storage(&moto, &creds, "st-a"));
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+
+    assert_eq!(record(&client, "pick the cube", "alice", 800).await, 0);
+    assert_eq!(record(&client, "place the cube", "bob", 600).await, 1);
+    let list = wait_list(&client, Duration::from_mins(2), "both episodes uploaded", |l| {
+        all_uploaded(l, 2)
+    })
+    .await;
+    let st = list.storage.as_ref().expect("storage status");
+    assert_eq!(st.url, format!("s3://{BUCKET}/lab/st-a"));
+    assert_eq!((st.episodes_uploaded, st.episodes_pending), (2, 0));
+    assert!(st.last_error.is_empty(), "{}", st.last_error);
+    assert_eq!(list.episodes[0].operator, "alice");
+    assert_eq!(list.episodes[1].station_id, "st-a");
+
+    // Only dataset files are remote (no journal, staging or station-id file), all under the station.
+    let keys = moto.list(BUCKET, "");
+    assert!(!keys.is_empty());
+    for (k, _) in &keys {
+        assert!(k.starts_with("lab/st-a/") && !k.contains("/."), "{k}");
+    }
+    let remote = remote(&moto, "st-a");
+    remote_is_consistent(&remote, 1).await.unwrap();
+    let back = dir.path().join("back");
+    pull_and_verify(&remote, &back, 2).await;
+    // Provenance names station, operator and version, and never the secret.
+    let prov = std::fs::read_to_string(back.join("meta/phone2act_provenance.json")).unwrap();
+    let p: serde_json::Value = serde_json::from_str(&prov).unwrap();
+    assert_eq!(p["episodes"][0]["operator"], "alice");
+    assert_eq!(p["episodes"][1]["operator"], "bob");
+    assert_eq!(p["episodes"][0]["station_id"], "st-a");
+    assert_eq!(p["episodes"][0]["software_version"], env!("CARGO_PKG_VERSION"));
+    assert!(!prov.contains(&moto.secret));
+    // The remote copy is the local one, file for file.
+    for rel in phone2act_storage::order::dataset_files(&root).unwrap() {
+        assert_eq!(
+            std::fs::read(root.join(&rel)).unwrap(),
+            std::fs::read(back.join(&rel)).unwrap(),
+            "{rel}"
+        );
+    }
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_fixed() {
+    let test = "wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_fixed";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    let root = dir.path().join("ds");
+
+    // Wrong secret: the episode is saved locally, its upload fails with a clear reason, retried.
+    let wrong = moto.credentials_file(dir.path(), Some("not-the-secret"));
+    let mut config = default_config(&root);
+    config.storage = Some(storage(&moto, &wrong, "st-b"));
+    let server = TestServer::start(config.clone()).await.unwrap();
+    let client = server.client().await.unwrap();
+    record(&client, "pick", "carol", 500).await;
+    let list = wait_list(&client, Duration::from_mins(1), "a failed upload", |l| {
+        l.episodes
+            .first()
+            .is_some_and(|e| e.upload_state() == v1::UploadState::Failed)
+    })
+    .await;
+    let err = &list.episodes[0].upload_error;
+    assert!(
+        err.contains("access denied") && err.contains("AWS_SECRET_ACCESS_KEY"),
+        "{err}"
+    );
+    assert!(!err.contains("not-the-secret"), "{err}");
+    assert!(list.storage.unwrap().last_error.contains("access denied"));
+    server.shutdown().await.unwrap();
+    assert!(phone2act_recorder::verify::verify(&root).ok());
+
+    // Right key, missing bucket: the same episode (from the journal) now fails on the bucket.
+    let right = moto.credentials_file(dir.path(), None);
+    config.storage = Some(storage(&moto, &right, "st-b"));
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    let list = wait_list(&client, Duration::from_mins(1), "a missing-bucket error", |l| {
+        l.episodes
+            .first()
+            .is_some_and(|e| e.upload_error.contains("bucket does not exist"))
+    })
+    .await;
+    assert_eq!(list.episodes[0].upload_state(), v1::UploadState::Failed);
+    record(&client, "place", "carol", 500).await;
+
+    // Create it: both episodes go up without anyone touching the server (backoff is capped at 30 s).
+    moto.create_bucket(BUCKET);
+    wait_list(&client, Duration::from_mins(2), "uploads after the fix", |l| {
+        all_uploaded(l, 2)
+    })
+    .await;
+    let remote = remote(&moto, "st-b");
+    pull_and_verify(&remote, &dir.path().join("back"), 2).await;
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
+    let test = "the_storage_killed_mid_upload_and_restarted_shows_no_half_episode";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    // Without authentication: a restarted moto forgets its IAM users, not the station.
+    let mut moto = Moto::start(&bin, dir.path(), false);
+    moto.create_bucket(BUCKET);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = dir.path().join("ds");
+    let mut config = default_config(&root);
+    let mut s = storage(&moto, &creds, "st-c");
+    // Slow enough that the episode's files take seconds to go up, so the kill lands between two of them.
+    s.max_upload_bytes_per_s = Some(8_000);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    record(&client, "pick", "dan", 1000).await;
+
+    // Kill the storage as soon as the first object of the episode is there.
+    let remote = remote(&moto, "st-c");
+    let deadline = Instant::now() + Duration::from_mins(2);
+    let first = loop {
+        let listed = remote.list().await.unwrap_or_default();
+        if !listed.is_empty() {
+            break listed;
+        }
+        assert!(Instant::now() < deadline, "no object uploaded in 120 s");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    moto.kill();
+    assert!(
+        !first.iter().any(|(k, _)| k == "meta/info.json"),
+        "the upload finished before the kill (the test did not test anything): {first:?}"
+    );
+    // A reader of what was remote saw no episode: the files before info.json count none.
+    assert!(first.len() < phone2act_storage::order::dataset_files(&root).unwrap().len());
+    wait_list(&client, Duration::from_mins(1), "the outage reported", |l| {
+        l.episodes
+            .first()
+            .is_some_and(|e| e.upload_state() == v1::UploadState::Failed)
+    })
+    .await;
+
+    // Back (empty: moto keeps nothing), bucket re-created: the upload completes from the journal; at
+    // every poll a reader sees whole episodes only.
+    moto.restart();
+    moto.create_bucket(BUCKET);
+    let deadline = Instant::now() + Duration::from_mins(3);
+    loop {
+        remote_is_consistent(&remote, 1).await.unwrap();
+        let list = client.episodes().list().await.unwrap();
+        if all_uploaded(&list, 1) {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "upload not finished after the restart: {list:#?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    pull_and_verify(&remote, &dir.path().join("back"), 1).await;
+    server.shutdown().await.unwrap();
+}
