@@ -7,7 +7,7 @@ use std::path::Path;
 
 /// Where the remote is and how to reach it; credentials come from the `AWS_*` variables or the profile.
 #[derive(clap::Args, Debug)]
-pub struct RemoteArgs {
+pub(crate) struct RemoteArgs {
     /// S3-compatible endpoint (MinIO, R2, ...), e.g. http://127.0.0.1:9000; requests are then path-style.
     #[arg(long, env = "AWS_ENDPOINT_URL")]
     endpoint: Option<String>,
@@ -42,7 +42,7 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 }
 
 /// Pushes `dir` to `url`; returns the line to print.
-pub fn push(dir: &Path, url: &str, args: &RemoteArgs) -> anyhow::Result<String> {
+pub(crate) fn push(dir: &Path, url: &str, args: &RemoteArgs) -> anyhow::Result<String> {
     let remote = remote(url, args)?;
     let t0 = std::time::Instant::now();
     let r = runtime()?.block_on(phone2act_storage::push(dir, &remote, args.max_upload_bytes_per_s))?;
@@ -60,7 +60,7 @@ pub fn push(dir: &Path, url: &str, args: &RemoteArgs) -> anyhow::Result<String> 
 }
 
 /// Pulls `url` into `dir`; returns the line to print.
-pub fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<String> {
+pub(crate) fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<String> {
     let remote = remote(url, args)?;
     let episodes = runtime()?.block_on(phone2act_storage::pull(&remote, dir))?;
     Ok(format!(
@@ -70,7 +70,7 @@ pub fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<String> 
 }
 
 /// `storage: s3://... (station st-...): 12 uploaded, 1 pending; last error: ...`
-pub fn storage_line(s: &phone2act_sdk::proto::StorageStatus) -> String {
+pub(crate) fn storage_line(s: &phone2act_sdk::proto::StorageStatus) -> String {
     let mut line = format!(
         "storage: {} (station {}): {} episodes uploaded, {} pending, {} objects put ({} bytes)",
         s.url, s.station_id, s.episodes_uploaded, s.episodes_pending, s.objects_put, s.bytes_put
@@ -83,7 +83,7 @@ pub fn storage_line(s: &phone2act_sdk::proto::StorageStatus) -> String {
 }
 
 /// `  [uploaded]`, `  [failed: reason]`, ... after an episode line; empty when storage is off.
-pub fn upload_suffix(ep: &phone2act_sdk::proto::EpisodeInfo) -> String {
+pub(crate) fn upload_suffix(ep: &phone2act_sdk::proto::EpisodeInfo) -> String {
     use phone2act_sdk::proto::UploadState;
     let mut s = match ep.upload_state() {
         UploadState::Unspecified => String::new(),

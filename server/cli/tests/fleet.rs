@@ -7,7 +7,7 @@
 //! performance assertion, so a loaded two-core machine makes these tests slower, not red.
 
 #[path = "../../../tests/src/s3.rs"]
-#[allow(dead_code)]
+#[allow(dead_code, unreachable_pub)]
 mod s3;
 
 use parking_lot::Mutex;
