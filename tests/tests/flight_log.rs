@@ -54,16 +54,22 @@ fn pose(x_m: f64, y_m: f64, yaw_rad: f64) -> v1::Pose {
     v1::Pose::from_parts([x_m, y_m, 0.0], [0.0, 0.0, s, c])
 }
 
+/// A phone on arm `main`, engaged at the tracking origin.
+async fn engaged_phone(client: &phone2act_sdk::Client) -> phone2act_sdk::TeleopSession {
+    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
+    let seq = phone
+        .send_pose(pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
+    phone.feedback_for(seq).await.unwrap();
+    phone
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_phone_session_replays_to_the_same_commands_and_decisions() {
     let logs = tempfile::tempdir().unwrap();
     let log = logged(logs.path(), |client| async move {
-        let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-        let seq = phone
-            .send_pose(pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0)
-            .await
-            .unwrap();
-        phone.feedback_for(seq).await.unwrap();
+        let mut phone = engaged_phone(&client).await;
         // A small circle with a wrist turn at 50 Hz, a jump the gate drops, a grip, a non-unit quaternion.
         for i in 1..=60u32 {
             let a = f64::from(i) * std::f64::consts::TAU / 60.0;
@@ -173,12 +179,7 @@ async fn a_policy_session_replays_to_the_same_commands_and_decisions() {
 async fn a_log_replayed_under_a_stricter_gate_names_the_first_decision_that_changes() {
     let logs = tempfile::tempdir().unwrap();
     let log = logged(logs.path(), |client| async move {
-        let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-        let seq = phone
-            .send_pose(pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0)
-            .await
-            .unwrap();
-        phone.feedback_for(seq).await.unwrap();
+        let mut phone = engaged_phone(&client).await;
         for i in 1..=10u32 {
             // 5 mm steps: accepted by the default gate (6 cm), dropped by one that allows 1 mm.
             let seq = phone
