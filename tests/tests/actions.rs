@@ -74,8 +74,8 @@ struct Episode {
     actions: Vec<Vec<f64>>,
     /// Recorder ticks that found no new robot sample (held) or came too late, printed with each replay.
     stalled_ticks: u64,
-    /// Ticks the recorder skipped after a stall longer than its hold tolerance: the recording's timeline is then
-    /// shorter than the motion's, so its frames are not at i/fps of the motion any more.
+    /// Frames whose robot or camera sample was captured farther from the frame's time than the recorder's
+    /// tolerance (each is recorded with the newest sample before its time, and counted).
     late_ticks: u64,
 }
 
