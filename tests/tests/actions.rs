@@ -476,13 +476,13 @@ async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay, setup
         "{how:?}: an executed target is {roundings:.1} float32 roundings / {joint_rad:.1e} joint rad from every \
          recorded one"
     );
-    // The measured path is compared only between two recordings whose timelines are the motion's: a recorder
-    // that fell further behind than its hold tolerance (a CPU-starved 2-core machine) skips ticks and says so in
-    // `late_ticks`, and then its frame i is no longer the motion at i/fps, whatever the executor did. The
-    // executed-target check above holds either way; the recorder's late-tick timeline is its own open item.
+    // The measured path is compared only between two recordings whose every frame holds the motion at its own
+    // time: a frame counted in `late_ticks` holds a sample from farther before its time than the recorder's
+    // tolerance (a CPU-starved 2-core machine), whatever the executor did. The executed-target check above
+    // holds either way.
     if original.late_ticks + replayed.late_ticks > 0 {
         println!(
-            "{how:?}: measured-path comparison not meaningful: the recorder skipped {} + {} late ticks",
+            "{how:?}: measured-path comparison not meaningful: the recorder counted {} + {} late frames",
             original.late_ticks, replayed.late_ticks
         );
         return;
