@@ -324,8 +324,7 @@ pub enum Verdict {
 }
 
 /// Replays the log at `path` on a fresh arbiter: under `config`'s teleop and chunk settings for the log's arm
-/// when given (to ask "what would this session have done under that configuration?"), else under the
-/// settings it recorded. Returns the verdict and, when identical, a sentence saying how the log ended.
+/// when given (the same inputs decided by other settings), else under the settings it recorded. Returns the verdict and, when identical, a sentence saying how the log ended.
 pub fn replay_file(path: &Path, config: Option<&Config>) -> Result<(Verdict, String), FlightLogError> {
     let mut reader = FlightLogReader::open(path)?;
     let mut header = reader.header().clone();
