@@ -214,7 +214,7 @@ impl App {
             };
             let controller = match &config.flight_log {
                 Some(flight) => controller
-                    .with_flight_log(&flight.dir, flight.max_bytes)
+                    .with_flight_log(&flight.dir, flight.max_bytes, &arm.teleop, &arm.chunk)
                     .map_err(|e| arm_err(e.to_string()))?,
                 None => controller,
             };

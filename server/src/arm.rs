@@ -171,8 +171,6 @@ pub struct ArmController {
     samples_received: AtomicU64,
     /// Ticks run since start (an idle arm runs none).
     ticks: AtomicU64,
-    /// What the arbiter was made from: the start of a flight log.
-    flight_header: FlightHeader,
 }
 
 impl std::fmt::Debug for ArmController {
@@ -221,7 +219,6 @@ impl ArmController {
                 joints: bridge.joint_names().to_vec(),
             });
         }
-        let flight_header = FlightHeader::new(name, teleop, chunk, measured, gripper);
         let arbiter =
             Arbiter::new(teleop, chunk.clone(), measured, gripper).map_err(|source| ArmError::Config {
                 arm: name.to_owned(),
@@ -246,18 +243,25 @@ impl ArmController {
             latencies_ns: Mutex::new(LatencyRing::default()),
             samples_received: AtomicU64::new(0),
             ticks: AtomicU64::new(0),
-            flight_header,
         })
     }
 
     /// Logs every input of this arm's arbiter from now on to a new file in `dir` (see
-    /// [`crate::flight_log`]). Called before the arm takes any input, so the log replays from its start.
-    pub fn with_flight_log(self, dir: &std::path::Path, max_bytes: u64) -> Result<Self, ArmError> {
-        let log = FlightLogWriter::create(dir, &self.flight_header, max_bytes).map_err(|source| {
-            ArmError::FlightLog {
-                arm: self.name.clone(),
-                source,
-            }
+    /// [`crate::flight_log`]), its header made of the `teleop` and `chunk` settings the arm was built with and
+    /// the pose and gripper the arbiter holds. Called before the arm takes any input (so that pose is the one
+    /// it started from, and the log replays from its start).
+    pub fn with_flight_log(
+        self,
+        dir: &std::path::Path,
+        max_bytes: u64,
+        teleop: &TeleopConfig,
+        chunk: &ChunkConfig,
+    ) -> Result<Self, ArmError> {
+        let (measured, gripper) = self.inner.lock().arbiter.target();
+        let header = FlightHeader::new(&self.name, teleop, chunk, measured, gripper);
+        let log = FlightLogWriter::create(dir, &header, max_bytes).map_err(|source| ArmError::FlightLog {
+            arm: self.name.clone(),
+            source,
         })?;
         tracing::info!(arm = %self.name, path = %log.path().display(), "flight log on");
         self.inner.lock().flight = Some(log);
