@@ -11,6 +11,20 @@ use std::net::SocketAddr;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
+/// A policy session's hello as most tests open one: `arms`, 20 Hz observations without images, control
+/// requested, named `name`, losing the arm after `silence_timeout_s` without a chunk.
+pub fn policy_hello(arms: &[&str], name: &str, silence_timeout_s: f64) -> phone2act_proto::v1::PolicyHello {
+    phone2act_proto::v1::PolicyHello {
+        arms: arms.iter().map(|&a| a.to_owned()).collect(),
+        observation_rate_hz: 20.0,
+        image_encoding: phone2act_proto::v1::ImageEncoding::None as i32,
+        request_control: true,
+        policy_name: name.to_owned(),
+        silence_timeout_s,
+        ..phone2act_proto::v1::PolicyHello::default()
+    }
+}
+
 /// The embedded default configuration with its dataset under `dataset_root`, its camera shrunk to
 /// 320x240 at 15 fps so that a dozen servers in unoptimised test builds fit on two cores.
 pub fn default_config(dataset_root: &std::path::Path) -> Config {

@@ -322,15 +322,7 @@ fn chunk_steps(n: usize, dx_total: f64) -> Vec<v1::ActionStep> {
 
 async fn open_policy(client: &Client, arms: &[&str]) -> phone2act_sdk::PolicySession {
     client
-        .policy(v1::PolicyHello {
-            arms: arms.iter().map(|s| (*s).to_owned()).collect(),
-            observation_rate_hz: 20.0,
-            image_encoding: v1::ImageEncoding::None as i32,
-            request_control: true,
-            policy_name: "test".into(),
-            silence_timeout_s: 2.0,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(arms, "test", 2.0))
         .await
         .unwrap()
 }

@@ -116,15 +116,7 @@ async fn a_policy_session_replays_to_the_same_commands_and_decisions() {
     let logs = tempfile::tempdir().unwrap();
     let log = logged(logs.path(), |client| async move {
         let mut policy = client
-            .policy(v1::PolicyHello {
-                arms: vec!["main".into()],
-                observation_rate_hz: 20.0,
-                image_encoding: v1::ImageEncoding::None as i32,
-                request_control: true,
-                policy_name: "flight-test".into(),
-                silence_timeout_s: 2.0,
-                ..v1::PolicyHello::default()
-            })
+            .policy(phone2act_tests::policy_hello(&["main"], "flight-test", 2.0))
             .await
             .unwrap();
         for round in 0..2 {

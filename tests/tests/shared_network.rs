@@ -319,15 +319,7 @@ async fn a_guessed_session_id_pushes_nothing() {
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
     let mut policy = client
-        .policy(v1::PolicyHello {
-            arms: vec!["main".into()],
-            observation_rate_hz: 20.0,
-            image_encoding: v1::ImageEncoding::None as i32,
-            request_control: true,
-            policy_name: "victim".into(),
-            silence_timeout_s: 60.0,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(&["main"], "victim", 60.0))
         .await
         .unwrap();
     let real = policy.ready().session_id.clone();
