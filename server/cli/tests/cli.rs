@@ -1,25 +1,15 @@
 //! The `phone2act` binary as a user runs it: `serve` in a subprocess, the episode/status/dataset commands
 //! against it, bad config files, a taken port, and SIGTERM.
 
+mod common;
+use common::Served;
 use parking_lot::Mutex;
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_phone2act");
-
-struct Served {
-    child: Child,
-    url: String,
-}
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 /// A token the server requires in the end-to-end test; it must never reach a dataset or stdout.
 const SECRET_TOKEN: &str = "tok-3f9a1c77e2";
@@ -30,7 +20,7 @@ fn serve(config: &std::path::Path) -> Served {
 
 /// Like [`serve`], without `SVT_LOG` in the environment, collecting the server's stderr lines in `log`.
 fn serve_logging(config: &std::path::Path, log: Arc<Mutex<Vec<String>>>) -> Served {
-    let mut child = Command::new(BIN)
+    let child = Command::new(BIN)
         .args(["serve", "--listen", "127.0.0.1:0", "--config"])
         .arg(config)
         .env("PHONE2ACT_SERVER__TOKEN", SECRET_TOKEN)
@@ -41,23 +31,7 @@ fn serve_logging(config: &std::path::Path, log: Arc<Mutex<Vec<String>>>) -> Serv
         .stdout(Stdio::null())
         .spawn()
         .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(addr) = line.strip_prefix("phone2act: gRPC on ") {
-                let _ = tx.send(addr.to_owned());
-            }
-            log.lock().push(line);
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_mins(1))
-        .expect("server printed its address");
-    Served {
-        child,
-        url: format!("http://{addr}"),
-    }
+    common::served(child, log, Duration::from_mins(1))
 }
 
 fn run(args: &[&str], url: &str) -> (bool, String, String) {

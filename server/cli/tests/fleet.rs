@@ -10,31 +10,20 @@
 #[allow(dead_code, unreachable_pub)]
 mod s3;
 
+mod common;
+use common::Served;
 use parking_lot::Mutex;
 use phone2act_storage::remote::RemoteOptions;
 use phone2act_storage::{Credentials, Remote, StorageUrl};
 use s3::{Moto, moto_server_path};
 use std::collections::BTreeSet;
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const BIN: &str = env!("CARGO_BIN_EXE_phone2act");
 const BUCKET: &str = "fleet";
-
-struct Served {
-    child: Child,
-    url: String,
-}
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 fn write_config(dir: &Path, root: &Path, storage: &str) -> std::path::PathBuf {
     let path = dir.join(format!(
@@ -67,25 +56,8 @@ fn serve(config: &Path, moto: &Moto, log: &Arc<Mutex<Vec<String>>>) -> Served {
         .stderr(Stdio::piped())
         .stdout(Stdio::null());
     aws_env(&mut cmd, moto);
-    let mut child = cmd.spawn().unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let log = Arc::clone(log);
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(addr) = line.strip_prefix("phone2act: gRPC on ") {
-                let _ = tx.send(addr.to_owned());
-            }
-            log.lock().push(line);
-        }
-    });
-    let addr = rx
-        .recv_timeout(Duration::from_mins(2))
-        .expect("server printed its address");
-    Served {
-        child,
-        url: format!("http://{addr}"),
-    }
+    let child = cmd.spawn().unwrap();
+    common::served(child, Arc::clone(log), Duration::from_mins(2))
 }
 
 fn run(args: &[&str], moto: &Moto) -> (bool, String, String) {
