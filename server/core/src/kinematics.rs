@@ -79,6 +79,8 @@ const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) = ([-0.0079, -0.000_218_121, -0.098
 
 /// Extra position-only iterations after an orientation solve that left position short of tolerance.
 const POLISH_ITERATIONS: usize = 20;
+/// Orientation error (rad) at and above which the secondary task gets its full damping.
+const SECONDARY_DAMPING_FULL_RAD: f64 = 0.05;
 
 /// Solver parameters of [`So101Kinematics::inverse`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -500,8 +502,13 @@ impl So101Kinematics {
                 let null = SMatrix::<f64, SO101_ARM_DOF, SO101_ARM_DOF>::identity() - jp_pinv * jp;
                 let jo_null = jo * null;
                 // Orientation errors are radians, position metres: the same damping value in radians would
-                // be far too small, so the secondary task gets its own, larger one.
-                secondary = null * dls_step(&jo_null, &(e_o - jo * primary), damping * 20.0)?;
+                // be far too small, so the secondary task gets its own, larger one. It shrinks with the error
+                // (the step it allows, e/2λ, shrinks with it too): a fixed one crawls at ~1 % a step wherever
+                // the null space reaches the orientation weakly, and stopped 1.3 mrad short of reachable targets.
+                let e_secondary = e_o - jo * primary;
+                let share = (e_secondary.norm() / SECONDARY_DAMPING_FULL_RAD).min(1.0);
+                let damping_o = (damping * 20.0 * share.sqrt()).max(damping);
+                secondary = null * dls_step(&jo_null, &e_secondary, damping_o)?;
             }
             let dq = primary + secondary;
             let mut newly_pinned = false;
