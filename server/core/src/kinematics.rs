@@ -81,6 +81,8 @@ const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) = ([-0.0079, -0.000_218_121, -0.098
 const POLISH_ITERATIONS: usize = 20;
 /// Orientation error (rad) at and above which the secondary task gets its full damping.
 const SECONDARY_DAMPING_FULL_RAD: f64 = 0.05;
+/// Share of the normal step bound used by the retry that follows the seed's branch.
+const CAUTIOUS_STEP_SHARE: f64 = 0.2;
 
 /// Solver parameters of [`So101Kinematics::inverse`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -186,6 +188,15 @@ fn urdf_origin(xyz: [f64; 3], rpy: [f64; 3]) -> Isometry3<f64> {
         * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), rpy[1])
         * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), rpy[0]);
     Isometry3::from_parts(Translation3::new(xyz[0], xyz[1], xyz[2]), rotation)
+}
+
+/// True if some joint of `after` sits on a limit that the same joint of `before` was not on.
+fn newly_at_limit(before: &So101Joints, after: &So101Joints) -> bool {
+    let on_limit = |v: f64, (lo, hi): (f64, f64)| (v - lo).abs() < 1e-9 || (v - hi).abs() < 1e-9;
+    SO101_JOINT_LIMITS_RAD
+        .iter()
+        .zip(before.iter().zip(after))
+        .any(|(&limits, (&b, &a))| on_limit(a, limits) && !on_limit(b, limits))
 }
 
 /// Clamps each joint into its limit; a NaN becomes the middle of the range.
@@ -304,8 +315,47 @@ impl So101Kinematics {
                 invalid_input: true,
             };
         }
-        let cfg = &self.solver;
         let w_orientation = weights.orientation.clamp(0.0, 1.0);
+        let solution = self.solve(target, seed, q, w_orientation);
+        // A long first step can carry the arm off the seed's branch into a joint limit, where the
+        // orientation is out of reach although the target is not (seen: wrist flex pinned, 10 mrad
+        // short of a target 0.15 rad from the seed). Short steps follow the seed's branch; they are
+        // tried only then, so the common solve costs nothing more.
+        if solution.position_reached
+            && !solution.orientation_reached
+            && w_orientation > 0.0
+            && newly_at_limit(&q, &solution.joints_rad)
+        {
+            let cautious = Self {
+                solver: IkSolverConfig {
+                    max_step_rad: self.solver.max_step_rad * CAUTIOUS_STEP_SHARE,
+                    max_iterations: self.solver.max_iterations * 2,
+                    ..self.solver
+                },
+                ..self.clone()
+            };
+            let mut retry = cautious.solve(target, seed, q, w_orientation);
+            retry.iterations += solution.iterations;
+            if retry.position_reached && retry.orientation_error_rad < solution.orientation_error_rad {
+                return IkSolution {
+                    position_reached: retry.position_error_m <= self.solver.position_tolerance_m,
+                    orientation_reached: retry.orientation_error_rad <= self.solver.orientation_tolerance_rad,
+                    ..retry
+                };
+            }
+        }
+        solution
+    }
+
+    /// [`Self::inverse`] for checked input: `q` is the seed clamped to the limits.
+    fn solve(
+        &self,
+        target: &Isometry3<f64>,
+        seed: &So101Joints,
+        q: So101Joints,
+        w_orientation: f64,
+    ) -> IkSolution {
+        let cfg = &self.solver;
         let p_target = target.translation.vector;
         // The orientation aimed at is fixed per solve so that a partial weight converges instead of creeping.
         let r_aim = if w_orientation >= 1.0 {
