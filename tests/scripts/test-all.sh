@@ -24,6 +24,9 @@ mkdir -p "$PHONE2ACT_CONFORMANCE_DIR"
 # server/cli/tests/fleet.rs); without it they skip, loudly.
 PHONE2ACT_MOTO_SERVER="$(tests/scripts/s3-server.sh)"
 export PHONE2ACT_MOTO_SERVER
+# Property tests draw from one fixed seed here, so a run is reproducible and a red one can be rerun as is;
+# tests/scripts/proptest-deep.sh searches fresh seeds with many cases (docs/testing.md).
+export PROPTEST_RNG_SEED="${PROPTEST_RNG_SEED:-20261127}"
 set +e
 cargo test --workspace 2>&1 | tee /tmp/phone2act-cargo-test.log
 rc=${PIPESTATUS[0]}
