@@ -23,7 +23,9 @@ use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, ch
 use gripper::GripperOutput;
 use nalgebra::{Isometry3, Translation3};
 use parking_lot::Mutex;
-use protocol::{Firmware, Reply, RobotMode, ServoParams, Terminator, error_text, parse_reply};
+use protocol::{
+    ErrorIds, Firmware, Reply, RobotMode, ServoParams, Terminator, echo_matches, error_text, parse_reply,
+};
 use serde::{Deserialize, Serialize};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
@@ -69,8 +71,19 @@ pub struct DobotConfig {
     pub gripper: GripperOutput,
     #[serde(default = "default_connect_timeout_s")]
     pub connect_timeout_s: f64,
+    /// Time the controller has to answer a command (`EnableRobot` excepted).
     #[serde(default = "default_reply_timeout_s")]
     pub reply_timeout_s: f64,
+    /// Time the controller has to answer `EnableRobot`, which releases the brakes before it replies and so
+    /// may take longer than other commands. Dobot's own clients wait without a limit; this bound keeps
+    /// `start()` and `control(Enable)` returning when a controller never answers.
+    #[serde(default = "default_enable_timeout_s")]
+    pub enable_timeout_s: f64,
+    /// Send `RequestControl()` (V4.6+: switch the controller to TCP control) before enabling. Firmware
+    /// older than V4.6 answers it as an unknown command, which the bridge takes as "not needed". Ignored
+    /// for V3 firmware.
+    #[serde(default = "default_true")]
+    pub request_control: bool,
     /// Feedback silence after which the link is reported down.
     #[serde(default = "default_feedback_timeout_s")]
     pub feedback_timeout_s: f64,
@@ -104,6 +117,9 @@ fn default_connect_timeout_s() -> f64 {
 fn default_reply_timeout_s() -> f64 {
     1.0
 }
+fn default_enable_timeout_s() -> f64 {
+    10.0
+}
 fn default_feedback_timeout_s() -> f64 {
     0.25
 }
@@ -129,6 +145,8 @@ impl DobotConfig {
             gripper: GripperOutput::default(),
             connect_timeout_s: default_connect_timeout_s(),
             reply_timeout_s: default_reply_timeout_s(),
+            enable_timeout_s: default_enable_timeout_s(),
+            request_control: true,
             feedback_timeout_s: default_feedback_timeout_s(),
             clear_error_on_start: true,
             enable_on_start: true,
@@ -164,6 +182,7 @@ impl DobotConfig {
         for (name, v) in [
             ("connect_timeout_s", self.connect_timeout_s),
             ("reply_timeout_s", self.reply_timeout_s),
+            ("enable_timeout_s", self.enable_timeout_s),
             ("feedback_timeout_s", self.feedback_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 60.0) {
@@ -199,47 +218,97 @@ pub struct DobotStats {
     pub convention: EulerConvention,
     pub convention_verified: bool,
     pub reconnects: u64,
+    /// Replies read and set aside because their echo named another command (a stray or late reply).
+    pub replies_discarded: u64,
+    /// What the controller answered to `RequestControl()` at the last connect.
+    pub control_request: ControlRequest,
 }
 
-/// A line-oriented request/reply connection (dashboard or motion port).
+/// The outcome of `RequestControl()` at connect, which tells V4.6+ firmware from older V4.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ControlRequest {
+    /// Not sent (V3 firmware, or `request_control = false`), or not connected yet.
+    NotSent,
+    /// Granted: firmware V4.6 or newer, now under TCP control.
+    Granted,
+    /// Answered as an unknown command: firmware older than V4.6, which has no control request.
+    NotSupported,
+    /// Refused with this error id (the guide allows it only while the robot is disabled or powered off).
+    Refused(i32),
+}
+
+/// A request/reply connection (dashboard or motion port).
 #[derive(Debug)]
 struct CommandConn {
     stream: TcpStream,
     pending: Vec<u8>,
     terminator: Terminator,
+    reply_timeout: Duration,
+    /// Shared with the bridge's stats: replies set aside because their echo named another command.
+    discarded: Arc<AtomicU64>,
 }
 
 impl CommandConn {
-    fn connect(addr: SocketAddr, config: &DobotConfig) -> std::io::Result<Self> {
+    fn connect(addr: SocketAddr, config: &DobotConfig, discarded: Arc<AtomicU64>) -> std::io::Result<Self> {
         let stream = TcpStream::connect_timeout(&addr, Duration::from_secs_f64(config.connect_timeout_s))?;
         // Small commands at 125 Hz: Nagle would hold each one for the previous reply's ACK.
         stream.set_nodelay(true)?;
-        stream.set_read_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
         stream.set_write_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
         Ok(Self {
             stream,
             pending: Vec::with_capacity(256),
             terminator: config.terminator,
+            reply_timeout: Duration::from_secs_f64(config.reply_timeout_s),
+            discarded,
         })
     }
 
-    /// Sends a command and reads its reply (up to the `;` that ends it).
+    /// Sends a command and reads its reply within the reply timeout.
     fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
+        self.request_within(command, self.reply_timeout)
+    }
+
+    /// Sends a command and returns the reply whose echo is that command (guide §2.2.1: every reply ends
+    /// with the command it answers). Replies to anything else (a late reply to a command that timed out,
+    /// a controller answering a stray terminator) are set aside and counted, never taken for this one.
+    fn request_within(&mut self, command: &str, timeout: Duration) -> Result<Reply, LinkError> {
         let mut wire = String::with_capacity(command.len() + 2);
         wire.push_str(command);
         wire.push_str(self.terminator.as_str());
         self.stream.write_all(wire.as_bytes()).map_err(LinkError::Io)?;
+        let deadline = Instant::now() + timeout;
         let mut chunk = [0u8; 512];
         loop {
-            if let Some(end) = self.pending.iter().position(|&b| b == b';') {
+            while let Some(end) = self.pending.iter().position(|&b| b == b';') {
                 let text: Vec<u8> = self.pending.drain(..=end).collect();
                 let text = String::from_utf8_lossy(&text);
-                return parse_reply(&text).map_err(|e| LinkError::Protocol(e.to_string()));
+                match parse_reply(&text) {
+                    Ok(reply) if echo_matches(command, &reply.echo) => return Ok(reply),
+                    Ok(reply) => {
+                        self.discarded.fetch_add(1, Ordering::Relaxed);
+                        warn!(sent = command, echo = %reply.echo, "dobot: reply to another command set aside");
+                    }
+                    Err(e) => {
+                        self.discarded.fetch_add(1, Ordering::Relaxed);
+                        warn!(sent = command, error = %e, "dobot: unreadable reply set aside");
+                    }
+                }
+            }
+            // A controller that is not in TCP/IP mode answers with text of its own (TCP-IP-Python-V4
+            // `DobotDemo.py` `parseResultId` looks for "Not Tcp"), which may never reach a `;`.
+            if contains_ignore_case(&self.pending, b"not tcp") {
+                self.pending.clear();
+                return Err(LinkError::NotTcpMode);
             }
             if self.pending.len() > 64 * 1024 {
                 self.pending.clear();
                 return Err(LinkError::Protocol("reply longer than 64 KiB without ';'".into()));
             }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Err(LinkError::Timeout(command.to_owned()));
+            }
+            self.stream.set_read_timeout(Some(left)).map_err(LinkError::Io)?;
             match self.stream.read(&mut chunk) {
                 Ok(0) => {
                     return Err(LinkError::Io(std::io::Error::new(
@@ -248,13 +317,17 @@ impl CommandConn {
                     )));
                 }
                 Ok(n) => self.pending.extend_from_slice(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
-                    return Err(LinkError::Timeout(command.to_owned()));
-                }
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
                 Err(e) => return Err(LinkError::Io(e)),
             }
         }
     }
+}
+
+fn contains_ignore_case(haystack: &[u8], needle: &[u8]) -> bool {
+    haystack
+        .windows(needle.len())
+        .any(|w| w.eq_ignore_ascii_case(needle))
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -265,6 +338,8 @@ enum LinkError {
     Timeout(String),
     #[error("{0}")]
     Protocol(String),
+    #[error("the controller is not in TCP/IP control mode (set it in DobotStudio Pro, or RequestControl())")]
+    NotTcpMode,
 }
 
 #[derive(Debug)]
@@ -287,6 +362,7 @@ struct Status {
     /// The controller's error ids for the current fault, fetched once per fault.
     fault_detail: Option<String>,
     reconnects: u64,
+    control_request: ControlRequest,
 }
 
 #[derive(Debug)]
@@ -311,6 +387,7 @@ struct Inner {
     targets_held: AtomicU64,
     packets_ok: AtomicU64,
     packets_rejected: AtomicU64,
+    replies_discarded: Arc<AtomicU64>,
     clock: ClockFn,
 }
 
@@ -345,6 +422,7 @@ impl DobotBridge {
                 convention_error: None,
                 fault_detail: None,
                 reconnects: 0,
+                control_request: ControlRequest::NotSent,
             }),
             dashboard: Mutex::new(None),
             motion: Mutex::new(None),
@@ -360,6 +438,7 @@ impl DobotBridge {
             targets_held: AtomicU64::new(0),
             packets_ok: AtomicU64::new(0),
             packets_rejected: AtomicU64::new(0),
+            replies_discarded: Arc::new(AtomicU64::new(0)),
             clock,
             config,
         });
@@ -395,6 +474,8 @@ impl DobotBridge {
             convention: s.convention,
             convention_verified: s.convention_verified,
             reconnects: s.reconnects,
+            replies_discarded: self.inner.replies_discarded.load(Ordering::Relaxed),
+            control_request: s.control_request.clone(),
         }
     }
 
@@ -444,14 +525,17 @@ impl Inner {
         }
         let cfg = &self.config;
         let dashboard_addr = self.resolve(cfg.dashboard_port)?;
-        let dashboard = CommandConn::connect(dashboard_addr, cfg)
+        let dashboard = CommandConn::connect(dashboard_addr, cfg, Arc::clone(&self.replies_discarded))
             .map_err(|e| self.connect_error(cfg.dashboard_port, &e))?;
         let motion_port = cfg.effective_motion_port();
         let motion = if motion_port == cfg.dashboard_port {
             None
         } else {
             let addr = self.resolve(motion_port)?;
-            Some(CommandConn::connect(addr, cfg).map_err(|e| self.connect_error(motion_port, &e))?)
+            Some(
+                CommandConn::connect(addr, cfg, Arc::clone(&self.replies_discarded))
+                    .map_err(|e| self.connect_error(motion_port, &e))?,
+            )
         };
         let feedback_addr = self.resolve(cfg.feedback_port)?;
         let feedback =
@@ -471,6 +555,12 @@ impl Inner {
             .spawn(move || reader.feedback_loop(feedback, generation))?;
         *self.feedback_thread.lock() = Some(handle);
 
+        let control_request = if cfg.firmware == Firmware::V4 && cfg.request_control {
+            self.request_control()?
+        } else {
+            ControlRequest::NotSent
+        };
+        self.status.lock().control_request = control_request;
         if cfg.clear_error_on_start {
             self.dashboard_ok("ClearError()")?;
         }
@@ -478,7 +568,7 @@ impl Inner {
         if cfg.enable_on_start {
             // An enable refused because the robot is in error is a robot state, not a start failure: it shows
             // in health and can be retried with Control::ClearError / Control::Enable.
-            if let Err(e) = self.dashboard_ok("EnableRobot()") {
+            if let Err(e) = self.enable_robot() {
                 warn!(error = %e, "dobot: EnableRobot refused");
                 self.status.lock().last_command_error = Some(e.to_string());
             }
@@ -523,14 +613,64 @@ impl Inner {
         }
     }
 
+    /// `RequestControl()` (guide §3.132, added in V4.6.0): V4.6+ firmware takes commands over TCP only
+    /// after it; older V4 firmware answers it as an unknown command (-10000), which is how the two are told
+    /// apart. A refusal is logged and kept in the stats, not fatal: the guide refuses it while the robot is
+    /// enabled, which a controller already under TCP control may be.
+    fn request_control(&self) -> Result<ControlRequest, BridgeError> {
+        let reply = self.dashboard_request("RequestControl()")?;
+        let outcome = match reply.error_id {
+            0 => ControlRequest::Granted,
+            -10000 => ControlRequest::NotSupported,
+            code => ControlRequest::Refused(code),
+        };
+        match &outcome {
+            ControlRequest::Granted => info!("dobot: RequestControl granted (firmware V4.6 or newer)"),
+            ControlRequest::NotSupported => {
+                info!("dobot: firmware older than V4.6; no control request needed")
+            }
+            ControlRequest::Refused(code) => warn!(
+                code,
+                reason = error_text(*code),
+                "dobot: RequestControl refused; continuing (the robot may already be under TCP control)"
+            ),
+            ControlRequest::NotSent => {}
+        }
+        Ok(outcome)
+    }
+
+    /// `EnableRobot()` with its own, longer reply timeout ([`DobotConfig::enable_timeout_s`]).
+    fn enable_robot(&self) -> Result<Reply, BridgeError> {
+        let timeout = Duration::from_secs_f64(self.config.enable_timeout_s);
+        let reply = self.dashboard_request_within("EnableRobot()", timeout)?;
+        if reply.error_id == 0 {
+            Ok(reply)
+        } else {
+            Err(BridgeError::Protocol(format!(
+                "EnableRobot() failed: error {} ({})",
+                reply.error_id,
+                error_text(reply.error_id)
+            )))
+        }
+    }
+
     fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
+        self.dashboard_request_within(command, Duration::from_secs_f64(self.config.reply_timeout_s))
+    }
+
+    /// One dashboard command. A reply that does not come in time is an error of this command, not of the
+    /// link: the echo check sets the late reply aside when it comes, so the connection stays usable. Only
+    /// a failed socket closes the link.
+    fn dashboard_request_within(&self, command: &str, timeout: Duration) -> Result<Reply, BridgeError> {
         let mut guard = self.dashboard.lock();
         let conn = guard
             .as_mut()
             .ok_or_else(|| BridgeError::Protocol("dashboard not connected".into()))?;
-        match conn.request(command) {
+        match conn.request_within(command, timeout) {
             Ok(reply) => Ok(reply),
-            Err(LinkError::Protocol(m)) => Err(BridgeError::Protocol(m)),
+            Err(e @ (LinkError::Protocol(_) | LinkError::Timeout(_) | LinkError::NotTcpMode)) => {
+                Err(BridgeError::Protocol(e.to_string()))
+            }
             Err(e) => {
                 drop(guard);
                 let why = format!("dashboard: {e}");
@@ -597,7 +737,13 @@ impl Inner {
                 return Health::Error(format!("robot in {mode:?} mode ({}){detail}", mode.code()));
             }
             Some(mode) if !mode.accepts_motion() => {
-                return Health::Error(format!("robot not enabled: {mode:?} mode ({})", mode.code()));
+                // Say why, if the bridge's own enable failed (refused, or unanswered in time).
+                let why = s
+                    .last_command_error
+                    .as_deref()
+                    .map(|e| format!(": {e}"))
+                    .unwrap_or_default();
+                return Health::Error(format!("robot not enabled: {mode:?} mode ({}){why}", mode.code()));
             }
             _ => {}
         }
@@ -744,7 +890,10 @@ impl Inner {
             return;
         }
         let detail = match self.dashboard_request("GetErrorID()") {
-            Ok(reply) if reply.error_id == 0 => format!("error ids {}", reply.values.join(",")),
+            Ok(reply) if reply.error_id == 0 => match ErrorIds::parse(&reply.values.join(",")) {
+                Ok(ids) => ids.to_string(),
+                Err(e) => format!("GetErrorID: {e}"),
+            },
             Ok(reply) => format!("GetErrorID failed: {}", error_text(reply.error_id)),
             Err(e) => format!("GetErrorID failed: {e}"),
         };
@@ -793,9 +942,9 @@ impl Inner {
                 warn!(seq = command.seq, "dobot: {m}");
                 self.status.lock().last_command_error = Some(m);
             }
-            Err(LinkError::Protocol(m)) => {
+            Err(e @ (LinkError::Protocol(_) | LinkError::Timeout(_) | LinkError::NotTcpMode)) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
-                self.status.lock().last_command_error = Some(format!("ServoP: {m}"));
+                self.status.lock().last_command_error = Some(format!("ServoP: {e}"));
             }
             Err(e) => {
                 warn!(error = %e, "dobot: motion connection failed");
@@ -922,7 +1071,7 @@ impl Bridge for DobotBridge {
         }
         match request {
             Control::Enable => {
-                self.inner.dashboard_ok("EnableRobot()")?;
+                self.inner.enable_robot()?;
             }
             Control::Disable => {
                 self.inner.dashboard_ok("DisableRobot()")?;
