@@ -627,7 +627,7 @@ impl Inner {
         match &outcome {
             ControlRequest::Granted => info!("dobot: RequestControl granted (firmware V4.6 or newer)"),
             ControlRequest::NotSupported => {
-                info!("dobot: firmware older than V4.6; no control request needed")
+                info!("dobot: firmware older than V4.6; no control request needed");
             }
             ControlRequest::Refused(code) => warn!(
                 code,
