@@ -223,6 +223,7 @@ fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
 
 /// The committed packets parse to the values the generator wrote (guide §4 offsets).
 #[test]
+#[allow(clippy::float_cmp)] // the generator wrote these exact, exactly representable values
 fn committed_feedback_packets_parse_to_their_documented_values() {
     let bytes = std::fs::read(fixture("feedback_enabled.bin")).unwrap();
     assert_eq!(bytes.len(), PACKET_LEN);
