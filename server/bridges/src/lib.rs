@@ -10,6 +10,7 @@
 pub mod dobot;
 pub mod feetech;
 pub mod remote;
+pub mod runtime;
 pub mod sim;
 pub mod so101;
 
