@@ -18,7 +18,8 @@ pub mod gripper;
 pub mod protocol;
 
 use crate::sim::ClockFn;
-use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use crate::runtime::{LinkContext, Measured, RobotLink, Schedule, ThreadedBridge};
+use crate::{BridgeError, Command, Control, Health};
 use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
 use gripper::GripperOutput;
 use nalgebra::{Isometry3, Translation3};
@@ -30,8 +31,7 @@ use serde::{Deserialize, Serialize};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::thread::JoinHandle;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tracing::{debug, info, warn};
 
@@ -365,39 +365,43 @@ struct Status {
     control_request: ControlRequest,
 }
 
+/// The feedback stream of one connection and the bytes read from it not yet parsed.
 #[derive(Debug)]
-struct Inner {
+struct FeedbackConn {
+    socket: TcpStream,
+    reader: FrameReader,
+    /// The connection it belongs to: a read failing after a reconnect does not take the new link down.
+    generation: u64,
+}
+
+/// The Dobot CR5's protocol side: the dashboard and motion connections, the feedback stream, the robot's
+/// state as they report it.
+#[derive(Debug)]
+pub struct DobotLink {
     config: DobotConfig,
     joint_names: Vec<String>,
-    slot: LatestSlot<Command>,
-    feedback: FeedbackCell,
     status: Mutex<Status>,
     dashboard: Mutex<Option<CommandConn>>,
     /// `None` inside when motion shares the dashboard connection.
     motion: Mutex<Option<CommandConn>>,
+    /// Read by the feedback thread.
+    feedback_conn: Mutex<Option<FeedbackConn>>,
+    /// A handle on the same socket, to shut it down while a read is blocked on it.
     feedback_socket: Mutex<Option<TcpStream>>,
-    feedback_thread: Mutex<Option<JoinHandle<()>>>,
-    command_thread: Mutex<Option<JoinHandle<()>>>,
     generation: AtomicU64,
-    stop: AtomicBool,
-    applied_seq: AtomicU64,
     gripper_sent: Mutex<Option<f64>>,
     servo_sent: AtomicU64,
     servo_rejected: AtomicU64,
-    targets_held: AtomicU64,
     packets_ok: AtomicU64,
     packets_rejected: AtomicU64,
     replies_discarded: Arc<AtomicU64>,
-    clock: ClockFn,
 }
 
-/// The Dobot CR5 bridge. Create with [`DobotBridge::start`].
-#[derive(Debug)]
-pub struct DobotBridge {
-    inner: Arc<Inner>,
-}
+/// The Dobot CR5 bridge: [`DobotLink`] driven by the hardware-bridge runtime. Create with
+/// [`DobotBridge::start`].
+pub type DobotBridge = ThreadedBridge<DobotLink>;
 
-impl DobotBridge {
+impl ThreadedBridge<DobotLink> {
     /// Connects to the controller, clears errors, sets the speed, enables the robot (as configured), waits for
     /// the first feedback packet and starts streaming.
     pub fn start(config: DobotConfig) -> Result<Arc<Self>, BridgeError> {
@@ -407,10 +411,8 @@ impl DobotBridge {
     /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).
     pub fn start_with_clock(config: DobotConfig, clock: ClockFn) -> Result<Arc<Self>, BridgeError> {
         config.validate()?;
-        let inner = Arc::new(Inner {
+        let link = DobotLink {
             joint_names: (1..=6).map(|i| format!("j{i}")).collect(),
-            slot: LatestSlot::default(),
-            feedback: FeedbackCell::default(),
             status: Mutex::new(Status {
                 link: Link::Connecting,
                 robot_mode: None,
@@ -426,72 +428,58 @@ impl DobotBridge {
             }),
             dashboard: Mutex::new(None),
             motion: Mutex::new(None),
+            feedback_conn: Mutex::new(None),
             feedback_socket: Mutex::new(None),
-            feedback_thread: Mutex::new(None),
-            command_thread: Mutex::new(None),
             generation: AtomicU64::new(0),
-            stop: AtomicBool::new(false),
-            applied_seq: AtomicU64::new(0),
             gripper_sent: Mutex::new(None),
             servo_sent: AtomicU64::new(0),
             servo_rejected: AtomicU64::new(0),
-            targets_held: AtomicU64::new(0),
             packets_ok: AtomicU64::new(0),
             packets_rejected: AtomicU64::new(0),
             replies_discarded: Arc::new(AtomicU64::new(0)),
-            clock,
             config,
-        });
-        if let Err(e) = inner.connect() {
-            inner.close(format!("start failed: {e}"));
+        };
+        // The feedback thread runs before the connect, which waits for the packets it reads.
+        let bridge = Self::spawn(link, clock)?;
+        if let Err(e) = bridge.link().connect() {
+            bridge.link().close(format!("start failed: {e}"));
             return Err(e);
         }
-        let worker = Arc::clone(&inner);
-        let handle = std::thread::Builder::new()
-            .name("dobot-command".into())
-            .spawn(move || worker.command_loop())
-            .map_err(BridgeError::Io)?;
-        *inner.command_thread.lock() = Some(handle);
-        Ok(Arc::new(Self { inner }))
+        Ok(Arc::new(bridge))
     }
 
     pub fn config(&self) -> &DobotConfig {
-        &self.inner.config
+        &self.link().config
     }
 
     /// Counters and the last faults seen.
     pub fn stats(&self) -> DobotStats {
-        let s = self.inner.status.lock();
+        let link = self.link();
+        let s = link.status.lock();
         DobotStats {
-            servo_sent: self.inner.servo_sent.load(Ordering::Relaxed),
-            servo_rejected: self.inner.servo_rejected.load(Ordering::Relaxed),
-            targets_held: self.inner.targets_held.load(Ordering::Relaxed),
-            targets_superseded: self.inner.slot.superseded(),
-            packets_ok: self.inner.packets_ok.load(Ordering::Relaxed),
-            packets_rejected: self.inner.packets_rejected.load(Ordering::Relaxed),
+            servo_sent: link.servo_sent.load(Ordering::Relaxed),
+            servo_rejected: link.servo_rejected.load(Ordering::Relaxed),
+            targets_held: self.context().targets_held(),
+            targets_superseded: self.context().targets_superseded(),
+            packets_ok: link.packets_ok.load(Ordering::Relaxed),
+            packets_rejected: link.packets_rejected.load(Ordering::Relaxed),
             last_packet_error: s.last_packet_error.clone(),
             last_command_error: s.last_command_error.clone(),
             convention: s.convention,
             convention_verified: s.convention_verified,
             reconnects: s.reconnects,
-            replies_discarded: self.inner.replies_discarded.load(Ordering::Relaxed),
+            replies_discarded: link.replies_discarded.load(Ordering::Relaxed),
             control_request: s.control_request.clone(),
         }
     }
 
     /// Sends one dashboard command and returns the parsed reply (for tools and diagnostics).
     pub fn dashboard(&self, command: &str) -> Result<Reply, BridgeError> {
-        self.inner.dashboard_request(command)
+        self.link().dashboard_request(command)
     }
 }
 
-impl Drop for DobotBridge {
-    fn drop(&mut self) {
-        self.inner.shutdown();
-    }
-}
-
-impl Inner {
+impl DobotLink {
     fn resolve(&self, port: u16) -> Result<SocketAddr, BridgeError> {
         (self.config.host.as_str(), port)
             .to_socket_addrs()
@@ -514,7 +502,7 @@ impl Inner {
     }
 
     /// (Re)opens every socket, runs the start-up commands and waits for feedback.
-    fn connect(self: &Arc<Self>) -> Result<(), BridgeError> {
+    fn connect(&self) -> Result<(), BridgeError> {
         let generation = self.generation.fetch_add(1, Ordering::SeqCst) + 1;
         self.close_sockets();
         {
@@ -541,19 +529,16 @@ impl Inner {
         let feedback =
             TcpStream::connect_timeout(&feedback_addr, Duration::from_secs_f64(cfg.connect_timeout_s))
                 .map_err(|e| self.connect_error(cfg.feedback_port, &e))?;
+        // Bounds each read of the feedback thread, so it sees a shutdown or a reconnect within 50 ms.
         feedback.set_read_timeout(Some(Duration::from_millis(50)))?;
         *self.feedback_socket.lock() = Some(feedback.try_clone()?);
+        *self.feedback_conn.lock() = Some(FeedbackConn {
+            socket: feedback,
+            reader: FrameReader::default(),
+            generation,
+        });
         *self.dashboard.lock() = Some(dashboard);
         *self.motion.lock() = motion;
-
-        if let Some(old) = self.feedback_thread.lock().take() {
-            let _ = old.join();
-        }
-        let reader = Arc::clone(self);
-        let handle = std::thread::Builder::new()
-            .name("dobot-feedback".into())
-            .spawn(move || reader.feedback_loop(feedback, generation))?;
-        *self.feedback_thread.lock() = Some(handle);
 
         let control_request = if cfg.firmware == Firmware::V4 && cfg.request_control {
             self.request_control()?
@@ -593,9 +578,11 @@ impl Inner {
     }
 
     fn close_sockets(&self) {
+        // Shut the socket down first: that ends a read blocked on it, which holds `feedback_conn`.
         if let Some(s) = self.feedback_socket.lock().take() {
             let _ = s.shutdown(Shutdown::Both);
         }
+        self.feedback_conn.lock().take();
         for conn in [&self.dashboard, &self.motion] {
             if let Some(c) = conn.lock().take() {
                 let _ = c.stream.shutdown(Shutdown::Both);
@@ -707,7 +694,7 @@ impl Inner {
         conn.request(command)
     }
 
-    fn health(&self) -> Health {
+    fn health_now(&self) -> Health {
         let s = self.status.lock();
         match &s.link {
             Link::Connecting => return Health::Connecting,
@@ -753,44 +740,50 @@ impl Inner {
         Health::Ready
     }
 
-    fn feedback_loop(self: Arc<Self>, mut socket: TcpStream, generation: u64) {
-        let mut reader = FrameReader::default();
-        let mut chunk = vec![0u8; 8192];
-        let current =
-            || self.generation.load(Ordering::SeqCst) == generation && !self.stop.load(Ordering::SeqCst);
-        while current() {
-            match socket.read(&mut chunk) {
-                Ok(0) => {
-                    if current() {
-                        warn!("dobot: feedback connection closed by the robot");
-                        self.close("feedback connection closed by the robot".into());
-                    }
-                    return;
-                }
-                Ok(n) => reader.push(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
-                Err(e) => {
-                    if current() {
-                        warn!(error = %e, "dobot: feedback connection failed");
-                        self.close(format!("feedback connection: {e}"));
-                    }
-                    return;
-                }
+    /// One read of the feedback stream: the state of the newest good packet in it, if any.
+    fn read_packets(&self) -> Option<Measured> {
+        let mut chunk = [0u8; 8192];
+        let mut guard = self.feedback_conn.lock();
+        let Some(conn) = guard.as_mut() else {
+            drop(guard);
+            // Not connected: wait for a connect, without spinning.
+            std::thread::sleep(Duration::from_millis(10));
+            return None;
+        };
+        let failure = match conn.socket.read(&mut chunk) {
+            Ok(0) => Some("feedback connection closed by the robot".to_owned()),
+            Ok(n) => {
+                conn.reader.push(&chunk[..n]);
+                None
             }
-            while let Some(result) = reader.next_packet() {
-                match result {
-                    Ok(packet) => self.on_packet(&packet),
-                    Err(e) => {
-                        self.packets_rejected.fetch_add(1, Ordering::Relaxed);
-                        warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
-                        self.status.lock().last_packet_error = Some(e.to_string());
-                    }
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => return None,
+            Err(e) => Some(format!("feedback connection: {e}")),
+        };
+        if let Some(why) = failure {
+            let generation = conn.generation;
+            guard.take();
+            drop(guard);
+            if generation == self.generation.load(Ordering::SeqCst) {
+                warn!("dobot: {why}");
+                self.close(why);
+            }
+            return None;
+        }
+        let mut newest = None;
+        while let Some(result) = conn.reader.next_packet() {
+            match result {
+                Ok(packet) => newest = Some(self.on_packet(&packet)),
+                Err(e) => {
+                    self.packets_rejected.fetch_add(1, Ordering::Relaxed);
+                    warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
+                    self.status.lock().last_packet_error = Some(e.to_string());
                 }
             }
         }
+        newest
     }
 
-    fn on_packet(&self, packet: &FeedbackPacket) {
+    fn on_packet(&self, packet: &FeedbackPacket) -> Measured {
         self.packets_ok.fetch_add(1, Ordering::Relaxed);
         let convention = {
             let mut s = self.status.lock();
@@ -820,15 +813,11 @@ impl Inner {
             }
             _ => self.gripper_sent.lock().unwrap_or(0.0),
         };
-        let feedback = Feedback {
-            capture_time_ns: (self.clock)(),
+        Measured {
             joint_positions_rad: packet.q_actual_deg.iter().map(|d| d.to_radians()).collect(),
             robot_from_ee,
             gripper_position,
-            applied_seq: self.applied_seq.load(Ordering::SeqCst),
-            task_success: false,
-        };
-        *self.feedback.lock() = Some(feedback);
+        }
     }
 
     fn verify_convention(s: &mut Status, packet: &FeedbackPacket, configured: Option<EulerConvention>) {
@@ -860,20 +849,6 @@ impl Inner {
             }
             // Keep checking later packets: a pose with one non-zero angle cannot tell the conventions apart.
             ConventionCheck::Inconclusive => {}
-        }
-    }
-
-    fn command_loop(self: Arc<Self>) {
-        while !self.stop.load(Ordering::SeqCst) {
-            self.fetch_fault_detail();
-            let Some(command) = self.slot.take_wait(Duration::from_millis(50)) else {
-                continue;
-            };
-            if self.health() != Health::Ready && !self.only_command_error() {
-                self.targets_held.fetch_add(1, Ordering::Relaxed);
-                continue;
-            }
-            self.send_target(&command);
         }
     }
 
@@ -910,18 +885,10 @@ impl Inner {
             && s.robot_mode.is_some_and(RobotMode::accepts_motion)
     }
 
-    fn send_target(&self, command: &Command) {
+    /// Sends one target (finite: the runtime checked) and the gripper's.
+    fn send_target(&self, ctx: &LinkContext, command: &Command) {
         let pose = &command.robot_from_target;
         let t = pose.translation.vector;
-        let q = pose.rotation.quaternion();
-        let finite = t.iter().all(|v| v.is_finite())
-            && q.coords.iter().all(|v| v.is_finite())
-            && command.gripper_target.is_finite();
-        if !finite {
-            self.targets_held.fetch_add(1, Ordering::Relaxed);
-            warn!(seq = command.seq, "dobot: non-finite target dropped; arm holds");
-            return;
-        }
         let convention = self.status.lock().convention;
         let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
         let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
@@ -929,7 +896,7 @@ impl Inner {
         match self.motion_request(&text) {
             Ok(reply) if reply.error_id == 0 => {
                 self.servo_sent.fetch_add(1, Ordering::Relaxed);
-                self.applied_seq.store(command.seq, Ordering::SeqCst);
+                ctx.applied(command.seq);
                 self.status.lock().last_command_error = None;
             }
             Ok(reply) => {
@@ -1026,74 +993,81 @@ impl Inner {
         }
     }
 
-    fn shutdown(&self) {
-        if self.stop.swap(true, Ordering::SeqCst) {
-            return;
-        }
+    /// Shutdown: closes every socket; the robot holds its last target.
+    fn close_for_shutdown(&self) {
         self.generation.fetch_add(1, Ordering::SeqCst);
         self.close_sockets();
         self.status.lock().link = Link::Down("bridge shut down".into());
-        for slot in [&self.command_thread, &self.feedback_thread] {
-            let handle = slot.lock().take();
-            if let Some(h) = handle
-                && h.thread().id() != std::thread::current().id()
-            {
-                let _ = h.join();
-            }
-        }
     }
 }
 
-impl Bridge for DobotBridge {
+impl RobotLink for DobotLink {
     fn kind(&self) -> &'static str {
         "dobot"
     }
 
     fn joint_names(&self) -> &[String] {
-        &self.inner.joint_names
+        &self.joint_names
     }
 
-    fn send(&self, command: Command) {
-        self.inner.slot.put(command);
-    }
-
-    fn feedback(&self) -> Option<Feedback> {
-        self.inner.feedback.lock().clone()
-    }
-
-    fn health(&self) -> Health {
-        self.inner.health()
-    }
-
-    fn control(&self, request: Control) -> Result<(), BridgeError> {
-        if self.inner.stop.load(Ordering::SeqCst) {
-            return Err(BridgeError::Protocol("bridge is shut down".into()));
+    fn schedule(&self) -> Schedule {
+        // The command thread also asks a faulted robot for its error ids between targets; 50 ms bounds
+        // how long that waits behind an idle slot.
+        Schedule::Split {
+            command_wait: Duration::from_millis(50),
         }
+    }
+
+    fn health(&self, _ctx: &LinkContext) -> Health {
+        self.health_now()
+    }
+
+    /// Ready, or ready but for a rejected command: the next target may succeed and clear it.
+    fn accepts_targets(&self, _ctx: &LinkContext) -> bool {
+        self.health_now() == Health::Ready || self.only_command_error()
+    }
+
+    fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+        if let Some(command) = command {
+            self.send_target(ctx, command);
+        }
+        true
+    }
+
+    fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
+        self.read_packets()
+    }
+
+    fn between_commands(&self, _ctx: &LinkContext) {
+        self.fetch_fault_detail();
+    }
+
+    fn control(&self, _ctx: &LinkContext, request: Control) -> Result<(), BridgeError> {
         match request {
             Control::Enable => {
-                self.inner.enable_robot()?;
+                self.enable_robot()?;
             }
             Control::Disable => {
-                self.inner.dashboard_ok("DisableRobot()")?;
+                self.dashboard_ok("DisableRobot()")?;
             }
             Control::ClearError => {
-                self.inner.dashboard_ok("ClearError()")?;
+                self.dashboard_ok("ClearError()")?;
             }
             Control::Reconnect => {
-                self.inner.status.lock().reconnects += 1;
-                if let Err(e) = self.inner.connect() {
-                    self.inner.close(format!("reconnect failed: {e}"));
+                self.status.lock().reconnects += 1;
+                if let Err(e) = self.connect() {
+                    self.close(format!("reconnect failed: {e}"));
                     return Err(e);
                 }
             }
         }
         // A fresh start: the next rejected command will set it again.
-        self.inner.status.lock().last_command_error = None;
+        self.status.lock().last_command_error = None;
         Ok(())
     }
 
-    fn shutdown(&self) {
-        self.inner.shutdown();
+    fn close(&self) {
+        self.close_for_shutdown();
     }
 }
 
