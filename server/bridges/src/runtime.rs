@@ -355,3 +355,288 @@ impl<L: RobotLink> Bridge for ThreadedBridge<L> {
         self.stop();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    /// A link that records what the runtime asks of it.
+    #[derive(Debug)]
+    struct Toy {
+        schedule: Schedule,
+        accepting: AtomicBool,
+        write_ok: AtomicBool,
+        written: Mutex<Vec<Option<u64>>>,
+        reads: AtomicU64,
+        between: AtomicU64,
+        closes: AtomicU64,
+        names: Vec<String>,
+        /// While set, the command thread waits in `between_commands`.
+        gate: AtomicBool,
+    }
+
+    impl Toy {
+        fn new(schedule: Schedule) -> Self {
+            Self {
+                schedule,
+                accepting: AtomicBool::new(true),
+                write_ok: AtomicBool::new(true),
+                written: Mutex::new(Vec::new()),
+                reads: AtomicU64::new(0),
+                between: AtomicU64::new(0),
+                closes: AtomicU64::new(0),
+                names: vec!["a".into(), "b".into()],
+                gate: AtomicBool::new(false),
+            }
+        }
+
+        fn written_seqs(&self) -> Vec<u64> {
+            self.written.lock().iter().flatten().copied().collect()
+        }
+    }
+
+    impl RobotLink for Toy {
+        fn kind(&self) -> &'static str {
+            "toy"
+        }
+        fn joint_names(&self) -> &[String] {
+            &self.names
+        }
+        fn supports_orientation(&self) -> bool {
+            false
+        }
+        fn schedule(&self) -> Schedule {
+            self.schedule
+        }
+        fn health(&self, _ctx: &LinkContext) -> Health {
+            if self.accepting.load(Ordering::SeqCst) {
+                Health::Ready
+            } else {
+                Health::Error("toy fault".into())
+            }
+        }
+        fn warning(&self) -> Option<String> {
+            Some("toy warning".into())
+        }
+        fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+            self.written.lock().push(command.map(|c| c.seq));
+            if let Some(c) = command {
+                ctx.applied(c.seq);
+            }
+            self.write_ok.load(Ordering::SeqCst)
+        }
+        fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
+            let n = self.reads.fetch_add(1, Ordering::SeqCst);
+            if matches!(self.schedule, Schedule::Split { .. }) {
+                // The pace of a streaming robot.
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            Some(Measured {
+                joint_positions_rad: vec![n as f64, 0.0],
+                robot_from_ee: Isometry3::identity(),
+                gripper_position: 0.5,
+            })
+        }
+        fn between_commands(&self, _ctx: &LinkContext) {
+            self.between.fetch_add(1, Ordering::SeqCst);
+            while self.gate.load(Ordering::SeqCst) {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        }
+        fn control(&self, _ctx: &LinkContext, request: Control) -> Result<(), BridgeError> {
+            match request {
+                Control::ClearError => Ok(()),
+                other => Err(BridgeError::Unsupported(format!("{other:?}"))),
+            }
+        }
+        fn close(&self) {
+            self.closes.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
+    fn clock() -> i64 {
+        42
+    }
+
+    fn command(seq: u64) -> Command {
+        Command {
+            seq,
+            robot_from_target: Isometry3::from_parts(
+                Translation3::new(0.1, 0.2, 0.3),
+                UnitQuaternion::identity(),
+            ),
+            gripper_target: 0.0,
+            issue_time_ns: 0,
+            joint_targets_rad: None,
+        }
+    }
+
+    /// Waits on the condition; every bound here is a deadline for something that happens within
+    /// milliseconds, generous for a loaded machine.
+    fn wait_for(what: &str, mut f: impl FnMut() -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !f() {
+            assert!(Instant::now() < deadline, "timed out waiting for {what}");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    const SPLIT: Schedule = Schedule::Split {
+        command_wait: Duration::from_millis(5),
+    };
+    const CYCLE: Schedule = Schedule::Cycle {
+        period: Duration::from_millis(2),
+    };
+
+    #[test]
+    fn non_finite_numbers_anywhere_in_a_command_are_caught() {
+        assert!(command_is_finite(&command(1)));
+        let mut c = command(1);
+        c.robot_from_target.translation.vector.x = f64::NAN;
+        assert!(!command_is_finite(&c));
+        let mut c = command(1);
+        c.robot_from_target.rotation =
+            UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(f64::INFINITY, 0.0, 0.0, 0.0));
+        assert!(!command_is_finite(&c));
+        let mut c = command(1);
+        c.gripper_target = f64::NAN;
+        assert!(!command_is_finite(&c));
+        let mut c = command(1);
+        c.joint_targets_rad = Some(vec![0.0, f64::NEG_INFINITY]);
+        assert!(!command_is_finite(&c));
+        c.joint_targets_rad = Some(vec![0.0, 1.0]);
+        assert!(command_is_finite(&c));
+    }
+
+    #[test]
+    fn targets_are_written_only_while_the_link_accepts_them_and_only_when_finite() {
+        for schedule in [SPLIT, CYCLE] {
+            let bridge = ThreadedBridge::spawn(Toy::new(schedule), clock).unwrap();
+            let toy = bridge.link();
+            toy.accepting.store(false, Ordering::SeqCst);
+            bridge.send(command(1));
+            wait_for("the refused target held", || bridge.context().targets_held() == 1);
+            let mut bad = command(2);
+            bad.gripper_target = f64::NAN;
+            toy.accepting.store(true, Ordering::SeqCst);
+            bridge.send(bad);
+            wait_for("the non-finite target held", || {
+                bridge.context().targets_held() == 2
+            });
+            bridge.send(command(3));
+            wait_for("the good target written", || toy.written_seqs() == vec![3]);
+            wait_for("feedback naming it", || {
+                bridge.feedback().is_some_and(|f| f.applied_seq == 3)
+            });
+            let f = bridge.feedback().unwrap();
+            assert_eq!(f.capture_time_ns, 42, "stamped with the bridge's clock");
+            assert!((f.gripper_position - 0.5).abs() < 1e-12, "the link's gripper");
+            assert!(!f.task_success);
+            assert_eq!(bridge.context().applied_seq(), 3);
+            assert!(bridge.context().has_feedback());
+        }
+    }
+
+    #[test]
+    fn only_the_newest_of_several_unsent_targets_is_written() {
+        let toy = Toy::new(SPLIT);
+        // The command thread starts held in `between_commands`, so all three targets wait in the slot.
+        toy.gate.store(true, Ordering::SeqCst);
+        let bridge = ThreadedBridge::spawn(toy, clock).unwrap();
+        wait_for("the command thread held", || {
+            bridge.link().between.load(Ordering::SeqCst) == 1
+        });
+        bridge.send(command(1));
+        bridge.send(command(2));
+        bridge.send(command(3));
+        bridge.link().gate.store(false, Ordering::SeqCst);
+        wait_for("a target written", || !bridge.link().written_seqs().is_empty());
+        assert_eq!(bridge.link().written_seqs(), vec![3]);
+        assert_eq!(bridge.context().targets_superseded(), 2);
+        assert_eq!(bridge.context().targets_held(), 0);
+    }
+
+    #[test]
+    fn a_failed_cycle_write_skips_the_read_and_a_cycle_runs_without_a_target() {
+        let toy = Toy::new(CYCLE);
+        toy.write_ok.store(false, Ordering::SeqCst);
+        let bridge = ThreadedBridge::spawn(toy, clock).unwrap();
+        wait_for("cycles", || bridge.link().written.lock().len() >= 5);
+        assert_eq!(bridge.link().reads.load(Ordering::SeqCst), 0);
+        assert!(bridge.feedback().is_none());
+        assert!(bridge.link().written.lock().iter().all(Option::is_none));
+        bridge.link().write_ok.store(true, Ordering::SeqCst);
+        wait_for("reads", || bridge.link().reads.load(Ordering::SeqCst) >= 2);
+        assert_eq!(
+            bridge.link().between.load(Ordering::SeqCst),
+            0,
+            "no command thread in a cycle"
+        );
+    }
+
+    #[test]
+    fn the_split_schedule_reads_while_the_command_thread_waits() {
+        let bridge = ThreadedBridge::spawn(Toy::new(SPLIT), clock).unwrap();
+        wait_for("reads", || bridge.link().reads.load(Ordering::SeqCst) >= 3);
+        wait_for("waits between commands", || {
+            bridge.link().between.load(Ordering::SeqCst) >= 2
+        });
+        assert!(
+            bridge.link().written.lock().is_empty(),
+            "nothing written without a target"
+        );
+    }
+
+    #[test]
+    fn the_bridge_speaks_for_its_link() {
+        let bridge = ThreadedBridge::spawn(Toy::new(SPLIT), clock).unwrap();
+        assert_eq!(bridge.kind(), "toy");
+        assert_eq!(bridge.joint_names(), ["a", "b"]);
+        assert!(!bridge.supports_orientation());
+        assert_eq!(bridge.warning().as_deref(), Some("toy warning"));
+        assert_eq!(bridge.health(), Health::Ready);
+        bridge.link().accepting.store(false, Ordering::SeqCst);
+        assert_eq!(bridge.health(), Health::Error("toy fault".into()));
+        bridge.control(Control::ClearError).unwrap();
+        assert!(matches!(
+            bridge.control(Control::Enable),
+            Err(BridgeError::Unsupported(_))
+        ));
+    }
+
+    #[test]
+    fn shutdown_closes_once_stops_every_thread_and_refuses_control() {
+        let bridge = ThreadedBridge::spawn(Toy::new(SPLIT), clock).unwrap();
+        wait_for("running", || bridge.link().reads.load(Ordering::SeqCst) > 0);
+        bridge.shutdown();
+        bridge.shutdown();
+        assert_eq!(bridge.link().closes.load(Ordering::SeqCst), 1);
+        assert!(bridge.threads.lock().is_empty(), "threads joined");
+        let reads = bridge.link().reads.load(Ordering::SeqCst);
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(
+            bridge.link().reads.load(Ordering::SeqCst),
+            reads,
+            "a thread still runs"
+        );
+        assert!(matches!(
+            bridge.control(Control::ClearError),
+            Err(BridgeError::Protocol(m)) if m.contains("shut down")
+        ));
+        bridge.send(command(9));
+        std::thread::sleep(Duration::from_millis(20));
+        assert!(bridge.link().written.lock().is_empty(), "written after shutdown");
+    }
+
+    #[test]
+    fn dropping_the_bridge_shuts_it_down() {
+        let bridge = ThreadedBridge::spawn(Toy::new(CYCLE), clock).unwrap();
+        let link = Arc::clone(&bridge.link);
+        drop(bridge);
+        assert_eq!(link.closes.load(Ordering::SeqCst), 1);
+        let reads = link.reads.load(Ordering::SeqCst);
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(link.reads.load(Ordering::SeqCst), reads);
+    }
+}

@@ -17,8 +17,8 @@ pub mod feedback;
 pub mod gripper;
 pub mod protocol;
 
-use crate::sim::ClockFn;
 use crate::runtime::{LinkContext, Measured, RobotLink, Schedule, ThreadedBridge};
+use crate::sim::ClockFn;
 use crate::{BridgeError, Command, Control, Health};
 use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
 use gripper::GripperOutput;
@@ -629,16 +629,7 @@ impl DobotLink {
     /// `EnableRobot()` with its own, longer reply timeout ([`DobotConfig::enable_timeout_s`]).
     fn enable_robot(&self) -> Result<Reply, BridgeError> {
         let timeout = Duration::from_secs_f64(self.config.enable_timeout_s);
-        let reply = self.dashboard_request_within("EnableRobot()", timeout)?;
-        if reply.error_id == 0 {
-            Ok(reply)
-        } else {
-            Err(BridgeError::Protocol(format!(
-                "EnableRobot() failed: error {} ({})",
-                reply.error_id,
-                error_text(reply.error_id)
-            )))
-        }
+        self.dashboard_ok_within("EnableRobot()", timeout)
     }
 
     fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
@@ -669,7 +660,11 @@ impl DobotLink {
 
     /// A dashboard command that must succeed (ErrorID 0).
     fn dashboard_ok(&self, command: &str) -> Result<Reply, BridgeError> {
-        let reply = self.dashboard_request(command)?;
+        self.dashboard_ok_within(command, Duration::from_secs_f64(self.config.reply_timeout_s))
+    }
+
+    fn dashboard_ok_within(&self, command: &str, timeout: Duration) -> Result<Reply, BridgeError> {
+        let reply = self.dashboard_request_within(command, timeout)?;
         if reply.error_id == 0 {
             Ok(reply)
         } else {
