@@ -374,6 +374,10 @@ mod tests {
         names: Vec<String>,
         /// While set, the command thread waits in `between_commands`.
         gate: AtomicBool,
+        /// A write sleeps this long once (a stalled bus), then the field is zero again.
+        stall_once_ms: AtomicU64,
+        /// When each write began.
+        write_times: Mutex<Vec<Instant>>,
     }
 
     impl Toy {
@@ -388,6 +392,8 @@ mod tests {
                 closes: AtomicU64::new(0),
                 names: vec!["a".into(), "b".into()],
                 gate: AtomicBool::new(false),
+                stall_once_ms: AtomicU64::new(0),
+                write_times: Mutex::new(Vec::new()),
             }
         }
 
@@ -420,6 +426,9 @@ mod tests {
             Some("toy warning".into())
         }
         fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+            self.write_times.lock().push(Instant::now());
+            let stall_ms = self.stall_once_ms.swap(0, Ordering::SeqCst);
+            std::thread::sleep(Duration::from_millis(stall_ms));
             self.written.lock().push(command.map(|c| c.seq));
             if let Some(c) = command {
                 ctx.applied(c.seq);
@@ -427,11 +436,12 @@ mod tests {
             self.write_ok.load(Ordering::SeqCst)
         }
         fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
-            let n = self.reads.fetch_add(1, Ordering::SeqCst);
             if matches!(self.schedule, Schedule::Split { .. }) {
-                // The pace of a streaming robot.
+                // The pace of a streaming robot; counted after it, so a thread left running past
+                // shutdown shows in `reads`.
                 std::thread::sleep(Duration::from_millis(1));
             }
+            let n = self.reads.fetch_add(1, Ordering::SeqCst);
             Some(Measured {
                 joint_positions_rad: vec![n as f64, 0.0],
                 robot_from_ee: Isometry3::identity(),
@@ -565,6 +575,7 @@ mod tests {
         wait_for("cycles", || bridge.link().written.lock().len() >= 5);
         assert_eq!(bridge.link().reads.load(Ordering::SeqCst), 0);
         assert!(bridge.feedback().is_none());
+        assert!(!bridge.context().has_feedback());
         assert!(bridge.link().written.lock().iter().all(Option::is_none));
         bridge.link().write_ok.store(true, Ordering::SeqCst);
         wait_for("reads", || bridge.link().reads.load(Ordering::SeqCst) >= 2);
@@ -573,6 +584,35 @@ mod tests {
             0,
             "no command thread in a cycle"
         );
+    }
+
+    /// A cycle never runs early: after a stall of 20 periods the cycles resume on the period, not in a
+    /// burst that makes up for the stall. Sleeping never ends early, so the upper bound holds however
+    /// loaded the machine is.
+    #[test]
+    fn cycles_keep_their_period_and_a_stall_is_not_made_up_in_a_burst() {
+        let period = Duration::from_millis(2);
+        let bridge = ThreadedBridge::spawn(Toy::new(Schedule::Cycle { period }), clock).unwrap();
+        let toy = bridge.link();
+        wait_for("cycles", || toy.write_times.lock().len() >= 3);
+        toy.stall_once_ms.store(40, Ordering::SeqCst);
+        let stalled_from = toy.write_times.lock().len();
+        wait_for("the stall and 20 ms after it", || {
+            let times = toy.write_times.lock();
+            times.len() > stalled_from + 1
+                && times[stalled_from + 1..]
+                    .last()
+                    .is_some_and(|t| t.duration_since(times[stalled_from + 1]) >= Duration::from_millis(20))
+        });
+        let times = toy.write_times.lock().clone();
+        let after = &times[stalled_from + 1..];
+        let window = Duration::from_millis(20);
+        let in_window = after
+            .iter()
+            .filter(|t| t.duration_since(after[0]) <= window)
+            .count();
+        // 20 ms at 2 ms is 10 periods; one late wake-up may be made up (+1), plus the first write.
+        assert!(in_window <= 12, "{in_window} cycles in 20 ms at a 2 ms period");
     }
 
     #[test]
@@ -592,6 +632,11 @@ mod tests {
     fn the_bridge_speaks_for_its_link() {
         let bridge = ThreadedBridge::spawn(Toy::new(SPLIT), clock).unwrap();
         assert_eq!(bridge.kind(), "toy");
+        let debug = format!("{bridge:?}");
+        assert!(
+            debug.contains("ThreadedBridge") && debug.contains("applied_seq"),
+            "{debug}"
+        );
         assert_eq!(bridge.joint_names(), ["a", "b"]);
         assert!(!bridge.supports_orientation());
         assert_eq!(bridge.warning().as_deref(), Some("toy warning"));
