@@ -237,9 +237,10 @@ pub enum ControlRequest {
     Refused(i32),
 }
 
-/// A request/reply connection (dashboard or motion port).
+/// A request/reply connection (dashboard or motion port): sends a command, returns the reply whose echo is
+/// that command. Used by the bridge and by `dobot-check`.
 #[derive(Debug)]
-struct CommandConn {
+pub struct CommandConn {
     stream: TcpStream,
     pending: Vec<u8>,
     terminator: Terminator,
@@ -249,7 +250,12 @@ struct CommandConn {
 }
 
 impl CommandConn {
-    fn connect(addr: SocketAddr, config: &DobotConfig, discarded: Arc<AtomicU64>) -> std::io::Result<Self> {
+    /// Connects with `config`'s timeouts and terminator; `discarded` counts replies set aside.
+    pub fn connect(
+        addr: SocketAddr,
+        config: &DobotConfig,
+        discarded: Arc<AtomicU64>,
+    ) -> std::io::Result<Self> {
         let stream = TcpStream::connect_timeout(&addr, Duration::from_secs_f64(config.connect_timeout_s))?;
         // Small commands at 125 Hz: Nagle would hold each one for the previous reply's ACK.
         stream.set_nodelay(true)?;
@@ -264,14 +270,14 @@ impl CommandConn {
     }
 
     /// Sends a command and reads its reply within the reply timeout.
-    fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
+    pub fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
         self.request_within(command, self.reply_timeout)
     }
 
     /// Sends a command and returns the reply whose echo is that command (guide §2.2.1: every reply ends
     /// with the command it answers). Replies to anything else (a late reply to a command that timed out,
     /// a controller answering a stray terminator) are set aside and counted, never taken for this one.
-    fn request_within(&mut self, command: &str, timeout: Duration) -> Result<Reply, LinkError> {
+    pub fn request_within(&mut self, command: &str, timeout: Duration) -> Result<Reply, LinkError> {
         let mut wire = String::with_capacity(command.len() + 2);
         wire.push_str(command);
         wire.push_str(self.terminator.as_str());
@@ -330,8 +336,9 @@ fn contains_ignore_case(haystack: &[u8], needle: &[u8]) -> bool {
         .any(|w| w.eq_ignore_ascii_case(needle))
 }
 
+/// Why a command got no usable reply.
 #[derive(Debug, thiserror::Error)]
-enum LinkError {
+pub enum LinkError {
     #[error("{0}")]
     Io(std::io::Error),
     #[error("no reply to {0} in time")]
