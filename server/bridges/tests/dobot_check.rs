@@ -33,7 +33,11 @@ fn a_healthy_controller_passes_and_its_firmware_generation_is_named() {
         assert!(text.contains(line), "missing {line:?} in\n{text}");
     }
     assert!(text.lines().last().unwrap().starts_with("OK ("), "{text}");
-    assert_eq!(emu.snapshot().gripper_register, Some(0), "the test closed the gripper last");
+    assert_eq!(
+        emu.snapshot().gripper_register,
+        Some(0),
+        "the test closed the gripper last"
+    );
 
     let older = DobotEmulator::start(EmulatorConfig {
         firmware_version: (4, 5),
@@ -55,7 +59,10 @@ fn alarms_and_a_controller_answering_stray_line_ends_are_reported() {
     emu.inject_alarm(Some(3), 4368);
     let (ok, text) = run_check(&emu, &[]);
     assert!(!ok, "{text}");
-    assert!(text.contains("WARN the controller answers a stray \\r\\n"), "{text}");
+    assert!(
+        text.contains("WARN the controller answers a stray \\r\\n"),
+        "{text}"
+    );
     assert!(text.contains("FAIL robot mode Error (9)"), "{text}");
     assert!(text.contains("FAIL GetErrorID(): J3 servo alarm 4368"), "{text}");
     assert!(text.contains("SKIP RequestControl()"), "{text}");
