@@ -473,6 +473,9 @@ fn a_controller_answering_stray_terminators_gets_no_reply_misattributed() {
     // The default: nothing after the right parenthesis, so nothing stray to answer.
     let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
     assert_eq!(bridge.config().terminator, Terminator::None);
+    assert_eq!(bridge.kind(), "dobot");
+    assert!(bridge.supports_orientation());
+    assert_eq!(bridge.warning(), None);
     assert!(
         emu.snapshot().received.iter().all(|c| !c.contains('\n')),
         "a command carried a line end"

@@ -224,6 +224,16 @@ fn the_template_bridge_follows_targets_and_reports_refusals() {
         );
         std::thread::sleep(Duration::from_millis(5));
     }
+    // Held while in error: a target sent now is not written (nothing can make this fail by being slow).
+    bridge.send(Command {
+        seq: 5,
+        robot_from_target: Isometry3::translation(0.1, 0.0, 0.1),
+        gripper_target: 0.0,
+        issue_time_ns: 0,
+        joint_targets_rad: None,
+    });
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(bridge.feedback().unwrap().applied_seq, 3, "a target was written while in error");
     bridge.control(Control::ClearError).unwrap();
     assert_eq!(bridge.health(), Health::Ready);
     assert!(bridge.control(Control::Enable).is_err());
