@@ -59,7 +59,10 @@ pub fn start(config: ExampleConfig) -> Result<Arc<ExampleBridge>, BridgeError> {
         conn: Mutex::new(BufReader::new(stream)),
         fault: Mutex::new(None),
     };
-    Ok(Arc::new(ThreadedBridge::spawn(link, phone2act_clock::monotonic_ns)?))
+    Ok(Arc::new(ThreadedBridge::spawn(
+        link,
+        phone2act_clock::monotonic_ns,
+    )?))
 }
 
 impl ExampleLink {
@@ -233,7 +236,11 @@ fn the_template_bridge_follows_targets_and_reports_refusals() {
         joint_targets_rad: None,
     });
     std::thread::sleep(Duration::from_millis(100));
-    assert_eq!(bridge.feedback().unwrap().applied_seq, 3, "a target was written while in error");
+    assert_eq!(
+        bridge.feedback().unwrap().applied_seq,
+        3,
+        "a target was written while in error"
+    );
     bridge.control(Control::ClearError).unwrap();
     assert_eq!(bridge.health(), Health::Ready);
     assert!(bridge.control(Control::Enable).is_err());
