@@ -888,6 +888,8 @@ impl DobotLink {
     }
 
     /// Sends one target (finite: the runtime checked) and the gripper's.
+    /// The motion command: every target the runtime accepts for the Dobot goes out here (`ServoP` of the
+    /// pose), and `applied_seq` moves only on the reply that echoes it.
     fn send_target(&self, ctx: &LinkContext, command: &Command) {
         let pose = &command.robot_from_target;
         let t = pose.translation.vector;
