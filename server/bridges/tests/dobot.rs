@@ -65,6 +65,25 @@ fn stream(
     (first_seq + n - 1, last)
 }
 
+/// An emulated V4 controller with `config` and a bridge with the test defaults, ready.
+fn ready(config: EmulatorConfig) -> (DobotEmulator, Arc<DobotBridge>) {
+    let emu = DobotEmulator::start(config).unwrap();
+    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    (emu, bridge)
+}
+
+/// Sends a target a fraction `s` along the test path and waits until the robot accepted it.
+fn apply(bridge: &DobotBridge, seq: u64, s: f64) {
+    let start = bridge.feedback().unwrap().robot_from_ee;
+    bridge.send(command(seq, path_pose(&start, s), 0.0));
+    wait_for("applied", Duration::from_secs(2), || {
+        bridge.feedback().is_some_and(|f| f.applied_seq == seq)
+    });
+}
+
 fn assert_close(what: &str, a: &Isometry3<f64>, b: &Isometry3<f64>, tol_m: f64, tol_rad: f64) {
     let dp = (a.translation.vector - b.translation.vector).norm();
     let dr = a.rotation.angle_to(&b.rotation);
@@ -519,12 +538,14 @@ fn a_controller_answering_stray_terminators_gets_no_reply_misattributed() {
 /// enabling. Older V4 answers it as unknown, which the bridge reads as "not needed".
 #[test]
 fn request_control_is_sent_where_the_firmware_wants_it() {
-    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
-    assert!(!emu.snapshot().tcp_control);
-    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
-    wait_for("ready", Duration::from_secs(2), || {
-        bridge.health() == Health::Ready
-    });
+    assert!(
+        !DobotEmulator::start(EmulatorConfig::default())
+            .unwrap()
+            .snapshot()
+            .tcp_control,
+        "V4.6 starts without TCP control"
+    );
+    let (emu, bridge) = ready(EmulatorConfig::default());
     let snap = emu.snapshot();
     assert_eq!(snap.control_requests, 1);
     let position = |name: &str| snap.received.iter().position(|c| c.starts_with(name)).unwrap();
@@ -532,14 +553,9 @@ fn request_control_is_sent_where_the_firmware_wants_it() {
     assert_eq!(bridge.stats().control_request, ControlRequest::Granted);
     bridge.shutdown();
 
-    let older = DobotEmulator::start(EmulatorConfig {
+    let (_older, bridge) = ready(EmulatorConfig {
         firmware_version: (4, 5),
         ..EmulatorConfig::default()
-    })
-    .unwrap();
-    let bridge = DobotBridge::start(bridge_config(&older, Firmware::V4)).unwrap();
-    wait_for("ready on V4.5", Duration::from_secs(2), || {
-        bridge.health() == Health::Ready
     });
     assert_eq!(bridge.stats().control_request, ControlRequest::NotSupported);
 }
@@ -575,21 +591,11 @@ fn an_unanswered_enable_is_an_error_not_a_hang() {
 /// the start nor closes the link.
 #[test]
 fn a_slow_enable_robot_does_not_tear_the_link_down() {
-    let emu = DobotEmulator::start(EmulatorConfig {
+    let (_emu, bridge) = ready(EmulatorConfig {
         enable_delay: Duration::from_millis(1500),
         ..EmulatorConfig::default()
-    })
-    .unwrap();
-    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
-    wait_for("ready", Duration::from_secs(2), || {
-        bridge.health() == Health::Ready
     });
-    let start = bridge.feedback().unwrap().robot_from_ee;
-    let target = path_pose(&start, 0.4);
-    bridge.send(command(5, target, 0.0));
-    wait_for("applied", Duration::from_secs(2), || {
-        bridge.feedback().is_some_and(|f| f.applied_seq == 5)
-    });
+    apply(&bridge, 5, 0.4);
     assert_eq!(bridge.stats().reconnects, 0);
 }
 
@@ -609,17 +615,13 @@ fn a_late_enable_reply_is_set_aside_not_taken_for_the_next_command() {
     wait_for("the controller enabled late", Duration::from_secs(5), || {
         emu.snapshot().enabled
     });
-    let start = bridge.feedback().unwrap().robot_from_ee;
     // Targets are dropped until the bridge's feedback shows the robot enabled.
     wait_for(
         "the bridge to see the robot enabled",
         Duration::from_secs(2),
         || !matches!(bridge.health(), Health::Error(m) if m.contains("not enabled")),
     );
-    bridge.send(command(9, path_pose(&start, 0.2), 0.0));
-    wait_for("applied", Duration::from_secs(2), || {
-        bridge.feedback().is_some_and(|f| f.applied_seq == 9)
-    });
+    apply(&bridge, 9, 0.2);
     let stats = bridge.stats();
     assert_eq!(stats.replies_discarded, 1, "the late EnableRobot reply");
     assert_eq!(stats.servo_rejected, 0);
@@ -628,11 +630,7 @@ fn a_late_enable_reply_is_set_aside_not_taken_for_the_next_command() {
 /// `GetErrorID` answers seven lists (controller, then J1..J6); health names the servo.
 #[test]
 fn a_servo_alarm_is_named_by_joint() {
-    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
-    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
-    wait_for("ready", Duration::from_secs(2), || {
-        bridge.health() == Health::Ready
-    });
+    let (emu, bridge) = ready(EmulatorConfig::default());
     emu.inject_alarm(Some(3), 4368);
     wait_for(
         "an error naming J3's servo alarm",
@@ -648,11 +646,7 @@ fn a_servo_alarm_is_named_by_joint() {
 /// `MovJ` is a queue command: its id comes back at once, the move takes its motion time.
 #[test]
 fn movj_answers_its_command_id_and_runs_for_its_motion_time() {
-    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
-    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
-    wait_for("ready", Duration::from_secs(2), || {
-        bridge.health() == Health::Ready
-    });
+    let (emu, bridge) = ready(EmulatorConfig::default());
     // 100 mm at 25 % of 0.25 m/s (SpeedFactor 30 gives 0.075 m/s): well over a second.
     let reply = bridge.dashboard("MovJ(pose={-300,0,350,180,0,0})").unwrap();
     assert_eq!(reply.error_id, 0);
