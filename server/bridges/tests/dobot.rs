@@ -591,6 +591,8 @@ fn an_unanswered_enable_is_an_error_not_a_hang() {
 /// the start nor closes the link.
 #[test]
 fn a_slow_enable_robot_does_not_tear_the_link_down() {
+    // 1.5 s: past the 1 s reply timeout of other commands, well inside the 10 s enable bound however
+    // slowly this machine runs the bridge.
     let (_emu, bridge) = ready(EmulatorConfig {
         enable_delay: Duration::from_millis(1500),
         ..EmulatorConfig::default()
@@ -604,10 +606,12 @@ fn a_slow_enable_robot_does_not_tear_the_link_down() {
 #[test]
 fn a_late_enable_reply_is_set_aside_not_taken_for_the_next_command() {
     let emu = DobotEmulator::start(EmulatorConfig {
-        enable_delay: Duration::from_millis(600),
+        enable_delay: Duration::from_millis(2000),
         ..EmulatorConfig::default()
     })
     .unwrap();
+    // The reply cannot exist before 2 s; the bridge gives up after 0.1 s. Only a bridge thread stalled for
+    // the 1.9 s between could still find it in time.
     let mut config = bridge_config(&emu, Firmware::V4);
     config.enable_timeout_s = 0.1;
     let bridge = DobotBridge::start(config).unwrap();
