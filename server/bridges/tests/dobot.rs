@@ -606,7 +606,7 @@ fn a_slow_enable_robot_does_not_tear_the_link_down() {
 #[test]
 fn a_late_enable_reply_is_set_aside_not_taken_for_the_next_command() {
     let emu = DobotEmulator::start(EmulatorConfig {
-        enable_delay: Duration::from_millis(2000),
+        enable_delay: Duration::from_secs(2),
         ..EmulatorConfig::default()
     })
     .unwrap();
