@@ -10,6 +10,8 @@
 pub mod dobot;
 pub mod feetech;
 pub mod remote;
+pub mod runtime;
+pub mod scene;
 pub mod sim;
 pub mod so101;
 
@@ -113,7 +115,7 @@ pub trait Bridge: Send + Sync {
     /// Enable, disable, clear an error, or reconnect.
     fn control(&self, request: Control) -> Result<(), BridgeError>;
     /// The task scene around the arm (the simulator's ball and basket). Real arms have none.
-    fn scene(&self) -> Result<sim::SceneState, BridgeError> {
+    fn scene(&self) -> Result<scene::SceneState, BridgeError> {
         Err(BridgeError::Unsupported(format!(
             "scene state is not supported by the {} bridge",
             self.kind()
@@ -121,7 +123,7 @@ pub trait Bridge: Send + Sync {
     }
     /// Re-draws the scene from `seed` (or the next seed of the arm's sequence); `home_arm` also teleports
     /// the arm to its initial joints. Only a simulator can do either: real arms answer `Unsupported`.
-    fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<sim::SceneState, BridgeError> {
+    fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<scene::SceneState, BridgeError> {
         let _ = (seed, home_arm);
         Err(BridgeError::Unsupported(format!(
             "scene reset is not supported by the {} bridge",

@@ -4,8 +4,8 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use phone2act_bridges::dobot::emulator::{Corruption, DobotEmulator, EmulatorConfig, tool_down};
 use phone2act_bridges::dobot::feedback::EulerConvention;
 use phone2act_bridges::dobot::gripper::GripperOutput;
-use phone2act_bridges::dobot::protocol::{Firmware, Terminator};
-use phone2act_bridges::dobot::{DobotBridge, DobotConfig};
+use phone2act_bridges::dobot::protocol::{ErrorIds, Firmware, Terminator};
+use phone2act_bridges::dobot::{ControlRequest, DobotBridge, DobotConfig};
 use phone2act_bridges::{Bridge, BridgeError, Command, Control, Health};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -63,6 +63,25 @@ fn stream(
         std::thread::sleep(Duration::from_millis(10));
     }
     (first_seq + n - 1, last)
+}
+
+/// An emulated V4 controller with `config` and a bridge with the test defaults, ready.
+fn ready(config: EmulatorConfig) -> (DobotEmulator, Arc<DobotBridge>) {
+    let emu = DobotEmulator::start(config).unwrap();
+    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    (emu, bridge)
+}
+
+/// Sends a target a fraction `s` along the test path and waits until the robot accepted it.
+fn apply(bridge: &DobotBridge, seq: u64, s: f64) {
+    let start = bridge.feedback().unwrap().robot_from_ee;
+    bridge.send(command(seq, path_pose(&start, s), 0.0));
+    wait_for("applied", Duration::from_secs(2), || {
+        bridge.feedback().is_some_and(|f| f.applied_seq == seq)
+    });
 }
 
 fn assert_close(what: &str, a: &Isometry3<f64>, b: &Isometry3<f64>, tol_m: f64, tol_rad: f64) {
@@ -457,4 +476,219 @@ fn example_config_parses() {
         "the CR5 example must not use the SO-101 workspace"
     );
     assert_eq!(arm.dobot.effective_motion_port(), 29999);
+}
+
+/// A controller that answers a `\r\n` after a command as a command of its own (`-10000,{},;`). The default
+/// configuration sends no terminator, as Dobot's clients do; one configured to send `\r\n` anyway has each
+/// stray reply set aside by its echo, never read as the answer to the next command.
+#[test]
+fn a_controller_answering_stray_terminators_gets_no_reply_misattributed() {
+    let emu = DobotEmulator::start(EmulatorConfig {
+        answer_stray_terminator: true,
+        ..EmulatorConfig::default()
+    })
+    .unwrap();
+
+    // The default: nothing after the right parenthesis, so nothing stray to answer.
+    let bridge = DobotBridge::start(bridge_config(&emu, Firmware::V4)).unwrap();
+    assert_eq!(bridge.config().terminator, Terminator::None);
+    assert_eq!(bridge.kind(), "dobot");
+    assert!(bridge.supports_orientation());
+    assert_eq!(bridge.warning(), None);
+    assert!(
+        emu.snapshot().received.iter().all(|c| !c.contains('\n')),
+        "a command carried a line end"
+    );
+    assert_eq!(bridge.stats().replies_discarded, 0);
+    bridge.shutdown();
+
+    // `\r\n` configured: every stray answer is set aside, every command gets its own reply.
+    let mut config = bridge_config(&emu, Firmware::V4);
+    config.terminator = Terminator::Crlf;
+    let bridge = DobotBridge::start(config).unwrap();
+    wait_for("ready", Duration::from_secs(2), || {
+        bridge.health() == Health::Ready
+    });
+    let mode = bridge.dashboard("RobotMode()").unwrap();
+    assert_eq!((mode.error_id, mode.values.clone()), (0, vec!["5".to_owned()]));
+    assert_eq!(mode.echo, "RobotMode()");
+    let start = bridge.feedback().unwrap().robot_from_ee;
+    let (last_seq, last) = stream(&bridge, &start, 1, 30);
+    wait_for("the last target applied", Duration::from_secs(2), || {
+        bridge.feedback().is_some_and(|f| f.applied_seq == last_seq)
+    });
+    wait_for("the arm at the last target", Duration::from_secs(2), || {
+        (emu.snapshot().pose.translation.vector - last.translation.vector).norm() < 1e-4
+    });
+    let stats = bridge.stats();
+    assert_eq!(
+        stats.servo_rejected, 0,
+        "a stray reply was taken for a ServoP reply"
+    );
+    assert_eq!(stats.last_command_error, None);
+    assert!(
+        stats.replies_discarded >= stats.servo_sent,
+        "{} stray replies set aside for {} ServoP sent",
+        stats.replies_discarded,
+        stats.servo_sent
+    );
+}
+
+/// V4.6+ firmware takes commands over TCP only after `RequestControl()`; the bridge sends it before
+/// enabling. Older V4 answers it as unknown, which the bridge reads as "not needed".
+#[test]
+fn request_control_is_sent_where_the_firmware_wants_it() {
+    assert!(
+        !DobotEmulator::start(EmulatorConfig::default())
+            .unwrap()
+            .snapshot()
+            .tcp_control,
+        "V4.6 starts without TCP control"
+    );
+    let (emu, bridge) = ready(EmulatorConfig::default());
+    let snap = emu.snapshot();
+    assert_eq!(snap.control_requests, 1);
+    let position = |name: &str| snap.received.iter().position(|c| c.starts_with(name)).unwrap();
+    assert!(position("RequestControl") < position("EnableRobot"));
+    assert_eq!(bridge.stats().control_request, ControlRequest::Granted);
+    bridge.shutdown();
+
+    let (_older, bridge) = ready(EmulatorConfig {
+        firmware_version: (4, 5),
+        ..EmulatorConfig::default()
+    });
+    assert_eq!(bridge.stats().control_request, ControlRequest::NotSupported);
+}
+
+/// Without the control request, a V4.6 controller leaves `EnableRobot` unanswered: the bridge says so
+/// within its enable timeout and keeps the link (no motion, nothing torn down).
+#[test]
+fn an_unanswered_enable_is_an_error_not_a_hang() {
+    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
+    let mut config = bridge_config(&emu, Firmware::V4);
+    config.request_control = false;
+    config.enable_timeout_s = 0.3;
+    let started = Instant::now();
+    let bridge = DobotBridge::start(config).unwrap();
+    // 0.3 s for the enable plus the connect steps; 5 s leaves room for a loaded machine.
+    assert!(started.elapsed() < Duration::from_secs(5));
+    wait_for(
+        "an error naming EnableRobot",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("EnableRobot")),
+    );
+    let before = emu.snapshot().servo_commands;
+    bridge.send(command(1, tool_down(-0.38, 0.0, 0.35, 0.0), 0.0));
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(
+        emu.snapshot().servo_commands,
+        before,
+        "a disabled robot was sent a target"
+    );
+}
+
+/// `EnableRobot` answered after 1.5 s (longer than the 1 s reply timeout of other commands) neither fails
+/// the start nor closes the link.
+#[test]
+fn a_slow_enable_robot_does_not_tear_the_link_down() {
+    // 1.5 s: past the 1 s reply timeout of other commands, well inside the 10 s enable bound however
+    // slowly this machine runs the bridge.
+    let (_emu, bridge) = ready(EmulatorConfig {
+        enable_delay: Duration::from_millis(1500),
+        ..EmulatorConfig::default()
+    });
+    apply(&bridge, 5, 0.4);
+    assert_eq!(bridge.stats().reconnects, 0);
+}
+
+/// An enable slower than the configured bound: an error of that command; its late reply, when it comes,
+/// is set aside rather than taken for the ServoP sent after it.
+#[test]
+fn a_late_enable_reply_is_set_aside_not_taken_for_the_next_command() {
+    let emu = DobotEmulator::start(EmulatorConfig {
+        enable_delay: Duration::from_secs(2),
+        ..EmulatorConfig::default()
+    })
+    .unwrap();
+    // The reply cannot exist before 2 s; the bridge gives up after 0.1 s. Only a bridge thread stalled for
+    // the 1.9 s between could still find it in time.
+    let mut config = bridge_config(&emu, Firmware::V4);
+    config.enable_timeout_s = 0.1;
+    let bridge = DobotBridge::start(config).unwrap();
+    assert!(matches!(bridge.health(), Health::Error(m) if m.contains("EnableRobot")));
+    wait_for("the controller enabled late", Duration::from_secs(5), || {
+        emu.snapshot().enabled
+    });
+    // Targets are dropped until the bridge's feedback shows the robot enabled.
+    wait_for(
+        "the bridge to see the robot enabled",
+        Duration::from_secs(2),
+        || !matches!(bridge.health(), Health::Error(m) if m.contains("not enabled")),
+    );
+    apply(&bridge, 9, 0.2);
+    let stats = bridge.stats();
+    assert_eq!(stats.replies_discarded, 1, "the late EnableRobot reply");
+    assert_eq!(stats.servo_rejected, 0);
+}
+
+/// `GetErrorID` answers seven lists (controller, then J1..J6); health names the servo.
+#[test]
+fn a_servo_alarm_is_named_by_joint() {
+    let (emu, bridge) = ready(EmulatorConfig::default());
+    emu.inject_alarm(Some(3), 4368);
+    wait_for(
+        "an error naming J3's servo alarm",
+        Duration::from_secs(2),
+        || matches!(bridge.health(), Health::Error(m) if m.contains("J3 servo alarm 4368")),
+    );
+    let reply = bridge.dashboard("GetErrorID()").unwrap();
+    let ids = ErrorIds::parse(&reply.values.join(",")).unwrap();
+    assert_eq!(ids.servos[2], vec![4368]);
+    assert!(ids.controller.is_empty());
+}
+
+/// `MovJ` is a queue command: its id comes back at once, the move takes its motion time.
+#[test]
+fn movj_answers_its_command_id_and_runs_for_its_motion_time() {
+    let (emu, bridge) = ready(EmulatorConfig::default());
+    // 100 mm at 25 % of 0.25 m/s (SpeedFactor 30 gives 0.075 m/s): well over a second.
+    let reply = bridge.dashboard("MovJ(pose={-300,0,350,180,0,0})").unwrap();
+    assert_eq!(reply.error_id, 0);
+    let id: u64 = reply.values[0].parse().unwrap();
+    let snap = emu.snapshot();
+    assert_eq!(snap.current_command_id, id);
+    assert_eq!(snap.mode.code(), 7, "running while the move lasts");
+    assert!((snap.pose.translation.vector - snap.target.translation.vector).norm() > 0.05);
+    let joint = bridge.dashboard("MovJ(joint={-30,0,35,180,0,0})").unwrap();
+    assert_eq!(joint.values, vec![(id + 1).to_string()]);
+    let positional = bridge.dashboard("MovJ(-300,0,350,180,0,0)").unwrap();
+    assert!(positional.error_id < 0, "V4 wants pose= or joint=");
+}
+
+/// The gripper endpoint takes a POST to its path and nothing else.
+#[test]
+fn the_gripper_endpoint_refuses_a_wrong_method_or_path() {
+    use phone2act_bridges::dobot::emulator::TOOL_DATA_EXCHANGE_PATH;
+    use phone2act_bridges::dobot::gripper::{http_post_json, modbus_http_body, modbus_write_register};
+    use std::io::{Read, Write};
+    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
+    let port = emu.http_addr().port();
+    let body = modbus_http_body(&modbus_write_register(1, 0x0103, 1000));
+    let timeout = Duration::from_secs(2);
+    assert_eq!(
+        http_post_json("127.0.0.1", port, TOOL_DATA_EXCHANGE_PATH, &body, timeout).unwrap(),
+        200
+    );
+    assert_eq!(
+        http_post_json("127.0.0.1", port, "/interface/tooldata", &body, timeout).unwrap(),
+        404
+    );
+    let mut get = std::net::TcpStream::connect(emu.http_addr()).unwrap();
+    get.write_all(format!("GET {TOOL_DATA_EXCHANGE_PATH} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes())
+        .unwrap();
+    let mut response = String::new();
+    get.read_to_string(&mut response).unwrap();
+    assert!(response.starts_with("HTTP/1.1 405"), "{response}");
+    assert_eq!(emu.snapshot().http_refused, 2);
+    assert_eq!(emu.snapshot().gripper_register, Some(1000));
 }

@@ -3,15 +3,15 @@
 //! answers it. Keep the two in step: the document quotes the code between the `template:` markers.
 
 // template: start
-use nalgebra::{Isometry3, Translation3};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use parking_lot::Mutex;
-use phone2act_bridges::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use phone2act_bridges::runtime::{LinkContext, Measured, RobotLink, Schedule, ThreadedBridge};
+use phone2act_bridges::{BridgeError, Command, Control, Health};
 use serde::Deserialize;
 use std::io::{BufRead, BufReader, Write};
-use std::net::TcpStream;
+use std::net::{Shutdown, TcpStream};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// `[arms.example]` in the server config.
 #[derive(Clone, Debug, Deserialize)]
@@ -26,144 +26,118 @@ fn default_rate_hz() -> f64 {
     50.0
 }
 
-struct Inner {
+/// The robot's protocol: one request line, one reply line, over one TCP connection.
+pub struct ExampleLink {
     config: ExampleConfig,
     joint_names: Vec<String>,
-    slot: LatestSlot<Command>,
-    feedback: FeedbackCell,
-    health: Mutex<Health>,
-    applied_seq: AtomicU64,
-    stop: AtomicBool,
-    epoch: Instant,
+    conn: Mutex<BufReader<TcpStream>>,
+    /// The last fault, shown as health until it is cleared; `None` when all is well.
+    fault: Mutex<Option<Health>>,
 }
 
-pub struct ExampleBridge {
-    inner: Arc<Inner>,
-    thread: Mutex<Option<std::thread::JoinHandle<()>>>,
-}
+/// The bridge: the runtime's threads, slot and rules around the link.
+pub type ExampleBridge = ThreadedBridge<ExampleLink>;
 
-impl ExampleBridge {
-    pub fn start(config: ExampleConfig) -> Result<Arc<Self>, BridgeError> {
-        if !(config.rate_hz > 0.0 && config.rate_hz <= 1000.0) {
-            return Err(BridgeError::Config(format!(
-                "rate_hz {} outside (0, 1000]",
-                config.rate_hz
-            )));
-        }
-        // Fail at start if the robot is not there: the server reports it instead of running a dead arm.
-        let stream = TcpStream::connect(&config.address).map_err(|e| BridgeError::Connect {
-            target: config.address.clone(),
-            message: e.to_string(),
-        })?;
-        stream.set_nodelay(true)?;
-        stream.set_read_timeout(Some(Duration::from_millis(200)))?;
-        let inner = Arc::new(Inner {
-            config,
-            joint_names: vec!["x".into(), "y".into(), "z".into()],
-            slot: LatestSlot::default(),
-            feedback: FeedbackCell::default(),
-            health: Mutex::new(Health::Ready),
-            applied_seq: AtomicU64::new(0),
-            stop: AtomicBool::new(false),
-            epoch: Instant::now(),
-        });
-        let worker = Arc::clone(&inner);
-        let thread = std::thread::Builder::new()
-            .name("example-bridge".into())
-            .spawn(move || worker.run(stream))?;
-        Ok(Arc::new(Self {
-            inner,
-            thread: Mutex::new(Some(thread)),
-        }))
+pub fn start(config: ExampleConfig) -> Result<Arc<ExampleBridge>, BridgeError> {
+    if !(config.rate_hz > 0.0 && config.rate_hz <= 1000.0) {
+        return Err(BridgeError::Config(format!(
+            "rate_hz {} outside (0, 1000]",
+            config.rate_hz
+        )));
     }
+    // Fail at start if the robot is not there: the server reports it instead of running a dead arm.
+    let stream = TcpStream::connect(&config.address).map_err(|e| BridgeError::Connect {
+        target: config.address.clone(),
+        message: e.to_string(),
+    })?;
+    stream.set_nodelay(true)?;
+    // Every blocking call has a timeout, so shutdown and control return promptly.
+    stream.set_read_timeout(Some(Duration::from_millis(200)))?;
+    let link = ExampleLink {
+        config,
+        joint_names: vec!["x".into(), "y".into(), "z".into()],
+        conn: Mutex::new(BufReader::new(stream)),
+        fault: Mutex::new(None),
+    };
+    Ok(Arc::new(ThreadedBridge::spawn(
+        link,
+        phone2act_clock::monotonic_ns,
+    )?))
 }
 
-impl Inner {
-    fn set_health(&self, health: Health) {
-        *self.health.lock() = health;
-    }
-
-    /// One request, one reply line.
-    fn request(reader: &mut BufReader<TcpStream>, line: &str) -> std::io::Result<String> {
-        reader.get_mut().write_all(line.as_bytes())?;
+impl ExampleLink {
+    /// One request, one reply line; a failed socket is a `Disconnected` fault.
+    fn request(&self, line: &str) -> Option<String> {
+        let mut conn = self.conn.lock();
         let mut reply = String::new();
-        if reader.read_line(&mut reply)? == 0 {
-            return Err(std::io::ErrorKind::UnexpectedEof.into());
+        let result = conn
+            .get_mut()
+            .write_all(line.as_bytes())
+            .and_then(|()| conn.read_line(&mut reply));
+        match result {
+            Ok(n) if n > 0 => Some(reply.trim().to_owned()),
+            Ok(_) => self.fail(Health::Disconnected("closed by the robot".into())),
+            Err(e) => self.fail(Health::Disconnected(e.to_string())),
         }
-        Ok(reply.trim().to_owned())
     }
 
-    fn run(&self, stream: TcpStream) {
-        let mut reader = BufReader::new(stream);
-        let period = Duration::from_secs_f64(1.0 / self.config.rate_hz);
-        while !self.stop.load(Ordering::SeqCst) {
-            // The newest target only: a slow robot never works through a backlog.
-            if let Some(command) = self.slot.take_wait(period) {
-                // Metres inside phone2act; the robot wants millimetres, so convert here and only here.
-                let p = command.robot_from_target.translation.vector * 1000.0;
-                if !p.iter().all(|v| v.is_finite()) {
-                    continue; // never send garbage; the arm holds
-                }
-                match Self::request(&mut reader, &format!("MOVE {:.2} {:.2} {:.2}\n", p.x, p.y, p.z)) {
-                    Ok(reply) if reply == "OK" => self.applied_seq.store(command.seq, Ordering::SeqCst),
-                    Ok(reply) => self.set_health(Health::Error(format!("robot refused MOVE: {reply}"))),
-                    Err(e) => {
-                        self.set_health(Health::Disconnected(e.to_string()));
-                        return;
-                    }
-                }
-            }
-            match Self::request(&mut reader, "POS\n") {
-                Ok(reply) => {
-                    let v: Vec<f64> = reply.split_whitespace().filter_map(|s| s.parse().ok()).collect();
-                    let [x, y, z] = v[..] else {
-                        self.set_health(Health::Error(format!("bad POS reply {reply:?}")));
-                        continue;
-                    };
-                    *self.feedback.lock() = Some(Feedback {
-                        capture_time_ns: self.epoch.elapsed().as_nanos() as i64,
-                        joint_positions_rad: vec![x / 1000.0, y / 1000.0, z / 1000.0],
-                        robot_from_ee: Isometry3::from_parts(
-                            Translation3::new(x / 1000.0, y / 1000.0, z / 1000.0),
-                            nalgebra::UnitQuaternion::identity(),
-                        ),
-                        gripper_position: 0.0,
-                        applied_seq: self.applied_seq.load(Ordering::SeqCst),
-                        task_success: false,
-                    });
-                }
-                Err(e) => {
-                    self.set_health(Health::Disconnected(e.to_string()));
-                    return;
-                }
-            }
-        }
+    fn fail<T>(&self, health: Health) -> Option<T> {
+        *self.fault.lock() = Some(health);
+        None
     }
 }
 
-impl Bridge for ExampleBridge {
+impl RobotLink for ExampleLink {
     fn kind(&self) -> &'static str {
         "example"
     }
     fn joint_names(&self) -> &[String] {
-        &self.inner.joint_names
+        &self.joint_names
     }
     fn supports_orientation(&self) -> bool {
         false // position only: the planner keeps the orientation at its reference
     }
-    fn send(&self, command: Command) {
-        self.inner.slot.put(command);
+    fn schedule(&self) -> Schedule {
+        // One line to the robot: write, then read, once a period.
+        Schedule::Cycle {
+            period: Duration::from_secs_f64(1.0 / self.config.rate_hz),
+        }
     }
-    fn feedback(&self) -> Option<Feedback> {
-        self.inner.feedback.lock().clone()
+    fn health(&self, _ctx: &LinkContext) -> Health {
+        self.fault.lock().clone().unwrap_or(Health::Ready)
     }
-    fn health(&self) -> Health {
-        self.inner.health.lock().clone()
+    /// Called only while health is `Ready`, with the newest target and only finite numbers in it.
+    fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+        let Some(command) = command else { return true };
+        // Metres inside phone2act; the robot wants millimetres, so convert here and only here.
+        let p = command.robot_from_target.translation.vector * 1000.0;
+        match self.request(&format!("MOVE {:.2} {:.2} {:.2}\n", p.x, p.y, p.z)) {
+            Some(reply) if reply == "OK" => ctx.applied(command.seq),
+            Some(reply) => *self.fault.lock() = Some(Health::Error(format!("robot refused MOVE: {reply}"))),
+            None => return false,
+        }
+        true
     }
-    fn control(&self, request: Control) -> Result<(), BridgeError> {
+    fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
+        let reply = self.request("POS\n")?;
+        let v: Vec<f64> = reply.split_whitespace().filter_map(|s| s.parse().ok()).collect();
+        let [x, y, z] = v[..] else {
+            return self.fail(Health::Error(format!("bad POS reply {reply:?}")));
+        };
+        let p = Translation3::new(x / 1000.0, y / 1000.0, z / 1000.0);
+        Some(Measured {
+            joint_positions_rad: vec![p.x, p.y, p.z],
+            robot_from_ee: Isometry3::from_parts(p, UnitQuaternion::identity()),
+            gripper_position: 0.0,
+        })
+    }
+    fn control(&self, _ctx: &LinkContext, request: Control) -> Result<(), BridgeError> {
         match request {
             Control::ClearError => {
-                self.inner.set_health(Health::Ready);
+                let mut fault = self.fault.lock();
+                if !matches!(*fault, Some(Health::Disconnected(_))) {
+                    *fault = None;
+                }
                 Ok(())
             }
             other => Err(BridgeError::Protocol(format!(
@@ -171,14 +145,14 @@ impl Bridge for ExampleBridge {
             ))),
         }
     }
-    fn shutdown(&self) {
-        self.inner.stop.store(true, Ordering::SeqCst);
-        if let Some(t) = self.thread.lock().take() {
-            let _ = t.join();
-        }
+    fn close(&self) {
+        let _ = self.conn.lock().get_ref().shutdown(Shutdown::Both);
     }
 }
 // template: end
+
+use phone2act_bridges::Bridge;
+use std::time::Instant;
 
 /// The robot: a point that jumps to each MOVE.
 fn toy_robot() -> std::net::SocketAddr {
@@ -214,7 +188,7 @@ fn toy_robot() -> std::net::SocketAddr {
 #[test]
 fn the_template_bridge_follows_targets_and_reports_refusals() {
     let config: ExampleConfig = toml::from_str(&format!("address = \"{}\"", toy_robot())).unwrap();
-    let bridge = ExampleBridge::start(config).unwrap();
+    let bridge = start(config).unwrap();
     let deadline = Instant::now() + Duration::from_secs(2);
     while bridge.feedback().is_none() {
         assert!(Instant::now() < deadline);
@@ -253,6 +227,20 @@ fn the_template_bridge_follows_targets_and_reports_refusals() {
         );
         std::thread::sleep(Duration::from_millis(5));
     }
+    // Held while in error: a target sent now is not written (nothing can make this fail by being slow).
+    bridge.send(Command {
+        seq: 5,
+        robot_from_target: Isometry3::translation(0.1, 0.0, 0.1),
+        gripper_target: 0.0,
+        issue_time_ns: 0,
+        joint_targets_rad: None,
+    });
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(
+        bridge.feedback().unwrap().applied_seq,
+        3,
+        "a target was written while in error"
+    );
     bridge.control(Control::ClearError).unwrap();
     assert_eq!(bridge.health(), Health::Ready);
     assert!(bridge.control(Control::Enable).is_err());

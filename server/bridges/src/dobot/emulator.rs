@@ -12,7 +12,7 @@
 
 use super::feedback::{EulerConvention, FeedbackPacket};
 use super::gripper::parse_modbus_write_register;
-use super::protocol::{Firmware, RobotMode, split_command, split_top_level};
+use super::protocol::{ErrorIds, Firmware, RobotMode, split_command, split_top_level};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use parking_lot::Mutex;
 use std::io::{ErrorKind, Read, Write};
@@ -40,6 +40,17 @@ pub struct EmulatorConfig {
     pub feedback_period: Duration,
     pub initial_pose: Isometry3<f64>,
     pub max_speed_m_s: f64,
+    /// Firmware version (major, minor). From V4.6.0 the controller takes commands over TCP only after
+    /// `RequestControl()` (guide `V4新增指令/README.md` §3.132 and its change log "V4.6.0-2024/03/27 增加
+    /// RequestControl命令"); before it, `EnableRobot` and motion commands go unanswered, the symptom reported
+    /// in issue #25. Older V4 answers `RequestControl()` as an unknown command (-10000), as it would any
+    /// command it does not know (§2.2.1).
+    pub firmware_version: (u8, u8),
+    /// How long `EnableRobot()` takes to answer (the brakes release first).
+    pub enable_delay: Duration,
+    /// Answer a stray `\r\n` or `\n` after a command as a command of its own (`-10000,{},;`): the
+    /// behaviour that, with a bridge that does not check echoes, shifts every reply onto the next command.
+    pub answer_stray_terminator: bool,
 }
 
 impl Default for EmulatorConfig {
@@ -59,6 +70,9 @@ impl Default for EmulatorConfig {
                 UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
             ),
             max_speed_m_s: 1.0,
+            firmware_version: (4, 6),
+            enable_delay: Duration::ZERO,
+            answer_stray_terminator: false,
         }
     }
 }
@@ -90,13 +104,23 @@ pub struct EmulatorSnapshot {
     /// Last value written to the Modbus gripper register, if any.
     pub gripper_register: Option<u16>,
     pub active_clients: usize,
+    /// True once the controller takes commands over TCP (V4.6+: after `RequestControl()`).
+    pub tcp_control: bool,
+    /// `RequestControl()` commands received.
+    pub control_requests: u64,
+    /// Every command received, in order, as the controller read it (bounded to the last 256).
+    pub received: Vec<String>,
+    /// The queued motion command being executed (`CurrentCommandId` of the feedback packet).
+    pub current_command_id: u64,
+    /// HTTP requests refused for their method or path.
+    pub http_refused: u64,
 }
 
 #[derive(Debug)]
 struct State {
     mode: RobotMode,
     enabled: bool,
-    error_ids: Vec<i32>,
+    error_ids: ErrorIds,
     pose: Isometry3<f64>,
     target: Isometry3<f64>,
     remaining_s: f64,
@@ -110,6 +134,12 @@ struct State {
     tool_outputs: u8,
     gripper_register: Option<u16>,
     corruption: Option<Corruption>,
+    tcp_control: bool,
+    control_requests: u64,
+    received: std::collections::VecDeque<String>,
+    /// The id of the motion command in progress (its move lasts `remaining_s`), then of the last done.
+    current_command_id: u64,
+    http_refused: u64,
 }
 
 impl State {
@@ -203,7 +233,7 @@ impl DobotEmulator {
             state: Mutex::new(State {
                 mode: RobotMode::Disabled,
                 enabled: false,
-                error_ids: Vec::new(),
+                error_ids: ErrorIds::default(),
                 pose: config.initial_pose,
                 target: config.initial_pose,
                 remaining_s: 0.0,
@@ -217,6 +247,11 @@ impl DobotEmulator {
                 tool_outputs: 0,
                 gripper_register: None,
                 corruption: None,
+                tcp_control: config.firmware == Firmware::V3 || config.firmware_version < (4, 6),
+                control_requests: 0,
+                received: std::collections::VecDeque::with_capacity(256),
+                current_command_id: 0,
+                http_refused: 0,
             }),
             config,
             clients: Mutex::new(Vec::new()),
@@ -281,14 +316,27 @@ impl DobotEmulator {
             tool_outputs: s.tool_outputs,
             gripper_register: s.gripper_register,
             active_clients: self.shared.clients.lock().len(),
+            tcp_control: s.tcp_control,
+            control_requests: s.control_requests,
+            received: s.received.iter().cloned().collect(),
+            current_command_id: s.current_command_id,
+            http_refused: s.http_refused,
         }
     }
 
-    /// Puts the robot in the error state (mode 9) with `error_id`, halting it where it is.
+    /// Puts the robot in the error state (mode 9) with controller alarm `error_id`, halting it where it is.
     pub fn inject_error(&self, error_id: i32) {
+        self.inject_alarm(None, error_id);
+    }
+
+    /// As [`Self::inject_error`], for the servo of joint `joint` (1..=6) or, with `None`, the controller.
+    pub fn inject_alarm(&self, joint: Option<usize>, error_id: i32) {
         let mut s = self.shared.state.lock();
         s.advance(Instant::now(), self.shared.config.max_speed_m_s);
-        s.error_ids.push(error_id);
+        match joint.and_then(|j| j.checked_sub(1)).filter(|&j| j < 6) {
+            Some(j) => s.error_ids.servos[j].push(i64::from(error_id)),
+            None => s.error_ids.controller.push(i64::from(error_id)),
+        }
         s.mode = RobotMode::Error;
         s.target = s.pose;
         s.remaining_s = 0.0;
@@ -409,9 +457,21 @@ fn serve_commands(shared: &Arc<Shared>, mut stream: TcpStream, kind: PortKind) {
             Err(_) => break,
         };
         text.push_str(&String::from_utf8_lossy(&chunk[..n]));
-        while let Some(command) = next_command(&mut text) {
-            let reply = execute(shared, &command, kind);
-            if stream.write_all(reply.as_bytes()).is_err() {
+        loop {
+            let reply = if shared.config.answer_stray_terminator && take_stray_terminator(&mut text) {
+                Some(reply(-10000, "", ""))
+            } else if let Some(command) = next_command(&mut text) {
+                // EnableRobot answers once the brakes are released; other commands queue behind it.
+                if is_named(&command, "enablerobot") && !shared.config.enable_delay.is_zero() {
+                    std::thread::sleep(shared.config.enable_delay);
+                }
+                execute(shared, &command, kind)
+            } else {
+                break;
+            };
+            if let Some(reply) = reply
+                && stream.write_all(reply.as_bytes()).is_err()
+            {
                 forget_client(shared, &stream);
                 return;
             }
@@ -423,6 +483,21 @@ fn serve_commands(shared: &Arc<Shared>, mut stream: TcpStream, kind: PortKind) {
         }
     }
     forget_client(shared, &stream);
+}
+
+/// Takes a line end left between commands off the front of `buffer`.
+fn take_stray_terminator(buffer: &mut String) -> bool {
+    for end in ["\r\n", "\n"] {
+        if buffer.starts_with(end) {
+            buffer.drain(..end.len());
+            return true;
+        }
+    }
+    false
+}
+
+fn is_named(command: &str, lowercase_name: &str) -> bool {
+    split_command(command).is_some_and(|(name, _)| name.eq_ignore_ascii_case(lowercase_name))
 }
 
 fn reply(code: i32, values: &str, echo: &str) -> String {
@@ -448,22 +523,36 @@ fn fake_joints_deg(pose_mm_deg: &[f64; 6]) -> [f64; 6] {
     [x / 10.0, y / 10.0, z / 10.0, rx, ry, rz]
 }
 
-/// Executes one command and returns the reply text.
+/// Executes one command and returns the reply text, or `None` when the controller does not answer.
 #[allow(clippy::too_many_lines)] // one arm per command reads better than a table of closures
-fn execute(shared: &Shared, command: &str, kind: PortKind) -> String {
+fn execute(shared: &Shared, command: &str, kind: PortKind) -> Option<String> {
     let config = &shared.config;
     let v3 = config.firmware == Firmware::V3;
+    let mut s = shared.state.lock();
+    if s.received.len() == 256 {
+        s.received.pop_front();
+    }
+    s.received.push_back(command.to_owned());
     let Some((name, params)) = split_command(command) else {
-        return reply(-10000, "", command);
+        return Some(reply(-10000, "", command));
     };
     let lname = name.to_ascii_lowercase();
-    let mut s = shared.state.lock();
     s.advance(Instant::now(), config.max_speed_m_s);
     let is_motion = matches!(lname.as_str(), "servop" | "movl" | "movj");
     // V3 keeps motion commands on the motion port and settings on the dashboard.
     if v3 && (is_motion != (kind == PortKind::Motion)) {
         s.rejected_commands += 1;
-        return reply(-10000, "", command);
+        return Some(reply(-10000, "", command));
+    }
+    // V4.6+ before `RequestControl()`: enabling, moving and outputs go unanswered (issue #25's symptom);
+    // queries and the control request itself are answered.
+    let needs_control = is_motion
+        || matches!(
+            lname.as_str(),
+            "enablerobot" | "doinstant" | "tooldoinstant" | "do" | "tooldo"
+        );
+    if needs_control && !s.tcp_control {
+        return None;
     }
     let code_and_values: (i32, String) = match lname.as_str() {
         "enablerobot" => {
@@ -483,16 +572,26 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> String {
             (0, String::new())
         }
         "clearerror" => {
-            s.error_ids.clear();
+            s.error_ids = ErrorIds::default();
             s.mode = s.fault_mode();
             (0, String::new())
         }
-        "poweron" | "requestcontrol" | "stop" => (0, String::new()),
-        "robotmode" => (0, s.mode.code().to_string()),
-        "geterrorid" => {
-            let ids: Vec<String> = s.error_ids.iter().map(i32::to_string).collect();
-            (0, format!("[[{}]]", ids.join(",")))
+        "requestcontrol" if config.firmware_version < (4, 6) => (-10000, String::new()),
+        "requestcontrol" => {
+            s.control_requests += 1;
+            // §3.132: allowed powered off or disabled; refused enabled, running, dragging, or in error
+            // while enabled.
+            if s.enabled {
+                (-1, String::new())
+            } else {
+                s.tcp_control = true;
+                (0, String::new())
+            }
         }
+        "poweron" | "stop" => (0, String::new()),
+        "robotmode" => (0, s.mode.code().to_string()),
+        // §3.40: seven lists, the controller's then one per servo.
+        "geterrorid" => (0, s.error_ids.to_values()),
         "getpose" => (0, fmt6(&pose_mm_deg(&s.pose, config.convention))),
         "getangle" => (
             0,
@@ -536,7 +635,7 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> String {
     if code_and_values.0 != 0 {
         s.rejected_commands += 1;
     }
-    reply(code_and_values.0, &code_and_values.1, command.trim())
+    Some(reply(code_and_values.0, &code_and_values.1, command.trim()))
 }
 
 fn parse_pose(params: &[&str]) -> Result<[f64; 6], i32> {
@@ -595,44 +694,62 @@ fn servo_p(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     s.remaining_s = t_s;
     s.servo_commands += 1;
     s.command_id += 1;
+    s.current_command_id = s.command_id;
     s.mode = RobotMode::Running;
     s.last_servo_command = Some(format!("ServoP({})", params.join(",")));
     (0, s.command_id.to_string())
 }
 
+/// `MovJ`/`MovL` (guide §3.74, §3.75; V3: positional on the motion port). The target is `pose={x,..}` or
+/// `joint={j1,..}` (V4), six positional values (V3). Queue commands: the reply carries the command id at once
+/// (§2.2.1, "队列指令value返回值指队列ID"), while the move itself takes its motion time: the robot is
+/// `Running` with that id in the feedback's `CurrentCommandId` until it arrives and only then `Enabled`
+/// again, which is what Dobot's demo waits for (TCP-IP-Python-V4 `DobotDemo.py`: mode 5 and the id).
 fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
-    // V4: MovL(pose={x,...},...); V3: MovL(x,y,z,rx,ry,rz).
-    let values: Vec<&str> = match params.first().map(|p| p.trim()) {
-        Some(first) if first.to_ascii_lowercase().starts_with("pose=") => {
-            let inner = first
-                .get(5..)
-                .unwrap_or_default()
-                .trim()
-                .trim_start_matches('{')
-                .trim_end_matches('}');
-            split_top_level(inner)
-        }
-        _ => params.to_vec(),
+    let first = params.first().map(|p| p.trim()).unwrap_or_default();
+    let (space, inner) = match first.split_once('=') {
+        Some((key, value)) => (key.trim().to_ascii_lowercase(), Some(value.trim())),
+        None => (String::new(), None),
     };
-    if values.len() < 6 {
+    let values: Vec<&str> = match (space.as_str(), inner) {
+        ("pose" | "joint", Some(v)) if config.firmware == Firmware::V4 => {
+            split_top_level(v.trim_start_matches('{').trim_end_matches('}'))
+        }
+        (_, Some(_)) => return (-30001, String::new()),
+        _ if config.firmware == Firmware::V3 => params.to_vec(),
+        // V4 wants the named form.
+        _ => return (-30001, String::new()),
+    };
+    if values.len() != 6 {
         return (-20000, String::new());
     }
-    let pose = match parse_pose(&values) {
+    let mut target = match parse_pose(&values) {
         Ok(p) => p,
         Err(code) => return (code, String::new()),
     };
+    if space == "joint" {
+        target = pose_from_fake_joints(&target);
+    }
     if !s.error_ids.is_empty() {
         return (-2, String::new());
     }
     if !s.enabled {
         return (-1, String::new());
     }
-    let target = pose_from_mm_deg(&pose, config.convention);
+    let target = pose_from_mm_deg(&target, config.convention);
     let distance_m = (target.translation.vector - s.pose.translation.vector).norm();
     s.target = target;
     s.remaining_s = (distance_m / (0.25 * f64::from(s.speed_factor) / 100.0)).max(0.05);
     s.command_id += 1;
+    s.current_command_id = s.command_id;
+    s.mode = RobotMode::Running;
     (0, s.command_id.to_string())
+}
+
+/// Inverse of [`fake_joints_deg`], for `joint={..}` targets.
+fn pose_from_fake_joints(joints_deg: &[f64; 6]) -> [f64; 6] {
+    let [j1, j2, j3, j4, j5, j6] = *joints_deg;
+    [j1 * 10.0, j2 * 10.0, j3 * 10.0, j4, j5, j6]
 }
 
 fn set_output(s: &mut State, tool: bool, params: &[&str]) -> (i32, String) {
@@ -695,7 +812,7 @@ fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
                 tool_vector_target: target,
                 enable_status: u8::from(s.enabled),
                 error_status: u8::from(!s.error_ids.is_empty()),
-                current_command_id: s.command_id,
+                current_command_id: s.current_command_id,
                 actual_quaternion_wxyz: if config.fill_quaternion {
                     [q.w, q.i, q.j, q.k]
                 } else {
@@ -727,6 +844,9 @@ fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
     forget_client(shared, &stream);
 }
 
+/// Path of the tool data exchange on the controller's port 22000.
+pub const TOOL_DATA_EXCHANGE_PATH: &str = "/interface/toolDataExchange";
+
 fn serve_http(shared: &Arc<Shared>, mut stream: TcpStream) {
     let _ = stream.set_read_timeout(Some(Duration::from_secs(2)));
     let mut request = Vec::new();
@@ -755,6 +875,25 @@ fn serve_http(shared: &Arc<Shared>, mut stream: TcpStream) {
             Ok(0) | Err(_) => return,
             Ok(n) => request.extend_from_slice(&chunk[..n]),
         }
+    }
+    // The controller's web service on port 22000 routes by method and path: the tool data exchange is a
+    // POST to /interface/toolDataExchange (the Phone2Act CR5 bridge, OmMandhane/Phone2Act
+    // `dobot_hardware_bridge.py`; the same service answers TCP-IP-Python-V4 `GetError`'s POST
+    // /interface/language and GET /protocol/getAlarm). Anything else is refused, so a wrong method or path
+    // in the bridge fails here as it would on the robot.
+    let request_line = String::from_utf8_lossy(&request[..head_end]);
+    let mut words = request_line.split_whitespace();
+    let (method, path) = (words.next().unwrap_or_default(), words.next().unwrap_or_default());
+    let refusal = match (method, path) {
+        ("POST", TOOL_DATA_EXCHANGE_PATH) => None,
+        (_, TOOL_DATA_EXCHANGE_PATH) => Some("405 Method Not Allowed"),
+        _ => Some("404 Not Found"),
+    };
+    if let Some(status) = refusal {
+        shared.state.lock().http_refused += 1;
+        let response = format!("HTTP/1.1 {status}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+        let _ = stream.write_all(response.as_bytes());
+        return;
     }
     let body = &request[head_end..head_end + content_length];
     let frame: Option<Vec<u8>> = serde_json::from_slice::<serde_json::Value>(body)
@@ -815,7 +954,7 @@ mod tests {
         let mut s = State {
             mode: RobotMode::Enabled,
             enabled: true,
-            error_ids: vec![],
+            error_ids: ErrorIds::default(),
             pose,
             target: tool_down(-0.35, 0.02, 0.3, 0.2),
             remaining_s: 0.1,
@@ -829,6 +968,11 @@ mod tests {
             tool_outputs: 0,
             gripper_register: None,
             corruption: None,
+            tcp_control: true,
+            control_requests: 0,
+            received: std::collections::VecDeque::new(),
+            current_command_id: 0,
+            http_refused: 0,
         };
         s.advance(start + Duration::from_millis(50), 1.0);
         let halfway = (s.pose.translation.vector - pose.translation.vector).norm();

@@ -17,19 +17,21 @@ pub mod feedback;
 pub mod gripper;
 pub mod protocol;
 
+use crate::runtime::{LinkContext, Measured, RobotLink, Schedule, ThreadedBridge};
 use crate::sim::ClockFn;
-use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use crate::{BridgeError, Command, Control, Health};
 use feedback::{ConventionCheck, EulerConvention, FeedbackPacket, FrameReader, check_convention};
 use gripper::GripperOutput;
 use nalgebra::{Isometry3, Translation3};
 use parking_lot::Mutex;
-use protocol::{Firmware, Reply, RobotMode, ServoParams, Terminator, error_text, parse_reply};
+use protocol::{
+    ErrorIds, Firmware, Reply, RobotMode, ServoParams, Terminator, echo_matches, error_text, parse_reply,
+};
 use serde::{Deserialize, Serialize};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::thread::JoinHandle;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tracing::{debug, info, warn};
 
@@ -69,8 +71,19 @@ pub struct DobotConfig {
     pub gripper: GripperOutput,
     #[serde(default = "default_connect_timeout_s")]
     pub connect_timeout_s: f64,
+    /// Time the controller has to answer a command (`EnableRobot` excepted).
     #[serde(default = "default_reply_timeout_s")]
     pub reply_timeout_s: f64,
+    /// Time the controller has to answer `EnableRobot`, which releases the brakes before it replies and so
+    /// may take longer than other commands. Dobot's own clients wait without a limit; this bound keeps
+    /// `start()` and `control(Enable)` returning when a controller never answers.
+    #[serde(default = "default_enable_timeout_s")]
+    pub enable_timeout_s: f64,
+    /// Send `RequestControl()` (V4.6+: switch the controller to TCP control) before enabling. Firmware
+    /// older than V4.6 answers it as an unknown command, which the bridge takes as "not needed". Ignored
+    /// for V3 firmware.
+    #[serde(default = "default_true")]
+    pub request_control: bool,
     /// Feedback silence after which the link is reported down.
     #[serde(default = "default_feedback_timeout_s")]
     pub feedback_timeout_s: f64,
@@ -104,6 +117,9 @@ fn default_connect_timeout_s() -> f64 {
 fn default_reply_timeout_s() -> f64 {
     1.0
 }
+fn default_enable_timeout_s() -> f64 {
+    10.0
+}
 fn default_feedback_timeout_s() -> f64 {
     0.25
 }
@@ -129,6 +145,8 @@ impl DobotConfig {
             gripper: GripperOutput::default(),
             connect_timeout_s: default_connect_timeout_s(),
             reply_timeout_s: default_reply_timeout_s(),
+            enable_timeout_s: default_enable_timeout_s(),
+            request_control: true,
             feedback_timeout_s: default_feedback_timeout_s(),
             clear_error_on_start: true,
             enable_on_start: true,
@@ -164,6 +182,7 @@ impl DobotConfig {
         for (name, v) in [
             ("connect_timeout_s", self.connect_timeout_s),
             ("reply_timeout_s", self.reply_timeout_s),
+            ("enable_timeout_s", self.enable_timeout_s),
             ("feedback_timeout_s", self.feedback_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 60.0) {
@@ -199,47 +218,103 @@ pub struct DobotStats {
     pub convention: EulerConvention,
     pub convention_verified: bool,
     pub reconnects: u64,
+    /// Replies read and set aside because their echo named another command (a stray or late reply).
+    pub replies_discarded: u64,
+    /// What the controller answered to `RequestControl()` at the last connect.
+    pub control_request: ControlRequest,
 }
 
-/// A line-oriented request/reply connection (dashboard or motion port).
+/// The outcome of `RequestControl()` at connect, which tells V4.6+ firmware from older V4.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ControlRequest {
+    /// Not sent (V3 firmware, or `request_control = false`), or not connected yet.
+    NotSent,
+    /// Granted: firmware V4.6 or newer, now under TCP control.
+    Granted,
+    /// Answered as an unknown command: firmware older than V4.6, which has no control request.
+    NotSupported,
+    /// Refused with this error id (the guide allows it only while the robot is disabled or powered off).
+    Refused(i32),
+}
+
+/// A request/reply connection (dashboard or motion port): sends a command, returns the reply whose echo is
+/// that command. Used by the bridge and by `dobot-check`.
 #[derive(Debug)]
-struct CommandConn {
+pub struct CommandConn {
     stream: TcpStream,
     pending: Vec<u8>,
     terminator: Terminator,
+    reply_timeout: Duration,
+    /// Shared with the bridge's stats: replies set aside because their echo named another command.
+    discarded: Arc<AtomicU64>,
 }
 
 impl CommandConn {
-    fn connect(addr: SocketAddr, config: &DobotConfig) -> std::io::Result<Self> {
+    /// Connects with `config`'s timeouts and terminator; `discarded` counts replies set aside.
+    pub fn connect(
+        addr: SocketAddr,
+        config: &DobotConfig,
+        discarded: Arc<AtomicU64>,
+    ) -> std::io::Result<Self> {
         let stream = TcpStream::connect_timeout(&addr, Duration::from_secs_f64(config.connect_timeout_s))?;
         // Small commands at 125 Hz: Nagle would hold each one for the previous reply's ACK.
         stream.set_nodelay(true)?;
-        stream.set_read_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
         stream.set_write_timeout(Some(Duration::from_secs_f64(config.reply_timeout_s)))?;
         Ok(Self {
             stream,
             pending: Vec::with_capacity(256),
             terminator: config.terminator,
+            reply_timeout: Duration::from_secs_f64(config.reply_timeout_s),
+            discarded,
         })
     }
 
-    /// Sends a command and reads its reply (up to the `;` that ends it).
-    fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
+    /// Sends a command and reads its reply within the reply timeout.
+    pub fn request(&mut self, command: &str) -> Result<Reply, LinkError> {
+        self.request_within(command, self.reply_timeout)
+    }
+
+    /// Sends a command and returns the reply whose echo is that command (guide §2.2.1: every reply ends
+    /// with the command it answers). Replies to anything else (a late reply to a command that timed out,
+    /// a controller answering a stray terminator) are set aside and counted, never taken for this one.
+    pub fn request_within(&mut self, command: &str, timeout: Duration) -> Result<Reply, LinkError> {
         let mut wire = String::with_capacity(command.len() + 2);
         wire.push_str(command);
         wire.push_str(self.terminator.as_str());
         self.stream.write_all(wire.as_bytes()).map_err(LinkError::Io)?;
+        let deadline = Instant::now() + timeout;
         let mut chunk = [0u8; 512];
         loop {
-            if let Some(end) = self.pending.iter().position(|&b| b == b';') {
+            while let Some(end) = self.pending.iter().position(|&b| b == b';') {
                 let text: Vec<u8> = self.pending.drain(..=end).collect();
                 let text = String::from_utf8_lossy(&text);
-                return parse_reply(&text).map_err(|e| LinkError::Protocol(e.to_string()));
+                match parse_reply(&text) {
+                    Ok(reply) if echo_matches(command, &reply.echo) => return Ok(reply),
+                    Ok(reply) => {
+                        self.discarded.fetch_add(1, Ordering::Relaxed);
+                        warn!(sent = command, echo = %reply.echo, "dobot: reply to another command set aside");
+                    }
+                    Err(e) => {
+                        self.discarded.fetch_add(1, Ordering::Relaxed);
+                        warn!(sent = command, error = %e, "dobot: unreadable reply set aside");
+                    }
+                }
+            }
+            // A controller that is not in TCP/IP mode answers with text of its own (TCP-IP-Python-V4
+            // `DobotDemo.py` `parseResultId` looks for "Not Tcp"), which may never reach a `;`.
+            if contains_ignore_case(&self.pending, b"not tcp") {
+                self.pending.clear();
+                return Err(LinkError::NotTcpMode);
             }
             if self.pending.len() > 64 * 1024 {
                 self.pending.clear();
                 return Err(LinkError::Protocol("reply longer than 64 KiB without ';'".into()));
             }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Err(LinkError::Timeout(command.to_owned()));
+            }
+            self.stream.set_read_timeout(Some(left)).map_err(LinkError::Io)?;
             match self.stream.read(&mut chunk) {
                 Ok(0) => {
                     return Err(LinkError::Io(std::io::Error::new(
@@ -248,23 +323,30 @@ impl CommandConn {
                     )));
                 }
                 Ok(n) => self.pending.extend_from_slice(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
-                    return Err(LinkError::Timeout(command.to_owned()));
-                }
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {}
                 Err(e) => return Err(LinkError::Io(e)),
             }
         }
     }
 }
 
+fn contains_ignore_case(haystack: &[u8], needle: &[u8]) -> bool {
+    haystack
+        .windows(needle.len())
+        .any(|w| w.eq_ignore_ascii_case(needle))
+}
+
+/// Why a command got no usable reply.
 #[derive(Debug, thiserror::Error)]
-enum LinkError {
+pub enum LinkError {
     #[error("{0}")]
     Io(std::io::Error),
     #[error("no reply to {0} in time")]
     Timeout(String),
     #[error("{0}")]
     Protocol(String),
+    #[error("the controller is not in TCP/IP control mode (set it in DobotStudio Pro, or RequestControl())")]
+    NotTcpMode,
 }
 
 #[derive(Debug)]
@@ -287,40 +369,46 @@ struct Status {
     /// The controller's error ids for the current fault, fetched once per fault.
     fault_detail: Option<String>,
     reconnects: u64,
+    control_request: ControlRequest,
 }
 
+/// The feedback stream of one connection and the bytes read from it not yet parsed.
 #[derive(Debug)]
-struct Inner {
+struct FeedbackConn {
+    socket: TcpStream,
+    reader: FrameReader,
+    /// The connection it belongs to: a read failing after a reconnect does not take the new link down.
+    generation: u64,
+}
+
+/// The Dobot CR5's protocol side: the dashboard and motion connections, the feedback stream, the robot's
+/// state as they report it.
+#[derive(Debug)]
+pub struct DobotLink {
     config: DobotConfig,
     joint_names: Vec<String>,
-    slot: LatestSlot<Command>,
-    feedback: FeedbackCell,
     status: Mutex<Status>,
     dashboard: Mutex<Option<CommandConn>>,
     /// `None` inside when motion shares the dashboard connection.
     motion: Mutex<Option<CommandConn>>,
+    /// Read by the feedback thread.
+    feedback_conn: Mutex<Option<FeedbackConn>>,
+    /// A handle on the same socket, to shut it down while a read is blocked on it.
     feedback_socket: Mutex<Option<TcpStream>>,
-    feedback_thread: Mutex<Option<JoinHandle<()>>>,
-    command_thread: Mutex<Option<JoinHandle<()>>>,
     generation: AtomicU64,
-    stop: AtomicBool,
-    applied_seq: AtomicU64,
     gripper_sent: Mutex<Option<f64>>,
     servo_sent: AtomicU64,
     servo_rejected: AtomicU64,
-    targets_held: AtomicU64,
     packets_ok: AtomicU64,
     packets_rejected: AtomicU64,
-    clock: ClockFn,
+    replies_discarded: Arc<AtomicU64>,
 }
 
-/// The Dobot CR5 bridge. Create with [`DobotBridge::start`].
-#[derive(Debug)]
-pub struct DobotBridge {
-    inner: Arc<Inner>,
-}
+/// The Dobot CR5 bridge: [`DobotLink`] driven by the hardware-bridge runtime. Create with
+/// [`DobotBridge::start`].
+pub type DobotBridge = ThreadedBridge<DobotLink>;
 
-impl DobotBridge {
+impl ThreadedBridge<DobotLink> {
     /// Connects to the controller, clears errors, sets the speed, enables the robot (as configured), waits for
     /// the first feedback packet and starts streaming.
     pub fn start(config: DobotConfig) -> Result<Arc<Self>, BridgeError> {
@@ -330,10 +418,8 @@ impl DobotBridge {
     /// As [`Self::start`], stamping feedback with `clock` (the server passes its process-wide clock).
     pub fn start_with_clock(config: DobotConfig, clock: ClockFn) -> Result<Arc<Self>, BridgeError> {
         config.validate()?;
-        let inner = Arc::new(Inner {
+        let link = DobotLink {
             joint_names: (1..=6).map(|i| format!("j{i}")).collect(),
-            slot: LatestSlot::default(),
-            feedback: FeedbackCell::default(),
             status: Mutex::new(Status {
                 link: Link::Connecting,
                 robot_mode: None,
@@ -345,72 +431,62 @@ impl DobotBridge {
                 convention_error: None,
                 fault_detail: None,
                 reconnects: 0,
+                control_request: ControlRequest::NotSent,
             }),
             dashboard: Mutex::new(None),
             motion: Mutex::new(None),
+            feedback_conn: Mutex::new(None),
             feedback_socket: Mutex::new(None),
-            feedback_thread: Mutex::new(None),
-            command_thread: Mutex::new(None),
             generation: AtomicU64::new(0),
-            stop: AtomicBool::new(false),
-            applied_seq: AtomicU64::new(0),
             gripper_sent: Mutex::new(None),
             servo_sent: AtomicU64::new(0),
             servo_rejected: AtomicU64::new(0),
-            targets_held: AtomicU64::new(0),
             packets_ok: AtomicU64::new(0),
             packets_rejected: AtomicU64::new(0),
-            clock,
+            replies_discarded: Arc::new(AtomicU64::new(0)),
             config,
-        });
-        if let Err(e) = inner.connect() {
-            inner.close(format!("start failed: {e}"));
+        };
+        // The feedback thread runs before the connect, which waits for the packets it reads.
+        let bridge = Self::spawn(link, clock)?;
+        if let Err(e) = bridge.link().connect() {
+            bridge.link().close(format!("start failed: {e}"));
             return Err(e);
         }
-        let worker = Arc::clone(&inner);
-        let handle = std::thread::Builder::new()
-            .name("dobot-command".into())
-            .spawn(move || worker.command_loop())
-            .map_err(BridgeError::Io)?;
-        *inner.command_thread.lock() = Some(handle);
-        Ok(Arc::new(Self { inner }))
+        Ok(Arc::new(bridge))
     }
 
     pub fn config(&self) -> &DobotConfig {
-        &self.inner.config
+        &self.link().config
     }
 
     /// Counters and the last faults seen.
     pub fn stats(&self) -> DobotStats {
-        let s = self.inner.status.lock();
+        let link = self.link();
+        let s = link.status.lock();
         DobotStats {
-            servo_sent: self.inner.servo_sent.load(Ordering::Relaxed),
-            servo_rejected: self.inner.servo_rejected.load(Ordering::Relaxed),
-            targets_held: self.inner.targets_held.load(Ordering::Relaxed),
-            targets_superseded: self.inner.slot.superseded(),
-            packets_ok: self.inner.packets_ok.load(Ordering::Relaxed),
-            packets_rejected: self.inner.packets_rejected.load(Ordering::Relaxed),
+            servo_sent: link.servo_sent.load(Ordering::Relaxed),
+            servo_rejected: link.servo_rejected.load(Ordering::Relaxed),
+            targets_held: self.context().targets_held(),
+            targets_superseded: self.context().targets_superseded(),
+            packets_ok: link.packets_ok.load(Ordering::Relaxed),
+            packets_rejected: link.packets_rejected.load(Ordering::Relaxed),
             last_packet_error: s.last_packet_error.clone(),
             last_command_error: s.last_command_error.clone(),
             convention: s.convention,
             convention_verified: s.convention_verified,
             reconnects: s.reconnects,
+            replies_discarded: link.replies_discarded.load(Ordering::Relaxed),
+            control_request: s.control_request.clone(),
         }
     }
 
     /// Sends one dashboard command and returns the parsed reply (for tools and diagnostics).
     pub fn dashboard(&self, command: &str) -> Result<Reply, BridgeError> {
-        self.inner.dashboard_request(command)
+        self.link().dashboard_request(command)
     }
 }
 
-impl Drop for DobotBridge {
-    fn drop(&mut self) {
-        self.inner.shutdown();
-    }
-}
-
-impl Inner {
+impl DobotLink {
     fn resolve(&self, port: u16) -> Result<SocketAddr, BridgeError> {
         (self.config.host.as_str(), port)
             .to_socket_addrs()
@@ -433,7 +509,7 @@ impl Inner {
     }
 
     /// (Re)opens every socket, runs the start-up commands and waits for feedback.
-    fn connect(self: &Arc<Self>) -> Result<(), BridgeError> {
+    fn connect(&self) -> Result<(), BridgeError> {
         let generation = self.generation.fetch_add(1, Ordering::SeqCst) + 1;
         self.close_sockets();
         {
@@ -444,33 +520,39 @@ impl Inner {
         }
         let cfg = &self.config;
         let dashboard_addr = self.resolve(cfg.dashboard_port)?;
-        let dashboard = CommandConn::connect(dashboard_addr, cfg)
+        let dashboard = CommandConn::connect(dashboard_addr, cfg, Arc::clone(&self.replies_discarded))
             .map_err(|e| self.connect_error(cfg.dashboard_port, &e))?;
         let motion_port = cfg.effective_motion_port();
         let motion = if motion_port == cfg.dashboard_port {
             None
         } else {
             let addr = self.resolve(motion_port)?;
-            Some(CommandConn::connect(addr, cfg).map_err(|e| self.connect_error(motion_port, &e))?)
+            Some(
+                CommandConn::connect(addr, cfg, Arc::clone(&self.replies_discarded))
+                    .map_err(|e| self.connect_error(motion_port, &e))?,
+            )
         };
         let feedback_addr = self.resolve(cfg.feedback_port)?;
         let feedback =
             TcpStream::connect_timeout(&feedback_addr, Duration::from_secs_f64(cfg.connect_timeout_s))
                 .map_err(|e| self.connect_error(cfg.feedback_port, &e))?;
+        // Bounds each read of the feedback thread, so it sees a shutdown or a reconnect within 50 ms.
         feedback.set_read_timeout(Some(Duration::from_millis(50)))?;
         *self.feedback_socket.lock() = Some(feedback.try_clone()?);
+        *self.feedback_conn.lock() = Some(FeedbackConn {
+            socket: feedback,
+            reader: FrameReader::default(),
+            generation,
+        });
         *self.dashboard.lock() = Some(dashboard);
         *self.motion.lock() = motion;
 
-        if let Some(old) = self.feedback_thread.lock().take() {
-            let _ = old.join();
-        }
-        let reader = Arc::clone(self);
-        let handle = std::thread::Builder::new()
-            .name("dobot-feedback".into())
-            .spawn(move || reader.feedback_loop(feedback, generation))?;
-        *self.feedback_thread.lock() = Some(handle);
-
+        let control_request = if cfg.firmware == Firmware::V4 && cfg.request_control {
+            self.request_control()?
+        } else {
+            ControlRequest::NotSent
+        };
+        self.status.lock().control_request = control_request;
         if cfg.clear_error_on_start {
             self.dashboard_ok("ClearError()")?;
         }
@@ -478,7 +560,7 @@ impl Inner {
         if cfg.enable_on_start {
             // An enable refused because the robot is in error is a robot state, not a start failure: it shows
             // in health and can be retried with Control::ClearError / Control::Enable.
-            if let Err(e) = self.dashboard_ok("EnableRobot()") {
+            if let Err(e) = self.enable_robot() {
                 warn!(error = %e, "dobot: EnableRobot refused");
                 self.status.lock().last_command_error = Some(e.to_string());
             }
@@ -503,9 +585,11 @@ impl Inner {
     }
 
     fn close_sockets(&self) {
+        // Shut the socket down first: that ends a read blocked on it, which holds `feedback_conn`.
         if let Some(s) = self.feedback_socket.lock().take() {
             let _ = s.shutdown(Shutdown::Both);
         }
+        self.feedback_conn.lock().take();
         for conn in [&self.dashboard, &self.motion] {
             if let Some(c) = conn.lock().take() {
                 let _ = c.stream.shutdown(Shutdown::Both);
@@ -523,14 +607,55 @@ impl Inner {
         }
     }
 
+    /// `RequestControl()` (guide §3.132, added in V4.6.0): V4.6+ firmware takes commands over TCP only
+    /// after it; older V4 firmware answers it as an unknown command (-10000), which is how the two are told
+    /// apart. A refusal is logged and kept in the stats, not fatal: the guide refuses it while the robot is
+    /// enabled, which a controller already under TCP control may be.
+    fn request_control(&self) -> Result<ControlRequest, BridgeError> {
+        let reply = self.dashboard_request("RequestControl()")?;
+        let outcome = match reply.error_id {
+            0 => ControlRequest::Granted,
+            -10000 => ControlRequest::NotSupported,
+            code => ControlRequest::Refused(code),
+        };
+        match &outcome {
+            ControlRequest::Granted => info!("dobot: RequestControl granted (firmware V4.6 or newer)"),
+            ControlRequest::NotSupported => {
+                info!("dobot: firmware older than V4.6; no control request needed");
+            }
+            ControlRequest::Refused(code) => warn!(
+                code,
+                reason = error_text(*code),
+                "dobot: RequestControl refused; continuing (the robot may already be under TCP control)"
+            ),
+            ControlRequest::NotSent => {}
+        }
+        Ok(outcome)
+    }
+
+    /// `EnableRobot()` with its own, longer reply timeout ([`DobotConfig::enable_timeout_s`]).
+    fn enable_robot(&self) -> Result<Reply, BridgeError> {
+        let timeout = Duration::from_secs_f64(self.config.enable_timeout_s);
+        self.dashboard_ok_within("EnableRobot()", timeout)
+    }
+
     fn dashboard_request(&self, command: &str) -> Result<Reply, BridgeError> {
+        self.dashboard_request_within(command, Duration::from_secs_f64(self.config.reply_timeout_s))
+    }
+
+    /// One dashboard command. A reply that does not come in time is an error of this command, not of the
+    /// link: the echo check sets the late reply aside when it comes, so the connection stays usable. Only
+    /// a failed socket closes the link.
+    fn dashboard_request_within(&self, command: &str, timeout: Duration) -> Result<Reply, BridgeError> {
         let mut guard = self.dashboard.lock();
         let conn = guard
             .as_mut()
             .ok_or_else(|| BridgeError::Protocol("dashboard not connected".into()))?;
-        match conn.request(command) {
+        match conn.request_within(command, timeout) {
             Ok(reply) => Ok(reply),
-            Err(LinkError::Protocol(m)) => Err(BridgeError::Protocol(m)),
+            Err(e @ (LinkError::Protocol(_) | LinkError::Timeout(_) | LinkError::NotTcpMode)) => {
+                Err(BridgeError::Protocol(e.to_string()))
+            }
             Err(e) => {
                 drop(guard);
                 let why = format!("dashboard: {e}");
@@ -542,7 +667,11 @@ impl Inner {
 
     /// A dashboard command that must succeed (ErrorID 0).
     fn dashboard_ok(&self, command: &str) -> Result<Reply, BridgeError> {
-        let reply = self.dashboard_request(command)?;
+        self.dashboard_ok_within(command, Duration::from_secs_f64(self.config.reply_timeout_s))
+    }
+
+    fn dashboard_ok_within(&self, command: &str, timeout: Duration) -> Result<Reply, BridgeError> {
+        let reply = self.dashboard_request_within(command, timeout)?;
         if reply.error_id == 0 {
             Ok(reply)
         } else {
@@ -567,7 +696,7 @@ impl Inner {
         conn.request(command)
     }
 
-    fn health(&self) -> Health {
+    fn health_now(&self) -> Health {
         let s = self.status.lock();
         match &s.link {
             Link::Connecting => return Health::Connecting,
@@ -597,7 +726,13 @@ impl Inner {
                 return Health::Error(format!("robot in {mode:?} mode ({}){detail}", mode.code()));
             }
             Some(mode) if !mode.accepts_motion() => {
-                return Health::Error(format!("robot not enabled: {mode:?} mode ({})", mode.code()));
+                // Say why, if the bridge's own enable failed (refused, or unanswered in time).
+                let why = s
+                    .last_command_error
+                    .as_deref()
+                    .map(|e| format!(": {e}"))
+                    .unwrap_or_default();
+                return Health::Error(format!("robot not enabled: {mode:?} mode ({}){why}", mode.code()));
             }
             _ => {}
         }
@@ -607,44 +742,50 @@ impl Inner {
         Health::Ready
     }
 
-    fn feedback_loop(self: Arc<Self>, mut socket: TcpStream, generation: u64) {
-        let mut reader = FrameReader::default();
-        let mut chunk = vec![0u8; 8192];
-        let current =
-            || self.generation.load(Ordering::SeqCst) == generation && !self.stop.load(Ordering::SeqCst);
-        while current() {
-            match socket.read(&mut chunk) {
-                Ok(0) => {
-                    if current() {
-                        warn!("dobot: feedback connection closed by the robot");
-                        self.close("feedback connection closed by the robot".into());
-                    }
-                    return;
-                }
-                Ok(n) => reader.push(&chunk[..n]),
-                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => continue,
-                Err(e) => {
-                    if current() {
-                        warn!(error = %e, "dobot: feedback connection failed");
-                        self.close(format!("feedback connection: {e}"));
-                    }
-                    return;
-                }
+    /// One read of the feedback stream: the state of the newest good packet in it, if any.
+    fn read_packets(&self) -> Option<Measured> {
+        let mut chunk = [0u8; 8192];
+        let mut guard = self.feedback_conn.lock();
+        let Some(conn) = guard.as_mut() else {
+            drop(guard);
+            // Not connected: wait for a connect, without spinning.
+            std::thread::sleep(Duration::from_millis(10));
+            return None;
+        };
+        let failure = match conn.socket.read(&mut chunk) {
+            Ok(0) => Some("feedback connection closed by the robot".to_owned()),
+            Ok(n) => {
+                conn.reader.push(&chunk[..n]);
+                None
             }
-            while let Some(result) = reader.next_packet() {
-                match result {
-                    Ok(packet) => self.on_packet(&packet),
-                    Err(e) => {
-                        self.packets_rejected.fetch_add(1, Ordering::Relaxed);
-                        warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
-                        self.status.lock().last_packet_error = Some(e.to_string());
-                    }
+            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => return None,
+            Err(e) => Some(format!("feedback connection: {e}")),
+        };
+        if let Some(why) = failure {
+            let generation = conn.generation;
+            guard.take();
+            drop(guard);
+            if generation == self.generation.load(Ordering::SeqCst) {
+                warn!("dobot: {why}");
+                self.close(why);
+            }
+            return None;
+        }
+        let mut newest = None;
+        while let Some(result) = conn.reader.next_packet() {
+            match result {
+                Ok(packet) => newest = Some(self.on_packet(&packet)),
+                Err(e) => {
+                    self.packets_rejected.fetch_add(1, Ordering::Relaxed);
+                    warn!(error = %e, "dobot: feedback packet rejected; resynchronising");
+                    self.status.lock().last_packet_error = Some(e.to_string());
                 }
             }
         }
+        newest
     }
 
-    fn on_packet(&self, packet: &FeedbackPacket) {
+    fn on_packet(&self, packet: &FeedbackPacket) -> Measured {
         self.packets_ok.fetch_add(1, Ordering::Relaxed);
         let convention = {
             let mut s = self.status.lock();
@@ -674,15 +815,11 @@ impl Inner {
             }
             _ => self.gripper_sent.lock().unwrap_or(0.0),
         };
-        let feedback = Feedback {
-            capture_time_ns: (self.clock)(),
+        Measured {
             joint_positions_rad: packet.q_actual_deg.iter().map(|d| d.to_radians()).collect(),
             robot_from_ee,
             gripper_position,
-            applied_seq: self.applied_seq.load(Ordering::SeqCst),
-            task_success: false,
-        };
-        *self.feedback.lock() = Some(feedback);
+        }
     }
 
     fn verify_convention(s: &mut Status, packet: &FeedbackPacket, configured: Option<EulerConvention>) {
@@ -717,20 +854,6 @@ impl Inner {
         }
     }
 
-    fn command_loop(self: Arc<Self>) {
-        while !self.stop.load(Ordering::SeqCst) {
-            self.fetch_fault_detail();
-            let Some(command) = self.slot.take_wait(Duration::from_millis(50)) else {
-                continue;
-            };
-            if self.health() != Health::Ready && !self.only_command_error() {
-                self.targets_held.fetch_add(1, Ordering::Relaxed);
-                continue;
-            }
-            self.send_target(&command);
-        }
-    }
-
     /// Asks the controller for its error ids once per fault, so health can say which error it is. Runs on the
     /// command thread: the feedback thread must never wait on the dashboard.
     fn fetch_fault_detail(&self) {
@@ -744,7 +867,10 @@ impl Inner {
             return;
         }
         let detail = match self.dashboard_request("GetErrorID()") {
-            Ok(reply) if reply.error_id == 0 => format!("error ids {}", reply.values.join(",")),
+            Ok(reply) if reply.error_id == 0 => match ErrorIds::parse(&reply.values.join(",")) {
+                Ok(ids) => ids.to_string(),
+                Err(e) => format!("GetErrorID: {e}"),
+            },
             Ok(reply) => format!("GetErrorID failed: {}", error_text(reply.error_id)),
             Err(e) => format!("GetErrorID failed: {e}"),
         };
@@ -761,18 +887,12 @@ impl Inner {
             && s.robot_mode.is_some_and(RobotMode::accepts_motion)
     }
 
-    fn send_target(&self, command: &Command) {
+    /// Sends one target (finite: the runtime checked) and the gripper's.
+    /// The motion command: every target the runtime accepts for the Dobot goes out here (`ServoP` of the
+    /// pose), and `applied_seq` moves only on the reply that echoes it.
+    fn send_target(&self, ctx: &LinkContext, command: &Command) {
         let pose = &command.robot_from_target;
         let t = pose.translation.vector;
-        let q = pose.rotation.quaternion();
-        let finite = t.iter().all(|v| v.is_finite())
-            && q.coords.iter().all(|v| v.is_finite())
-            && command.gripper_target.is_finite();
-        if !finite {
-            self.targets_held.fetch_add(1, Ordering::Relaxed);
-            warn!(seq = command.seq, "dobot: non-finite target dropped; arm holds");
-            return;
-        }
         let convention = self.status.lock().convention;
         let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
         let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
@@ -780,7 +900,7 @@ impl Inner {
         match self.motion_request(&text) {
             Ok(reply) if reply.error_id == 0 => {
                 self.servo_sent.fetch_add(1, Ordering::Relaxed);
-                self.applied_seq.store(command.seq, Ordering::SeqCst);
+                ctx.applied(command.seq);
                 self.status.lock().last_command_error = None;
             }
             Ok(reply) => {
@@ -793,9 +913,9 @@ impl Inner {
                 warn!(seq = command.seq, "dobot: {m}");
                 self.status.lock().last_command_error = Some(m);
             }
-            Err(LinkError::Protocol(m)) => {
+            Err(e @ (LinkError::Protocol(_) | LinkError::Timeout(_) | LinkError::NotTcpMode)) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
-                self.status.lock().last_command_error = Some(format!("ServoP: {m}"));
+                self.status.lock().last_command_error = Some(format!("ServoP: {e}"));
             }
             Err(e) => {
                 warn!(error = %e, "dobot: motion connection failed");
@@ -877,74 +997,81 @@ impl Inner {
         }
     }
 
-    fn shutdown(&self) {
-        if self.stop.swap(true, Ordering::SeqCst) {
-            return;
-        }
+    /// Shutdown: closes every socket; the robot holds its last target.
+    fn close_for_shutdown(&self) {
         self.generation.fetch_add(1, Ordering::SeqCst);
         self.close_sockets();
         self.status.lock().link = Link::Down("bridge shut down".into());
-        for slot in [&self.command_thread, &self.feedback_thread] {
-            let handle = slot.lock().take();
-            if let Some(h) = handle
-                && h.thread().id() != std::thread::current().id()
-            {
-                let _ = h.join();
-            }
-        }
     }
 }
 
-impl Bridge for DobotBridge {
+impl RobotLink for DobotLink {
     fn kind(&self) -> &'static str {
         "dobot"
     }
 
     fn joint_names(&self) -> &[String] {
-        &self.inner.joint_names
+        &self.joint_names
     }
 
-    fn send(&self, command: Command) {
-        self.inner.slot.put(command);
-    }
-
-    fn feedback(&self) -> Option<Feedback> {
-        self.inner.feedback.lock().clone()
-    }
-
-    fn health(&self) -> Health {
-        self.inner.health()
-    }
-
-    fn control(&self, request: Control) -> Result<(), BridgeError> {
-        if self.inner.stop.load(Ordering::SeqCst) {
-            return Err(BridgeError::Protocol("bridge is shut down".into()));
+    fn schedule(&self) -> Schedule {
+        // The command thread also asks a faulted robot for its error ids between targets; 50 ms bounds
+        // how long that waits behind an idle slot.
+        Schedule::Split {
+            command_wait: Duration::from_millis(50),
         }
+    }
+
+    fn health(&self, _ctx: &LinkContext) -> Health {
+        self.health_now()
+    }
+
+    /// Ready, or ready but for a rejected command: the next target may succeed and clear it.
+    fn accepts_targets(&self, _ctx: &LinkContext) -> bool {
+        self.health_now() == Health::Ready || self.only_command_error()
+    }
+
+    fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+        if let Some(command) = command {
+            self.send_target(ctx, command);
+        }
+        true
+    }
+
+    fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
+        self.read_packets()
+    }
+
+    fn between_commands(&self, _ctx: &LinkContext) {
+        self.fetch_fault_detail();
+    }
+
+    fn control(&self, _ctx: &LinkContext, request: Control) -> Result<(), BridgeError> {
         match request {
             Control::Enable => {
-                self.inner.dashboard_ok("EnableRobot()")?;
+                self.enable_robot()?;
             }
             Control::Disable => {
-                self.inner.dashboard_ok("DisableRobot()")?;
+                self.dashboard_ok("DisableRobot()")?;
             }
             Control::ClearError => {
-                self.inner.dashboard_ok("ClearError()")?;
+                self.dashboard_ok("ClearError()")?;
             }
             Control::Reconnect => {
-                self.inner.status.lock().reconnects += 1;
-                if let Err(e) = self.inner.connect() {
-                    self.inner.close(format!("reconnect failed: {e}"));
+                self.status.lock().reconnects += 1;
+                if let Err(e) = self.connect() {
+                    self.close(format!("reconnect failed: {e}"));
                     return Err(e);
                 }
             }
         }
         // A fresh start: the next rejected command will set it again.
-        self.inner.status.lock().last_command_error = None;
+        self.status.lock().last_command_error = None;
         Ok(())
     }
 
-    fn shutdown(&self) {
-        self.inner.shutdown();
+    fn close(&self) {
+        self.close_for_shutdown();
     }
 }
 

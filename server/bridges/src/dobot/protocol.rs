@@ -32,13 +32,18 @@ impl Firmware {
     }
 }
 
-/// What ends a command on the wire. The controller accepts all three; Dobot's SDK sends none, Phone2Act `\r\n`.
+/// What ends a command on the wire. Dobot's own clients send none: TCP-IP-Python-V4 `dobot_api.py`
+/// `DobotApi.send_data` sends the bare command text (66295e9), the ROS 2 driver sends `strlen(cmd)` bytes
+/// (DOBOT_6Axis_ROS2_V4 `dobot_bringup_v4/src/command.cpp`, a1eabef), and the protocol guide (§2.1) says a
+/// command ends with its right parenthesis. `lf`/`crlf` exist for controllers known to want one; a
+/// controller that answers a stray terminator as a command of its own is caught by the echo check
+/// ([`echo_matches`]), not trusted.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Terminator {
+    #[default]
     None,
     Lf,
-    #[default]
     Crlf,
 }
 
@@ -139,15 +144,16 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
     })
 }
 
-/// Splits on commas that are not inside braces or parentheses.
+/// Splits on commas that are not inside braces, brackets or parentheses (`GetErrorID` answers nested
+/// `[[..],[..]]` lists).
 pub fn split_top_level(text: &str) -> Vec<&str> {
     let mut parts = Vec::new();
     let mut depth = 0i32;
     let mut start = 0;
     for (i, c) in text.char_indices() {
         match c {
-            '{' | '(' => depth += 1,
-            '}' | ')' => depth -= 1,
+            '{' | '(' | '[' => depth += 1,
+            '}' | ')' | ']' => depth -= 1,
             ',' if depth == 0 => {
                 parts.push(text.get(start..i).unwrap_or_default());
                 start = i + 1;
@@ -157,6 +163,122 @@ pub fn split_top_level(text: &str) -> Vec<&str> {
     }
     parts.push(text.get(start..).unwrap_or_default());
     parts
+}
+
+/// True if `echo`, the command text a reply repeats after its values, is the reply to `sent`.
+///
+/// The guide (§2.2.1) says a reply ends with "the original command"; its own example answers `GetErrorID()`
+/// with `GetErrorId()` (§3.40), so names compare without case. Whitespace is ignored and numbers compare by
+/// value, so a controller that reprints `100.000` as `100` still matches, while a reply to any other
+/// command (a different name, different parameters, or the empty echo of a stray terminator) does not.
+pub fn echo_matches(sent: &str, echo: &str) -> bool {
+    let a = echo_tokens(sent);
+    let b = echo_tokens(echo);
+    a.len() == b.len()
+        && a.iter().zip(&b).all(|(x, y)| match (x, y) {
+            (EchoToken::Number(x), EchoToken::Number(y)) => (x - y).abs() <= 1e-9 * x.abs().max(1.0),
+            (EchoToken::Text(x), EchoToken::Text(y)) => x.eq_ignore_ascii_case(y),
+            _ => false,
+        })
+}
+
+#[derive(Debug)]
+enum EchoToken {
+    Number(f64),
+    Text(String),
+}
+
+/// Splits a command into its fields (numbers where they parse as one) and the separators between them,
+/// dropping whitespace.
+fn echo_tokens(text: &str) -> Vec<EchoToken> {
+    let compact: String = text.chars().filter(|c| !c.is_whitespace()).collect();
+    let mut tokens = Vec::new();
+    let mut field = String::new();
+    let flush = |field: &mut String, tokens: &mut Vec<EchoToken>| {
+        if !field.is_empty() {
+            tokens.push(match field.parse::<f64>() {
+                Ok(v) => EchoToken::Number(v),
+                Err(_) => EchoToken::Text(std::mem::take(field)),
+            });
+            field.clear();
+        }
+    };
+    for c in compact.chars() {
+        if "(),{}=[]".contains(c) {
+            flush(&mut field, &mut tokens);
+            tokens.push(EchoToken::Text(c.to_string()));
+        } else {
+            field.push(c);
+        }
+    }
+    flush(&mut field, &mut tokens);
+    tokens
+}
+
+/// `GetErrorID()`'s answer: the controller's (and motion planner's) alarm ids, then one list per servo, J1
+/// first. Guide §3.40: `ErrorID,{[[id,...,id],[id],[id],[id],[id],[id],[id]]},GetErrorID();`, the ids
+/// explained by `alarm_controller.json` and `alarm_servo.json` (shipped with TCP-IP-Python-V4 as
+/// `files/alarmController.json`, `files/alarmServo.json`).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ErrorIds {
+    pub controller: Vec<i64>,
+    pub servos: [Vec<i64>; 6],
+}
+
+impl ErrorIds {
+    /// Parses the reply's value text (`[[..],[..],...]`, seven lists).
+    pub fn parse(values: &str) -> Result<Self, ReplyError> {
+        let lists: Vec<Vec<i64>> = serde_json::from_str(values.trim())
+            .map_err(|e| ReplyError::Malformed(format!("GetErrorID values {values:?}: {e}")))?;
+        let [controller, j1, j2, j3, j4, j5, j6]: [Vec<i64>; 7] = lists.try_into().map_err(|l: Vec<_>| {
+            ReplyError::Malformed(format!("GetErrorID answered {} lists, not 7", l.len()))
+        })?;
+        Ok(Self {
+            controller,
+            servos: [j1, j2, j3, j4, j5, j6],
+        })
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.controller.is_empty() && self.servos.iter().all(Vec::is_empty)
+    }
+
+    /// The wire form, `[[..],[..],...]`.
+    pub fn to_values(&self) -> String {
+        let list = |ids: &[i64]| {
+            format!(
+                "[{}]",
+                ids.iter().map(i64::to_string).collect::<Vec<_>>().join(",")
+            )
+        };
+        let mut parts = vec![list(&self.controller)];
+        parts.extend(self.servos.iter().map(|s| list(s)));
+        format!("[{}]", parts.join(","))
+    }
+}
+
+impl std::fmt::Display for ErrorIds {
+    /// "controller alarm 22; J3 servo alarm 4368" (or "no alarm ids").
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut parts = Vec::new();
+        if !self.controller.is_empty() {
+            parts.push(format!("controller alarm {}", join_ids(&self.controller)));
+        }
+        for (j, ids) in self.servos.iter().enumerate() {
+            if !ids.is_empty() {
+                parts.push(format!("J{} servo alarm {}", j + 1, join_ids(ids)));
+            }
+        }
+        if parts.is_empty() {
+            f.write_str("no alarm ids")
+        } else {
+            f.write_str(&parts.join("; "))
+        }
+    }
+}
+
+fn join_ids(ids: &[i64]) -> String {
+    ids.iter().map(i64::to_string).collect::<Vec<_>>().join(",")
 }
 
 /// Meaning of a controller error id (V4 document §5).
@@ -338,6 +460,51 @@ mod tests {
         let (name, params) = split_command(&s).unwrap();
         assert_eq!(name, "ServoP");
         assert_eq!(params.len(), 9);
+    }
+
+    #[test]
+    fn echoes_match_their_own_command_only() {
+        // The guide's own example answers GetErrorID() with GetErrorId().
+        assert!(echo_matches("GetErrorID()", "GetErrorId()"));
+        assert!(echo_matches(
+            "GetPose(user=1,tool=0)",
+            "GetPose(user = 1, tool = 0)"
+        ));
+        assert!(echo_matches(
+            "ServoP(100.000,-20.500,t=0.05)",
+            "ServoP(100,-20.5,t=0.050)"
+        ));
+        assert!(echo_matches(
+            "MovL(pose={-500,100,200,150,0,90})",
+            "MovL(pose={-500,100,200,150,0,90})"
+        ));
+        for (sent, echo) in [
+            ("EnableRobot()", ""),
+            ("SpeedFactor(30)", "ClearError()"),
+            ("ServoP(1,2,3,4,5,6)", "ServoP(1,2,3,4,5,7)"),
+            ("ServoP(1,2,3,4,5,6)", "ServoP(1,2,3,4,5)"),
+            ("DO(1,1)", "DO(11)"),
+            ("MovJ(joint={1,2,3,4,5,6})", "MovJ(pose={1,2,3,4,5,6})"),
+        ] {
+            assert!(!echo_matches(sent, echo), "{sent} answered by {echo:?}");
+        }
+    }
+
+    #[test]
+    fn get_error_id_has_seven_lists() {
+        let r = parse_reply("0,{[[],[],[],[],[],[],[]]},GetErrorId();").unwrap();
+        assert_eq!(r.values.len(), 1, "the nested lists are one value");
+        let ids = ErrorIds::parse(&r.values[0]).unwrap();
+        assert!(ids.is_empty());
+        assert_eq!(ids.to_string(), "no alarm ids");
+        let ids = ErrorIds::parse("[[22, 23],[],[],[4368],[],[],[]]").unwrap();
+        assert_eq!(ids.controller, vec![22, 23]);
+        assert_eq!(ids.servos[2], vec![4368]);
+        assert_eq!(ids.to_string(), "controller alarm 22,23; J3 servo alarm 4368");
+        assert_eq!(ErrorIds::parse(&ids.to_values()).unwrap(), ids);
+        for bad in ["[[22]]", "[[],[],[],[],[],[],[],[]]", "22", "[[x]]"] {
+            assert!(ErrorIds::parse(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

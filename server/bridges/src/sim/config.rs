@@ -2,6 +2,7 @@
 //! config). Every field has a default, so an empty table is a working scene.
 
 use crate::BridgeError;
+pub use crate::scene::TableArea;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use phone2act_core::kinematics::{IkWeights, SO101_JOINT_LIMITS_RAD, So101Joints, So101Kinematics};
 use serde::{Deserialize, Serialize};
@@ -76,48 +77,6 @@ impl Default for SimConfig {
     }
 }
 
-/// An axis-aligned rectangle on the table, robot base frame.
-#[derive(Clone, Copy, Debug, Deserialize, Serialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct TableArea {
-    pub x_min_m: f64,
-    pub x_max_m: f64,
-    pub y_min_m: f64,
-    pub y_max_m: f64,
-}
-
-impl TableArea {
-    /// The point at fractions `(u, v)` (each in 0..1) of the way from the minimum to the maximum corner.
-    pub fn point_at(&self, u: f64, v: f64) -> [f64; 2] {
-        [
-            self.x_min_m + u * (self.x_max_m - self.x_min_m),
-            self.y_min_m + v * (self.y_max_m - self.y_min_m),
-        ]
-    }
-
-    /// The four corners.
-    pub fn corners(&self) -> [[f64; 2]; 4] {
-        [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)].map(|(u, v)| self.point_at(u, v))
-    }
-
-    /// Distance from (x, y) to the nearest point of the area (0 inside).
-    pub fn distance_to(&self, [x, y]: [f64; 2]) -> f64 {
-        let dx = (self.x_min_m - x).max(x - self.x_max_m).max(0.0);
-        let dy = (self.y_min_m - y).max(y - self.y_max_m).max(0.0);
-        dx.hypot(dy)
-    }
-
-    fn validate(&self, name: &str) -> Result<(), BridgeError> {
-        finite(name, &[self.x_min_m, self.x_max_m, self.y_min_m, self.y_max_m])?;
-        if self.x_min_m > self.x_max_m || self.y_min_m > self.y_max_m {
-            return Err(BridgeError::Config(format!(
-                "sim.{name}: x_min_m/y_min_m must not exceed x_max_m/y_max_m, got {self:?}"
-            )));
-        }
-        Ok(())
-    }
-}
-
 /// A fixed pinhole camera looking at the scene.
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
@@ -148,6 +107,17 @@ fn positive(name: &str, value: f64) -> Result<(), BridgeError> {
             "sim.{name} must be a positive number, got {value}"
         )))
     }
+}
+
+/// Checks a configured table area: finite, minimum not above maximum.
+fn validate_area(area: &TableArea, name: &str) -> Result<(), BridgeError> {
+    finite(name, &[area.x_min_m, area.x_max_m, area.y_min_m, area.y_max_m])?;
+    if area.x_min_m > area.x_max_m || area.y_min_m > area.y_max_m {
+        return Err(BridgeError::Config(format!(
+            "sim.{name}: x_min_m/y_min_m must not exceed x_max_m/y_max_m, got {area:?}"
+        )));
+    }
+    Ok(())
 }
 
 fn finite(name: &str, values: &[f64]) -> Result<(), BridgeError> {
@@ -226,9 +196,9 @@ impl SimConfig {
     /// The areas are well formed, every corner of the ball's area can be reached with a grasp pose, and no
     /// ball drawn from it can start inside (or against the wall of) any basket the basket's area allows.
     fn validate_areas(&self) -> Result<(), BridgeError> {
-        self.ball_area_m.validate("ball_area_m")?;
+        validate_area(&self.ball_area_m, "ball_area_m")?;
         if let Some(area) = &self.basket_area_m {
-            area.validate("basket_area_m")?;
+            validate_area(area, "basket_area_m")?;
         }
         let kinematics = So101Kinematics::new();
         for corner in self.ball_area_m.corners() {

@@ -4,7 +4,8 @@
 //! and [`SimWorld::apply_command_at`] puts a command in force at the time it was issued, so the arm's path is
 //! a function of the command history and time alone, whoever calls it and whenever.
 
-use super::config::{SimConfig, TableArea};
+use super::config::SimConfig;
+pub use crate::scene::{BallState, SceneState};
 use crate::{BridgeError, Command, Feedback};
 use nalgebra::{Isometry3, Point3, Vector3};
 use phone2act_core::kinematics::{
@@ -26,17 +27,6 @@ const MAX_STEP_S: f64 = 0.02;
 /// Thickness of the basket floor.
 pub(crate) const BASKET_FLOOR_M: f64 = 0.004;
 
-/// Where the ball is and what it is doing.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum BallState {
-    /// On the table or in the basket.
-    Resting,
-    /// In the gripper; the offset is the ball centre in the tool frame at the moment of the grasp.
-    Held { tcp_from_ball: Vector3<f64> },
-    /// In free fall.
-    Falling { velocity_m_s: Vector3<f64> },
-}
-
 /// What the renderer needs of one instant of the world.
 #[derive(Clone, Debug)]
 pub struct SceneSnapshot {
@@ -49,25 +39,6 @@ pub struct SceneSnapshot {
     pub basket_radius_m: f64,
     pub basket_height_m: f64,
     pub task_success: bool,
-}
-
-/// The task scene as the API reports it (see `phone2act.v1.SceneState`).
-#[derive(Clone, Debug, PartialEq)]
-pub struct SceneState {
-    /// Seed the scene was drawn from; 0 with `resets == 0` is the configured start (`ball_xy_m`), not drawn.
-    pub seed: u64,
-    /// Resets since the world was made.
-    pub resets: u64,
-    pub ball_center_m: Vector3<f64>,
-    pub ball_state: BallState,
-    pub ball_radius_m: f64,
-    pub basket_xy_m: [f64; 2],
-    pub basket_radius_m: f64,
-    pub basket_height_m: f64,
-    /// The ball rests in the basket.
-    pub task_success: bool,
-    pub ball_area_m: TableArea,
-    pub basket_area_m: Option<TableArea>,
 }
 
 /// Result of handing a command to the world.
@@ -458,6 +429,7 @@ impl SimWorld {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::TableArea;
     use nalgebra::{Translation3, UnitQuaternion};
     use phone2act_core::kinematics::So101Kinematics;
 

@@ -27,8 +27,9 @@ use crate::feetech::protocol::{
     POSITION_SIGN_BIT, alarm, encode_sign_magnitude, register, single_turn_position, status_error_text,
 };
 use crate::feetech::{BusError, BusStats, FeetechBus};
+use crate::runtime::{LinkContext, Measured, RobotLink, Schedule, ThreadedBridge};
 use crate::sim::ClockFn;
-use crate::{Bridge, BridgeError, Command, Control, Feedback, FeedbackCell, Health, LatestSlot};
+use crate::{BridgeError, Command, Control, Health};
 use calibration::{Calibration, MotorCalibration, multi_turn_feedback};
 use parking_lot::Mutex;
 use phone2act_core::JointRateLimiter;
@@ -40,8 +41,7 @@ use phone2act_core::kinematics::{
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::thread::JoinHandle;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tracing::{info, warn};
 
@@ -280,24 +280,20 @@ struct Ramp {
     moving: bool,
 }
 
+/// The SO-101's protocol side: configure, write goals, read positions, over the Feetech bus.
 #[derive(Debug)]
-struct Inner {
+pub struct So101Link {
     config: So101Config,
     calibration: [MotorCalibration; MOTORS],
     ids: [u8; MOTORS],
     joint_names: Vec<String>,
     kinematics: So101Kinematics,
     bus: Mutex<Option<FeetechBus>>,
-    slot: LatestSlot<Command>,
-    feedback: FeedbackCell,
     status: Mutex<Status>,
     /// Goal joints of the last command (IK seed), radians.
     goal_rad: Mutex<Option<So101Joints>>,
     /// The newest command's joints and the limiter that ramps the written goal toward them.
     ramp: Mutex<Ramp>,
-    applied_seq: AtomicU64,
-    stop: AtomicBool,
-    thread: Mutex<Option<JoinHandle<()>>>,
     cycles: AtomicU64,
     goals_written: AtomicU64,
     failed_cycles: AtomicU64,
@@ -305,11 +301,9 @@ struct Inner {
     clock: ClockFn,
 }
 
-/// The SO-101 bridge. Create with [`So101Bridge::start`].
-#[derive(Debug)]
-pub struct So101Bridge {
-    inner: Arc<Inner>,
-}
+/// The SO-101 bridge: [`So101Link`] driven by the hardware-bridge runtime. Create with
+/// [`So101Bridge::start`].
+pub type So101Bridge = ThreadedBridge<So101Link>;
 
 fn bus_error(e: &BusError) -> BridgeError {
     match e {
@@ -321,7 +315,7 @@ fn bus_error(e: &BusError) -> BridgeError {
     }
 }
 
-impl So101Bridge {
+impl ThreadedBridge<So101Link> {
     /// Loads the calibration, opens the bus, checks every servo answers, configures them, sets each goal to
     /// the present position (so enabling torque does not move the arm) and starts the control cycle.
     pub fn start(config: So101Config) -> Result<Arc<Self>, BridgeError> {
@@ -343,14 +337,12 @@ impl So101Bridge {
             Duration::from_millis(config.timeout_ms),
         )
         .map_err(|e| bus_error(&e))?;
-        let inner = Arc::new(Inner {
+        let link = So101Link {
             calibration,
             ids,
             joint_names: SO101_ARM_JOINT_NAMES.iter().map(|s| (*s).to_owned()).collect(),
             kinematics: So101Kinematics::new(),
             bus: Mutex::new(Some(bus)),
-            slot: LatestSlot::default(),
-            feedback: FeedbackCell::default(),
             status: Mutex::new(Status {
                 link: Link::Up,
                 cycle_error: None,
@@ -367,49 +359,40 @@ impl So101Bridge {
                 target: None,
                 moving: false,
             }),
-            applied_seq: AtomicU64::new(0),
-            stop: AtomicBool::new(false),
-            thread: Mutex::new(None),
             cycles: AtomicU64::new(0),
             goals_written: AtomicU64::new(0),
             failed_cycles: AtomicU64::new(0),
             unreachable: AtomicU64::new(0),
             clock,
             config,
-        });
-        inner.prepare()?;
-        let worker = Arc::clone(&inner);
-        let handle = std::thread::Builder::new()
-            .name("so101-cycle".into())
-            .spawn(move || worker.run())
-            .map_err(BridgeError::Io)?;
-        *inner.thread.lock() = Some(handle);
-        Ok(Arc::new(Self { inner }))
+        };
+        link.prepare()?;
+        Ok(Arc::new(Self::spawn(link, clock)?))
     }
 
     pub fn config(&self) -> &So101Config {
-        &self.inner.config
+        &self.link().config
     }
 
     pub fn stats(&self) -> So101Stats {
-        let s = self.inner.status.lock();
-        let cycles = self.inner.cycles.load(Ordering::Relaxed);
+        let inner = self.link();
+        let s = inner.status.lock();
+        let cycles = inner.cycles.load(Ordering::Relaxed);
         So101Stats {
-            warning: self.inner.warning_of(&s),
+            warning: inner.warning_of(&s),
             alarms: s.alarms,
             cycles,
-            goals_written: self.inner.goals_written.load(Ordering::Relaxed),
-            failed_cycles: self.inner.failed_cycles.load(Ordering::Relaxed),
-            targets_superseded: self.inner.slot.superseded(),
-            unreachable_targets: self.inner.unreachable.load(Ordering::Relaxed),
+            goals_written: inner.goals_written.load(Ordering::Relaxed),
+            failed_cycles: inner.failed_cycles.load(Ordering::Relaxed),
+            targets_superseded: self.context().targets_superseded(),
+            unreachable_targets: inner.unreachable.load(Ordering::Relaxed),
             last_error: s.last_error.clone(),
             mean_cycle_work_us: if cycles == 0 {
                 0.0
             } else {
                 s.bus_time_total.as_secs_f64() * 1e6 / cycles as f64
             },
-            bus: self
-                .inner
+            bus: inner
                 .bus
                 .lock()
                 .as_ref()
@@ -419,13 +402,7 @@ impl So101Bridge {
     }
 }
 
-impl Drop for So101Bridge {
-    fn drop(&mut self) {
-        self.inner.shutdown();
-    }
-}
-
-impl Inner {
+impl So101Link {
     fn with_bus<R>(&self, f: impl FnOnce(&mut FeetechBus) -> Result<R, BusError>) -> Result<R, BusError> {
         let mut guard = self.bus.lock();
         let bus = guard.as_mut().ok_or_else(|| {
@@ -581,82 +558,30 @@ impl Inner {
         self.calibration[MOTORS - 1].percent_to_raw(open + (closed - open) * target.clamp(0.0, 1.0))
     }
 
-    fn run(self: Arc<Self>) {
-        let period = Duration::from_secs_f64(1.0 / self.config.rate_hz);
-        let mut next = Instant::now();
-        while !self.stop.load(Ordering::SeqCst) {
-            self.cycle();
-            next += period;
-            let now = Instant::now();
-            match next.checked_duration_since(now) {
-                Some(rest) => std::thread::sleep(rest),
-                // A late wake-up is made up by the next cycles; a long stall (more than a period) is not, so
-                // the bus never sees a burst.
-                None if now.duration_since(next) > period => next = now,
-                None => {}
-            }
-        }
+    /// True while new goals may be written: the bus is up, the last cycle read, no alarm stops the arm
+    /// and torque is on.
+    fn healthy(&self) -> bool {
+        let s = self.status.lock();
+        !matches!(s.link, Link::Down(_)) && s.cycle_error.is_none() && s.alarm_stop.is_none() && s.enabled
     }
 
-    /// One control cycle: write the newest goal (if healthy), read positions, publish feedback.
-    fn cycle(&self) {
-        if matches!(self.status.lock().link, Link::Down(_)) {
-            // Keep the newest target from piling up as "superseded" while down; it will not be sent.
-            let _ = self.slot.take();
-            return;
-        }
-        let started = Instant::now();
-        let healthy = {
-            let s = self.status.lock();
-            s.cycle_error.is_none() && s.alarm_stop.is_none() && s.enabled
-        };
-        let mut result = Ok(());
-        let command = self.slot.take();
-        if let Some(command) = command.as_ref().filter(|_| healthy) {
-            self.accept(command);
-        }
-        if healthy {
-            result = self.write_goal();
-        }
-        let read = result.and_then(|()| self.with_bus(|bus| read_positions(bus, self.ids)));
-        let bus_time = started.elapsed();
+    /// A failed write or read: logged once per distinct failure; a failed port takes the link down.
+    fn record_failure(&self, e: &BusError, bus_time: Duration) {
         self.cycles.fetch_add(1, Ordering::Relaxed);
-        match read {
-            Ok((raw, alarms)) => {
-                self.update_alarms(alarms);
-                let joints = self.arm_rad(&raw);
-                let feedback = Feedback {
-                    capture_time_ns: (self.clock)(),
-                    joint_positions_rad: joints.to_vec(),
-                    robot_from_ee: self.kinematics.forward(&joints),
-                    gripper_position: self.gripper_position(raw[MOTORS - 1]),
-                    applied_seq: self.applied_seq.load(Ordering::SeqCst),
-                    task_success: false,
-                };
-                *self.feedback.lock() = Some(feedback);
-                let mut s = self.status.lock();
-                s.bus_time_total += bus_time;
-                if s.cycle_error.take().is_some() {
-                    info!("so101: bus answering again");
-                }
-            }
-            Err(e) => {
-                self.failed_cycles.fetch_add(1, Ordering::Relaxed);
-                let message = e.to_string();
-                let mut s = self.status.lock();
-                s.bus_time_total += bus_time;
-                if s.cycle_error.as_deref() != Some(message.as_str()) {
-                    warn!(error = %message, "so101: bus cycle failed; arm holds its last goal");
-                }
-                s.last_error = Some(message.clone());
-                if e.is_link_failure() {
-                    s.link = Link::Down(message);
-                    drop(s);
-                    *self.bus.lock() = None;
-                } else {
-                    s.cycle_error = Some(message);
-                }
-            }
+        self.failed_cycles.fetch_add(1, Ordering::Relaxed);
+        let message = e.to_string();
+        let mut s = self.status.lock();
+        s.bus_time_total += bus_time;
+        if s.cycle_error.as_deref() != Some(message.as_str()) {
+            warn!(error = %message, "so101: bus cycle failed; arm holds its last goal");
+        }
+        s.last_error = Some(message.clone());
+        if e.is_link_failure() {
+            s.link = Link::Down(message);
+            drop(s);
+            *self.bus.lock() = None;
+        } else {
+            s.cycle_error = Some(message);
         }
     }
 
@@ -691,7 +616,7 @@ impl Inner {
     }
 
     /// Writes the next goal of the ramp toward the target, if it is not there yet.
-    fn write_goal(&self) -> Result<(), BusError> {
+    fn write_goal(&self, ctx: &LinkContext) -> Result<(), BusError> {
         let mut ramp = self.ramp.lock();
         let Some((target, gripper_target, seq)) = ramp.target.filter(|_| ramp.moving) else {
             return Ok(());
@@ -725,11 +650,11 @@ impl Inner {
         }
         ramp.moving = step.limited;
         self.goals_written.fetch_add(1, Ordering::Relaxed);
-        self.applied_seq.store(seq, Ordering::SeqCst);
+        ctx.applied(seq);
         Ok(())
     }
 
-    fn health(&self) -> Health {
+    fn health_of(&self, ctx: &LinkContext) -> Health {
         let s = self.status.lock();
         if let Link::Down(why) = &s.link {
             return Health::Disconnected(why.clone());
@@ -745,7 +670,7 @@ impl Inner {
         if !s.enabled {
             return Health::Error("torque disabled".into());
         }
-        if self.feedback.lock().is_none() {
+        if !ctx.has_feedback() {
             return Health::Connecting;
         }
         Health::Ready
@@ -782,19 +707,10 @@ impl Inner {
         }
     }
 
-    fn shutdown(&self) {
-        if self.stop.swap(true, Ordering::SeqCst) {
-            return;
-        }
-        let handle = self.thread.lock().take();
-        if let Some(h) = handle
-            && h.thread().id() != std::thread::current().id()
-        {
-            let _ = h.join();
-        }
-        // The servos keep their last goal with torque on: the arm holds.
-        *self.bus.lock() = None;
+    /// Shutdown: no more goals; the servos keep their last goal with torque on, so the arm holds.
+    fn close_bus(&self) {
         self.status.lock().link = Link::Down("bridge shut down".into());
+        *self.bus.lock() = None;
     }
 }
 
@@ -854,59 +770,110 @@ fn configure_motor(
     Ok(())
 }
 
-impl Bridge for So101Bridge {
+impl RobotLink for So101Link {
     fn kind(&self) -> &'static str {
         "so101"
     }
 
     fn joint_names(&self) -> &[String] {
-        &self.inner.joint_names
+        &self.joint_names
     }
 
-    fn send(&self, command: Command) {
-        self.inner.slot.put(command);
+    fn schedule(&self) -> Schedule {
+        Schedule::Cycle {
+            period: Duration::from_secs_f64(1.0 / self.config.rate_hz),
+        }
     }
 
-    fn feedback(&self) -> Option<Feedback> {
-        self.inner.feedback.lock().clone()
-    }
-
-    fn health(&self) -> Health {
-        self.inner.health()
+    fn health(&self, ctx: &LinkContext) -> Health {
+        self.health_of(ctx)
     }
 
     fn warning(&self) -> Option<String> {
-        let s = self.inner.status.lock();
-        self.inner.warning_of(&s)
+        let s = self.status.lock();
+        self.warning_of(&s)
     }
 
-    fn control(&self, request: Control) -> Result<(), BridgeError> {
-        if self.inner.stop.load(Ordering::SeqCst) {
-            return Err(BridgeError::Protocol("bridge is shut down".into()));
+    fn accepts_targets(&self, _ctx: &LinkContext) -> bool {
+        self.healthy()
+    }
+
+    /// Makes `command` the target, then writes the next goal of the ramp toward it.
+    fn write_command(&self, ctx: &LinkContext, command: Option<&Command>) -> bool {
+        if matches!(self.status.lock().link, Link::Down(_)) {
+            return false;
         }
+        if !self.healthy() {
+            // No goals while faulted; still read, so a recovered bus or a cleared alarm is seen.
+            return true;
+        }
+        let started = Instant::now();
+        if let Some(command) = command {
+            self.accept(command);
+        }
+        match self.write_goal(ctx) {
+            Ok(()) => {
+                self.status.lock().bus_time_total += started.elapsed();
+                true
+            }
+            Err(e) => {
+                self.record_failure(&e, started.elapsed());
+                false
+            }
+        }
+    }
+
+    /// Reads present positions and alarms, and computes the tool pose.
+    fn read_feedback(&self, _ctx: &LinkContext) -> Option<Measured> {
+        let started = Instant::now();
+        match self.with_bus(|bus| read_positions(bus, self.ids)) {
+            Ok((raw, alarms)) => {
+                self.cycles.fetch_add(1, Ordering::Relaxed);
+                self.update_alarms(alarms);
+                let joints = self.arm_rad(&raw);
+                let mut s = self.status.lock();
+                s.bus_time_total += started.elapsed();
+                if s.cycle_error.take().is_some() {
+                    info!("so101: bus answering again");
+                }
+                drop(s);
+                Some(Measured {
+                    joint_positions_rad: joints.to_vec(),
+                    robot_from_ee: self.kinematics.forward(&joints),
+                    gripper_position: self.gripper_position(raw[MOTORS - 1]),
+                })
+            }
+            Err(e) => {
+                self.record_failure(&e, started.elapsed());
+                None
+            }
+        }
+    }
+
+    fn control(&self, _ctx: &LinkContext, request: Control) -> Result<(), BridgeError> {
         let result = match request {
-            Control::Enable => self.inner.enable(),
-            Control::Disable => self.inner.disable(),
+            Control::Enable => self.enable(),
+            Control::Disable => self.disable(),
             Control::ClearError => {
-                let mut s = self.inner.status.lock();
+                let mut s = self.status.lock();
                 s.cycle_error = None;
                 // Raised again by the next read if the servo still reports it.
                 s.alarm_stop = None;
                 s.alarms = [0; MOTORS];
                 Ok(())
             }
-            Control::Reconnect => self.inner.reconnect(),
+            Control::Reconnect => self.reconnect(),
         };
         result.map_err(|e| {
             let err = bus_error(&e);
             if e.is_link_failure() {
-                self.inner.status.lock().link = Link::Down(e.to_string());
+                self.status.lock().link = Link::Down(e.to_string());
             }
             err
         })
     }
 
-    fn shutdown(&self) {
-        self.inner.shutdown();
+    fn close(&self) {
+        self.close_bus();
     }
 }
