@@ -727,6 +727,7 @@ impl ArmController {
             clamped: counters.clamped,
             joint_limited: inner.joints.as_ref().map_or(0, |j| j.counters().limited),
             last_reason: inner.arbiter.last_decision().reason.clone(),
+            warning: self.bridge.warning().unwrap_or_default(),
         };
         let commanded = inner.joints.as_ref().and_then(So101JointStage::commanded);
         let action = if let (ActionMode::Joint, Some(joints)) = (self.action_mode, commanded) {

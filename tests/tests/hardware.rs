@@ -1,7 +1,13 @@
-//! The shipped Dobot CR5 configuration, pointed at the Dobot controller emulator, through the real server:
-//! a phone drives the emulated robot, its feedback is the arm state, and an episode records it.
+//! The shipped hardware configurations, pointed at the robots' emulators, through the real server: a phone
+//! drives the emulated CR5, its feedback is the arm state, and an episode records it; an SO-101 whose
+//! gripper latches an overload keeps recording, and the episode's events say so.
 
 use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
+use phone2act_bridges::feetech::FeetechEmulator;
+use phone2act_bridges::feetech::protocol::alarm;
+use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration};
+use phone2act_core::kinematics::SO101_JOINT_NAMES;
+use phone2act_recorder::events::{EventKind, read_events};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{TeleopOptions, buttons};
 use phone2act_server::Config;
@@ -86,4 +92,98 @@ async fn a_phone_drives_the_emulated_cr5_and_an_episode_records_it() {
     assert!(saved.length_frames >= 5, "{saved:?}");
     server.shutdown().await.unwrap();
     keep_for_conformance("dobot_cr5_v30", dir.path());
+}
+
+/// The shipped bimanual SO-101 configuration's left arm on an emulated bus, with a calibration whose every
+/// range is the full turn (no homing offset): raw 2047 is each joint's zero.
+fn so101_config(emu: &FeetechEmulator, dir: &std::path::Path) -> Config {
+    let calibration = Calibration {
+        motors: SO101_JOINT_NAMES
+            .iter()
+            .enumerate()
+            .map(|(i, name)| {
+                let motor = MotorCalibration {
+                    id: i as u8 + 1,
+                    drive_mode: 0,
+                    homing_offset: 0,
+                    range_min: 0,
+                    range_max: 4095,
+                };
+                ((*name).to_owned(), motor)
+            })
+            .collect(),
+    };
+    let calibration_path = dir.join("left_follower.json");
+    calibration.save(&calibration_path).unwrap();
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../server/config/bimanual-so101.toml"
+    );
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut config = Config::from_toml_str(&text, path, Vec::new()).unwrap();
+    config.arms.truncate(1);
+    let so101 = config.arms[0].so101.as_mut().unwrap();
+    emu.port_path().to_str().unwrap().clone_into(&mut so101.port);
+    so101.calibration_file = calibration_path;
+    // The emulator's thread must be scheduled within it on a loaded machine; the shipped 20 ms is for a
+    // real bus.
+    so101.timeout_ms = 200;
+    for cam in &mut config.cameras {
+        (cam.kind, cam.width, cam.height, cam.fps) = (CameraKind::TestPattern, 160, 128, 15.0);
+    }
+    dir.join("dataset").clone_into(&mut config.recorder.root);
+    config
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_so101_gripper_overload_during_an_episode_is_a_robot_warning_event_and_recording_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let emu = FeetechEmulator::start(&(1..=6).map(|id| (id, 2047)).collect::<Vec<_>>()).unwrap();
+    let server = TestServer::start(so101_config(&emu, dir.path())).await.unwrap();
+    let client = server.client().await.unwrap();
+    let ready = |arm: &v1::ArmState| arm.health() == v1::BridgeHealth::Ready && arm.robot_from_ee.is_some();
+    let mut arm = client.system().list_arms().await.unwrap().remove(0);
+    for _ in 0..200 {
+        if ready(&arm) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        arm = client.system().list_arms().await.unwrap().remove(0);
+    }
+    assert!(
+        ready(&arm),
+        "the SO-101 bridge reports ready with feedback: {arm:?}"
+    );
+
+    client.episodes().start("squeeze the sponge").await.unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // The gripper closes on an object and its servo latches overload: a warning, not a stop.
+    emu.latch_alarm(6, alarm::OVERLOAD);
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    let arm = client.system().list_arms().await.unwrap().remove(0);
+    assert_eq!(arm.health(), v1::BridgeHealth::Ready, "{arm:?}");
+    // The gripper lets go.
+    emu.clear_alarm(6);
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    let saved = client.episodes().stop().await.unwrap().episode.unwrap();
+    // 2.1 s at the recorder's 20 fps, less what a loaded machine delays; the arm never stopped recording.
+    assert!(saved.length_frames >= 20, "{saved:?}");
+    server.shutdown().await.unwrap();
+
+    let events = read_events(&dir.path().join("dataset"), 0).unwrap().unwrap();
+    let warnings: Vec<_> = events
+        .iter()
+        .filter(|e| matches!(e.kind, EventKind::RobotWarning | EventKind::RobotWarningCleared))
+        .collect();
+    assert_eq!(warnings.len(), 2, "{events:?}");
+    assert_eq!(warnings[0].kind, EventKind::RobotWarning);
+    assert!(
+        warnings[0].detail.contains("servo 6 (gripper)") && warnings[0].detail.contains("overload"),
+        "{:?}",
+        warnings[0]
+    );
+    assert_eq!(warnings[1].kind, EventKind::RobotWarningCleared);
+    assert_eq!(warnings[1].detail, warnings[0].detail);
+    assert!(warnings[0].frame_index > 0 && warnings[1].frame_index > warnings[0].frame_index);
+    assert_eq!(warnings[0].arm, "left");
 }

@@ -24,6 +24,8 @@ const REJECTED_COLOR: RGBColor = RGBColor(214, 39, 40);
 const CLAMPED_COLOR: RGBColor = RGBColor(188, 128, 189);
 /// Late frames and pauses of the recorder's timeline.
 const TIMELINE_COLOR: RGBColor = RGBColor(120, 120, 120);
+/// Robot warnings (a servo alarm while the arm keeps working) and their clearing.
+const WARNING_COLOR: RGBColor = RGBColor(230, 150, 0);
 
 /// One panel: a state dimension, an action dimension, or both when they name the same quantity.
 #[derive(Debug, PartialEq, Eq)]
@@ -129,7 +131,9 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
             | EventKind::GateClamped
             | EventKind::JointLimited
             | EventKind::LateTick
-            | EventKind::Paused => {}
+            | EventKind::Paused
+            | EventKind::RobotWarning
+            | EventKind::RobotWarningCleared => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -234,6 +238,7 @@ fn panel_svg(
                 EventKind::ClutchEngage | EventKind::ClutchRelease => ENGAGED_COLOR,
                 // The recorder's timeline: frames that are not at their own time, and where time jumps.
                 EventKind::LateTick | EventKind::Paused => TIMELINE_COLOR,
+                EventKind::RobotWarning | EventKind::RobotWarningCleared => WARNING_COLOR,
             };
             chart.draw_series(std::iter::once(PathElement::new(
                 vec![(e.timestamp, y0), (e.timestamp, y1)],

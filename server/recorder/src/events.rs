@@ -33,6 +33,9 @@ pub struct ArmActivity {
     pub joint_limited: u64,
     /// The reason of the gate's last decision (kept as the event's detail).
     pub last_reason: String,
+    /// What the robot reports while it keeps working (a servo alarm that does not stop the arm, naming
+    /// the part and the reason); empty when nothing is reported.
+    pub warning: String,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -50,6 +53,11 @@ pub enum EventKind {
     Paused,
     /// The joint speed limits shortened commands: the arm followed at its limit, behind the target.
     JointLimited,
+    /// The robot reports something while it keeps working (`detail`: which part and why, e.g. a gripper
+    /// servo's overload alarm while it squeezes an object), or reports something else than before.
+    RobotWarning,
+    /// The robot's warning went away (`detail`: the warning that was shown).
+    RobotWarningCleared,
 }
 
 /// One line of the sidecar.
@@ -104,6 +112,10 @@ pub fn transitions(
                     "engaged when the episode started",
                 ));
             }
+            // Unlike the counters, a warning is a state: one present at the start belongs to the episode.
+            if !now.warning.is_empty() {
+                events.push(event(now, EventKind::RobotWarning, 1, &now.warning));
+            }
             continue;
         };
         match (before.engaged, now.engaged) {
@@ -133,6 +145,13 @@ pub fn transitions(
                 joint_limited,
                 "joint speed limit",
             ));
+        }
+        if before.warning != now.warning {
+            if now.warning.is_empty() {
+                events.push(event(now, EventKind::RobotWarningCleared, 1, &before.warning));
+            } else {
+                events.push(event(now, EventKind::RobotWarning, 1, &now.warning));
+            }
         }
     }
     events
@@ -242,7 +261,33 @@ mod tests {
             clamped,
             joint_limited: 0,
             last_reason: "jump of 120 mm".into(),
+            warning: String::new(),
         }
+    }
+
+    #[test]
+    fn robot_warnings_are_events_when_they_appear_change_and_clear() {
+        let quiet = arm(true, 0, 0);
+        let mut overload = quiet.clone();
+        overload.warning = "gripper (id 6): overload".into();
+        let mut hot = quiet.clone();
+        hot.warning = "gripper (id 6): overheat".into();
+        // Present when the episode starts: an event at frame 0, beside the clutch's.
+        let e = transitions(None, &[overload.clone()], 0, 20);
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::ClutchEngage, 1), (EventKind::RobotWarning, 1)]
+        );
+        assert_eq!(e[1].detail, "gripper (id 6): overload");
+        let e = transitions(Some(&[quiet.clone()]), &[overload.clone()], 5, 20);
+        assert_eq!(kinds(&e), [(EventKind::RobotWarning, 1)]);
+        assert!(transitions(Some(&[overload.clone()]), &[overload.clone()], 6, 20).is_empty());
+        let e = transitions(Some(&[overload.clone()]), &[hot.clone()], 7, 20);
+        assert_eq!(kinds(&e), [(EventKind::RobotWarning, 1)]);
+        assert_eq!(e[0].detail, "gripper (id 6): overheat");
+        let e = transitions(Some(&[hot]), &[quiet], 8, 20);
+        assert_eq!(kinds(&e), [(EventKind::RobotWarningCleared, 1)]);
+        assert_eq!(e[0].detail, "gripper (id 6): overheat");
     }
 
     #[test]
