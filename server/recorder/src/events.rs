@@ -273,16 +273,34 @@ mod tests {
         let mut hot = quiet.clone();
         hot.warning = "gripper (id 6): overheat".into();
         // Present when the episode starts: an event at frame 0, beside the clutch's.
-        let e = transitions(None, &[overload.clone()], 0, 20);
+        let e = transitions(None, std::slice::from_ref(&overload), 0, 20);
         assert_eq!(
             kinds(&e),
             [(EventKind::ClutchEngage, 1), (EventKind::RobotWarning, 1)]
         );
         assert_eq!(e[1].detail, "gripper (id 6): overload");
-        let e = transitions(Some(&[quiet.clone()]), &[overload.clone()], 5, 20);
+        let e = transitions(
+            Some(std::slice::from_ref(&quiet)),
+            std::slice::from_ref(&overload),
+            5,
+            20,
+        );
         assert_eq!(kinds(&e), [(EventKind::RobotWarning, 1)]);
-        assert!(transitions(Some(&[overload.clone()]), &[overload.clone()], 6, 20).is_empty());
-        let e = transitions(Some(&[overload.clone()]), &[hot.clone()], 7, 20);
+        assert!(
+            transitions(
+                Some(std::slice::from_ref(&overload)),
+                std::slice::from_ref(&overload),
+                6,
+                20
+            )
+            .is_empty()
+        );
+        let e = transitions(
+            Some(std::slice::from_ref(&overload)),
+            std::slice::from_ref(&hot),
+            7,
+            20,
+        );
         assert_eq!(kinds(&e), [(EventKind::RobotWarning, 1)]);
         assert_eq!(e[0].detail, "gripper (id 6): overheat");
         let e = transitions(Some(&[hot]), &[quiet], 8, 20);
