@@ -142,6 +142,35 @@ enum DatasetAction {
         #[command(flatten)]
         remote: fleet::RemoteArgs,
     },
+    /// Merge several LeRobot v3.0 datasets (local directories or s3:// URLs, e.g. one per station) into one:
+    /// episodes renumbered, tasks unified, statistics recomputed, videos copied without re-encoding, each
+    /// episode's station and operator kept. Inputs that differ (fps, robot type, features, cameras) are
+    /// refused with nothing written.
+    Merge {
+        /// Datasets to merge, in order (directories or s3://bucket/prefix).
+        #[arg(required = true)]
+        sources: Vec<String>,
+        /// New dataset (a directory that does not exist yet, or s3://bucket/prefix).
+        #[arg(long)]
+        out: String,
+        #[command(flatten)]
+        sizes: fleet::SizeArgs,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
+    /// Repack a LeRobot v3.0 dataset's many small files into files of lerobot's sizes (100 MB data, 200 MB
+    /// video by default), without re-encoding; the same as a merge of one dataset.
+    Compact {
+        /// Dataset to compact (a directory or s3://bucket/prefix).
+        source: String,
+        /// New dataset (a directory that does not exist yet, or s3://bucket/prefix).
+        #[arg(long)]
+        out: String,
+        #[command(flatten)]
+        sizes: fleet::SizeArgs,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
     /// Plot an episode into one HTML page: camera frames, state and action per dimension over time, clutch
     /// and gate events marked.
     Plot {
@@ -485,6 +514,30 @@ fn real_main() -> anyhow::Result<()> {
             action: DatasetAction::Pull { url, path, remote },
         } => {
             outln!("{}", fleet::pull(&url, &path, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
+            action:
+                DatasetAction::Merge {
+                    sources,
+                    out,
+                    sizes,
+                    remote,
+                },
+        } => {
+            outln!("{}", fleet::merge(&sources, &out, &sizes, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
+            action:
+                DatasetAction::Compact {
+                    source,
+                    out,
+                    sizes,
+                    remote,
+                },
+        } => {
+            outln!("{}", fleet::merge(&[source], &out, &sizes, &remote)?);
             Ok(())
         }
         Command::Dataset {
