@@ -415,13 +415,13 @@ fn column_stats(col: &NumericColumn, array: &ArrayRef) -> ColumnStats {
             }
         }
         DataType::Int64 => {
-            for v in array.as_primitive::<arrow_array::types::Int64Type>().iter() {
+            for v in array.as_primitive::<arrow_array::types::Int64Type>() {
                 s.push(&[v.unwrap_or(0) as f64]);
             }
         }
         DataType::Boolean => {
             let b: &BooleanArray = array.as_boolean();
-            for v in b.iter() {
+            for v in b {
                 s.push(&[f64::from(u8::from(v.unwrap_or(false)))]);
             }
         }
@@ -889,13 +889,13 @@ fn write_merged(
                 task: parquet_io::episode_task(&src.row, 0),
                 ..super::EpisodeSummary::default()
             });
-            if summary.station_id.is_empty() {
-                if let Some(p) = &input.provenance {
-                    p.config["station_id"]
-                        .as_str()
-                        .unwrap_or_default()
-                        .clone_into(&mut summary.station_id);
-                }
+            if summary.station_id.is_empty()
+                && let Some(p) = &input.provenance
+            {
+                p.config["station_id"]
+                    .as_str()
+                    .unwrap_or_default()
+                    .clone_into(&mut summary.station_id);
             }
             summary.merged_from = Some(MergedFrom {
                 dataset: input.label.clone(),
@@ -997,7 +997,7 @@ fn write_merged(
 
 /// A size in MB as lerobot writes it: an integer when it is one.
 fn size_json(mb: f64) -> Value {
-    if mb.fract() == 0.0 && mb >= 0.0 && mb < 1e15 {
+    if mb.fract() == 0.0 && (0.0..1e15).contains(&mb) {
         json!(mb as u64)
     } else {
         json!(mb)
