@@ -20,6 +20,18 @@ const BIN: &str = env!("CARGO_BIN_EXE_phone2act");
 
 /// Records `tasks.len()` episodes of about `seconds` each into a new dataset at `root`, as station `station`.
 fn record(root: &Path, station: &str, fps: u32, cameras: &[&str], tasks: &[&str], seconds: f64) {
+    record_as(Format::V30, root, station, fps, cameras, tasks, seconds);
+}
+
+fn record_as(
+    format: Format,
+    root: &Path,
+    station: &str,
+    fps: u32,
+    cameras: &[&str],
+    tasks: &[&str],
+    seconds: f64,
+) {
     let mut slots = Vec::new();
     let mut threads = Vec::new();
     let mut specs = Vec::new();
@@ -35,7 +47,7 @@ fn record(root: &Path, station: &str, fps: u32, cameras: &[&str], tasks: &[&str]
     }
     let spec = DatasetSpec {
         root: root.to_owned(),
-        format: Format::V30,
+        format,
         fps,
         robot_type: "phone2act_sim".into(),
         video_codec: None,
@@ -100,13 +112,22 @@ fn lerobot06_python() -> Option<PathBuf> {
 
 /// Runs tests/conformance/check_merge.py; `None` (and a loud SKIPPED) without the lerobot venv.
 fn lerobot_check(args: &[&Path]) -> Option<(bool, String)> {
+    lerobot_check_with(args, None)
+}
+
+/// The same with lerobot 0.3.3 (v2.1) first on the path, as tests/conformance/run.sh runs it.
+fn lerobot_check_with(args: &[&Path], pythonpath: Option<&Path>) -> Option<(bool, String)> {
     let Some(py) = lerobot06_python() else {
         eprintln!("lerobot check SKIPPED: no lerobot 0.6 venv (run tests/lerobot_plugins/setup-venv.sh)");
         return None;
     };
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/conformance/check_merge.py");
     let cache = tempfile::tempdir().unwrap();
-    let out = Command::new(py)
+    let mut cmd = Command::new(py);
+    if let Some(p) = pythonpath {
+        cmd.env("PYTHONPATH", p);
+    }
+    let out = cmd
         .arg(script)
         .args(args)
         .env("HF_HUB_OFFLINE", "1")
@@ -263,5 +284,62 @@ fn compact_repacks_one_file_per_episode_into_files_within_the_size_limits() {
     assert_eq!(info["total_tasks"], 2);
     if let Some((ok, report)) = lerobot_check(&[&out, &src]) {
         assert!(ok, "{report}");
+    }
+}
+
+#[test]
+fn v21_gr00t_datasets_merge_into_one_that_lerobot_0_3_3_loads() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("st-a"), dir.path().join("st-b"));
+    record_as(Format::V21, &a, "st-a", 20, &["front"], &["pick", "place"], 0.4);
+    record_as(Format::V21, &b, "st-b", 20, &["front"], &["place", "wipe"], 0.4);
+    let merged = dir.path().join("fleet");
+    let out = phone2act(&["dataset", "merge", s(&a), s(&b), "--out", s(&merged)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let verify = phone2act(&["dataset", "verify", s(&merged)]);
+    assert!(verify.status.success(), "{}", text(&verify));
+    let info = read_json(&merged.join("meta/info.json"));
+    assert_eq!(
+        (info["total_episodes"].as_u64(), info["total_tasks"].as_u64()),
+        (Some(4), Some(3))
+    );
+    assert_eq!(info["total_videos"], 4);
+    assert_eq!(
+        std::fs::read(merged.join("meta/modality.json")).unwrap(),
+        std::fs::read(a.join("meta/modality.json")).unwrap(),
+        "GR00T's modality.json carried over"
+    );
+    let lines: Vec<Value> = std::fs::read_to_string(merged.join("meta/episodes_stats.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines[3]["episode_index"], 3);
+    assert_eq!(
+        lines[3]["stats"]["episode_index"]["min"],
+        serde_json::json!([3]),
+        "renumbered stats"
+    );
+    // A v3.0 input among v2.1 ones is refused by name.
+    let v30 = dir.path().join("v30");
+    record(&v30, "st-c", 20, &["front"], &["pick"], 0.3);
+    let o = phone2act(&[
+        "dataset",
+        "merge",
+        s(&a),
+        s(&v30),
+        "--out",
+        s(&dir.path().join("mixed")),
+    ]);
+    assert!(!o.status.success() && text(&o).contains("v3.0"), "{}", text(&o));
+    assert!(!dir.path().join("mixed").exists());
+    let cache =
+        lerobot06_python().and_then(|py| Some(py.parent()?.parent()?.parent()?.join("lerobot-0.3.3")));
+    if let Some(v21) = cache.filter(|p| p.exists()) {
+        if let Some((ok, report)) = lerobot_check_with(&[&merged, &a, &b], Some(&v21)) {
+            assert!(ok, "{report}");
+        }
+    } else {
+        eprintln!("lerobot 0.3.3 check SKIPPED: no lerobot-0.3.3 beside the lerobot 0.6 venv");
     }
 }

@@ -160,7 +160,9 @@ impl Input {
         if version != "v3.0" {
             return Err(bad(
                 &label,
-                format!("codebase_version {version}: merge and compact read LeRobot v3.0 datasets"),
+                format!(
+                    "a {version} dataset cannot be merged with v3.0 ones (convert it first with lerobot's convert_dataset_v21_to_v30)"
+                ),
             ));
         }
         let chunks = info
@@ -276,7 +278,7 @@ fn file_rel(top: &str, n: u64, chunks: u64, ext: &str) -> String {
 }
 
 /// The first difference between two inputs' features that a single dataset cannot hold, if any.
-fn feature_difference(a: &Value, b: &Value) -> Option<String> {
+pub(super) fn feature_difference(a: &Value, b: &Value) -> Option<String> {
     let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else {
         return Some("info.json has no features".into());
     };
@@ -311,14 +313,14 @@ fn feature_difference(a: &Value, b: &Value) -> Option<String> {
     None
 }
 
-fn data_schema_of(path: &Path) -> Result<SchemaRef, RecorderError> {
+pub(super) fn data_schema_of(path: &Path) -> Result<SchemaRef, RecorderError> {
     let file = File::open(path).map_err(|e| RecorderError::io(path, e))?;
     let b = ParquetRecordBatchReaderBuilder::try_new(file).map_err(|e| RecorderError::parquet(path, &e))?;
     Ok(Arc::clone(b.schema()))
 }
 
 /// The columns of a data file as `name: type`, metadata left out.
-fn columns(schema: &Schema) -> Vec<String> {
+pub(super) fn columns(schema: &Schema) -> Vec<String> {
     schema
         .fields()
         .iter()
@@ -372,14 +374,14 @@ fn check_compatible(inputs: &[Input]) -> Result<SchemaRef, MergeError> {
 }
 
 /// A numeric column of the data files whose statistics the merge recomputes.
-struct NumericColumn {
-    index: usize,
-    name: String,
+pub(super) struct NumericColumn {
+    pub(super) index: usize,
+    pub(super) name: String,
     kind: StatKind,
     dims: usize,
 }
 
-fn numeric_columns(schema: &Schema) -> Vec<NumericColumn> {
+pub(super) fn numeric_columns(schema: &Schema) -> Vec<NumericColumn> {
     schema
         .fields()
         .iter()
@@ -405,7 +407,7 @@ fn numeric_columns(schema: &Schema) -> Vec<NumericColumn> {
 }
 
 /// One episode's values of `col` (a slice of the data batch).
-fn column_stats(col: &NumericColumn, array: &ArrayRef) -> ColumnStats {
+pub(super) fn column_stats(col: &NumericColumn, array: &ArrayRef) -> ColumnStats {
     let mut s = ColumnStats::new(col.kind, col.dims);
     match array.data_type() {
         DataType::FixedSizeList(..) => {
@@ -516,7 +518,7 @@ impl RollingWriter {
 }
 
 /// Replaces (or appends) column `name` of a one-or-more-row batch.
-fn set_column(batch: &RecordBatch, name: &str, array: ArrayRef) -> RecordBatch {
+pub(super) fn set_column(batch: &RecordBatch, name: &str, array: ArrayRef) -> RecordBatch {
     let schema = batch.schema();
     let mut fields: Vec<Field> = schema.fields().iter().map(|f| f.as_ref().clone()).collect();
     let mut cols = batch.columns().to_vec();
@@ -590,6 +592,16 @@ fn image_stats_from_json(v: &Value) -> Option<FeatureStats> {
     })
 }
 
+/// The `codebase_version` of a dataset.
+fn version_of(input: &MergeInput) -> Result<String, MergeError> {
+    let path = input.root.join("meta/info.json");
+    if !path.exists() {
+        return Err(bad(&input.label, "no meta/info.json"));
+    }
+    let info = read_json(&path)?;
+    Ok(info["codebase_version"].as_str().unwrap_or("?").to_owned())
+}
+
 /// Where an output episode's rows and videos went.
 struct Placed {
     data_file: u64,
@@ -608,8 +620,19 @@ pub fn merge(inputs: &[MergeInput], out: &Path, opts: &MergeOptions) -> Result<M
     if out.exists() && fs::read_dir(out).map_or(true, |mut d| d.next().is_some()) {
         return Err(MergeError::OutputExists(out.to_owned()));
     }
-    let inputs: Vec<Input> = inputs.iter().map(Input::open).collect::<Result<_, _>>()?;
-    let data_schema = check_compatible(&inputs)?;
+    // Every input is read and checked before anything is written.
+    let v21 = version_of(&inputs[0])? == "v2.1";
+    let (opened, opened_v21) = if v21 {
+        (Vec::new(), super::merge_v21::open_all(inputs)?)
+    } else {
+        let opened: Vec<Input> = inputs.iter().map(Input::open).collect::<Result<_, _>>()?;
+        (opened, Vec::new())
+    };
+    let data_schema = if v21 {
+        None
+    } else {
+        Some(check_compatible(&opened)?)
+    };
     let name = out
         .file_name()
         .map_or_else(|| "merged".into(), |n| n.to_string_lossy().into_owned());
@@ -620,7 +643,10 @@ pub fn merge(inputs: &[MergeInput], out: &Path, opts: &MergeOptions) -> Result<M
     fs::create_dir_all(parent).map_err(|e| RecorderError::io(parent, e))?;
     let tmp = parent.join(format!(".{name}.merging-{}", std::process::id()));
     let _ = fs::remove_dir_all(&tmp);
-    let result = write_merged(&inputs, &tmp, &data_schema, opts);
+    let result = match &data_schema {
+        Some(schema) => write_merged(&opened, &tmp, schema, opts),
+        None => super::merge_v21::write(&opened_v21, &tmp),
+    };
     match result {
         Ok(report) => {
             if out.exists() {
@@ -878,43 +904,15 @@ fn write_merged(
             row = set_column(&row, "meta/episodes/file_index", one_int(n % chunks));
             meta.write(&row, estimate)?;
 
-            let known = input.provenance.as_ref().and_then(|p| {
-                p.episodes
-                    .iter()
-                    .find(|e| e.index == src.index && e.length_frames == src.length)
-            });
-            let mut summary = known.cloned().unwrap_or_else(|| super::EpisodeSummary {
-                length_frames: src.length,
-                duration_s: src.length as f64 / f64::from(fps.max(1)),
-                task: parquet_io::episode_task(&src.row, 0),
-                ..super::EpisodeSummary::default()
-            });
-            if summary.station_id.is_empty()
-                && let Some(p) = &input.provenance
-            {
-                p.config["station_id"]
-                    .as_str()
-                    .unwrap_or_default()
-                    .clone_into(&mut summary.station_id);
-            }
-            summary.merged_from = Some(MergedFrom {
-                dataset: input.label.clone(),
-                episode_index: summary
-                    .merged_from
-                    .as_ref()
-                    .map_or(src.index, |m| m.episode_index),
-            });
-            summary.index = new_ep;
-            episodes_prov.push(summary);
-
-            let events = input.root.join(events_path(src.index));
-            if events.exists() {
-                let to = dst.join(events_path(new_ep));
-                if let Some(p) = to.parent() {
-                    fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
-                }
-                fs::copy(&events, &to).map_err(|e| RecorderError::io(&to, e))?;
-            }
+            let task = parquet_io::episode_task(&src.row, 0);
+            episodes_prov.push(carry_episode(
+                &input.label,
+                &input.root,
+                input.provenance.as_ref(),
+                (src.index, src.length, task, new_ep),
+                fps,
+                dst,
+            )?);
         }
         episode_offset += input.episodes.len() as u64;
         frame_offset += input.frames();
@@ -957,22 +955,14 @@ fn write_merged(
         .iter()
         .map(|i| json!({"dataset": i.label, "episodes": i.episodes.len(), "frames": i.frames()}))
         .collect();
-    let base = first.provenance.clone().unwrap_or_default();
-    let provenance = Provenance {
-        software: "phone2act-recorder".into(),
-        version: env!("CARGO_PKG_VERSION").into(),
-        format: "v3.0".into(),
-        video: base.video,
-        config: json!({"merged_from": sources}),
-        sync: base.sync,
-        episodes: episodes_prov,
-        stats: aggregates,
-    };
-    fs::write(
-        dst.join(PROVENANCE_FILE),
-        pretty(&serde_json::to_value(&provenance).unwrap_or(Value::Null)),
-    )
-    .map_err(|e| RecorderError::io(dst.join(PROVENANCE_FILE), e))?;
+    write_provenance(
+        dst,
+        first.provenance.as_ref(),
+        sources,
+        "v3.0",
+        episodes_prov,
+        aggregates,
+    )?;
 
     // info.json last, from the first input's, with the totals and the shard sizes of the output.
     let mut info = first.info.clone();
@@ -1002,4 +992,86 @@ fn size_json(mb: f64) -> Value {
     } else {
         json!(mb)
     }
+}
+
+/// An input episode's provenance entry in the output (its station, operator and source kept), and its events
+/// sidecar copied under the new index. `episode` is (source index, length, tasks, new index).
+pub(super) fn carry_episode(
+    label: &str,
+    root: &Path,
+    provenance: Option<&Provenance>,
+    episode: (u64, u64, String, u64),
+    fps: u32,
+    dst: &Path,
+) -> Result<super::EpisodeSummary, MergeError> {
+    let (index, length, task, new_index) = episode;
+    let known = provenance.and_then(|p| {
+        p.episodes
+            .iter()
+            .find(|e| e.index == index && e.length_frames == length)
+    });
+    let mut summary = known.cloned().unwrap_or_else(|| super::EpisodeSummary {
+        length_frames: length,
+        duration_s: length as f64 / f64::from(fps.max(1)),
+        task,
+        ..super::EpisodeSummary::default()
+    });
+    if summary.station_id.is_empty()
+        && let Some(p) = provenance
+    {
+        p.config["station_id"]
+            .as_str()
+            .unwrap_or_default()
+            .clone_into(&mut summary.station_id);
+    }
+    // An episode merged twice keeps the dataset it was first recorded in.
+    if summary.merged_from.is_none() {
+        summary.merged_from = Some(MergedFrom {
+            dataset: label.to_owned(),
+            episode_index: index,
+        });
+    }
+    summary.index = new_index;
+    let events = root.join(events_path(index));
+    if events.exists() {
+        let to = dst.join(events_path(new_index));
+        if let Some(p) = to.parent() {
+            fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
+        }
+        fs::copy(&events, &to).map_err(|e| RecorderError::io(&to, e))?;
+    }
+    Ok(summary)
+}
+
+/// The merged dataset's provenance sidecar: the inputs, every episode's entry, the running aggregates (so a
+/// recorder can resume the merged dataset without re-reading it).
+pub(super) fn write_provenance(
+    dst: &Path,
+    first: Option<&Provenance>,
+    sources: &[Value],
+    format: &str,
+    episodes: Vec<super::EpisodeSummary>,
+    aggregates: BTreeMap<String, Aggregate>,
+) -> Result<(), MergeError> {
+    let base = first.cloned().unwrap_or_default();
+    let provenance = Provenance {
+        software: "phone2act-recorder".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        format: format.into(),
+        video: base.video,
+        config: json!({"merged_from": sources}),
+        sync: base.sync,
+        episodes,
+        stats: aggregates,
+    };
+    let path = dst.join(PROVENANCE_FILE);
+    if let Some(p) = path.parent() {
+        fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
+    }
+    fs::write(
+        &path,
+        pretty(&serde_json::to_value(&provenance).unwrap_or(Value::Null)),
+    )
+    .map_err(|e| RecorderError::io(&path, e))?;
+    Ok(())
 }
