@@ -958,7 +958,7 @@ fn write_merged(
     write_provenance(
         dst,
         first.provenance.as_ref(),
-        sources,
+        &sources,
         "v3.0",
         episodes_prov,
         aggregates,

@@ -402,7 +402,7 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
     write_provenance(
         dst,
         first.provenance.as_ref(),
-        sources,
+        &sources,
         "v2.1",
         provenance,
         aggregates,
