@@ -93,6 +93,46 @@ impl Drop for Scratch {
     }
 }
 
+/// A dataset on disk: the directory given, or a scratch copy of a URL (removed when dropped).
+pub(crate) struct LocalCopy {
+    path: std::path::PathBuf,
+    _scratch: Option<Scratch>,
+}
+
+impl LocalCopy {
+    pub(crate) fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// `path_or_url` as a directory: a URL is pulled (one committed state, see `phone2act_storage::pull`) into
+/// a scratch directory under the system's temporary directory.
+pub(crate) fn local_copy(path_or_url: &str, args: &RemoteArgs) -> anyhow::Result<LocalCopy> {
+    use anyhow::Context as _;
+    if !is_url(path_or_url) {
+        return Ok(LocalCopy {
+            path: path_or_url.into(),
+            _scratch: None,
+        });
+    }
+    let scratch = Scratch(std::env::temp_dir().join(format!(
+        "phone2act-dataset-{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos())
+    )));
+    let dir = scratch.0.join("dataset");
+    let remote = remote(path_or_url, args)?;
+    runtime()?
+        .block_on(phone2act_storage::pull(&remote, &dir))
+        .with_context(|| format!("downloading {path_or_url}"))?;
+    Ok(LocalCopy {
+        path: dir,
+        _scratch: Some(scratch),
+    })
+}
+
 /// Merges `sources` (directories or URLs, pulled first) into `out` (a new directory, or a URL the merged
 /// dataset is pushed to); returns the line to print.
 pub(crate) fn merge(
@@ -104,13 +144,13 @@ pub(crate) fn merge(
     use anyhow::Context as _;
     let t0 = std::time::Instant::now();
     let local_out = (!is_url(out)).then(|| std::path::PathBuf::from(out));
-    // Downloads and a merge bound for storage go next to the output (or the current directory), never to a
-    // small /tmp.
-    let scratch_parent = local_out
-        .as_deref()
-        .and_then(Path::parent)
-        .filter(|p| !p.as_os_str().is_empty())
-        .map_or_else(|| std::path::PathBuf::from("."), Path::to_path_buf);
+    // Downloads go next to a local output (the same file system, so a large merge does not fill a small
+    // /tmp); for an output in storage, under the system's temporary directory (TMPDIR).
+    let scratch_parent = match local_out.as_deref().and_then(Path::parent) {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        Some(_) => std::path::PathBuf::from("."),
+        None => std::env::temp_dir(),
+    };
     let scratch = Scratch(scratch_parent.join(format!(".phone2act-merge-{}", std::process::id())));
     let mut inputs = Vec::new();
     for (i, src) in sources.iter().enumerate() {
