@@ -444,3 +444,98 @@ async fn a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_comp
     pull_and_verify(&remote, &dir.path().join("back"), 2).await;
     server.shutdown().await.unwrap();
 }
+
+struct Unmount(std::path::PathBuf);
+
+impl Drop for Unmount {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// Writes `filler` until the file system refuses more (ENOSPC).
+fn fill_disk(filler: &Path) {
+    use std::io::Write;
+    let mut f = std::fs::File::create(filler).unwrap();
+    let block = vec![0xa5u8; 64 * 1024];
+    while f.write_all(&block).is_ok() {}
+    let small = [0xa5u8; 512];
+    while f.write_all(&small).is_ok() {}
+    let _ = f.sync_all();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committed_episode() {
+    let test = "a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committed_episode";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let mnt = dir.path().join("mnt");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=32m", "tmpfs"])
+        .arg(&mnt)
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("SKIPPED: {test}: cannot mount a tmpfs here (needs root) to fill a disk");
+        return;
+    }
+    let _unmount = Unmount(mnt.clone());
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let target: std::net::SocketAddr = moto
+        .endpoint()
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .parse()
+        .unwrap();
+    // The storage is unreachable at first, so the first episode's upload is still pending when the disk fills.
+    let relay = Relay::start(target);
+    relay.stall(true);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = mnt.join("ds");
+    let mut config = default_config(&root);
+    let mut s = storage(&moto, &creds, "st-f");
+    s.endpoint = Some(format!("http://{}", relay.addr));
+    s.request_timeout_s = Some(2.0);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    assert_eq!(record(&client, "pick", "fay", 600).await, 0);
+
+    let filler = mnt.join("filler");
+    fill_disk(&filler);
+    relay.stall(false);
+    // An episode recorded on the full disk is refused with a clear error; the committed one stays.
+    let mut episodes = client.episodes();
+    let stopped = match episodes.start_by("place", "fay").await {
+        Ok(_) => {
+            tokio::time::sleep(Duration::from_millis(600)).await;
+            episodes.stop().await.map(|_| ())
+        }
+        Err(e) => Err(e),
+    };
+    let err = stopped
+        .expect_err("an episode saved on a full disk")
+        .to_string()
+        .to_lowercase();
+    assert!(err.contains("disk full") || err.contains("no space"), "{err}");
+    let list = client.episodes().list().await.unwrap();
+    assert_eq!(list.episodes.len(), 1, "{list:#?}");
+
+    // Space again: the pending upload completes, whole, and the dataset records on.
+    std::fs::remove_file(&filler).unwrap();
+    assert_eq!(record(&client, "place", "fay", 600).await, 1);
+    wait_list(
+        &client,
+        Duration::from_mins(3),
+        "both uploaded after the disk was freed",
+        |l| all_uploaded(l, 2),
+    )
+    .await;
+    let remote = remote(&moto, "st-f");
+    remote_is_consistent(&remote, 1).await.unwrap();
+    pull_and_verify(&remote, &dir.path().join("back"), 2).await;
+    server.shutdown().await.unwrap();
+}
