@@ -417,6 +417,12 @@ async fn a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_comp
     .await;
     let err = list.storage.unwrap().last_error.to_lowercase();
     assert!(err.contains("timed out") || err.contains("timeout"), "{err}");
+    // What the phone page shows under its recording line.
+    let summary = client.episodes().status().await.unwrap().upload_summary;
+    assert!(
+        summary.starts_with("0 uploaded, 1 pending; failing: ") && summary.to_lowercase().contains("time"),
+        "{summary}"
+    );
     assert_eq!(record(&client, "place", "dana", 600).await, 1);
     let list = client.episodes().list().await.unwrap();
     assert_eq!(list.episodes.len(), 2);
@@ -440,6 +446,10 @@ async fn a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_comp
         |l| all_uploaded(l, 2),
     )
     .await;
+    assert_eq!(
+        client.episodes().status().await.unwrap().upload_summary,
+        "2 uploaded, 0 pending"
+    );
     remote_is_consistent(&remote, 1).await.unwrap();
     pull_and_verify(&remote, &dir.path().join("back"), 2).await;
     server.shutdown().await.unwrap();
