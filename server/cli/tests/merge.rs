@@ -343,3 +343,42 @@ fn v21_gr00t_datasets_merge_into_one_that_lerobot_0_3_3_loads() {
         eprintln!("lerobot 0.3.3 check SKIPPED: no lerobot-0.3.3 beside the lerobot 0.6 venv");
     }
 }
+
+fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap().flatten() {
+        let to = dst.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &to);
+        } else {
+            std::fs::copy(e.path(), to).unwrap();
+        }
+    }
+}
+
+/// Datasets lerobot itself wrote (tests/fixtures/lerobot_sample_v30: several episodes per video file, a
+/// `next.done` column, lerobot's own tasks table) merge as its `aggregate_datasets` merges them.
+#[test]
+fn datasets_lerobot_wrote_merge_as_its_own_aggregate_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/lerobot_sample_v30");
+    let (a, b) = (dir.path().join("x"), dir.path().join("y"));
+    copy_dir(&fixture, &a);
+    copy_dir(&fixture, &b);
+    let merged = dir.path().join("m");
+    let out = phone2act(&["dataset", "merge", s(&a), s(&b), "--out", s(&merged)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let verify = phone2act(&["dataset", "verify", s(&merged)]);
+    assert!(verify.status.success(), "{}", text(&verify));
+    let info = read_json(&merged.join("meta/info.json"));
+    assert_eq!(
+        (info["total_episodes"].as_u64(), info["total_frames"].as_u64()),
+        (Some(6), Some(60))
+    );
+    // The fixture's three episodes share one video file a camera; the merge appends the two files.
+    assert_eq!(files_under(&merged.join("videos")).len(), 2);
+    let agg = dir.path().join("lerobot-aggregate");
+    if let Some((ok, report)) = lerobot_check(&[&merged, &a, &b, Path::new("--lerobot-aggregate"), &agg]) {
+        assert!(ok, "{report}");
+    }
+}
