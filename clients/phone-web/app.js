@@ -268,6 +268,8 @@
         ? `${r.phase.toUpperCase()} ep ${r.episode} · ${r.frames} frames · ${r.duration_s.toFixed(1)} s · "${r.task}"`
         : `${r.phase} · ${r.saved} saved`;
       if (r.warning) rec.textContent += ` · ${r.warning}`;
+      // Storage upload of the saved episodes (empty when the server has no [storage]).
+      if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
     render();
   }

@@ -1172,6 +1172,8 @@ mod tests {
             ("URL", "https://fleet/lab", "storage.url"),
             ("ENDPOINT", "minio:9000", "storage.endpoint"),
             ("MAX_UPLOAD_BYTES_PER_S", "0", "storage.max_upload_bytes_per_s"),
+            ("REQUEST_TIMEOUT_S", "0", "storage.request_timeout_s"),
+            ("REQUEST_TIMEOUT_S", "-1", "storage.request_timeout_s"),
             ("STATION_ID", "a/b", "storage.station_id"),
             ("RETAIN_LOCAL", "false", "storage.retain_local"),
         ] {
@@ -1616,6 +1618,7 @@ region = "eu-west-3"
 profile = "lab"
 credentials_file = "creds"
 max_upload_bytes_per_s = 1000000
+request_timeout_s = 30
 station_id = "arm-1"
 [flight_log]
 dir = "logs"

@@ -36,6 +36,10 @@ pub fn start(config: &Config, station_id: &str) -> Result<Option<Arc<Uploader>>,
             endpoint: storage.endpoint.clone(),
             region: storage.region.clone(),
             credentials,
+            request_timeout: storage
+                .request_timeout_s
+                .filter(|s| s.is_finite() && *s > 0.0)
+                .map(std::time::Duration::from_secs_f64),
             ..RemoteOptions::default()
         },
     )?;

@@ -290,3 +290,262 @@ async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
     pull_and_verify(&remote, &dir.path().join("back"), 1).await;
     server.shutdown().await.unwrap();
 }
+
+/// A TCP relay in front of the storage that can be told to stop forwarding: connections are still accepted
+/// and kept open, but nothing more is read from or written to either side (a hung middlebox or storage).
+struct Relay {
+    addr: std::net::SocketAddr,
+    stalled: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Relay {
+    fn start(target: std::net::SocketAddr) -> Relay {
+        use std::sync::Arc;
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        listener.set_nonblocking(true).unwrap();
+        let addr = listener.local_addr().unwrap();
+        let stalled = Arc::new(AtomicBool::new(false));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (st, sp) = (Arc::clone(&stalled), Arc::clone(&stop));
+        std::thread::spawn(move || {
+            while !sp.load(Ordering::Relaxed) {
+                match listener.accept() {
+                    Ok((client, _)) => {
+                        client.set_nonblocking(false).unwrap();
+                        let Ok(server) = std::net::TcpStream::connect(target) else {
+                            continue;
+                        };
+                        for (from, to) in [
+                            (client.try_clone().unwrap(), server.try_clone().unwrap()),
+                            (server, client),
+                        ] {
+                            let (st, sp) = (Arc::clone(&st), Arc::clone(&sp));
+                            std::thread::spawn(move || pump(from, to, &st, &sp));
+                        }
+                    }
+                    Err(_) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+        });
+        Relay { addr, stalled, stop }
+    }
+
+    fn stall(&self, on: bool) {
+        self.stalled.store(on, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+fn pump(
+    mut from: std::net::TcpStream,
+    mut to: std::net::TcpStream,
+    stalled: &std::sync::atomic::AtomicBool,
+    stop: &std::sync::atomic::AtomicBool,
+) {
+    use std::io::{Read, Write};
+    use std::sync::atomic::Ordering;
+    from.set_read_timeout(Some(Duration::from_millis(50))).unwrap();
+    let mut buf = vec![0u8; 64 * 1024];
+    while !stop.load(Ordering::Relaxed) {
+        if stalled.load(Ordering::Relaxed) {
+            std::thread::sleep(Duration::from_millis(20));
+            continue;
+        }
+        match from.read(&mut buf) {
+            Ok(0) => {
+                let _ = to.shutdown(std::net::Shutdown::Write);
+                return;
+            }
+            Ok(n) => {
+                if to.write_all(&buf[..n]).is_err() {
+                    return;
+                }
+            }
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) => {}
+            Err(_) => return,
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_completes_once_it_forwards() {
+    let test =
+        "a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_completes_once_it_forwards";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let target: std::net::SocketAddr = moto
+        .endpoint()
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .parse()
+        .unwrap();
+    let relay = Relay::start(target);
+    relay.stall(true);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = dir.path().join("ds");
+    let mut config = default_config(&root);
+    let mut s = storage(&moto, &creds, "st-s");
+    s.endpoint = Some(format!("http://{}", relay.addr));
+    // Two seconds a request: a stalled one is abandoned quickly enough for the test, and a loopback request
+    // to moto takes milliseconds even on a loaded machine.
+    s.request_timeout_s = Some(2.0);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+
+    // Recording is not held up by the stalled storage: both episodes save while nothing can be uploaded.
+    assert_eq!(record(&client, "pick", "dana", 600).await, 0);
+    let list = wait_list(
+        &client,
+        Duration::from_mins(2),
+        "a timed-out upload reported",
+        |l| l.storage.as_ref().is_some_and(|s| !s.last_error.is_empty()),
+    )
+    .await;
+    let err = list.storage.unwrap().last_error.to_lowercase();
+    assert!(err.contains("timed out") || err.contains("timeout"), "{err}");
+    // What the phone page shows under its recording line.
+    let summary = client.episodes().status().await.unwrap().upload_summary;
+    assert!(
+        summary.starts_with("0 uploaded, 1 pending; failing: ") && summary.to_lowercase().contains("time"),
+        "{summary}"
+    );
+    assert_eq!(record(&client, "place", "dana", 600).await, 1);
+    let list = client.episodes().list().await.unwrap();
+    assert_eq!(list.episodes.len(), 2);
+    assert!(
+        list.episodes
+            .iter()
+            .all(|e| e.upload_state() != v1::UploadState::Uploaded)
+    );
+    let remote = remote(&moto, "st-s");
+    assert!(
+        remote.get_bytes("meta/info.json").await.unwrap().is_none(),
+        "nothing counted remotely while the relay forwards nothing"
+    );
+
+    // The relay forwards again: both episodes go up, whole.
+    relay.stall(false);
+    wait_list(
+        &client,
+        Duration::from_mins(3),
+        "both uploaded after the stall",
+        |l| all_uploaded(l, 2),
+    )
+    .await;
+    assert_eq!(
+        client.episodes().status().await.unwrap().upload_summary,
+        "2 uploaded, 0 pending"
+    );
+    remote_is_consistent(&remote, 1).await.unwrap();
+    pull_and_verify(&remote, &dir.path().join("back"), 2).await;
+    server.shutdown().await.unwrap();
+}
+
+struct Unmount(std::path::PathBuf);
+
+impl Drop for Unmount {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// Writes `filler` until the file system refuses more (ENOSPC).
+fn fill_disk(filler: &Path) {
+    use std::io::Write;
+    let mut f = std::fs::File::create(filler).unwrap();
+    let block = vec![0xa5u8; 64 * 1024];
+    while f.write_all(&block).is_ok() {}
+    let small = [0xa5u8; 512];
+    while f.write_all(&small).is_ok() {}
+    let _ = f.sync_all();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committed_episode() {
+    let test = "a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committed_episode";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let mnt = dir.path().join("mnt");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let mounted = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=32m", "tmpfs"])
+        .arg(&mnt)
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("SKIPPED: {test}: cannot mount a tmpfs here (needs root) to fill a disk");
+        return;
+    }
+    let _unmount = Unmount(mnt.clone());
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let target: std::net::SocketAddr = moto
+        .endpoint()
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .parse()
+        .unwrap();
+    // The storage is unreachable at first, so the first episode's upload is still pending when the disk fills.
+    let relay = Relay::start(target);
+    relay.stall(true);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = mnt.join("ds");
+    let mut config = default_config(&root);
+    let mut s = storage(&moto, &creds, "st-f");
+    s.endpoint = Some(format!("http://{}", relay.addr));
+    s.request_timeout_s = Some(2.0);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    assert_eq!(record(&client, "pick", "fay", 600).await, 0);
+
+    let filler = mnt.join("filler");
+    fill_disk(&filler);
+    relay.stall(false);
+    // An episode recorded on the full disk is refused with a clear error; the committed one stays.
+    let mut episodes = client.episodes();
+    let stopped = match episodes.start_by("place", "fay").await {
+        Ok(_) => {
+            tokio::time::sleep(Duration::from_millis(600)).await;
+            episodes.stop().await.map(|_| ())
+        }
+        Err(e) => Err(e),
+    };
+    let err = stopped
+        .expect_err("an episode saved on a full disk")
+        .to_string()
+        .to_lowercase();
+    assert!(err.contains("disk full") || err.contains("no space"), "{err}");
+    let list = client.episodes().list().await.unwrap();
+    assert_eq!(list.episodes.len(), 1, "{list:#?}");
+
+    // Space again: the pending upload completes, whole, and the dataset records on.
+    std::fs::remove_file(&filler).unwrap();
+    assert_eq!(record(&client, "place", "fay", 600).await, 1);
+    wait_list(
+        &client,
+        Duration::from_mins(3),
+        "both uploaded after the disk was freed",
+        |l| all_uploaded(l, 2),
+    )
+    .await;
+    let remote = remote(&moto, "st-f");
+    remote_is_consistent(&remote, 1).await.unwrap();
+    pull_and_verify(&remote, &dir.path().join("back"), 2).await;
+    server.shutdown().await.unwrap();
+}

@@ -39,6 +39,7 @@ pub fn recording_json(rec: Option<&RecordingStatus>) -> Value {
         "duration_s": rec.duration_s,
         "saved": rec.episodes_saved,
         "warning": rec.warning,
+        "upload": rec.upload_summary,
     })
 }
 
@@ -104,6 +105,7 @@ mod tests {
             recording: Some(RecordingStatus {
                 phase: phone2act_proto::v1::RecordingPhase::Recording.into(),
                 task: "pick".into(),
+                upload_summary: "2 uploaded, 1 pending".into(),
                 ..RecordingStatus::default()
             }),
             superseded_samples: 1,
@@ -116,5 +118,6 @@ mod tests {
         assert_eq!(v["state"]["rejected"], 4);
         assert_eq!(v["recording"]["phase"], "recording");
         assert_eq!(v["recording"]["task"], "pick");
+        assert_eq!(v["recording"]["upload"], "2 uploaded, 1 pending");
     }
 }

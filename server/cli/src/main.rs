@@ -115,13 +115,17 @@ enum EpisodeAction {
 enum DatasetAction {
     /// Summarise a dataset: format, fps, episodes, frames, features.
     Info {
-        /// Dataset root directory.
-        path: PathBuf,
+        /// Dataset root directory, or s3://bucket/prefix (downloaded to a scratch directory first).
+        path: String,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
     },
     /// Check a dataset against the LeRobot format rules and say what is wrong; exit 1 if anything is.
     Verify {
-        /// Dataset root directory.
-        path: PathBuf,
+        /// Dataset root directory, or s3://bucket/prefix (downloaded to a scratch directory first).
+        path: String,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
     },
     /// Upload a dataset to S3-compatible storage (s3://bucket/prefix); an existing remote copy of the same
     /// dataset gets only the episodes it lacks, a different one is refused with nothing written.
@@ -139,6 +143,35 @@ enum DatasetAction {
         url: String,
         /// Destination directory.
         path: PathBuf,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
+    /// Merge several LeRobot v3.0 datasets (local directories or s3:// URLs, e.g. one per station) into one:
+    /// episodes renumbered, tasks unified, statistics recomputed, videos copied without re-encoding, each
+    /// episode's station and operator kept. Inputs that differ (fps, robot type, features, cameras) are
+    /// refused with nothing written.
+    Merge {
+        /// Datasets to merge, in order (directories or s3://bucket/prefix).
+        #[arg(required = true)]
+        sources: Vec<String>,
+        /// New dataset (a directory that does not exist yet, or s3://bucket/prefix).
+        #[arg(long)]
+        out: String,
+        #[command(flatten)]
+        sizes: fleet::SizeArgs,
+        #[command(flatten)]
+        remote: fleet::RemoteArgs,
+    },
+    /// Repack a LeRobot v3.0 dataset's many small files into files of lerobot's sizes (100 MB data, 200 MB
+    /// video by default), without re-encoding; the same as a merge of one dataset.
+    Compact {
+        /// Dataset to compact (a directory or s3://bucket/prefix).
+        source: String,
+        /// New dataset (a directory that does not exist yet, or s3://bucket/prefix).
+        #[arg(long)]
+        out: String,
+        #[command(flatten)]
+        sizes: fleet::SizeArgs,
         #[command(flatten)]
         remote: fleet::RemoteArgs,
     },
@@ -338,14 +371,15 @@ async fn watch_status(system: &mut phone2act_sdk::SystemApi, interval_s: f64) ->
     Ok(())
 }
 
-fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
+/// Prints a summary of the dataset at `path`, named `name` (the directory or the URL it was given as).
+fn dataset_info(path: &std::path::Path, name: &str) -> anyhow::Result<()> {
     let info_path = path.join("meta/info.json");
     let text = std::fs::read_to_string(&info_path)
-        .with_context(|| format!("{} is not a LeRobot dataset (no meta/info.json)", path.display()))?;
+        .with_context(|| format!("{name} is not a LeRobot dataset (no meta/info.json)"))?;
     let info: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{} is not valid JSON", info_path.display()))?;
     let get = |k: &str| info.get(k).map_or_else(|| "?".to_owned(), ToString::to_string);
-    outln!("dataset   {}", path.display());
+    outln!("dataset   {name}");
     outln!("format    LeRobot {}", get("codebase_version").trim_matches('"'));
     outln!("robot     {}", get("robot_type").trim_matches('"'));
     outln!("fps       {}", get("fps"));
@@ -397,7 +431,7 @@ fn dataset_info(path: &std::path::Path) -> anyhow::Result<()> {
         outln!(
             "verify    {} problem(s): run `phone2act dataset verify {}`",
             report.problems.len(),
-            path.display()
+            name
         );
     }
     Ok(())
@@ -472,8 +506,11 @@ fn real_main() -> anyhow::Result<()> {
             anyhow::Ok(())
         }),
         Command::Dataset {
-            action: DatasetAction::Info { path },
-        } => dataset_info(&path),
+            action: DatasetAction::Info { path, remote },
+        } => {
+            let local = fleet::local_copy(&path, &remote)?;
+            dataset_info(local.path(), &path)
+        }
         Command::ReplayLog { files, config } => replay_log::run(&files, config.as_deref()),
         Command::Dataset {
             action: DatasetAction::Push { path, url, remote },
@@ -488,6 +525,30 @@ fn real_main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Dataset {
+            action:
+                DatasetAction::Merge {
+                    sources,
+                    out,
+                    sizes,
+                    remote,
+                },
+        } => {
+            outln!("{}", fleet::merge(&sources, &out, &sizes, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
+            action:
+                DatasetAction::Compact {
+                    source,
+                    out,
+                    sizes,
+                    remote,
+                },
+        } => {
+            outln!("{}", fleet::merge(&[source], &out, &sizes, &remote)?);
+            Ok(())
+        }
+        Command::Dataset {
             action: DatasetAction::Plot { path, episode, out },
         } => {
             let written = plot::plot(&path, episode, out)?;
@@ -495,16 +556,17 @@ fn real_main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Dataset {
-            action: DatasetAction::Verify { path },
+            action: DatasetAction::Verify { path, remote },
         } => {
-            let report = phone2act_recorder::verify::verify(&path);
+            let local = fleet::local_copy(&path, &remote)?;
+            let report = phone2act_recorder::verify::verify(local.path());
             for warning in &report.warnings {
                 outln!("warning: {warning}");
             }
             if report.ok() {
                 outln!(
                     "{}: valid LeRobot {} dataset, {} episodes, {} frames",
-                    path.display(),
+                    path,
                     report.version,
                     report.episodes,
                     report.frames
@@ -514,7 +576,7 @@ fn real_main() -> anyhow::Result<()> {
                 for problem in &report.problems {
                     outln!("problem: {problem}");
                 }
-                anyhow::bail!("{}: {} problem(s) found", path.display(), report.problems.len())
+                anyhow::bail!("{}: {} problem(s) found", path, report.problems.len())
             }
         }
         Command::Serve {

@@ -350,3 +350,126 @@ fn push_appends_missing_episodes_and_refuses_a_different_dataset() {
     let (ok, out, err) = run(&["dataset", "verify", back.to_str().unwrap()], &moto);
     assert!(ok, "{out}{err}");
 }
+
+#[test]
+fn three_stations_upload_concurrently_into_one_prefix_and_merge_from_their_urls() {
+    let Some(bin) =
+        moto_server_path("three_stations_upload_concurrently_into_one_prefix_and_merge_from_their_urls")
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let ep = moto.endpoint();
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let stations = ["st-1", "st-2", "st-3"];
+    let servers: Vec<Served> = stations
+        .iter()
+        .map(|st| {
+            let storage = format!(
+                "\n[storage]\nurl = \"s3://{BUCKET}/lab\"\nendpoint = \"{ep}\"\nstation_id = \"{st}\"\n"
+            );
+            serve(
+                &write_config(dir.path(), &dir.path().join(st), &storage),
+                &moto,
+                &log,
+            )
+        })
+        .collect();
+    // All three record at once (and so upload at once, into the same bucket prefix).
+    std::thread::scope(|s| {
+        for (i, server) in servers.iter().enumerate() {
+            let moto = &moto;
+            s.spawn(move || {
+                record(server, moto, "pick", 700);
+                record(server, moto, &format!("task of station {i}"), 700);
+            });
+        }
+    });
+    // Liveness bound: six short episodes on loopback take seconds; minutes leave room for a loaded machine.
+    let deadline = Instant::now() + Duration::from_mins(3);
+    for server in &servers {
+        loop {
+            let (ok, out, err) = run(&["episode", "list", "--url", &server.url], &moto);
+            assert!(ok, "{err}");
+            if out.matches("[uploaded]").count() == 2 {
+                break;
+            }
+            assert!(Instant::now() < deadline, "not uploaded within 3 minutes: {out}");
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+    drop(servers);
+
+    // info and verify read a URL.
+    let (ok, out, err) = run(
+        &["dataset", "info", "s3://fleet/lab/st-2", "--endpoint", &ep],
+        &moto,
+    );
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("s3://fleet/lab/st-2") && out.contains("episodes  2"),
+        "{out}"
+    );
+    let (ok, out, err) = run(
+        &["dataset", "verify", "s3://fleet/lab/st-3", "--endpoint", &ep],
+        &moto,
+    );
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("valid LeRobot v3.0 dataset, 2 episodes"), "{out}");
+
+    // The three station prefixes merged, straight from storage into storage.
+    let urls: Vec<String> = stations
+        .iter()
+        .map(|st| format!("s3://{BUCKET}/lab/{st}"))
+        .collect();
+    let mut args = vec!["dataset", "merge"];
+    args.extend(urls.iter().map(String::as_str));
+    args.extend(["--out", "s3://fleet/lab-merged", "--endpoint", &ep]);
+    let (ok, out, err) = run(&args, &moto);
+    assert!(ok, "{out}{err}");
+    assert!(out.contains("6 episodes") && out.contains("4 tasks"), "{out}");
+    let back = dir.path().join("merged-back");
+    let (ok, _, err) = run(
+        &[
+            "dataset",
+            "pull",
+            "s3://fleet/lab-merged",
+            back.to_str().unwrap(),
+            "--endpoint",
+            &ep,
+        ],
+        &moto,
+    );
+    assert!(ok, "{err}");
+    let (ok, out, err) = run(&["dataset", "verify", back.to_str().unwrap()], &moto);
+    assert!(ok, "{out}{err}");
+    let prov: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(back.join("meta/phone2act_provenance.json")).unwrap()).unwrap();
+    let who: Vec<(&str, &str, &str)> = prov["episodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["station_id"].as_str().unwrap_or_default(),
+                e["operator"].as_str().unwrap_or_default(),
+                e["merged_from"]["dataset"].as_str().unwrap_or_default(),
+            )
+        })
+        .collect();
+    let expect: Vec<(&str, &str, &str)> = urls
+        .iter()
+        .zip(stations)
+        .flat_map(|(u, st)| [(st, "erin", u.as_str()), (st, "erin", u.as_str())])
+        .collect();
+    assert_eq!(who, expect);
+    // Nothing left behind by the downloads.
+    let leftovers: Vec<_> = std::fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with(".phone2act-merge-"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}

@@ -27,7 +27,7 @@ use std::sync::Arc;
 /// flat however long the episode runs.
 pub const ROWS_PER_GROUP: usize = 512;
 
-fn props(schema: &Schema) -> WriterProperties {
+pub(crate) fn props(schema: &Schema) -> WriterProperties {
     // parquet-rs keeps schema metadata only inside ARROW:schema; pyarrow/pandas also look at the file's
     // own key-value metadata, so copy it there (the `huggingface` and `pandas` keys).
     let kv: Vec<KeyValue> = schema
@@ -375,6 +375,16 @@ pub fn read_episode_summaries(path: &Path) -> Result<Vec<EpisodeMetaSummary>, Re
     Ok(out)
 }
 
+/// The tasks of row `row` of a v3.0 episodes-metadata batch, joined with "; " (empty if it has none).
+pub(crate) fn episode_task(batch: &RecordBatch, row: usize) -> String {
+    batch
+        .column_by_name("tasks")
+        .and_then(|c| c.as_any().downcast_ref::<ListArray>().cloned())
+        .and_then(|l| strings(&l.value(row)))
+        .unwrap_or_default()
+        .join("; ")
+}
+
 /// Where one episode's files are, for its v3.0 metadata row.
 #[derive(Clone, Debug)]
 pub struct EpisodeMetaRow {
@@ -397,7 +407,7 @@ fn single_int(v: u64) -> ArrayRef {
     Arc::new(Int64Array::from_iter_values([v as i64]))
 }
 
-fn stat_list(kind: StatKind, values: &[f64], keep_int: bool) -> (DataType, ArrayRef) {
+pub(crate) fn stat_list(kind: StatKind, values: &[f64], keep_int: bool) -> (DataType, ArrayRef) {
     match kind {
         StatKind::Image => {
             // (3,1,1): list<list<list<double>>>

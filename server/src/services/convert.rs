@@ -34,11 +34,32 @@ pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingSta
         warning: s.warning.clone().unwrap_or_default(),
         fps: f64::from(s.fps),
         late_ticks: s.late_ticks,
+        // Filled in by `current_recording_status`, which knows the uploader.
+        upload_summary: String::new(),
     }
 }
 
 /// The recorder's state on the wire, or an idle status that says it is closed.
 pub fn current_recording_status(app: &App) -> v1::RecordingStatus {
+    let mut status = recorder_status_only(app);
+    if let Some(u) = app.uploader() {
+        status.upload_summary = upload_summary(u);
+    }
+    status
+}
+
+/// The uploader's state in a few words, for the phone page's status line.
+pub fn upload_summary(u: &Uploader) -> String {
+    let s = u.status();
+    let mut text = format!("{} uploaded, {} pending", s.episodes_uploaded, s.episodes_pending);
+    if let Some(e) = s.last_error.filter(|_| s.episodes_pending > 0) {
+        text.push_str("; failing: ");
+        text.push_str(&e);
+    }
+    text
+}
+
+fn recorder_status_only(app: &App) -> v1::RecordingStatus {
     match app.recorder_status() {
         Some(status) => recording_status(&status, app.config()),
         None => v1::RecordingStatus {

@@ -33,6 +33,10 @@ pub struct StorageConfig {
     /// Upload bandwidth cap; unlimited when absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_upload_bytes_per_s: Option<u64>,
+    /// How long one request may take before it is abandoned and retried (a stalled connection, a relay that
+    /// stopped forwarding); default 120 s, long enough for an 8 MiB part over a slow uplink.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub request_timeout_s: Option<f64>,
     /// Keep the local copy of uploaded episodes. Only `true` exists today: deleting uploaded episodes from
     /// a local LeRobot dataset needs its metadata rewritten, which is issue 26's compaction work.
     #[serde(default = "default_true")]
@@ -57,6 +61,7 @@ impl StorageConfig {
             profile: None,
             credentials_file: None,
             max_upload_bytes_per_s: None,
+            request_timeout_s: None,
             retain_local: true,
             station_id: None,
         }
@@ -74,6 +79,13 @@ impl StorageConfig {
         }
         if self.max_upload_bytes_per_s == Some(0) {
             return Err("storage.max_upload_bytes_per_s must be > 0 (leave it out for no cap)".into());
+        }
+        if let Some(t) = self.request_timeout_s
+            && !(t.is_finite() && t > 0.0)
+        {
+            return Err(format!(
+                "storage.request_timeout_s = {t}: must be a positive number of seconds"
+            ));
         }
         if !self.retain_local {
             return Err(

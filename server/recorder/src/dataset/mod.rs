@@ -15,9 +15,17 @@
 //! [`Layout`] per format ([`v30`], [`v21`] with GR00T's `modality.json`), chosen once when the dataset opens.
 
 mod journal;
+mod merge;
+mod merge_v21;
 mod meta;
+mod remux;
 mod v21;
 mod v30;
+
+pub use merge::{
+    DEFAULT_DATA_FILE_SIZE_MB, DEFAULT_VIDEO_FILE_SIZE_MB, MergeError, MergeInput, MergeOptions, MergeReport,
+    merge,
+};
 
 use crate::error::RecorderError;
 use crate::events::{ArmActivity, EventWriter, events_path};
@@ -71,6 +79,17 @@ pub struct EpisodeSummary {
     /// The phone2act version that recorded it.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub software_version: String,
+    /// In a merged dataset: the dataset and episode it was copied from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub merged_from: Option<MergedFrom>,
+}
+
+/// Where a merged dataset's episode came from (`phone2act dataset merge`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MergedFrom {
+    /// The input as given to the merge (a path or an s3:// URL).
+    pub dataset: String,
+    pub episode_index: u64,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
