@@ -25,9 +25,8 @@ use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::DuplexStream;
 use tokio::net::TcpListener;
-use tokio_stream::Stream;
+use tonic::service::Routes;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 
@@ -80,9 +79,10 @@ pub async fn bind(addr: std::net::SocketAddr) -> Result<TcpListener, ServerError
     })
 }
 
-/// Connections from clients in the same process (an in-memory pipe each, e.g. the SDK's
-/// `Client::in_process`): served exactly as TCP connections are, token check included.
-pub type LocalConnections = Pin<Box<dyn Stream<Item = std::io::Result<DuplexStream>> + Send>>;
+/// Clients in the same process (e.g. the SDK's `Client::in_process`, the embedded phone gateway): called
+/// once with the server's router (the same services and token check as over TCP, called directly, with no
+/// HTTP/2 or socket in between) and a future that resolves when the server stops taking calls.
+pub type LocalConnections = Box<dyn FnOnce(Routes, Pin<Box<dyn Future<Output = ()> + Send>>) + Send>;
 
 /// Serves `config` on `listener` until `shutdown` resolves, then gives open streams [`SHUTDOWN_GRACE`] to end.
 pub async fn run(
@@ -189,11 +189,7 @@ pub async fn serve_app_with_local(
         let _ = signal.wait_for(|stopping| *stopping).await;
     };
 
-    let router = Server::builder()
-        .tcp_nodelay(true)
-        .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
-        .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
-        .add_service(health_service)
+    let routes = Routes::new(health_service)
         .add_service(reflection)
         .add_service(reflection_alpha)
         .add_service(system)
@@ -202,32 +198,27 @@ pub async fn serve_app_with_local(
         .add_service(episodes)
         .add_service(bridge)
         .add_service(cameras)
-        .add_service(scene);
-    // Both transports share one router, so the services, their interceptors and the shutdown are the same.
-    let in_process = in_process.map(|incoming| {
-        router
-            .clone()
-            .serve_with_incoming_shutdown(incoming, stopping(app.shutdown_signal()))
-    });
+        .add_service(scene)
+        .prepare();
+    // Both transports share one set of routes, so the services, their interceptors and the shutdown are the same.
+    if let Some(serve_local) = in_process {
+        serve_local(routes.clone(), Box::pin(stopping(app.shutdown_signal())));
+    }
+    let router = Server::builder()
+        .tcp_nodelay(true)
+        .initial_stream_window_size(HTTP2_STREAM_WINDOW_BYTES)
+        .initial_connection_window_size(HTTP2_CONNECTION_WINDOW_BYTES)
+        .add_routes(routes);
     // `Server::tcp_nodelay` only applies to listeners tonic binds itself; without NODELAY on accepted
     // sockets a reply written in two parts waits ~40 ms for the peer's delayed ACK.
     let tcp = router.serve_with_incoming_shutdown(
         TcpIncoming::from(listener).with_nodelay(Some(true)),
         stopping(app.shutdown_signal()),
     );
-    let server = async move {
-        match in_process {
-            Some(in_process) => {
-                let (tcp, in_process) = tokio::join!(tcp, in_process);
-                tcp.and(in_process)
-            }
-            None => tcp.await,
-        }
-    };
-    tokio::pin!(server);
+    tokio::pin!(tcp);
     let mut shutdown_seen = app.shutdown_signal();
     let result = tokio::select! {
-        result = &mut server => result,
+        result = &mut tcp => result,
         () = async {
             let _ = shutdown_seen.wait_for(|stopping| *stopping).await;
             tokio::time::sleep(SHUTDOWN_GRACE).await;

@@ -229,25 +229,40 @@ def _public(cls: type) -> dict[str, object]:
 
 
 @pytest.mark.parametrize(("sync_cls", "async_cls"), PAIRS, ids=[a.__name__ for _, a in PAIRS])
-def test_async_api_is_the_sync_api(sync_cls: type, async_cls: type) -> None:
-    """Every public method of the sync class exists on its asyncio twin with the same parameters and
-    defaults, as a coroutine (or async iterator); the only additions allowed are listed here."""
+def test_the_blocking_layer_forwards_every_async_call(sync_cls: type, async_cls: type) -> None:
+    """The blocking classes run the asyncio ones (`phone2act.client` holds no protocol of its own): every
+    public coroutine (or async iterator) of the asyncio class has a blocking forward with the same parameters
+    and defaults, so nothing added to the asyncio client is missing from the blocking one."""
     sync, asyn = _public(sync_cls), _public(async_cls)
     extra_allowed = {"connect"}  # `await AsyncClient.connect(...)`: a constructor cannot await readiness
-    assert set(sync) <= set(asyn), f"{async_cls.__name__} lacks {sorted(set(sync) - set(asyn))}"
-    assert set(asyn) - set(sync) <= extra_allowed, sorted(set(asyn) - set(sync))
-    for name, member in sync.items():
-        twin = asyn[name]
-        if isinstance(member, property):
-            assert isinstance(twin, property), name
+    assert set(asyn) - extra_allowed <= set(sync), f"{sync_cls.__name__} lacks {sorted(set(asyn) - set(sync))}"
+    for name, twin in asyn.items():
+        if name in extra_allowed:
+            continue
+        member = sync[name]
+        if isinstance(twin, property):
+            assert isinstance(member, property), name
             continue
         if name == "__init__" and sync_cls is not client.Client:
             continue  # sessions are made by the client, their constructors are private
-        want = [(p.name, p.kind, p.default) for p in inspect.signature(member).parameters.values()]
-        got = [(p.name, p.kind, p.default) for p in inspect.signature(twin).parameters.values()]
-        assert got == want, f"{async_cls.__name__}.{name}{inspect.signature(twin)} != {inspect.signature(member)}"
+        want = [(p.name, p.kind, p.default) for p in inspect.signature(twin).parameters.values()]
+        got = [(p.name, p.kind, p.default) for p in inspect.signature(member).parameters.values()]
+        assert got == want, f"{sync_cls.__name__}.{name}{inspect.signature(member)} != {inspect.signature(twin)}"
         if name != "__init__":
             assert inspect.iscoroutinefunction(twin) or inspect.isasyncgenfunction(twin), name
+            assert not inspect.iscoroutinefunction(member), name
+
+
+def test_the_blocking_client_runs_the_async_one(server: Server) -> None:
+    with Client(server.target) as c:
+        assert isinstance(c._a, aio.AsyncClient)
+        with c.teleop("main") as t:
+            assert isinstance(t._a, aio.AsyncTeleopSession)
+            seq = t.clutch(True, [0.0, 1.2, -0.3])
+            # A control tick (~10 ms) answers; 10 s only absorbs a loaded 2-core machine's stalls.
+            assert t.wait_feedback(seq, timeout_s=10.0).arm_state.engaged
+            assert t.feedback is t._a.feedback
+        assert t.closed
 
 
 def test_async_client_as_the_sync_one_is_used(server: Server) -> None:

@@ -12,7 +12,7 @@ use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
 /// A policy session's hello as most tests open one: `arms`, 20 Hz observations without images, control
-/// requested, named `name`, losing the arm after `silence_timeout_s` without a chunk.
+/// requested, named `name`, losing the arm after `silence_timeout_s` without a chunk (0: the server's default).
 pub fn policy_hello(arms: &[&str], name: &str, silence_timeout_s: f64) -> phone2act_proto::v1::PolicyHello {
     phone2act_proto::v1::PolicyHello {
         arms: arms.iter().map(|&a| a.to_owned()).collect(),
@@ -168,7 +168,7 @@ impl TestServer {
         let task = tokio::spawn(phone2act_server::serve_app_with_local(
             app,
             listener,
-            Some(Box::pin(local)),
+            Some(Box::new(move |routes, stopped| local.serve(routes, stopped))),
             async {
                 let _ = stopped.await;
             },

@@ -214,6 +214,7 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
         d < 1e-4 && a < 1e-3,
         "a fresh sim starts where the episode started: {d} m, {a} rad"
     );
+    // Not the common hello: no periodic observations (rate 0), so each observation read is the one requested.
     let mut policy = client
         .policy(v1::PolicyHello {
             arms: vec!["main".into()],

@@ -418,11 +418,7 @@ async fn the_operator_takes_over_from_a_running_policy() {
 
     // A second policy cannot take the arm.
     let err = client
-        .policy(v1::PolicyHello {
-            arms: vec!["main".into()],
-            request_control: true,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(&["main"], "second", 0.0))
         .await
         .unwrap_err()
         .to_string();

@@ -195,11 +195,7 @@ async fn a_remote_arm_without_valid_feedback_is_not_ready_and_nothing_moves_it()
     }
     // A policy cannot claim it.
     let err = client
-        .policy(v1::PolicyHello {
-            arms: vec!["ext".into()],
-            request_control: true,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(&["ext"], "test", 0.0))
         .await
         .err()
         .expect("claim refused")
@@ -353,12 +349,7 @@ async fn policy_session_refusals_are_statuses() {
     );
     // A 100,000-step chunk on the session stream: the session ends with a non-OK status.
     let mut session = client
-        .policy(v1::PolicyHello {
-            arms: vec!["main".into()],
-            request_control: true,
-            silence_timeout_s: 2.0,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(&["main"], "test", 2.0))
         .await
         .unwrap();
     let steps = vec![v1::ActionStep { values: vec![0.0; 7] }; 100_000];

@@ -154,14 +154,9 @@ async fn homing_is_refused_while_a_policy_drives_but_the_ball_may_be_reset() {
     let server = TestServer::start(default_config(dir.path())).await.unwrap();
     let client = server.client().await.unwrap();
     let policy = client
-        .policy(v1::PolicyHello {
-            arms: vec!["main".into()],
-            request_control: true,
-            policy_name: "evaluator".into(),
-            // Long enough that the session keeps the arm through the calls below on a loaded machine.
-            silence_timeout_s: 30.0,
-            ..v1::PolicyHello::default()
-        })
+        // A 30 s silence timeout: long enough that the session keeps the arm through the calls below on a
+        // loaded machine.
+        .policy(phone2act_tests::policy_hello(&["main"], "evaluator", 30.0))
         .await
         .unwrap();
     let result = client.scene().reset("main", Some(9), true).await;

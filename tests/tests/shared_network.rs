@@ -225,13 +225,7 @@ async fn an_unpaired_peer_is_refused_pairing_through_the_page_admits_it_and_expi
 
     // An authenticated policy owns the arm.
     let policy = client
-        .policy(v1::PolicyHello {
-            arms: vec!["main".into()],
-            request_control: true,
-            policy_name: "authenticated".into(),
-            silence_timeout_s: 60.0,
-            ..v1::PolicyHello::default()
-        })
+        .policy(phone2act_tests::policy_hello(&["main"], "authenticated", 60.0))
         .await
         .unwrap();
     let before = arm_state(&client).await;

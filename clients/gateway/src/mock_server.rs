@@ -106,10 +106,16 @@ impl MockServer {
         Ok(server)
     }
 
-    /// Also serves the in-process connections of an SDK [`phone2act_sdk::Client::in_process`] client, as
-    /// `phone2act serve` does for its embedded gateway.
+    /// Also serves the calls of an SDK [`phone2act_sdk::Client::in_process`] client, as `phone2act serve`
+    /// does for its embedded gateway: the same services, called in-process.
     pub fn serve_in_process(&self, incoming: phone2act_sdk::LocalIncoming) {
-        self.serve(incoming);
+        let mut stopped = self.stop.subscribe();
+        let routes = tonic::service::Routes::new(TeleopServer::new(self.mock.clone()))
+            .add_service(SystemServer::new(self.mock.clone()))
+            .prepare();
+        incoming.serve(routes, async move {
+            let _ = stopped.wait_for(|stop| *stop).await;
+        });
     }
 
     fn serve<S, IO>(&self, incoming: S)

@@ -183,11 +183,7 @@ impl PageHandler {
     fn start(&mut self, arm: &str, take_over: bool) {
         // Ends the old stream first so the server frees that arm before the new one is claimed.
         self.session = None;
-        let session = Session::start(
-            self.shared.upstream.clone(),
-            arm.to_owned(),
-            self.wiring.session_events.clone(),
-        );
+        let session = crate::session::start(&self.shared.upstream, arm, self.wiring.session_events.clone());
         // A first sample without a pose claims the arm right away, so the page learns at once whether the
         // arm exists and is free.
         session.send(PhoneSample {
@@ -237,7 +233,7 @@ impl Handler for PageHandler {
                         let arm = self
                             .session
                             .as_ref()
-                            .map_or_else(|| self.shared.config.default_arm.clone(), |s| s.arm.clone());
+                            .map_or_else(|| self.shared.config.default_arm.clone(), |s| s.arm().to_owned());
                         self.start(&arm, false);
                     }
                     if let Some(session) = &self.session {
@@ -296,7 +292,7 @@ impl Handler for PageHandler {
                 "retry_in_s": retry_in.as_secs_f64(),
             }),
             SessionEvent::Refused { arm, code, message } => {
-                if self.session.as_ref().is_some_and(|s| s.arm == arm) {
+                if self.session.as_ref().is_some_and(|s| s.arm() == arm) {
                     self.session = None;
                 }
                 json!({"type": "session", "state": "refused", "arm": arm, "code": format!("{code:?}"), "message": message})

@@ -389,11 +389,8 @@ impl RosbridgeHandler {
                     sample.buttons = volume_buttons(state);
                 }
             }
-            let session = Session::start(
-                self.shared.upstream.clone(),
-                arm.clone(),
-                self.wiring.session_events.clone(),
-            );
+            let session =
+                crate::session::start(&self.shared.upstream, &arm, self.wiring.session_events.clone());
             self.sessions.insert(arm.clone(), session);
         }
         self.shared

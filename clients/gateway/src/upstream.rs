@@ -6,7 +6,6 @@
 
 use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
-use phone2act_proto::v1::teleop_client::TeleopClient;
 use phone2act_proto::v1::{GetObservationRequest, ImageEncoding, ListCamerasRequest};
 use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
 
@@ -36,9 +35,9 @@ impl Upstream {
         Self(client)
     }
 
-    /// A Teleop client on the shared channel.
-    pub fn teleop(&self) -> TeleopClient<AuthChannel> {
-        self.0.teleop_raw()
+    /// The shared SDK client (teleop sessions are its [`phone2act_sdk::TeleopLink`]s).
+    pub fn client(&self) -> &Client {
+        &self.0
     }
 
     /// A System client on the shared channel.

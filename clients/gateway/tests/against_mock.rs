@@ -546,3 +546,63 @@ async fn without_https_rosbridge_still_refuses_addresses_that_are_not_local() {
             == Some(0.02)
     }));
 }
+
+/// The in-process transport (what `phone2act serve` gives its embedded gateway): a call made before the server
+/// serves waits for it instead of failing, streams and unary calls reach the same services as over TCP, and
+/// once the server stopped a call fails as `Unavailable` (which a teleop link retries) instead of hanging.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_in_process_client_waits_for_its_server_and_is_refused_after_it_stopped() {
+    use phone2act_proto::v1::ListArmsRequest;
+    let mock = phone2act_gateway::mock_server::MockServer::start(&["main"], std::time::Instant::now(), true)
+        .await
+        .unwrap();
+    let (client, incoming) = phone2act_sdk::Client::in_process(None).unwrap();
+    let early = tokio::spawn({
+        let client = client.clone();
+        async move { client.system_raw().list_arms(ListArmsRequest {}).await }
+    });
+    // Not a timing bound: with nobody serving, the call cannot have completed however long this sleeps.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    assert!(
+        !early.is_finished(),
+        "a call before the server serves must wait for it"
+    );
+    mock.serve_in_process(incoming);
+    let arms = tokio::time::timeout(T, early).await.unwrap().unwrap().unwrap();
+    assert_eq!(arms.into_inner().arms[0].arm, "main");
+
+    let (events, mut events_rx) = tokio::sync::mpsc::channel(16);
+    let link = client.teleop_link("main", events);
+    link.send(phone2act_proto::v1::PhoneSample {
+        seq: 41,
+        ..Default::default()
+    });
+    assert!(
+        mock.wait_for(T, |m| m
+            .received()
+            .iter()
+            .any(|r| r.sample.seq == 41 && r.arm == "main"))
+            .await,
+        "the link's first sample reaches the server with the caller's seq"
+    );
+    assert!(matches!(
+        tokio::time::timeout(T, events_rx.recv()).await.unwrap(),
+        Some(phone2act_sdk::TeleopEvent::Open { .. })
+    ));
+    drop(link);
+
+    drop(mock);
+    // The server's stop reaches the client through a task of the runtime: calls in the meantime may still be
+    // served; within T (seconds, against a hop of microseconds) one must be refused, and none may hang.
+    let refused = tokio::time::timeout(T, async {
+        loop {
+            match client.system_raw().list_arms(ListArmsRequest {}).await {
+                Ok(_) => tokio::time::sleep(Duration::from_millis(10)).await,
+                Err(status) => return status,
+            }
+        }
+    })
+    .await
+    .expect("a call after the server stopped fails instead of waiting");
+    assert_eq!(refused.code(), tonic::Code::Unavailable, "{refused:?}");
+}

@@ -642,7 +642,8 @@ fn real_main() -> anyhow::Result<()> {
                         .context(
                             "cannot start the phone gateway (set [gateway] enabled = false to run without it)",
                         )?;
-                    let local: phone2act_server::LocalConnections = Box::pin(local);
+                    let local: phone2act_server::LocalConnections =
+                        Box::new(move |routes, stopped| local.serve(routes, stopped));
                     (Some(tokio::spawn(gateway.run(stopped(stop_rx.clone())))), Some(local))
                 } else {
                     (None, None)

@@ -99,6 +99,7 @@ async fn phone(client: Client, arm: String, rate_hz: f64, seconds: f64) -> anyho
 }
 
 async fn policy(client: Client, arm: String, seconds: f64) -> anyhow::Result<u64> {
+    // Not the common hello: 10 Hz observations, the load the benchmark's published numbers were measured under.
     let mut session = client
         .policy(v1::PolicyHello {
             arms: vec![arm.clone()],

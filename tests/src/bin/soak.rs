@@ -125,6 +125,7 @@ async fn phone(client: Client, arm: String, engage: bool, c: Arc<Counters>) {
 
 async fn policy(client: Client, arm: String, c: Arc<Counters>) {
     let r = async {
+        // Not the common hello: JPEG images at 10 Hz, so the soak keeps the image path loaded.
         let mut s = client
             .policy(v1::PolicyHello {
                 arms: vec![arm.clone()],

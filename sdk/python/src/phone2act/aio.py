@@ -1,9 +1,10 @@
 """asyncio client: `AsyncClient`, `AsyncEpisodes`, `AsyncScene`, `AsyncPolicySession`, `AsyncTeleopSession`.
 
-The same API as the sync layer (`phone2act.Client` and friends: same constructor, same methods, same
-arguments and defaults), with coroutines in place of blocking calls; `tests/python/test_sdk.py` checks the
-two stay in step. The constructor does not wait for the server: `async with AsyncClient(...)` or
-`await AsyncClient.connect(...)` does, up to `connect_timeout_s`.
+The protocol's one implementation: the blocking layer (`phone2act.Client` and friends) runs these coroutines
+on a background event loop, with the same constructor, methods, arguments and defaults
+(`tests/python/test_sdk.py` checks that every coroutine has its blocking forward). The constructor does not
+wait for the server: `async with AsyncClient(...)` or `await AsyncClient.connect(...)` does, up to
+`connect_timeout_s`.
 """
 
 from __future__ import annotations

@@ -1,57 +1,65 @@
-"""Synchronous client: `Client`, `Episodes`, `PolicySession`, `TeleopSession`.
+"""Synchronous client: `Client`, `Episodes`, `Scene`, `PolicySession`, `TeleopSession`.
 
-Streams run on a background thread each, so calling code stays plain blocking Python. Observations are kept
+A blocking face on the asyncio client (`phone2act.aio`): every call runs the `AsyncClient`'s coroutine on
+one event loop that a daemon thread keeps for the whole process, and waits for its result. There is one
+implementation of the protocol; this module only carries calls across the thread. Observations are kept
 latest-only (a slow policy sees the newest state, never a backlog), other session events are queued.
 """
 
 from __future__ import annotations
 
-import queue
+import asyncio
 import threading
-import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import AsyncIterator, Coroutine, Iterable, Iterator, Sequence
 from typing import Any, TypeVar
 
-import grpc
-
-from phone2act._common import (
-    DEFAULT_TARGET,
-    DELTA_EE,
-    IMAGE_NONE,
-    ArmLayout,
-    auth_interceptor,
-    channel_credentials,
-    channel_options,
-    hello_request,
-    layouts_from_ready,
-    make_chunk,
-    make_pose,
-    split_target,
-)
-from phone2act.errors import (
-    DeadlineExceeded,
-    NotFound,
-    Phone2ActError,
-    ServerUnavailable,
-    SessionClosed,
-    from_rpc_error,
-)
-from phone2act.v1 import (
-    common_pb2,
-    episodes_pb2,
-    episodes_pb2_grpc,
-    policy_pb2,
-    policy_pb2_grpc,
-    scene_pb2,
-    scene_pb2_grpc,
-    system_pb2,
-    system_pb2_grpc,
-    teleop_pb2,
-    teleop_pb2_grpc,
-)
+from phone2act import aio
+from phone2act._common import DEFAULT_TARGET, DELTA_EE, IMAGE_NONE, ArmLayout
+from phone2act.errors import Phone2ActError
+from phone2act.v1 import common_pb2, episodes_pb2, policy_pb2, scene_pb2, system_pb2, teleop_pb2
 
 T = TypeVar("T")
-_CLOSE = object()
+
+_loop: asyncio.AbstractEventLoop | None = None
+_loop_lock = threading.Lock()
+
+
+def _run(coro: Coroutine[Any, Any, T]) -> T:
+    """Runs `coro` on the process's client loop and waits for its result (or its exception)."""
+    global _loop
+    with _loop_lock:
+        if _loop is None:
+            # One loop for every blocking client: grpc.aio binds a channel to the loop that made it, and a
+            # daemon thread never keeps the interpreter from exiting.
+            _loop = asyncio.new_event_loop()
+            threading.Thread(target=_loop.run_forever, name="phone2act-client", daemon=True).start()
+        loop = _loop
+    return asyncio.run_coroutine_threadsafe(coro, loop).result()
+
+
+async def _call(fn: Any, *args: Any, **kwargs: Any) -> Any:
+    return await fn(*args, **kwargs)
+
+
+def _iterate(agen: AsyncIterator[T]) -> Iterator[T]:
+    """A blocking iterator over an async one running on the client loop; closing it closes the async one."""
+
+    async def next_item() -> tuple[bool, T | None]:
+        try:
+            return True, await agen.__anext__()
+        except StopAsyncIteration:
+            return False, None
+
+    try:
+        while True:
+            more, item = _run(next_item())
+            if not more:
+                return
+            yield item  # type: ignore[misc]
+    finally:
+        aclose = getattr(agen, "aclose", None)
+        if aclose is not None:
+            _run(_call(aclose))
 
 
 class Client:
@@ -75,43 +83,23 @@ class Client:
         timeout_s: float = 30.0,
         root_certificates: bytes | None = None,
     ) -> None:
+        self._a: aio.AsyncClient = _run(
+            _call(
+                aio.AsyncClient.connect,
+                target,
+                token=token,
+                connect_timeout_s=connect_timeout_s,
+                timeout_s=timeout_s,
+                root_certificates=root_certificates,
+            )
+        )
         self.target = target
         self.timeout_s = timeout_s
-        address, tls = split_target(target)
-        channel = (
-            grpc.secure_channel(address, channel_credentials(root_certificates), options=channel_options(address))
-            if tls
-            else grpc.insecure_channel(address, options=channel_options(address))
-        )
-        if token:
-            channel = grpc.intercept_channel(channel, auth_interceptor(token))
-        self._channel = channel
-        if connect_timeout_s > 0:
-            try:
-                grpc.channel_ready_future(channel).result(timeout=connect_timeout_s)
-            except grpc.FutureTimeoutError:
-                channel.close()
-                raise ServerUnavailable(
-                    f"cannot connect to the phone2act server at {target} within {connect_timeout_s:.1f} s; "
-                    "is `phone2act serve` running and listening there?",
-                    grpc.StatusCode.UNAVAILABLE,
-                ) from None
-        self.system_stub = system_pb2_grpc.SystemStub(channel)
-        self.policy_stub = policy_pb2_grpc.PolicyStub(channel)
-        self.teleop_stub = teleop_pb2_grpc.TeleopStub(channel)
-        self.episodes = Episodes(self, episodes_pb2_grpc.EpisodesStub(channel))
-        self.scene = Scene(self, scene_pb2_grpc.SceneStub(channel))
-
-    # --- plumbing -------------------------------------------------------------------------------------
-
-    def _call(self, what: str, fn: Callable[..., T], request: Any, timeout_s: float | None = None) -> T:
-        try:
-            return fn(request, timeout=timeout_s or self.timeout_s)
-        except grpc.RpcError as e:
-            raise from_rpc_error(e, what, self.target) from None
+        self.episodes = Episodes(self._a.episodes)
+        self.scene = Scene(self._a.scene)
 
     def close(self) -> None:
-        self._channel.close()
+        _run(self._a.close())
 
     def __enter__(self) -> "Client":
         return self
@@ -122,25 +110,19 @@ class Client:
     # --- System ---------------------------------------------------------------------------------------
 
     def list_arms(self) -> list[common_pb2.ArmState]:
-        return list(self._call("System.ListArms", self.system_stub.ListArms, system_pb2.ListArmsRequest()).arms)
+        return _run(self._a.list_arms())
 
     def arm(self, name: str) -> common_pb2.ArmState:
-        for a in self.list_arms():
-            if a.arm == name:
-                return a
-        raise NotFound(f"no arm {name!r} on {self.target}")
+        return _run(self._a.arm(name))
 
     def status(self) -> system_pb2.SystemStatus:
-        return self._call("System.GetStatus", self.system_stub.GetStatus, system_pb2.GetStatusRequest())
+        return _run(self._a.status())
 
     def dataset_info(self) -> system_pb2.DatasetInfo:
-        return self._call(
-            "System.GetDatasetInfo", self.system_stub.GetDatasetInfo, system_pb2.GetDatasetInfoRequest()
-        )
+        return _run(self._a.dataset_info())
 
     def list_cameras(self) -> list[common_pb2.CameraStatus]:
-        r = self._call("System.ListCameras", self.system_stub.ListCameras, system_pb2.ListCamerasRequest())
-        return list(r.cameras)
+        return _run(self._a.list_cameras())
 
     # --- Policy ---------------------------------------------------------------------------------------
 
@@ -148,8 +130,7 @@ class Client:
         self, arms: Sequence[str] = (), image_encoding: int = IMAGE_NONE, cameras: Sequence[str] = ()
     ) -> policy_pb2.Observation:
         """One observation now, without a session."""
-        req = policy_pb2.GetObservationRequest(arms=list(arms), image_encoding=image_encoding, cameras=list(cameras))
-        return self._call("Policy.GetObservation", self.policy_stub.GetObservation, req)
+        return _run(self._a.observe(arms, image_encoding, cameras))
 
     def policy_session(
         self,
@@ -164,145 +145,105 @@ class Client:
         ready_timeout_s: float = 10.0,
     ) -> PolicySession:
         """Open a Policy.Session; returns once `SessionReady` arrived (and control was granted, if asked)."""
-        hello = hello_request(
-            arms, observation_rate_hz, request_control, image_encoding, cameras, policy_name, silence_timeout_s
+        session = _run(
+            self._a.policy_session(
+                arms,
+                observation_rate_hz=observation_rate_hz,
+                request_control=request_control,
+                image_encoding=image_encoding,
+                cameras=cameras,
+                policy_name=policy_name,
+                silence_timeout_s=silence_timeout_s,
+                ready_timeout_s=ready_timeout_s,
+            )
         )
-        return PolicySession(self, hello, ready_timeout_s)
+        return PolicySession(session)
 
-    def teleop(self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False) -> TeleopSession:
-        return TeleopSession(self, arm, client_name, take_over)
+    def teleop(
+        self, arm: str = "main", *, client_name: str = "phone2act-python", take_over: bool = False
+    ) -> TeleopSession:
+        """Open a Teleop.Stream for `arm` (the arm is claimed with the first sample sent)."""
+        return TeleopSession(_run(self._a.teleop(arm, client_name=client_name, take_over=take_over)))
 
 
 class Scene:
-    """The task scene of a simulated arm (ball and basket): reset it between episodes, read it (success)."""
+    """The Scene service of a simulated arm: its ball and basket."""
 
-    def __init__(self, client: Client, stub: scene_pb2_grpc.SceneStub) -> None:
-        self._c = client
-        self._stub = stub
+    def __init__(self, scene: aio.AsyncScene) -> None:
+        self._a = scene
 
     def reset(self, arm: str, seed: int | None = None, home_arm: bool = False) -> scene_pb2.SceneState:
-        """Re-draw the scene from `seed` (None: the arm's next seed). `home_arm` also puts the simulated arm
-        at its initial joints; refused (`FailedPrecondition`) while a phone or policy drives it. Arms
-        without a scene raise `Unimplemented`."""
-        req = scene_pb2.ResetSceneRequest(arm=arm, seed=seed, home_arm=home_arm)
-        return self._c._call("Scene.Reset", self._stub.Reset, req)
+        """Re-draw `arm`'s scene from `seed` (None: the arm's next seed); `home_arm` also puts the simulated
+        arm at its initial joints, which the server refuses while a source drives it."""
+        return _run(self._a.reset(arm, seed, home_arm))
 
     def get(self, arm: str) -> scene_pb2.SceneState:
-        return self._c._call("Scene.Get", self._stub.Get, scene_pb2.GetSceneRequest(arm=arm))
+        return _run(self._a.get(arm))
 
 
 class Episodes:
-    """Recorder control: start/stop/discard/rerecord episodes, list them, watch the recorder."""
+    """The Episodes service: start, stop, discard, re-record, list, watch."""
 
-    def __init__(self, client: Client, stub: episodes_pb2_grpc.EpisodesStub) -> None:
-        self._c = client
-        self._stub = stub
+    def __init__(self, episodes: aio.AsyncEpisodes) -> None:
+        self._a = episodes
 
     def start(self, task: str, operator: str = "") -> common_pb2.RecordingStatus:
         """Start recording `task`; `operator` (who records it) goes into the episode's provenance."""
-        request = episodes_pb2.StartEpisodeRequest(task=task, operator=operator)
-        r = self._c._call("Episodes.Start", self._stub.Start, request)
-        return r.status
+        return _run(self._a.start(task, operator))
 
     def stop(self) -> episodes_pb2.EpisodeInfo:
         """Stop and save; returns when the episode is on disk."""
-        return self.stop_with_latency()[0]
+        return _run(self._a.stop())
 
     def stop_with_latency(self) -> tuple[episodes_pb2.EpisodeInfo, float]:
-        r = self._c._call("Episodes.Stop", self._stub.Stop, episodes_pb2.StopEpisodeRequest())
-        return r.episode, r.save_latency_s
+        return _run(self._a.stop_with_latency())
 
     def discard(self) -> int:
-        """Throw the episode in progress away; returns the number of frames discarded."""
-        r = self._c._call("Episodes.Discard", self._stub.Discard, episodes_pb2.DiscardEpisodeRequest())
-        return int(r.frames_discarded)
+        return _run(self._a.discard())
 
     def rerecord(self, task: str = "") -> common_pb2.RecordingStatus:
-        r = self._c._call("Episodes.Rerecord", self._stub.Rerecord, episodes_pb2.RerecordEpisodeRequest(task=task))
-        return r.status
+        return _run(self._a.rerecord(task))
 
     def list(self) -> list[episodes_pb2.EpisodeInfo]:
-        return list(self._c._call("Episodes.List", self._stub.List, episodes_pb2.ListEpisodesRequest()).episodes)
+        return _run(self._a.list())
 
     def status(self) -> common_pb2.RecordingStatus:
-        return self._c._call("Episodes.Status", self._stub.Status, episodes_pb2.EpisodeStatusRequest())
+        return _run(self._a.status())
 
     def watch(self, interval_s: float = 0.5) -> Iterator[common_pb2.RecordingStatus]:
         """Recorder status on every change (and every `interval_s`), until the caller stops iterating."""
-        call = self._stub.Watch(episodes_pb2.WatchEpisodesRequest(interval_s=interval_s))
-        try:
-            yield from call
-        except grpc.RpcError as e:
-            if e.code() != grpc.StatusCode.CANCELLED:
-                raise from_rpc_error(e, "Episodes.Watch", self._c.target) from None
-        finally:
-            call.cancel()
+        return _iterate(self._a.watch(interval_s))
 
 
-class _Stream:
-    """A bidi call fed from a queue, read on a daemon thread. Subclasses handle each response."""
+_S = TypeVar("_S", bound="_Session")
 
-    def __init__(self, what: str, target: str) -> None:
-        self._what = what
-        self._target = target
-        self._requests: queue.Queue[Any] = queue.Queue()
-        self._error: Phone2ActError | None = None
-        self._done = threading.Event()
-        self._call: Any = None
 
-    def _request_iter(self) -> Iterator[Any]:
-        while True:
-            item = self._requests.get()
-            if item is _CLOSE:
-                return
-            yield item
+class _Session:
+    """What both blocking sessions share: the asyncio session they run, its end, the context manager."""
 
-    def _start(self, call_fn: Callable[[Iterator[Any]], Any]) -> None:
-        self._call = call_fn(self._request_iter())
-        threading.Thread(target=self._read, name=f"phone2act-{self._what}", daemon=True).start()
-
-    def _read(self) -> None:
-        try:
-            for response in self._call:
-                self._on_response(response)
-            self._error = SessionClosed(f"{self._what}: the server ended the stream")
-        except grpc.RpcError as e:
-            if e.code() == grpc.StatusCode.CANCELLED:
-                self._error = SessionClosed(f"{self._what}: closed by the client", e.code())
-            else:
-                self._error = from_rpc_error(e, self._what, self._target)
-        finally:
-            self._done.set()
-            self._on_end()
-
-    def _on_response(self, response: Any) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
-
-    def _on_end(self) -> None:
-        pass
-
-    def _send(self, request: Any) -> None:
-        if self._done.is_set():
-            raise self._error or SessionClosed(f"{self._what}: stream is closed")
-        self._requests.put(request)
+    _a: aio.AsyncPolicySession | aio.AsyncTeleopSession
 
     @property
     def closed(self) -> bool:
-        return self._done.is_set()
+        return self._a.closed
 
     @property
     def error(self) -> Phone2ActError | None:
-        return self._error
+        """Why the session ended, once it has."""
+        return self._a.error
 
     def close(self) -> None:
-        """Half-close the stream and cancel it; idempotent."""
-        self._requests.put(_CLOSE)
-        if self._call is not None:
-            self._call.cancel()
-        self._done.wait(timeout=2.0)
+        """Cancel the stream; idempotent."""
+        _run(self._a.close())
+
+    def __enter__(self: _S) -> _S:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
-class PolicySession(_Stream):
+class PolicySession(_Session):
     """An open Policy.Session. Use as a context manager; `close()` releases the arms (they hold).
 
     - `layouts[arm]`: state/action names for the arm (`action_width` is what chunks must use).
@@ -310,89 +251,28 @@ class PolicySession(_Stream):
     - `push(...)`: send a chunk with the unary `Policy.PushChunk`, so a bad chunk raises at once
       (`InvalidArgument` carries the server's reason, e.g. the expected width).
     - `push_on_stream(...)`: send on the session stream; the answer arrives as an event.
-    - `events`: a queue of `PolicyEvent`s other than observations (granted, revoked, accepted, rejected).
+    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected).
     """
 
-    def __init__(self, client: Client, hello: policy_pb2.PolicyRequest, ready_timeout_s: float) -> None:
-        super().__init__("Policy.Session", client.target)
-        self._client = client
-        self._cond = threading.Condition()
-        self._latest: policy_pb2.Observation | None = None
-        self._returned_id = 0
-        self._ready: policy_pb2.SessionReady | None = None
-        self.granted: policy_pb2.ControlGranted | None = None
-        self.revoked: policy_pb2.ControlRevoked | None = None
-        self.events: queue.Queue[policy_pb2.PolicyEvent] = queue.Queue(maxsize=10_000)
-        self._requests.put(hello)
-        self._start(client.policy_stub.Session)
-        want_control = hello.hello.request_control
-        deadline = time.monotonic() + ready_timeout_s
-        with self._cond:
-            while not self._is_ready(want_control) and not self.closed:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                self._cond.wait(timeout=left)
-        if self._ready is None or (want_control and self.granted is None):
-            err = self._error
-            self.close()
-            if err is not None and not isinstance(err, SessionClosed):
-                raise err
-            raise DeadlineExceeded(
-                f"Policy.Session on {client.target}: no SessionReady/ControlGranted within {ready_timeout_s:.1f} s"
-                + (f" ({err})" if err else "")
-            )
-        self.session_id: str = self._ready.session_id
-        self.layouts: dict[str, ArmLayout] = layouts_from_ready(self._ready)
+    def __init__(self, session: aio.AsyncPolicySession) -> None:
+        self._a = session
+        self.session_id: str = session.session_id
+        self.layouts: dict[str, ArmLayout] = session.layouts
 
-    def _is_ready(self, want_control: bool) -> bool:
-        return self._ready is not None and (self.granted is not None or not want_control)
+    @property
+    def granted(self) -> policy_pb2.ControlGranted | None:
+        return self._a.granted
 
-    def _on_response(self, ev: policy_pb2.PolicyEvent) -> None:
-        kind = ev.WhichOneof("event")
-        with self._cond:
-            if kind == "observation":
-                self._latest = ev.observation
-            elif kind == "ready":
-                self._ready = ev.ready
-            else:
-                if kind == "granted":
-                    self.granted = ev.granted
-                elif kind == "revoked":
-                    self.revoked = ev.revoked
-                try:
-                    self.events.put_nowait(ev)
-                except queue.Full:  # nobody reads events: drop the oldest, keep memory bounded
-                    self.events.get_nowait()
-                    self.events.put_nowait(ev)
-            self._cond.notify_all()
-
-    def _on_end(self) -> None:
-        with self._cond:
-            self._cond.notify_all()
-
-    def __enter__(self) -> "PolicySession":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    @property
+    def revoked(self) -> policy_pb2.ControlRevoked | None:
+        return self._a.revoked
 
     def next_observation(self, timeout_s: float = 5.0) -> policy_pb2.Observation:
         """The newest observation not yet returned; waits for one up to `timeout_s`."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self._latest is None or self._latest.observation_id <= self._returned_id:
-                if self.closed:
-                    raise self._error or SessionClosed("Policy.Session closed")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DeadlineExceeded(f"no observation within {timeout_s:.1f} s")
-                self._cond.wait(timeout=left)
-            self._returned_id = self._latest.observation_id
-            return self._latest
+        return _run(self._a.next_observation(timeout_s))
 
     def request_observation(self) -> None:
-        self._send(policy_pb2.PolicyRequest(observe=policy_pb2.ObservationRequest()))
+        _run(self._a.request_observation())
 
     def push(
         self,
@@ -405,9 +285,17 @@ class PolicySession(_Stream):
         blend_steps: int = 0,
         timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
-        req = policy_pb2.PushChunkRequest(session_id=self.session_id, chunk=chunk)
-        return self._client._call("Policy.PushChunk", self._client.policy_stub.PushChunk, req, timeout_s)
+        return _run(
+            self._a.push(
+                arm,
+                steps,
+                step_period_s,
+                observation_id=observation_id,
+                mode=mode,
+                blend_steps=blend_steps,
+                timeout_s=timeout_s,
+            )
+        )
 
     def push_on_stream(
         self,
@@ -419,44 +307,31 @@ class PolicySession(_Stream):
         mode: int = DELTA_EE,
         blend_steps: int = 0,
     ) -> None:
-        self._send(policy_pb2.PolicyRequest(chunk=make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)))
+        _run(
+            self._a.push_on_stream(
+                arm, steps, step_period_s, observation_id=observation_id, mode=mode, blend_steps=blend_steps
+            )
+        )
 
     def next_event(self, timeout_s: float = 5.0) -> policy_pb2.PolicyEvent:
-        try:
-            return self.events.get(timeout=timeout_s)
-        except queue.Empty:
-            if self.closed and self._error:
-                raise self._error from None
-            raise DeadlineExceeded(f"no policy event within {timeout_s:.1f} s") from None
+        return _run(self._a.next_event(timeout_s))
 
     def release(self) -> None:
-        self._send(policy_pb2.PolicyRequest(release=policy_pb2.ReleaseControl()))
+        _run(self._a.release())
 
 
-class TeleopSession(_Stream):
+
+class TeleopSession(_Session):
     """A Teleop.Stream for one arm: send phone poses and buttons, read the latest feedback."""
 
-    def __init__(self, client: Client, arm: str, client_name: str, take_over: bool) -> None:
-        super().__init__("Teleop.Stream", client.target)
-        self.arm = arm
-        self._client_name = client_name
-        self._seq = 0
-        self._cond = threading.Condition()
-        self.feedback: teleop_pb2.TeleopFeedback | None = None
-        self._first = True
-        self._take_over = take_over
-        self._start(client.teleop_stub.Stream)
+    def __init__(self, session: aio.AsyncTeleopSession) -> None:
+        self._a = session
+        self.arm = session.arm
 
-    def _on_response(self, fb: teleop_pb2.TeleopFeedback) -> None:
-        with self._cond:
-            self.feedback = fb
-            self._cond.notify_all()
-
-    def __enter__(self) -> "TeleopSession":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    @property
+    def feedback(self) -> teleop_pb2.TeleopFeedback | None:
+        """The newest feedback received."""
+        return self._a.feedback
 
     def send(
         self,
@@ -467,44 +342,18 @@ class TeleopSession(_Stream):
         tracking: int = teleop_pb2.TRACKING_STATE_TRACKING,
     ) -> int:
         """Send one sample (a pose in the phone's tracking frame and/or buttons); returns its seq."""
-        self._seq += 1
-        sample = teleop_pb2.PhoneSample(
-            seq=self._seq,
-            capture_time_ns=time.monotonic_ns(),
-            buttons=list(buttons),
-            client_name=self._client_name,
-        )
-        if self._first:
-            sample.arm, sample.take_over, self._first = self.arm, self._take_over, False
-        if position is not None:
-            sample.tracking_from_phone.CopyFrom(make_pose(position, orientation_xyzw))
-            sample.tracking = tracking
-        else:
-            sample.tracking = teleop_pb2.TRACKING_STATE_UNSPECIFIED
-        self._send(sample)
-        return self._seq
+        return _run(self._a.send(position, orientation_xyzw, buttons=buttons, tracking=tracking))
 
-    def clutch(self, engage: bool, position: Sequence[float] | None = None,
-               orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0)) -> int:
-        kind = teleop_pb2.ClutchCommand.KIND_ENGAGE if engage else teleop_pb2.ClutchCommand.KIND_DISENGAGE
-        b = teleop_pb2.ButtonEvent(clutch=teleop_pb2.ClutchCommand(kind=kind))
-        return self.send(position, orientation_xyzw, buttons=[b])
+    def clutch(
+        self, engage: bool, position: Sequence[float] | None = None,
+        orientation_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+    ) -> int:
+        return _run(self._a.clutch(engage, position, orientation_xyzw))
 
     def gripper(self, position: float) -> int:
-        b = teleop_pb2.ButtonEvent(
-            gripper=teleop_pb2.GripperCommand(kind=teleop_pb2.GripperCommand.KIND_SET, position=position)
-        )
-        return self.send(None, buttons=[b])
+        return _run(self._a.gripper(position))
 
     def wait_feedback(self, seq: int, timeout_s: float = 2.0) -> teleop_pb2.TeleopFeedback:
         """Wait until feedback echoes `seq` (or a later sample)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self.feedback is None or self.feedback.echoed_seq < seq:
-                if self.closed:
-                    raise self._error or SessionClosed("Teleop.Stream closed")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DeadlineExceeded(f"no teleop feedback for seq {seq} within {timeout_s:.1f} s")
-                self._cond.wait(timeout=left)
-            return self.feedback
+        return _run(self._a.wait_feedback(seq, timeout_s))
+
