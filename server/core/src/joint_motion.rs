@@ -27,9 +27,7 @@
 
 use crate::config::ConfigError;
 use crate::joint_limit::JointRateLimiter;
-use crate::kinematics::{
-    CR5_DOF, ChainKinematics, Cr5Kinematics, IkSolution, IkWeights, SO101_ARM_DOF, So101Kinematics,
-};
+use crate::kinematics::{CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, So101Kinematics};
 use nalgebra::{Isometry3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -352,6 +350,60 @@ impl<const N: usize> JointStage<N> {
         };
         self.turn_axis = Some(axis.into_inner());
         (axis, angle * weight)
+    }
+}
+
+/// The joint stage of an arm whose kinematics the server knows, whichever robot it is: what the arm
+/// controller holds.
+#[derive(Debug, Clone)]
+pub enum ArmJointStage {
+    So101(So101JointStage),
+    Cr5(Cr5JointStage),
+}
+
+macro_rules! each_stage {
+    ($self:expr, $stage:ident => $body:expr) => {
+        match $self {
+            ArmJointStage::So101($stage) => $body,
+            ArmJointStage::Cr5($stage) => $body,
+        }
+    };
+}
+
+impl ArmJointStage {
+    /// See [`JointStage::reset`].
+    pub fn reset(&mut self, measured_rad: &[f64], time_s: f64) {
+        each_stage!(self, s => s.reset(measured_rad, time_s));
+    }
+
+    /// See [`JointStage::plan`]: the joints to command, base to tool.
+    pub fn plan(&mut self, target: &Isometry3<f64>, time_s: f64) -> Vec<f64> {
+        each_stage!(self, s => s.plan(target, time_s).joints_rad.to_vec())
+    }
+
+    /// See [`JointStage::commanded`].
+    pub fn commanded(&self) -> Option<Vec<f64>> {
+        each_stage!(self, s => s.commanded().map(|q| q.to_vec()))
+    }
+
+    /// See [`JointStage::commanded_time_s`].
+    pub fn commanded_time_s(&self) -> f64 {
+        each_stage!(self, s => s.commanded_time_s())
+    }
+
+    /// See [`JointStage::behind`].
+    pub fn behind(&self) -> bool {
+        each_stage!(self, s => s.behind())
+    }
+
+    /// See [`JointStage::counters`].
+    pub fn counters(&self) -> JointCounters {
+        each_stage!(self, s => s.counters())
+    }
+
+    /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
+    pub fn forward(&self, joints_rad: &[f64]) -> Option<Isometry3<f64>> {
+        each_stage!(self, s => to_joints(joints_rad).map(|q| s.kinematics.forward(&q)))
     }
 }
 
