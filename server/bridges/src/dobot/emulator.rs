@@ -1046,7 +1046,13 @@ mod tests {
     fn dynamics_reach_the_target_in_t() {
         let start = Instant::now();
         let pose = tool_down(-0.4, 0.0, 0.3, 0.0);
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &pose);
         let mut s = State {
+            kinematics,
+            joints_rad,
+            joint_target_rad: None,
+            servo_j_log: std::collections::VecDeque::new(),
             mode: RobotMode::Enabled,
             enabled: true,
             error_ids: ErrorIds::default(),
@@ -1076,5 +1082,64 @@ mod tests {
         s.advance(start + Duration::from_millis(120), 1.0);
         assert!((s.pose.translation.vector - s.target.translation.vector).norm() < 1e-9);
         assert!(s.pose.rotation.angle_to(&s.target.rotation) < 1e-9);
+        // The joints followed the pose: the model puts them where the tool is.
+        let model = s.kinematics.forward(&s.joints_rad);
+        assert!((model.translation.vector - s.pose.translation.vector).norm() < 2e-4);
+        assert!(model.rotation.angle_to(&s.pose.rotation) < 2e-3);
+    }
+
+    #[test]
+    fn servo_j_moves_the_joints_and_the_pose_follows() {
+        let config = EmulatorConfig::default();
+        let start = Instant::now();
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &config.initial_pose);
+        let from = kinematics.forward(&joints_rad);
+        assert!((from.translation.vector - config.initial_pose.translation.vector).norm() < 2e-4);
+        let mut s = State {
+            kinematics,
+            joints_rad,
+            joint_target_rad: None,
+            servo_j_log: std::collections::VecDeque::new(),
+            mode: RobotMode::Enabled,
+            enabled: true,
+            error_ids: vec![],
+            pose: from,
+            target: from,
+            remaining_s: 0.0,
+            last_advance: start,
+            servo_commands: 0,
+            rejected_commands: 0,
+            last_servo_command: None,
+            command_id: 0,
+            speed_factor: 100,
+            digital_outputs: 0,
+            tool_outputs: 0,
+            gripper_register: None,
+            corruption: None,
+        };
+        let mut goal = joints_rad;
+        goal[5] += 0.4;
+        let goal_deg = goal.map(f64::to_degrees).map(|v| format!("{v:.6}"));
+        let mut params: Vec<&str> = goal_deg.iter().map(String::as_str).collect();
+        params.push("t=0.1");
+        assert_eq!(servo_j(&mut s, &config, &params).0, 0);
+        s.last_advance = start;
+        s.advance(start + Duration::from_millis(50), 1.0);
+        assert!(
+            (s.joints_rad[5] - joints_rad[5] - 0.2).abs() < 1e-3,
+            "{:?}",
+            s.joints_rad
+        );
+        s.advance(start + Duration::from_millis(120), 1.0);
+        assert!((s.joints_rad[5] - goal[5]).abs() < 1e-7);
+        // J6 turns the flange about its own axis: the position stays, the orientation turns by the same angle.
+        assert!((s.pose.translation.vector - from.translation.vector).norm() < 1e-6);
+        assert!((s.pose.rotation.angle_to(&from.rotation) - 0.4).abs() < 1e-6);
+        assert_eq!(s.servo_j_log.len(), 1);
+        // Out of range, too few values: refused as the controller does.
+        let far = ["0", "0", "200", "0", "0", "0"];
+        assert_eq!(servo_j(&mut s, &config, &far).0, -40001);
+        assert_eq!(servo_j(&mut s, &config, &far[..5]).0, -20000);
     }
 }
