@@ -599,9 +599,25 @@ mod tests {
     /// turns about arbitrary axes are among them) and checks every command. Returns the largest position
     /// error of the commands.
     fn run(start: So101Joints, moves: &[Move]) -> Result<f64, TestCaseError> {
-        let k = So101Kinematics::new();
+        run_stage(&So101Kinematics::new(), stage(), STS3215_MAX_VELOCITY_RAD_S, start, moves)
+    }
+
+    /// [`run`] for any arm: `s` over `k`, every joint limited to `speed_rad_s`.
+    fn run_stage<const N: usize>(
+        k: &ChainKinematics<N>,
+        mut s: JointStage<N>,
+        speed_rad_s: f64,
+        start: [f64; N],
+        moves: &[Move],
+    ) -> Result<f64, TestCaseError> {
+        let step_ratio = |before: &[f64; N], after: &[f64; N], dt: f64| {
+            before
+                .iter()
+                .zip(after)
+                .map(|(a, b)| (a - b).abs() / (speed_rad_s * dt))
+                .fold(0.0, f64::max)
+        };
         let mut target = k.forward(&start);
-        let mut s = stage();
         s.reset(&start, 0.0);
         let mut t = 0.0;
         let mut previous = start;
@@ -620,8 +636,8 @@ mod tests {
                 );
                 t += m.dt_s;
                 let p = s.plan(&target, t);
-                prop_assert!(within_limits(&p.joints_rad), "{p:?}");
-                let ratio = largest_step_ratio(&previous, &p.joints_rad, m.dt_s);
+                prop_assert!(k.within_limits(&p.joints_rad), "{p:?}");
+                let ratio = step_ratio(&previous, &p.joints_rad, m.dt_s);
                 prop_assert!(
                     ratio <= 1.0 + 1e-9 || m.dt_s == 0.0 && p.joints_rad == previous,
                     "step {ratio} of the limit"
@@ -655,5 +671,75 @@ mod tests {
             let error = run(start, &moves)?;
             prop_assert!(error < 2e-4, "position error {error} m");
         }
+
+        /// The CR5: any target sequence the gate passes, full turns about any axis and positions toward and past
+        /// the edge of its 0.9 m reach included: no joint step exceeds its limit.
+        #[test]
+        fn no_cr5_command_exceeds_the_joint_limits(start in cr5_joints_strategy(),
+                                                   moves in prop::collection::vec(move_strategy(true), 1..6)) {
+            run_stage(&Cr5Kinematics::new(), cr5_stage(), CR5_MAX_VELOCITY_RAD_S, start, &moves)?;
+        }
+
+        /// The CR5 with the position held and the orientation anything (a 6-DoF arm reaches every orientation
+        /// away from its singularities; near them the turn slows to what the joints allow): every command keeps
+        /// the tool within 0.2 mm of the position, for the same reason as the SO-101's.
+        #[test]
+        fn a_cr5_held_position_stays_held_whatever_the_orientation(start in cr5_joints_strategy(),
+                                                                   moves in prop::collection::vec(move_strategy(false), 1..6)) {
+            let error = run_stage(&Cr5Kinematics::new(), cr5_stage(), CR5_MAX_VELOCITY_RAD_S, start, &moves)?;
+            prop_assert!(error < 2e-4, "position error {error} m");
+        }
+    }
+
+    fn cr5_stage() -> Cr5JointStage {
+        Cr5JointStage::new(vec![CR5_MAX_VELOCITY_RAD_S; CR5_DOF]).unwrap()
+    }
+
+    /// CR5 starts in its usual working region: elbow bent either way, wrist away from its J5 = 0 singularity.
+    fn cr5_joints_strategy() -> impl Strategy<Value = [f64; CR5_DOF]> {
+        (
+            -3.0f64..3.0,
+            -1.2f64..1.2,
+            prop_oneof![0.4f64..2.5, -2.5f64..-0.4],
+            -3.0f64..3.0,
+            prop_oneof![0.3f64..2.8, -2.8f64..-0.3],
+            -3.0f64..3.0,
+        )
+            .prop_map(|(a, b, c, d, e, f)| [a, b, c, d, e, f])
+    }
+
+    /// A reachable CR5 target far from the start (a 6-DoF arm: position and orientation both) is approached
+    /// at the limit and reached, position and orientation.
+    #[test]
+    fn a_far_cr5_target_is_approached_at_the_limit_and_reached() {
+        let k = Cr5Kinematics::new();
+        let start = [0.0, 0.3, 1.5, 0.0, 1.5, 0.0];
+        let goal = [0.9, -0.2, 1.2, 0.6, 1.1, -1.0];
+        let target = k.forward(&goal);
+        let mut s = cr5_stage();
+        s.reset(&start, 0.0);
+        let mut previous = start;
+        let mut t = 0.0;
+        for _ in 0..400 {
+            t += PERIOD_S;
+            let p = s.plan(&target, t);
+            let ratio = previous
+                .iter()
+                .zip(&p.joints_rad)
+                .map(|(a, b)| (a - b).abs() / (CR5_MAX_VELOCITY_RAD_S * PERIOD_S))
+                .fold(0.0, f64::max);
+            assert!(ratio <= 1.0 + 1e-9, "{ratio}");
+            previous = p.joints_rad;
+            if !s.behind() {
+                break;
+            }
+        }
+        assert!(!s.behind(), "still behind after 8 s");
+        assert!(s.counters().limited > 5, "{:?}", s.counters());
+        let done = s.plan(&target, t + PERIOD_S);
+        assert!(
+            done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-3,
+            "{done:?}"
+        );
     }
 }
