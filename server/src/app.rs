@@ -153,6 +153,12 @@ impl App {
                         .map(|r| r.joint_names.clone())
                         .unwrap_or_default();
                     let remote = phone2act_bridges::remote::RemoteBridge::with_joint_names(&arm.name, joints);
+                    // The remote robot moves its own joints: the limits are checked on its feedback.
+                    if !joint_speeds.is_empty() {
+                        remote
+                            .watch_joint_speeds(joint_speeds.clone())
+                            .map_err(|e| arm_err(e.to_string()))?;
+                    }
                     remote_bridges.insert(arm.name.clone(), Arc::clone(&remote));
                     remote
                 }

@@ -599,7 +599,13 @@ mod tests {
     /// turns about arbitrary axes are among them) and checks every command. Returns the largest position
     /// error of the commands.
     fn run(start: So101Joints, moves: &[Move]) -> Result<f64, TestCaseError> {
-        run_stage(&So101Kinematics::new(), stage(), STS3215_MAX_VELOCITY_RAD_S, start, moves)
+        run_stage(
+            &So101Kinematics::new(),
+            stage(),
+            STS3215_MAX_VELOCITY_RAD_S,
+            start,
+            moves,
+        )
     }
 
     /// [`run`] for any arm: `s` over `k`, every joint limited to `speed_rad_s`.
