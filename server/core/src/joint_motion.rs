@@ -714,6 +714,36 @@ mod tests {
             .prop_map(|(a, b, c, d, e, f)| [a, b, c, d, e, f])
     }
 
+    /// The arm controller's handle passes everything through to the robot's stage.
+    #[test]
+    fn the_arm_stage_is_the_robots_stage() {
+        let k = Cr5Kinematics::new();
+        let start = [0.0, 0.3, 1.5, 0.0, 1.5, 0.0];
+        let mut direct = cr5_stage();
+        let mut arm = ArmJointStage::Cr5(cr5_stage());
+        assert_eq!(arm.commanded(), None);
+        direct.reset(&start, 1.0);
+        arm.reset(&start, 1.0);
+        assert_eq!(arm.commanded(), Some(start.to_vec()));
+        assert_eq!(arm.commanded_time_s(), 1.0);
+        let far = k.forward(&[0.9, -0.2, 1.2, 0.6, 1.1, -1.0]);
+        let planned = direct.plan(&far, 1.02);
+        assert_eq!(arm.plan(&far, 1.02), planned.joints_rad.to_vec());
+        assert!(arm.behind() && direct.behind());
+        assert_eq!(arm.counters(), direct.counters());
+        assert!(arm.counters().limited == 1);
+        assert_eq!(arm.forward(&start), Some(k.forward(&start)));
+        assert_eq!(arm.forward(&start[..5]), None);
+        let mut so101 = ArmJointStage::So101(stage());
+        so101.reset(&[0.0, -0.4, 0.6, 0.9, 0.0], 0.0);
+        assert_eq!(so101.commanded().map(|q| q.len()), Some(SO101_ARM_DOF));
+        assert!(!so101.behind());
+        assert_eq!(
+            so101.forward(&[0.0, -0.4, 0.6, 0.9, 0.0]),
+            Some(So101Kinematics::new().forward(&[0.0, -0.4, 0.6, 0.9, 0.0]))
+        );
+    }
+
     /// A reachable CR5 target far from the start (a 6-DoF arm: position and orientation both) is approached
     /// at the limit and reached, position and orientation.
     #[test]
