@@ -413,6 +413,21 @@ mod tests {
         assert!(w.overspeeds > 30 && w.overspeeds <= 50, "{}", w.overspeeds);
     }
 
+    /// A sample that is not a measurement (not finite, another width) starts the watch again: the next speed is
+    /// never measured across it, from a sample taken before it.
+    #[test]
+    fn a_bad_sample_restarts_the_watch() {
+        for bad in [vec![f64::NAN], vec![5.0, 5.0]] {
+            let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
+            assert_eq!(w.observe(&[0.0], 0.0), None);
+            assert_eq!(w.observe(&[0.0], 0.05), None);
+            assert_eq!(w.observe(&bad, 0.1), None, "{bad:?}");
+            // 1 rad in 0.15 s from the first sample; nothing measured since the restart.
+            assert_eq!(w.observe(&[1.0], 0.15), None, "{bad:?}");
+            assert_eq!(w.overspeeds, 0);
+        }
+    }
+
     #[test]
     fn jitter_within_the_window_is_not_a_speed() {
         let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
