@@ -743,6 +743,7 @@ fn servo_j(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     s.remaining_s = t_s;
     s.servo_commands += 1;
     s.command_id += 1;
+    s.current_command_id = s.command_id;
     s.mode = RobotMode::Running;
     if s.servo_j_log.len() == SERVO_J_LOG {
         s.servo_j_log.pop_front();
@@ -817,20 +818,22 @@ fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     if values.len() != 6 {
         return (-20000, String::new());
     }
-    let mut target = match parse_pose(&values) {
+    let values = match parse_pose(&values) {
         Ok(p) => p,
         Err(code) => return (code, String::new()),
     };
-    if space == "joint" {
-        target = pose_from_fake_joints(&target);
-    }
     if !s.error_ids.is_empty() {
         return (-2, String::new());
     }
     if !s.enabled {
         return (-1, String::new());
     }
-    let target = pose_from_mm_deg(&target, config.convention);
+    // Joints (degrees) become the flange pose they put the CR5 model in.
+    let target = if space == "joint" {
+        s.kinematics.forward(&values.map(f64::to_radians))
+    } else {
+        pose_from_mm_deg(&values, config.convention)
+    };
     let distance_m = (target.translation.vector - s.pose.translation.vector).norm();
     s.joint_target_rad = None;
     s.target = target;
@@ -839,12 +842,6 @@ fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     s.current_command_id = s.command_id;
     s.mode = RobotMode::Running;
     (0, s.command_id.to_string())
-}
-
-/// Inverse of [`fake_joints_deg`], for `joint={..}` targets.
-fn pose_from_fake_joints(joints_deg: &[f64; 6]) -> [f64; 6] {
-    let [j1, j2, j3, j4, j5, j6] = *joints_deg;
-    [j1 * 10.0, j2 * 10.0, j3 * 10.0, j4, j5, j6]
 }
 
 fn set_output(s: &mut State, tool: bool, params: &[&str]) -> (i32, String) {
@@ -1103,7 +1100,7 @@ mod tests {
             servo_j_log: std::collections::VecDeque::new(),
             mode: RobotMode::Enabled,
             enabled: true,
-            error_ids: vec![],
+            error_ids: ErrorIds::default(),
             pose: from,
             target: from,
             remaining_s: 0.0,
@@ -1117,6 +1114,11 @@ mod tests {
             tool_outputs: 0,
             gripper_register: None,
             corruption: None,
+            tcp_control: true,
+            control_requests: 0,
+            received: std::collections::VecDeque::new(),
+            current_command_id: 0,
+            http_refused: 0,
         };
         let mut goal = joints_rad;
         goal[5] += 0.4;
