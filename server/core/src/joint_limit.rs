@@ -413,19 +413,28 @@ mod tests {
         assert!(w.overspeeds > 30 && w.overspeeds <= 50, "{}", w.overspeeds);
     }
 
-    /// A sample that is not a measurement (not finite, another width) starts the watch again: the next speed is
-    /// never measured across it, from a sample taken before it.
+    /// A sample that is not a measurement (not finite, another width, not later than the previous one) starts
+    /// the watch again: the next speed is never measured across it, from a sample taken before it.
     #[test]
     fn a_bad_sample_restarts_the_watch() {
-        for bad in [vec![f64::NAN], vec![5.0, 5.0]] {
+        for (bad, at_s) in [(vec![f64::NAN], 0.1), (vec![5.0, 5.0], 0.1), (vec![0.0], 0.05)] {
             let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
             assert_eq!(w.observe(&[0.0], 0.0), None);
             assert_eq!(w.observe(&[0.0], 0.05), None);
-            assert_eq!(w.observe(&bad, 0.1), None, "{bad:?}");
-            // 1 rad in 0.15 s from the first sample; nothing measured since the restart.
+            assert_eq!(w.observe(&bad, at_s), None, "{bad:?}");
+            // 1 rad in 0.15 s from the first sample; less than a window since the restart.
             assert_eq!(w.observe(&[1.0], 0.15), None, "{bad:?}");
+            if at_s > 0.05 {
+                // Nor measured from the bad sample itself.
+                assert_eq!(w.observe(&[1.0], 0.2), None, "{bad:?}");
+            }
             assert_eq!(w.overspeeds, 0);
         }
+        // A sample earlier than the last is a new start of its own: speeds are measured from it.
+        let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
+        assert_eq!(w.observe(&[0.0], 2.0), None);
+        assert_eq!(w.observe(&[0.0], 0.5), None);
+        assert!(w.observe(&[1.0], 0.65).is_some());
     }
 
     #[test]
