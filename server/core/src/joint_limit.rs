@@ -434,6 +434,8 @@ mod tests {
         let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
         assert_eq!(w.observe(&[0.0], 2.0), None);
         assert_eq!(w.observe(&[0.0], 0.5), None);
+        // Not before a whole window has passed, however fast.
+        assert_eq!(w.observe(&[0.05], 0.55), None);
         assert!(w.observe(&[1.0], 0.65).is_some());
     }
 
