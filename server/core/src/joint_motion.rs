@@ -714,6 +714,20 @@ mod tests {
             .prop_map(|(a, b, c, d, e, f)| [a, b, c, d, e, f])
     }
 
+    /// A move the limits allow in one period arrives in that command: nothing is left to catch up on, so the
+    /// arm does not tick again for it.
+    #[test]
+    fn a_move_that_fits_is_not_behind() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let target = k.forward(&[0.01, -0.39, 0.6, 0.9, 0.01]);
+        let p = s.plan(&target, PERIOD_S);
+        assert!(!p.limited && p.position_error_m < 1e-4, "{p:?}");
+        assert!(!s.behind());
+    }
+
     /// The arm controller's handle passes everything through to the robot's stage.
     #[test]
     fn the_arm_stage_is_the_robots_stage() {
