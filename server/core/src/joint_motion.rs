@@ -726,6 +726,9 @@ mod tests {
         let p = s.plan(&target, PERIOD_S);
         assert!(!p.limited && p.position_error_m < 1e-4, "{p:?}");
         assert!(!s.behind());
+        // And its orientation, the pose of real joints, was reached: nothing counted as unreachable.
+        assert!(!p.orientation_unreachable && p.orientation_error_rad < ORIENTATION_REACHED_RAD);
+        assert_eq!(s.counters(), JointCounters::default());
     }
 
     /// The arm controller's handle passes everything through to the robot's stage.
