@@ -153,6 +153,12 @@ impl App {
                         .map(|r| r.joint_names.clone())
                         .unwrap_or_default();
                     let remote = phone2act_bridges::remote::RemoteBridge::with_joint_names(&arm.name, joints);
+                    // The remote robot moves its own joints: the limits are checked on its feedback.
+                    if !joint_speeds.is_empty() {
+                        remote
+                            .watch_joint_speeds(joint_speeds.clone())
+                            .map_err(|e| arm_err(e.to_string()))?;
+                    }
                     remote_bridges.insert(arm.name.clone(), Arc::clone(&remote));
                     remote
                 }
@@ -186,16 +192,27 @@ impl App {
                 fallback_pose(),
             )
             .map_err(|e| arm_err(e.to_string()))?;
-            // Arms whose kinematics the server knows get their joints solved and rate-limited here; the
-            // Dobot's controller and remote bridges solve their own (docs/joint-limits.md).
-            let orientation_weight = match arm.bridge {
-                BridgeKind::Sim => Some(arm.sim.as_ref().map_or(1.0, |c| c.ik_orientation_weight)),
-                BridgeKind::So101 => arm.so101.as_ref().map(|c| c.ik_orientation_weight),
-                BridgeKind::Dobot | BridgeKind::Remote => None,
+            // Arms whose kinematics the server knows (SO-101, CR5) get their joints solved and rate-limited
+            // here; remote bridges solve their own (docs/joint-limits.md).
+            let stage = match arm.bridge {
+                BridgeKind::Sim | BridgeKind::So101 => {
+                    let weight = match arm.bridge {
+                        BridgeKind::Sim => arm.sim.as_ref().map_or(1.0, |c| c.ik_orientation_weight),
+                        _ => arm.so101.as_ref().map_or(1.0, |c| c.ik_orientation_weight),
+                    };
+                    Some(
+                        phone2act_core::So101JointStage::new(joint_speeds, weight)
+                            .map(phone2act_core::ArmJointStage::So101),
+                    )
+                }
+                BridgeKind::Dobot => Some(
+                    phone2act_core::Cr5JointStage::new(joint_speeds).map(phone2act_core::ArmJointStage::Cr5),
+                ),
+                BridgeKind::Remote => None,
             };
-            let controller = match orientation_weight {
-                Some(weight) => controller
-                    .with_joint_stage(joint_speeds, weight)
+            let controller = match stage {
+                Some(stage) => controller
+                    .with_joint_stage(stage.map_err(|e| arm_err(e.to_string()))?)
                     .map_err(|e| arm_err(e.to_string()))?,
                 None => controller,
             };

@@ -15,9 +15,9 @@ use phone2act_bridges::{Bridge, BridgeError, Feedback, Health};
 use phone2act_clock::monotonic_ns;
 use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
-    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmLayout, ArmSnapshot, BridgeHealth, ChunkConfig,
-    ChunkStep, Effects, FlightEntry, FlightHeader, Input, LayoutError, Measured, Outcome, ReplaceReport,
-    Robot, So101JointStage, TeleopConfig, TeleopRound, TickNeed,
+    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmJointStage, ArmLayout, ArmSnapshot, BridgeHealth,
+    ChunkConfig, ChunkStep, Effects, FlightEntry, FlightHeader, Input, LayoutError, Measured, Outcome,
+    ReplaceReport, Robot, TeleopConfig, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
@@ -37,6 +37,13 @@ pub trait RevocationSink: Send + Sync + std::fmt::Debug {
 }
 
 /// What one teleop round did.
+/// Largest distance between the robot's reported tool position and the joint model's position of its reported
+/// joints for the server to drive the arm through the model: 5 mm, well above the model's rounding (the CR5
+/// URDF gives its lengths to the millimetre) and far below what a wrong base frame, tool or joint zero gives.
+const MODEL_MATCH_M: f64 = 5e-3;
+/// The same for the orientation: 0.05 rad (about 3°).
+const MODEL_MATCH_RAD: f64 = 0.05;
+
 #[derive(Debug, Clone)]
 pub struct TeleopOutcome {
     /// Per-sample error for the phone (invalid pose, bad gripper value); empty when fine.
@@ -68,8 +75,12 @@ pub enum ArmError {
         #[source]
         source: crate::flight_log::FlightLogError,
     },
-    #[error("arm {arm}: joint limits are enforced in the server only for SO-101 joints")]
+    #[error("arm {arm}: joint limits are enforced in the server only for SO-101 and Dobot CR5 joints")]
     JointStageUnsupported { arm: String },
+    #[error(
+        "arm {arm}: the robot's reported tool pose is {off_mm:.1} mm and {off_deg:.1}° from the joint model's pose of its reported joints; joint limits cannot be enforced with this model"
+    )]
+    JointModelMismatch { arm: String, off_mm: f64, off_deg: f64 },
     #[error("arm {arm:?} {source}")]
     Refused {
         arm: String,
@@ -125,9 +136,9 @@ struct Inner {
     joint_seed: Option<Vec<f64>>,
     /// The flight recorder, when on: every input handed to the arbiter, in order, under this lock.
     flight: Option<FlightLogWriter>,
-    /// SO-101 arms (sim, so101): every command's joints are solved and rate-limited here, once; the bridge
-    /// drives to them and the recorder records them.
-    joints: Option<So101JointStage>,
+    /// Arms whose kinematics the server knows (sim, so101, dobot): every command's joints are solved and
+    /// rate-limited here, once; the bridge drives to them and the recorder records them.
+    joints: Option<ArmJointStage>,
     /// `seq` of the last command handed to the bridge (a catch-up command repeats it: same target).
     last_seq: u64,
 }
@@ -135,7 +146,7 @@ struct Inner {
 impl Inner {
     /// The arbiter's need, and ticks at the rate while the joint stage is still catching up with the target.
     fn tick_need(&self) -> TickNeed {
-        if self.joints.as_ref().is_some_and(So101JointStage::behind) {
+        if self.joints.as_ref().is_some_and(ArmJointStage::behind) {
             TickNeed::Periodic
         } else {
             self.arbiter.tick_need()
@@ -268,27 +279,36 @@ impl ArmController {
         Ok(self)
     }
 
-    /// Solves this SO-101 arm's commands in the server: each target once, seeded with the joints last
-    /// commanded, through the joint speed limits `max_velocity_rad_s` (five, rad/s), with the bridge's IK
-    /// orientation weight. See `phone2act_core::joint_motion`.
-    pub fn with_joint_stage(
-        self,
-        max_velocity_rad_s: Vec<f64>,
-        orientation_weight: f64,
-    ) -> Result<Self, ArmError> {
-        if self.kinematics.is_none() {
+    /// Solves this arm's commands in the server with `stage` (an SO-101's or a CR5's): each target once,
+    /// seeded with the joints last commanded, through the stage's joint speed limits. See
+    /// `phone2act_core::joint_motion`. Refused for a bridge whose joints are not the stage's, and when the
+    /// robot's own tool pose disagrees with the model's pose of its reported joints (a controller whose base
+    /// frame, tool or joint zeros differ from the model would be driven somewhere else than asked).
+    pub fn with_joint_stage(self, mut stage: ArmJointStage) -> Result<Self, ArmError> {
+        let fits = match &stage {
+            ArmJointStage::So101(_) => self.kinematics.is_some(),
+            ArmJointStage::Cr5(_) => self.bridge.joint_names().len() == phone2act_core::kinematics::CR5_DOF,
+        };
+        if !fits {
             return Err(ArmError::JointStageUnsupported {
                 arm: self.name.clone(),
             });
         }
-        let mut stage = So101JointStage::new(max_velocity_rad_s, orientation_weight).map_err(|source| {
-            ArmError::Config {
-                arm: self.name.clone(),
-                source,
-            }
-        })?;
         if let Some(feedback) = self.bridge.feedback() {
+            if let Some(model) = stage.forward(&feedback.joint_positions_rad) {
+                let off_m = (model.translation.vector - feedback.robot_from_ee.translation.vector).norm();
+                let off_rad = model.rotation.angle_to(&feedback.robot_from_ee.rotation);
+                if off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD {
+                    return Err(ArmError::JointModelMismatch {
+                        arm: self.name.clone(),
+                        off_mm: off_m * 1e3,
+                        off_deg: off_rad.to_degrees(),
+                    });
+                }
+            }
             stage.reset(&feedback.joint_positions_rad, now_s());
+        } else {
+            tracing::warn!(arm = %self.name, "no feedback at start: the joint model was not checked against the robot");
         }
         self.inner.lock().joints = Some(stage);
         Ok(self)
@@ -368,7 +388,7 @@ impl ArmController {
             command_time_ns = Some(self.send_locked(inner, c.seq, &c.robot_from_target, c.gripper));
         }
         // The last command did not get there within the joint limits: solve it again next tick.
-        if effects.commands.is_empty() && inner.joints.as_ref().is_some_and(So101JointStage::behind) {
+        if effects.commands.is_empty() && inner.joints.as_ref().is_some_and(ArmJointStage::behind) {
             let (target, gripper) = inner.arbiter.target();
             command_time_ns = Some(self.send_locked(inner, inner.last_seq, &target, gripper));
         }
@@ -392,12 +412,10 @@ impl ArmController {
     /// time.
     fn send_locked(&self, inner: &mut Inner, seq: u64, target: &Isometry3<f64>, gripper: f64) -> i64 {
         let issue_time_ns = monotonic_ns();
-        let joint_targets_rad = inner.joints.as_mut().map(|stage| {
-            stage
-                .plan(target, issue_time_ns as f64 * 1e-9)
-                .joints_rad
-                .to_vec()
-        });
+        let joint_targets_rad = inner
+            .joints
+            .as_mut()
+            .map(|stage| stage.plan(target, issue_time_ns as f64 * 1e-9));
         self.bridge.send(phone2act_bridges::Command {
             seq,
             robot_from_target: *target,
@@ -685,13 +703,12 @@ impl ArmController {
             joint_counters: inner
                 .joints
                 .as_ref()
-                .map(So101JointStage::counters)
+                .map(ArmJointStage::counters)
                 .unwrap_or_default(),
             joint_targets_rad: inner
                 .joints
                 .as_ref()
-                .and_then(So101JointStage::commanded)
-                .map(|q| q.to_vec())
+                .and_then(ArmJointStage::commanded)
                 .unwrap_or_default(),
             joint_targets_time_ns: inner
                 .joints
@@ -729,11 +746,11 @@ impl ArmController {
             last_reason: inner.arbiter.last_decision().reason.clone(),
             warning: self.bridge.warning().unwrap_or_default(),
         };
-        let commanded = inner.joints.as_ref().and_then(So101JointStage::commanded);
+        let commanded = inner.joints.as_ref().and_then(ArmJointStage::commanded);
         let action = if let (ActionMode::Joint, Some(joints)) = (self.action_mode, commanded) {
             // Exactly the joints the bridge was sent: no second solve with another seed.
             drop(inner);
-            let mut native = joints.to_vec();
+            let mut native = joints;
             native.push(gripper);
             self.layout.joint_step_from_native(&native)
         } else if let (ActionMode::Joint, Some(kinematics)) = (self.action_mode, &self.kinematics) {

@@ -370,3 +370,133 @@ async fn a_policy_in_every_action_mode_moves_no_joint_past_its_limit() {
         }
     }
 }
+
+/// The shipped CR5 configuration pointed at the Dobot controller emulator, without cameras, every joint
+/// limited to `max_velocity_rad_s`, phone rotations taken as robot rotations.
+fn cr5_config(
+    emu: &phone2act_bridges::dobot::emulator::DobotEmulator,
+    dataset: &Path,
+    max_velocity_rad_s: f64,
+) -> phone2act_server::Config {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../server/config/dobot-cr5.toml");
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut config = phone2act_server::Config::from_toml_str(&text, path, Vec::new()).unwrap();
+    let arm = &mut config.arms[0];
+    let dobot = arm.dobot.as_mut().unwrap();
+    "127.0.0.1".clone_into(&mut dobot.host);
+    dobot.dashboard_port = emu.dashboard_addr().port();
+    dobot.feedback_port = emu.feedback_addr().port();
+    arm.joint_limits.max_velocity_rad_s = vec![max_velocity_rad_s];
+    arm.teleop.mapping.preset = AxisPreset::Identity;
+    config.cameras.clear();
+    dataset.clone_into(&mut config.recorder.root);
+    config
+}
+
+/// A CR5 on the Dobot controller emulator: the phone turns 1.5 rad about the vertical in five 0.3 rad
+/// samples (each within the gate's jump limit) and then holds. The server solves the CR5's joints and sends
+/// them as `ServoJ`; at 0.5 rad/s the turn takes about three seconds of small steps. Unlimited, each sample
+/// would reach the controller as one 0.3 rad joint step.
+///
+/// The limit holds between the server's issue times, which the emulator does not see; it sees receive times.
+/// Two commands' issue-to-receive delays differ by at most `SEND_JITTER_S` (a bridge thread stalled that long
+/// for one command and not its neighbour), so a step is checked against the limit over the receive gap plus
+/// that; 0.25 s at 0.5 rad/s is 0.125 rad, still less than half the unlimited step.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cr5_orientation_jump_reaches_the_controller_as_servo_j_steps_within_the_limit() {
+    use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
+    const LIMIT_RAD_S: f64 = 0.5;
+    const SEND_JITTER_S: f64 = 0.25;
+    const TURN_RAD: f64 = 1.5;
+    let emu = DobotEmulator::start(EmulatorConfig::default()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(cr5_config(&emu, dir.path(), LIMIT_RAD_S))
+        .await
+        .unwrap();
+    let client = server.client().await.unwrap();
+    assert!(
+        phone2act_tests::wait_until(Duration::from_secs(10), || async {
+            arm_state(&client, "main").await.joint_targets_rad.len() == 6
+        })
+        .await,
+        "the CR5 arm never reported its joints"
+    );
+    let start = emu.snapshot();
+    let goal = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), TURN_RAD) * start.pose.rotation;
+    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
+    let seq = phone
+        .send_pose(
+            v1::Pose::from_parts([0.0; 3], quat_msg(&UnitQuaternion::identity())),
+            vec![buttons::clutch_engage()],
+            0,
+        )
+        .await
+        .unwrap();
+    let fb = phone.feedback_for(seq).await.unwrap();
+    assert!(fb.arm_state.as_ref().unwrap().engaged, "{}", fb.error);
+    let mut tick = tokio::time::interval(Duration::from_millis(20));
+    let mut arrived = false;
+    // Five turning samples, then the final pose held until the emulated arm gets there (or 30 s).
+    for i in 1..=1500 {
+        tick.tick().await;
+        let angle = TURN_RAD * f64::from(i.min(5)) / 5.0;
+        let turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), angle);
+        let seq = phone
+            .send_pose(v1::Pose::from_parts([0.0; 3], quat_msg(&turn)), vec![], 0)
+            .await
+            .unwrap();
+        let fb = phone.feedback_for(seq).await.unwrap();
+        assert!(fb.error.is_empty(), "{}", fb.error);
+        if i > 5 && emu.snapshot().pose.rotation.angle_to(&goal) < 0.01 {
+            arrived = true;
+            break;
+        }
+    }
+    let end = emu.snapshot();
+    let state = arm_state(&client, "main").await;
+    drop(phone);
+    server.shutdown().await.unwrap();
+    assert!(arrived, "the emulated CR5 never turned to the target: {end:?}");
+    let log = &end.servo_j_log;
+    let mut largest_step_of_limit: f64 = 0.0;
+    let mut largest_step_rad: f64 = 0.0;
+    for pair in log.windows(2) {
+        let ((t0, q0), (t1, q1)) = (pair[0], pair[1]);
+        let step = q0.iter().zip(&q1).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let allowed = LIMIT_RAD_S * ((t1 - t0).as_secs_f64() + SEND_JITTER_S);
+        largest_step_of_limit = largest_step_of_limit.max(step / allowed);
+        largest_step_rad = largest_step_rad.max(step);
+    }
+    let travel: f64 = (0..6)
+        .map(|j| (log.last().unwrap().1[j] - log[0].1[j]).abs())
+        .fold(0.0, f64::max);
+    let span_s = (log.last().unwrap().0 - log[0].0).as_secs_f64();
+    let position_moved_m = (end.pose.translation.vector - start.pose.translation.vector).norm();
+    println!(
+        "CR5 turn: {} ServoJ, largest step {largest_step_rad:.4} rad ({largest_step_of_limit:.3} of the limit with the \
+         jitter allowance), largest joint travel {travel:.3} rad in {span_s:.2} s, tool moved {:.3} mm; limited {}",
+        log.len(),
+        position_moved_m * 1e3,
+        state.commands_joint_limited
+    );
+    assert!(
+        end.last_servo_command
+            .as_deref()
+            .is_some_and(|c| c.starts_with("ServoJ(")),
+        "{:?}",
+        end.last_servo_command
+    );
+    assert!(travel > 1.0, "the turn moved no joint far: {travel} rad");
+    assert!(
+        largest_step_of_limit <= 1.0,
+        "a ServoJ step of {largest_step_rad} rad"
+    );
+    // The whole turn cannot have gone faster than the limit either.
+    assert!(
+        travel <= LIMIT_RAD_S * (span_s + SEND_JITTER_S),
+        "{travel} rad in {span_s} s"
+    );
+    // The turn is about the tool's own position: a 6-DoF arm keeps it (the inverse kinematics' 0.1 mm
+    // tolerance, and the emulator's straight joint-space line between two close solutions).
+    assert!(position_moved_m < 1e-3, "the tool moved {position_moved_m} m");
+}

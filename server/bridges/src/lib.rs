@@ -34,7 +34,7 @@ pub struct Command {
     /// The joints to drive to (radians, in the order of [`Bridge::joint_names`]), when the server solved the
     /// target for an arm whose kinematics it knows: already through the joint rate limits, so the robot, the
     /// recorded action and the next solve's seed are the same joints. `None`: the bridge solves the pose
-    /// itself (Dobot, remote bridges, and callers other than the server).
+    /// itself (remote bridges, and callers other than the server).
     pub joint_targets_rad: Option<Vec<f64>>,
 }
 

@@ -61,6 +61,11 @@ struct State {
     health: Health,
     supports_orientation: bool,
     shut_down: bool,
+    /// The arm's joint speed limits, checked against the measured joints (the remote robot solves and moves
+    /// its own joints, so the server cannot enforce them: docs/joint-limits.md).
+    speed_watch: Option<phone2act_core::joint_limit::JointSpeedWatch>,
+    /// The last joint measured over its limit, for [`Bridge::warning`].
+    overspeed: Option<String>,
 }
 
 #[derive(Debug)]
@@ -118,11 +123,33 @@ impl RemoteBridge {
                     health: Health::Disconnected("no remote bridge attached".into()),
                     supports_orientation: true,
                     shut_down: false,
+                    speed_watch: None,
+                    overspeed: None,
                 }),
                 changed: Condvar::new(),
                 joint_names,
             }),
         })
+    }
+
+    /// Checks every measured joint against these speed limits (rad/s, one per joint): a joint measured faster
+    /// is counted and shown as the bridge's warning. Checked, not enforced: the remote robot moves its own
+    /// joints.
+    pub fn watch_joint_speeds(&self, max_velocity_rad_s: Vec<f64>) -> Result<(), BridgeError> {
+        let watch = phone2act_core::joint_limit::JointSpeedWatch::new(max_velocity_rad_s)
+            .map_err(|e| BridgeError::Config(e.to_string()))?;
+        self.shared.state.lock().speed_watch = Some(watch);
+        Ok(())
+    }
+
+    /// Feedback samples whose joints were measured over their speed limits, since start.
+    pub fn joint_overspeeds(&self) -> u64 {
+        self.shared
+            .state
+            .lock()
+            .speed_watch
+            .as_ref()
+            .map_or(0, |w| w.overspeeds)
     }
 
     /// The arm name this bridge serves.
@@ -206,6 +233,10 @@ impl Bridge for RemoteBridge {
 
     fn feedback(&self) -> Option<Feedback> {
         self.shared.state.lock().feedback.clone()
+    }
+
+    fn warning(&self) -> Option<String> {
+        self.shared.state.lock().overspeed.clone()
     }
 
     /// Ready only once the attached bridge has sent valid feedback: joint names alone measure nothing.
@@ -327,6 +358,28 @@ impl AttachHandle {
             return Err(RemoteError::InvalidFeedback(problem));
         }
         state.feedback_problem = None;
+        let time_s = feedback.capture_time_ns as f64 * 1e-9;
+        let over = state
+            .speed_watch
+            .as_mut()
+            .and_then(|w| Some((w.observe(&feedback.joint_positions_rad, time_s)?, w.overspeeds)));
+        if let Some((o, count)) = over {
+            let name = self
+                .shared
+                .joint_names
+                .get()
+                .and_then(|n| n.get(o.joint))
+                .map_or("?", String::as_str);
+            let message = format!(
+                "joint {name} measured at {:.2} rad/s, over its {:.2} rad/s limit ({count} samples so far)",
+                o.speed_rad_s, o.limit_rad_s
+            );
+            // The first and then every hundredth: a robot that keeps overspeeding must not flood the log.
+            if count == 1 || count % 100 == 0 {
+                tracing::warn!(arm = %self.arm, "{message}");
+            }
+            state.overspeed = Some(message);
+        }
         state.feedback = Some(feedback);
         Ok(())
     }
@@ -563,5 +616,35 @@ mod tests {
         assert_eq!(t.join().unwrap(), Err(RemoteError::ShutDown));
         assert_eq!(remote.attach(names(), true).err(), Some(RemoteError::ShutDown));
         assert!(matches!(remote.health(), Health::Disconnected(m) if m == "shut down"));
+    }
+    #[test]
+    fn joints_measured_faster_than_their_limits_are_counted_and_shown() {
+        let remote = RemoteBridge::with_joint_names("arm", names());
+        remote.watch_joint_speeds(vec![1.0, 1.0, 1.0]).unwrap();
+        let handle = remote.attach(names(), true).unwrap();
+        let at = |t_s: f64, q: [f64; 3]| Feedback {
+            capture_time_ns: (t_s * 1e9) as i64,
+            ..feedback(q.to_vec())
+        };
+        // 0.8 rad/s on j2: within its limit.
+        for i in 0..30 {
+            let t = f64::from(i) * 0.01;
+            handle.publish_feedback(at(t, [0.0, 0.8 * t, 0.0])).unwrap();
+        }
+        assert_eq!((remote.joint_overspeeds(), remote.warning()), (0, None));
+        // Then 3 rad/s on j3.
+        for i in 30..60 {
+            let t = f64::from(i) * 0.01;
+            handle
+                .publish_feedback(at(t, [0.0, 0.24, 3.0 * (t - 0.3)]))
+                .unwrap();
+        }
+        assert!(remote.joint_overspeeds() > 10, "{}", remote.joint_overspeeds());
+        let warning = remote.warning().expect("a warning");
+        assert!(
+            warning.starts_with("joint j3 measured at 3.00 rad/s"),
+            "{warning}"
+        );
+        assert!(remote.watch_joint_speeds(vec![f64::NAN]).is_err());
     }
 }

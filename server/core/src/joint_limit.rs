@@ -142,6 +142,105 @@ impl JointRateLimiter {
     }
 }
 
+/// Speeds are measured over at least this long (s): feedback stamped on arrival jitters by milliseconds, which
+/// over one 10 ms sample would read as a speed several times the true one.
+pub const SPEED_WINDOW_S: f64 = 0.1;
+
+/// A measured speed counts as over its limit above this multiple of it: the measurement's own error (a few
+/// milliseconds of stamp jitter over the window) stays below it.
+pub const OVERSPEED_MARGIN: f64 = 1.2;
+
+/// A joint measured moving faster than its limit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Overspeed {
+    /// Index of the joint, base to tool.
+    pub joint: usize,
+    /// Its measured speed over the window, rad/s.
+    pub speed_rad_s: f64,
+    /// Its limit, rad/s.
+    pub limit_rad_s: f64,
+}
+
+/// Watches measured joints for speeds above their limits: for a robot whose joints the server does not command
+/// (a remote bridge solves its own), the limits can only be checked, not enforced. Pure: times are arguments.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointSpeedWatch {
+    max_velocity_rad_s: Vec<f64>,
+    /// The sample speeds are measured from: the newest one at least [`SPEED_WINDOW_S`] older than the last.
+    anchor: Option<(Vec<f64>, f64)>,
+    /// Samples after the anchor, oldest first (bounded by the window: one replaces the anchor once old enough).
+    recent: std::collections::VecDeque<(Vec<f64>, f64)>,
+    /// Samples that measured a joint over its limit.
+    pub overspeeds: u64,
+}
+
+impl JointSpeedWatch {
+    /// A watch over joints with these largest speeds; refuses a speed that is not finite and positive.
+    pub fn new(max_velocity_rad_s: Vec<f64>) -> Result<Self, ConfigError> {
+        JointRateLimiter::new(max_velocity_rad_s.clone())?;
+        Ok(Self {
+            max_velocity_rad_s,
+            anchor: None,
+            recent: std::collections::VecDeque::new(),
+            overspeeds: 0,
+        })
+    }
+
+    /// Takes the joints measured at `time_s`. Returns the fastest joint over its limit (by the ratio of speed to
+    /// limit), measured against a sample at least [`SPEED_WINDOW_S`] older, and counts it. A sample of another
+    /// width, not finite, or not later than the previous one starts the watch again.
+    pub fn observe(&mut self, joints_rad: &[f64], time_s: f64) -> Option<Overspeed> {
+        let newest_s = self.recent.back().or(self.anchor.as_ref()).map(|(_, t)| *t);
+        let usable = joints_rad.len() == self.max_velocity_rad_s.len()
+            && joints_rad.iter().all(|q| q.is_finite())
+            && time_s.is_finite()
+            && newest_s.is_none_or(|t| time_s > t);
+        if !usable {
+            self.anchor = None;
+            self.recent.clear();
+            if joints_rad.len() == self.max_velocity_rad_s.len() && joints_rad.iter().all(|q| q.is_finite()) {
+                self.anchor = Some((joints_rad.to_vec(), time_s));
+            }
+            return None;
+        }
+        // Move the anchor up to the newest sample still at least a window older than this one.
+        while let Some((_, t)) = self.recent.front() {
+            if time_s - t >= SPEED_WINDOW_S {
+                self.anchor = self.recent.pop_front();
+            } else {
+                break;
+            }
+        }
+        let found = match &self.anchor {
+            Some((q0, t0)) if time_s - t0 >= SPEED_WINDOW_S => {
+                let dt = time_s - t0;
+                joints_rad
+                    .iter()
+                    .zip(q0)
+                    .zip(&self.max_velocity_rad_s)
+                    .enumerate()
+                    .map(|(joint, ((q, q0), limit))| Overspeed {
+                        joint,
+                        speed_rad_s: (q - q0).abs() / dt,
+                        limit_rad_s: *limit,
+                    })
+                    .filter(|o| o.speed_rad_s > o.limit_rad_s * OVERSPEED_MARGIN)
+                    .max_by(|a, b| {
+                        (a.speed_rad_s / a.limit_rad_s).total_cmp(&(b.speed_rad_s / b.limit_rad_s))
+                    })
+            }
+            _ => None,
+        };
+        if self.anchor.is_none() {
+            self.anchor = Some((joints_rad.to_vec(), time_s));
+        } else {
+            self.recent.push_back((joints_rad.to_vec(), time_s));
+        }
+        self.overspeeds += u64::from(found.is_some());
+        found
+    }
+}
+
 #[cfg(test)]
 // Exact equality is the property: a step that fits, or no step, passes bit for bit.
 #[allow(clippy::float_cmp)]
@@ -289,5 +388,78 @@ mod tests {
                 last = s.joints_rad;
             }
         }
+    }
+    #[test]
+    fn a_joint_measured_over_its_limit_is_reported_and_counted() {
+        let mut w = JointSpeedWatch::new(vec![1.0, 2.0]).unwrap();
+        // 0.5 rad/s and 1.5 rad/s, sampled every 10 ms: within both limits.
+        for i in 0..50 {
+            let t = f64::from(i) * 0.01;
+            assert_eq!(w.observe(&[0.5 * t, 1.5 * t], t), None, "{t}");
+        }
+        // Joint 1 now at 3 rad/s (1.5 times its limit); joint 0 at 1.1 (within the margin).
+        let mut seen = None;
+        for i in 50..100 {
+            let t = f64::from(i) * 0.01;
+            let q = [0.25 + 1.1 * (t - 0.5), 0.75 + 3.0 * (t - 0.5)];
+            seen = w.observe(&q, t).or(seen);
+        }
+        let o = seen.expect("an overspeed");
+        assert_eq!(o.joint, 1);
+        assert!(
+            (o.speed_rad_s - 3.0).abs() < 1e-6 && o.limit_rad_s == 2.0,
+            "{o:?}"
+        );
+        assert!(w.overspeeds > 30 && w.overspeeds <= 50, "{}", w.overspeeds);
+    }
+
+    /// A sample that is not a measurement (not finite, another width, not later than the previous one) starts
+    /// the watch again: the next speed is never measured across it, from a sample taken before it.
+    #[test]
+    fn a_bad_sample_restarts_the_watch() {
+        for (bad, at_s) in [(vec![f64::NAN], 0.1), (vec![5.0, 5.0], 0.1), (vec![0.0], 0.05)] {
+            let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
+            assert_eq!(w.observe(&[0.0], 0.0), None);
+            assert_eq!(w.observe(&[0.0], 0.05), None);
+            assert_eq!(w.observe(&bad, at_s), None, "{bad:?}");
+            // 1 rad in 0.15 s from the first sample; less than a window since the restart.
+            assert_eq!(w.observe(&[1.0], 0.15), None, "{bad:?}");
+            if at_s > 0.05 {
+                // Nor measured from the bad sample itself.
+                assert_eq!(w.observe(&[1.0], 0.2), None, "{bad:?}");
+            }
+            assert_eq!(w.overspeeds, 0);
+        }
+        // A sample earlier than the last is a new start of its own: speeds are measured from it.
+        let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
+        assert_eq!(w.observe(&[0.0], 2.0), None);
+        assert_eq!(w.observe(&[0.0], 0.5), None);
+        // Not before a whole window has passed, however fast.
+        assert_eq!(w.observe(&[0.05], 0.55), None);
+        assert!(w.observe(&[1.0], 0.65).is_some());
+    }
+
+    #[test]
+    fn jitter_within_the_window_is_not_a_speed() {
+        let mut w = JointSpeedWatch::new(vec![1.0]).unwrap();
+        // 0.9 rad/s, stamps jittering by up to 4 ms around a 10 ms period: one sample pair reads up to 4.5
+        // rad/s, the window never more than 0.9 · 0.1 / 0.092.
+        for i in 0..200 {
+            let true_t = f64::from(i) * 0.01;
+            let stamp = true_t + if i % 2 == 0 { 0.004 } else { -0.004 };
+            assert_eq!(w.observe(&[0.9 * true_t], stamp), None, "{i}");
+        }
+        assert_eq!(w.overspeeds, 0);
+        // A jump back in time, a wrong width or a NaN restarts it instead of reading a speed.
+        assert_eq!(w.observe(&[5.0], 0.5), None);
+        assert_eq!(w.observe(&[5.0, 1.0], 3.0), None);
+        assert_eq!(w.observe(&[f64::NAN], 3.1), None);
+        assert_eq!(w.observe(&[0.0], 3.2), None);
+        assert_eq!(w.observe(&[0.05], 3.25), None);
+        assert!(
+            w.observe(&[0.2], 3.31).is_some(),
+            "1.8 rad/s over the 0.11 s window"
+        );
+        assert!(JointSpeedWatch::new(vec![0.0]).is_err());
     }
 }

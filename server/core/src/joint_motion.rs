@@ -1,6 +1,7 @@
-//! Joint targets for arms whose kinematics the server knows (the SO-101, simulated or on its servo bus): the
-//! one place a gated task-space target becomes the joints a bridge drives to, the joints the recorder
-//! records as the action, and the joints the next target is solved from.
+//! Joint targets for arms whose kinematics the server knows (the SO-101, simulated or on its servo bus, and the
+//! Dobot CR5): the one place a gated task-space target becomes the joints a bridge drives to, the joints the
+//! recorder records as the action, and the joints the next target is solved from. One [`JointStage`] serves
+//! both, over their [`ChainKinematics`].
 //!
 //! Each command is solved once, seeded with the joints last commanded (not the lagging measured ones), and
 //! then passes the [`JointRateLimiter`]. Two rules keep the solution continuous:
@@ -26,7 +27,7 @@
 
 use crate::config::ConfigError;
 use crate::joint_limit::JointRateLimiter;
-use crate::kinematics::{IkWeights, SO101_ARM_DOF, So101Joints, So101Kinematics, clamp_to_limits};
+use crate::kinematics::{CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, So101Kinematics};
 use nalgebra::{Isometry3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -59,6 +60,10 @@ pub const ORIENTATION_REACHED_RAD: f64 = 0.01;
 
 /// Halvings of the orientation step tried before falling back to position only.
 const ORIENTATION_HALVINGS: usize = 3;
+
+/// A missed orientation aim is solved again next tick only if the last command gained this much on the target
+/// (rad, a tenth of [`ORIENTATION_REACHED_RAD`]).
+const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
@@ -107,8 +112,8 @@ pub struct JointCounters {
 
 /// The joints one command sends, and what was given up to send them.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PlannedJoints {
-    pub joints_rad: So101Joints,
+pub struct PlannedJoints<const N: usize = SO101_ARM_DOF> {
+    pub joints_rad: [f64; N],
     /// The tool pose these joints put the arm in.
     pub achieved: Isometry3<f64>,
     /// Distance from the achieved tool position to the target's.
@@ -123,10 +128,10 @@ pub struct PlannedJoints {
     pub invalid_input: bool,
 }
 
-/// The joint stage of one SO-101 (see the module documentation). Pure: time is an argument.
+/// The joint stage of one arm of `N` joints (see the module documentation). Pure: time is an argument.
 #[derive(Debug, Clone)]
-pub struct So101JointStage {
-    kinematics: So101Kinematics,
+pub struct JointStage<const N: usize> {
+    kinematics: ChainKinematics<N>,
     orientation_weight: f64,
     limiter: JointRateLimiter,
     /// The slowest joint's speed: the turn one period of the wrist is sure to manage.
@@ -135,16 +140,43 @@ pub struct So101JointStage {
     turn_axis: Option<Vector3<f64>>,
     counters: JointCounters,
     behind: bool,
+    /// Orientation error left by the last command, rad (infinite after a reset).
+    last_orientation_error_rad: f64,
 }
 
+/// The SO-101's joint stage.
+pub type So101JointStage = JointStage<SO101_ARM_DOF>;
+
+/// The Dobot CR5's joint stage.
+pub type Cr5JointStage = JointStage<CR5_DOF>;
+
 impl So101JointStage {
-    /// A stage with these joint speeds (five, rad/s) and IK orientation weight (0 = position only, 1 = as
-    /// much orientation as the arm allows; the bridge's `ik_orientation_weight`).
+    /// An SO-101 stage with these joint speeds (five, rad/s) and IK orientation weight (0 = position only, 1 =
+    /// as much orientation as the arm allows; the bridge's `ik_orientation_weight`).
     pub fn new(max_velocity_rad_s: Vec<f64>, orientation_weight: f64) -> Result<Self, ConfigError> {
-        if max_velocity_rad_s.len() != SO101_ARM_DOF {
+        Self::with_kinematics(So101Kinematics::new(), max_velocity_rad_s, orientation_weight)
+    }
+}
+
+impl Cr5JointStage {
+    /// A CR5 stage with these joint speeds (six, rad/s), aiming at the full orientation (a 6-DoF arm reaches
+    /// it inside its workspace).
+    pub fn new(max_velocity_rad_s: Vec<f64>) -> Result<Self, ConfigError> {
+        Self::with_kinematics(Cr5Kinematics::new(), max_velocity_rad_s, 1.0)
+    }
+}
+
+impl<const N: usize> JointStage<N> {
+    /// A stage over `kinematics` with these joint speeds (`N`, rad/s) and IK orientation weight.
+    pub fn with_kinematics(
+        kinematics: ChainKinematics<N>,
+        max_velocity_rad_s: Vec<f64>,
+        orientation_weight: f64,
+    ) -> Result<Self, ConfigError> {
+        if max_velocity_rad_s.len() != N {
             return Err(ConfigError::WrongLength {
                 name: "max_velocity_rad_s",
-                expected: SO101_ARM_DOF,
+                expected: N,
                 got: max_velocity_rad_s.len(),
             });
         }
@@ -161,23 +193,24 @@ impl So101JointStage {
             .copied()
             .fold(f64::INFINITY, f64::min);
         Ok(Self {
-            kinematics: So101Kinematics::new(),
+            kinematics,
             orientation_weight,
             limiter,
             aim_speed_rad_s,
             turn_axis: None,
             counters: JointCounters::default(),
             behind: false,
+            last_orientation_error_rad: f64::INFINITY,
         })
     }
 
     /// Starts from the measured joints at `time_s` (at start, and whenever the arm's source changes or it was
     /// teleported): the next command is solved and limited from there.
     pub fn reset(&mut self, measured_rad: &[f64], time_s: f64) {
-        let joints = to_joints(measured_rad).map(|q| clamp_to_limits(&q));
+        let joints = to_joints::<N>(measured_rad).map(|q| self.kinematics.clamp(&q));
         match joints {
             Some(q) => self.limiter.reset(&q, time_s),
-            // Not an SO-101's joints: no start, so the next command is not limited from a wrong one.
+            // Not this arm's joints: no start, so the next command is not limited from a wrong one.
             None => {
                 self.limiter = JointRateLimiter::new(self.limiter.max_velocity_rad_s().to_vec())
                     .expect("speeds were validated");
@@ -185,10 +218,11 @@ impl So101JointStage {
         }
         self.turn_axis = None;
         self.behind = false;
+        self.last_orientation_error_rad = f64::INFINITY;
     }
 
     /// The joints last commanded (or reset to).
-    pub fn commanded(&self) -> Option<So101Joints> {
+    pub fn commanded(&self) -> Option<[f64; N]> {
         self.limiter.last().and_then(to_joints)
     }
 
@@ -213,10 +247,10 @@ impl So101JointStage {
     }
 
     /// The joints to command for `target` at `time_s`.
-    pub fn plan(&mut self, target: &Isometry3<f64>, time_s: f64) -> PlannedJoints {
+    pub fn plan(&mut self, target: &Isometry3<f64>, time_s: f64) -> PlannedJoints<N> {
         let seed = self
             .commanded()
-            .unwrap_or_else(|| clamp_to_limits(&[0.0; SO101_ARM_DOF]));
+            .unwrap_or_else(|| self.kinematics.clamp(&[0.0; N]));
         let dt = self.limiter.elapsed_s(time_s);
         let from = self.kinematics.forward(&seed);
         let finite = target
@@ -240,6 +274,10 @@ impl So101JointStage {
         let mut aim_rad = wanted_rad.min(self.aim_speed_rad_s * dt).min(MAX_AIM_STEP_RAD);
         let capped = aim_rad < wanted_rad;
         let mut solution = None;
+        // Each halved solve starts halfway between the seed and the previous attempt's joints, where its answer
+        // about lies: a few iterations instead of a solve from the seed. Position only starts from the seed,
+        // which already meets a position that did not move, so it needs no motion then.
+        let mut start = seed;
         for attempt in 0..=ORIENTATION_HALVINGS + 1 {
             let position_only = attempt > ORIENTATION_HALVINGS || self.orientation_weight <= 0.0;
             let aim = UnitQuaternion::from_axis_angle(&axis, aim_rad) * from.rotation;
@@ -249,13 +287,18 @@ impl So101JointStage {
             } else {
                 IkWeights::FULL
             };
-            let ik = self.kinematics.inverse(&goal, &seed, weights);
+            let from_joints = if position_only { &seed } else { &start };
+            let ik = self.kinematics.inverse(&goal, from_joints, weights);
             let fits = self.limiter.scale(&ik.joints_rad, time_s) >= 1.0;
             let missed = !position_only && ik.orientation_error_rad > ORIENTATION_REACHED_RAD;
-            solution = Some((ik, missed));
             if fits || position_only {
+                solution = Some((ik, missed));
                 break;
             }
+            for ((s, q), q0) in start.iter_mut().zip(&ik.joints_rad).zip(&seed) {
+                *s = 0.5 * (q + q0);
+            }
+            solution = Some((ik, missed));
             aim_rad *= 0.5;
         }
         let (ik, missed) = solution.expect("at least one solve");
@@ -267,14 +310,20 @@ impl So101JointStage {
             .zip(&seed)
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        self.behind = step.limited || (capped && moved > SETTLED_RAD);
+        let orientation_error_rad = target.rotation.angle_to(&achieved.rotation);
+        // A capped aim that was reached leaves more turn to do. One that was missed is worth another solve only
+        // while the turn still gains on the target: a 5-DoF arm held at an orientation it cannot reach otherwise
+        // re-solves the same pose at the full tick rate for as long as the target stays.
+        let gaining = orientation_error_rad < self.last_orientation_error_rad - CATCH_UP_GAIN_RAD;
+        self.last_orientation_error_rad = orientation_error_rad;
+        self.behind = step.limited || (capped && moved > SETTLED_RAD && (!missed || gaining));
         self.counters.limited += u64::from(step.limited);
         self.counters.orientation_unreachable += u64::from(missed);
         PlannedJoints {
             joints_rad,
             achieved,
             position_error_m: (target.translation.vector - achieved.translation.vector).norm(),
-            orientation_error_rad: target.rotation.angle_to(&achieved.rotation),
+            orientation_error_rad,
             limited: step.limited,
             orientation_unreachable: missed,
             invalid_input: false,
@@ -304,7 +353,61 @@ impl So101JointStage {
     }
 }
 
-fn to_joints(v: &[f64]) -> Option<So101Joints> {
+/// The joint stage of an arm whose kinematics the server knows, whichever robot it is: what the arm
+/// controller holds.
+#[derive(Debug, Clone)]
+pub enum ArmJointStage {
+    So101(So101JointStage),
+    Cr5(Cr5JointStage),
+}
+
+macro_rules! each_stage {
+    ($self:expr, $stage:ident => $body:expr) => {
+        match $self {
+            ArmJointStage::So101($stage) => $body,
+            ArmJointStage::Cr5($stage) => $body,
+        }
+    };
+}
+
+impl ArmJointStage {
+    /// See [`JointStage::reset`].
+    pub fn reset(&mut self, measured_rad: &[f64], time_s: f64) {
+        each_stage!(self, s => s.reset(measured_rad, time_s));
+    }
+
+    /// See [`JointStage::plan`]: the joints to command, base to tool.
+    pub fn plan(&mut self, target: &Isometry3<f64>, time_s: f64) -> Vec<f64> {
+        each_stage!(self, s => s.plan(target, time_s).joints_rad.to_vec())
+    }
+
+    /// See [`JointStage::commanded`].
+    pub fn commanded(&self) -> Option<Vec<f64>> {
+        each_stage!(self, s => s.commanded().map(|q| q.to_vec()))
+    }
+
+    /// See [`JointStage::commanded_time_s`].
+    pub fn commanded_time_s(&self) -> f64 {
+        each_stage!(self, s => s.commanded_time_s())
+    }
+
+    /// See [`JointStage::behind`].
+    pub fn behind(&self) -> bool {
+        each_stage!(self, s => s.behind())
+    }
+
+    /// See [`JointStage::counters`].
+    pub fn counters(&self) -> JointCounters {
+        each_stage!(self, s => s.counters())
+    }
+
+    /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
+    pub fn forward(&self, joints_rad: &[f64]) -> Option<Isometry3<f64>> {
+        each_stage!(self, s => to_joints(joints_rad).map(|q| s.kinematics.forward(&q)))
+    }
+}
+
+fn to_joints<const N: usize>(v: &[f64]) -> Option<[f64; N]> {
     v.try_into().ok()
 }
 
@@ -313,7 +416,7 @@ fn to_joints(v: &[f64]) -> Option<So101Joints> {
 #[allow(clippy::float_cmp)]
 mod tests {
     use super::*;
-    use crate::kinematics::{SO101_JOINT_LIMITS_RAD, within_limits};
+    use crate::kinematics::{SO101_JOINT_LIMITS_RAD, So101Joints, within_limits};
     use proptest::prelude::*;
 
     const PERIOD_S: f64 = 0.02;
@@ -496,9 +599,31 @@ mod tests {
     /// turns about arbitrary axes are among them) and checks every command. Returns the largest position
     /// error of the commands.
     fn run(start: So101Joints, moves: &[Move]) -> Result<f64, TestCaseError> {
-        let k = So101Kinematics::new();
+        run_stage(
+            &So101Kinematics::new(),
+            stage(),
+            STS3215_MAX_VELOCITY_RAD_S,
+            start,
+            moves,
+        )
+    }
+
+    /// [`run`] for any arm: `s` over `k`, every joint limited to `speed_rad_s`.
+    fn run_stage<const N: usize>(
+        k: &ChainKinematics<N>,
+        mut s: JointStage<N>,
+        speed_rad_s: f64,
+        start: [f64; N],
+        moves: &[Move],
+    ) -> Result<f64, TestCaseError> {
+        let step_ratio = |before: &[f64; N], after: &[f64; N], dt: f64| {
+            before
+                .iter()
+                .zip(after)
+                .map(|(a, b)| (a - b).abs() / (speed_rad_s * dt))
+                .fold(0.0, f64::max)
+        };
         let mut target = k.forward(&start);
-        let mut s = stage();
         s.reset(&start, 0.0);
         let mut t = 0.0;
         let mut previous = start;
@@ -517,8 +642,8 @@ mod tests {
                 );
                 t += m.dt_s;
                 let p = s.plan(&target, t);
-                prop_assert!(within_limits(&p.joints_rad), "{p:?}");
-                let ratio = largest_step_ratio(&previous, &p.joints_rad, m.dt_s);
+                prop_assert!(k.within_limits(&p.joints_rad), "{p:?}");
+                let ratio = step_ratio(&previous, &p.joints_rad, m.dt_s);
                 prop_assert!(
                     ratio <= 1.0 + 1e-9 || m.dt_s == 0.0 && p.joints_rad == previous,
                     "step {ratio} of the limit"
@@ -552,5 +677,122 @@ mod tests {
             let error = run(start, &moves)?;
             prop_assert!(error < 2e-4, "position error {error} m");
         }
+
+        /// The CR5: any target sequence the gate passes, full turns about any axis and positions toward and past
+        /// the edge of its 0.9 m reach included: no joint step exceeds its limit.
+        #[test]
+        fn no_cr5_command_exceeds_the_joint_limits(start in cr5_joints_strategy(),
+                                                   moves in prop::collection::vec(move_strategy(true), 1..6)) {
+            run_stage(&Cr5Kinematics::new(), cr5_stage(), CR5_MAX_VELOCITY_RAD_S, start, &moves)?;
+        }
+
+        /// The CR5 with the position held and the orientation anything (a 6-DoF arm reaches every orientation
+        /// away from its singularities; near them the turn slows to what the joints allow): every command keeps
+        /// the tool within 0.2 mm of the position, for the same reason as the SO-101's.
+        #[test]
+        fn a_cr5_held_position_stays_held_whatever_the_orientation(start in cr5_joints_strategy(),
+                                                                   moves in prop::collection::vec(move_strategy(false), 1..6)) {
+            let error = run_stage(&Cr5Kinematics::new(), cr5_stage(), CR5_MAX_VELOCITY_RAD_S, start, &moves)?;
+            prop_assert!(error < 2e-4, "position error {error} m");
+        }
+    }
+
+    fn cr5_stage() -> Cr5JointStage {
+        Cr5JointStage::new(vec![CR5_MAX_VELOCITY_RAD_S; CR5_DOF]).unwrap()
+    }
+
+    /// CR5 starts in its usual working region: elbow bent either way, wrist away from its J5 = 0 singularity.
+    fn cr5_joints_strategy() -> impl Strategy<Value = [f64; CR5_DOF]> {
+        (
+            -3.0f64..3.0,
+            -1.2f64..1.2,
+            prop_oneof![0.4f64..2.5, -2.5f64..-0.4],
+            -3.0f64..3.0,
+            prop_oneof![0.3f64..2.8, -2.8f64..-0.3],
+            -3.0f64..3.0,
+        )
+            .prop_map(|(a, b, c, d, e, f)| [a, b, c, d, e, f])
+    }
+
+    /// A move the limits allow in one period arrives in that command: nothing is left to catch up on, so the
+    /// arm does not tick again for it.
+    #[test]
+    fn a_move_that_fits_is_not_behind() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let target = k.forward(&[0.01, -0.39, 0.6, 0.9, 0.01]);
+        let p = s.plan(&target, PERIOD_S);
+        assert!(!p.limited && p.position_error_m < 1e-4, "{p:?}");
+        assert!(!s.behind());
+        // And its orientation, the pose of real joints, was reached: nothing counted as unreachable.
+        assert!(!p.orientation_unreachable && p.orientation_error_rad < ORIENTATION_REACHED_RAD);
+        assert_eq!(s.counters(), JointCounters::default());
+    }
+
+    /// The arm controller's handle passes everything through to the robot's stage.
+    #[test]
+    fn the_arm_stage_is_the_robots_stage() {
+        let k = Cr5Kinematics::new();
+        let start = [0.0, 0.3, 1.5, 0.0, 1.5, 0.0];
+        let mut direct = cr5_stage();
+        let mut arm = ArmJointStage::Cr5(cr5_stage());
+        assert_eq!(arm.commanded(), None);
+        direct.reset(&start, 1.0);
+        arm.reset(&start, 1.0);
+        assert_eq!(arm.commanded(), Some(start.to_vec()));
+        assert_eq!(arm.commanded_time_s(), 1.0);
+        let far = k.forward(&[0.9, -0.2, 1.2, 0.6, 1.1, -1.0]);
+        let planned = direct.plan(&far, 1.02);
+        assert_eq!(arm.plan(&far, 1.02), planned.joints_rad.to_vec());
+        assert!(arm.behind() && direct.behind());
+        assert_eq!(arm.counters(), direct.counters());
+        assert!(arm.counters().limited == 1);
+        assert_eq!(arm.forward(&start), Some(k.forward(&start)));
+        assert_eq!(arm.forward(&start[..5]), None);
+        let mut so101 = ArmJointStage::So101(stage());
+        so101.reset(&[0.0, -0.4, 0.6, 0.9, 0.0], 0.0);
+        assert_eq!(so101.commanded().map(|q| q.len()), Some(SO101_ARM_DOF));
+        assert!(!so101.behind());
+        assert_eq!(
+            so101.forward(&[0.0, -0.4, 0.6, 0.9, 0.0]),
+            Some(So101Kinematics::new().forward(&[0.0, -0.4, 0.6, 0.9, 0.0]))
+        );
+    }
+
+    /// A reachable CR5 target far from the start (a 6-DoF arm: position and orientation both) is approached
+    /// at the limit and reached, position and orientation.
+    #[test]
+    fn a_far_cr5_target_is_approached_at_the_limit_and_reached() {
+        let k = Cr5Kinematics::new();
+        let start = [0.0, 0.3, 1.5, 0.0, 1.5, 0.0];
+        let goal = [0.9, -0.2, 1.2, 0.6, 1.1, -1.0];
+        let target = k.forward(&goal);
+        let mut s = cr5_stage();
+        s.reset(&start, 0.0);
+        let mut previous = start;
+        let mut t = 0.0;
+        for _ in 0..400 {
+            t += PERIOD_S;
+            let p = s.plan(&target, t);
+            let ratio = previous
+                .iter()
+                .zip(&p.joints_rad)
+                .map(|(a, b)| (a - b).abs() / (CR5_MAX_VELOCITY_RAD_S * PERIOD_S))
+                .fold(0.0, f64::max);
+            assert!(ratio <= 1.0 + 1e-9, "{ratio}");
+            previous = p.joints_rad;
+            if !s.behind() {
+                break;
+            }
+        }
+        assert!(!s.behind(), "still behind after 8 s");
+        assert!(s.counters().limited > 5, "{:?}", s.counters());
+        let done = s.plan(&target, t + PERIOD_S);
+        assert!(
+            done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-3,
+            "{done:?}"
+        );
     }
 }

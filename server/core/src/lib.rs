@@ -29,7 +29,9 @@ pub use flight::{
 pub use gate::{GateDecision, GateVerdict, SafetyGate};
 pub use gripper::{Gripper, GripperCommand, GripperError};
 pub use joint_limit::{JointRateLimiter, LimitedStep};
-pub use joint_motion::{JointCounters, JointLimitConfig, PlannedJoints, So101JointStage};
+pub use joint_motion::{
+    ArmJointStage, Cr5JointStage, JointCounters, JointLimitConfig, JointStage, PlannedJoints, So101JointStage,
+};
 pub use layout::{
     ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, LerobotSo101Units, RELATIVE_STEP_WIDTH,
     absolute_action, joint_action, relative_step, step_from_target, target_from_joint_step, target_from_step,

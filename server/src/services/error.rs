@@ -124,7 +124,8 @@ impl From<ArmError> for Status {
             | ArmError::JointModeUnsupported { .. }
             | ArmError::LerobotLayoutUnsupported { .. }
             | ArmError::FlightLog { .. }
-            | ArmError::JointStageUnsupported { .. } => Status::failed_precondition(message),
+            | ArmError::JointStageUnsupported { .. }
+            | ArmError::JointModelMismatch { .. } => Status::failed_precondition(message),
         }
     }
 }

@@ -2,10 +2,12 @@
 //! separate motion port) answering `ErrorID,{values},Cmd;` as the controller does, a feedback port streaming the
 //! 1440-byte packet every 8 ms, and the HTTP tool-data endpoint that carries Modbus gripper frames.
 //!
-//! The arm is a point that moves toward the newest `ServoP` target so that it arrives `t` seconds after the
-//! command, capped at a maximum speed. There is no CR5 joint model: joints are reported as a fixed linear
-//! function of the tool pose, enough for feedback to move when the arm does. Faults can be injected: a robot
-//! error, dropped connections, and corrupt or truncated feedback packets.
+//! The arm follows the newest streaming target so that it arrives `t` seconds after the command: a `ServoP` pose
+//! moves the tool along a straight line (capped at a maximum speed) and the joints follow by the CR5 model's
+//! inverse kinematics; a `ServoJ` moves the joints along a straight joint-space line and the tool follows by its
+//! forward kinematics. Both use `phone2act_core::kinematics::Cr5Kinematics` (Dobot's published CR5 URDF), so
+//! the joints and the tool pose reported always agree. Faults can be injected: a robot error, dropped
+//! connections, and corrupt or truncated feedback packets.
 
 // Commands arrive from the network: slicing a `str` by byte index would panic on a multi-byte character.
 #![deny(clippy::string_slice)]
@@ -15,6 +17,7 @@ use super::gripper::parse_modbus_write_register;
 use super::protocol::{ErrorIds, Firmware, RobotMode, split_command, split_top_level};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use parking_lot::Mutex;
+use phone2act_core::kinematics::{Cr5Joints, Cr5Kinematics, IkWeights};
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::sync::Arc;
@@ -98,6 +101,10 @@ pub struct EmulatorSnapshot {
     pub servo_commands: u64,
     pub rejected_commands: u64,
     pub last_servo_command: Option<String>,
+    /// The joints, radians, J1..J6.
+    pub joints_rad: Cr5Joints,
+    /// Every `ServoJ` accepted (the newest [`SERVO_J_LOG`]): when it arrived and its joints, radians.
+    pub servo_j_log: Vec<(Instant, Cr5Joints)>,
     pub speed_factor: u32,
     pub digital_outputs: u64,
     pub tool_outputs: u8,
@@ -116,8 +123,16 @@ pub struct EmulatorSnapshot {
     pub http_refused: u64,
 }
 
+/// How many `ServoJ` commands [`EmulatorSnapshot::servo_j_log`] keeps.
+pub const SERVO_J_LOG: usize = 4096;
+
 #[derive(Debug)]
 struct State {
+    kinematics: Cr5Kinematics,
+    joints_rad: Cr5Joints,
+    /// The newest `ServoJ` target, while the arm moves in joint space.
+    joint_target_rad: Option<Cr5Joints>,
+    servo_j_log: std::collections::VecDeque<(Instant, Cr5Joints)>,
     mode: RobotMode,
     enabled: bool,
     error_ids: ErrorIds,
@@ -155,6 +170,13 @@ impl State {
             dt / self.remaining_s
         };
         self.remaining_s = (self.remaining_s - dt).max(0.0);
+        if let Some(goal) = self.joint_target_rad {
+            for (q, g) in self.joints_rad.iter_mut().zip(goal) {
+                *q += (g - *q) * frac;
+            }
+            self.pose = self.kinematics.forward(&self.joints_rad);
+            return;
+        }
         let delta = self.target.translation.vector - self.pose.translation.vector;
         let mut step = delta * frac;
         let max_step = max_speed_m_s * dt;
@@ -170,6 +192,10 @@ impl State {
         if self.remaining_s <= 0.0 && step.norm() < 1e-12 {
             self.pose.rotation = self.target.rotation;
         }
+        self.joints_rad = self
+            .kinematics
+            .inverse(&self.pose, &self.joints_rad, IkWeights::FULL)
+            .joints_rad;
     }
 
     fn fault_mode(&self) -> RobotMode {
@@ -229,8 +255,14 @@ impl DobotEmulator {
         let feedback_addr = feedback.local_addr()?;
         let http_addr = http.local_addr()?;
         let now = Instant::now();
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &config.initial_pose);
         let shared = Arc::new(Shared {
             state: Mutex::new(State {
+                kinematics,
+                joints_rad,
+                joint_target_rad: None,
+                servo_j_log: std::collections::VecDeque::new(),
                 mode: RobotMode::Disabled,
                 enabled: false,
                 error_ids: ErrorIds::default(),
@@ -311,6 +343,8 @@ impl DobotEmulator {
             servo_commands: s.servo_commands,
             rejected_commands: s.rejected_commands,
             last_servo_command: s.last_servo_command.clone(),
+            joints_rad: s.joints_rad,
+            servo_j_log: s.servo_j_log.iter().copied().collect(),
             speed_factor: s.speed_factor,
             digital_outputs: s.digital_outputs,
             tool_outputs: s.tool_outputs,
@@ -339,6 +373,7 @@ impl DobotEmulator {
         }
         s.mode = RobotMode::Error;
         s.target = s.pose;
+        s.joint_target_rad = None;
         s.remaining_s = 0.0;
     }
 
@@ -518,9 +553,32 @@ fn pose_mm_deg(pose: &Isometry3<f64>, convention: EulerConvention) -> [f64; 6] {
     [p.x, p.y, p.z, rx, ry, rz]
 }
 
-fn fake_joints_deg(pose_mm_deg: &[f64; 6]) -> [f64; 6] {
-    let [x, y, z, rx, ry, rz] = *pose_mm_deg;
-    [x / 10.0, y / 10.0, z / 10.0, rx, ry, rz]
+/// Joints that put the flange at `pose`: the first of a few elbow-up seeds from which the solve reaches it
+/// (the emulator's start; any solution will do, as long as joints and pose agree).
+fn joints_for(kinematics: &Cr5Kinematics, pose: &Isometry3<f64>) -> Cr5Joints {
+    use std::f64::consts::{FRAC_PI_2, PI};
+    let mut best: Option<phone2act_core::kinematics::IkSolution<6>> = None;
+    for j1 in [0.0, FRAC_PI_2, PI, -FRAC_PI_2] {
+        for (j2, j3) in [(0.3, 1.5), (-0.3, -1.5), (0.0, 1.0)] {
+            let seed = [j1, j2, j3, 0.0, FRAC_PI_2, 0.0];
+            let sol = kinematics.inverse(pose, &seed, IkWeights::FULL);
+            if sol.position_reached && sol.orientation_reached {
+                return sol.joints_rad;
+            }
+            let better = best.as_ref().is_none_or(|b| {
+                sol.position_error_m + sol.orientation_error_rad
+                    < b.position_error_m + b.orientation_error_rad
+            });
+            if better {
+                best = Some(sol);
+            }
+        }
+    }
+    best.map_or([0.0; 6], |b| b.joints_rad)
+}
+
+fn joints_deg(joints_rad: &Cr5Joints) -> [f64; 6] {
+    joints_rad.map(f64::to_degrees)
 }
 
 /// Executes one command and returns the reply text, or `None` when the controller does not answer.
@@ -538,7 +596,7 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> Option<String> {
     };
     let lname = name.to_ascii_lowercase();
     s.advance(Instant::now(), config.max_speed_m_s);
-    let is_motion = matches!(lname.as_str(), "servop" | "movl" | "movj");
+    let is_motion = matches!(lname.as_str(), "servop" | "servoj" | "movl" | "movj");
     // V3 keeps motion commands on the motion port and settings on the dashboard.
     if v3 && (is_motion != (kind == PortKind::Motion)) {
         s.rejected_commands += 1;
@@ -593,10 +651,7 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> Option<String> {
         // §3.40: seven lists, the controller's then one per servo.
         "geterrorid" => (0, s.error_ids.to_values()),
         "getpose" => (0, fmt6(&pose_mm_deg(&s.pose, config.convention))),
-        "getangle" => (
-            0,
-            fmt6(&fake_joints_deg(&pose_mm_deg(&s.pose, config.convention))),
-        ),
+        "getangle" => (0, fmt6(&joints_deg(&s.joints_rad))),
         "speedfactor" => match params.as_slice() {
             [r] => match r.trim().parse::<u32>() {
                 Ok(r) if (1..=100).contains(&r) => {
@@ -609,6 +664,7 @@ fn execute(shared: &Shared, command: &str, kind: PortKind) -> Option<String> {
             _ => (-20000, String::new()),
         },
         "servop" => servo_p(&mut s, config, &params),
+        "servoj" => servo_j(&mut s, config, &params),
         "movl" | "movj" => move_to(&mut s, config, &params),
         "do" | "doinstant" | "doexecute" | "tooldo" | "tooldoinstant" | "tooldoexecute" => {
             let v4_only = matches!(lname.as_str(), "doinstant" | "tooldoinstant");
@@ -653,23 +709,59 @@ fn pose_from_mm_deg(v: &[f64; 6], convention: EulerConvention) -> Isometry3<f64>
     )
 }
 
-fn servo_p(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
+/// The checks `ServoP` and `ServoJ` share: six required values, then `t`, `aheadtime`, `gain` (V4 only), the
+/// robot enabled and without error. Returns the six values and `t`, or the error id.
+fn servo_values(s: &State, config: &EmulatorConfig, params: &[&str]) -> Result<([f64; 6], f64), i32> {
     let v3 = config.firmware == Firmware::V3;
     if params.len() < 6 || (v3 && params.len() != 6) || params.len() > 9 {
-        return (-20000, String::new());
+        return Err(-20000);
     }
-    let pose = match parse_pose(params) {
-        Ok(p) => p,
+    let values = parse_pose(params)?;
+    let t_s = servo_t_s(params)?;
+    if !s.error_ids.is_empty() {
+        return Err(-2);
+    }
+    if !s.enabled {
+        return Err(-1);
+    }
+    Ok((values, t_s))
+}
+
+/// Accepts `ServoJ(J1..J6[,t,aheadtime,gain])`, degrees: the joints move along a straight joint-space line to
+/// arrive `t` seconds later.
+fn servo_j(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
+    let (joints_deg, t_s) = match servo_values(s, config, params) {
+        Ok(v) => v,
         Err(code) => return (code, String::new()),
     };
+    let goal = joints_deg.map(f64::to_radians);
+    if !s.kinematics.within_limits(&goal) {
+        return (-40001, String::new());
+    }
+    s.joint_target_rad = Some(goal);
+    s.target = s.kinematics.forward(&goal);
+    s.remaining_s = t_s;
+    s.servo_commands += 1;
+    s.command_id += 1;
+    s.current_command_id = s.command_id;
+    s.mode = RobotMode::Running;
+    if s.servo_j_log.len() == SERVO_J_LOG {
+        s.servo_j_log.pop_front();
+    }
+    s.servo_j_log.push_back((Instant::now(), goal));
+    s.last_servo_command = Some(format!("ServoJ({})", params.join(",")));
+    (0, s.command_id.to_string())
+}
+
+fn servo_t_s(params: &[&str]) -> Result<f64, i32> {
     let mut t_s = 0.1;
-    for (n, p) in params[6..].iter().enumerate() {
+    for (n, p) in params.iter().skip(6).enumerate() {
         let code_base = n as i32 + 1;
         let Some((key, value)) = p.split_once('=') else {
-            return (-50000 - code_base, String::new());
+            return Err(-50000 - code_base);
         };
         let Some(value) = parse_f64(value) else {
-            return (-50000 - code_base, String::new());
+            return Err(-50000 - code_base);
         };
         let ok = match key.trim().to_ascii_lowercase().as_str() {
             "t" => {
@@ -678,18 +770,21 @@ fn servo_p(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
             }
             "aheadtime" => (20.0..=100.0).contains(&value),
             "gain" => (200.0..=1000.0).contains(&value),
-            _ => return (-50000 - code_base, String::new()),
+            _ => return Err(-50000 - code_base),
         };
         if !ok {
-            return (-60000 - code_base, String::new());
+            return Err(-60000 - code_base);
         }
     }
-    if !s.error_ids.is_empty() {
-        return (-2, String::new());
-    }
-    if !s.enabled {
-        return (-1, String::new());
-    }
+    Ok(t_s)
+}
+
+fn servo_p(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, String) {
+    let (pose, t_s) = match servo_values(s, config, params) {
+        Ok(v) => v,
+        Err(code) => return (code, String::new()),
+    };
+    s.joint_target_rad = None;
     s.target = pose_from_mm_deg(&pose, config.convention);
     s.remaining_s = t_s;
     s.servo_commands += 1;
@@ -723,33 +818,30 @@ fn move_to(s: &mut State, config: &EmulatorConfig, params: &[&str]) -> (i32, Str
     if values.len() != 6 {
         return (-20000, String::new());
     }
-    let mut target = match parse_pose(&values) {
+    let values = match parse_pose(&values) {
         Ok(p) => p,
         Err(code) => return (code, String::new()),
     };
-    if space == "joint" {
-        target = pose_from_fake_joints(&target);
-    }
     if !s.error_ids.is_empty() {
         return (-2, String::new());
     }
     if !s.enabled {
         return (-1, String::new());
     }
-    let target = pose_from_mm_deg(&target, config.convention);
+    // Joints (degrees) become the flange pose they put the CR5 model in.
+    let target = if space == "joint" {
+        s.kinematics.forward(&values.map(f64::to_radians))
+    } else {
+        pose_from_mm_deg(&values, config.convention)
+    };
     let distance_m = (target.translation.vector - s.pose.translation.vector).norm();
+    s.joint_target_rad = None;
     s.target = target;
     s.remaining_s = (distance_m / (0.25 * f64::from(s.speed_factor) / 100.0)).max(0.05);
     s.command_id += 1;
     s.current_command_id = s.command_id;
     s.mode = RobotMode::Running;
     (0, s.command_id.to_string())
-}
-
-/// Inverse of [`fake_joints_deg`], for `joint={..}` targets.
-fn pose_from_fake_joints(joints_deg: &[f64; 6]) -> [f64; 6] {
-    let [j1, j2, j3, j4, j5, j6] = *joints_deg;
-    [j1 * 10.0, j2 * 10.0, j3 * 10.0, j4, j5, j6]
 }
 
 fn set_output(s: &mut State, tool: bool, params: &[&str]) -> (i32, String) {
@@ -806,8 +898,8 @@ fn serve_feedback(shared: &Arc<Shared>, mut stream: TcpStream) {
                 timestamp_ms: SystemTime::now()
                     .duration_since(UNIX_EPOCH)
                     .map_or(0, |d| d.as_millis() as u64),
-                q_target_deg: fake_joints_deg(&target),
-                q_actual_deg: fake_joints_deg(&tool),
+                q_target_deg: joints_deg(&s.joint_target_rad.unwrap_or(s.joints_rad)),
+                q_actual_deg: joints_deg(&s.joints_rad),
                 tool_vector_actual: tool,
                 tool_vector_target: target,
                 enable_status: u8::from(s.enabled),
@@ -951,7 +1043,13 @@ mod tests {
     fn dynamics_reach_the_target_in_t() {
         let start = Instant::now();
         let pose = tool_down(-0.4, 0.0, 0.3, 0.0);
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &pose);
         let mut s = State {
+            kinematics,
+            joints_rad,
+            joint_target_rad: None,
+            servo_j_log: std::collections::VecDeque::new(),
             mode: RobotMode::Enabled,
             enabled: true,
             error_ids: ErrorIds::default(),
@@ -981,5 +1079,69 @@ mod tests {
         s.advance(start + Duration::from_millis(120), 1.0);
         assert!((s.pose.translation.vector - s.target.translation.vector).norm() < 1e-9);
         assert!(s.pose.rotation.angle_to(&s.target.rotation) < 1e-9);
+        // The joints followed the pose: the model puts them where the tool is.
+        let model = s.kinematics.forward(&s.joints_rad);
+        assert!((model.translation.vector - s.pose.translation.vector).norm() < 2e-4);
+        assert!(model.rotation.angle_to(&s.pose.rotation) < 2e-3);
+    }
+
+    #[test]
+    fn servo_j_moves_the_joints_and_the_pose_follows() {
+        let config = EmulatorConfig::default();
+        let start = Instant::now();
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &config.initial_pose);
+        let from = kinematics.forward(&joints_rad);
+        assert!((from.translation.vector - config.initial_pose.translation.vector).norm() < 2e-4);
+        let mut s = State {
+            kinematics,
+            joints_rad,
+            joint_target_rad: None,
+            servo_j_log: std::collections::VecDeque::new(),
+            mode: RobotMode::Enabled,
+            enabled: true,
+            error_ids: ErrorIds::default(),
+            pose: from,
+            target: from,
+            remaining_s: 0.0,
+            last_advance: start,
+            servo_commands: 0,
+            rejected_commands: 0,
+            last_servo_command: None,
+            command_id: 0,
+            speed_factor: 100,
+            digital_outputs: 0,
+            tool_outputs: 0,
+            gripper_register: None,
+            corruption: None,
+            tcp_control: true,
+            control_requests: 0,
+            received: std::collections::VecDeque::new(),
+            current_command_id: 0,
+            http_refused: 0,
+        };
+        let mut goal = joints_rad;
+        goal[5] += 0.4;
+        let goal_deg = goal.map(f64::to_degrees).map(|v| format!("{v:.6}"));
+        let mut params: Vec<&str> = goal_deg.iter().map(String::as_str).collect();
+        params.push("t=0.1");
+        assert_eq!(servo_j(&mut s, &config, &params).0, 0);
+        s.last_advance = start;
+        s.advance(start + Duration::from_millis(50), 1.0);
+        assert!(
+            (s.joints_rad[5] - joints_rad[5] - 0.2).abs() < 1e-3,
+            "{:?}",
+            s.joints_rad
+        );
+        s.advance(start + Duration::from_millis(120), 1.0);
+        assert!((s.joints_rad[5] - goal[5]).abs() < 1e-7);
+        // J6 turns the flange about its own axis: the position stays, the orientation turns by the same angle.
+        assert!((s.pose.translation.vector - from.translation.vector).norm() < 1e-6);
+        assert!((s.pose.rotation.angle_to(&from.rotation) - 0.4).abs() < 1e-6);
+        assert_eq!(s.servo_j_log.len(), 1);
+        // Out of range, too few values: refused as the controller does.
+        let far = ["0", "0", "200", "0", "0", "0"];
+        assert_eq!(servo_j(&mut s, &config, &far).0, -40001);
+        assert_eq!(servo_j(&mut s, &config, &far[..5]).0, -20000);
     }
 }

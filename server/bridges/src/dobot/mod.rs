@@ -893,10 +893,23 @@ impl DobotLink {
     fn send_target(&self, ctx: &LinkContext, command: &Command) {
         let pose = &command.robot_from_target;
         let t = pose.translation.vector;
-        let convention = self.status.lock().convention;
-        let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
-        let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
-        let text = protocol::servo_p(&pose_mm_deg, self.config.servo_params());
+        // Joints the server solved and rate-limited go as `ServoJ`, so the controller never gets a joint step
+        // larger than the limits; otherwise the pose, which the controller solves itself.
+        let joints_deg = command
+            .joint_targets_rad
+            .as_deref()
+            .and_then(|q| <[f64; 6]>::try_from(q).ok())
+            .filter(|q| q.iter().all(|v| v.is_finite()))
+            .map(|q| q.map(f64::to_degrees));
+        let text = if let Some(joints_deg) = joints_deg {
+            protocol::servo_j(&joints_deg, self.config.servo_params())
+        } else {
+            let convention = self.status.lock().convention;
+            let [rx, ry, rz] = convention.to_angles_deg(&pose.rotation);
+            let pose_mm_deg = [t.x * 1000.0, t.y * 1000.0, t.z * 1000.0, rx, ry, rz];
+            protocol::servo_p(&pose_mm_deg, self.config.servo_params())
+        };
+        let verb = if joints_deg.is_some() { "ServoJ" } else { "ServoP" };
         match self.motion_request(&text) {
             Ok(reply) if reply.error_id == 0 => {
                 self.servo_sent.fetch_add(1, Ordering::Relaxed);
@@ -906,7 +919,7 @@ impl DobotLink {
             Ok(reply) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
                 let m = format!(
-                    "ServoP rejected: error {} ({})",
+                    "{verb} rejected: error {} ({})",
                     reply.error_id,
                     error_text(reply.error_id)
                 );
@@ -915,7 +928,7 @@ impl DobotLink {
             }
             Err(e @ (LinkError::Protocol(_) | LinkError::Timeout(_) | LinkError::NotTcpMode)) => {
                 self.servo_rejected.fetch_add(1, Ordering::Relaxed);
-                self.status.lock().last_command_error = Some(format!("ServoP: {e}"));
+                self.status.lock().last_command_error = Some(format!("{verb}: {e}"));
             }
             Err(e) => {
                 warn!(error = %e, "dobot: motion connection failed");

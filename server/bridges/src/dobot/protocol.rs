@@ -389,6 +389,19 @@ pub fn servo_p(pose_mm_deg: &[f64; 6], params: Option<ServoParams>) -> String {
     s
 }
 
+/// `ServoJ(J1,J2,J3,J4,J5,J6[,t=..,aheadtime=..,gain=..])` with the joints in degrees: the same streaming
+/// command as `ServoP` in joint space, with the same optional parameters (Dobot V4 TCP protocol, `ServoJ`).
+pub fn servo_j(joints_deg: &[f64; 6], params: Option<ServoParams>) -> String {
+    let mut s = String::with_capacity(96);
+    let [j1, j2, j3, j4, j5, j6] = *joints_deg;
+    let _ = write!(s, "ServoJ({j1:.4},{j2:.4},{j3:.4},{j4:.4},{j5:.4},{j6:.4}");
+    if let Some(p) = params {
+        let _ = write!(s, ",t={},aheadtime={},gain={}", p.t_s, p.aheadtime, p.gain);
+    }
+    s.push(')');
+    s
+}
+
 /// Splits a command such as `ServoP(1,2,t=0.1)` into its name and parameters. Returns `None` if it has no
 /// parentheses.
 pub fn split_command(text: &str) -> Option<(&str, Vec<&str>)> {
@@ -505,6 +518,27 @@ mod tests {
         for bad in ["[[22]]", "[[],[],[],[],[],[],[],[]]", "22", "[[x]]"] {
             assert!(ErrorIds::parse(bad).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn formats_servo_j_in_degrees() {
+        let joints = [10.0, -20.5, 90.0, 0.0, -45.25, 180.0];
+        assert_eq!(
+            servo_j(&joints, None),
+            "ServoJ(10.0000,-20.5000,90.0000,0.0000,-45.2500,180.0000)"
+        );
+        let s = servo_j(
+            &joints,
+            Some(ServoParams {
+                t_s: 0.02,
+                aheadtime: 50.0,
+                gain: 500.0,
+            }),
+        );
+        assert!(s.ends_with(",t=0.02,aheadtime=50,gain=500)"), "{s}");
+        let (name, params) = split_command(&s).unwrap();
+        assert_eq!(name, "ServoJ");
+        assert_eq!(params.len(), 9);
     }
 
     #[test]
