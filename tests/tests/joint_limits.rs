@@ -262,31 +262,44 @@ async fn drive_by_policy(mode: ActionMode) -> (Report, (f64, f64), v1::ArmState)
     start_recording(&client).await;
     let stop = Arc::new(AtomicBool::new(false));
     let watcher = watch(&client, Arc::clone(&stop));
-    let steps_total = 80;
-    let horizon = 16;
-    for first in (0..steps_total).step_by(horizon) {
+    // The chunks follow one timeline, indexed by the observation's time, and overlap: a new one is asked for
+    // every REPLAN steps while each covers HORIZON. The arbiter skips the steps of a chunk whose time has
+    // passed, so a timeline kept by a loop counter would jump at a chunk that arrives late; here the step
+    // that runs at any moment is the timeline's at that moment, whichever chunk it comes from, and the arm
+    // only holds (and jumps on) if an observation and its push take longer than (HORIZON - REPLAN) steps,
+    // 1.2 s, which even a loaded 2-core machine answers well within.
+    const STEPS_TOTAL: f64 = 80.0;
+    const HORIZON: usize = 32;
+    const REPLAN: usize = 8;
+    let period_ns = 1e9 / FPS;
+    let mut first_observation_ns = None;
+    loop {
         policy.request_observation().await.unwrap();
         let obs = policy.next_observation().await.unwrap();
+        let t0_ns = *first_observation_ns.get_or_insert(obs.timestamp_ns);
+        // Steps of the timeline before this observation (fractional: chunks are anchored at its instant).
+        let k_obs = (obs.timestamp_ns - t0_ns) as f64 / period_ns;
+        if k_obs >= STEPS_TOTAL {
+            break;
+        }
         let observed = pose_from_state_tail(&obs.arms[0].state[layout.ee_state_range()])
             .unwrap()
             .0;
-        let steps = (first..first + horizon)
-            .map(|k| {
-                let turn = UnitQuaternion::from_axis_angle(
-                    &Vector3::z_axis(),
-                    2.0 * PI * f64::from(k as u32 + 1) / f64::from(steps_total as u32),
-                );
+        let steps = (0..HORIZON)
+            .map(|i| {
+                // Step i runs during [obs + i, obs + i + 1) periods and reaches the timeline's value at its end.
+                let k = (k_obs + i as f64 + 1.0).min(STEPS_TOTAL);
+                let turn = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 2.0 * PI * k / STEPS_TOTAL);
                 let target = Isometry3::from_parts(start_pose.translation, turn * start_pose.rotation);
                 let values = match mode {
                     ActionMode::Absolute => absolute_action(&target, 0.0),
                     ActionMode::Relative => relative_step(&observed, &target, 0.0),
                     ActionMode::Joint => {
-                        // The wrist roll up and down its range in 0.45 rad steps (9 rad/s at 20 steps a
-                        // second): each step passes the gate's 0.5 rad jump threshold, none fits the limit.
-                        let phase = (k % 20) as f64;
-                        let up = if phase < 10.0 { phase + 1.0 } else { 19.0 - phase };
+                        // The wrist roll between two angles 0.45 rad apart, a step each period (9 rad/s at 20
+                        // steps a second): every change is faster than the limit and, whichever steps are
+                        // skipped or replaced, never past the gate's 0.5 rad jump threshold.
                         let mut q = start_joints.to_vec();
-                        q[4] = (start_joints[4] + 0.45 * up).min(2.7);
+                        q[4] = start_joints[4] + 0.45 * (k.round() % 2.0);
                         q.push(0.0);
                         q
                     }
@@ -314,7 +327,7 @@ async fn drive_by_policy(mode: ActionMode) -> (Report, (f64, f64), v1::ArmState)
             .await
             .unwrap();
         assert!(accepted.steps_scheduled > 0, "{accepted:?}");
-        tokio::time::sleep(Duration::from_secs_f64(horizon as f64 / FPS)).await;
+        tokio::time::sleep(Duration::from_secs_f64(REPLAN as f64 / FPS)).await;
     }
     // Let the last steps arrive at the limit.
     tokio::time::sleep(Duration::from_secs(1)).await;
