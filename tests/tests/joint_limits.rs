@@ -36,6 +36,11 @@ const POSITION_BOUND_M: f64 = 2e-4;
 const RECORDED_JUMP_BOUND_RAD: f64 = 1.0;
 
 const FPS: f64 = 20.0;
+/// The policy test's timeline: a full turn in this many steps, chunks of HORIZON steps asked for every
+/// REPLAN steps.
+const STEPS_TOTAL: f64 = 80.0;
+const HORIZON: usize = 32;
+const REPLAN: usize = 8;
 
 /// One snapshot of the commanded joints.
 #[derive(Clone, Debug)]
@@ -268,9 +273,6 @@ async fn drive_by_policy(mode: ActionMode) -> (Report, (f64, f64), v1::ArmState)
     // that runs at any moment is the timeline's at that moment, whichever chunk it comes from, and the arm
     // only holds (and jumps on) if an observation and its push take longer than (HORIZON - REPLAN) steps,
     // 1.2 s, which even a loaded 2-core machine answers well within.
-    const STEPS_TOTAL: f64 = 80.0;
-    const HORIZON: usize = 32;
-    const REPLAN: usize = 8;
     let period_ns = 1e9 / FPS;
     let mut first_observation_ns = None;
     loop {
