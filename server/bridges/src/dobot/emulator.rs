@@ -158,6 +158,40 @@ struct State {
 }
 
 impl State {
+    /// A disabled controller standing at `pose`, its joints put there by the CR5 model, answering
+    /// commands without requesting control when `tcp_control` is already granted.
+    fn at_rest(pose: Isometry3<f64>, now: Instant, tcp_control: bool) -> Self {
+        let kinematics = Cr5Kinematics::new();
+        let joints_rad = joints_for(&kinematics, &pose);
+        Self {
+            kinematics,
+            joints_rad,
+            joint_target_rad: None,
+            servo_j_log: std::collections::VecDeque::new(),
+            mode: RobotMode::Disabled,
+            enabled: false,
+            error_ids: ErrorIds::default(),
+            pose,
+            target: pose,
+            remaining_s: 0.0,
+            last_advance: now,
+            servo_commands: 0,
+            rejected_commands: 0,
+            last_servo_command: None,
+            command_id: 0,
+            speed_factor: 100,
+            digital_outputs: 0,
+            tool_outputs: 0,
+            gripper_register: None,
+            corruption: None,
+            tcp_control,
+            control_requests: 0,
+            received: std::collections::VecDeque::with_capacity(256),
+            current_command_id: 0,
+            http_refused: 0,
+        }
+    }
+
     fn advance(&mut self, now: Instant, max_speed_m_s: f64) {
         let dt = now.saturating_duration_since(self.last_advance).as_secs_f64();
         self.last_advance = now;
@@ -254,37 +288,9 @@ impl DobotEmulator {
             .map_or(Ok(dashboard_addr), TcpListener::local_addr)?;
         let feedback_addr = feedback.local_addr()?;
         let http_addr = http.local_addr()?;
-        let now = Instant::now();
-        let kinematics = Cr5Kinematics::new();
-        let joints_rad = joints_for(&kinematics, &config.initial_pose);
+        let tcp_control = config.firmware == Firmware::V3 || config.firmware_version < (4, 6);
         let shared = Arc::new(Shared {
-            state: Mutex::new(State {
-                kinematics,
-                joints_rad,
-                joint_target_rad: None,
-                servo_j_log: std::collections::VecDeque::new(),
-                mode: RobotMode::Disabled,
-                enabled: false,
-                error_ids: ErrorIds::default(),
-                pose: config.initial_pose,
-                target: config.initial_pose,
-                remaining_s: 0.0,
-                last_advance: now,
-                servo_commands: 0,
-                rejected_commands: 0,
-                last_servo_command: None,
-                command_id: 0,
-                speed_factor: 100,
-                digital_outputs: 0,
-                tool_outputs: 0,
-                gripper_register: None,
-                corruption: None,
-                tcp_control: config.firmware == Firmware::V3 || config.firmware_version < (4, 6),
-                control_requests: 0,
-                received: std::collections::VecDeque::with_capacity(256),
-                current_command_id: 0,
-                http_refused: 0,
-            }),
+            state: Mutex::new(State::at_rest(config.initial_pose, Instant::now(), tcp_control)),
             config,
             clients: Mutex::new(Vec::new()),
             stop: AtomicBool::new(false),
@@ -1043,35 +1049,10 @@ mod tests {
     fn dynamics_reach_the_target_in_t() {
         let start = Instant::now();
         let pose = tool_down(-0.4, 0.0, 0.3, 0.0);
-        let kinematics = Cr5Kinematics::new();
-        let joints_rad = joints_for(&kinematics, &pose);
-        let mut s = State {
-            kinematics,
-            joints_rad,
-            joint_target_rad: None,
-            servo_j_log: std::collections::VecDeque::new(),
-            mode: RobotMode::Enabled,
-            enabled: true,
-            error_ids: ErrorIds::default(),
-            pose,
-            target: tool_down(-0.35, 0.02, 0.3, 0.2),
-            remaining_s: 0.1,
-            last_advance: start,
-            servo_commands: 0,
-            rejected_commands: 0,
-            last_servo_command: None,
-            command_id: 0,
-            speed_factor: 100,
-            digital_outputs: 0,
-            tool_outputs: 0,
-            gripper_register: None,
-            corruption: None,
-            tcp_control: true,
-            control_requests: 0,
-            received: std::collections::VecDeque::new(),
-            current_command_id: 0,
-            http_refused: 0,
-        };
+        let mut s = State::at_rest(pose, start, true);
+        (s.mode, s.enabled) = (RobotMode::Enabled, true);
+        s.target = tool_down(-0.35, 0.02, 0.3, 0.2);
+        s.remaining_s = 0.1;
         s.advance(start + Duration::from_millis(50), 1.0);
         let halfway = (s.pose.translation.vector - pose.translation.vector).norm();
         let full = (s.target.translation.vector - pose.translation.vector).norm();
@@ -1093,33 +1074,8 @@ mod tests {
         let joints_rad = joints_for(&kinematics, &config.initial_pose);
         let from = kinematics.forward(&joints_rad);
         assert!((from.translation.vector - config.initial_pose.translation.vector).norm() < 2e-4);
-        let mut s = State {
-            kinematics,
-            joints_rad,
-            joint_target_rad: None,
-            servo_j_log: std::collections::VecDeque::new(),
-            mode: RobotMode::Enabled,
-            enabled: true,
-            error_ids: ErrorIds::default(),
-            pose: from,
-            target: from,
-            remaining_s: 0.0,
-            last_advance: start,
-            servo_commands: 0,
-            rejected_commands: 0,
-            last_servo_command: None,
-            command_id: 0,
-            speed_factor: 100,
-            digital_outputs: 0,
-            tool_outputs: 0,
-            gripper_register: None,
-            corruption: None,
-            tcp_control: true,
-            control_requests: 0,
-            received: std::collections::VecDeque::new(),
-            current_command_id: 0,
-            http_refused: 0,
-        };
+        let mut s = State::at_rest(from, start, true);
+        (s.mode, s.enabled) = (RobotMode::Enabled, true);
         let mut goal = joints_rad;
         goal[5] += 0.4;
         let goal_deg = goal.map(f64::to_degrees).map(|v| format!("{v:.6}"));
