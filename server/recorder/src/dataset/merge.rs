@@ -518,6 +518,36 @@ impl RollingWriter {
 }
 
 /// Replaces (or appends) column `name` of a one-or-more-row batch.
+/// One episode's rows as they are in the merged dataset: its new `episode_index`, `index` shifted by the
+/// frames before it, `task_index` through `task_map` (old index → new); `None` if a task index is not in it.
+pub(super) fn renumber_rows(
+    rows: &RecordBatch,
+    episode_index: u64,
+    frame_offset: u64,
+    task_map: &[i64],
+) -> Option<RecordBatch> {
+    let n = rows.num_rows();
+    let old_index = int_column(rows, "index").unwrap_or_default();
+    let tasks: Vec<i64> = int_column(rows, "task_index")
+        .unwrap_or_default()
+        .iter()
+        .map(|t| usize::try_from(*t).ok().and_then(|t| task_map.get(t).copied()))
+        .collect::<Option<_>>()?;
+    let mut rows = set_column(
+        rows,
+        "episode_index",
+        Arc::new(Int64Array::from(vec![episode_index as i64; n])),
+    );
+    rows = set_column(
+        &rows,
+        "index",
+        Arc::new(Int64Array::from_iter_values(
+            old_index.iter().map(|x| x + frame_offset as i64),
+        )),
+    );
+    Some(set_column(&rows, "task_index", Arc::new(Int64Array::from(tasks))))
+}
+
 pub(super) fn set_column(batch: &RecordBatch, name: &str, array: ArrayRef) -> RecordBatch {
     let schema = batch.schema();
     let mut fields: Vec<Field> = schema.fields().iter().map(|f| f.as_ref().clone()).collect();
@@ -782,32 +812,12 @@ fn write_merged(
                 let new_ep = episode_offset + src.index;
                 let rows = batch.slice(start, end - start);
                 let n = rows.num_rows();
-                let old_index = int_column(&rows, "index").unwrap_or_default();
-                let old_tasks = int_column(&rows, "task_index").unwrap_or_default();
-                let map = &task_maps[i];
-                let mut rows = set_column(
-                    &rows,
-                    "episode_index",
-                    Arc::new(Int64Array::from(vec![new_ep as i64; n])),
-                );
-                rows = set_column(
-                    &rows,
-                    "index",
-                    Arc::new(Int64Array::from_iter_values(
-                        old_index.iter().map(|x| x + frame_offset as i64),
-                    )),
-                );
-                let mapped: Vec<i64> = old_tasks
-                    .iter()
-                    .map(|t| usize::try_from(*t).ok().and_then(|t| map.get(t).copied()))
-                    .collect::<Option<_>>()
-                    .ok_or_else(|| {
-                        bad(
-                            &input.label,
-                            format!("episode {old} has a task_index tasks.parquet lacks"),
-                        )
-                    })?;
-                rows = set_column(&rows, "task_index", Arc::new(Int64Array::from(mapped)));
+                let rows = renumber_rows(&rows, new_ep, frame_offset, &task_maps[i]).ok_or_else(|| {
+                    bad(
+                        &input.label,
+                        format!("episode {old} has a task_index tasks.parquet lacks"),
+                    )
+                })?;
                 let estimate = file_bytes * n as f64 / file_rows.max(1) as f64;
                 let data_file = data.file_for(estimate, data_schema)?;
                 data.write(&rows, estimate)?;
@@ -939,29 +949,21 @@ fn write_merged(
             aggregates.insert(key.clone(), agg);
         }
     }
-    let mut stats = serde_json::Map::new();
-    for (k, a) in &aggregates {
-        if let Some(mut s) = a.finish() {
-            quantiles.apply(k, &mut s);
-            stats.insert(k.clone(), s.to_json_v30());
-        }
-    }
-    fs::write(dst.join("meta/stats.json"), pretty(&Value::Object(stats)))
-        .map_err(|e| RecorderError::io(dst.join("meta/stats.json"), e))?;
-    fs::write(dst.join(QUANTILES_FILE), quantiles.encode())
-        .map_err(|e| RecorderError::io(dst.join(QUANTILES_FILE), e))?;
-
     let sources: Vec<Value> = inputs
         .iter()
         .map(|i| json!({"dataset": i.label, "episodes": i.episodes.len(), "frames": i.frames()}))
         .collect();
-    write_provenance(
+    write_stats_and_provenance(
         dst,
+        MergedStats {
+            aggregates,
+            quantiles: &quantiles,
+            stats_json: FeatureStats::to_json_v30,
+        },
         first.provenance.as_ref(),
         &sources,
         "v3.0",
         episodes_prov,
-        aggregates,
     )?;
 
     // info.json last, from the first input's, with the totals and the shard sizes of the output.
@@ -978,11 +980,16 @@ fn write_merged(
         "splits".into(),
         json!({"train": format!("0:{}", report.episodes)}),
     );
-    let mut bytes = pretty(&info);
-    bytes.push(b'\n');
-    fs::write(dst.join("meta/info.json"), bytes)
-        .map_err(|e| RecorderError::io(dst.join("meta/info.json"), e))?;
+    write_info(dst, &info)?;
     Ok(report)
+}
+
+/// Writes `meta/info.json`, which a merge writes last: a reader that sees it sees a whole dataset.
+pub(super) fn write_info(dst: &Path, info: &IndexMap<String, Value>) -> Result<(), RecorderError> {
+    let mut bytes = pretty(info);
+    bytes.push(b'\n');
+    let path = dst.join("meta/info.json");
+    fs::write(&path, bytes).map_err(|e| RecorderError::io(&path, e))
 }
 
 /// A size in MB as lerobot writes it: an integer when it is one.
@@ -1043,16 +1050,39 @@ pub(super) fn carry_episode(
     Ok(summary)
 }
 
-/// The merged dataset's provenance sidecar: the inputs, every episode's entry, the running aggregates (so a
-/// recorder can resume the merged dataset without re-reading it).
-pub(super) fn write_provenance(
+/// A merged dataset's statistics, and how its format writes them into `meta/stats.json`.
+pub(super) struct MergedStats<'a> {
+    pub(super) aggregates: BTreeMap<String, Aggregate>,
+    pub(super) quantiles: &'a QuantileStore,
+    pub(super) stats_json: fn(&FeatureStats) -> Value,
+}
+
+/// The merged dataset's `meta/stats.json` (each aggregate finished with its quantiles, in the format's JSON)
+/// and the sketches beside it; then its provenance sidecar: the inputs, every episode's entry, the running
+/// aggregates (so a recorder can resume the merged dataset without re-reading it).
+pub(super) fn write_stats_and_provenance(
     dst: &Path,
+    MergedStats {
+        aggregates,
+        quantiles,
+        stats_json,
+    }: MergedStats<'_>,
     first: Option<&Provenance>,
     sources: &[Value],
     format: &str,
     episodes: Vec<super::EpisodeSummary>,
-    aggregates: BTreeMap<String, Aggregate>,
 ) -> Result<(), MergeError> {
+    let mut stats = serde_json::Map::new();
+    for (k, a) in &aggregates {
+        if let Some(mut s) = a.finish() {
+            quantiles.apply(k, &mut s);
+            stats.insert(k.clone(), stats_json(&s));
+        }
+    }
+    let stats_path = dst.join("meta/stats.json");
+    fs::write(&stats_path, pretty(&Value::Object(stats))).map_err(|e| RecorderError::io(&stats_path, e))?;
+    fs::write(dst.join(QUANTILES_FILE), quantiles.encode())
+        .map_err(|e| RecorderError::io(dst.join(QUANTILES_FILE), e))?;
     let base = first.cloned().unwrap_or_default();
     let provenance = Provenance {
         software: "phone2act-recorder".into(),

@@ -6,22 +6,21 @@
 //! rows (exact mean, std, min, max; q01 and q99 from merged sketches).
 
 use super::merge::{
-    MergeError, MergeInput, MergeReport, carry_episode, column_stats, columns, data_schema_of,
-    feature_difference, numeric_columns, set_column, write_provenance,
+    MergeError, MergeInput, MergeReport, MergedStats, carry_episode, column_stats, columns, data_schema_of,
+    feature_difference, numeric_columns, renumber_rows, write_info, write_stats_and_provenance,
 };
 use super::{CHUNKS_SIZE, PROVENANCE_FILE, Provenance, meta::pretty};
 use crate::error::RecorderError;
-use crate::parquet_io::{self, int_column, props};
-use crate::quantiles::{QUANTILES_FILE, QuantileStore};
-use crate::stats::{Aggregate, ColumnStats};
-use arrow_array::{Int64Array, RecordBatch};
+use crate::parquet_io::{self, props};
+use crate::quantiles::QuantileStore;
+use crate::stats::{Aggregate, ColumnStats, FeatureStats};
+use arrow_array::RecordBatch;
 use indexmap::IndexMap;
 use parquet::arrow::ArrowWriter;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::fs::{self, File};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 pub(super) struct InputV21 {
     label: String,
@@ -278,31 +277,12 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
                 }
             })?;
             let n = batch.num_rows();
-            let old_index = int_column(&batch, "index").unwrap_or_default();
-            let mapped: Vec<i64> = int_column(&batch, "task_index")
-                .unwrap_or_default()
-                .iter()
-                .map(|t| usize::try_from(*t).ok().and_then(|t| map.get(t).copied()))
-                .collect::<Option<_>>()
-                .ok_or_else(|| {
-                    bad(
-                        &input.label,
-                        format!("episode {e} has a task_index tasks.jsonl lacks"),
-                    )
-                })?;
-            let mut rows = set_column(
-                &batch,
-                "episode_index",
-                Arc::new(Int64Array::from(vec![new as i64; n])),
-            );
-            rows = set_column(
-                &rows,
-                "index",
-                Arc::new(Int64Array::from_iter_values(
-                    old_index.iter().map(|x| x + frame_offset as i64),
-                )),
-            );
-            rows = set_column(&rows, "task_index", Arc::new(Int64Array::from(mapped)));
+            let rows = renumber_rows(&batch, new, frame_offset, &map).ok_or_else(|| {
+                bad(
+                    &input.label,
+                    format!("episode {e} has a task_index tasks.jsonl lacks"),
+                )
+            })?;
             let to = dst.join(format!("data/chunk-{:03}/episode_{new:06}.parquet", new / chunks));
             if let Some(p) = to.parent() {
                 fs::create_dir_all(p).map_err(|err| RecorderError::io(p, err))?;
@@ -383,29 +363,22 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
         fs::write(dst.join("meta/modality.json"), pretty(m))
             .map_err(|e| RecorderError::io(dst.join("meta/modality.json"), e))?;
     }
-    // GR00T's stats.json: mean, std, min, max, q01, q99 of every numeric column.
-    let mut stats = serde_json::Map::new();
-    for (k, a) in &aggregates {
-        if let Some(mut s) = a.finish() {
-            quantiles.apply(k, &mut s);
-            stats.insert(k.clone(), s.to_json_gr00t());
-        }
-    }
-    fs::write(dst.join("meta/stats.json"), pretty(&Value::Object(stats)))
-        .map_err(|e| RecorderError::io(dst.join("meta/stats.json"), e))?;
-    fs::write(dst.join(QUANTILES_FILE), quantiles.encode())
-        .map_err(|e| RecorderError::io(dst.join(QUANTILES_FILE), e))?;
     let sources: Vec<Value> = inputs
         .iter()
         .map(|i| json!({"dataset": i.label, "episodes": i.episodes.len(), "frames": i.frames()}))
         .collect();
-    write_provenance(
+    // GR00T's stats.json: mean, std, min, max, q01, q99 of every numeric column.
+    write_stats_and_provenance(
         dst,
+        MergedStats {
+            aggregates,
+            quantiles: &quantiles,
+            stats_json: FeatureStats::to_json_gr00t,
+        },
         first.provenance.as_ref(),
         &sources,
         "v2.1",
         provenance,
-        aggregates,
     )?;
 
     let mut info = first.info.clone();
@@ -416,9 +389,6 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
     info.insert("total_videos".into(), json!(n * keys.len() as u64));
     info.insert("total_chunks".into(), json!(n.div_ceil(chunks)));
     info.insert("splits".into(), json!({"train": format!("0:{n}")}));
-    let mut bytes = pretty(&info);
-    bytes.push(b'\n');
-    fs::write(dst.join("meta/info.json"), bytes)
-        .map_err(|e| RecorderError::io(dst.join("meta/info.json"), e))?;
+    write_info(dst, &info)?;
     Ok(report)
 }
