@@ -8,7 +8,6 @@ compared at 2 mm: the sim has no noise, so a settled arm sits on its target to w
 
 from __future__ import annotations
 
-import contextlib
 import math
 import shutil
 import signal
@@ -18,7 +17,6 @@ import threading
 import time
 from pathlib import Path
 
-import grpc
 import numpy as np
 import pytest
 from conftest import REPO, Server, wait_until
@@ -375,17 +373,15 @@ class StateLog:
     """Every state of one arm that `System.WatchStatus` reports (every 20 ms), until `close`."""
 
     def __init__(self, c: Client, arm: str) -> None:
-        from phone2act.v1 import system_pb2
-
         self.states: list[common_pb2.ArmState] = []
-        self._call = c.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=0.02))
+        self._call = c.watch_status(interval_s=0.02)
         self._thread = threading.Thread(target=self._run, args=(arm,), daemon=True)
         self._thread.start()
 
     def _run(self, arm: str) -> None:
-        with contextlib.suppress(grpc.RpcError):  # cancelled by `close`
-            for status in self._call:
-                self.states.extend(s for s in status.arms if s.arm == arm)
+        # Ends when `close` cancels the stream.
+        for status in self._call:
+            self.states.extend(s for s in status.arms if s.arm == arm)
 
     def close(self) -> list[common_pb2.ArmState]:
         self._call.cancel()

@@ -291,6 +291,34 @@ async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
     server.shutdown().await.unwrap();
 }
 
+/// A station recording into `root` whose storage is `moto` behind a relay that stalls until told otherwise.
+async fn station_behind_a_stalled_relay(
+    moto: &Moto,
+    dir: &Path,
+    root: &Path,
+    station: &str,
+) -> (Relay, TestServer, phone2act_sdk::Client) {
+    let target: std::net::SocketAddr = moto
+        .endpoint()
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .parse()
+        .unwrap();
+    let relay = Relay::start(target);
+    relay.stall(true);
+    let creds = moto.credentials_file(dir, None);
+    let mut config = default_config(root);
+    let mut s = storage(moto, &creds, station);
+    s.endpoint = Some(format!("http://{}", relay.addr));
+    // Two seconds a request: a stalled one is abandoned quickly enough for the test, and a loopback request
+    // to moto takes milliseconds even on a loaded machine.
+    s.request_timeout_s = Some(2.0);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    (relay, server, client)
+}
+
 /// A TCP relay in front of the storage that can be told to stop forwarding: connections are still accepted
 /// and kept open, but nothing more is read from or written to either side (a hung middlebox or storage).
 struct Relay {
@@ -386,25 +414,8 @@ async fn a_stalled_relay_times_uploads_out_recording_goes_on_and_the_upload_comp
     let dir = tempfile::tempdir().unwrap();
     let moto = Moto::start(&bin, dir.path(), true);
     moto.create_bucket(BUCKET);
-    let target: std::net::SocketAddr = moto
-        .endpoint()
-        .trim_start_matches("http://")
-        .trim_end_matches('/')
-        .parse()
-        .unwrap();
-    let relay = Relay::start(target);
-    relay.stall(true);
-    let creds = moto.credentials_file(dir.path(), None);
     let root = dir.path().join("ds");
-    let mut config = default_config(&root);
-    let mut s = storage(&moto, &creds, "st-s");
-    s.endpoint = Some(format!("http://{}", relay.addr));
-    // Two seconds a request: a stalled one is abandoned quickly enough for the test, and a loopback request
-    // to moto takes milliseconds even on a loaded machine.
-    s.request_timeout_s = Some(2.0);
-    config.storage = Some(s);
-    let server = TestServer::start(config).await.unwrap();
-    let client = server.client().await.unwrap();
+    let (relay, server, client) = station_behind_a_stalled_relay(&moto, dir.path(), &root, "st-s").await;
 
     // Recording is not held up by the stalled storage: both episodes save while nothing can be uploaded.
     assert_eq!(record(&client, "pick", "dana", 600).await, 0);
@@ -494,24 +505,9 @@ async fn a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committe
     let _unmount = Unmount(mnt.clone());
     let moto = Moto::start(&bin, dir.path(), true);
     moto.create_bucket(BUCKET);
-    let target: std::net::SocketAddr = moto
-        .endpoint()
-        .trim_start_matches("http://")
-        .trim_end_matches('/')
-        .parse()
-        .unwrap();
     // The storage is unreachable at first, so the first episode's upload is still pending when the disk fills.
-    let relay = Relay::start(target);
-    relay.stall(true);
-    let creds = moto.credentials_file(dir.path(), None);
     let root = mnt.join("ds");
-    let mut config = default_config(&root);
-    let mut s = storage(&moto, &creds, "st-f");
-    s.endpoint = Some(format!("http://{}", relay.addr));
-    s.request_timeout_s = Some(2.0);
-    config.storage = Some(s);
-    let server = TestServer::start(config).await.unwrap();
-    let client = server.client().await.unwrap();
+    let (relay, server, client) = station_behind_a_stalled_relay(&moto, dir.path(), &root, "st-f").await;
     assert_eq!(record(&client, "pick", "fay", 600).await, 0);
 
     let filler = mnt.join("filler");

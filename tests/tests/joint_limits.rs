@@ -155,12 +155,8 @@ fn quat_msg(q: &UnitQuaternion<f64>) -> [f64; 4] {
     [c.i, c.j, c.k, c.w]
 }
 
-/// Turns the phone a full circle about `axis` (robot frame) in 200 samples at 50 Hz, holding its position,
-/// and returns every command the feedback showed plus the recorded jumps.
-async fn turn_the_phone(axis: Unit<Vector3<f64>>) -> (Report, (f64, f64), v1::ArmState) {
-    let dir = tempfile::tempdir().unwrap();
-    let (server, client) = start(dir.path(), ActionMode::Joint).await;
-    start_recording(&client).await;
+/// A phone on the arm `main`, its clutch engaged at the identity pose.
+async fn engaged_phone(client: &Client) -> phone2act_sdk::TeleopSession {
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
     let seq = phone
         .send_pose(
@@ -172,6 +168,16 @@ async fn turn_the_phone(axis: Unit<Vector3<f64>>) -> (Report, (f64, f64), v1::Ar
         .unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     assert!(fb.arm_state.as_ref().unwrap().engaged, "{}", fb.error);
+    phone
+}
+
+/// Turns the phone a full circle about `axis` (robot frame) in 200 samples at 50 Hz, holding its position,
+/// and returns every command the feedback showed plus the recorded jumps.
+async fn turn_the_phone(axis: Unit<Vector3<f64>>) -> (Report, (f64, f64), v1::ArmState) {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, client) = start(dir.path(), ActionMode::Joint).await;
+    start_recording(&client).await;
+    let mut phone = engaged_phone(&client).await;
     let mut samples = Vec::new();
     let mut tick = tokio::time::interval(Duration::from_millis(20));
     let frames = 200;
@@ -438,17 +444,7 @@ async fn a_cr5_orientation_jump_reaches_the_controller_as_servo_j_steps_within_t
     );
     let start = emu.snapshot();
     let goal = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), TURN_RAD) * start.pose.rotation;
-    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-    let seq = phone
-        .send_pose(
-            v1::Pose::from_parts([0.0; 3], quat_msg(&UnitQuaternion::identity())),
-            vec![buttons::clutch_engage()],
-            0,
-        )
-        .await
-        .unwrap();
-    let fb = phone.feedback_for(seq).await.unwrap();
-    assert!(fb.arm_state.as_ref().unwrap().engaged, "{}", fb.error);
+    let mut phone = engaged_phone(&client).await;
     let mut tick = tokio::time::interval(Duration::from_millis(20));
     let mut arrived = false;
     // Five turning samples, then the final pose held until the emulated arm gets there (or 30 s).

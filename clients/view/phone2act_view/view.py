@@ -212,7 +212,7 @@ class View:
                     # No observation within a second (a stalled server): keep waiting, the status stream
                     # reports a lost connection.
 
-        status_call = self.client.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=1.0 / self.rate_hz))
+        status_call = self.client.watch_status(interval_s=1.0 / self.rate_hz)
         self._calls.append(status_call)
         target, inbox = self.client.target, self.inbox
         _pump(inbox, "Policy.Session", target, observations, lambda m: inbox.put_latest("observation", m))

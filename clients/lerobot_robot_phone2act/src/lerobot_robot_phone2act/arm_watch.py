@@ -13,9 +13,8 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import grpc
 from phone2act import Client
-from phone2act.v1 import common_pb2, system_pb2
+from phone2act.v1 import common_pb2
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +67,8 @@ class ArmWatch:
         self._cond = threading.Condition()
         self._state: common_pb2.ArmState | None = None
         self._rejected: int | None = None
-        self._error: grpc.RpcError | None = None
-        self._call = client.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=interval_s))
+        self._error: Exception | None = None
+        self._call = client.watch_status(interval_s=interval_s)
         self._thread = threading.Thread(target=self._run, name=f"phone2act-watch-{arm}", daemon=True)
         self._thread.start()
 
@@ -79,10 +78,9 @@ class ArmWatch:
                 for state in status.arms:
                     if state.arm == self.arm:
                         self._update(state)
-        except grpc.RpcError as e:
-            if e.code() != grpc.StatusCode.CANCELLED:
-                log.warning("phone2act status stream for arm %r ended: %s", self.arm, e.details())
-                self._error = e
+        except Exception as e:  # noqa: BLE001 - kept for the waiting caller, which raises it
+            log.warning("phone2act status stream for arm %r ended: %s", self.arm, e)
+            self._error = e
         with self._cond:
             self._cond.notify_all()
 
@@ -108,7 +106,7 @@ class ArmWatch:
             while self._state is None or not pred(self._state):
                 left = deadline - time.monotonic()
                 if self._error is not None:
-                    raise ConnectionError(f"phone2act status stream ended: {self._error.details()}")
+                    raise ConnectionError(f"phone2act status stream ended: {self._error}")
                 if left <= 0:
                     if self._state is None:
                         raise TimeoutError(f"no state of arm {self.arm!r} within {timeout_s:.1f} s")

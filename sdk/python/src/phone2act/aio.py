@@ -160,6 +160,23 @@ class AsyncClient:
             "System.GetDatasetInfo", self.system_stub.GetDatasetInfo, system_pb2.GetDatasetInfoRequest()
         )
 
+    def _watch_status_call(self, interval_s: float = 0.5) -> Any:
+        """The raw `System.WatchStatus` stream call (the server's status every `interval_s`), authorised;
+        iterate it, or `read()` it, on this client's event loop and `cancel()` it to end it."""
+        return self.system_stub.WatchStatus(system_pb2.WatchStatusRequest(interval_s=interval_s), metadata=self._md)
+
+    async def watch_status(self, interval_s: float = 0.5) -> AsyncIterator[system_pb2.SystemStatus]:
+        """The server's status every `interval_s`, until the caller stops iterating."""
+        call = self._watch_status_call(interval_s)
+        try:
+            async for status in call:
+                yield status
+        except grpc.aio.AioRpcError as e:
+            if e.code() != grpc.StatusCode.CANCELLED:
+                raise from_rpc_error(e, "System.WatchStatus", self.target) from None
+        finally:
+            call.cancel()
+
     async def list_cameras(self) -> list[common_pb2.CameraStatus]:
         r = await self._call("System.ListCameras", self.system_stub.ListCameras, system_pb2.ListCamerasRequest())
         return list(r.cameras)

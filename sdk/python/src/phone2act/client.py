@@ -13,9 +13,12 @@ import threading
 from collections.abc import AsyncIterator, Coroutine, Iterable, Iterator, Sequence
 from typing import Any, TypeVar
 
+import grpc
+import grpc.aio
+
 from phone2act import aio
 from phone2act._common import DEFAULT_TARGET, DELTA_EE, IMAGE_NONE, ArmLayout
-from phone2act.errors import Phone2ActError
+from phone2act.errors import Phone2ActError, from_rpc_error
 from phone2act.v1 import common_pb2, episodes_pb2, policy_pb2, scene_pb2, system_pb2, teleop_pb2
 
 T = TypeVar("T")
@@ -124,6 +127,10 @@ class Client:
     def list_cameras(self) -> list[common_pb2.CameraStatus]:
         return _run(self._a.list_cameras())
 
+    def watch_status(self, interval_s: float = 0.5) -> StatusWatch:
+        """The server's status every `interval_s` as a blocking iterator; `cancel()` ends it from any thread."""
+        return StatusWatch(self._a, interval_s)
+
     # --- Policy ---------------------------------------------------------------------------------------
 
     def observe(
@@ -213,6 +220,47 @@ class Episodes:
     def watch(self, interval_s: float = 0.5) -> Iterator[common_pb2.RecordingStatus]:
         """Recorder status on every change (and every `interval_s`), until the caller stops iterating."""
         return _iterate(self._a.watch(interval_s))
+
+
+class StatusWatch(Iterator[system_pb2.SystemStatus]):
+    """`System.WatchStatus` as a blocking iterator. It ends when the server ends the stream or when
+    `cancel()` is called (from any thread, also while another thread waits in `next`); any other failure
+    raises the SDK's error for it (a `Phone2ActError`)."""
+
+    def __init__(self, client: aio.AsyncClient, interval_s: float) -> None:
+        self._target = client.target
+
+        async def open_call() -> Any:
+            return client._watch_status_call(interval_s)
+
+        self._call = _run(open_call())
+
+    def __iter__(self) -> StatusWatch:
+        return self
+
+    def __next__(self) -> system_pb2.SystemStatus:
+        call = self._call
+
+        async def read() -> system_pb2.SystemStatus | None:
+            try:
+                message = await call.read()
+            except asyncio.CancelledError:
+                return None
+            except grpc.aio.AioRpcError as e:
+                if e.code() == grpc.StatusCode.CANCELLED:
+                    return None
+                raise from_rpc_error(e, "System.WatchStatus", self._target) from None
+            return None if message is grpc.aio.EOF else message
+
+        status = _run(read())
+        if status is None:
+            raise StopIteration
+        return status
+
+    def cancel(self) -> None:
+        loop = _loop
+        if loop is not None:
+            loop.call_soon_threadsafe(self._call.cancel)
 
 
 _S = TypeVar("_S", bound="_Session")
