@@ -36,7 +36,6 @@ pub trait RevocationSink: Send + Sync + std::fmt::Debug {
     fn revoked(&self, arm: &str, reason: &str);
 }
 
-/// What one teleop round did.
 /// Largest distance between the robot's reported tool position and the joint model's position of its reported
 /// joints for the server to drive the arm through the model: 5 mm, well above the model's rounding (the CR5
 /// URDF gives its lengths to the millimetre) and far below what a wrong base frame, tool or joint zero gives.
@@ -44,6 +43,7 @@ const MODEL_MATCH_M: f64 = 5e-3;
 /// The same for the orientation: 0.05 rad (about 3°).
 const MODEL_MATCH_RAD: f64 = 0.05;
 
+/// What one teleop round did.
 #[derive(Debug, Clone)]
 pub struct TeleopOutcome {
     /// Per-sample error for the phone (invalid pose, bad gripper value); empty when fine.
