@@ -287,9 +287,24 @@ fn push_appends_missing_episodes_and_refuses_a_different_dataset() {
     }
 
     let url = "s3://fleet/pushed/a";
+    let offset = log_len();
     let (ok, out, err) = push(&a_one, url);
     assert!(ok, "{err}");
     assert!(out.contains("1 episodes remote (was 0)"), "{out}");
+    // Data, videos and episode metadata go up several at once, then the replaceable metadata, info.json last:
+    // whatever a reader catches mid-push, the info.json it finds names only episodes already complete.
+    let first = puts_since(&moto_log, offset);
+    assert!(
+        first.last().is_some_and(|p| p.ends_with("meta/info.json")),
+        "{first:?}"
+    );
+    let bulk = |p: &String| {
+        ["/data/", "/videos/", "/meta/episodes/"]
+            .iter()
+            .any(|d| p.contains(d))
+    };
+    let first_meta = first.iter().position(|p| !bulk(p)).unwrap();
+    assert!(first[first_meta..].iter().all(|p| !bulk(p)), "{first:?}");
     // Appending: only episode 1's files and the metadata that changed go up; episode 0's never again.
     let offset = log_len();
     let (ok, out, err) = push(&a, url);

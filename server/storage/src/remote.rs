@@ -58,10 +58,16 @@ pub struct RemoteObject {
 }
 
 /// Paces uploads to `bytes_per_s`: every chunk waits until the bytes sent so far are due. Credit from idle
-/// time is capped at one second so a burst after a pause stays near the cap.
+/// time is capped at one second so a burst after a pause stays near the cap. Shared by concurrent transfers
+/// (a push sends several objects at once), so the cap holds for their sum.
 #[derive(Debug)]
 pub struct RateLimiter {
     bytes_per_s: Option<u64>,
+    state: parking_lot::Mutex<RateState>,
+}
+
+#[derive(Debug)]
+struct RateState {
     start: Instant,
     sent_bytes: u64,
 }
@@ -70,23 +76,28 @@ impl RateLimiter {
     pub fn new(bytes_per_s: Option<u64>) -> Self {
         RateLimiter {
             bytes_per_s,
-            start: Instant::now(),
-            sent_bytes: 0,
+            state: parking_lot::Mutex::new(RateState {
+                start: Instant::now(),
+                sent_bytes: 0,
+            }),
         }
     }
 
-    pub async fn take(&mut self, n_bytes: u64) {
+    pub async fn take(&self, n_bytes: u64) {
         let Some(rate) = self.bytes_per_s else { return };
-        let elapsed_s = self.start.elapsed().as_secs_f64();
-        let due_s = self.sent_bytes as f64 / rate as f64;
-        if elapsed_s > due_s + 1.0 {
-            let now = Instant::now();
-            self.start = now.checked_sub(Duration::from_secs(1)).unwrap_or(now);
-            self.sent_bytes = rate;
-        }
-        self.sent_bytes += n_bytes;
-        let due_s = self.sent_bytes as f64 / rate as f64;
-        let wait_s = due_s - self.start.elapsed().as_secs_f64();
+        let wait_s = {
+            // Never held across the sleep.
+            let mut st = self.state.lock();
+            let elapsed_s = st.start.elapsed().as_secs_f64();
+            let due_s = st.sent_bytes as f64 / rate as f64;
+            if elapsed_s > due_s + 1.0 {
+                let now = Instant::now();
+                st.start = now.checked_sub(Duration::from_secs(1)).unwrap_or(now);
+                st.sent_bytes = rate;
+            }
+            st.sent_bytes += n_bytes;
+            st.sent_bytes as f64 / rate as f64 - st.start.elapsed().as_secs_f64()
+        };
         if wait_s > 0.0 {
             tokio::time::sleep(Duration::from_secs_f64(wait_s)).await;
         }
@@ -252,7 +263,7 @@ impl Remote {
         rel: &str,
         local: &Path,
         sha256: &str,
-        limiter: &mut RateLimiter,
+        limiter: &RateLimiter,
     ) -> Result<(), StorageError> {
         let mut attributes = Attributes::new();
         attributes.insert(Attribute::Metadata(SHA256_META.into()), sha256.to_owned().into());

@@ -4,7 +4,9 @@
 use crate::order::{self, is_immutable};
 use crate::remote::{RateLimiter, Remote};
 use crate::{StorageError, sha256_file};
+use futures_util::StreamExt;
 use serde_json::Value;
+use std::collections::HashMap;
 use std::path::Path;
 
 /// What a push did.
@@ -56,11 +58,17 @@ fn incompatibility(local: &Value, remote: &Value) -> Option<String> {
     None
 }
 
+/// Objects a push has in flight at once: enough to hide a request's round trip (HEAD, PUT, multipart
+/// completion) on a loopback or LAN store, and a memory bound of this many 8 MiB parts.
+pub const PUSH_CONCURRENCY: usize = 4;
+
 /// Pushes the dataset at `root` to `remote`. A remote copy that already exists must be the same dataset
 /// (format, fps, robot type, features) with no episode the local one lacks, and every file both have that
 /// never changes once written (data, videos, episode metadata) must be byte-identical; otherwise nothing
-/// is written. Then the missing files go up in commit order, `info.json` last, skipping every object
-/// already there intact.
+/// is written. Then the missing files go up, skipping every object already there intact: first the files
+/// that are never replaced ([`is_immutable`]), [`PUSH_CONCURRENCY`] at a time (no reader reaches them
+/// before a later `info.json` names their episodes), then the replaceable metadata one at a time in
+/// commit order, `info.json` last, so a remote reader sees the old dataset or the new one, never a mix.
 pub async fn push(
     root: &Path,
     remote: &Remote,
@@ -79,6 +87,10 @@ pub async fn push(
     for rel in &files {
         hashes.push(sha256_file(&root.join(rel))?);
     }
+    // One listing answers "absent" and "different size" for every object, so only objects present with the
+    // same size cost a HEAD (their sha256 is in the object's metadata).
+    let listed: HashMap<String, u64> = remote.list().await?.into_iter().collect();
+    let same_size = |rel: &str, size: u64| listed.get(rel) == Some(&size);
     if let Some(bytes) = remote.get_bytes("meta/info.json").await? {
         let remote_info: Value = serde_json::from_slice(&bytes)
             .map_err(|e| mismatch(format!("the remote meta/info.json is not JSON: {e}")))?;
@@ -92,12 +104,11 @@ pub async fn push(
                 "the remote copy has {remote_episodes} episodes, the local one {local_episodes}: pull it first"
             )));
         }
-        let listed: std::collections::HashMap<String, u64> = remote.list().await?.into_iter().collect();
         for (rel, (size, sha)) in files.iter().zip(&hashes) {
             if !is_immutable(rel) || !listed.contains_key(rel) {
                 continue;
             }
-            if !remote.intact(rel, *size, sha).await? {
+            if !(same_size(rel, *size) && remote.intact(rel, *size, sha).await?) {
                 return Err(mismatch(format!(
                     "{rel} exists on both sides with different content (an episode recorded twice \
                      under the same index?)"
@@ -105,18 +116,45 @@ pub async fn push(
             }
         }
     }
-    let mut limiter = RateLimiter::new(max_bytes_per_s);
-    for (rel, (size, sha)) in files.iter().zip(&hashes) {
-        if remote.intact(rel, *size, sha).await? {
-            report.objects_skipped += 1;
-            continue;
+    let limiter = RateLimiter::new(max_bytes_per_s);
+    let (bulk, ordered): (Vec<_>, Vec<_>) = files.iter().zip(&hashes).partition(|(rel, _)| is_immutable(rel));
+    let mut count = |sent: Option<u64>| match sent {
+        Some(size) => {
+            report.objects_put += 1;
+            report.bytes_put += size;
         }
-        remote.put_file(rel, &root.join(rel), sha, &mut limiter).await?;
-        report.objects_put += 1;
-        report.bytes_put += size;
+        None => report.objects_skipped += 1,
+    };
+    let mut bulk = futures_util::stream::iter(bulk)
+        .map(|(rel, (size, sha))| send(remote, root, &limiter, rel, *size, sha, same_size(rel, *size)))
+        .buffer_unordered(PUSH_CONCURRENCY);
+    while let Some(sent) = bulk.next().await {
+        count(sent?);
+    }
+    drop(bulk);
+    for (rel, (size, sha)) in ordered {
+        count(send(remote, root, &limiter, rel, *size, sha, same_size(rel, *size)).await?);
     }
     report.episodes_after = local_episodes;
     Ok(report)
+}
+
+/// Sends one file unless it is remote and intact (`listed_same_size`: the listing has it at this size, so a
+/// HEAD decides). The size sent, or `None` when skipped.
+async fn send(
+    remote: &Remote,
+    root: &Path,
+    limiter: &RateLimiter,
+    rel: &str,
+    size: u64,
+    sha: &str,
+    listed_same_size: bool,
+) -> Result<Option<u64>, StorageError> {
+    if listed_same_size && remote.intact(rel, size, sha).await? {
+        return Ok(None);
+    }
+    remote.put_file(rel, &root.join(rel), sha, limiter).await?;
+    Ok(Some(size))
 }
 
 /// Downloads the remote dataset into `dest` (created if needed). `info.json` is read first and again at

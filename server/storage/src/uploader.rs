@@ -243,7 +243,7 @@ fn run(shared: &Arc<Shared>, remote: &Remote, rate: Option<u64>) {
         }
     };
     rt.block_on(async {
-        let mut limiter = RateLimiter::new(rate);
+        let limiter = RateLimiter::new(rate);
         let mut backoff = FIRST_BACKOFF;
         while !shared.stop.load(Ordering::Relaxed) {
             let batch = shared.state.lock().journal.batches.first().cloned();
@@ -252,7 +252,7 @@ fn run(shared: &Arc<Shared>, remote: &Remote, rate: Option<u64>) {
                 continue;
             };
             let r = tokio::select! {
-                r = upload_batch(shared, remote, &batch, &mut limiter) => r,
+                r = upload_batch(shared, remote, &batch, &limiter) => r,
                 () = stopped(shared) => return,
             };
             match r {
@@ -293,7 +293,7 @@ async fn upload_batch(
     shared: &Shared,
     remote: &Remote,
     batch: &Batch,
-    limiter: &mut RateLimiter,
+    limiter: &RateLimiter,
 ) -> Result<(), StorageError> {
     let dir = UploadJournal::dir(&shared.root);
     for (i, f) in batch.files.iter().enumerate() {
