@@ -1168,6 +1168,15 @@ mod tests {
         );
         assert!(s.retain_local);
         assert!(c.to_redacted_toml().unwrap().contains("[storage]"));
+        let c = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_STORAGE__URL", "s3://fleet/lab"),
+                ("PHONE2ACT_STORAGE__RETAIN_LOCAL", "false"),
+            ],
+        )
+        .unwrap();
+        assert!(!c.storage.as_ref().unwrap().retain_local);
         for (key, value, expected) in [
             ("URL", "https://fleet/lab", "storage.url"),
             ("ENDPOINT", "minio:9000", "storage.endpoint"),
@@ -1175,7 +1184,7 @@ mod tests {
             ("REQUEST_TIMEOUT_S", "0", "storage.request_timeout_s"),
             ("REQUEST_TIMEOUT_S", "-1", "storage.request_timeout_s"),
             ("STATION_ID", "a/b", "storage.station_id"),
-            ("RETAIN_LOCAL", "false", "storage.retain_local"),
+            ("RETAIN_LOCAL", "maybe", "PHONE2ACT_STORAGE__RETAIN_LOCAL"),
         ] {
             let var = format!("PHONE2ACT_STORAGE__{key}");
             let mut env = vec![(var.as_str(), value)];

@@ -49,6 +49,7 @@ pub fn start(config: &Config, station_id: &str) -> Result<Option<Arc<Uploader>>,
         remote,
         station_id,
         storage.max_upload_bytes_per_s,
+        storage.retain_local,
     )?)))
 }
 

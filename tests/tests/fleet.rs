@@ -226,6 +226,90 @@ async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_f
     server.shutdown().await.unwrap();
 }
 
+/// The data and video files under `root`, dataset-relative, sorted.
+fn bulk_files(root: &Path) -> Vec<String> {
+    phone2act_storage::order::dataset_files(root)
+        .unwrap()
+        .into_iter()
+        .filter(|r| r.starts_with("data/") || r.starts_with("videos/"))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retain_local_false_removes_an_episodes_files_only_once_they_are_stored_and_recording_goes_on() {
+    let test = "retain_local_false_removes_an_episodes_files_only_once_they_are_stored_and_recording_goes_on";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = dir.path().join("ds");
+    let mut config = default_config(&root);
+    let mut s = storage(&moto, &creds, "st-r");
+    s.retain_local = false;
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+
+    // No bucket yet: the upload fails, and the episode's files stay.
+    assert_eq!(record(&client, "pick", "alice", 600).await, 0);
+    wait_list(&client, Duration::from_mins(1), "a failed upload", |l| {
+        l.episodes
+            .first()
+            .is_some_and(|e| e.upload_state() == v1::UploadState::Failed)
+    })
+    .await;
+    let first = bulk_files(&root);
+    assert_eq!(first.len(), 2, "one data file and one video: {first:?}");
+
+    // Stored: an episode's files leave the disk before it is reported uploaded; its metadata stays.
+    moto.create_bucket(BUCKET);
+    assert_eq!(record(&client, "place", "bob", 600).await, 1);
+    wait_list(&client, Duration::from_mins(2), "uploads after the fix", |l| {
+        all_uploaded(l, 2)
+    })
+    .await;
+    assert_eq!(bulk_files(&root), Vec::<String>::new());
+    assert!(root.join("meta/episodes/chunk-000/file-001.parquet").exists());
+    let removed = phone2act_storage::removed_locally(&root).unwrap();
+    assert_eq!(removed.len(), 4, "{removed:?}");
+
+    // Recording goes on into the same dataset, with new file indices (never one that is in storage).
+    assert_eq!(record(&client, "pick", "carol", 600).await, 2);
+    wait_list(&client, Duration::from_mins(2), "the third upload", |l| {
+        all_uploaded(l, 3)
+    })
+    .await;
+    let stored = remote(&moto, "st-r");
+    remote_is_consistent(&stored, 1).await.unwrap();
+    let data: Vec<String> = stored
+        .list()
+        .await
+        .unwrap()
+        .into_iter()
+        .map(|(k, _)| k)
+        .filter(|k| k.starts_with("data/"))
+        .collect();
+    assert_eq!(
+        data,
+        [
+            "data/chunk-000/file-000.parquet",
+            "data/chunk-000/file-001.parquet",
+            "data/chunk-000/file-002.parquet"
+        ]
+    );
+    pull_and_verify(&stored, &dir.path().join("back"), 3).await;
+    assert_eq!(client.episodes().list().await.unwrap().episodes.len(), 3);
+
+    // The station's copy is not a whole dataset any more: pushing it anywhere else is refused.
+    let err = phone2act_storage::push(&root, &remote(&moto, "elsewhere"), None)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("removed locally after their upload"), "{err}");
+    assert!(moto.list(BUCKET, "lab/elsewhere/").is_empty());
+    server.shutdown().await.unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_storage_killed_mid_upload_and_restarted_shows_no_half_episode() {
     let test = "the_storage_killed_mid_upload_and_restarted_shows_no_half_episode";

@@ -576,6 +576,15 @@ fn real_main() -> anyhow::Result<()> {
                 for problem in &report.problems {
                     outln!("problem: {problem}");
                 }
+                let removed = phone2act_storage::removed_locally(local.path()).unwrap_or_default();
+                if !removed.is_empty() {
+                    outln!(
+                        "note: {} data and video files were removed from this disk after their upload \
+                         (storage.retain_local = false): verify the stored copy, `phone2act dataset verify \
+                         s3://…`",
+                        removed.len()
+                    );
+                }
                 anyhow::bail!("{}: {} problem(s) found", path, report.problems.len())
             }
         }

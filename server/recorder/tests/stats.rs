@@ -163,3 +163,32 @@ fn v21_stats_equal_numpy_over_all_frames() {
 fn v30_stats_equal_numpy_over_all_frames() {
     write_and_verify(Format::V30);
 }
+
+/// A station that removes uploaded episodes' data files (`retain_local = false`) keeps only their metadata:
+/// reopened, the dataset continues after the last file the metadata names, never reusing an index whose
+/// file is in storage.
+#[test]
+fn a_reopened_dataset_never_reuses_the_index_of_a_removed_data_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let open = || Dataset::open(spec(root, Format::V30, &[], (64, 64))).unwrap();
+    let mut rng = Rng(7);
+    let mut ds = open();
+    for e in 0..2 {
+        record_episode(&mut ds, e, false, &mut rng);
+    }
+    drop(ds);
+    let data = root.join("data/chunk-000");
+    for f in ["file-000.parquet", "file-001.parquet"] {
+        std::fs::remove_file(data.join(f)).unwrap();
+    }
+    let mut ds = open();
+    record_episode(&mut ds, 2, false, &mut rng);
+    drop(ds);
+    let names: Vec<String> = std::fs::read_dir(&data)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, ["file-002.parquet"]);
+    assert_eq!(read_json(&root.join("meta/info.json"))["total_episodes"], 3);
+}

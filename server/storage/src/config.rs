@@ -37,8 +37,10 @@ pub struct StorageConfig {
     /// stopped forwarding); default 120 s, long enough for an 8 MiB part over a slow uplink.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub request_timeout_s: Option<f64>,
-    /// Keep the local copy of uploaded episodes. Only `true` exists today: deleting uploaded episodes from
-    /// a local LeRobot dataset needs its metadata rewritten, which is issue 26's compaction work.
+    /// Keep the local copy of uploaded episodes (default). With `false`, an episode's data and video files are
+    /// removed from the station's disk once the storage holds them intact (checked again just before the
+    /// removal: same size, same sha256); the metadata stays, so the station keeps recording into the same
+    /// dataset, and the whole dataset is the remote copy (`dataset pull`).
     #[serde(default = "default_true")]
     pub retain_local: bool,
     /// This station's name in the fleet layout; default: a stable id generated once and kept in
@@ -86,11 +88,6 @@ impl StorageConfig {
             return Err(format!(
                 "storage.request_timeout_s = {t}: must be a positive number of seconds"
             ));
-        }
-        if !self.retain_local {
-            return Err(
-                "storage.retain_local = false is not supported yet: local episodes are always kept".into(),
-            );
         }
         if let Some(id) = &self.station_id {
             check_station_id(id).map_err(|e| format!("storage.station_id: {e}"))?;

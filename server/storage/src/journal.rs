@@ -14,6 +14,30 @@ use std::path::{Path, PathBuf};
 /// The upload directory inside the dataset root (hidden: no LeRobot reader looks at it).
 pub const UPLOAD_DIR: &str = ".phone2act-upload";
 const JOURNAL_FILE: &str = "journal.json";
+/// The dataset files removed after their upload (`retain_local = false`), a JSON array of dataset-relative
+/// paths. Written before the files go, so every removal is on record.
+const REMOVED_FILE: &str = "removed-locally.json";
+
+/// The dataset files `retain_local = false` removed from `root` after their upload, oldest first (empty for
+/// a dataset that keeps everything). Such a dataset is complete only in its storage.
+pub fn removed_locally(root: &Path) -> Result<Vec<String>, StorageError> {
+    let path = root.join(UPLOAD_DIR).join(REMOVED_FILE);
+    match fs::read(&path) {
+        Ok(b) => {
+            serde_json::from_slice(&b).map_err(|e| StorageError::Corrupt(format!("{}: {e}", path.display())))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
+        Err(e) => Err(StorageError::io(path, e)),
+    }
+}
+
+/// Adds `rels` to the record of [`removed_locally`] (atomically; call before removing them).
+pub(crate) fn note_removed(root: &Path, rels: &[String]) -> Result<(), StorageError> {
+    let mut all = removed_locally(root)?;
+    all.extend(rels.iter().cloned());
+    let bytes = serde_json::to_vec(&all).map_err(|e| StorageError::Corrupt(e.to_string()))?;
+    write_atomic(&root.join(UPLOAD_DIR).join(REMOVED_FILE), &bytes)
+}
 
 /// One file of a batch.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]

@@ -23,6 +23,7 @@ pub mod sync;
 pub mod uploader;
 
 pub use config::{Credentials, StorageConfig, StorageUrl};
+pub use journal::removed_locally;
 pub use remote::Remote;
 pub use sync::{PushReport, pull, push};
 pub use uploader::{EpisodeUpload, UploadStatus, Uploader};

@@ -91,6 +91,17 @@ pub async fn push(
     // same size cost a HEAD (their sha256 is in the object's metadata).
     let listed: HashMap<String, u64> = remote.list().await?.into_iter().collect();
     let same_size = |rel: &str, size: u64| listed.get(rel) == Some(&size);
+    // A station with `retain_local = false` keeps only metadata for uploaded episodes: pushing that elsewhere
+    // would publish an info.json counting episodes whose rows and videos the destination never gets.
+    let removed = crate::journal::removed_locally(root)?;
+    if let Some(gone) = removed.iter().find(|r| !listed.contains_key(r.as_str())) {
+        return Err(mismatch(format!(
+            "{} data and video files of this dataset (first {gone}) were removed locally after their upload \
+             (storage.retain_local = false) and are not at this URL: pull the complete dataset from its \
+             storage and push that copy",
+            removed.len()
+        )));
+    }
     if let Some(bytes) = remote.get_bytes("meta/info.json").await? {
         let remote_info: Value = serde_json::from_slice(&bytes)
             .map_err(|e| mismatch(format!("the remote meta/info.json is not JSON: {e}")))?;

@@ -4,7 +4,7 @@
 //! calls [`Uploader::committed`] (hard links and a journal write: milliseconds); everything else happens
 //! here, batch after batch in commit order, retrying with exponential backoff until the storage answers.
 
-use crate::journal::{Batch, UploadJournal};
+use crate::journal::{Batch, UploadJournal, note_removed};
 use crate::remote::{RateLimiter, Remote};
 use crate::{StorageError, order, sha256_file};
 use parking_lot::Mutex;
@@ -54,6 +54,9 @@ pub struct UploadStatus {
     pub objects_put: u64,
     pub objects_skipped: u64,
     pub bytes_put: u64,
+    /// Local data and video files removed after their upload (`retain_local = false`), and their bytes.
+    pub local_files_removed: u64,
+    pub local_bytes_freed: u64,
 }
 
 struct State {
@@ -62,10 +65,13 @@ struct State {
     objects_put: u64,
     objects_skipped: u64,
     bytes_put: u64,
+    local_files_removed: u64,
+    local_bytes_freed: u64,
 }
 
 struct Shared {
     root: PathBuf,
+    retain_local: bool,
     url: String,
     station_id: String,
     state: Mutex<State>,
@@ -84,11 +90,14 @@ impl Uploader {
     /// Starts uploading the dataset at `root` to `remote`. Call it after the recorder has opened the
     /// dataset and before any episode can be committed: episodes committed while storage was off (or
     /// before a crash, between a commit and its snapshot) are caught up from the files as they are now.
+    /// With `retain_local` false, each uploaded episode's data and video files are then removed locally
+    /// (see [`prune_batch`]).
     pub fn start(
         root: &Path,
         remote: Remote,
         station_id: &str,
         max_upload_bytes_per_s: Option<u64>,
+        retain_local: bool,
     ) -> Result<Self, StorageError> {
         let mut journal = UploadJournal::load(root)?;
         journal.remove_orphans(root);
@@ -106,6 +115,7 @@ impl Uploader {
         journal.save(root)?;
         let shared = Arc::new(Shared {
             root: root.to_owned(),
+            retain_local,
             url: remote.url().to_string(),
             station_id: station_id.to_owned(),
             state: Mutex::new(State {
@@ -114,6 +124,8 @@ impl Uploader {
                 objects_put: 0,
                 objects_skipped: 0,
                 bytes_put: 0,
+                local_files_removed: 0,
+                local_bytes_freed: 0,
             }),
             wake: Notify::new(),
             stop: AtomicBool::new(false),
@@ -168,6 +180,8 @@ impl Uploader {
             objects_put: st.objects_put,
             objects_skipped: st.objects_skipped,
             bytes_put: st.bytes_put,
+            local_files_removed: st.local_files_removed,
+            local_bytes_freed: st.local_bytes_freed,
         }
     }
 
@@ -258,6 +272,12 @@ fn run(shared: &Arc<Shared>, remote: &Remote, rate: Option<u64>) {
             match r {
                 Ok(()) => {
                     backoff = FIRST_BACKOFF;
+                    if !shared.retain_local {
+                        tokio::select! {
+                            () = prune_batch(shared, remote) => {}
+                            () = stopped(shared) => return,
+                        }
+                    }
                     finish_batch(shared, &batch);
                 }
                 Err(e) => {
@@ -325,6 +345,65 @@ async fn upload_batch(
     Ok(())
 }
 
+/// Whether a committed file is bulk an uploaded episode can do without locally: its rows and its videos.
+/// Metadata stays, so the recorder keeps appending to the dataset and `episode list` keeps answering.
+fn removable(rel: &str) -> bool {
+    rel.starts_with("data/") || rel.starts_with("videos/")
+}
+
+/// `retain_local = false`: removes the uploaded batch's data and video files from the dataset. A file goes
+/// only if its bytes are still those the batch uploaded (same size and sha256 as the batch's snapshot) and
+/// the storage still holds them intact (asked again now, not taken from the upload), so nothing leaves the
+/// disk that is not remote. Any doubt (an error, a changed file, a missing object) keeps the file: removal
+/// is an optimisation, never a condition of the upload. The batch's own hard links go with the batch.
+async fn prune_batch(shared: &Shared, remote: &Remote) {
+    let files = match shared.state.lock().journal.batches.first() {
+        Some(b) => b.files.clone(),
+        None => return,
+    };
+    let mut checked = Vec::new();
+    for f in files.iter().filter(|f| removable(&f.rel)) {
+        let Some(sha) = &f.sha256 else { continue };
+        let local = shared.root.join(&f.rel);
+        let same = match sha256_file(&local) {
+            Ok((size, local_sha)) => size == f.size_bytes && &local_sha == sha,
+            Err(_) => false,
+        };
+        if !same {
+            tracing::warn!(file = %f.rel, "storage: kept locally: the file is not the one uploaded");
+            continue;
+        }
+        match remote.intact(&f.rel, f.size_bytes, sha).await {
+            Ok(true) => checked.push((f.rel.clone(), f.size_bytes)),
+            Ok(false) => {
+                tracing::warn!(file = %f.rel, "storage: kept locally: the storage does not hold it intact");
+            }
+            Err(e) => {
+                tracing::warn!(file = %f.rel, error = %e, "storage: kept locally: cannot check the stored copy");
+            }
+        }
+    }
+    if checked.is_empty() {
+        return;
+    }
+    let rels: Vec<String> = checked.iter().map(|(r, _)| r.clone()).collect();
+    if let Err(e) = note_removed(&shared.root, &rels) {
+        tracing::warn!(error = %e, "storage: kept the uploaded files locally: cannot record their removal");
+        return;
+    }
+    for (rel, size_bytes) in checked {
+        let local = shared.root.join(&rel);
+        match std::fs::remove_file(&local) {
+            Ok(()) => {
+                let mut st = shared.state.lock();
+                st.local_files_removed += 1;
+                st.local_bytes_freed += size_bytes;
+            }
+            Err(e) => tracing::warn!(file = %rel, error = %e, "storage: cannot remove the uploaded file"),
+        }
+    }
+}
+
 fn finish_batch(shared: &Shared, batch: &Batch) {
     let mut st = shared.state.lock();
     st.last_error = None;
@@ -339,6 +418,7 @@ fn finish_batch(shared: &Shared, batch: &Batch) {
     let _ = std::fs::remove_dir_all(dir);
     tracing::info!(
         episodes = ?(batch.first_episode..batch.end_episode),
+        retain_local = shared.retain_local,
         "storage: episodes uploaded"
     );
 }

@@ -236,6 +236,16 @@ impl Dataset {
         } else if self.total_episodes > 0 {
             tracing::warn!(root = %root.display(), "rebuilding the dataset quantiles from the data");
             self.quantiles = QuantileStore::rebuild(root, self.total_episodes)?;
+            if self.quantiles.current.episodes < self.total_episodes {
+                // Data files removed after their upload (`retain_local = false`): the quantiles describe the
+                // episodes still here; `dataset compact` of the stored copy recomputes them over all.
+                tracing::warn!(
+                    root = %root.display(),
+                    episodes_with_data = self.quantiles.current.episodes,
+                    episodes = self.total_episodes,
+                    "dataset quantiles rebuilt from the episodes whose data files are on this disk"
+                );
+            }
             // A dataset from an older phone2act has averaged quantiles in stats.json: correct it now rather
             // than at the next save, if the running aggregates describe the same frames (each file is
             // replaced atomically, and both describe only committed episodes).

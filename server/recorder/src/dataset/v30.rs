@@ -64,6 +64,58 @@ fn next_file_index(dir: &Path, ext: &str) -> u64 {
     next
 }
 
+/// Every `meta/episodes/chunk-*/file-*.parquet`, sorted.
+fn episode_meta_files(root: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for chunk in fs::read_dir(root.join("meta/episodes"))
+        .into_iter()
+        .flatten()
+        .flatten()
+    {
+        for f in fs::read_dir(chunk.path()).into_iter().flatten().flatten() {
+            if f.path().extension().is_some_and(|e| e == "parquet") {
+                files.push(f.path());
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
+/// The largest `chunk*1000+file` each file family (`data`, `videos/<key>`) reaches in the episode
+/// metadata's `<family>/chunk_index` and `<family>/file_index` columns.
+fn named_file_indices(root: &Path) -> Result<std::collections::HashMap<String, u64>, RecorderError> {
+    let mut most = std::collections::HashMap::new();
+    for f in episode_meta_files(root) {
+        for batch in parquet_io::read_batches(&f)? {
+            let schema = batch.schema();
+            for field in schema.fields() {
+                let Some(family) = field.name().strip_suffix("/file_index") else {
+                    continue;
+                };
+                if family.starts_with("meta/") {
+                    continue;
+                }
+                let (Some(chunks), Some(idx)) = (
+                    parquet_io::int_column(&batch, &format!("{family}/chunk_index")),
+                    parquet_io::int_column(&batch, field.name()),
+                ) else {
+                    continue;
+                };
+                for (c, i) in chunks.into_iter().zip(idx) {
+                    if let (Ok(c), Ok(i)) = (u64::try_from(c), u64::try_from(i)) {
+                        let n = c * CHUNKS_SIZE + i;
+                        most.entry(family.to_owned())
+                            .and_modify(|m: &mut u64| *m = (*m).max(n))
+                            .or_insert(n);
+                    }
+                }
+            }
+        }
+    }
+    Ok(most)
+}
+
 impl Layout for V30 {
     fn info_fields(&self, _total_episodes: u64, _cameras: u64) -> Vec<(&'static str, Value)> {
         vec![
@@ -82,10 +134,16 @@ impl Layout for V30 {
 
     fn resume(&mut self, spec: &DatasetSpec, _total_episodes: u64) -> Result<Vec<String>, RecorderError> {
         let root = &spec.root;
-        self.data = next_file_index(&root.join("data"), "parquet");
+        // The episode metadata names every data and video file, including ones no longer on this disk (a
+        // station that removes uploaded episodes' files, `retain_local = false`): a new episode must never
+        // take the index of a file that exists in the dataset's storage.
+        let named = named_file_indices(root)?;
+        let after = |col: &str| named.get(col).map_or(0, |n| n + 1);
+        self.data = next_file_index(&root.join("data"), "parquet").max(after("data"));
         self.meta = next_file_index(&root.join("meta/episodes"), "parquet");
         for (i, c) in spec.cameras.iter().enumerate() {
-            self.videos[i] = next_file_index(&root.join("videos").join(c.key()), "mp4");
+            self.videos[i] = next_file_index(&root.join("videos").join(c.key()), "mp4")
+                .max(after(&format!("videos/{}", c.key())));
         }
         let tp = root.join("meta/tasks.parquet");
         if tp.exists() {
@@ -96,18 +154,8 @@ impl Layout for V30 {
     }
 
     fn listed_episodes(&self, root: &Path) -> Result<Vec<(u64, String, u64)>, RecorderError> {
-        let mut files = Vec::new();
-        let dir = root.join("meta/episodes");
-        for chunk in fs::read_dir(&dir).into_iter().flatten().flatten() {
-            for f in fs::read_dir(chunk.path()).into_iter().flatten().flatten() {
-                if f.path().extension().is_some_and(|e| e == "parquet") {
-                    files.push(f.path());
-                }
-            }
-        }
-        files.sort();
         let mut listed = Vec::new();
-        for f in files {
+        for f in episode_meta_files(root) {
             for e in parquet_io::read_episode_summaries(&f)? {
                 listed.push((e.episode_index, e.tasks.join("; "), e.length));
             }
