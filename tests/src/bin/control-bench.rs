@@ -2,9 +2,11 @@
 //! handing the gated command to the bridge, with two arms driven by 60 Hz phone streams and a third arm
 //! driven by a policy session at the same time; then the highest sustained sample rate; then full load
 //! (issue 17): 8 phones at 60 Hz, 4 policy sessions pushing chunks and 3 synthetic cameras recording an
-//! episode, all on one server.
+//! episode, all on one server; then the same full load while the station's uploader sends a backlog to an S3
+//! server on loopback as fast as it can (when `PHONE2ACT_MOTO_SERVER` names one).
 //!
-//! Run: `cargo run --release -p phone2act-tests --bin control-bench [-- --seconds 10]`
+//! Run: `PHONE2ACT_MOTO_SERVER=$(tests/scripts/s3-server.sh) cargo run --release -p phone2act-tests --bin
+//! control-bench [-- --seconds 10]`
 
 use anyhow::Context as _;
 use phone2act_sdk::proto as v1;
@@ -54,7 +56,7 @@ const PHONES: usize = 8;
 const POLICIES: usize = 4;
 const CAMERAS: usize = 3;
 
-fn full_load_config() -> String {
+fn full_load_config(root: &std::path::Path, storage: &str) -> String {
     let arms = (0..PHONES)
         .map(|i| format!("phone{i}"))
         .chain((0..POLICIES).map(|i| format!("policy{i}")))
@@ -66,7 +68,8 @@ fn full_load_config() -> String {
         )
     });
     arms.chain(cameras).collect::<String>()
-        + "[recorder]\nroot = \"/tmp/phone2act-control-bench-full\"\nfps = 30\n"
+        + &format!("[recorder]\nroot = \"{}\"\nfps = 30\n\n", root.display())
+        + storage
 }
 
 async fn phone(client: Client, arm: String, rate_hz: f64, seconds: f64) -> anyhow::Result<u64> {
@@ -244,7 +247,26 @@ fn main() -> anyhow::Result<()> {
         app.arm("left").expect("arm").latencies_ns().1 as f64 / elapsed
     );
     server.stop();
-    full_load(seconds, &client_rt)
+    let root = std::env::temp_dir().join("phone2act-control-bench-full");
+    let _ = std::fs::remove_dir_all(&root);
+    full_load(
+        "sample → bridge, full load (8 phones + 4 policies + 3 cams)",
+        &full_load_config(&root, ""),
+        seconds,
+        &client_rt,
+        |_| {},
+    )?;
+    let _ = std::fs::remove_dir_all(&root);
+    // The same load while an upload runs, when an S3 server is at hand (tests/scripts/s3-server.sh).
+    match std::env::var_os("PHONE2ACT_MOTO_SERVER").map(std::path::PathBuf::from) {
+        Some(moto) if moto.exists() => full_load_while_uploading(seconds, &client_rt, &moto),
+        _ => {
+            println!(
+                "full load + upload: skipped (set PHONE2ACT_MOTO_SERVER=$(tests/scripts/s3-server.sh) to run it)"
+            );
+            Ok(())
+        }
+    }
 }
 
 /// A server on its own 2-thread runtime, with a handle on its `App` for the control-path counters.
@@ -286,20 +308,34 @@ impl BenchServer {
     }
 }
 
+/// What one full-load window recorded, from the episode's status just before it is discarded.
+struct Recorded {
+    frames: u64,
+    dropped: u64,
+    late: u64,
+}
+
 /// 8 phones at 60 Hz + 4 policy sessions + 3 cameras recording, each client on its own connection as
-/// separate devices would be.
-fn full_load(seconds: f64, client_rt: &tokio::runtime::Runtime) -> anyhow::Result<()> {
-    let _ = std::fs::remove_dir_all("/tmp/phone2act-control-bench-full");
-    let server = BenchServer::start(&full_load_config())?;
+/// separate devices would be, on a server configured by `config`; `during` runs once the load is on and again
+/// at its end (the upload phase reads the uploader's counters there).
+fn full_load(
+    label: &str,
+    config: &str,
+    seconds: f64,
+    client_rt: &tokio::runtime::Runtime,
+    mut during: impl FnMut(&v1::ListEpisodesResponse),
+) -> anyhow::Result<Recorded> {
+    let server = BenchServer::start(config)?;
     let (app, url) = (Arc::clone(&server.app), server.url.clone());
     let phones: Vec<String> = (0..PHONES).map(|i| format!("phone{i}")).collect();
-    let (sent, chunks, frames) = client_rt.block_on(async {
+    let (sent, chunks, recorded) = client_rt.block_on(async {
         let control = Client::connect(&url, None).await?;
         control.episodes().start("control-bench full load").await?;
         tokio::time::sleep(Duration::from_millis(300)).await;
         for arm in &phones {
             app.arm(arm).expect("arm").reset_latencies();
         }
+        during(&control.episodes().list().await?);
         let mut clients = tokio::task::JoinSet::new();
         for arm in &phones {
             let client = Client::connect(&url, None).await?;
@@ -317,19 +353,102 @@ fn full_load(seconds: f64, client_rt: &tokio::runtime::Runtime) -> anyhow::Resul
         while let Some(done) = policies.join_next().await {
             chunks += done??;
         }
-        let frames = control.episodes().status().await?.frames_recorded;
+        during(&control.episodes().list().await?);
+        let st = control.episodes().status().await?;
         control.episodes().discard().await?;
-        anyhow::Ok((sent, chunks, frames))
+        let recorded = Recorded {
+            frames: st.frames_recorded,
+            dropped: st.dropped_frames,
+            late: st.late_ticks,
+        };
+        anyhow::Ok((sent, chunks, recorded))
     })?;
-    report(
-        "sample → bridge, full load (8 phones + 4 policies + 3 cams)",
-        &app,
-        &phones,
-    );
+    report(label, &app, &phones);
     println!(
-        "  phone samples sent: {sent}; policy chunks pushed: {chunks}; frames recorded: {frames} ({CAMERAS} cameras)"
+        "  phone samples sent: {sent}; policy chunks pushed: {chunks}; frames recorded: {} ({CAMERAS} cameras), \
+         dropped {}, late ticks {}",
+        recorded.frames, recorded.dropped, recorded.late
     );
     server.stop();
-    let _ = std::fs::remove_dir_all("/tmp/phone2act-control-bench-full");
+    Ok(recorded)
+}
+
+/// Bytes the upload phase puts behind the recorded episode so the uploader is busy for the whole window:
+/// about a minute at loopback speed in a debug build, 10 s or more in a release one.
+const UPLOAD_PAD_BYTES: usize = 768 << 20;
+
+/// The full load again, on a dataset whose uploader is busy for the whole window: a station with `[storage]`
+/// (a moto S3 server on loopback, no bandwidth cap) catching up on a committed episode plus
+/// [`UPLOAD_PAD_BYTES`] of video-sized payload, hashing and putting 8 MiB parts flat out.
+fn full_load_while_uploading(
+    seconds: f64,
+    client_rt: &tokio::runtime::Runtime,
+    moto_bin: &std::path::Path,
+) -> anyhow::Result<()> {
+    let dir = std::env::temp_dir().join(format!("phone2act-control-bench-upload-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let r = upload_phase(seconds, client_rt, moto_bin, &dir);
+    let _ = std::fs::remove_dir_all(&dir);
+    r
+}
+
+fn upload_phase(
+    seconds: f64,
+    client_rt: &tokio::runtime::Runtime,
+    moto_bin: &std::path::Path,
+    dir: &std::path::Path,
+) -> anyhow::Result<()> {
+    let moto = phone2act_tests::s3::Moto::start(moto_bin, dir, false);
+    moto.create_bucket("bench");
+    let root = dir.join("ds");
+    // A committed episode (the dataset the station resumes), then the payload beside it.
+    let server = BenchServer::start(&full_load_config(&root, ""))?;
+    client_rt.block_on(async {
+        let control = Client::connect(&server.url, None).await?;
+        control.episodes().start("control-bench seed").await?;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        control.episodes().stop().await?;
+        anyhow::Ok(())
+    })?;
+    server.stop();
+    let pad = root.join("videos/observation.images.pad/chunk-000");
+    std::fs::create_dir_all(&pad)?;
+    // Video-sized files of 4 MiB (one PUT each), so the uploader's byte counter advances during the window.
+    let file = vec![0x5au8; 4 << 20];
+    for i in 0..UPLOAD_PAD_BYTES / file.len() {
+        std::fs::write(pad.join(format!("file-{i:03}.mp4")), &file)?;
+    }
+    let creds = moto.credentials_file(dir, None);
+    let storage = format!(
+        "[storage]\nurl = \"s3://bench/control\"\nendpoint = \"{}\"\ncredentials_file = \"{}\"\nstation_id = \"bench\"\n",
+        moto.endpoint(),
+        creds.display()
+    );
+    let mut marks = Vec::new();
+    let started = Instant::now();
+    full_load(
+        "sample → bridge, full load + upload flat out",
+        &full_load_config(&root, &storage),
+        seconds,
+        client_rt,
+        |list| {
+            if let Some(st) = &list.storage {
+                marks.push((started.elapsed().as_secs_f64(), st.bytes_put, st.episodes_pending));
+            }
+        },
+    )?;
+    if let [(t0, b0, _), (t1, b1, pending)] = marks[..] {
+        println!(
+            "  upload during the window: {:.1} MB in {:.1} s ({:.1} MB/s put, after hashing); {}",
+            (b1 - b0) as f64 / 1e6,
+            t1 - t0,
+            (b1 - b0) as f64 / 1e6 / (t1 - t0),
+            if pending > 0 {
+                "still uploading at the end of the window"
+            } else {
+                "the upload ended inside the window: raise UPLOAD_PAD_BYTES for a faster machine"
+            }
+        );
+    }
     Ok(())
 }
