@@ -5,8 +5,7 @@
 use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
 use phone2act_bridges::feetech::FeetechEmulator;
 use phone2act_bridges::feetech::protocol::alarm;
-use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration};
-use phone2act_core::kinematics::SO101_JOINT_NAMES;
+use phone2act_bridges::so101::calibration::Calibration;
 use phone2act_recorder::events::{EventKind, read_events};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{TeleopOptions, buttons};
@@ -97,22 +96,7 @@ async fn a_phone_drives_the_emulated_cr5_and_an_episode_records_it() {
 /// The shipped bimanual SO-101 configuration's left arm on an emulated bus, with a calibration whose every
 /// range is the full turn (no homing offset): raw 2047 is each joint's zero.
 fn so101_config(emu: &FeetechEmulator, dir: &std::path::Path) -> Config {
-    let calibration = Calibration {
-        motors: SO101_JOINT_NAMES
-            .iter()
-            .enumerate()
-            .map(|(i, name)| {
-                let motor = MotorCalibration {
-                    id: i as u8 + 1,
-                    drive_mode: 0,
-                    homing_offset: 0,
-                    range_min: 0,
-                    range_max: 4095,
-                };
-                ((*name).to_owned(), motor)
-            })
-            .collect(),
-    };
+    let calibration = Calibration::so101_with_ranges([(0, 4095); 6]);
     let calibration_path = dir.join("left_follower.json");
     calibration.save(&calibration_path).unwrap();
     let path = concat!(

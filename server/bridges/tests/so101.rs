@@ -2,9 +2,10 @@
 //! only through the `Bridge` trait (and the calibration procedure).
 
 use nalgebra::Isometry3;
+use phone2act_bridges::feetech::emulator::SO101_CENTRED_RANGES;
 use phone2act_bridges::feetech::protocol::{self, alarm, register};
 use phone2act_bridges::feetech::{BusError, FeetechBus, FeetechEmulator};
-use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration, run_calibration};
+use phone2act_bridges::so101::calibration::{Calibration, run_calibration};
 use phone2act_bridges::so101::{So101Bridge, So101Config};
 use phone2act_bridges::{Bridge, BridgeError, Command, Control, Health};
 use phone2act_core::kinematics::{SO101_JOINT_NAMES, So101Joints, So101Kinematics};
@@ -13,35 +14,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, Ordering};
 use std::time::{Duration, Instant};
 
-/// Ranges centred on 2047 (homing done), about ±88° for the body joints.
 fn synthetic_calibration() -> Calibration {
-    let ranges = [
-        (1000, 3094),
-        (1050, 3044),
-        (1080, 3014),
-        (1000, 3094),
-        (0, 4095),
-        (2000, 3400),
-    ];
-    Calibration {
-        motors: SO101_JOINT_NAMES
-            .iter()
-            .zip(ranges)
-            .enumerate()
-            .map(|(i, (name, (range_min, range_max)))| {
-                (
-                    (*name).to_owned(),
-                    MotorCalibration {
-                        id: i as u8 + 1,
-                        drive_mode: 0,
-                        homing_offset: 0,
-                        range_min,
-                        range_max,
-                    },
-                )
-            })
-            .collect(),
-    }
+    Calibration::so101_with_ranges(SO101_CENTRED_RANGES)
 }
 
 const START_JOINTS: So101Joints = [0.0, -0.8, 0.6, 1.1, 0.0];

@@ -7,10 +7,10 @@ use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
 use phone2act_bridges::dobot::protocol::Firmware;
 use phone2act_bridges::dobot::{DobotBridge, DobotConfig};
 use phone2act_bridges::feetech::FeetechEmulator;
-use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration};
+use phone2act_bridges::feetech::emulator::SO101_CENTRED_RANGES;
+use phone2act_bridges::so101::calibration::Calibration;
 use phone2act_bridges::so101::{So101Bridge, So101Config};
 use phone2act_bridges::{Bridge, Command, Health};
-use phone2act_core::kinematics::SO101_JOINT_NAMES;
 use phone2act_core::{ClutchKind, GateConfig, GripperCommand, TeleopArm, TeleopConfig};
 use std::time::{Duration, Instant};
 
@@ -139,33 +139,7 @@ fn phone_teleop_drives_the_emulated_dobot() {
 
 #[test]
 fn phone_teleop_drives_the_emulated_so101() {
-    let ranges = [
-        (1000, 3094),
-        (1050, 3044),
-        (1080, 3014),
-        (1000, 3094),
-        (0, 4095),
-        (2000, 3400),
-    ];
-    let calibration = Calibration {
-        motors: SO101_JOINT_NAMES
-            .iter()
-            .zip(ranges)
-            .zip(1u8..)
-            .map(|((name, (range_min, range_max)), id)| {
-                (
-                    (*name).to_owned(),
-                    MotorCalibration {
-                        id,
-                        drive_mode: 0,
-                        homing_offset: 0,
-                        range_min,
-                        range_max,
-                    },
-                )
-            })
-            .collect(),
-    };
+    let calibration = Calibration::so101_with_ranges(SO101_CENTRED_RANGES);
     let dir = tempfile::tempdir().unwrap();
     let cal_path = dir.path().join("follower.json");
     calibration.save(&cal_path).unwrap();

@@ -11,12 +11,13 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
 use phone2act_bridges::dobot::protocol::Firmware;
 use phone2act_bridges::dobot::{DobotBridge, DobotConfig};
+use phone2act_bridges::feetech::emulator::SO101_CENTRED_RANGES;
 use phone2act_bridges::feetech::protocol::{self, register};
 use phone2act_bridges::feetech::{FeetechBus, FeetechEmulator};
-use phone2act_bridges::so101::calibration::{Calibration, MotorCalibration};
+use phone2act_bridges::so101::calibration::Calibration;
 use phone2act_bridges::so101::{So101Bridge, So101Config};
 use phone2act_bridges::{Bridge, Command, Health};
-use phone2act_core::kinematics::{SO101_JOINT_NAMES, So101Kinematics};
+use phone2act_core::kinematics::So101Kinematics;
 use std::time::{Duration, Instant};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -150,33 +151,7 @@ fn dobot(firmware: Firmware, run: Duration) -> Result<(), Box<dyn std::error::Er
 }
 
 fn so101_fixture() -> (Calibration, Vec<(u8, u16)>) {
-    let ranges = [
-        (1000, 3094),
-        (1050, 3044),
-        (1080, 3014),
-        (1000, 3094),
-        (0, 4095),
-        (2000, 3400),
-    ];
-    let calibration = Calibration {
-        motors: SO101_JOINT_NAMES
-            .iter()
-            .zip(ranges)
-            .zip(1u8..)
-            .map(|((name, (range_min, range_max)), id)| {
-                (
-                    (*name).to_owned(),
-                    MotorCalibration {
-                        id,
-                        drive_mode: 0,
-                        homing_offset: 0,
-                        range_min,
-                        range_max,
-                    },
-                )
-            })
-            .collect(),
-    };
+    let calibration = Calibration::so101_with_ranges(SO101_CENTRED_RANGES);
     let servos: Vec<(u8, u16)> = [2047u16, 1600, 2400, 2800, 2047, 3000]
         .into_iter()
         .zip(1u8..)

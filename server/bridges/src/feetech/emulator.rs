@@ -50,6 +50,18 @@ use std::time::{Duration, Instant};
 
 const MEMORY: usize = 128;
 
+/// SO-101 ranges centred on raw 2047 (homing done), about ±88° for the body joints, the wrist roll over the
+/// full turn and the gripper over its travel: the calibration the emulator's SO-101 tests and benchmarks use
+/// (`Calibration::so101_with_ranges`).
+pub const SO101_CENTRED_RANGES: [(u16, u16); 6] = [
+    (1000, 3094),
+    (1050, 3044),
+    (1080, 3014),
+    (1000, 3094),
+    (0, 4095),
+    (2000, 3400),
+];
+
 /// One emulated servo.
 #[derive(Clone, Debug)]
 pub struct ServoState {

@@ -87,6 +87,29 @@ pub enum CalibrationError {
 }
 
 impl Calibration {
+    /// An SO-101 calibration with motor ids 1 to 6 in [`SO101_JOINT_NAMES`] order, no homing offset and no
+    /// reversed drive, each motor's `(range_min, range_max)` as given: how tests and benchmarks describe
+    /// servos that were homed and swept (the bus emulator's start).
+    pub fn so101_with_ranges(ranges: [(u16, u16); SO101_JOINT_NAMES.len()]) -> Self {
+        Calibration {
+            motors: SO101_JOINT_NAMES
+                .iter()
+                .zip(ranges)
+                .zip(1u8..)
+                .map(|((name, (range_min, range_max)), id)| {
+                    let motor = MotorCalibration {
+                        id,
+                        drive_mode: 0,
+                        homing_offset: 0,
+                        range_min,
+                        range_max,
+                    };
+                    ((*name).to_owned(), motor)
+                })
+                .collect(),
+        }
+    }
+
     /// Parses lerobot's JSON. Motors are ordered as the SO-101's (then any others by name).
     pub fn from_json(text: &str) -> Result<Self, String> {
         let map: BTreeMap<String, MotorCalibration> =

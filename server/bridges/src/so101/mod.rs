@@ -494,20 +494,7 @@ impl So101Link {
         let (raw, _) = self.with_bus(|bus| read_positions(bus, self.ids))?;
         self.with_bus(|bus| {
             let (address, len) = register::GOAL_POSITION;
-            let items: Vec<(u8, Vec<u8>)> = self
-                .ids
-                .iter()
-                .zip(raw)
-                .map(|(&id, r)| {
-                    (
-                        id,
-                        encode_sign_magnitude(i32::from(r), POSITION_SIGN_BIT)
-                            .to_le_bytes()
-                            .to_vec(),
-                    )
-                })
-                .collect();
-            bus.sync_write(address, len, &items)?;
+            bus.sync_write(address, len, &goal_items(&self.ids, raw))?;
             for &id in &self.ids {
                 bus.write_value(id, register::TORQUE_ENABLE, 1)?;
                 bus.write_value(id, register::LOCK, 1)?;
@@ -630,19 +617,7 @@ impl So101Link {
         }
         raw[MOTORS - 1] = self.gripper_raw(gripper_target);
         let (address, len) = register::GOAL_POSITION;
-        let items: Vec<(u8, Vec<u8>)> = self
-            .ids
-            .iter()
-            .zip(raw)
-            .map(|(&id, r)| {
-                (
-                    id,
-                    encode_sign_magnitude(i32::from(r), POSITION_SIGN_BIT)
-                        .to_le_bytes()
-                        .to_vec(),
-                )
-            })
-            .collect();
+        let items = goal_items(&self.ids, raw);
         if let Err(e) = self.with_bus(|bus| bus.sync_write(address, len, &items)) {
             // Not written: the next cycle ramps from the goal the servos still hold.
             ramp.limiter = before;
@@ -876,4 +851,15 @@ impl RobotLink for So101Link {
     fn close(&self) {
         self.close_bus();
     }
+}
+
+/// A `SYNC_WRITE` of `Goal_Position`: each servo's raw goal in the register's sign-magnitude encoding.
+fn goal_items(ids: &[u8], raw: impl IntoIterator<Item = u16>) -> Vec<(u8, Vec<u8>)> {
+    ids.iter()
+        .zip(raw)
+        .map(|(&id, r)| {
+            let value = encode_sign_magnitude(i32::from(r), POSITION_SIGN_BIT);
+            (id, value.to_le_bytes().to_vec())
+        })
+        .collect()
 }
