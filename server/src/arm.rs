@@ -740,6 +740,15 @@ impl ArmController {
         let activity = ArmActivity {
             arm: self.name.clone(),
             engaged: inner.arbiter.engaged(),
+            policy: match inner.arbiter.driver() {
+                phone2act_core::Driver::Policy => inner
+                    .arbiter
+                    .policy_owner()
+                    // An unnamed policy still drives: the events and provenance must say so.
+                    .map(|(_, name)| if name.is_empty() { "unnamed" } else { name }.to_owned())
+                    .unwrap_or_default(),
+                phone2act_core::Driver::Teleop | phone2act_core::Driver::None => String::new(),
+            },
             rejected: counters.rejected,
             clamped: counters.clamped,
             joint_limited: inner.joints.as_ref().map_or(0, |j| j.counters().limited),

@@ -279,6 +279,11 @@ pub struct RecorderConfig {
     /// Video codec; default libsvtav1 for v3.0 and libx264 for v2.1.
     #[serde(default)]
     pub video_codec: Option<String>,
+    /// Record LeRobot's human-in-the-loop `intervention` column (bool per frame: a person drove an arm), so
+    /// that episodes where a phone takes over from a policy load as LeRobot DAgger data. A dataset keeps the
+    /// features it was created with: resuming one with the other setting is refused.
+    #[serde(default)]
+    pub intervention: bool,
 }
 
 impl Default for RecorderConfig {
@@ -289,6 +294,7 @@ impl Default for RecorderConfig {
             fps: default_dataset_fps(),
             robot_type: default_robot_type(),
             video_codec: None,
+            intervention: false,
         }
     }
 }
