@@ -536,6 +536,15 @@ impl ArmController {
         });
     }
 
+    /// Notes that the owning policy session `session` is loading: the arm holds until its first chunk or its
+    /// loading deadline. Returns the seconds left until that deadline.
+    pub fn policy_loading(&self, session: u64) -> Result<f64, ArmError> {
+        self.apply(Input::PolicyLoading { session })
+            .map_err(|e| self.refused(e))?;
+        let deadline_s = self.inner.lock().arbiter.policy_loading_until();
+        Ok(deadline_s.map_or(0.0, |d| (d - now_s()).max(0.0)))
+    }
+
     /// Schedules a chunk for the owning policy session. `reference` is the measured pose of the observation
     /// the chunk answers (relative steps are composed onto it) and `anchor_s` the time of step 0.
     pub fn push_chunk(
@@ -716,6 +725,7 @@ impl ArmController {
                 .filter(|j| j.commanded().is_some())
                 .map_or(0, |j| (j.commanded_time_s() * 1e9).round() as i64),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
+            policy_loading: a.policy_loading_until().is_some(),
         }
     }
 

@@ -1218,6 +1218,12 @@ mod tests {
         for (extra, needle) in [
             ("[arms.chunk]\nmax_steps = 100000000\n", "chunk.max_steps"),
             ("[arms.chunk]\nblend_steps = 20000\n", "blend_steps"),
+            // A loader may hold an arm for an hour at most; 0 or negative would release at once.
+            (
+                "[arms.chunk]\nmax_loading_s = 7200\n",
+                "max_loading_s must be in (0, 3600]",
+            ),
+            ("[arms.chunk]\nmax_loading_s = 0\n", "max_loading_s"),
             ("[arms.sim]\nstep_hz = 1e9\n", "sim.step_hz"),
             ("[arms.teleop.gate]\nstale_timeout_s = -1\n", "stale_timeout_s"),
         ] {

@@ -350,6 +350,27 @@ impl PolicySessions {
         Ok(observation)
     }
 
+    /// `session` is loading: every arm it owns holds until its first chunk or its loading deadline. Returns the
+    /// arms that hold and the seconds until the earliest deadline; an error when it owns none.
+    pub fn loading(&self, session: &PolicySession) -> Result<(Vec<String>, f64), PolicyError> {
+        let mut holding = Vec::new();
+        let mut remaining_s = f64::INFINITY;
+        let mut refusal = None;
+        for name in &session.arms {
+            match self.app.find_arm(name)?.policy_loading(session.id) {
+                Ok(left_s) => {
+                    holding.push(name.clone());
+                    remaining_s = remaining_s.min(left_s);
+                }
+                Err(e) => refusal = Some(e),
+            }
+        }
+        match refusal {
+            Some(e) if holding.is_empty() => Err(PolicyError::Arm(e)),
+            _ => Ok((holding, if remaining_s.is_finite() { remaining_s } else { 0.0 })),
+        }
+    }
+
     /// Schedules `chunk` for `session` on its arm: steps are checked against the arm's layout and anchored
     /// on the observation they answer (or the arm's pose now).
     pub fn push_chunk(

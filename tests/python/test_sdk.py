@@ -127,6 +127,22 @@ def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> 
         assert "3 values" in kinds[1].rejected.reason and "takes 7" in kinds[1].rejected.reason
 
 
+def test_a_loading_policy_holds_its_arm_past_the_silence_timeout(server: Server) -> None:
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=5, silence_timeout_s=0.2) as s:
+        s.loading()
+        ev = s.next_event(5.0)
+        while ev.WhichOneof("event") != "loading":
+            ev = s.next_event(5.0)
+        assert list(ev.loading.arms) == ["main"] and not ev.loading.error
+        # The default limit is 300 s: a loading policy keeps the arm for minutes, not for its silence timeout.
+        assert 250.0 < ev.loading.remaining_s <= 300.0
+        time.sleep(1.0)
+        arm = c.list_arms()[0]
+        assert arm.owner == common_pb2.CONTROL_SOURCE_POLICY and arm.policy_loading
+        s.push("main", [[0, 0, 0, 0, 0, 0, 0]], 0.1)
+        assert not c.list_arms()[0].policy_loading
+
+
 def test_absolute_chunk_and_latency(server: Server) -> None:
     """ABSOLUTE_EE goes where it says; also measures unary and stream round trips from Python."""
     # A long silence timeout: the measuring loops below push nothing for more than the default 1 s.

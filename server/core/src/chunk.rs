@@ -46,7 +46,14 @@ pub struct ChunkConfig {
     pub max_steps: usize,
     /// How far ahead of now a chunk may be anchored (s); more means a clock mix-up.
     pub max_anchor_lead_s: f64,
+    /// How long a policy session may hold the arm while it loads (a `PolicyLoading` message) before its first
+    /// chunk (s), counted from its first loading message and never extended by later ones; past it the arm
+    /// is released. Generous by default: a large VLA on a cold GPU takes minutes.
+    pub max_loading_s: f64,
 }
+
+/// The longest `max_loading_s` accepted: an hour. More would let a hung loader keep an arm indefinitely.
+pub const MAX_LOADING_LIMIT_S: f64 = 3600.0;
 
 impl Default for ChunkConfig {
     fn default() -> Self {
@@ -56,6 +63,7 @@ impl Default for ChunkConfig {
             min_step_period_s: 1e-3,
             max_steps: 10_000,
             max_anchor_lead_s: 2.0,
+            max_loading_s: 300.0,
         }
     }
 }
@@ -75,6 +83,14 @@ impl ChunkConfig {
             return Err(ConfigError::NotPositive {
                 name: "max_step_period_s - min_step_period_s",
                 value: self.max_step_period_s - self.min_step_period_s,
+            });
+        }
+        if !(self.max_loading_s > 0.0 && self.max_loading_s <= MAX_LOADING_LIMIT_S) {
+            return Err(ConfigError::OutOfRange {
+                name: "max_loading_s",
+                min: 0.0,
+                max: MAX_LOADING_LIMIT_S,
+                value: self.max_loading_s,
             });
         }
         if self.max_steps == 0 {

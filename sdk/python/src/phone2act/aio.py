@@ -427,6 +427,12 @@ class AsyncPolicySession:
     async def release(self) -> None:
         await self._call.write(policy_pb2.PolicyRequest(release=policy_pb2.ReleaseControl()))
 
+    async def loading(self) -> None:
+        """Say the policy is loading: its arms hold until its first chunk, at most the arm's
+        `chunk.max_loading_s` (default 300 s) from the first call; later calls are keep-alives that do not
+        extend it. The answer arrives as a `loading` event (`LoadingAccepted`)."""
+        await self._call.write(policy_pb2.PolicyRequest(loading=policy_pb2.PolicyLoading()))
+
     async def close(self) -> None:
         if self._call is not None:
             self._call.cancel()

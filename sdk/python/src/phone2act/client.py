@@ -299,7 +299,7 @@ class PolicySession(_Session):
     - `push(...)`: send a chunk with the unary `Policy.PushChunk`, so a bad chunk raises at once
       (`InvalidArgument` carries the server's reason, e.g. the expected width).
     - `push_on_stream(...)`: send on the session stream; the answer arrives as an event.
-    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected).
+    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected, loading).
     """
 
     def __init__(self, session: aio.AsyncPolicySession) -> None:
@@ -366,6 +366,10 @@ class PolicySession(_Session):
 
     def release(self) -> None:
         _run(self._a.release())
+
+    def loading(self) -> None:
+        """Say the policy is loading (see `AsyncPolicySession.loading`); answered by a `loading` event."""
+        _run(self._a.loading())
 
 
 
