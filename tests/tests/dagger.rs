@@ -40,6 +40,7 @@ fn drive(mut policy: PolicySession) -> JoinHandle<String> {
                         observation_id: obs.observation_id,
                         mode: v1::ActionMode::DeltaEe as i32,
                         blend_steps: 0,
+                        keep_steps: 0,
                     };
                     if policy.push_chunk(chunk).await.is_err() {
                         return "session closed".to_owned();

@@ -108,6 +108,7 @@ async fn a_loading_policy_holds_its_arm_then_its_first_chunk_drives() {
         observation_id: 0,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     policy.push_chunk_checked(&client, chunk).await.unwrap();
     assert!(

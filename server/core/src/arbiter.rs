@@ -353,6 +353,16 @@ impl Arbiter {
         self.policy.as_ref().map(|o| (o.session, o.name.as_str()))
     }
 
+    /// While a policy drives: its plan from `from_s` on, on the grid of its current step (see
+    /// [`ChunkExecutor::plan_from`]); empty otherwise.
+    pub fn policy_plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
+        if self.driver == Driver::Policy {
+            self.executor.plan_from(from_s)
+        } else {
+            (Vec::new(), 0.0)
+        }
+    }
+
     /// While the owning policy loads: the time its loading deadline passes (then the arm is released).
     pub fn policy_loading_until(&self) -> Option<f64> {
         self.policy.as_ref().and_then(|o| o.loading_deadline_s)

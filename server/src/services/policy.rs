@@ -110,6 +110,7 @@ fn push(
             mode,
             step_period_s: chunk.step_period_s,
             steps: &steps,
+            keep_steps: chunk.keep_steps as usize,
         },
     )?;
     Ok(v1::ChunkAccepted {

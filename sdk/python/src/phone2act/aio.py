@@ -385,9 +385,10 @@ class AsyncPolicySession:
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
         timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
+        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps, keep_steps)
         req = policy_pb2.PushChunkRequest(session_id=self.session_id, chunk=chunk)
         return await self._client._call("Policy.PushChunk", self._client.policy_stub.PushChunk, req, timeout_s)
 
@@ -400,8 +401,9 @@ class AsyncPolicySession:
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
     ) -> None:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
+        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps, keep_steps)
         await self._call.write(policy_pb2.PolicyRequest(chunk=chunk))
 
     async def request_observation(self) -> None:

@@ -331,6 +331,7 @@ class PolicySession(_Session):
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
         timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
         return _run(
@@ -341,6 +342,7 @@ class PolicySession(_Session):
                 observation_id=observation_id,
                 mode=mode,
                 blend_steps=blend_steps,
+                keep_steps=keep_steps,
                 timeout_s=timeout_s,
             )
         )
@@ -354,10 +356,17 @@ class PolicySession(_Session):
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
     ) -> None:
         _run(
             self._a.push_on_stream(
-                arm, steps, step_period_s, observation_id=observation_id, mode=mode, blend_steps=blend_steps
+                arm,
+                steps,
+                step_period_s,
+                observation_id=observation_id,
+                mode=mode,
+                blend_steps=blend_steps,
+                keep_steps=keep_steps,
             )
         )
 
