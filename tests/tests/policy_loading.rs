@@ -53,6 +53,22 @@ async fn revocation(policy: &mut PolicySession, within: Duration) -> v1::Control
     .expect("the policy is told it lost the arm")
 }
 
+/// A server whose arm's loading limit is `limit_s`, and a policy session `name` that owns its arm and has
+/// said it is loading, with the server's answer.
+async fn loading_policy(
+    dir: &std::path::Path,
+    limit_s: f64,
+    name: &str,
+) -> (TestServer, Client, PolicySession, v1::LoadingAccepted) {
+    let (server, client) = server_with_loading_limit(dir, limit_s).await;
+    let mut policy = client
+        .policy(phone2act_tests::policy_hello(&["main"], name, SILENCE_S))
+        .await
+        .unwrap();
+    let answer = say_loading(&mut policy).await;
+    (server, client, policy, answer)
+}
+
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
@@ -61,12 +77,7 @@ fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
 async fn a_loading_policy_holds_its_arm_then_its_first_chunk_drives() {
     let dir = tempfile::tempdir().unwrap();
     // Long enough that the loading below never reaches it, even on a stalled machine.
-    let (server, client) = server_with_loading_limit(dir.path(), 60.0).await;
-    let mut policy = client
-        .policy(phone2act_tests::policy_hello(&["main"], "big-vla", SILENCE_S))
-        .await
-        .unwrap();
-    let answer = say_loading(&mut policy).await;
+    let (server, client, mut policy, answer) = loading_policy(dir.path(), 60.0, "big-vla").await;
     assert_eq!(answer.arms, ["main"], "{answer:?}");
     assert!(answer.error.is_empty());
     assert!(
@@ -134,13 +145,9 @@ async fn a_loading_policy_holds_its_arm_then_its_first_chunk_drives() {
 async fn a_policy_loading_past_the_limit_is_released_with_the_reason() {
     let dir = tempfile::tempdir().unwrap();
     let limit_s = 1.5;
-    let (server, client) = server_with_loading_limit(dir.path(), limit_s).await;
-    let mut policy = client
-        .policy(phone2act_tests::policy_hello(&["main"], "cold-gpu", SILENCE_S))
-        .await
-        .unwrap();
+    // The server's loading clock starts after this instant.
     let started = Instant::now();
-    let answer = say_loading(&mut policy).await;
+    let (server, client, mut policy, answer) = loading_policy(dir.path(), limit_s, "cold-gpu").await;
     assert_eq!(answer.arms, ["main"]);
     let held = sim_pose_of(&client, "main").await;
     // Keep-alives all along: the limit counts from the first one.
@@ -185,12 +192,7 @@ async fn a_policy_loading_past_the_limit_is_released_with_the_reason() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_operator_takes_over_from_a_loading_policy() {
     let dir = tempfile::tempdir().unwrap();
-    let (server, client) = server_with_loading_limit(dir.path(), 60.0).await;
-    let mut policy = client
-        .policy(phone2act_tests::policy_hello(&["main"], "big-vla", SILENCE_S))
-        .await
-        .unwrap();
-    say_loading(&mut policy).await;
+    let (server, client, mut policy, _) = loading_policy(dir.path(), 60.0, "big-vla").await;
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
     let seq = phone
         .send_pose(
