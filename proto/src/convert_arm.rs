@@ -119,6 +119,7 @@ pub fn arm_state_to_proto(s: &ArmSnapshot) -> v1::ArmState {
         joint_targets_rad: s.joint_targets_rad.clone(),
         joint_targets_time_ns: s.joint_targets_time_ns,
         task_success: s.task_success,
+        policy_loading: s.policy_loading,
     }
 }
 

@@ -536,6 +536,59 @@ impl ArmController {
         });
     }
 
+    /// The plan of the policy driving the arm from `from_s` on (see `Arbiter::policy_plan_from`), as steps in
+    /// `mode` against an observation at `reference`: the values a chunk answering that observation would carry
+    /// to command the same targets. Empty (and period 0) when no policy plan plays.
+    pub fn pending_steps(
+        &self,
+        from_s: f64,
+        reference: &Isometry3<f64>,
+        mode: ActionMode,
+    ) -> (Vec<Vec<f64>>, f64) {
+        let (plan, period_s) = self.inner.lock().arbiter.policy_plan_from(from_s);
+        if plan.is_empty() {
+            return (Vec::new(), 0.0);
+        }
+        let steps = match (mode, &self.kinematics) {
+            (ActionMode::Joint, Some(kinematics)) => {
+                // Each target's joints seeded with the previous one's, from the measured joints, as the
+                // recorded joint actions are.
+                let Some(feedback) = self.bridge.feedback() else {
+                    return (Vec::new(), 0.0);
+                };
+                let mut seed = feedback.joint_positions_rad;
+                let mut out = Vec::with_capacity(plan.len());
+                for step in &plan {
+                    let Ok(native) = phone2act_core::joint_action(
+                        kinematics,
+                        &step.robot_from_target,
+                        &seed,
+                        step.gripper,
+                    ) else {
+                        break;
+                    };
+                    seed = native[..native.len() - 1].to_vec();
+                    out.push(self.layout.joint_step_from_native(&native));
+                }
+                out
+            }
+            _ => plan
+                .iter()
+                .map(|s| phone2act_core::step_from_target(reference, &s.robot_from_target, s.gripper, mode))
+                .collect(),
+        };
+        (steps, period_s)
+    }
+
+    /// Notes that the owning policy session `session` is loading: the arm holds until its first chunk or its
+    /// loading deadline. Returns the seconds left until that deadline.
+    pub fn policy_loading(&self, session: u64) -> Result<f64, ArmError> {
+        self.apply(Input::PolicyLoading { session })
+            .map_err(|e| self.refused(e))?;
+        let deadline_s = self.inner.lock().arbiter.policy_loading_until();
+        Ok(deadline_s.map_or(0.0, |d| (d - now_s()).max(0.0)))
+    }
+
     /// Schedules a chunk for the owning policy session. `reference` is the measured pose of the observation
     /// the chunk answers (relative steps are composed onto it) and `anchor_s` the time of step 0.
     pub fn push_chunk(
@@ -716,6 +769,7 @@ impl ArmController {
                 .filter(|j| j.commanded().is_some())
                 .map_or(0, |j| (j.commanded_time_s() * 1e9).round() as i64),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
+            policy_loading: a.policy_loading_until().is_some(),
         }
     }
 
@@ -740,6 +794,15 @@ impl ArmController {
         let activity = ArmActivity {
             arm: self.name.clone(),
             engaged: inner.arbiter.engaged(),
+            policy: match inner.arbiter.driver() {
+                phone2act_core::Driver::Policy => inner
+                    .arbiter
+                    .policy_owner()
+                    // An unnamed policy still drives: the events and provenance must say so.
+                    .map(|(_, name)| if name.is_empty() { "unnamed" } else { name }.to_owned())
+                    .unwrap_or_default(),
+                phone2act_core::Driver::Teleop | phone2act_core::Driver::None => String::new(),
+            },
             rejected: counters.rejected,
             clamped: counters.clamped,
             joint_limited: inner.joints.as_ref().map_or(0, |j| j.counters().limited),

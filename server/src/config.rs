@@ -279,6 +279,11 @@ pub struct RecorderConfig {
     /// Video codec; default libsvtav1 for v3.0 and libx264 for v2.1.
     #[serde(default)]
     pub video_codec: Option<String>,
+    /// Record LeRobot's human-in-the-loop `intervention` column (bool per frame: a person drove an arm), so
+    /// that episodes where a phone takes over from a policy load as LeRobot DAgger data. A dataset keeps the
+    /// features it was created with: resuming one with the other setting is refused.
+    #[serde(default)]
+    pub intervention: bool,
 }
 
 impl Default for RecorderConfig {
@@ -289,6 +294,7 @@ impl Default for RecorderConfig {
             fps: default_dataset_fps(),
             robot_type: default_robot_type(),
             video_codec: None,
+            intervention: false,
         }
     }
 }
@@ -1221,6 +1227,12 @@ mod tests {
         for (extra, needle) in [
             ("[arms.chunk]\nmax_steps = 100000000\n", "chunk.max_steps"),
             ("[arms.chunk]\nblend_steps = 20000\n", "blend_steps"),
+            // A loader may hold an arm for an hour at most; 0 or negative would release at once.
+            (
+                "[arms.chunk]\nmax_loading_s = 7200\n",
+                "max_loading_s must be in (0, 3600]",
+            ),
+            ("[arms.chunk]\nmax_loading_s = 0\n", "max_loading_s"),
             ("[arms.sim]\nstep_hz = 1e9\n", "sim.step_hz"),
             ("[arms.teleop.gate]\nstale_timeout_s = -1\n", "stale_timeout_s"),
         ] {

@@ -45,6 +45,8 @@ pub enum PolicyError {
     NotFinite { step: usize, index: usize },
     #[error("step_period_s must be > 0, got {0}")]
     StepPeriod(f64),
+    #[error("keep_steps {keep} must be less than the chunk's {steps} steps")]
+    KeepSteps { keep: usize, steps: usize },
     #[error("observation {0} is unknown or too old (this session remembers its last {OBSERVATION_MEMORY})")]
     UnknownObservation(u64),
     #[error("observation {id} has no arm {arm:?}")]
@@ -78,6 +80,10 @@ pub struct ArmObservation {
     pub state_names: Vec<String>,
     pub action_names: Vec<String>,
     pub robot_from_ee: Isometry3<f64>,
+    /// The driving policy's plan from the observation on, in the arm's action mode against this observation
+    /// (real-time chunking's leftover); empty when no plan plays.
+    pub pending_steps: Vec<Vec<f64>>,
+    pub pending_step_period_s: f64,
 }
 
 /// One camera frame in an observation, encoded as asked.
@@ -103,6 +109,40 @@ pub struct Observation {
     pub frames: Vec<ObservedFrame>,
     /// The task of the episode in progress.
     pub task: String,
+    /// The session's measured inference delay (see [`InferenceDelay`]); 0 outside a session.
+    pub inference_delay_s: f64,
+    pub inference_delay_steps: u32,
+}
+
+/// Chunks whose delay [`InferenceDelay`] keeps: LeRobot's RTC takes the largest of its recent latencies.
+pub const DELAY_MEMORY: usize = 10;
+
+/// A session's inference delay: observation time to the arrival of the chunk answering it, over its last
+/// [`DELAY_MEMORY`] chunks.
+#[derive(Debug, Default)]
+struct InferenceDelay {
+    /// (delay s, that chunk's step period s), newest last.
+    recent: VecDeque<(f64, f64)>,
+}
+
+impl InferenceDelay {
+    fn note(&mut self, delay_s: f64, step_period_s: f64) {
+        if self.recent.len() == DELAY_MEMORY {
+            self.recent.pop_front();
+        }
+        self.recent.push_back((delay_s.max(0.0), step_period_s));
+    }
+
+    /// The largest recent delay, and it in steps of the newest chunk's period (rounded up).
+    fn current(&self) -> (f64, u32) {
+        let Some(&(_, period_s)) = self.recent.back() else {
+            return (0.0, 0);
+        };
+        let delay_s = self.recent.iter().map(|d| d.0).fold(0.0, f64::max);
+        // Within a nanosecond of a whole number of steps is that number (float noise, not a late step).
+        let steps = (delay_s / period_s - 1e-9).ceil().max(0.0);
+        (delay_s, steps.min(f64::from(u32::MAX)) as u32)
+    }
 }
 
 /// What a chunk needs from the observation it answers.
@@ -136,6 +176,8 @@ pub struct ChunkRequest<'a> {
     pub mode: ActionMode,
     pub step_period_s: f64,
     pub steps: &'a [Vec<f64>],
+    /// Leading steps not played: the replaced plan keeps their windows (real-time chunking).
+    pub keep_steps: usize,
 }
 
 /// One open policy session.
@@ -149,6 +191,7 @@ pub struct PolicySession {
     /// Where the arms tell the session it lost control (the service layer turns that into a wire event).
     revocations: Arc<dyn RevocationSink>,
     anchors: Mutex<VecDeque<ObservationAnchor>>,
+    delay: Mutex<InferenceDelay>,
     /// 128 random bits in `SessionReady.session_id`: `PushChunk` must name them, so a session id is a
     /// capability that only the session's own client holds, not a small integer anyone can guess.
     secret: String,
@@ -224,6 +267,7 @@ impl PolicySessions {
             encoding: request.encoding,
             revocations,
             anchors: Mutex::new(VecDeque::with_capacity(OBSERVATION_MEMORY)),
+            delay: Mutex::new(InferenceDelay::default()),
             secret: random_secret()?,
         });
         if request.request_control {
@@ -290,12 +334,16 @@ impl PolicySessions {
                 .state_and_action()
                 .ok_or_else(|| PolicyError::NoFeedback(name.clone()))?;
             poses.push((name.clone(), sample.robot_from_ee));
+            let (pending_steps, pending_step_period_s) =
+                arm.pending_steps(timestamp_ns as f64 * 1e-9, &sample.robot_from_ee, arm.action_mode);
             out.push(ArmObservation {
                 arm: name.clone(),
                 state: sample.state,
                 state_names: arm.layout.state_names(),
                 action_names: arm.layout.action_names(arm.action_mode),
                 robot_from_ee: sample.robot_from_ee,
+                pending_steps,
+                pending_step_period_s,
             });
         }
         let mut frames = Vec::new();
@@ -333,6 +381,8 @@ impl PolicySessions {
             arms: out,
             frames,
             task: self.app.current_task(),
+            inference_delay_s: 0.0,
+            inference_delay_steps: 0,
         };
         let anchor = ObservationAnchor {
             id,
@@ -344,10 +394,32 @@ impl PolicySessions {
 
     /// Builds an observation for `session` and remembers its poses, so chunks answering it are anchored there.
     pub fn observe_for(&self, session: &PolicySession) -> Result<Observation, PolicyError> {
-        let (observation, anchor) =
+        let (mut observation, anchor) =
             self.observe_anchored(&session.arms, &session.cameras, session.encoding)?;
         session.remember(anchor);
+        (observation.inference_delay_s, observation.inference_delay_steps) = session.delay.lock().current();
         Ok(observation)
+    }
+
+    /// `session` is loading: every arm it owns holds until its first chunk or its loading deadline. Returns the
+    /// arms that hold and the seconds until the earliest deadline; an error when it owns none.
+    pub fn loading(&self, session: &PolicySession) -> Result<(Vec<String>, f64), PolicyError> {
+        let mut holding = Vec::new();
+        let mut remaining_s = f64::INFINITY;
+        let mut refusal = None;
+        for name in &session.arms {
+            match self.app.find_arm(name)?.policy_loading(session.id) {
+                Ok(left_s) => {
+                    holding.push(name.clone());
+                    remaining_s = remaining_s.min(left_s);
+                }
+                Err(e) => refusal = Some(e),
+            }
+        }
+        match refusal {
+            Some(e) if holding.is_empty() => Err(PolicyError::Arm(e)),
+            _ => Ok((holding, if remaining_s.is_finite() { remaining_s } else { 0.0 })),
+        }
     }
 
     /// Schedules `chunk` for `session` on its arm: steps are checked against the arm's layout and anchored
@@ -368,13 +440,21 @@ impl PolicySessions {
                 .ok_or_else(|| PolicyError::NoFeedback(chunk.arm.to_owned()))?;
             (now_s(), sample.robot_from_ee)
         } else {
-            session.anchor(chunk.observation_id, chunk.arm)?
+            let anchored = session.anchor(chunk.observation_id, chunk.arm)?;
+            session
+                .delay
+                .lock()
+                .note(now_s() - anchored.0, chunk.step_period_s);
+            anchored
         };
+        // Kept steps: the replaced plan plays their windows; this chunk starts at its step `keep_steps`,
+        // still on the observation's grid.
+        let keep = chunk.keep_steps;
         arm.push_chunk(
             session.id,
-            chunk.steps,
+            &chunk.steps[keep..],
             chunk.step_period_s,
-            anchor_s,
+            anchor_s + keep as f64 * chunk.step_period_s,
             reference,
             chunk.mode,
         )
@@ -403,6 +483,12 @@ fn check_steps(arm: &ArmController, chunk: &ChunkRequest<'_>) -> Result<(), Poli
     }
     if !chunk.step_period_s.is_finite() || chunk.step_period_s <= 0.0 {
         return Err(PolicyError::StepPeriod(chunk.step_period_s));
+    }
+    if chunk.keep_steps >= chunk.steps.len() {
+        return Err(PolicyError::KeepSteps {
+            keep: chunk.keep_steps,
+            steps: chunk.steps.len(),
+        });
     }
     Ok(())
 }
@@ -482,6 +568,7 @@ mod tests {
             encoding: FrameEncoding::None,
             revocations: Arc::new(Nobody),
             anchors: Mutex::new(VecDeque::new()),
+            delay: Mutex::new(InferenceDelay::default()),
             secret: "ab".repeat(16),
         }
     }
@@ -513,6 +600,28 @@ mod tests {
             s.anchor(2, "right"),
             Err(PolicyError::ObservationLacksArm { id: 2, .. })
         ));
+    }
+
+    #[test]
+    fn the_inference_delay_is_the_largest_recent_one_in_steps_of_the_newest_chunk() {
+        let mut d = InferenceDelay::default();
+        assert_eq!(d.current(), (0.0, 0), "before the first chunk");
+        d.note(0.31, 0.1);
+        assert_eq!(d.current(), (0.31, 4), "rounded up: 3.1 steps are four windows");
+        d.note(0.3, 0.1);
+        assert_eq!(d.current(), (0.31, 4));
+        d.note(0.1, 0.05);
+        assert_eq!(d.current(), (0.31, 7), "in the newest chunk's period");
+        for _ in 0..DELAY_MEMORY {
+            d.note(0.2, 0.1);
+        }
+        assert_eq!(d.current(), (0.2, 2), "only the last {DELAY_MEMORY} count");
+        d.note(-1.0, 0.1);
+        assert_eq!(
+            d.current(),
+            (0.2, 2),
+            "a negative delay (clock jitter) counts as 0"
+        );
     }
 
     #[test]

@@ -109,6 +109,7 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         fps: fps as u32,
         // `next.success` is the scene's success flag: recorded when an arm has a scene (the simulator's).
         success: arms.iter().any(|a| a.has_scene()),
+        intervention: config.recorder.intervention,
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),
         state_names,

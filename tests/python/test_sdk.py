@@ -127,6 +127,44 @@ def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> 
         assert "3 values" in kinds[1].rejected.reason and "takes 7" in kinds[1].rejected.reason
 
 
+def test_a_loading_policy_holds_its_arm_past_the_silence_timeout(server: Server) -> None:
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=5, silence_timeout_s=0.2) as s:
+        s.loading()
+        ev = s.next_event(5.0)
+        while ev.WhichOneof("event") != "loading":
+            ev = s.next_event(5.0)
+        assert list(ev.loading.arms) == ["main"] and not ev.loading.error
+        # The default limit is 300 s: a loading policy keeps the arm for minutes, not for its silence timeout.
+        assert 250.0 < ev.loading.remaining_s <= 300.0
+        time.sleep(1.0)
+        arm = c.list_arms()[0]
+        assert arm.owner == common_pb2.CONTROL_SOURCE_POLICY and arm.policy_loading
+        s.push("main", [[0, 0, 0, 0, 0, 0, 0]], 0.1)
+        assert not c.list_arms()[0].policy_loading
+
+
+def test_observations_carry_the_pending_plan_and_the_inference_delay(server: Server) -> None:
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=0, silence_timeout_s=5) as s:
+        s.request_observation()
+        obs = s.next_observation()
+        assert obs.inference_delay_s == 0 and not obs.arms[0].pending_steps, "nothing played, nothing measured"
+        time.sleep(0.2)
+        # 40 steps of 0.1 s holding the observation's pose (relative zeros), the first 2 kept from the old plan.
+        acc = s.push("main", [[0.0] * 7] * 40, 0.1, observation_id=obs.observation_id, keep_steps=2)
+        assert acc.steps_scheduled >= 1
+        s.request_observation()
+        later = s.next_observation()
+        assert later.inference_delay_s >= 0.2
+        assert later.inference_delay_steps == math.ceil(later.inference_delay_s / 0.1 - 1e-9)
+        arm = later.arms[0]
+        assert arm.pending_step_period_s == pytest.approx(0.1)
+        assert 10 <= len(arm.pending_steps) <= 40
+        # In the arm's mode against this observation: holding the same pose, so (near) zero deltas.
+        assert all(abs(v) < 2e-3 for v in arm.pending_steps[0].values[:6]), arm.pending_steps[0]
+        with pytest.raises(phone2act.Phone2ActError, match="keep_steps"):
+            s.push("main", [[0.0] * 7] * 3, 0.1, observation_id=later.observation_id, keep_steps=3)
+
+
 def test_absolute_chunk_and_latency(server: Server) -> None:
     """ABSOLUTE_EE goes where it says; also measures unary and stream round trips from Python."""
     # A long silence timeout: the measuring loops below push nothing for more than the default 1 s.

@@ -271,6 +271,7 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
                     observation_id: obs.observation_id,
                     mode: mode as i32,
                     blend_steps: 0,
+                    keep_steps: 0,
                 },
             )
             .await

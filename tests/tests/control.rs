@@ -345,6 +345,7 @@ async fn a_policy_chunk_executes_through_the_gate() {
         observation_id: obs.observation_id,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     let accepted = policy.push_chunk_checked(&client, chunk).await.unwrap();
     assert_eq!(accepted.steps_scheduled + accepted.steps_skipped, 10);
@@ -366,6 +367,7 @@ async fn a_policy_chunk_executes_through_the_gate() {
         observation_id: 0,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     let err = policy
         .push_chunk_checked(&client, bad.clone())
@@ -412,6 +414,7 @@ async fn the_operator_takes_over_from_a_running_policy() {
         observation_id: obs.observation_id,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     policy.push_chunk_checked(&client, chunk).await.unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;

@@ -147,6 +147,7 @@ async fn a_policy_session_replays_to_the_same_commands_and_decisions() {
                 observation_id: obs.observation_id,
                 mode: v1::ActionMode::DeltaEe as i32,
                 blend_steps: 0,
+                keep_steps: 0,
             };
             // 20 steps of 50 ms: the chunk lies ahead unless answering took a second.
             policy.push_chunk_checked(&client, chunk).await.unwrap();

@@ -330,6 +330,7 @@ async fn drive_by_policy(mode: ActionMode) -> (Report, (f64, f64), v1::ArmState)
                     observation_id: obs.observation_id,
                     mode: wire_mode as i32,
                     blend_steps: 0,
+                    keep_steps: 0,
                 },
             )
             .await

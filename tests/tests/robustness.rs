@@ -361,6 +361,7 @@ async fn policy_session_refusals_are_statuses() {
             observation_id: 0,
             mode: v1::ActionMode::DeltaEe as i32,
             blend_steps: 0,
+            keep_steps: 0,
         })
         .await;
     let end = tokio::time::timeout(Duration::from_secs(20), async {

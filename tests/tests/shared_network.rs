@@ -334,6 +334,7 @@ async fn a_guessed_session_id_pushes_nothing() {
         observation_id: obs.observation_id,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     // Another client guesses: small integers, the visible number, the number with a wrong or truncated key.
     let attacker = server.client().await.unwrap();

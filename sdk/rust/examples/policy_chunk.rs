@@ -38,6 +38,7 @@ async fn main() -> Result<(), phone2act_sdk::Error> {
         observation_id: obs.observation_id,
         mode: v1::ActionMode::DeltaEe as i32,
         blend_steps: 0,
+        keep_steps: 0,
     };
     let accepted = session.push_chunk_checked(&client, chunk).await?;
     println!(

@@ -85,6 +85,14 @@ impl PolicySession {
             .await
     }
 
+    /// Says the policy is loading: its arms hold until its first chunk, at most the arm's
+    /// `chunk.max_loading_s` from the first call (later calls are keep-alives that do not extend it). The server
+    /// answers with a `LoadingAccepted` event.
+    pub async fn loading(&self) -> Result<()> {
+        self.request(v1::policy_request::Request::Loading(v1::PolicyLoading {}))
+            .await
+    }
+
     /// Gives up control; the arms hold.
     pub async fn release(&self) -> Result<()> {
         self.request(v1::policy_request::Request::Release(v1::ReleaseControl {}))

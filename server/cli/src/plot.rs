@@ -26,6 +26,8 @@ const CLAMPED_COLOR: RGBColor = RGBColor(188, 128, 189);
 const TIMELINE_COLOR: RGBColor = RGBColor(120, 120, 120);
 /// Robot warnings (a servo alarm while the arm keeps working) and their clearing.
 const WARNING_COLOR: RGBColor = RGBColor(230, 150, 0);
+/// A policy starting or stopping to drive an arm.
+const POLICY_COLOR: RGBColor = RGBColor(23, 190, 207);
 
 /// One panel: a state dimension, an action dimension, or both when they name the same quantity.
 #[derive(Debug, PartialEq, Eq)]
@@ -133,7 +135,9 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
             | EventKind::LateTick
             | EventKind::Paused
             | EventKind::RobotWarning
-            | EventKind::RobotWarningCleared => {}
+            | EventKind::RobotWarningCleared
+            | EventKind::PolicyStart
+            | EventKind::PolicyStop => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -239,6 +243,7 @@ fn panel_svg(
                 // The recorder's timeline: frames that are not at their own time, and where time jumps.
                 EventKind::LateTick | EventKind::Paused => TIMELINE_COLOR,
                 EventKind::RobotWarning | EventKind::RobotWarningCleared => WARNING_COLOR,
+                EventKind::PolicyStart | EventKind::PolicyStop => POLICY_COLOR,
             };
             chart.draw_series(std::iter::once(PathElement::new(
                 vec![(e.timestamp, y0), (e.timestamp, y1)],

@@ -56,6 +56,7 @@ fn record_as(
         cameras: specs,
         modality: SyntheticRobot::modality(),
         success: false,
+        intervention: false,
         provenance: serde_json::json!({"station_id": station}),
     };
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), slots).unwrap();

@@ -177,6 +177,10 @@ pub enum Input {
     },
     /// A policy session gives the arm up (release, session end).
     ReleasePolicy { session: u64, reason: String },
+    /// The policy that owns the arm is loading (a keep-alive): the arm holds and the silence timeout waits,
+    /// until its first chunk or until `ChunkConfig::max_loading_s` after its first loading message, whichever
+    /// comes first. Later loading messages do not extend that deadline; past it the arm is released.
+    PolicyLoading { session: u64 },
     /// A policy's chunk, already converted to targets.
     Chunk { session: u64, chunk: ActionChunk },
     /// Time passes: play due chunk steps, apply the silence and staleness rules.
@@ -261,6 +265,8 @@ pub struct ArmSnapshot {
     pub joint_targets_rad: Vec<f64>,
     pub joint_targets_time_ns: i64,
     pub task_success: bool,
+    /// The owning policy is loading: the arm holds until its first chunk (or the loading limit).
+    pub policy_loading: bool,
 }
 
 /// Commands handed out and refused so far.
@@ -277,6 +283,9 @@ struct PolicyOwner {
     name: String,
     silence_timeout_s: f64,
     last_chunk_s: f64,
+    /// While the policy loads: when its loading deadline passes. Set by its first loading message, cleared by
+    /// its first chunk; never moved later.
+    loading_deadline_s: Option<f64>,
 }
 
 /// Source arbitration of one arm (see the module documentation).
@@ -344,6 +353,21 @@ impl Arbiter {
         self.policy.as_ref().map(|o| (o.session, o.name.as_str()))
     }
 
+    /// While a policy drives: its plan from `from_s` on, on the grid of its current step (see
+    /// [`ChunkExecutor::plan_from`]); empty otherwise.
+    pub fn policy_plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
+        if self.driver == Driver::Policy {
+            self.executor.plan_from(from_s)
+        } else {
+            (Vec::new(), 0.0)
+        }
+    }
+
+    /// While the owning policy loads: the time its loading deadline passes (then the arm is released).
+    pub fn policy_loading_until(&self) -> Option<f64> {
+        self.policy.as_ref().and_then(|o| o.loading_deadline_s)
+    }
+
     /// The last target and gripper target handed out (the arm holds them).
     pub fn target(&self) -> (Isometry3<f64>, f64) {
         (self.target, self.gripper_target)
@@ -387,6 +411,13 @@ impl Arbiter {
             Driver::Teleop => TickNeed::Periodic,
             Driver::Policy => match (&self.policy, self.executor.end_time_s()) {
                 (_, Some(end_s)) if end_s > self.latest_s => TickNeed::Periodic,
+                (
+                    Some(PolicyOwner {
+                        loading_deadline_s: Some(deadline_s),
+                        ..
+                    }),
+                    _,
+                ) => TickNeed::At(*deadline_s),
                 // The silence timeout counts from the chunk's arrival or the end of the plan, whichever is
                 // later; the tick at that moment revokes (with margin: the rule is "more than").
                 (Some(owner), end_s) => TickNeed::At(
@@ -418,6 +449,7 @@ impl Arbiter {
                     self.revoke_policy(&reason, &mut fx);
                 }
             }
+            Input::PolicyLoading { session } => self.policy_loading(session, now, &mut fx)?,
             Input::Chunk { session, chunk } => {
                 let owns = self.driver == Driver::Policy
                     && self.policy.as_ref().is_some_and(|o| o.session == session);
@@ -427,6 +459,8 @@ impl Arbiter {
                 fx.chunk = Some(self.executor.replace(chunk, now)?);
                 if let Some(owner) = self.policy.as_mut() {
                     owner.last_chunk_s = now;
+                    // The first chunk ends the loading: from here the silence timeout applies again.
+                    owner.loading_deadline_s = None;
                 }
                 self.tick(now, &mut fx);
             }
@@ -642,8 +676,28 @@ impl Arbiter {
             name,
             silence_timeout_s,
             last_chunk_s: now,
+            loading_deadline_s: None,
         });
         self.decide(note, fx);
+        Ok(())
+    }
+
+    fn policy_loading(&mut self, session: u64, now: f64, fx: &mut Effects) -> Result<(), ArbiterError> {
+        let limit_s = self.executor.config().max_loading_s;
+        let owner = match self.policy.as_mut() {
+            Some(owner) if owner.session == session && self.driver == Driver::Policy => owner,
+            _ => return Err(ArbiterError::NotControlling),
+        };
+        if owner.loading_deadline_s.is_some() {
+            // A keep-alive: the deadline stays where the first loading message put it.
+            return Ok(());
+        }
+        owner.loading_deadline_s = Some(now + limit_s);
+        let note = format!(
+            "policy {} loading (up to {limit_s:.0} s): the arm holds",
+            owner.name
+        );
+        self.decide(GateDecision::note(GateVerdict::Accepted, note), fx);
         Ok(())
     }
 
@@ -704,6 +758,25 @@ impl Arbiter {
                 }
                 self.decide(decision, fx);
             }
+            return;
+        }
+        let loading = self.policy.as_ref().and_then(|o| {
+            o.loading_deadline_s
+                .map(|deadline_s| (deadline_s, o.name.clone()))
+        });
+        if let Some((deadline_s, name)) = loading {
+            if now > deadline_s {
+                let limit_s = self.executor.config().max_loading_s;
+                let why = format!(
+                    "still loading after the {limit_s:.0} s loading limit (chunk.max_loading_s) without a chunk"
+                );
+                self.revoke_policy(&why, fx);
+                self.decide(
+                    GateDecision::note(GateVerdict::HeldStale, format!("policy {name} {why}: holding")),
+                    fx,
+                );
+            }
+            // Loading: the silence timeout waits for the deadline.
             return;
         }
         let silent = self
@@ -1178,6 +1251,89 @@ mod tests {
         assert_eq!(a.tick_need(), TickNeed::Idle);
     }
 
+    fn loading() -> Input {
+        Input::PolicyLoading { session: POLICY }
+    }
+
+    #[test]
+    fn a_loading_policy_holds_the_arm_past_its_silence_timeout_until_its_first_chunk() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        let fx = a.handle(loading(), &robot, 1.0).unwrap();
+        assert!(fx.commands.is_empty(), "loading never moves the arm");
+        assert!(
+            a.last_decision().reason.contains("loading"),
+            "{:?}",
+            a.last_decision()
+        );
+        assert_eq!(a.policy_loading_until(), Some(301.0));
+        assert_eq!(a.tick_need(), TickNeed::At(301.0));
+        // Three minutes of loading (silence timeout 0.5 s): the arm holds, the policy keeps it.
+        for t in [1.6, 60.0, 181.0] {
+            let fx = a.handle(Input::Tick, &ready(home(), t), t).unwrap();
+            assert!(fx.revoked.is_none() && fx.commands.is_empty(), "{t}: {fx:?}");
+        }
+        assert_eq!(a.driver(), Driver::Policy);
+        // The first chunk drives and ends the loading; silence counts again after its plan.
+        let robot = ready(home(), 181.0);
+        let fx = a
+            .handle(chunk(181.0, &[at(0.251, 0.0, 0.2)]), &robot, 181.0)
+            .unwrap();
+        assert_eq!(fx.commands.len(), 1);
+        assert_eq!(a.policy_loading_until(), None);
+        let fx = a.handle(Input::Tick, &robot, 182.0).unwrap();
+        assert!(fx.revoked.is_some(), "silent again after the plan: revoked");
+    }
+
+    #[test]
+    fn loading_is_bounded_from_the_first_message_and_keep_alives_do_not_extend_it() {
+        let mut a = arbiter();
+        let robot = ready(home(), 1.0);
+        a.handle(claim(), &robot, 1.0).unwrap();
+        a.handle(loading(), &robot, 1.0).unwrap();
+        // Keep-alives every minute do not move the deadline.
+        for t in [60.0, 120.0, 240.0, 300.0] {
+            a.handle(loading(), &ready(home(), t), t).unwrap();
+            assert_eq!(a.policy_loading_until(), Some(301.0));
+        }
+        assert!(a.handle(Input::Tick, &robot, 301.0).unwrap().revoked.is_none());
+        let fx = a.handle(Input::Tick, &robot, 301.001).unwrap();
+        let revoked = fx.revoked.expect("released past the loading limit");
+        assert!(
+            revoked.reason.contains("300 s loading limit"),
+            "{}",
+            revoked.reason
+        );
+        assert_eq!(a.driver(), Driver::None);
+        assert!(
+            a.last_decision().reason.contains("loading limit"),
+            "{:?}",
+            a.last_decision()
+        );
+        assert!(fx.commands.is_empty(), "released holding, not moving");
+        // Its late chunk is refused.
+        assert_eq!(
+            a.handle(chunk(302.0, &[at(0.251, 0.0, 0.2)]), &robot, 302.0),
+            Err(ArbiterError::NotControlling)
+        );
+    }
+
+    #[test]
+    fn the_operator_takes_over_from_a_loading_policy_and_others_cannot_claim_its_loading() {
+        let (mut a, robot) = phone_bound_policy_driving();
+        // Only the owner may say it loads.
+        assert_eq!(
+            a.handle(Input::PolicyLoading { session: POLICY + 1 }, &robot, 1.0),
+            Err(ArbiterError::NotControlling)
+        );
+        a.handle(loading(), &robot, 1.0).unwrap();
+        let fx = a.handle(engage(Isometry3::identity()), &robot, 2.0).unwrap();
+        assert_eq!(a.driver(), Driver::Teleop);
+        assert!(fx.revoked.unwrap().reason.contains("operator"));
+        assert_eq!(a.policy_loading_until(), None);
+    }
+
     #[test]
     fn a_stale_phone_stream_ending_leaves_the_new_phone_bound() {
         let mut a = phone_driving();
@@ -1543,6 +1699,7 @@ mod tests {
         },
         Claim(u64),
         Release(u64),
+        Loading(u64),
         Chunk {
             session: u64,
             offsets: Vec<[f64; 3]>,
@@ -1568,6 +1725,7 @@ mod tests {
             ),
             1 => (7..9u64).prop_map(Op::Claim),
             1 => (7..9u64).prop_map(Op::Release),
+            1 => (7..9u64).prop_map(Op::Loading),
             3 => (
                 7..9u64,
                 prop::collection::vec(prop::array::uniform3(-0.05..0.05f64), 1..6),
@@ -1680,6 +1838,7 @@ mod tests {
                     },
                     false,
                 ),
+                Op::Loading(session) => (Input::PolicyLoading { session: *session }, false),
                 Op::Release(session) => (
                     Input::ReleasePolicy {
                         session: *session,
@@ -1849,6 +2008,18 @@ mod tests {
                 prop_assert!((0.0..=1.0).contains(&c.gripper));
                 self.measured = c.robot_from_target;
             }
+            // The loading bound: after a tick no policy still holds the arm loading past its deadline, and the
+            // deadline is never more than `max_loading_s` away.
+            if let Some(deadline_s) = a.policy_loading_until() {
+                if matches!(input, Input::Tick) {
+                    prop_assert!(
+                        self.latest_s <= deadline_s,
+                        "loading past the deadline {}",
+                        deadline_s
+                    );
+                }
+                prop_assert!(deadline_s <= self.latest_s + ChunkConfig::default().max_loading_s + 1e-9);
+            }
             if !fx.commands.is_empty() {
                 if policy_input {
                     let owner = before.policy_owner().map(|(s, _)| s);
@@ -1863,6 +2034,9 @@ mod tests {
                 }
                 if matches!(input, Input::Tick) {
                     prop_assert_eq!(before.driver(), Driver::Policy, "a tick moved a phone-driven arm");
+                }
+                if matches!(input, Input::PolicyLoading { .. }) {
+                    prop_assert!(false, "a loading message moved the arm");
                 }
                 if matches!(input, Input::Teleop { .. }) {
                     prop_assert!(ready_now, "a phone moved a robot that is not ready");

@@ -46,7 +46,14 @@ pub struct ChunkConfig {
     pub max_steps: usize,
     /// How far ahead of now a chunk may be anchored (s); more means a clock mix-up.
     pub max_anchor_lead_s: f64,
+    /// How long a policy session may hold the arm while it loads (a `PolicyLoading` message) before its first
+    /// chunk (s), counted from its first loading message and never extended by later ones; past it the arm
+    /// is released. Generous by default: a large VLA on a cold GPU takes minutes.
+    pub max_loading_s: f64,
 }
+
+/// The longest `max_loading_s` accepted: an hour. More would let a hung loader keep an arm indefinitely.
+pub const MAX_LOADING_LIMIT_S: f64 = 3600.0;
 
 impl Default for ChunkConfig {
     fn default() -> Self {
@@ -56,6 +63,7 @@ impl Default for ChunkConfig {
             min_step_period_s: 1e-3,
             max_steps: 10_000,
             max_anchor_lead_s: 2.0,
+            max_loading_s: 300.0,
         }
     }
 }
@@ -75,6 +83,14 @@ impl ChunkConfig {
             return Err(ConfigError::NotPositive {
                 name: "max_step_period_s - min_step_period_s",
                 value: self.max_step_period_s - self.min_step_period_s,
+            });
+        }
+        if !(self.max_loading_s > 0.0 && self.max_loading_s <= MAX_LOADING_LIMIT_S) {
+            return Err(ConfigError::OutOfRange {
+                name: "max_loading_s",
+                min: 0.0,
+                max: MAX_LOADING_LIMIT_S,
+                value: self.max_loading_s,
             });
         }
         if self.max_steps == 0 {
@@ -167,6 +183,32 @@ impl ChunkExecutor {
     /// Steps whose window has not ended at `now_s` (including the current one).
     pub fn remaining_steps(&self, now_s: f64) -> usize {
         self.schedule.iter().filter(|s| s.end_s > now_s).count()
+    }
+
+    /// The plan from `from_s` on, on the time grid of the step playing then: the step at `from_s + k · period`
+    /// for k = 0, 1, … while the schedule lasts (at most `max_steps`), and that period. Empty when nothing
+    /// plays at `from_s`. What a real-time-chunking policy is told is still to come (see `ActionChunk`'s
+    /// `keep_steps` on the wire).
+    pub fn plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
+        let i = self.schedule.partition_point(|s| s.start_s <= from_s);
+        let Some(current) = i.checked_sub(1).and_then(|i| self.schedule.get(i)) else {
+            return (Vec::new(), 0.0);
+        };
+        if from_s >= current.end_s {
+            return (Vec::new(), 0.0);
+        }
+        // A blended or truncated step is shorter; the first full window of the chunk gives its period.
+        let period_s = self.schedule[i - 1..]
+            .iter()
+            .map(|s| s.end_s - s.start_s)
+            .fold(0.0, f64::max);
+        if period_s <= 0.0 {
+            return (Vec::new(), 0.0);
+        }
+        let steps = (0..self.config.max_steps)
+            .map_while(|k| self.target_at(from_s + k as f64 * period_s))
+            .collect();
+        (steps, period_s)
     }
 
     /// Replaces the rest of the schedule with `chunk`, aligned by time (see the module documentation).
@@ -349,6 +391,32 @@ mod tests {
         assert_eq!(x_at(&e, 1.5), None, "the arm holds once the chunk has run out");
         assert_eq!(e.remaining_steps(1.25), 3);
         assert!((e.end_time_s().unwrap() - 1.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_plan_from_an_instant_is_what_plays_then_on_its_grid() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        assert_eq!(e.plan_from(1.0), (Vec::new(), 0.0), "nothing playing");
+        e.replace(chunk(&[0.0, 0.1, 0.2, 0.3, 0.4], 1.0, 0.1), 1.0)
+            .unwrap();
+        let xs = |(steps, _): (Vec<ChunkStep>, f64)| -> Vec<f64> {
+            steps.iter().map(|s| s.robot_from_target.translation.x).collect()
+        };
+        // Mid-step: step 0 is the one playing, then one step per period until the plan ends.
+        assert_eq!(xs(e.plan_from(1.25)), [0.2, 0.3, 0.4]);
+        assert!((e.plan_from(1.25).1 - 0.1).abs() < 1e-12);
+        assert!(e.plan_from(1.5).0.is_empty(), "run out");
+        // A chunk answering an observation at 1.25 that repeats that plan as its first steps continues it on
+        // its own grid: every target is the old plan's now or one step before, never a value it did not have.
+        let mut again = e.clone();
+        again
+            .replace(chunk(&[0.2, 0.3, 0.4, 0.5], 1.25, 0.1), 1.3)
+            .unwrap();
+        for t in [1.3, 1.36, 1.44, 1.49] {
+            let new = x_at(&again, t);
+            assert!(new == x_at(&e, t) || new == x_at(&e, t - 0.1), "{t}: {new:?}");
+        }
+        assert_eq!(x_at(&again, 1.56), Some(0.5));
     }
 
     #[test]

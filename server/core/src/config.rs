@@ -26,6 +26,13 @@ pub enum ConfigError {
     },
     #[error("workspace axis {axis}: min {min_m} m must be below max {max_m} m")]
     EmptyWorkspace { axis: char, min_m: f64, max_m: f64 },
+    #[error("{name} must be in ({min}, {max}], got {value}")]
+    OutOfRange {
+        name: &'static str,
+        min: f64,
+        max: f64,
+        value: f64,
+    },
 }
 
 /// How the phone's tracking frame is turned to the robot frame when no explicit matrix is given.

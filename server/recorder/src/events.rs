@@ -25,6 +25,8 @@ pub struct ArmActivity {
     pub arm: String,
     /// The operator's clutch is in (teleop drives the arm).
     pub engaged: bool,
+    /// The name of the policy driving the arm; empty when none does (a person or nobody).
+    pub policy: String,
     /// Commands the safety gate refused so far (jumps, invalid targets), since the server started.
     pub rejected: u64,
     /// Commands the safety gate clamped into the workspace so far.
@@ -58,6 +60,11 @@ pub enum EventKind {
     RobotWarning,
     /// The robot's warning went away (`detail`: the warning that was shown).
     RobotWarningCleared,
+    /// A policy started driving the arm (`detail`: its name).
+    PolicyStart,
+    /// The policy that drove the arm stopped (`detail`: its name): a person took over, it released the
+    /// arm, went silent or ended.
+    PolicyStop,
 }
 
 /// One line of the sidecar.
@@ -112,6 +119,9 @@ pub fn transitions(
                     "engaged when the episode started",
                 ));
             }
+            if !now.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStart, 1, &now.policy));
+            }
             // Unlike the counters, a warning is a state: one present at the start belongs to the episode.
             if !now.warning.is_empty() {
                 events.push(event(now, EventKind::RobotWarning, 1, &now.warning));
@@ -122,6 +132,15 @@ pub fn transitions(
             (false, true) => events.push(event(now, EventKind::ClutchEngage, 1, "")),
             (true, false) => events.push(event(now, EventKind::ClutchRelease, 1, "")),
             _ => {}
+        }
+        if before.policy != now.policy {
+            // A take-over between two frames stops the policy and engages the clutch at the same frame.
+            if !before.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStop, 1, &before.policy));
+            }
+            if !now.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStart, 1, &now.policy));
+            }
         }
         let rejected = now.rejected - before.rejected;
         let clamped = now.clamped - before.clamped;
@@ -185,6 +204,8 @@ pub(crate) struct EventWriter {
     path: PathBuf,
     fps: u32,
     previous: Option<Vec<ArmActivity>>,
+    /// Every policy that drove an arm in the episode, for its provenance.
+    policies: std::collections::BTreeSet<String>,
 }
 
 impl EventWriter {
@@ -195,6 +216,7 @@ impl EventWriter {
             path,
             fps,
             previous: None,
+            policies: std::collections::BTreeSet::new(),
         })
     }
 
@@ -202,6 +224,12 @@ impl EventWriter {
     pub(crate) fn observe(&mut self, arms: &[ArmActivity], frame_index: u64) -> Result<(), RecorderError> {
         if self.previous.as_deref() == Some(arms) {
             return Ok(());
+        }
+        // Only when the arms changed: a policy name is cloned once per change, not once per frame.
+        for a in arms.iter().filter(|a| !a.policy.is_empty()) {
+            if !self.policies.contains(&a.policy) {
+                self.policies.insert(a.policy.clone());
+            }
         }
         for e in transitions(self.previous.as_deref(), arms, frame_index, self.fps) {
             let mut line = serde_json::to_vec(&e).map_err(|e| RecorderError::io(&self.path, e.into()))?;
@@ -238,6 +266,11 @@ impl EventWriter {
             .map_err(|e| RecorderError::io(&self.path, e))
     }
 
+    /// The policies that drove an arm so far, by name.
+    pub(crate) fn policies(&self) -> Vec<String> {
+        self.policies.iter().cloned().collect()
+    }
+
     /// Flushes and fsyncs the file; returns its path, ready to be renamed into the dataset.
     pub(crate) fn finish(self) -> Result<PathBuf, RecorderError> {
         let file = self
@@ -262,6 +295,7 @@ mod tests {
             joint_limited: 0,
             last_reason: "jump of 120 mm".into(),
             warning: String::new(),
+            policy: String::new(),
         }
     }
 
@@ -317,6 +351,50 @@ mod tests {
         assert_eq!(kinds(&e), [(EventKind::JointLimited, 4)]);
         assert_eq!(e[0].detail, "joint speed limit");
         assert!(transitions(Some(&[now.clone()]), &[now], 13, 20).is_empty());
+    }
+
+    #[test]
+    fn a_policy_driving_is_a_span_that_a_take_over_ends_at_the_clutch_frame() {
+        let mut driving = arm(false, 0, 0);
+        driving.policy = "gr00t".into();
+        // Driving when the episode starts: a start at frame 0, named.
+        let e = transitions(None, std::slice::from_ref(&driving), 0, 20);
+        assert_eq!(kinds(&e), [(EventKind::PolicyStart, 1)]);
+        assert_eq!(e[0].detail, "gr00t");
+        // The operator takes over: the clutch engages and the policy stops at the same frame.
+        let taken = arm(true, 0, 0);
+        let e = transitions(
+            Some(std::slice::from_ref(&driving)),
+            std::slice::from_ref(&taken),
+            9,
+            20,
+        );
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::ClutchEngage, 1), (EventKind::PolicyStop, 1)]
+        );
+        assert_eq!((e[1].frame_index, e[1].detail.as_str()), (9, "gr00t"));
+        // Another policy between two frames: one stops, the other starts.
+        let mut other = driving.clone();
+        other.policy = "replay".into();
+        let e = transitions(Some(&[driving]), std::slice::from_ref(&other), 12, 20);
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::PolicyStop, 1), (EventKind::PolicyStart, 1)]
+        );
+        assert_eq!((e[0].detail.as_str(), e[1].detail.as_str()), ("gr00t", "replay"));
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = EventWriter::create(dir.path().join("e.jsonl"), 20).unwrap();
+        w.observe(std::slice::from_ref(&other), 0).unwrap();
+        w.observe(&[taken], 1).unwrap();
+        let mut back = other;
+        back.policy = "gr00t".into();
+        w.observe(&[back], 2).unwrap();
+        assert_eq!(
+            w.policies(),
+            ["gr00t", "replay"],
+            "the episode's policies, by name"
+        );
     }
 
     fn kinds(events: &[EpisodeEvent]) -> Vec<(EventKind, u64)> {

@@ -4,7 +4,7 @@
 
 use crate::error::RecorderError;
 use crate::stats::{FeatureStats, QUANTILES, StatKind};
-use arrow_array::builder::{BooleanBuilder, Float64Builder, Int64Builder, ListBuilder, StringBuilder};
+use arrow_array::builder::{Float64Builder, Int64Builder, ListBuilder, StringBuilder};
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int64Type};
 use arrow_array::{
@@ -50,7 +50,7 @@ fn vec_field(name: &str, n: usize) -> Field {
 }
 
 /// `datasets` feature JSON: v3.0 (datasets 4) says `List`, v2.1 (datasets 3.x) only knows `Sequence`.
-fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool, success: bool) -> String {
+fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool, flags: FlagColumns) -> String {
     let list = if v30 { "List" } else { "Sequence" };
     let vecf =
         |n: usize| json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": n, "_type": list});
@@ -58,8 +58,8 @@ fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool, success: bool) ->
     let mut features = serde_json::Map::new();
     features.insert("observation.state".into(), vecf(state_dim));
     features.insert("action".into(), vecf(action_dim));
-    if success {
-        features.insert(SUCCESS_FEATURE.into(), scalar("bool"));
+    for name in flags.names() {
+        features.insert(name.into(), scalar("bool"));
     }
     for (name, dtype) in [
         ("timestamp", "float32"),
@@ -75,15 +75,41 @@ fn hf_metadata(state_dim: usize, action_dim: usize, v30: bool, success: bool) ->
 
 /// The per-frame task success column (LeRobot's name for it; a bool scalar).
 pub const SUCCESS_FEATURE: &str = "next.success";
+/// The per-frame "a person drove" column of LeRobot's human-in-the-loop (DAgger) recording: bool, shape
+/// `(1,)`, true while a person corrects (see `lerobot.rollout`).
+pub const INTERVENTION_FEATURE: &str = "intervention";
 
-/// The data parquet schema for the given vector sizes, with a `next.success` column if `success`.
-pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool, success: bool) -> SchemaRef {
+/// Which of the optional per-frame bool columns a dataset carries (LeRobot's names; in `info.json` and the
+/// parquet they follow `action`, in this order).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FlagColumns {
+    /// `next.success`.
+    pub success: bool,
+    /// `intervention`.
+    pub intervention: bool,
+}
+
+impl FlagColumns {
+    /// The carried columns' names, in order.
+    pub fn names(self) -> Vec<&'static str> {
+        [
+            (self.success, SUCCESS_FEATURE),
+            (self.intervention, INTERVENTION_FEATURE),
+        ]
+        .into_iter()
+        .filter_map(|(on, name)| on.then_some(name))
+        .collect()
+    }
+}
+
+/// The data parquet schema for the given vector sizes, with the bool columns `flags` names.
+pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool, flags: FlagColumns) -> SchemaRef {
     let mut fields = vec![
         vec_field("observation.state", state_dim),
         vec_field("action", action_dim),
     ];
-    if success {
-        fields.push(Field::new(SUCCESS_FEATURE, DataType::Boolean, true));
+    for name in flags.names() {
+        fields.push(Field::new(name, DataType::Boolean, true));
     }
     fields.extend([
         Field::new("timestamp", DataType::Float32, true),
@@ -94,7 +120,7 @@ pub fn data_schema(state_dim: usize, action_dim: usize, v30: bool, success: bool
     ]);
     let meta = HashMap::from([(
         "huggingface".to_owned(),
-        hf_metadata(state_dim, action_dim, v30, success),
+        hf_metadata(state_dim, action_dim, v30, flags),
     )]);
     Arc::new(Schema::new_with_metadata(fields, meta))
 }
@@ -106,11 +132,24 @@ pub struct Row {
     pub action: Vec<f32>,
     /// `next.success`, in datasets that have the column.
     pub success: Option<bool>,
+    /// `intervention`, in datasets that have the column.
+    pub intervention: Option<bool>,
     pub timestamp: f32,
     pub frame_index: i64,
     pub episode_index: i64,
     pub index: i64,
     pub task_index: i64,
+}
+
+impl Row {
+    /// The value of the bool column `name` ([`FlagColumns::names`]) in this row.
+    pub fn flag(&self, name: &str) -> Option<bool> {
+        match name {
+            SUCCESS_FEATURE => self.success,
+            INTERVENTION_FEATURE => self.intervention,
+            _ => None,
+        }
+    }
 }
 
 /// Streams rows of one episode into a parquet file, one row group per [`ROWS_PER_GROUP`] rows.
@@ -120,7 +159,7 @@ pub struct DataWriter {
     writer: ArrowWriter<File>,
     state_dim: usize,
     action_dim: usize,
-    success: bool,
+    flags: FlagColumns,
     buf: Vec<Row>,
     rows: u64,
 }
@@ -131,10 +170,10 @@ impl DataWriter {
         state_dim: usize,
         action_dim: usize,
         v30: bool,
-        success: bool,
+        flags: FlagColumns,
     ) -> Result<Self, RecorderError> {
         let file = File::create(path).map_err(|e| RecorderError::io(path, e))?;
-        let schema = data_schema(state_dim, action_dim, v30, success);
+        let schema = data_schema(state_dim, action_dim, v30, flags);
         let writer = ArrowWriter::try_new(file, Arc::clone(&schema), Some(props(&schema)))
             .map_err(|e| RecorderError::parquet(path, &e))?;
         Ok(DataWriter {
@@ -143,7 +182,7 @@ impl DataWriter {
             writer,
             state_dim,
             action_dim,
-            success,
+            flags,
             buf: Vec::new(),
             rows: 0,
         })
@@ -187,10 +226,10 @@ impl DataWriter {
             vec_col(self.state_dim, &|r| &r.state),
             vec_col(self.action_dim, &|r| &r.action),
         ];
-        if self.success {
+        for name in self.flags.names() {
             // A frame without a value (none can be, see `EpisodeWriter::push_row`) would be a null.
             columns.push(Arc::new(BooleanArray::from(
-                rows.iter().map(|r| r.success).collect::<Vec<_>>(),
+                rows.iter().map(|r| r.flag(name)).collect::<Vec<_>>(),
             )));
         }
         columns.extend([
@@ -421,15 +460,6 @@ pub(crate) fn stat_list(kind: StatKind, values: &[f64], keep_int: bool) -> (Data
             let a = b.finish();
             (a.data_type().clone(), Arc::new(a))
         }
-        StatKind::Bool if keep_int => {
-            let mut b = ListBuilder::new(BooleanBuilder::new());
-            for v in values {
-                b.values().append_value(*v >= 0.5);
-            }
-            b.append(true);
-            let a = b.finish();
-            (a.data_type().clone(), Arc::new(a))
-        }
         StatKind::Int if keep_int => {
             let mut b = ListBuilder::new(Int64Builder::new());
             for v in values {
@@ -569,15 +599,16 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>, RecorderError> {
                 .ok_or_else(|| bad(&format!("{name} is not int64")))
         };
         let (state, action) = (fsl("observation.state")?, fsl("action")?);
-        let success = match b.column_by_name(SUCCESS_FEATURE) {
-            None => None,
-            Some(c) => Some(
-                c.as_any()
-                    .downcast_ref::<BooleanArray>()
-                    .cloned()
-                    .ok_or_else(|| bad(&format!("{SUCCESS_FEATURE} is not bool")))?,
-            ),
+        let flag = |name: &str| match b.column_by_name(name) {
+            None => Ok(None),
+            Some(c) => c
+                .as_any()
+                .downcast_ref::<BooleanArray>()
+                .cloned()
+                .map(Some)
+                .ok_or_else(|| bad(&format!("{name} is not bool"))),
         };
+        let (success, intervention) = (flag(SUCCESS_FEATURE)?, flag(INTERVENTION_FEATURE)?);
         let ts = b
             .column_by_name("timestamp")
             .and_then(|c| c.as_any().downcast_ref::<Float32Array>().cloned())
@@ -600,6 +631,7 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>, RecorderError> {
                 state: floats(&state, i),
                 action: floats(&action, i),
                 success: success.as_ref().map(|s| s.value(i)),
+                intervention: intervention.as_ref().map(|s| s.value(i)),
                 timestamp: ts.value(i),
                 frame_index: fi.value(i),
                 episode_index: ei.value(i),
@@ -619,12 +651,17 @@ mod tests {
     fn data_rows_round_trip_in_row_groups() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("d.parquet");
-        let mut w = DataWriter::create(&p, 3, 2, true, true).unwrap();
+        let flags = FlagColumns {
+            success: true,
+            intervention: true,
+        };
+        let mut w = DataWriter::create(&p, 3, 2, true, flags).unwrap();
         for i in 0..(ROWS_PER_GROUP as i64 + 10) {
             w.push(Row {
                 state: vec![i as f32, 1.0, 2.0],
                 action: vec![-(i as f32), 0.5],
                 success: Some(i % 3 == 0),
+                intervention: Some(i % 2 == 0),
                 timestamp: i as f32 / 20.0,
                 frame_index: i,
                 episode_index: 3,
@@ -639,6 +676,10 @@ mod tests {
         assert_eq!(rows[7].state, vec![7.0, 1.0, 2.0]);
         assert_eq!((rows[7].index, rows[7].episode_index), (107, 3));
         assert_eq!((rows[6].success, rows[7].success), (Some(true), Some(false)));
+        assert_eq!(
+            (rows[6].intervention, rows[7].intervention),
+            (Some(true), Some(false))
+        );
         let file = File::open(&p).unwrap();
         let meta = parquet::file::reader::FileReader::metadata(
             &parquet::file::serialized_reader::SerializedFileReader::new(file).unwrap(),
@@ -656,6 +697,13 @@ mod tests {
                 .as_deref()
                 .unwrap()
                 .contains(r#""next.success":{"_type":"Value","dtype":"bool"}"#),
+            "{hf:?}"
+        );
+        assert!(
+            hf.value
+                .as_deref()
+                .unwrap()
+                .contains(r#""intervention":{"_type":"Value","dtype":"bool"}"#),
             "{hf:?}"
         );
     }

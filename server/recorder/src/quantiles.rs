@@ -127,10 +127,15 @@ impl EpisodeColumns {
     fn from_rows(rows: &[parquet_io::Row]) -> Self {
         use crate::stats::StatKind::{Bool, Float, Int};
         let (sd, ad) = rows.first().map_or((0, 0), |r| (r.state.len(), r.action.len()));
-        let mut success = rows
-            .first()
-            .is_some_and(|r| r.success.is_some())
-            .then(|| ColumnStats::new(Bool, 1));
+        // The bool columns the rows carry (`next.success`, `intervention`), in the parquet's order.
+        let mut flags: Vec<_> = [
+            crate::parquet_io::SUCCESS_FEATURE,
+            crate::parquet_io::INTERVENTION_FEATURE,
+        ]
+        .into_iter()
+        .filter(|name| rows.first().is_some_and(|r| r.flag(name).is_some()))
+        .map(|name| (name, ColumnStats::new(Bool, 1)))
+        .collect();
         let mut c = [
             ("observation.state", ColumnStats::new(Float, sd)),
             ("action", ColumnStats::new(Float, ad)),
@@ -150,12 +155,12 @@ impl EpisodeColumns {
             {
                 c[3 + i].1.push(&[v as f64]);
             }
-            if let Some(s) = &mut success {
-                s.push(&[f64::from(u8::from(r.success.unwrap_or(false)))]);
+            for (name, s) in &mut flags {
+                s.push(&[f64::from(u8::from(r.flag(name).unwrap_or(false)))]);
             }
         }
         let mut columns: Vec<_> = c.into();
-        columns.extend(success.map(|s| (crate::parquet_io::SUCCESS_FEATURE, s)));
+        columns.extend(flags);
         EpisodeColumns(columns)
     }
 

@@ -14,7 +14,7 @@
 //! the dataset) is counted as held.
 
 use crate::camera::{Frame, FrameSlot};
-use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter};
+use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter, FrameFlags};
 use crate::error::RecorderError;
 use crate::events::{ArmActivity, EventKind};
 use crate::spec::DatasetSpec;
@@ -697,7 +697,14 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
     }
     let pushed = pushed
         .and_then(|()| a.writer.note_activity(&s.arms))
-        .and_then(|()| a.writer.push_row(&s.state, &s.action, s.success));
+        .and_then(|()| {
+            let flags = FrameFlags {
+                success: s.success,
+                // LeRobot's DAgger `intervention`: a person drove (the clutch was in on) at least one arm.
+                intervention: s.arms.iter().any(|arm| arm.engaged),
+            };
+            a.writer.push_row(&s.state, &s.action, flags)
+        });
     if let Err(e) = pushed {
         let msg = format!("recording failed, the episode cannot be saved: {e}");
         tracing::error!("{msg}");

@@ -87,6 +87,10 @@ pub struct DatasetSpec {
     /// Record `next.success` (bool per frame: the task, e.g. the sim's ball in its basket, is done at that
     /// frame), as LeRobot's simulation datasets do.
     pub success: bool,
+    /// Record `intervention` (bool per frame: a person drove at least one arm at that frame, a policy or
+    /// nobody drove the others), as LeRobot's human-in-the-loop (DAgger) recording does. Which arm a person
+    /// drove, and which policy drove when, is in the episode's events sidecar (`clutch_*`, `policy_*`).
+    pub intervention: bool,
     /// Free-form configuration copied into the provenance sidecar.
     pub provenance: serde_json::Value,
 }
@@ -171,6 +175,14 @@ impl VideoSettings {
 pub use phone2act_core::config::MAX_TASK_BYTES;
 
 impl DatasetSpec {
+    /// The optional per-frame bool columns this dataset carries.
+    pub fn flag_columns(&self) -> crate::parquet_io::FlagColumns {
+        crate::parquet_io::FlagColumns {
+            success: self.success,
+            intervention: self.intervention,
+        }
+    }
+
     /// Checks what can be checked without touching the disk.
     pub fn validate(&self) -> Result<(), RecorderError> {
         let bad = |m: String| Err(RecorderError::InvalidSpec(m));
@@ -269,6 +281,7 @@ mod tests {
             modality: Vec::new(),
             provenance: serde_json::Value::Null,
             success: false,
+            intervention: false,
         };
         let err = spec.validate().unwrap_err().to_string();
         assert!(err.contains("dataset root is empty"), "{err}");

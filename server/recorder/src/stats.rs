@@ -30,7 +30,8 @@ pub enum StatKind {
     Float,
     /// int64 scalars: min and max as integers.
     Int,
-    /// bool scalars (`next.success`): min and max as booleans, the rest as floats of 0/1.
+    /// bool scalars (`next.success`, `intervention`): min and max as booleans in v2.1 (lerobot 0.3) and as
+    /// floats of 0/1 in v3.0 (lerobot 0.6, see [`FeatureStats::to_json_v30`]), the rest as floats of 0/1.
     Bool,
     /// Video/image: every entry shaped (3,1,1).
     Image,
@@ -62,8 +63,15 @@ impl FeatureStats {
     /// lerobot v3.0 `stats.json` entry: min, max, mean, std, count, q01..q99.
     pub fn to_json_v30(&self) -> Value {
         let mut m = serde_json::Map::new();
-        m.insert("min".into(), wrap(self.kind, &self.min));
-        m.insert("max".into(), wrap(self.kind, &self.max));
+        // lerobot 0.6 computes a bool column's stats on it cast to float (`RunningQuantileStats.update`), so
+        // its min and max are 0.0 / 1.0; lerobot 0.3 (v2.1) keeps numpy's bool min and max.
+        let extremes = if self.kind == StatKind::Bool {
+            StatKind::Float
+        } else {
+            self.kind
+        };
+        m.insert("min".into(), wrap(extremes, &self.min));
+        m.insert("max".into(), wrap(extremes, &self.max));
         let k = if self.kind == StatKind::Image {
             StatKind::Image
         } else {

@@ -6,6 +6,7 @@
 mod common;
 
 use common::{lerobot_check, publish_for_conformance, read_json, spec};
+use phone2act_recorder::dataset::FrameFlags;
 use phone2act_recorder::quantiles::{QUANTILES_FILE, QuantileStore};
 use phone2act_recorder::{Dataset, EpisodeSummary, Format};
 use serde_json::json;
@@ -63,7 +64,7 @@ fn record_episode(ds: &mut Dataset, e: u64, long: bool, rng: &mut Rng) {
         } else {
             gripper
         });
-        ep.push_row(&state, &action, false).unwrap();
+        ep.push_row(&state, &action, FrameFlags::default()).unwrap();
     }
     ds.commit_episode(ep, EpisodeSummary::default()).unwrap();
 }

@@ -225,6 +225,12 @@ pub fn observation(app: &App, o: Observation) -> v1::Observation {
                 state: a.state,
                 state_names: a.state_names,
                 action_names: a.action_names,
+                pending_steps: a
+                    .pending_steps
+                    .into_iter()
+                    .map(|values| v1::ActionStep { values })
+                    .collect(),
+                pending_step_period_s: a.pending_step_period_s,
             })
             .collect(),
         frames: o
@@ -245,6 +251,8 @@ pub fn observation(app: &App, o: Observation) -> v1::Observation {
             })
             .collect(),
         task: o.task,
+        inference_delay_s: o.inference_delay_s,
+        inference_delay_steps: o.inference_delay_steps,
     }
 }
 

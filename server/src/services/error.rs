@@ -194,6 +194,7 @@ impl From<PolicyError> for Status {
             | PolicyError::StepWidth { .. }
             | PolicyError::NotFinite { .. }
             | PolicyError::StepPeriod(_)
+            | PolicyError::KeepSteps { .. }
             | PolicyError::UnknownObservation(_)
             | PolicyError::ObservationLacksArm { .. } => Status::invalid_argument(message),
             PolicyError::UnknownSession => Status::not_found(message),

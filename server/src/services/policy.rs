@@ -110,6 +110,7 @@ fn push(
             mode,
             step_period_s: chunk.step_period_s,
             steps: &steps,
+            keep_steps: chunk.keep_steps as usize,
         },
     )?;
     Ok(v1::ChunkAccepted {
@@ -243,6 +244,20 @@ impl Policy for PolicyService {
                             }
                             v1::policy_request::Request::Observe(_) => send_observation(&sessions, &session, &events),
                             v1::policy_request::Request::Release(_) => session.release(sessions.app(), "released"),
+                            v1::policy_request::Request::Loading(_) => {
+                                let answer = match sessions.loading(&session) {
+                                    Ok((arms, remaining_s)) => v1::LoadingAccepted {
+                                        arms,
+                                        remaining_s,
+                                        error: String::new(),
+                                    },
+                                    Err(e) => v1::LoadingAccepted {
+                                        error: e.to_string(),
+                                        ..v1::LoadingAccepted::default()
+                                    },
+                                };
+                                events.notify(v1::policy_event::Event::Loading(answer));
+                            }
                             v1::policy_request::Request::Hello(_) => {
                                 let _ = out_tx.send(Err(RequestError::HelloTwice("PolicyHello").into())).await;
                                 break;

@@ -134,6 +134,7 @@ async fn policy(client: Client, arm: String, seconds: f64) -> anyhow::Result<u64
                 observation_id: obs.observation_id,
                 mode: v1::ActionMode::DeltaEe as i32,
                 blend_steps: 0,
+                keep_steps: 0,
             })
             .await?;
         chunks += 1;

@@ -160,6 +160,7 @@ async fn policy(client: Client, arm: String, c: Arc<Counters>) {
                 observation_id: obs.observation_id,
                 mode: v1::ActionMode::DeltaEe as i32,
                 blend_steps: 0,
+                keep_steps: 0,
             })
             .await?;
             c.chunks.fetch_add(1, Ordering::Relaxed);

@@ -93,8 +93,11 @@ def make_chunk(
     observation_id: int = 0,
     mode: int = DELTA_EE,
     blend_steps: int = 0,
+    keep_steps: int = 0,
 ) -> policy_pb2.ActionChunk:
-    """An ActionChunk from rows of floats (lists, tuples or numpy rows)."""
+    """An ActionChunk from rows of floats (lists, tuples or numpy rows). `keep_steps`: leading steps not
+    played, the replaced plan keeps their windows (real-time chunking; see `Observation.inference_delay_steps`
+    and `ArmObservation.pending_steps`)."""
     return policy_pb2.ActionChunk(
         arm=arm,
         steps=[policy_pb2.ActionStep(values=[float(v) for v in row]) for row in steps],
@@ -102,6 +105,7 @@ def make_chunk(
         observation_id=int(observation_id),
         mode=mode,
         blend_steps=blend_steps,
+        keep_steps=keep_steps,
     )
 
 

@@ -385,9 +385,10 @@ class AsyncPolicySession:
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
         timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
+        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps, keep_steps)
         req = policy_pb2.PushChunkRequest(session_id=self.session_id, chunk=chunk)
         return await self._client._call("Policy.PushChunk", self._client.policy_stub.PushChunk, req, timeout_s)
 
@@ -400,8 +401,9 @@ class AsyncPolicySession:
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
     ) -> None:
-        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps)
+        chunk = make_chunk(arm, steps, step_period_s, observation_id, mode, blend_steps, keep_steps)
         await self._call.write(policy_pb2.PolicyRequest(chunk=chunk))
 
     async def request_observation(self) -> None:
@@ -426,6 +428,12 @@ class AsyncPolicySession:
 
     async def release(self) -> None:
         await self._call.write(policy_pb2.PolicyRequest(release=policy_pb2.ReleaseControl()))
+
+    async def loading(self) -> None:
+        """Say the policy is loading: its arms hold until its first chunk, at most the arm's
+        `chunk.max_loading_s` (default 300 s) from the first call; later calls are keep-alives that do not
+        extend it. The answer arrives as a `loading` event (`LoadingAccepted`)."""
+        await self._call.write(policy_pb2.PolicyRequest(loading=policy_pb2.PolicyLoading()))
 
     async def close(self) -> None:
         if self._call is not None:

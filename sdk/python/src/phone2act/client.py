@@ -299,7 +299,7 @@ class PolicySession(_Session):
     - `push(...)`: send a chunk with the unary `Policy.PushChunk`, so a bad chunk raises at once
       (`InvalidArgument` carries the server's reason, e.g. the expected width).
     - `push_on_stream(...)`: send on the session stream; the answer arrives as an event.
-    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected).
+    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected, loading).
     """
 
     def __init__(self, session: aio.AsyncPolicySession) -> None:
@@ -331,6 +331,7 @@ class PolicySession(_Session):
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
         timeout_s: float | None = None,
     ) -> policy_pb2.ChunkAccepted:
         return _run(
@@ -341,6 +342,7 @@ class PolicySession(_Session):
                 observation_id=observation_id,
                 mode=mode,
                 blend_steps=blend_steps,
+                keep_steps=keep_steps,
                 timeout_s=timeout_s,
             )
         )
@@ -354,10 +356,17 @@ class PolicySession(_Session):
         observation_id: int = 0,
         mode: int = DELTA_EE,
         blend_steps: int = 0,
+        keep_steps: int = 0,
     ) -> None:
         _run(
             self._a.push_on_stream(
-                arm, steps, step_period_s, observation_id=observation_id, mode=mode, blend_steps=blend_steps
+                arm,
+                steps,
+                step_period_s,
+                observation_id=observation_id,
+                mode=mode,
+                blend_steps=blend_steps,
+                keep_steps=keep_steps,
             )
         )
 
@@ -366,6 +375,10 @@ class PolicySession(_Session):
 
     def release(self) -> None:
         _run(self._a.release())
+
+    def loading(self) -> None:
+        """Say the policy is loading (see `AsyncPolicySession.loading`); answered by a `loading` event."""
+        _run(self._a.loading())
 
 
 

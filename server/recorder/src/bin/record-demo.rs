@@ -69,6 +69,7 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         cameras: specs,
         modality: SyntheticRobot::modality(),
         success: false,
+        intervention: false,
         provenance: serde_json::json!({"source": "record-demo"}),
     };
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), cams)?;

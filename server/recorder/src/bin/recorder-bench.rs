@@ -144,6 +144,7 @@ fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
         cameras: specs,
         modality: SyntheticRobot::modality(),
         success: false,
+        intervention: false,
         provenance: serde_json::json!({"bench": true}),
     };
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), slots)?;

@@ -7,6 +7,7 @@
 //! Run in release: `cargo run --release -p phone2act-recorder --bin stats-bench -- [--episodes N]
 //! [--frames N] [--format v21|v30] [--dir PATH]`.
 
+use phone2act_recorder::dataset::FrameFlags;
 use phone2act_recorder::quantiles::{QUANTILES_FILE, QuantileStore};
 use phone2act_recorder::stats::{ColumnStats, StatKind};
 use phone2act_recorder::synthetic::SyntheticRobot;
@@ -49,6 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         cameras: Vec::new(),
         modality: SyntheticRobot::modality(),
         success: false,
+        intervention: false,
         provenance: serde_json::json!({}),
     };
     let mut ds = Dataset::open(spec)?;
@@ -76,7 +78,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             // As the recorder does: the parquet holds float32, and so do the sketches.
             state_c.push_f32(&state.iter().map(|v| *v as f32).collect::<Vec<_>>());
             action_c.push_f32(&action.iter().map(|v| *v as f32).collect::<Vec<_>>());
-            ep.push_row(&state, &action, false)?;
+            ep.push_row(&state, &action, FrameFlags::default())?;
         }
         let t0 = Instant::now();
         ds.commit_episode(ep, EpisodeSummary::default())?;

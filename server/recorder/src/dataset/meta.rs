@@ -3,7 +3,6 @@
 
 use super::{Layout, timestamp_s};
 use crate::error::RecorderError;
-use crate::parquet_io::SUCCESS_FEATURE;
 use crate::quantiles::QuantileStore;
 use crate::spec::{DatasetSpec, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, StatKind};
@@ -36,9 +35,9 @@ pub(super) fn features(spec: &DatasetSpec, video: &VideoSettings) -> IndexMap<St
         "action".to_owned(),
         json!({"dtype": "float32", "shape": [s.action_names.len()], "names": s.action_names}),
     );
-    if s.success {
+    for name in s.flag_columns().names() {
         f.insert(
-            SUCCESS_FEATURE.to_owned(),
+            name.to_owned(),
             json!({"dtype": "bool", "shape": [1], "names": null}),
         );
     }
@@ -235,6 +234,7 @@ mod tests {
             modality: Vec::new(),
             provenance: Value::Null,
             success: false,
+            intervention: false,
         }
     }
 

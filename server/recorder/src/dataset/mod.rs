@@ -30,7 +30,7 @@ pub use merge::{
 use crate::error::RecorderError;
 use crate::events::{ArmActivity, EventWriter, events_path};
 use crate::fsutil::write_atomic;
-use crate::parquet_io::{DataWriter, Row, SUCCESS_FEATURE};
+use crate::parquet_io::{DataWriter, INTERVENTION_FEATURE, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
 use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
@@ -79,6 +79,10 @@ pub struct EpisodeSummary {
     /// The phone2act version that recorded it.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub software_version: String,
+    /// The policies that drove an arm during the episode (their `PolicyHello.policy_name`), by name; which
+    /// arm and when is in the episode's events sidecar (`policy_start`, `policy_stop`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub policies: Vec<String>,
     /// In a merged dataset: the dataset and episode it was copied from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub merged_from: Option<MergedFrom>,
@@ -182,8 +186,8 @@ pub struct EpisodeWriter {
     pub(crate) encoders: Vec<EncoderThread>,
     state_stats: ColumnStats,
     action_stats: ColumnStats,
-    /// `next.success`, when the dataset records it.
-    success_stats: Option<ColumnStats>,
+    /// The optional bool columns the dataset records (`next.success`, `intervention`), in order.
+    flag_stats: Vec<(&'static str, ColumnStats)>,
     frames: u64,
     fps: u32,
     staging: PathBuf,
@@ -376,7 +380,7 @@ impl Dataset {
             self.spec.state_names.len(),
             self.spec.action_names.len(),
             self.spec.format == Format::V30,
-            self.spec.success,
+            self.spec.flag_columns(),
         )?;
         let mut encoders = Vec::new();
         for c in &self.spec.cameras {
@@ -399,7 +403,13 @@ impl Dataset {
             encoders,
             state_stats: ColumnStats::new(StatKind::Float, self.spec.state_names.len()),
             action_stats: ColumnStats::new(StatKind::Float, self.spec.action_names.len()),
-            success_stats: self.spec.success.then(|| ColumnStats::new(StatKind::Bool, 1)),
+            flag_stats: self
+                .spec
+                .flag_columns()
+                .names()
+                .into_iter()
+                .map(|name| (name, ColumnStats::new(StatKind::Bool, 1)))
+                .collect(),
             frames: 0,
             fps: self.spec.fps,
             events: EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?,
@@ -469,7 +479,7 @@ impl Dataset {
             encoders,
             state_stats,
             action_stats,
-            success_stats,
+            flag_stats,
             frames,
             fps,
             staging,
@@ -481,6 +491,7 @@ impl Dataset {
         }
         let t0 = std::time::Instant::now();
         let reports = Self::close_files(data, encoders, frames)?;
+        summary.policies = events.policies();
         let events = events.finish()?;
         let flush_ms = t0.elapsed().as_secs_f64() * 1e3;
         summary.dropped_frames = reports.iter().map(|r| r.dropped).sum();
@@ -499,9 +510,11 @@ impl Dataset {
             ("observation.state".into(), state_stats.finish()),
             ("action".into(), action_stats.finish()),
         ];
-        if let Some(s) = &success_stats {
-            stats.push((SUCCESS_FEATURE.into(), s.finish()));
-        }
+        stats.extend(
+            flag_stats
+                .iter()
+                .map(|(name, s)| ((*name).to_owned(), s.finish())),
+        );
         for (c, r) in self.spec.cameras.iter().zip(&reports) {
             stats.push((c.key(), r.image_stats.finish()));
         }
@@ -509,7 +522,7 @@ impl Dataset {
         stats.extend(defaults.iter().map(|(k, c)| ((*k).to_owned(), c.finish())));
         let mut quantiles = self.quantiles.clone();
         let mut columns = vec![("observation.state", &state_stats), ("action", &action_stats)];
-        columns.extend(success_stats.as_ref().map(|s| (SUCCESS_FEATURE, s)));
+        columns.extend(flag_stats.iter().map(|(name, s)| (*name, s)));
         columns.extend(defaults.iter().map(|(k, c)| (*k, c)));
         quantiles.add_episode(frames, &columns);
 
@@ -689,26 +702,45 @@ pub fn timestamp_pairs(timestamp: f32, frame_index: u64, fps: u32) -> Result<f64
     Ok(above_s)
 }
 
+/// One frame's bool values; each is recorded only in a dataset that has its column.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FrameFlags {
+    /// `next.success`: the task is done at this frame.
+    pub success: bool,
+    /// `intervention`: a person drove an arm at this frame.
+    pub intervention: bool,
+}
+
 /// LeRobot's default `tolerance_s` between a frame's timestamp and the decoded frame's time (0.3 to 0.6).
 pub const LEROBOT_TOLERANCE_S: f64 = 1e-4;
 
 impl EpisodeWriter {
-    /// Appends frame `frames()` (state, executed action and task success as recorded) to the parquet and the
-    /// per-episode stats. `success` is written only if the dataset records `next.success`. Camera frames are
+    /// Appends frame `frames()` (state, executed action and the frame's flags as recorded) to the parquet and
+    /// the per-episode stats. Each flag is written only if the dataset records its column. Camera frames are
     /// queued separately through [`EpisodeWriter::encoders`].
-    pub fn push_row(&mut self, state: &[f64], action: &[f64], success: bool) -> Result<(), RecorderError> {
+    pub fn push_row(
+        &mut self,
+        state: &[f64],
+        action: &[f64],
+        flags: FrameFlags,
+    ) -> Result<(), RecorderError> {
         let state: Vec<f32> = state.iter().map(|v| *v as f32).collect();
         let action: Vec<f32> = action.iter().map(|v| *v as f32).collect();
         self.state_stats.push_f32(&state);
         self.action_stats.push_f32(&action);
-        if let Some(s) = &mut self.success_stats {
-            s.push(&[f64::from(u8::from(success))]);
-        }
+        let mut row_flag = |name: &str, value: bool| {
+            let column = self.flag_stats.iter_mut().find(|(n, _)| *n == name)?;
+            column.1.push(&[f64::from(u8::from(value))]);
+            Some(value)
+        };
+        let success = row_flag(SUCCESS_FEATURE, flags.success);
+        let intervention = row_flag(INTERVENTION_FEATURE, flags.intervention);
         let i = self.frames;
         self.data.push(Row {
             state,
             action,
-            success: self.success_stats.is_some().then_some(success),
+            success,
+            intervention,
             timestamp: timestamp_s(i, self.fps),
             frame_index: i as i64,
             episode_index: self.index as i64,

@@ -196,10 +196,23 @@ fn modality_json(spec: &DatasetSpec) -> Value {
         .iter()
         .map(|c| (c.name.clone(), json!({"original_key": c.key()})))
         .collect();
+    let mut annotation = serde_json::Map::new();
+    annotation.insert(
+        "human.task_description".into(),
+        json!({"original_key": "task_index"}),
+    );
+    if spec.intervention {
+        // GR00T resolves `annotation.<key>` through `original_key` to the parquet column; a data config
+        // that does not name it ignores it.
+        annotation.insert(
+            "human.intervention".into(),
+            json!({"original_key": crate::parquet_io::INTERVENTION_FEATURE}),
+        );
+    }
     json!({
         "state": state,
         "action": action,
         "video": video,
-        "annotation": {"human.task_description": {"original_key": "task_index"}}
+        "annotation": annotation,
     })
 }

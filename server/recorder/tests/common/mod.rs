@@ -55,6 +55,7 @@ pub(crate) fn spec(root: &Path, format: Format, cameras: &[&str], size: (u32, u3
             .collect(),
         modality: SyntheticRobot::modality(),
         success: false,
+        intervention: false,
         provenance: serde_json::json!({"test": true}),
     }
 }
