@@ -2,75 +2,15 @@
 // webxr-shim.js. Presses the page's buttons like an operator and checks the result on the server side through
 // an independent path: a rosbridge subscription to the gateway's status topic (System.WatchStatus) and the
 // dataset on disk. Prints "N passed, M failed".
-import { chromium } from 'playwright-core';
-import { mkdirSync, readdirSync, statSync } from 'node:fs';
+import { readdirSync, statSync } from 'node:fs';
 import { createServer, connect } from 'node:net';
-import { join, dirname } from 'node:path';
-import { fileURLToPath } from 'node:url';
+import { join } from 'node:path';
+import {
+  BASE, HTTPS_PORT, OUT_DIR, PAIRING_TOKEN, ROSBRIDGE_PORT, STACK_DIR, ServerView, assert, check, dist, finish,
+  here, launch, pageState, sleep, waitPage,
+} from './harness.mjs';
 
-const here = dirname(fileURLToPath(import.meta.url));
-const { HTTPS_PORT, ROSBRIDGE_PORT, PAIRING_TOKEN, STACK_DIR } = process.env;
-if (!HTTPS_PORT || !ROSBRIDGE_PORT || !PAIRING_TOKEN) throw new Error('run through tests/browser/run.sh');
-const BASE = `https://127.0.0.1:${HTTPS_PORT}`;
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
-// Screenshots go here (kept after the run, ignored by git).
-const OUT_DIR = process.env.BROWSER_OUT || join(here, 'out');
-mkdirSync(OUT_DIR, { recursive: true });
-
-// ---- server-side view: rosbridge subscription to /phone2act/status ----------------------------------------
-class ServerView {
-  constructor() {
-    this.status = null;
-    this.ws = new WebSocket(`ws://127.0.0.1:${ROSBRIDGE_PORT}/`);
-    this.ready = new Promise((resolve, reject) => {
-      this.ws.onopen = () => {
-        this.ws.send(JSON.stringify({ op: 'subscribe', topic: '/phone2act/status', type: 'std_msgs/msg/String' }));
-        resolve();
-      };
-      this.ws.onerror = (e) => reject(new Error(`rosbridge socket: ${e.message || e.type}`));
-    });
-    this.ws.onmessage = (ev) => {
-      const msg = JSON.parse(ev.data);
-      if (msg.op === 'publish' && msg.topic === '/phone2act/status') this.status = JSON.parse(msg.msg.data);
-    };
-  }
-  async until(pred, what, timeoutMs = 15000) {
-    const deadline = Date.now() + timeoutMs;
-    while (Date.now() < deadline) {
-      if (this.status && pred(this.status)) return this.status;
-      await sleep(25);
-    }
-    throw new Error(`timed out waiting for ${what}; server status: ${JSON.stringify(this.status)}`);
-  }
-  close() { this.ws.close(); }
-}
-
-const dist = (a, b) => Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]);
-
-// ---- harness ---------------------------------------------------------------------------------------------
-const results = [];
-async function check(name, fn) {
-  const t0 = Date.now();
-  try {
-    await fn();
-    results.push([name, true]);
-    console.log(`PASS ${name} (${Date.now() - t0} ms)`);
-  } catch (e) {
-    results.push([name, false]);
-    console.log(`FAIL ${name}: ${e.stack || e}`);
-  }
-}
-function assert(cond, msg) { if (!cond) throw new Error(msg); }
-
-// Playwright starts Chromium with a new, empty profile directory of its own and removes it afterwards.
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: [
-    '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run', '--disable-background-networking',
-    '--disable-component-update', '--disable-sync', '--ignore-certificate-errors',
-  ],
-});
+const browser = await launch();
 const server = new ServerView();
 await server.ready;
 
@@ -88,15 +28,6 @@ async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent, base =
   await page.goto(token === null ? `${base}/` : `${base}/?token=${encodeURIComponent(token)}`);
   return { context, page };
 }
-const pageState = (page, expr) => page.evaluate(expr);
-async function waitPage(page, fn, what, timeoutMs = 15000) {
-  try {
-    await page.waitForFunction(fn, null, { timeout: timeoutMs, polling: 25 });
-  } catch (e) {
-    throw new Error(`page: timed out waiting for ${what}: ${e.message.split('\n')[0]}`);
-  }
-}
-
 const { page } = await phonePage();
 
 await check('the page loads over HTTPS, pairs, and claims the arm', async () => {
@@ -393,7 +324,4 @@ await check('on a slow link the page turns the preview off itself', async () => 
 
 server.close();
 await browser.close();
-const passed = results.filter(([, ok]) => ok).length;
-const failed = results.length - passed;
-console.log(`browser: ${passed} passed, ${failed} failed`);
-process.exit(failed ? 1 : 0);
+finish('browser');

@@ -2,6 +2,8 @@
 //!
 //! Page → gateway:
 //! - `{"type":"hello","arm":"left","take_over":false}` picks (or switches) the arm;
+//! - `{"type":"release"}` ends this socket's stream and frees its arm (the page hands the arm to a headset
+//!   controller's own socket);
 //! - `{"type":"sample","seq":1,"t_ns":…,"pose":{"p":[x,y,z],"q":[x,y,z,w]},"tracking":"tracking","buttons":[…]}`
 //!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
 //!   `{"record":"start","task":"…"}`, `{"record":"stop"}`, `{"record":"discard"}`.
@@ -9,7 +11,7 @@
 //! - `{"type":"preview","camera":"front","max_fps":5,"width":320}` turns the camera preview on (see
 //!   `web_preview`), `{"type":"preview_off"}` off; `{"type":"preview_ack"}` says a preview frame arrived.
 //!
-//! Gateway → page: `welcome` (arms, cameras), `session` (open/retrying/refused), `feedback`, `error`, `preview`
+//! Gateway → page: `welcome` (arms, cameras, headset controller → arm map), `session` (open/retrying/refused), `feedback`, `error`, `preview`
 //! (`on` with the settings, `off` with the reason), and while the preview is on, binary messages of one JPEG.
 
 use crate::conn::{Handler, Wiring};
@@ -47,6 +49,7 @@ enum PageMsg {
     Preview(PreviewRequest),
     PreviewOff,
     PreviewAck,
+    Release,
 }
 
 #[derive(Debug, Deserialize)]
@@ -169,6 +172,7 @@ impl PageHandler {
                 "cameras": cameras,
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
+                "controllers": self.shared.config.controllers,
             })
             .to_string(),
         );
@@ -262,6 +266,8 @@ impl Handler for PageHandler {
                     .text(json!({"type": "preview", "state": "off", "reason": "asked"}).to_string());
             }
             Ok(PageMsg::PreviewAck) => self.wiring.preview.ack(),
+            // Dropping the session ends its stream, which frees the arm on the server.
+            Ok(PageMsg::Release) => self.session = None,
             Err(e) => self.error(&e, None),
         }
     }

@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 const INDEX_HTML: &str = include_str!("../../phone-web/index.html");
 const APP_JS: &str = include_str!("../../phone-web/app.js");
+const HEADSET_JS: &str = include_str!("../../phone-web/headset.js");
 const STYLE_CSS: &str = include_str!("../../phone-web/style.css");
 
 fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
@@ -22,7 +23,7 @@ fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
     )
 }
 
-/// `/`, `/app.js`, `/style.css`.
+/// `/`, `/app.js`, `/headset.js`, `/style.css`.
 pub(crate) fn routes() -> Router<Arc<Shared>> {
     Router::new()
         .route(
@@ -36,6 +37,10 @@ pub(crate) fn routes() -> Router<Arc<Shared>> {
         .route(
             "/app.js",
             get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),
+        )
+        .route(
+            "/headset.js",
+            get(|| async { asset("text/javascript; charset=utf-8", HEADSET_JS) }),
         )
         .route(
             "/style.css",
