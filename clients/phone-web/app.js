@@ -58,6 +58,7 @@
   // For tests and debugging from the console, and for headset.js (its own sockets use the same token).
   window.phone2act = state;
   state.token = token;
+  state.listeners = [];
 
   // The camera preview: small and slow on purpose (the recorder has the full images), and it gives way to
   // control. The gateway sends a frame only after the page acknowledged the previous one; the page turns the
@@ -152,6 +153,8 @@
   }
 
   function onMessage(msg) {
+    // video.js and others see every message first (none of them changes this page's state).
+    for (const listener of state.listeners) listener(msg);
     switch (msg.type) {
       case 'welcome': {
         state.welcome = msg;

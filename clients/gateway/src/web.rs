@@ -10,6 +10,7 @@ use std::sync::Arc;
 const INDEX_HTML: &str = include_str!("../../phone-web/index.html");
 const APP_JS: &str = include_str!("../../phone-web/app.js");
 const HEADSET_JS: &str = include_str!("../../phone-web/headset.js");
+const VIDEO_JS: &str = include_str!("../../phone-web/video.js");
 const STYLE_CSS: &str = include_str!("../../phone-web/style.css");
 
 fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
@@ -23,7 +24,7 @@ fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
     )
 }
 
-/// `/`, `/app.js`, `/headset.js`, `/style.css`.
+/// `/`, `/app.js`, `/headset.js`, `/video.js`, `/style.css`.
 pub(crate) fn routes() -> Router<Arc<Shared>> {
     Router::new()
         .route(
@@ -41,6 +42,10 @@ pub(crate) fn routes() -> Router<Arc<Shared>> {
         .route(
             "/headset.js",
             get(|| async { asset("text/javascript; charset=utf-8", HEADSET_JS) }),
+        )
+        .route(
+            "/video.js",
+            get(|| async { asset("text/javascript; charset=utf-8", VIDEO_JS) }),
         )
         .route(
             "/style.css",
