@@ -118,7 +118,7 @@ struct RawFrame {
 /// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them, and
 /// the runtime, possibly a single thread carrying the control path, never waits for an encode) and publishes
 /// them. Ends when the fetch loop drops its sender.
-fn encode_thread(camera: String, feed: Arc<Feed>, frames: std::sync::mpsc::Receiver<RawFrame>) {
+fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<RawFrame>) {
     let mut encoder: Option<H264Encoder> = None;
     let mut seq = 0u64;
     while let Ok(frame) = frames.recv() {
@@ -158,7 +158,7 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
         let (camera, feed) = (camera.clone(), feed.clone());
         std::thread::Builder::new()
             .name(format!("video-{camera}"))
-            .spawn(move || encode_thread(camera, feed, frames))
+            .spawn(move || encode_thread(&camera, &feed, &frames))
     };
     if let Err(e) = thread {
         tracing::warn!("video of camera {camera}: no encoder thread: {e}");
@@ -277,7 +277,8 @@ pub(crate) fn start_viewer(
     let (rx, feed) = hub.subscribe(upstream, camera);
     let camera = camera.to_owned();
     let task = tokio::spawn(async move {
-        if let Err(e) = run_viewer(rtc, socket, local, rx, &feed).await {
+        // Boxed: the Rtc is large, and the task's future need not carry it inline.
+        if let Err(e) = Box::pin(run_viewer(rtc, socket, local, rx, &feed)).await {
             tracing::debug!("video viewer of {camera} ended: {e}");
         }
         out.text(json!({"type": "video", "state": "off", "camera": camera}).to_string());
@@ -296,7 +297,7 @@ fn h264_pt(rtc: &mut Rtc, mid: Mid) -> Option<str0m::format::PayloadParams> {
             continue;
         }
         let rank = match spec.format.profile_level_id {
-            Some(0x42e0_1f) => 0,
+            Some(0x0042_e01f) => 0,
             Some(id) if id >> 16 == 0x42 => 1,
             _ => 2,
         };
