@@ -55,8 +55,10 @@
       gatewayState: 'off', // what the gateway last said: on / off
     },
   };
-  // For tests and debugging from the console.
+  // For tests and debugging from the console, and for headset.js (its own sockets use the same token).
   window.phone2act = state;
+  state.token = token;
+  state.listeners = [];
 
   // The camera preview: small and slow on purpose (the recorder has the full images), and it gives way to
   // control. The gateway sends a frame only after the page acknowledged the previous one; the page turns the
@@ -145,13 +147,17 @@
   }
 
   function hello(takeOver) {
-    if (!state.arm) return;
+    // While headset controllers drive, their own sockets hold the arms (headset.js).
+    if (!state.arm || state.headsetActive) return;
     send({ type: 'hello', arm: state.arm, take_over: !!takeOver });
   }
 
   function onMessage(msg) {
+    // video.js and others see every message first (none of them changes this page's state).
+    for (const listener of state.listeners) listener(msg);
     switch (msg.type) {
       case 'welcome': {
+        state.welcome = msg;
         state.arms = msg.arms && msg.arms.length ? msg.arms : [msg.default_arm];
         if (!state.arms.includes(state.arm)) state.arm = state.arms.includes(msg.default_arm) ? msg.default_arm : state.arms[0];
         const sel = $('arm');
@@ -401,6 +407,8 @@
 
   // Button events go out at once in a pose-less sample; the gateway merges them into the next pose if needed.
   function buttons(list) {
+    // The page's socket released its arm to the headset controllers: a sample here would claim one again.
+    if (state.headsetActive) return;
     state.seq += 1;
     if (!send({ type: 'sample', seq: state.seq, t_ns: nowNs(), buttons: list })) {
       notice('Not connected to the gateway.');
@@ -457,6 +465,8 @@
     hello(false);
   });
   $('take-over').addEventListener('click', () => hello(true));
+  state.send = send;
+  state.hello = hello;
 
   // ---- WebXR ---------------------------------------------------------------------------------------------
 
@@ -474,24 +484,34 @@
       el.textContent = 'This page must be opened over https:// (WebXR needs a secure context). Use the URL the '
         + 'gateway printed, or scan its QR code.';
     } else if (state.noXrReason === 'ios') {
-      el.textContent = 'iPhone and iPad browsers have no WebXR AR, so this page cannot read the phone\'s pose. '
-        + `Use an Android phone with ARCore in Chrome, or ${appHint()}. `
-        + 'The buttons below still control recording.';
+      // No browser on iOS ships WebXR; a few App Store browser apps add immersive-ar on top of ARKit.
+      el.textContent = 'This iPhone/iPad browser has no WebXR AR (Safari and the browsers built on it have none), '
+        + 'so this page cannot read the phone\'s pose here. On this device: open this same URL in a WebXR browser '
+        + 'app from the App Store (such as "XR Browser" or Mozilla\'s "WebXR Viewer"), where the page drives the arm '
+        + 'as on Android; here, the buttons below still control recording. '
+        + `Or use an Android phone with ARCore in Chrome, or ${appHint()}.`;
+    } else if (state.noXrReason === 'vr-only') {
+      el.textContent = 'This browser has WebXR VR but no AR, so the phone\'s own pose cannot drive an arm here. '
+        + 'With tracked controllers (a VR headset), press "Start headset" to drive with them. '
+        + `For a phone: Chrome on an ARCore Android phone, or ${appHint()}.`;
     } else {
       el.textContent = 'This browser has no WebXR AR (immersive-ar). Use Chrome on an ARCore-supported Android '
-        + `phone with "Google Play Services for AR" installed, or ${appHint()}. `
+        + `phone with "Google Play Services for AR" installed, a WebXR browser app on an iPhone, or ${appHint()}. `
         + 'The buttons below still control recording.';
     }
   }
 
+  // Decides by what WebXR offers, never by the user agent: wherever immersive-ar exists the phone path drives.
+  // The user agent only picks the wording of the message for a device that has no immersive-ar.
   async function checkXr() {
     const isIos = /iPhone|iPad|iPod/.test(navigator.userAgent);
-    let supported = false;
-    if (window.isSecureContext && navigator.xr) {
-      try { supported = await navigator.xr.isSessionSupported('immersive-ar'); } catch (_) { supported = false; }
-    }
-    if (supported) return true;
-    state.noXrReason = !window.isSecureContext ? 'insecure' : (isIos ? 'ios' : 'no-ar');
+    const ask = async (mode) => {
+      try { return await navigator.xr.isSessionSupported(mode); } catch (_) { return false; }
+    };
+    const secure = window.isSecureContext && !!navigator.xr;
+    if (secure && await ask('immersive-ar')) return true;
+    const vr = secure && await ask('immersive-vr');
+    state.noXrReason = !window.isSecureContext ? 'insecure' : (vr ? 'vr-only' : (isIos ? 'ios' : 'no-ar'));
     renderNoXr();
     $('start-ar').disabled = true;
     return false;
@@ -535,7 +555,7 @@
   }
 
   async function startAr() {
-    if (state.xrSession) return;
+    if (state.xrSession || state.headsetActive) return;
     try {
       const session = await navigator.xr.requestSession('immersive-ar', {
         requiredFeatures: ['local'],

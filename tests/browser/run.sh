@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Browser test of the phone page: Debian's Chromium, headless, driven by playwright-core, WebXR from a test shim,
-# against the real server and the gateway (built with cargo). Installs what is missing (apt chromium, npm ci).
-# Prints "N passed, M failed" and exits non-zero on failure.
+# Browser tests of the phone page: Debian's Chromium, headless, driven by playwright-core, against the real server
+# and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
+# controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms). Installs
+# what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
 set -euo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
 if [[ ! -x /usr/bin/chromium ]]; then
@@ -9,11 +10,30 @@ if [[ ! -x /usr/bin/chromium ]]; then
   "${SUDO[@]}" apt-get update -qq
   DEBIAN_FRONTEND=noninteractive "${SUDO[@]}" apt-get install -y -qq --no-install-recommends chromium >/dev/null
 fi
-if [[ ! -d "$HERE/node_modules/playwright-core" ]]; then
-  # playwright-core downloads no browser; the lockfile pins it to the npm registry's tarball.
+if [[ ! -d "$HERE/node_modules/playwright-core" || ! -d "$HERE/node_modules/iwer" ]]; then
+  # playwright-core downloads no browser; the lockfile pins both to the npm registry's tarballs.
   (cd "$HERE" && npm ci --no-audit --no-fund --silent)
 fi
-STACK_HTTPS=1
-source "$HERE/../rosbridge/stack.sh"
-cd "$HERE"
-node --experimental-websocket --no-warnings test_page.mjs
+# Each suite in a subshell of its own: stack.sh stops its server and gateway when that subshell exits.
+# BROWSER_SUITES=headset (or page) runs one.
+rc=0
+if [[ "${BROWSER_SUITES:-page headset}" == *page* ]]; then
+  (
+    STACK_HTTPS=1
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_page.mjs
+  ) || rc=1
+fi
+if [[ "${BROWSER_SUITES:-page headset}" == *headset* ]]; then
+  (
+    STACK_HTTPS=1
+    STACK_CONFIG="$HERE/../../server/config/bimanual-sim.toml"
+    STACK_DEFAULT_ARM=left
+    STACK_GATEWAY_CONFIG="$HERE/headset-gateway.toml"
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_headset.mjs
+  ) || rc=1
+fi
+exit $rc

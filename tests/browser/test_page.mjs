@@ -2,75 +2,15 @@
 // webxr-shim.js. Presses the page's buttons like an operator and checks the result on the server side through
 // an independent path: a rosbridge subscription to the gateway's status topic (System.WatchStatus) and the
 // dataset on disk. Prints "N passed, M failed".
-import { chromium } from 'playwright-core';
-import { mkdirSync, readdirSync, statSync } from 'node:fs';
+import { readdirSync, statSync } from 'node:fs';
 import { createServer, connect } from 'node:net';
-import { join, dirname } from 'node:path';
-import { fileURLToPath } from 'node:url';
+import { join } from 'node:path';
+import {
+  BASE, HTTPS_PORT, OUT_DIR, PAIRING_TOKEN, ROSBRIDGE_PORT, STACK_DIR, ServerView, assert, check, dist, finish,
+  here, launch, pageState, sleep, waitPage,
+} from './harness.mjs';
 
-const here = dirname(fileURLToPath(import.meta.url));
-const { HTTPS_PORT, ROSBRIDGE_PORT, PAIRING_TOKEN, STACK_DIR } = process.env;
-if (!HTTPS_PORT || !ROSBRIDGE_PORT || !PAIRING_TOKEN) throw new Error('run through tests/browser/run.sh');
-const BASE = `https://127.0.0.1:${HTTPS_PORT}`;
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
-// Screenshots go here (kept after the run, ignored by git).
-const OUT_DIR = process.env.BROWSER_OUT || join(here, 'out');
-mkdirSync(OUT_DIR, { recursive: true });
-
-// ---- server-side view: rosbridge subscription to /phone2act/status ----------------------------------------
-class ServerView {
-  constructor() {
-    this.status = null;
-    this.ws = new WebSocket(`ws://127.0.0.1:${ROSBRIDGE_PORT}/`);
-    this.ready = new Promise((resolve, reject) => {
-      this.ws.onopen = () => {
-        this.ws.send(JSON.stringify({ op: 'subscribe', topic: '/phone2act/status', type: 'std_msgs/msg/String' }));
-        resolve();
-      };
-      this.ws.onerror = (e) => reject(new Error(`rosbridge socket: ${e.message || e.type}`));
-    });
-    this.ws.onmessage = (ev) => {
-      const msg = JSON.parse(ev.data);
-      if (msg.op === 'publish' && msg.topic === '/phone2act/status') this.status = JSON.parse(msg.msg.data);
-    };
-  }
-  async until(pred, what, timeoutMs = 15000) {
-    const deadline = Date.now() + timeoutMs;
-    while (Date.now() < deadline) {
-      if (this.status && pred(this.status)) return this.status;
-      await sleep(25);
-    }
-    throw new Error(`timed out waiting for ${what}; server status: ${JSON.stringify(this.status)}`);
-  }
-  close() { this.ws.close(); }
-}
-
-const dist = (a, b) => Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]);
-
-// ---- harness ---------------------------------------------------------------------------------------------
-const results = [];
-async function check(name, fn) {
-  const t0 = Date.now();
-  try {
-    await fn();
-    results.push([name, true]);
-    console.log(`PASS ${name} (${Date.now() - t0} ms)`);
-  } catch (e) {
-    results.push([name, false]);
-    console.log(`FAIL ${name}: ${e.stack || e}`);
-  }
-}
-function assert(cond, msg) { if (!cond) throw new Error(msg); }
-
-// Playwright starts Chromium with a new, empty profile directory of its own and removes it afterwards.
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  headless: true,
-  args: [
-    '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run', '--disable-background-networking',
-    '--disable-component-update', '--disable-sync', '--ignore-certificate-errors',
-  ],
-});
+const browser = await launch();
 const server = new ServerView();
 await server.ready;
 
@@ -88,15 +28,6 @@ async function phonePage({ token = PAIRING_TOKEN, shim = true, userAgent, base =
   await page.goto(token === null ? `${base}/` : `${base}/?token=${encodeURIComponent(token)}`);
   return { context, page };
 }
-const pageState = (page, expr) => page.evaluate(expr);
-async function waitPage(page, fn, what, timeoutMs = 15000) {
-  try {
-    await page.waitForFunction(fn, null, { timeout: timeoutMs, polling: 25 });
-  } catch (e) {
-    throw new Error(`page: timed out waiting for ${what}: ${e.message.split('\n')[0]}`);
-  }
-}
-
 const { page } = await phonePage();
 
 await check('the page loads over HTTPS, pairs, and claims the arm', async () => {
@@ -344,6 +275,129 @@ await check('without WebXR (iPhone Safari) the page says what to use', async () 
   await context.close();
 });
 
+// ---- live video (WebRTC) ------------------------------------------------------------------------------------
+
+const videoState = (p) => p.evaluate(() => {
+  const v = window.phone2act.video;
+  const n = v.frameTimes.length;
+  return {
+    frames: v.frames, unmatched: v.unmatched, g2g: v.g2gAll.slice(), offsetMs: v.offsetMs, state: v.state,
+    reason: v.reason, fps: n > 1 ? ((n - 1) * 1000) / (v.frameTimes[n - 1] - v.frameTimes[0]) : 0,
+    w: document.querySelector('#video').videoWidth, h: document.querySelector('#video').videoHeight,
+  };
+});
+const q = (xs, f) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.min(s.length - 1, Math.floor(f * s.length))]; };
+
+await check('live video decodes the camera at its rate and shows glass-to-glass latency', async () => {
+  assert(await page.isVisible('#video-box'), 'no live video controls although the server has a camera');
+  await page.check('#video-on');
+  await waitPage(page, () => window.phone2act.video.frames >= 30, '30 decoded video frames', 20000);
+  // Counted over 3 s once running: the sim camera renders 640x480 at 30 fps.
+  const a = await videoState(page);
+  await sleep(3000);
+  const b = await videoState(page);
+  const fps = ((b.frames - a.frames) * 1000) / 3000;
+  assert(b.w === 640 && b.h === 480, `video decoded as ${b.w}x${b.h}, not the camera's 640x480`);
+  // A floor, not the camera's 30 fps: on the shared 2-core machine (four builds beside this suite) the sim's
+  // renderer (a debug build, drawing at 30 fps while read), x264 and Chromium's software decoder compete for the
+  // CPU; the rate is printed.
+  // Seen at 1.7 to 10 fps under a load average of 15 to 18 there: the check is that frames keep coming.
+  assert(fps >= 1, `video at ${fps.toFixed(1)} fps, camera at 30`);
+  const g = b.g2g.slice(a.g2g.length);
+  assert(g.length >= (b.frames - a.frames) * 0.8, `latency known for only ${g.length} of ${b.frames - a.frames} frames`);
+  assert(g.every((ms) => ms > 0 && ms < 2000), `implausible glass-to-glass values: ${g.slice(0, 10)}`);
+  assert(/front · \d+ fps · glass-to-glass \d+ ms/.test(await page.textContent('#st-video')),
+    `latency not shown: ${await page.textContent('#st-video')}`);
+  console.log(`  video 640x480 at ${fps.toFixed(1)} fps decoded (camera 30); glass-to-glass over ${g.length} frames: `
+    + `p50 ${q(g, 0.5).toFixed(1)} ms, p95 ${q(g, 0.95).toFixed(1)} ms; clock offset page->gateway ${b.offsetMs.toFixed(2)} ms`);
+  await page.screenshot({ path: join(OUT_DIR, 'phone-page-video.png'), fullPage: true });
+});
+
+await check('control round trip with live video on and off (one run\'s numbers)', async () => {
+  const rtts = () => page.evaluate(() => window.phone2act.rttLog.map(([, ms]) => ms));
+  // The page streams poses at the XR rate since "Start AR": each has its round trip.
+  await sleep(2000);
+  const on = await rtts();
+  await page.uncheck('#video-on');
+  await sleep(2500);
+  const off = await rtts();
+  // The page streams at 60 Hz: 2 s give 120 round trips on an idle machine; 10 is "control kept going".
+  assert(on.length >= 10 && off.length >= 10, `too few round trips: ${on.length} on, ${off.length} off`);
+  console.log(`  control round trip over 2 s, video on: p50 ${q(on, 0.5).toFixed(1)} ms, p95 ${q(on, 0.95).toFixed(1)} ms `
+    + `(${on.length}); off: p50 ${q(off, 0.5).toFixed(1)} ms, p95 ${q(off, 0.95).toFixed(1)} ms (${off.length})`);
+  // Not a latency bound (the machine is shared, and the browser decodes video on the same CPU as it sends
+  // poses): a stall of control behind video would show as seconds.
+  assert(q(on, 0.95) < 2000, `control round trip p95 ${q(on, 0.95).toFixed(0)} ms with video on`);
+});
+
+await check('two viewers watch at once', async () => {
+  await page.check('#video-on');
+  const { context, page: observer } = await phonePage();
+  try {
+    // The observer's socket finds the arm held by the operator's: it only watches.
+    await waitPage(observer, () => !document.querySelector('#video-box').hidden, 'the observer\'s video controls');
+    await observer.check('#video-on');
+    const start = await pageState(page, () => window.phone2act.video.frames);
+    await waitPage(observer, () => window.phone2act.video.frames >= 30, 'the observer\'s 30 frames', 20000);
+    const later = await pageState(page, () => window.phone2act.video.frames);
+    assert(later - start >= 20, `the operator's video stalled while another page watched: ${later - start} frames`);
+  } finally {
+    await context.close();
+  }
+  await page.uncheck('#video-on');
+});
+
+await check('a page without the pairing token gets no video', async () => {
+  const { context, page: p } = await phonePage({ token: 'wrong-token' });
+  try {
+    await waitPage(p, () => /not paired/.test(document.querySelector('#st-conn').textContent), 'refusal');
+    // Past the page: a socket of its own with the wrong token and a real offer.
+    const replies = await p.evaluate(async () => {
+      const pc = new RTCPeerConnection();
+      pc.addTransceiver('video', { direction: 'recvonly' });
+      const offer = await pc.createOffer();
+      const ws = new WebSocket(`wss://${location.host}/ws?token=wrong-token`);
+      const got = [];
+      ws.onmessage = (e) => got.push(typeof e.data === 'string' ? JSON.parse(e.data).type : 'binary');
+      await new Promise((r) => { ws.onopen = r; ws.onclose = r; });
+      try { ws.send(JSON.stringify({ type: 'video_offer', camera: 'front', sdp: offer.sdp, host: location.hostname })); } catch (_) { /* closed */ }
+      // The gateway answers a paired page within milliseconds; 2 s is ample on a loaded machine.
+      await new Promise((r) => setTimeout(r, 2000));
+      pc.close();
+      return got;
+    });
+    assert(!replies.includes('video_answer'), `an unpaired socket got a video answer: ${replies}`);
+    assert(replies.includes('error'), `the unpaired socket was not told why: ${replies}`);
+  } finally {
+    await context.close();
+  }
+});
+
+await check('where WebRTC cannot connect the page shows the JPEG preview instead', async () => {
+  const { context, page: p } = await phonePage();
+  // The gateway's answer made unreachable: its candidate's port replaced by the discard port, where nothing listens.
+  await context.addInitScript(() => {
+    const set = RTCPeerConnection.prototype.setRemoteDescription;
+    RTCPeerConnection.prototype.setRemoteDescription = function patched(d) {
+      const sdp = d.sdp.replace(/(a=candidate:\S+ \d+ \S+ \d+ \S+ )\d+/g, '$19');
+      return set.call(this, { type: d.type, sdp });
+    };
+  });
+  try {
+    await p.reload();
+    await waitPage(p, () => !document.querySelector('#video-box').hidden, 'video controls');
+    await p.check('#video-on');
+    await waitPage(p, () => window.phone2act.preview.shown > 0, 'the JPEG preview', 25000);
+    const v = await videoState(p);
+    assert(v.frames === 0, `${v.frames} video frames arrived through an unreachable candidate`);
+    assert(/JPEG preview instead/.test(await p.textContent('#st-video')), `no reason shown: ${await p.textContent('#st-video')}`);
+    assert(await p.isChecked('#preview-on'), 'the preview toggle is off');
+    console.log(`  fallback: ${v.reason}`);
+  } finally {
+    await context.close();
+  }
+});
+
 // A slow link for real: a TCP relay in front of the gateway's HTTPS port that delays every chunk by `delayMs`
 // each way (TLS passes through untouched). Chromium's own network emulation does not delay WebSocket frames.
 async function slowLink() {
@@ -393,7 +447,4 @@ await check('on a slow link the page turns the preview off itself', async () => 
 
 server.close();
 await browser.close();
-const passed = results.filter(([, ok]) => ok).length;
-const failed = results.length - passed;
-console.log(`browser: ${passed} passed, ${failed} failed`);
-process.exit(failed ? 1 : 0);
+finish('browser');

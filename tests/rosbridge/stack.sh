@@ -2,7 +2,8 @@
 # Sourced by tests/rosbridge/run.sh and tests/browser/run.sh: builds the `phone2act` server and the standalone
 # `phone2act-gateway`, starts both on free loopback ports with a throw-away dataset, and stops them on exit.
 #
-# Inputs:  STACK_CONFIG (server config file, default: the embedded default), STACK_HTTPS=1 to serve the page.
+# Inputs:  STACK_CONFIG (server config file, default: the embedded default), STACK_HTTPS=1 to serve the page,
+#          STACK_GATEWAY_CONFIG (a file with the gateway's [gateway] table), STACK_DEFAULT_ARM.
 # Outputs: GRPC_URL, ROSBRIDGE_PORT, HTTPS_PORT, PAIRING_TOKEN, STACK_DIR, SERVER_PID, GATEWAY_PID.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
@@ -58,6 +59,7 @@ else
   gateway_args+=(--no-https)
 fi
 [[ -n "${STACK_DEFAULT_ARM:-}" ]] && gateway_args+=(--default-arm "$STACK_DEFAULT_ARM")
+[[ -n "${STACK_GATEWAY_CONFIG:-}" ]] && gateway_args+=(--config "$STACK_GATEWAY_CONFIG")
 RUST_LOG="${RUST_LOG:-info}" "$BIN/phone2act-gateway" "${gateway_args[@]}" >"$STACK_DIR/gateway.log" 2>&1 &
 GATEWAY_PID=$!
 

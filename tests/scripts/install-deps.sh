@@ -3,7 +3,7 @@
 # Usage: tests/scripts/install-deps.sh [build|test]
 set -euo pipefail
 want=(pkg-config clang libclang-dev libavcodec-dev libavformat-dev libavutil-dev libswscale-dev
-      libswresample-dev libavdevice-dev libavfilter-dev)
+      libswresample-dev libavdevice-dev libavfilter-dev libssl-dev)
 if [[ "${1:-build}" == "test" ]]; then
   want+=(ffmpeg python3-venv python3-pip)
 fi

@@ -80,6 +80,10 @@ pub struct GatewayConfig {
     /// the holder has sent nothing for this long (the app's second tap on "connect" leaves the old socket
     /// open and silent). Match the arms' `stale_timeout_s`.
     pub takeover_silence_ms: u64,
+    /// Headset controllers on the phone page: WebXR handedness (`left`, `right`) → arm. Empty (the
+    /// default): each controller drives the arm of its own name when the server has one, otherwise the right
+    /// controller drives the arm picked on the page.
+    pub controllers: BTreeMap<String, String>,
 }
 
 impl Default for GatewayConfig {
@@ -107,6 +111,7 @@ impl Default for GatewayConfig {
             allow: Vec::new(),
             local_addresses: None,
             takeover_silence_ms: 300,
+            controllers: BTreeMap::new(),
         }
     }
 }
@@ -157,6 +162,18 @@ impl GatewayConfig {
 
     /// The checks serde cannot make; every way of starting a gateway runs them.
     pub fn validate(&self) -> Result<(), GatewayError> {
+        for (hand, arm) in &self.controllers {
+            if !matches!(hand.as_str(), "left" | "right") {
+                return Err(GatewayError::Config(format!(
+                    "gateway.controllers: {hand:?} is not a controller; use left or right"
+                )));
+            }
+            if arm.is_empty() || arm.len() > 64 {
+                return Err(GatewayError::Config(format!(
+                    "gateway.controllers.{hand}: arm name must be 1 to 64 characters"
+                )));
+            }
+        }
         if crate::rosbridge::StatusLevel::parse(&self.rosbridge_status_level).is_none() {
             return Err(GatewayError::Config(format!(
                 "gateway.rosbridge_status_level must be none, error, warning or info, not {:?}",
@@ -338,6 +355,14 @@ mod tests {
             ("max_message_bytes = 1000", "got 1000"),
             ("rosbridge_status_level = \"loud\"", "rosbridge_status_level"),
             ("rosbrige = true", "unknown field"),
+            (
+                "controllers = { middle = \"a\" }",
+                "\"middle\" is not a controller",
+            ),
+            (
+                "controllers = { left = \"\" }",
+                "gateway.controllers.left: arm name",
+            ),
         ] {
             let err = GatewayConfig::from_table(&toml::from_str(text).unwrap())
                 .unwrap_err()
@@ -422,6 +447,11 @@ mod tests {
             token: Some("t".into()),
             public_host: Some("h".into()),
             local_addresses: Some(Vec::new()),
+            controllers: [
+                ("left".to_owned(), "a".to_owned()),
+                ("right".to_owned(), "b".to_owned()),
+            ]
+            .into(),
             ..GatewayConfig::default()
         };
         let (mut every, mut shown) = Default::default();

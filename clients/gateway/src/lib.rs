@@ -34,8 +34,10 @@ mod shared;
 pub mod takeover;
 pub mod tls;
 mod upstream;
+mod video_encode;
 mod web;
 mod web_preview;
+mod webrtc;
 
 pub use config::{GatewayConfig, TopicConfig};
 pub use error::GatewayError;

@@ -2,14 +2,19 @@
 //!
 //! Page → gateway:
 //! - `{"type":"hello","arm":"left","take_over":false}` picks (or switches) the arm;
+//! - `{"type":"release"}` ends this socket's stream and frees its arm (the page hands the arm to a headset
+//!   controller's own socket);
 //! - `{"type":"sample","seq":1,"t_ns":…,"pose":{"p":[x,y,z],"q":[x,y,z,w]},"tracking":"tracking","buttons":[…]}`
 //!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
 //!   `{"record":"start","task":"…"}`, `{"record":"stop"}`, `{"record":"discard"}`.
 //!
+//! - `{"type":"video_offer","camera":"front","sdp":"…","host":"192.168.1.20"}` asks for the camera's live
+//!   WebRTC video (see `webrtc`; `host` is where the page reached the gateway), `{"type":"video_off"}` ends it;
+//!   `{"type":"clock","t_page_ms":…}` is answered with the gateway's wall clock for the page's clock offset;
 //! - `{"type":"preview","camera":"front","max_fps":5,"width":320}` turns the camera preview on (see
 //!   `web_preview`), `{"type":"preview_off"}` off; `{"type":"preview_ack"}` says a preview frame arrived.
 //!
-//! Gateway → page: `welcome` (arms, cameras), `session` (open/retrying/refused), `feedback`, `error`, `preview`
+//! Gateway → page: `welcome` (arms, cameras, headset controller → arm map), `session` (open/retrying/refused), `feedback`, `error`, `preview`
 //! (`on` with the settings, `off` with the reason), and while the preview is on, binary messages of one JPEG.
 
 use crate::conn::{Handler, Wiring};
@@ -47,6 +52,17 @@ enum PageMsg {
     Preview(PreviewRequest),
     PreviewOff,
     PreviewAck,
+    Release,
+    VideoOffer {
+        camera: String,
+        sdp: String,
+        #[serde(default)]
+        host: Option<String>,
+    },
+    VideoOff,
+    Clock {
+        t_page_ms: f64,
+    },
 }
 
 #[derive(Debug, Deserialize)]
@@ -145,6 +161,8 @@ pub(crate) struct PageHandler {
     session: Option<Session>,
     /// The camera preview's fetch task, while the page wants one.
     preview: Option<JoinHandle<()>>,
+    /// The page's WebRTC viewer task, while it watches.
+    video: Option<JoinHandle<()>>,
     close: bool,
 }
 
@@ -155,6 +173,7 @@ impl PageHandler {
             wiring,
             session: None,
             preview: None,
+            video: None,
             close: false,
         }
     }
@@ -169,6 +188,7 @@ impl PageHandler {
                 "cameras": cameras,
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
+                "controllers": self.shared.config.controllers,
             })
             .to_string(),
         );
@@ -194,6 +214,45 @@ impl PageHandler {
         self.session = Some(session);
     }
 
+    fn start_video(&mut self, camera: &str, sdp: &str, host: Option<&str>) {
+        self.stop_video();
+        let reply = if camera.is_empty() || camera.len() > 64 {
+            Err("video camera name must be 1 to 64 characters".to_owned())
+        } else if let Some(ip) = crate::webrtc::bind_ip(
+            host,
+            self.shared.config.https_listen,
+            self.shared.config.public_host.as_deref(),
+        ) {
+            crate::webrtc::start_viewer(
+                &self.shared.video,
+                &self.shared.upstream,
+                camera,
+                sdp,
+                ip,
+                self.wiring.out.clone(),
+            )
+        } else {
+            Err(
+                "no address for the video: open the page by IP address or set [gateway] public_host"
+                    .to_owned(),
+            )
+        };
+        let text = match reply {
+            Ok((answer, task)) => {
+                self.video = Some(task);
+                json!({"type": "video_answer", "camera": camera, "sdp": answer})
+            }
+            Err(message) => json!({"type": "video", "state": "error", "camera": camera, "message": message}),
+        };
+        self.wiring.out.text(text.to_string());
+    }
+
+    fn stop_video(&mut self) {
+        if let Some(task) = self.video.take() {
+            task.abort();
+        }
+    }
+
     fn stop_preview(&mut self) {
         if let Some(task) = self.preview.take() {
             task.abort();
@@ -205,6 +264,7 @@ impl PageHandler {
 impl Drop for PageHandler {
     fn drop(&mut self) {
         self.stop_preview();
+        self.stop_video();
     }
 }
 
@@ -262,6 +322,18 @@ impl Handler for PageHandler {
                     .text(json!({"type": "preview", "state": "off", "reason": "asked"}).to_string());
             }
             Ok(PageMsg::PreviewAck) => self.wiring.preview.ack(),
+            // Dropping the session ends its stream, which frees the arm on the server.
+            Ok(PageMsg::Release) => self.session = None,
+            Ok(PageMsg::VideoOffer { camera, sdp, host }) => self.start_video(&camera, &sdp, host.as_deref()),
+            Ok(PageMsg::VideoOff) => self.stop_video(),
+            Ok(PageMsg::Clock { t_page_ms }) => {
+                let now_ms = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0.0, |d| d.as_secs_f64() * 1e3);
+                self.wiring.out.text(
+                    json!({"type": "clock", "t_page_ms": t_page_ms, "t_gateway_unix_ms": now_ms}).to_string(),
+                );
+            }
             Err(e) => self.error(&e, None),
         }
     }

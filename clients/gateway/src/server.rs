@@ -169,6 +169,7 @@ impl Gateway {
             pairing,
             holders: Holders::default(),
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
+            video: crate::webrtc::VideoHub::default(),
             connections: AtomicU64::new(1),
             shutdown,
         });

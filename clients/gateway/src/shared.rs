@@ -20,6 +20,8 @@ pub(crate) struct Shared {
     pub holders: Holders,
     /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
     pub rosbridge_port: Option<u16>,
+    /// The cameras' WebRTC feeds for the pages' live video.
+    pub(crate) video: crate::webrtc::VideoHub,
     pub(crate) connections: AtomicU64,
     pub(crate) shutdown: watch::Receiver<bool>,
 }

@@ -9,6 +9,8 @@ use std::sync::Arc;
 
 const INDEX_HTML: &str = include_str!("../../phone-web/index.html");
 const APP_JS: &str = include_str!("../../phone-web/app.js");
+const HEADSET_JS: &str = include_str!("../../phone-web/headset.js");
+const VIDEO_JS: &str = include_str!("../../phone-web/video.js");
 const STYLE_CSS: &str = include_str!("../../phone-web/style.css");
 
 fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
@@ -22,7 +24,7 @@ fn asset(content_type: &'static str, body: &'static str) -> impl IntoResponse {
     )
 }
 
-/// `/`, `/app.js`, `/style.css`.
+/// `/`, `/app.js`, `/headset.js`, `/video.js`, `/style.css`.
 pub(crate) fn routes() -> Router<Arc<Shared>> {
     Router::new()
         .route(
@@ -36,6 +38,14 @@ pub(crate) fn routes() -> Router<Arc<Shared>> {
         .route(
             "/app.js",
             get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),
+        )
+        .route(
+            "/headset.js",
+            get(|| async { asset("text/javascript; charset=utf-8", HEADSET_JS) }),
+        )
+        .route(
+            "/video.js",
+            get(|| async { asset("text/javascript; charset=utf-8", VIDEO_JS) }),
         )
         .route(
             "/style.css",

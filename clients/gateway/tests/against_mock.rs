@@ -437,6 +437,24 @@ async fn page_socket_needs_the_token_and_drives_recording() {
     );
     assert!(h.mock.received().iter().all(|r| r.arm == "right"));
 
+    // The page hands its arm to a headset controller's socket: `release` is taken and another socket claims the
+    // arm. (The mock does not hold arms exclusively; tests/browser/test_headset.mjs hands arms over on the real
+    // server.)
+    assert_eq!(welcome["controllers"], serde_json::json!({}));
+    send(&mut page, r#"{"type":"release"}"#).await;
+    let mut controller = wss(&h, &format!("/ws?token={token}")).await;
+    next_json(&mut controller, T).await.unwrap();
+    send(&mut controller, r#"{"type":"hello","arm":"right"}"#).await;
+    let open = wait_json(&mut controller, T, |v| v["type"] == "session")
+        .await
+        .unwrap();
+    assert_eq!(
+        (open["state"].as_str(), open["arm"].as_str()),
+        (Some("open"), Some("right")),
+        "the released arm was not free: {open}"
+    );
+    drop(controller);
+
     send(&mut page, r#"{"type":"hello","arm":"middle"}"#).await;
     let refused = wait_json(&mut page, T, |v| {
         v["type"] == "session" && v["state"] == "refused"

@@ -1,0 +1,188 @@
+//! H.264 for the operator's live video: packed RGB frames in, Annex-B access units out, through the FFmpeg the
+//! recorder already links (libx264). Tuned for latency, not size: no B-frames, no lookahead
+//! (`tune=zerolatency`), one slice per frame, SPS/PPS repeated before every keyframe so that a viewer who joins
+//! late decodes from the next keyframe, and constrained baseline, which every browser's decoder (and hardware
+//! decoders) take.
+
+use ffmpeg_next::software::scaling;
+use ffmpeg_next::util::format::Pixel;
+use ffmpeg_next::util::frame::video::Video as VideoFrame;
+use ffmpeg_next::util::picture;
+use ffmpeg_next::{Dictionary, Packet, Rational, codec, encoder};
+use std::sync::Once;
+
+/// Why the encoder could not be made or used.
+#[derive(Debug, thiserror::Error)]
+#[error("H.264 encoder: {0}")]
+pub(crate) struct EncodeError(pub String);
+
+fn ff(what: &str, e: ffmpeg_next::Error) -> EncodeError {
+    EncodeError(format!("{what}: {e}"))
+}
+
+/// One encoder for one camera at one size.
+pub(crate) struct H264Encoder {
+    encoder: encoder::Video,
+    scaler: scaling::Context,
+    rgb: VideoFrame,
+    width: u32,
+    height: u32,
+    frames: i64,
+    packet: Packet,
+}
+
+impl std::fmt::Debug for H264Encoder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("H264Encoder")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("frames", &self.frames)
+            .finish_non_exhaustive()
+    }
+}
+
+impl H264Encoder {
+    /// An encoder for `width`x`height` RGB frames at about `fps`, aiming at `bitrate_bps`.
+    pub(crate) fn new(width: u32, height: u32, fps: u32, bitrate_bps: usize) -> Result<Self, EncodeError> {
+        static INIT: Once = Once::new();
+        INIT.call_once(|| {
+            let _ = ffmpeg_next::init();
+        });
+        let codec_impl = encoder::find_by_name("libx264").ok_or_else(|| {
+            EncodeError("FFmpeg has no libx264 encoder (install an FFmpeg built with it)".into())
+        })?;
+        let mut enc = codec::context::Context::new_with_codec(codec_impl)
+            .encoder()
+            .video()
+            .map_err(|e| ff("video encoder", e))?;
+        // Even sizes: 4:2:0 chroma halves both.
+        let (width, height) = (width & !1, height & !1);
+        enc.set_width(width);
+        enc.set_height(height);
+        enc.set_format(Pixel::YUV420P);
+        enc.set_time_base(Rational::new(1, fps.max(1) as i32));
+        enc.set_frame_rate(Some(Rational::new(fps.max(1) as i32, 1)));
+        // A keyframe a second: a viewer that lost packets recovers within a second even without asking.
+        enc.set_gop(fps.max(1));
+        enc.set_max_b_frames(0);
+        enc.set_bit_rate(bitrate_bps);
+        let mut opts = Dictionary::new();
+        opts.set("preset", "ultrafast");
+        opts.set("tune", "zerolatency");
+        opts.set("profile", "baseline");
+        // The rate control's buffer of about one frame keeps a burst from queueing on the link.
+        opts.set(
+            "x264-params",
+            &format!(
+                "repeat-headers=1:vbv-maxrate={}:vbv-bufsize={}",
+                bitrate_bps / 1000,
+                bitrate_bps / 1000 / fps.max(1) as usize * 2
+            ),
+        );
+        let encoder = enc.open_with(opts).map_err(|e| ff("cannot open libx264", e))?;
+        let scaler = scaling::Context::get(
+            Pixel::RGB24,
+            width,
+            height,
+            Pixel::YUV420P,
+            width,
+            height,
+            scaling::Flags::FAST_BILINEAR,
+        )
+        .map_err(|e| ff("colour conversion", e))?;
+        Ok(Self {
+            encoder,
+            scaler,
+            rgb: VideoFrame::new(Pixel::RGB24, width, height),
+            width,
+            height,
+            frames: 0,
+            packet: Packet::empty(),
+        })
+    }
+
+    /// The size this encoder takes (the camera's, rounded down to even).
+    pub(crate) fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Encodes one packed RGB frame of the camera's size (`src_width` pixels a row, at least this encoder's
+    /// size); returns the access unit (Annex B) and whether it is a keyframe. `keyframe` forces one.
+    pub(crate) fn encode(
+        &mut self,
+        rgb: &[u8],
+        src_width: u32,
+        keyframe: bool,
+    ) -> Result<Option<(Vec<u8>, bool)>, EncodeError> {
+        let src_row = src_width as usize * 3;
+        let row = self.width as usize * 3;
+        if src_width < self.width || rgb.len() < src_row * self.height as usize {
+            return Err(EncodeError(format!(
+                "frame of {} bytes, {src_width} px a row, is smaller than {}x{}",
+                rgb.len(),
+                self.width,
+                self.height
+            )));
+        }
+        let stride = self.rgb.stride(0);
+        let data = self.rgb.data_mut(0);
+        for (y, src) in rgb.chunks_exact(src_row).take(self.height as usize).enumerate() {
+            data[y * stride..y * stride + row].copy_from_slice(&src[..row]);
+        }
+        // A fresh output frame each time: the encoder may still hold a reference to the previous one.
+        let mut yuv = VideoFrame::new(Pixel::YUV420P, self.width, self.height);
+        self.scaler
+            .run(&self.rgb, &mut yuv)
+            .map_err(|e| ff("colour conversion", e))?;
+        yuv.set_pts(Some(self.frames));
+        if keyframe {
+            yuv.set_kind(picture::Type::I);
+        }
+        self.frames += 1;
+        self.encoder.send_frame(&yuv).map_err(|e| ff("encode", e))?;
+        // zerolatency: one frame in, its packet out at once.
+        let mut out: Option<(Vec<u8>, bool)> = None;
+        while self.encoder.receive_packet(&mut self.packet).is_ok() {
+            let bytes = self.packet.data().unwrap_or_default();
+            let key = self.packet.is_key();
+            match &mut out {
+                Some((buf, k)) => {
+                    buf.extend_from_slice(bytes);
+                    *k |= key;
+                }
+                None => out = Some((bytes.to_vec(), key)),
+            }
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_come_out_as_annex_b_with_parameter_sets_on_keyframes() {
+        let mut enc = H264Encoder::new(64, 48, 30, 300_000).unwrap();
+        let mut keys = Vec::new();
+        for i in 0..40u8 {
+            let rgb: Vec<u8> = (0..64 * 48 * 3).map(|j| (j as u8).wrapping_add(i * 3)).collect();
+            let (au, key) = enc
+                .encode(&rgb, 64, i == 5)
+                .unwrap()
+                .expect("zerolatency gives one packet per frame");
+            assert!(
+                au.starts_with(&[0, 0, 0, 1]) || au.starts_with(&[0, 0, 1]),
+                "not Annex B"
+            );
+            // NAL type 7 (SPS) leads every keyframe so a late viewer can start there.
+            let has_sps = au.windows(4).any(|w| w[..3] == [0, 0, 1] && w[3] & 0x1f == 7);
+            assert_eq!(has_sps, key, "frame {i}: keyframe {key}, SPS {has_sps}");
+            if key {
+                keys.push(i);
+            }
+        }
+        // The first frame, the forced one, and one a GOP (30 frames) later.
+        assert_eq!(keys, vec![0, 5, 35]);
+    }
+}

@@ -1,0 +1,423 @@
+//! Operator video over WebRTC: a live H.264 view of one camera for each page that asks, beside the control
+//! socket and never in its way.
+//!
+//! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
+//!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
+//! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB), encodes
+//!   it once (`video_encode`, on the blocking pool: the gateway's runtime may be a single thread that also
+//!   carries the control path) and publishes it on a broadcast channel. A viewer that falls behind loses the
+//!   oldest frames (the channel's lag) and waits for a keyframe, so video never queues.
+//! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
+//!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
+//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…}` on the page's data channel so that the
+//!   page can show glass-to-glass latency (its clock offset comes from `clock` round trips on the control
+//!   socket).
+//! - The feed stops when its last viewer leaves; a page's viewer ends with its socket, a new offer or
+//!   `video_off`.
+
+use crate::conn::Out;
+use crate::upstream::Upstream;
+use crate::video_encode::H264Encoder;
+use parking_lot::Mutex;
+use phone2act_proto::v1::{GetObservationRequest, ImageEncoding};
+use serde_json::json;
+use std::collections::HashMap;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use str0m::change::SdpOffer;
+use str0m::format::Codec;
+use str0m::media::{MediaKind, MediaTime, Mid};
+use str0m::net::{Protocol, Receive};
+use str0m::{Candidate, Event, IceConnectionState, Input, Output, Rtc, RtcConfig};
+use tokio::net::UdpSocket;
+use tokio::sync::broadcast;
+use tokio::task::JoinHandle;
+
+/// Frames a viewer may fall behind before it loses the oldest (about 130 ms at 30 fps).
+const VIEWER_QUEUE: usize = 4;
+/// The rate asked of a camera that says nothing else, and the cap.
+const MAX_FPS: f64 = 30.0;
+/// Bits per second for 640x480 at 30 fps: sharp enough to read the scene, a small share of a Wi-Fi link.
+const BITRATE_BPS: usize = 1_500_000;
+/// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
+const VIEWER_IDLE: Duration = Duration::from_secs(30);
+
+/// One encoded frame of a camera.
+#[derive(Debug)]
+pub(crate) struct EncodedFrame {
+    pub data: Arc<[u8]>,
+    pub keyframe: bool,
+    /// Capture time on this gateway's wall clock (Unix), in nanoseconds.
+    pub capture_unix_ns: i64,
+    pub seq: u64,
+}
+
+#[derive(Debug)]
+struct Feed {
+    tx: broadcast::Sender<Arc<EncodedFrame>>,
+    /// A viewer joined or lost frames: the next frame is a keyframe.
+    force_key: AtomicBool,
+    task: Mutex<Option<JoinHandle<()>>>,
+}
+
+/// The cameras' feeds, shared by every page socket.
+#[derive(Debug, Default)]
+pub(crate) struct VideoHub {
+    feeds: Mutex<HashMap<String, Arc<Feed>>>,
+}
+
+impl VideoHub {
+    /// A receiver of `camera`'s frames, starting its feed if none runs.
+    fn subscribe(
+        &self,
+        upstream: &Upstream,
+        camera: &str,
+    ) -> (broadcast::Receiver<Arc<EncodedFrame>>, Arc<Feed>) {
+        let mut feeds = self.feeds.lock();
+        let feed = feeds
+            .entry(camera.to_owned())
+            .or_insert_with(|| {
+                Arc::new(Feed {
+                    tx: broadcast::channel(VIEWER_QUEUE).0,
+                    force_key: AtomicBool::new(true),
+                    task: Mutex::new(None),
+                })
+            })
+            .clone();
+        let rx = feed.tx.subscribe();
+        feed.force_key.store(true, Ordering::Release);
+        let mut task = feed.task.lock();
+        if task.as_ref().is_none_or(JoinHandle::is_finished) {
+            *task = Some(tokio::spawn(run_feed(
+                upstream.clone(),
+                camera.to_owned(),
+                feed.clone(),
+            )));
+        }
+        drop(task);
+        (rx, feed)
+    }
+}
+
+fn unix_ns(t: SystemTime) -> i64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+}
+
+/// A raw frame on its way to the encoder thread.
+struct RawFrame {
+    rgb: Vec<u8>,
+    width: u32,
+    height: u32,
+    fps: u32,
+    capture_unix_ns: i64,
+}
+
+/// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them, and
+/// the runtime, possibly a single thread carrying the control path, never waits for an encode) and publishes
+/// them. Ends when the fetch loop drops its sender.
+fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<RawFrame>) {
+    let mut encoder: Option<H264Encoder> = None;
+    let mut seq = 0u64;
+    while let Ok(frame) = frames.recv() {
+        let enc = match encoder.take() {
+            Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
+            _ => match H264Encoder::new(frame.width, frame.height, frame.fps, BITRATE_BPS) {
+                Ok(e) => e,
+                Err(e) => {
+                    tracing::warn!("video of camera {camera}: {e}");
+                    return;
+                }
+            },
+        };
+        let enc = encoder.insert(enc);
+        let key = feed.force_key.swap(false, Ordering::AcqRel);
+        match enc.encode(&frame.rgb, frame.width, key) {
+            Ok(Some((data, keyframe))) => {
+                seq += 1;
+                let _ = feed.tx.send(Arc::new(EncodedFrame {
+                    data: data.into(),
+                    keyframe,
+                    capture_unix_ns: frame.capture_unix_ns,
+                    seq,
+                }));
+            }
+            Ok(None) => {}
+            Err(e) => tracing::warn!("video of camera {camera}: {e}"),
+        }
+    }
+}
+
+/// Fetches one camera's frames while anyone watches and hands them to its encoder thread.
+async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
+    // One frame waits at most: while the encoder is busy a newer frame is dropped, never queued.
+    let (to_encoder, frames) = std::sync::mpsc::sync_channel::<RawFrame>(1);
+    let thread = {
+        let (camera, feed) = (camera.clone(), feed.clone());
+        std::thread::Builder::new()
+            .name(format!("video-{camera}"))
+            .spawn(move || encode_thread(&camera, &feed, &frames))
+    };
+    if let Err(e) = thread {
+        tracing::warn!("video of camera {camera}: no encoder thread: {e}");
+        return;
+    }
+    let mut last: Option<(u64, i64)> = None; // (frame_seq, capture_time_ns on the server's clock)
+    let mut period = Duration::from_secs_f64(1.0 / MAX_FPS);
+    let mut failing = false;
+    while feed.tx.receiver_count() > 0 {
+        let sent_at = SystemTime::now();
+        let started = Instant::now();
+        let request = GetObservationRequest {
+            arms: Vec::new(),
+            image_encoding: ImageEncoding::Rgb8.into(),
+            cameras: vec![camera.clone()],
+        };
+        let observation = match upstream.policy().get_observation(request).await {
+            Ok(o) => o.into_inner(),
+            Err(e) => {
+                if !failing {
+                    tracing::warn!("video of camera {camera}: {}", e.message());
+                    failing = true;
+                }
+                tokio::time::sleep(Duration::from_millis(500)).await;
+                continue;
+            }
+        };
+        let rpc = started.elapsed();
+        let Some(frame) = observation
+            .frames
+            .into_iter()
+            .find(|f| f.camera == camera && !f.data.is_empty())
+        else {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            continue;
+        };
+        failing = false;
+        if last.is_some_and(|(s, _)| s == frame.frame_seq) {
+            // Not captured yet: poll again soon (a few ms of latency at most, a cheap call on loopback).
+            tokio::time::sleep(Duration::from_millis(3)).await;
+            continue;
+        }
+        if let Some((s, t)) = last
+            && frame.frame_seq == s + 1
+            && frame.capture_time_ns > t
+        {
+            let measured = Duration::from_nanos((frame.capture_time_ns - t).unsigned_abs());
+            period = measured.max(Duration::from_secs_f64(1.0 / MAX_FPS));
+        }
+        last = Some((frame.frame_seq, frame.capture_time_ns));
+        // The frame's age at the server when it answered, moved to this gateway's clock at half the call.
+        let age_ns = (observation.timestamp_ns - frame.capture_time_ns).max(0);
+        let capture_unix_ns = unix_ns(sent_at + rpc / 2) - age_ns;
+        let raw = RawFrame {
+            rgb: frame.data,
+            width: frame.width,
+            height: frame.height,
+            fps: (1.0 / period.as_secs_f64()).round() as u32,
+            capture_unix_ns,
+        };
+        match to_encoder.try_send(raw) {
+            Ok(()) | Err(std::sync::mpsc::TrySendError::Full(_)) => {}
+            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => return,
+        }
+        // The next frame is due one period after this one was captured.
+        let age =
+            Duration::from_nanos(u64::try_from(unix_ns(SystemTime::now()) - capture_unix_ns).unwrap_or(0));
+        if let Some(wait) = period.checked_sub(age + Duration::from_millis(2)) {
+            tokio::time::sleep(wait).await;
+        }
+    }
+}
+
+/// Where the viewer's UDP socket listens: the address the page reached this gateway at, when it is one.
+pub(crate) fn bind_ip(
+    page_host: Option<&str>,
+    https_listen: SocketAddr,
+    public_host: Option<&str>,
+) -> Option<IpAddr> {
+    let parse = |h: &str| h.trim_matches(['[', ']']).parse::<IpAddr>().ok();
+    page_host
+        .and_then(parse)
+        .or_else(|| (!https_listen.ip().is_unspecified()).then(|| https_listen.ip()))
+        .or_else(|| public_host.and_then(parse))
+}
+
+/// Answers `offer_sdp` for `camera` and starts the viewer; its task ends with the returned handle's abort.
+pub(crate) fn start_viewer(
+    hub: &VideoHub,
+    upstream: &Upstream,
+    camera: &str,
+    offer_sdp: &str,
+    ip: IpAddr,
+    out: Out,
+) -> Result<(String, JoinHandle<()>), String> {
+    let offer = SdpOffer::from_sdp_string(offer_sdp).map_err(|e| format!("bad video offer: {e}"))?;
+    let socket = std::net::UdpSocket::bind(SocketAddr::new(ip, 0))
+        .and_then(|s| {
+            s.set_nonblocking(true)?;
+            UdpSocket::from_std(s)
+        })
+        .map_err(|e| format!("video socket on {ip}: {e}"))?;
+    let local = socket.local_addr().map_err(|e| e.to_string())?;
+    let mut rtc = RtcConfig::new()
+        .clear_codecs()
+        .enable_h264(true)
+        .set_ice_lite(true)
+        .build(Instant::now());
+    let candidate = Candidate::host(local, "udp").map_err(|e| format!("video candidate: {e}"))?;
+    rtc.add_local_candidate(candidate)
+        .ok_or_else(|| "video candidate refused".to_owned())?;
+    let answer = rtc
+        .sdp_api()
+        .accept_offer(offer)
+        .map_err(|e| format!("video offer refused: {e}"))?;
+    let (rx, feed) = hub.subscribe(upstream, camera);
+    let camera = camera.to_owned();
+    let task = tokio::spawn(async move {
+        // Boxed: the Rtc is large, and the task's future need not carry it inline.
+        if let Err(e) = Box::pin(run_viewer(rtc, socket, local, rx, &feed)).await {
+            tracing::debug!("video viewer of {camera} ended: {e}");
+        }
+        out.text(json!({"type": "video", "state": "off", "camera": camera}).to_string());
+    });
+    Ok((answer.to_sdp_string(), task))
+}
+
+/// The H.264 payload type the page offered that every browser decodes: packetization mode 1, constrained
+/// baseline first.
+fn h264_pt(rtc: &mut Rtc, mid: Mid) -> Option<str0m::format::PayloadParams> {
+    let writer = rtc.writer(mid)?;
+    let mut best: Option<(u8, str0m::format::PayloadParams)> = None;
+    for p in writer.payload_params() {
+        let spec = p.spec();
+        if spec.codec != Codec::H264 || spec.format.packetization_mode != Some(1) {
+            continue;
+        }
+        let rank = match spec.format.profile_level_id {
+            Some(0x0042_e01f) => 0,
+            Some(id) if id >> 16 == 0x42 => 1,
+            _ => 2,
+        };
+        if best.as_ref().is_none_or(|(r, _)| rank < *r) {
+            best = Some((rank, *p));
+        }
+    }
+    best.map(|(_, p)| p)
+}
+
+async fn run_viewer(
+    mut rtc: Rtc,
+    socket: UdpSocket,
+    local: SocketAddr,
+    mut rx: broadcast::Receiver<Arc<EncodedFrame>>,
+    feed: &Feed,
+) -> Result<(), String> {
+    let mut buf = vec![0u8; 2048];
+    let mut video: Option<(Mid, str0m::format::PayloadParams)> = None;
+    let mut channel = None;
+    let mut connected = false;
+    // A decoder starts at a keyframe: until one went out to this viewer, other frames are skipped.
+    let mut need_key = true;
+    let mut last_heard = Instant::now();
+    loop {
+        let deadline = loop {
+            match rtc.poll_output().map_err(|e| e.to_string())? {
+                Output::Timeout(t) => break t,
+                Output::Transmit(t) => {
+                    // A full socket buffer drops the datagram, like the network would: never wait here.
+                    let _ = socket.try_send_to(&t.contents, t.destination);
+                }
+                Output::Event(e) => match e {
+                    Event::Connected => connected = true,
+                    Event::MediaAdded(m) if m.kind == MediaKind::Video => {
+                        video = h264_pt(&mut rtc, m.mid).map(|p| (m.mid, p));
+                        if video.is_none() {
+                            return Err("the page offered no H.264 this gateway can send".into());
+                        }
+                    }
+                    Event::ChannelOpen(id, _) => channel = Some(id),
+                    Event::KeyframeRequest(_) => feed.force_key.store(true, Ordering::Release),
+                    Event::IceConnectionStateChange(IceConnectionState::Disconnected) => {
+                        return Err("the page went away".into());
+                    }
+                    _ => {}
+                },
+            }
+        };
+        if !rtc.is_alive() || last_heard.elapsed() > VIEWER_IDLE {
+            return Err("connection over".into());
+        }
+        let sleep = tokio::time::sleep_until(tokio::time::Instant::from_std(deadline.max(Instant::now())));
+        tokio::select! {
+            r = socket.recv_from(&mut buf) => {
+                let (n, source) = r.map_err(|e| e.to_string())?;
+                last_heard = Instant::now();
+                let Ok(contents) = buf[..n].try_into() else { continue };
+                let input = Input::Receive(Instant::now(), Receive { proto: Protocol::Udp, source, destination: local, contents });
+                if rtc.accepts(&input) {
+                    rtc.handle_input(input).map_err(|e| e.to_string())?;
+                }
+            }
+            frame = rx.recv() => match frame {
+                Ok(frame) => {
+                    let Some((mid, params)) = video.filter(|_| connected) else { continue };
+                    if need_key && !frame.keyframe {
+                        feed.force_key.store(true, Ordering::Release);
+                        continue;
+                    }
+                    need_key = false;
+                    let rtp_90k = u64::try_from(frame.capture_unix_ns).unwrap_or(0) / 100_000 * 9;
+                    if let Some(writer) = rtc.writer(mid) {
+                        writer
+                            .write(params.pt(), Instant::now(), MediaTime::from_90khz(rtp_90k), frame.data.clone())
+                            .map_err(|e| e.to_string())?;
+                    }
+                    if let Some(mut ch) = channel.and_then(|id| rtc.channel(id)) {
+                        let msg = json!({
+                            "rtp": rtp_90k & 0xffff_ffff,
+                            "capture_unix_ms": frame.capture_unix_ns as f64 / 1e6,
+                            "seq": frame.seq,
+                            "key": frame.keyframe,
+                        });
+                        // A full SCTP buffer drops the note; the page skips that frame's latency.
+                        let _ = ch.write(false, msg.to_string().as_bytes());
+                    }
+                }
+                Err(broadcast::error::RecvError::Lagged(_)) => {
+                    // This viewer lost the oldest frames: resume at a keyframe.
+                    need_key = true;
+                    feed.force_key.store(true, Ordering::Release);
+                }
+                Err(broadcast::error::RecvError::Closed) => return Err("feed ended".into()),
+            },
+            () = sleep => {
+                rtc.handle_input(Input::Timeout(Instant::now())).map_err(|e| e.to_string())?;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_viewer_binds_where_the_page_reached_the_gateway() {
+        let any: SocketAddr = "0.0.0.0:8443".parse().unwrap();
+        let lan: SocketAddr = "192.168.1.20:8443".parse().unwrap();
+        assert_eq!(
+            bind_ip(Some("127.0.0.1"), any, None),
+            Some("127.0.0.1".parse().unwrap())
+        );
+        assert_eq!(bind_ip(Some("[::1]"), any, None), Some("::1".parse().unwrap()));
+        assert_eq!(bind_ip(Some("robot.local"), lan, None), Some(lan.ip()));
+        assert_eq!(
+            bind_ip(Some("robot.local"), any, Some("10.0.0.5")),
+            Some("10.0.0.5".parse().unwrap())
+        );
+        assert_eq!(bind_ip(None, any, Some("robot.local")), None);
+    }
+}

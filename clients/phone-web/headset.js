@@ -1,0 +1,366 @@
+// phone2act headset controllers: on a WebXR device with tracked controllers (a Quest or Pico in its browser),
+// each controller's grip pose drives an arm, through the same gateway socket protocol as the phone (one socket
+// per controller, so each arm has its own stream through the same planner, gate, arbiter and pairing).
+//   grip (squeeze) held = clutch engaged; trigger = gripper position, 0 open .. 1 closed (analog);
+//   lower face button (A / X) = start recording, or save while recording;
+//   upper face button (B / Y) held for 1 s while recording = discard.
+// Which controller drives which arm comes from the gateway's `welcome` (`[gateway.controllers]`).
+// Loaded after app.js; uses its state (window.phone2act) for the token, the arm list and the task field.
+'use strict';
+
+(() => {
+  const app = window.phone2act;
+  const $ = (id) => document.getElementById(id);
+  // xr-standard gamepad mapping (WebXR Gamepads Module): the indices every tracked controller shares.
+  const BUTTON = { trigger: 0, squeeze: 1, lower: 4, upper: 5 };
+  const DISCARD_HOLD_MS = 1000;
+  // A hello refused because our own released stream still holds the arm is retried this many times, 300 ms
+  // apart; any other holder keeps its arm.
+  const CLAIM_RETRIES = 10;
+
+  const hs = {
+    supported: { vr: false, ar: false },
+    session: null,
+    mode: null,
+    refSpace: null,
+    gl: null,
+    hands: {}, // handedness -> Hand
+    frames: 0,
+  };
+  app.headset = hs;
+
+  // Controller -> arm: the gateway's map when it has one, else each controller drives the arm of its own name
+  // and, when no arm is named left or right, the right controller drives the arm picked on the page.
+  function controllerArms(controllers, arms, pickedArm) {
+    const map = {};
+    const configured = Object.entries(controllers || {}).filter(([hand]) => hand === 'left' || hand === 'right');
+    if (configured.length) {
+      for (const [hand, arm] of configured) map[hand] = arm;
+      return map;
+    }
+    for (const hand of ['left', 'right']) if ((arms || []).includes(hand)) map[hand] = hand;
+    if (!Object.keys(map).length && pickedArm) map.right = pickedArm;
+    return map;
+  }
+  hs.controllerArms = controllerArms;
+
+  function nowNs() {
+    return Math.round(performance.now() * 1e6);
+  }
+
+  function pulse(source, intensity, ms) {
+    const h = source && source.gamepad && source.gamepad.hapticActuators && source.gamepad.hapticActuators[0];
+    if (h && h.pulse) h.pulse(intensity, ms).catch(() => { /* haptics are best effort */ });
+  }
+
+  // One controller: its own socket to the gateway, claimed for its arm.
+  class Hand {
+    constructor(handedness, arm) {
+      this.handedness = handedness;
+      this.arm = arm;
+      this.seq = 0;
+      this.ws = null;
+      this.open = false;
+      this.state = 'connecting';
+      this.engaged = false;
+      this.gripperSent = null; // the trigger value last sent; null until the first frame sees the trigger
+      this.lower = false;
+      this.upperSince = 0;
+      this.discardSent = false;
+      this.recPhase = null;
+      this.feedbackCount = 0;
+      this.last = null;
+      this.rtts = [];
+      this.claims = 0;
+      this.tracking = 'not seen';
+      this.closed = false;
+      this.connect();
+    }
+
+    connect() {
+      const ws = new WebSocket(`wss://${location.host}/ws?token=${encodeURIComponent(app.token)}`);
+      this.ws = ws;
+      ws.onmessage = (ev) => {
+        if (typeof ev.data !== 'string') return;
+        let msg;
+        try { msg = JSON.parse(ev.data); } catch (_) { return; }
+        this.onMessage(msg);
+      };
+      ws.onclose = () => {
+        this.open = false;
+        if (!this.closed) {
+          this.state = 'reconnecting';
+          setTimeout(() => { if (!this.closed) this.connect(); }, 1000);
+        }
+        render();
+      };
+    }
+
+    send(obj) {
+      if (this.ws && this.ws.readyState === WebSocket.OPEN) {
+        this.ws.send(JSON.stringify(obj));
+        return true;
+      }
+      return false;
+    }
+
+    onMessage(msg) {
+      if (msg.type === 'welcome') {
+        this.send({ type: 'hello', arm: this.arm, take_over: false });
+      } else if (msg.type === 'session') {
+        if (msg.state === 'open') {
+          this.open = true;
+          this.state = `driving ${msg.arm}`;
+        } else if (msg.state === 'refused') {
+          this.open = false;
+          if (msg.code === 'AlreadyExists' && this.claims < CLAIM_RETRIES) {
+            this.claims += 1;
+            setTimeout(() => this.send({ type: 'hello', arm: this.arm, take_over: false }), 300);
+          } else {
+            this.state = `arm ${msg.arm} refused: ${msg.message}`;
+          }
+        } else {
+          this.open = false;
+          this.state = msg.state;
+        }
+        render();
+      } else if (msg.type === 'feedback') {
+        this.last = msg;
+        this.feedbackCount += 1;
+        if (msg.t_ns > 0) {
+          const rtt = performance.now() - msg.t_ns / 1e6;
+          if (rtt >= 0 && rtt < 10000) {
+            this.rtts.push(rtt);
+            if (this.rtts.length > 100) this.rtts.shift();
+          }
+        }
+        if (msg.recording) this.recPhase = msg.recording.phase;
+      } else if (msg.type === 'error') {
+        this.state = `error: ${msg.message}`;
+        render();
+      }
+    }
+
+    // One XR frame with this controller present.
+    frame(frame, source) {
+      const pad = source.gamepad;
+      const buttons = [];
+      const b = (i) => (pad && pad.buttons[i]) || { pressed: false, value: 0 };
+      const trigger = Math.min(1, Math.max(0, b(BUTTON.trigger).value));
+      // Nothing goes out before the arm is claimed: the gateway would give a pose-less socket the default arm.
+      if (!this.open) {
+        if (this.gripperSent === null) this.gripperSent = trigger;
+        return;
+      }
+      const squeeze = b(BUTTON.squeeze).pressed;
+      if (squeeze !== this.engaged) {
+        buttons.push({ clutch: squeeze ? 'engage' : 'disengage' });
+        this.engaged = squeeze;
+        pulse(source, 0.3, 30);
+      }
+      // The trigger sets the gripper only once it moves: entering the headset must not move the gripper.
+      if (this.gripperSent === null) {
+        this.gripperSent = trigger;
+      } else if (Math.abs(trigger - this.gripperSent) >= 0.01 || (trigger !== this.gripperSent && (trigger === 0 || trigger === 1))) {
+        buttons.push({ gripper: Math.round(trigger * 1000) / 1000 });
+        this.gripperSent = trigger;
+      }
+      const recording = this.recPhase === 'recording' || this.recPhase === 'paused';
+      const lower = b(BUTTON.lower).pressed;
+      if (lower && !this.lower) {
+        if (recording) {
+          buttons.push({ record: 'stop' });
+        } else {
+          const task = ($('task') && $('task').value.trim()) || '';
+          if (task) {
+            buttons.push({ record: 'start', task });
+          } else {
+            // No keyboard in the headset: the task is typed on the page before entering.
+            pulse(source, 1.0, 300);
+            hs.notice = 'Type the task on the page before entering the headset; recording needs it.';
+          }
+        }
+      }
+      this.lower = lower;
+      const upper = b(BUTTON.upper).pressed;
+      const now = performance.now();
+      if (upper && !this.upperSince) this.upperSince = now;
+      if (!upper) { this.upperSince = 0; this.discardSent = false; }
+      if (upper && recording && !this.discardSent && now - this.upperSince >= DISCARD_HOLD_MS) {
+        buttons.push({ record: 'discard' });
+        this.discardSent = true;
+        pulse(source, 1.0, 150);
+      }
+
+      this.seq += 1;
+      const pose = frame.getPose(source.gripSpace, hs.refSpace);
+      if (!pose) {
+        this.tracking = 'lost';
+        this.send({ type: 'sample', seq: this.seq, t_ns: nowNs(), tracking: 'lost', buttons });
+        return;
+      }
+      const p = pose.transform.position;
+      const q = pose.transform.orientation;
+      this.tracking = pose.emulatedPosition ? 'limited' : 'tracking';
+      this.send({
+        type: 'sample',
+        seq: this.seq,
+        t_ns: nowNs(),
+        tracking: this.tracking,
+        pose: { p: [p.x, p.y, p.z], q: [q.x, q.y, q.z, q.w] },
+        buttons,
+      });
+    }
+
+    // The controller is gone (switched off, out of view of the headset, put down for hand tracking): the arm
+    // holds.
+    missing() {
+      if (!this.open) return;
+      this.seq += 1;
+      const buttons = this.engaged ? [{ clutch: 'disengage' }] : [];
+      this.engaged = false;
+      this.tracking = 'not seen';
+      this.send({ type: 'sample', seq: this.seq, t_ns: nowNs(), tracking: 'lost', buttons });
+    }
+
+    close() {
+      this.closed = true;
+      if (this.engaged && this.open) {
+        this.send({ type: 'sample', seq: ++this.seq, t_ns: nowNs(), buttons: [{ clutch: 'disengage' }] });
+      }
+      this.engaged = false;
+      if (this.ws) this.ws.close();
+    }
+  }
+  hs.Hand = Hand;
+
+  function render() {
+    const box = $('headset-status');
+    if (!box) return;
+    const hands = Object.values(hs.hands);
+    box.hidden = !hs.session && !hands.length;
+    box.textContent = '';
+    for (const h of hands) {
+      const div = document.createElement('div');
+      const rtt = h.rtts.length ? ` · rtt ${(h.rtts.reduce((a, c) => a + c, 0) / h.rtts.length).toFixed(0)} ms` : '';
+      div.textContent = `${h.handedness} controller → ${h.arm}: ${h.state} · ${h.tracking}`
+        + `${h.engaged ? ' · ENGAGED' : ''}${rtt}`;
+      box.appendChild(div);
+    }
+    if (hs.notice) {
+      const div = document.createElement('div');
+      div.textContent = hs.notice;
+      box.appendChild(div);
+    }
+  }
+
+  function onFrame(time, frame) {
+    const session = frame.session;
+    session.requestAnimationFrame(onFrame);
+    hs.frames += 1;
+    const layer = session.renderState && session.renderState.baseLayer;
+    if (layer && hs.gl) {
+      // Transparent clear: in immersive-ar the passthrough shows through.
+      hs.gl.bindFramebuffer(hs.gl.FRAMEBUFFER, layer.framebuffer);
+      hs.gl.clearColor(0, 0, 0, 0);
+      hs.gl.clear(hs.gl.COLOR_BUFFER_BIT);
+    }
+    const seen = new Set();
+    for (const source of session.inputSources) {
+      // Tracked controllers only: a hand-tracking source has no gamepad buttons for the clutch.
+      const hand = hs.hands[source.handedness];
+      if (!hand || !source.gripSpace || !source.gamepad || seen.has(source.handedness)) continue;
+      seen.add(source.handedness);
+      hand.frame(frame, source);
+    }
+    for (const [handedness, hand] of Object.entries(hs.hands)) {
+      if (!seen.has(handedness)) hand.missing();
+    }
+    if (hs.frames % 30 === 0) render();
+  }
+
+  async function start() {
+    if (hs.session || app.xrSession) return;
+    const welcome = app.welcome || {};
+    const map = controllerArms(welcome.controllers, app.arms, app.arm);
+    if (!Object.keys(map).length) {
+      hs.notice = 'No arm to drive: the gateway listed none.';
+      render();
+      return;
+    }
+    // The passthrough mode where there is one, so the operator sees the robot.
+    const mode = hs.supported.ar ? 'immersive-ar' : 'immersive-vr';
+    let session;
+    try {
+      session = await navigator.xr.requestSession(mode, { requiredFeatures: ['local'] });
+    } catch (e) {
+      hs.notice = `Could not start the headset session: ${e.message || e}`;
+      render();
+      return;
+    }
+    hs.session = session;
+    hs.mode = mode;
+    hs.notice = '';
+    try {
+      const gl = document.createElement('canvas').getContext('webgl', { xrCompatible: true, alpha: true });
+      if (gl && window.XRWebGLLayer) {
+        hs.gl = gl;
+        session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+      }
+    } catch (e) {
+      console.warn('no WebGL layer', e);
+    }
+    hs.refSpace = await session.requestReferenceSpace('local');
+    // The page's own socket lets go of its arm; the controllers' sockets claim theirs.
+    app.headsetActive = true;
+    app.send({ type: 'release' });
+    for (const [handedness, arm] of Object.entries(map)) hs.hands[handedness] = new Hand(handedness, arm);
+    session.addEventListener('end', stop);
+    $('start-headset').hidden = true;
+    session.requestAnimationFrame(onFrame);
+    render();
+  }
+
+  function stop() {
+    const hands = Object.values(hs.hands);
+    hs.hands = {};
+    hs.session = null;
+    let left = hands.length;
+    const back = () => {
+      // The page's socket takes its arm back once the controllers' sockets are gone.
+      app.headsetActive = false;
+      app.hello(false);
+    };
+    for (const h of hands) {
+      h.ws.addEventListener('close', () => { left -= 1; if (!left) back(); });
+      h.close();
+    }
+    if (!hands.length) back();
+    $('start-headset').hidden = false;
+    render();
+  }
+  hs.stop = () => { if (hs.session) hs.session.end(); };
+
+  async function detect() {
+    if (!window.isSecureContext || !navigator.xr) return;
+    const ask = async (mode) => {
+      try { return await navigator.xr.isSessionSupported(mode); } catch (_) { return false; }
+    };
+    [hs.supported.vr, hs.supported.ar] = await Promise.all([ask('immersive-vr'), ask('immersive-ar')]);
+    // Every immersive mode may have controllers; a phone's immersive-ar has none and its session shows so.
+    $('start-headset').hidden = !(hs.supported.vr || hs.supported.ar);
+    hs.detected = true;
+  }
+
+  $('start-headset').addEventListener('click', start);
+  document.addEventListener('visibilitychange', () => {
+    if (!document.hidden) return;
+    for (const h of Object.values(hs.hands)) {
+      if (h.engaged && h.open) {
+        h.send({ type: 'sample', seq: ++h.seq, t_ns: nowNs(), buttons: [{ clutch: 'disengage' }] });
+        h.engaged = false;
+      }
+    }
+  });
+  detect();
+})();

@@ -1,0 +1,279 @@
+// Headset controllers and iPhone browser apps on the phone page, in headless Chromium with Meta's WebXR
+// emulator (iwer, from npm) in place of a device, against the real server (two sim arms, left and right) and
+// the gateway, whose [gateway.controllers] maps the controllers crosswise (headset-gateway.toml). The arms are
+// watched through their rosbridge status topics, independently of the page. Prints "N passed, M failed".
+import { join } from 'node:path';
+import {
+  BASE, PAIRING_TOKEN, OUT_DIR, ServerView, assert, check, dist, finish, here, launch, pageState, sleep, waitPage,
+} from './harness.mjs';
+
+const IWER = join(here, 'node_modules', 'iwer', 'build', 'iwer.min.js');
+const IPHONE_UA = 'Mozilla/5.0 (iPhone; CPU iPhone OS 18_0 like Mac OS X) AppleWebKit/605.1.15 (KHTML, like Gecko) '
+  + 'Version/18.0 Mobile/15E148 Safari/604.1';
+const browser = await launch();
+const arms = { left: new ServerView('/left/phone2act/status'), right: new ServerView('/right/phone2act/status') };
+await Promise.all(Object.values(arms).map((a) => a.ready));
+// What headset-gateway.toml says.
+const DRIVES = { left: 'right', right: 'left' };
+
+// A page with an emulated device. `device` is 'quest3' (Meta Quest 3: immersive-vr and -ar, two Touch
+// controllers) or 'iphone-ar' (an iPhone user agent, immersive-ar only, no controllers: what a WebXR browser
+// app on iOS offers). The test moves things with window.__move(target, [dx, dy, dz], ms), target being 'left',
+// 'right' (controllers) or 'device' (the headset or phone itself): linear, in small steps, like a hand.
+async function xrPage(device) {
+  const context = await browser.newContext({
+    ignoreHTTPSErrors: true,
+    userAgent: device === 'iphone-ar' ? IPHONE_UA : undefined,
+    viewport: { width: 412, height: 915 },
+  });
+  await context.addInitScript({ path: IWER });
+  await context.addInitScript(([kind, ua]) => {
+    const config = kind === 'iphone-ar'
+      ? { ...IWER.metaQuest3, name: 'iPhone with a WebXR browser app (emulated)', controllerConfig: undefined,
+        supportedSessionModes: ['inline', 'immersive-ar'], userAgent: ua }
+      : IWER.metaQuest3;
+    // iwer has no dom-overlay: while a session runs its full-screen canvas lies over the page, where a phone's
+    // dom-overlay shows the page's buttons above the camera view. Pointer events go through it to the page.
+    const canvasContainer = document.createElement('div');
+    canvasContainer.style.pointerEvents = 'none';
+    const dev = new IWER.XRDevice(config, { canvasContainer });
+    // Chromium has a navigator.xr of its own (with no device behind it): the emulator replaces it.
+    dev.installRuntime({ forceInstall: true });
+    // iwer 2.5.0 marks every pose but the viewer's as emulatedPosition; a Quest's Touch controllers are tracked
+    // in 6 DoF and report false (the page sends an emulated position as "limited" tracking, and the arm holds).
+    Object.defineProperty(window.XRPose.prototype, 'emulatedPosition', { configurable: true, get: () => false });
+    window.__dev = dev;
+    const STEP_MS = 10;
+    window.__move = (target, d, ms) => new Promise((resolve) => {
+      const obj = target === 'device' ? dev : dev.controllers[target];
+      const from = [obj.position.x, obj.position.y, obj.position.z];
+      const t0 = performance.now();
+      const timer = setInterval(() => {
+        const t = Math.min(1, (performance.now() - t0) / ms);
+        obj.position.set(from[0] + d[0] * t, from[1] + d[1] * t, from[2] + d[2] * t);
+        if (t >= 1) { clearInterval(timer); resolve(); }
+      }, STEP_MS);
+    });
+    window.__button = (hand, id, value) => dev.controllers[hand].updateButtonValue(id, value);
+  }, [device, IPHONE_UA]);
+  const page = await context.newPage();
+  page.on('dialog', (d) => d.accept());
+  page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
+  await page.goto(`${BASE}/?token=${encodeURIComponent(PAIRING_TOKEN)}`);
+  return { context, page };
+}
+
+const ee = (arm) => arms[arm].status.ee_m;
+// Cosine of the angle between two displacements.
+const cos = (a, b) => (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (Math.hypot(...a) * Math.hypot(...b));
+const sub = (a, b) => a.map((x, i) => x - b[i]);
+
+const { context: questContext, page } = await xrPage('quest3');
+
+await check('the controller to arm map is the configured one, else by name, else the picked arm', async () => {
+  const maps = await page.evaluate(() => {
+    // A made-up server for each case; the function decides nothing else.
+    const f = window.phone2act.headset.controllerArms;
+    return {
+      configured: f({ left: 'b', right: 'a', thumb: 'c' }, ['a', 'b', 'left', 'right'], 'a'),
+      byName: f({}, ['left', 'right'], 'left'),
+      oneNamed: f(undefined, ['right', 'main'], 'main'),
+      picked: f({}, ['main'], 'main'),
+    };
+  });
+  assert(JSON.stringify(maps.configured) === '{"left":"b","right":"a"}', `configured: ${JSON.stringify(maps.configured)}`);
+  assert(JSON.stringify(maps.byName) === '{"left":"left","right":"right"}', `by name: ${JSON.stringify(maps.byName)}`);
+  assert(JSON.stringify(maps.oneNamed) === '{"right":"right"}', `one named: ${JSON.stringify(maps.oneNamed)}`);
+  assert(JSON.stringify(maps.picked) === '{"right":"main"}', `picked: ${JSON.stringify(maps.picked)}`);
+});
+
+await check('Start headset claims one arm per controller, as the gateway maps them', async () => {
+  await waitPage(page, () => window.phone2act && window.phone2act.sessionOpen, 'the page socket to claim its arm');
+  await waitPage(page, () => !document.querySelector('#start-headset').hidden, 'the Start headset button');
+  assert(await page.isHidden('#no-xr'), 'the no-WebXR notice is shown on a headset with immersive-ar');
+  await page.fill('#task', 'hand the cube over');
+  await page.click('#start-headset');
+  await waitPage(page, () => {
+    const h = window.phone2act.headset.hands;
+    return h.left && h.left.open && h.right && h.right.open && h.left.feedbackCount > 10 && h.right.feedbackCount > 10;
+  }, 'both controllers to drive their arms');
+  const claimed = await page.evaluate(() => Object.fromEntries(
+    Object.entries(window.phone2act.headset.hands).map(([k, h]) => [k, h.arm])));
+  assert(JSON.stringify(claimed) === JSON.stringify(DRIVES), `controllers claimed ${JSON.stringify(claimed)}`);
+  assert(await pageState(page, () => window.phone2act.headset.mode) === 'immersive-ar', 'not the passthrough mode');
+  const text = await page.textContent('#headset-status');
+  assert(/left controller → right: driving right/.test(text) && /right controller → left: driving left/.test(text),
+    `status does not show the mapping: ${text}`);
+});
+
+// Engages `hand`, moves it by `d` over `ms`, releases; returns both arms' displacement.
+async function drive(hands, d, ms = 1200) {
+  const before = { left: ee('left'), right: ee('right') };
+  for (const hand of hands) await page.evaluate((h) => window.__button(h, 'squeeze', 1), hand);
+  await Promise.all(hands.map((hand) => arms[DRIVES[hand]].until((s) => s.engaged, `${DRIVES[hand]} engaged`)));
+  await page.evaluate(([hs, dd, t]) => Promise.all(hs.map((h, i) => window.__move(h, dd[i], t))),
+    [hands, hands.map((_, i) => (Array.isArray(d[0]) ? d[i] : d)), ms]);
+  // The last samples reach the arm within a few control periods; the sim then settles.
+  await sleep(500);
+  for (const hand of hands) await page.evaluate((h) => window.__button(h, 'squeeze', 0), hand);
+  await Promise.all(hands.map((hand) => arms[DRIVES[hand]].until((s) => !s.engaged, `${DRIVES[hand]} released`)));
+  await sleep(300);
+  return { left: sub(ee('left'), before.left), right: sub(ee('right'), before.right) };
+}
+
+const moved = {};
+await check('each controller moves only its mapped arm, by the phone path\'s bar', async () => {
+  // 8 cm forward (-Z in WebXR's frame), the phone test's motion; the phone test asks for 5 cm at the arm.
+  for (const hand of ['right', 'left']) {
+    const m = await drive([hand], [0, 0, -0.08]);
+    const mine = DRIVES[hand];
+    const other = mine === 'left' ? 'right' : 'left';
+    assert(Math.hypot(...m[mine]) > 0.05, `${hand} controller moved arm ${mine} only ${(Math.hypot(...m[mine]) * 100).toFixed(1)} cm`);
+    assert(Math.hypot(...m[other]) < 0.01, `${hand} controller also moved arm ${other} by ${(Math.hypot(...m[other]) * 100).toFixed(1)} cm`);
+    moved[hand] = m[mine];
+    console.log(`  ${hand} controller 8 cm forward: arm ${mine} moved ${(Math.hypot(...m[mine]) * 100).toFixed(1)} cm `
+      + `[${m[mine].map((v) => (v * 100).toFixed(1)).join(', ')}] cm, arm ${other} ${(Math.hypot(...m[other]) * 1000).toFixed(1)} mm`);
+  }
+  // The same hand motion through the same planner on two identical sim arms: the same displacement.
+  const c = cos(moved.left, moved.right);
+  const ratio = Math.hypot(...moved.left) / Math.hypot(...moved.right);
+  assert(c > 0.95 && ratio > 0.8 && ratio < 1.25, `the two arms answered one motion differently: cos ${c.toFixed(3)}, ratio ${ratio.toFixed(2)}`);
+});
+
+await check('two controllers at once drive two arms independently', async () => {
+  // Left controller forward, right controller back, together: the arms move in opposite directions.
+  const m = await drive(['left', 'right'], [[0, 0, -0.06], [0, 0, 0.06]]);
+  const byLeft = m[DRIVES.left];
+  const byRight = m[DRIVES.right];
+  assert(Math.hypot(...byLeft) > 0.035 && Math.hypot(...byRight) > 0.035,
+    `an arm barely moved: ${(Math.hypot(...byLeft) * 100).toFixed(1)} / ${(Math.hypot(...byRight) * 100).toFixed(1)} cm`);
+  assert(cos(byLeft, moved.left) > 0.9, `the left controller's arm went another way: cos ${cos(byLeft, moved.left).toFixed(2)}`);
+  assert(cos(byRight, moved.right) < -0.9, `the right controller's arm did not go back: cos ${cos(byRight, moved.right).toFixed(2)}`);
+  console.log(`  together: arm ${DRIVES.left} ${(Math.hypot(...byLeft) * 100).toFixed(1)} cm forward, `
+    + `arm ${DRIVES.right} ${(Math.hypot(...byRight) * 100).toFixed(1)} cm back`);
+});
+
+await check('the grip releases and re-engages without a jump', async () => {
+  const arm = DRIVES.right;
+  const held = ee(arm);
+  // Released: the hand goes back 8 cm and the arm stays.
+  await page.evaluate(() => window.__move('right', [0, 0, 0.08], 800));
+  await sleep(500);
+  assert(dist(ee(arm), held) < 0.01, `the arm followed a released controller: ${dist(ee(arm), held)} m`);
+  // Re-engaged where the hand is now: the arm stays where it was until the hand moves.
+  await page.evaluate(() => window.__button('right', 'squeeze', 1));
+  await arms[arm].until((s) => s.engaged, 're-engaged');
+  await sleep(600);
+  assert(dist(ee(arm), held) < 0.01, `re-engaging moved the arm by ${(dist(ee(arm), held) * 100).toFixed(1)} cm`);
+  await page.evaluate(() => window.__move('right', [0, 0, -0.05], 800));
+  await arms[arm].until((s) => dist(s.ee_m, held) > 0.03, 'the arm to follow the re-engaged controller');
+  await page.evaluate(() => window.__button('right', 'squeeze', 0));
+  await arms[arm].until((s) => !s.engaged, 'released');
+});
+
+await check('the trigger\'s analog value reaches the gripper', async () => {
+  const arm = DRIVES.right;
+  for (const v of [0.35, 0.8, 0]) {
+    await page.evaluate((x) => window.__button('right', 'trigger', x), v);
+    await arms[arm].until((s) => Math.abs(s.gripper_target - v) < 0.011, `gripper target ${v}`);
+  }
+  // The other controller's arm kept its gripper.
+  const other = arms[DRIVES.left].status.gripper_target;
+  await page.evaluate(() => window.__button('right', 'trigger', 0.6));
+  await arms[arm].until((s) => Math.abs(s.gripper_target - 0.6) < 0.011, 'gripper target 0.6');
+  assert(arms[DRIVES.left].status.gripper_target === other, 'the other arm\'s gripper moved');
+  await page.evaluate(() => window.__button('right', 'trigger', 0));
+  await arms[arm].until((s) => s.gripper_target < 0.011, 'gripper open');
+});
+
+async function press(hand, id, holdMs = 150) {
+  await page.evaluate(([h, b]) => window.__button(h, b, 1), [hand, id]);
+  await sleep(holdMs);
+  await page.evaluate(([h, b]) => window.__button(h, b, 0), [hand, id]);
+  await sleep(150);
+}
+
+await check('A starts and saves an episode, B held discards one', async () => {
+  const saved = arms.left.status.recording.saved;
+  await press('right', 'a-button');
+  await arms.left.until((s) => s.recording.phase === 'recording', 'recording to start');
+  assert(arms.left.status.recording.task === 'hand the cube over', `task ${arms.left.status.recording.task}`);
+  await drive(['right'], [0, 0, -0.03], 800);
+  await press('right', 'a-button');
+  await arms.left.until((s) => s.recording.saved === saved + 1 && s.recording.phase === 'idle', 'the episode saved', 60000);
+  // X on the other controller starts one too; a short B does nothing, a held B discards.
+  await press('left', 'x-button');
+  await arms.left.until((s) => s.recording.phase === 'recording', 'recording to start again');
+  await press('left', 'y-button', 200);
+  await sleep(500);
+  assert(arms.left.status.recording.phase === 'recording', 'a short press of Y discarded the episode');
+  await press('left', 'y-button', 1300);
+  await arms.left.until((s) => s.recording.phase === 'idle', 'the episode discarded', 30000);
+  await sleep(300);
+  assert(arms.left.status.recording.saved === saved + 1, 'the discarded episode was saved');
+});
+
+await check('ending the headset session hands the arm back to the page', async () => {
+  await page.screenshot({ path: join(OUT_DIR, 'headset-page.png'), fullPage: true });
+  // A measurement, not a check: sample -> feedback per controller socket, both streaming at the emulator's rate.
+  const rtt = await page.evaluate(() => Object.fromEntries(Object.entries(window.phone2act.headset.hands).map(([k, h]) => {
+    const ms = h.rtts.slice().sort((a, b) => a - b);
+    return [k, ms.length ? ms[Math.floor(ms.length / 2)] : NaN];
+  })));
+  console.log(`  control round trip median (last 100): left controller ${rtt.left.toFixed(1)} ms, right ${rtt.right.toFixed(1)} ms`);
+  await page.evaluate(() => window.phone2act.headset.stop());
+  await waitPage(page, () => !window.phone2act.headsetActive && window.phone2act.sessionOpen, 'the page socket to claim its arm again');
+  assert(!(await page.isHidden('#start-headset')), 'Start headset is not offered again');
+});
+await questContext.close();
+
+await check('an iPhone user agent with WebXR immersive-ar (a WebXR browser app) drives the arm', async () => {
+  const { context, page: p } = await xrPage('iphone-ar');
+  try {
+    await waitPage(p, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
+    assert(await p.isHidden('#no-xr'), `the page gated on the user agent: ${await p.textContent('#no-xr')}`);
+    assert(await p.isEnabled('#start-ar'), 'Start AR disabled on an iPhone with immersive-ar');
+    await p.click('#start-ar');
+    await waitPage(p, () => window.phone2act.feedbackCount > 20, 'feedback');
+    const arm = await pageState(p, () => window.phone2act.arm);
+    const before = ee(arm);
+    const box = await p.locator('#clutch').boundingBox();
+    await p.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+    await p.mouse.down();
+    try {
+      await arms[arm].until((s) => s.engaged, 'engaged');
+    } catch (e) {
+      const why = await p.evaluate(() => ({
+        notice: document.querySelector('#notice').textContent, xr: !!window.phone2act.xrSession,
+        clutchDisabled: document.querySelector('#clutch').disabled, conn: document.querySelector('#st-conn').textContent,
+      }));
+      throw new Error(`${e.message}; page: ${JSON.stringify(why)}`);
+    }
+    await p.evaluate(() => window.__move('device', [0, 0, -0.08], 1200));
+    const m = await arms[arm].until((s) => dist(s.ee_m, before) > 0.05, 'the arm to move 5 cm');
+    await p.mouse.up();
+    await arms[arm].until((s) => !s.engaged, 'released');
+    console.log(`  iPhone (emulated, immersive-ar): arm ${arm} moved ${(dist(m.ee_m, before) * 100).toFixed(1)} cm`);
+  } finally {
+    await context.close();
+  }
+});
+
+await check('an iPhone browser without WebXR says what works on it', async () => {
+  const context = await browser.newContext({ ignoreHTTPSErrors: true, userAgent: IPHONE_UA });
+  // Safari on iOS: no navigator.xr at all.
+  await context.addInitScript(() => Object.defineProperty(navigator, 'xr', { configurable: true, value: undefined }));
+  const p = await context.newPage();
+  await p.goto(`${BASE}/?token=${encodeURIComponent(PAIRING_TOKEN)}`);
+  await waitPage(p, () => !document.querySelector('#no-xr').hidden, 'the no-WebXR notice');
+  const text = await p.textContent('#no-xr');
+  assert(/WebXR browser app from the App Store/.test(text) && /XR Browser/.test(text), `no iOS app named: ${text}`);
+  assert(/buttons below still control recording/.test(text), `does not say what works here: ${text}`);
+  assert(await p.isDisabled('#start-ar'), 'Start AR enabled without WebXR');
+  assert(await p.isHidden('#start-headset'), 'Start headset offered without WebXR');
+  await context.close();
+});
+
+for (const a of Object.values(arms)) a.close();
+await browser.close();
+finish('headset');
