@@ -261,7 +261,14 @@
         gate.textContent = s.verdict + (s.reason ? ` — ${s.reason}` : '');
         gate.className = 'verdict-' + s.verdict;
       }
-      $('st-clutch').textContent = s.engaged ? 'ENGAGED (phone drives)' : 'released (robot holds)';
+      // Who drives: the operator, a policy session (by name, loading or driving), or nobody.
+      let driver = 'released (robot holds)';
+      if (s.engaged) driver = 'ENGAGED (phone drives)';
+      else if (s.owner === 'policy') {
+        const name = s.policy || 'policy';
+        driver = s.policy_loading ? `policy ${name} loading (robot holds)` : `policy ${name} drives`;
+      }
+      $('st-clutch').textContent = driver;
       $('st-gripper').textContent = state.gripperClosed ? 'closed' : 'open';
     }
     const r = fb.recording;

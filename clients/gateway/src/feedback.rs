@@ -1,7 +1,7 @@
 //! Turning server state (`TeleopFeedback`, `ArmState`, `RecordingStatus`) into the JSON the phone page and
 //! rosbridge status subscribers read. Field names are short and stable: the page is the only consumer.
 
-use phone2act_proto::v1::{ArmState, GateVerdict, Pose, RecordingStatus, TeleopFeedback};
+use phone2act_proto::v1::{ArmState, ControlSource, GateVerdict, Pose, RecordingStatus, TeleopFeedback};
 use serde_json::{Value, json};
 
 /// Position and quaternion of a wire pose, identity when absent.
@@ -43,13 +43,32 @@ pub fn recording_json(rec: Option<&RecordingStatus>) -> Value {
     })
 }
 
+/// Who drives the arm: `teleop`, `policy` or `none`, and for a policy its name (the owner id is
+/// `name:session`).
+fn owner_parts(arm: &ArmState) -> (&'static str, &str) {
+    match ControlSource::try_from(arm.owner).unwrap_or(ControlSource::Unspecified) {
+        ControlSource::Teleop => ("teleop", ""),
+        ControlSource::Policy => (
+            "policy",
+            arm.owner_id
+                .rsplit_once(':')
+                .map_or(arm.owner_id.as_str(), |(name, _)| name),
+        ),
+        ControlSource::None | ControlSource::Unspecified => ("none", ""),
+    }
+}
+
 /// Arm state as JSON (no poses beyond the end-effector position).
 pub fn arm_json(arm: &ArmState) -> Value {
     let decision = arm.last_decision.clone().unwrap_or_default();
     let (ee, _) = pose_parts(arm.robot_from_ee.as_ref());
+    let (owner, policy) = owner_parts(arm);
     json!({
         "arm": arm.arm,
         "engaged": arm.engaged,
+        "owner": owner,
+        "policy": policy,
+        "policy_loading": arm.policy_loading,
         "verdict": verdict_name(decision.verdict),
         "reason": decision.reason,
         "workspace_clamped": decision.workspace_clamped,
@@ -85,6 +104,33 @@ pub fn page_feedback(arm: &str, fb: &TeleopFeedback, gateway_superseded: u64) ->
 mod tests {
     use super::*;
     use phone2act_proto::v1::GateDecision;
+
+    #[test]
+    fn the_page_learns_who_drives_and_whether_a_policy_is_still_loading() {
+        let policy = ArmState {
+            owner: ControlSource::Policy.into(),
+            owner_id: "gr00t:n1.5:7".into(),
+            policy_loading: true,
+            ..ArmState::default()
+        };
+        let v = arm_json(&policy);
+        assert_eq!(
+            (v["owner"].as_str(), v["policy"].as_str()),
+            (Some("policy"), Some("gr00t:n1.5"))
+        );
+        assert_eq!(v["policy_loading"], true);
+        let phone = ArmState {
+            owner: ControlSource::Teleop.into(),
+            owner_id: "3".into(),
+            ..ArmState::default()
+        };
+        let v = arm_json(&phone);
+        assert_eq!(
+            (v["owner"].as_str(), v["policy"].as_str()),
+            (Some("teleop"), Some(""))
+        );
+        assert_eq!(arm_json(&ArmState::default())["owner"], "none");
+    }
 
     #[test]
     fn feedback_names_the_verdict_and_phase() {
