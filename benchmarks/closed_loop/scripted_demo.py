@@ -1,0 +1,155 @@
+"""The scripted demonstrator of the physics scene: a privileged expert that reads the block's true pose from
+the MuJoCo world and drives the arm through phone2act's Policy API (absolute end-effector chunks) while the
+server records the episode, exactly as a policy would drive it. Only successful episodes are kept.
+
+The same planner, replayed open loop from a training scene's plan on another scene, is the benchmark's
+"nearest demonstration" baseline (`plan_for_layout`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from mujoco_bridge import BASKET_WALL_M, BLOCK_HALF_M, HOME_RAD, Layout, World
+
+APPROACH_Z_M = 0.07
+GRASP_Z_M = 0.012
+CARRY_Z_M = 0.10
+SPEED_M_S = 0.12
+
+
+def top_down(yaw: float) -> np.ndarray:
+    """Tool pointing down, jaws closing along `yaw` (the site's x axis is the closing direction)."""
+    x = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    z = np.array([0.0, 0.0, -1.0])
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def grasp_yaw(world: World, block_xy, block_yaw: float) -> float:
+    """The block is symmetric under half a turn: of its two grasp yaws take the one the wrist reaches best."""
+    best, best_err = block_yaw, float("inf")
+    for yaw in (block_yaw, block_yaw + math.pi, block_yaw - math.pi):
+        r = top_down(yaw)
+        q = world.solve(np.array([*block_xy, APPROACH_Z_M]), r, np.array(HOME_RAD))
+        world.scratch.qpos[world.arm_qpos] = q
+        import mujoco
+
+        mujoco.mj_kinematics(world.model, world.scratch)
+        _, got = world.ee_pose(world.scratch)
+        err = float(np.linalg.norm(got[:, 0] - r[:, 0]))
+        if err < best_err:
+            best, best_err = yaw, err
+    return best
+
+
+def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, fps: int) -> list[list[float]]:
+    """Absolute end-effector steps (the Policy API's ABSOLUTE_EE layout) at `fps` for one scene."""
+    bx, by = layout.block_xy
+    yaw = grasp_yaw(world, layout.block_xy, layout.block_yaw)
+    grasp_r = top_down(yaw)
+    kx, ky = layout.basket_xy
+    drop_r = top_down(yaw)
+    # (position, rotation, gripper, dwell seconds at the waypoint)
+    waypoints = [
+        (np.array([bx, by, APPROACH_Z_M]), grasp_r, 0.0, 0.3),
+        (np.array([bx, by, GRASP_Z_M]), grasp_r, 0.0, 0.3),
+        (np.array([bx, by, GRASP_Z_M]), grasp_r, 1.0, 0.6),
+        (np.array([bx, by, CARRY_Z_M]), grasp_r, 1.0, 0.1),
+        (np.array([kx, ky, CARRY_Z_M]), drop_r, 1.0, 0.2),
+        (np.array([kx, ky, BASKET_WALL_M + 0.03]), drop_r, 1.0, 0.2),
+        (np.array([kx, ky, BASKET_WALL_M + 0.03]), drop_r, 0.0, 0.5),
+        (np.array([kx, ky, CARRY_Z_M]), drop_r, 0.0, 1.0),
+    ]
+    steps: list[list[float]] = []
+    pos, grip = start_pos.copy(), 0.0
+    rot = waypoints[0][1]
+    dt = 1.0 / fps
+    for target, r, g, dwell in waypoints:
+        n = max(1, math.ceil(np.linalg.norm(target - pos) / SPEED_M_S / dt))
+        for i in range(1, n + 1):
+            p = pos + (target - pos) * i / n
+            steps.append(ee_step(p, r, grip))
+        pos, rot = target, r
+        grip = g
+        for _ in range(max(1, round(dwell / dt))):
+            steps.append(ee_step(pos, rot, grip))
+    return steps
+
+
+def ee_step(p: np.ndarray, r: np.ndarray, gripper: float) -> list[float]:
+    return [*p.tolist(), *r[:, 0].tolist(), *r[:, 1].tolist(), float(gripper)]
+
+
+def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_time_s: float,
+               chunk: int = 20) -> bool:
+    """Plays `steps` through a policy session, a chunk anchored on each observation; True on scene success."""
+    from phone2act import ABSOLUTE_EE, InvalidArgument
+
+    period = 1.0 / fps
+    with client.policy_session([arm], observation_rate_hz=fps, policy_name="scripted-demo",
+                               silence_timeout_s=10.0) as s:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < episode_time_s:
+            obs = s.next_observation(timeout_s=10.0)
+            k = min(len(steps) - 1, int((time.monotonic() - t0) / period))
+            # Past the plan's end the last step is held (padded, so the chunk never lies wholly in the past).
+            window = (steps[k:k + chunk] + [steps[-1]] * chunk)[:chunk]
+            try:
+                s.push(arm, window, period, observation_id=obs.observation_id, mode=ABSOLUTE_EE)
+            except InvalidArgument:  # answered an observation too late (a loaded machine): take a newer one
+                continue
+            if client.scene.get(arm).success:
+                return True
+            if k >= len(steps) - 1 and time.monotonic() - t0 > len(steps) * period + 2.0:
+                break
+            time.sleep(chunk * period / 4)
+    return bool(client.scene.get(arm).success)
+
+
+def reset_scene(client, arm: str, seed: int) -> None:
+    from phone2act import FailedPrecondition
+
+    # Refused while the previous session still owns the arm: the server learns it ended a moment after the
+    # stream closes. 10 s is far beyond that on a loaded machine.
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            client.scene.reset(arm, seed=seed, home_arm=True)
+            return
+        except FailedPrecondition:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def record_demos(bridge, args) -> dict:
+    """`args.demos` successful episodes from seeds `args.seed`, ... (failures discarded and counted)."""
+    from phone2act import Client
+
+    saved, failed, seeds = 0, 0, []
+    seed = args.seed
+    with Client(bridge.target, token=bridge.token) as c:
+        while saved < args.demos:
+            reset_scene(c, bridge.arm, seed)
+            with bridge.lock:
+                layout = bridge.world.layout
+                start = bridge.world.ee_pose()[0]
+                steps = plan_for_layout(bridge.world, layout, start, args.fps)
+            c.episodes.start(args.task, operator="scripted-demo")
+            ok = drive_plan(c, bridge.arm, steps, args.fps, args.episode_time_s)
+            if ok:
+                c.episodes.stop()
+                saved += 1
+                seeds.append(seed)
+            else:
+                c.episodes.discard()
+                failed += 1
+            print(f"demo seed {seed}: {'saved' if ok else 'failed, discarded'}", flush=True)
+            seed += 1
+            if failed > 3 * args.demos + 5:
+                raise SystemExit(f"scripted demonstrator: {failed} failures for {saved} successes; stopping")
+    return {"saved": saved, "failed": failed, "seeds": seeds,
+            "block_half_m": BLOCK_HALF_M}
