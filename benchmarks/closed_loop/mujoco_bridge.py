@@ -58,7 +58,7 @@ HOME_RAD = (0.0, -0.8, 0.6, 1.1, 0.0)
 GRIPPER_OPEN_RAD = 0.35
 GRIPPER_CLOSED_RAD = -0.17
 # The block to pick: half sizes (m); long along its own y.
-BLOCK_HALF_M = (0.012, 0.03, 0.012)
+BLOCK_HALF_M = (0.012, 0.03, 0.02)
 DISTRACTOR_HALF_M = (0.015, 0.015, 0.015)
 # Square basket: inner half-width, wall height and thickness (m).
 BASKET_HALF_M = 0.045
@@ -119,6 +119,19 @@ class World:
         spec.option.timestep = PHYSICS_DT_S
         spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
         spec.option.noslip_iterations = 3
+        # The jaws grip with boxes, not with their meshes: MuJoCo collides meshes by their convex hulls, and the
+        # hull of the fixed jaw's part fills the gap between the jaws. The model's own pads, lengthened along
+        # the fingers, carry the grasp.
+        for body, mesh in (("gripper", "wrist_roll_follower_so101_v1"), ("moving_jaw_so101_v1", "moving_jaw_so101_v1")):
+            for g in spec.body(body).geoms:
+                if g.type == mujoco.mjtGeom.mjGEOM_MESH and g.meshname == mesh and g.contype:
+                    g.contype = g.conaffinity = 0
+        static_pad = spec.geom("static_finger_pad")
+        static_pad.size = [0.002, 0.008, 0.014]
+        static_pad.pos = [-0.008875, 0.0, -0.088]
+        moving_pad = spec.geom("moving_finger_pad")
+        moving_pad.size = [0.002, 0.014, 0.008]
+        moving_pad.pos = [-0.01136, -0.064, 0.019]
         wb = spec.worldbody
         wb.add_light(pos=[0.3, 0.3, 1.5], dir=[-0.2, -0.2, -1], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, diffuse=[0.6, 0.6, 0.6])
         wb.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.01], rgba=[0.55, 0.5, 0.45, 1])
@@ -167,6 +180,15 @@ class World:
         self.gripper_target = 0.0
         self.layout = draw_layout(0)
         self.resets = 0
+        # The gripper frame sits on the fixed jaw, not between the jaws: where the open jaws' midpoint lies in
+        # that frame (a demonstrator centres this point on the block).
+        d = self.scratch
+        d.qpos[self.arm_qpos] = HOME_RAD
+        d.qpos[self.gripper_qpos] = GRIPPER_OPEN_RAD
+        mujoco.mj_kinematics(m, d)
+        mid = (d.geom_xpos[m.geom("static_finger_pad").id] + d.geom_xpos[m.geom("moving_finger_pad").id]) / 2
+        p, r = self.ee_pose(d)
+        self.grasp_offset_tool_m = r.T @ (mid - p)
         self.reset(0, home_arm=True)
         self.resets = 0
 
@@ -263,7 +285,7 @@ class World:
         q = seed_q.copy()
         jacp = np.zeros((3, m.nv))
         jacr = np.zeros((3, m.nv))
-        w_rot = 0.3
+        w_rot = 0.1
         for _ in range(30):
             s.qpos[self.arm_qpos] = q
             mujoco.mj_kinematics(m, s)

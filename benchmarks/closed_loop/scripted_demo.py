@@ -13,12 +13,24 @@ import time
 
 import numpy as np
 
-from mujoco_bridge import BASKET_WALL_M, BLOCK_HALF_M, HOME_RAD, Layout, World
+from mujoco_bridge import BASKET_WALL_M, BLOCK_HALF_M, HOME_RAD, Layout, World, rotvec
 
 APPROACH_Z_M = 0.07
-GRASP_Z_M = 0.012
+GRASP_Z_M = 0.024
 CARRY_Z_M = 0.10
 SPEED_M_S = 0.12
+# Well inside the safety gate's jump threshold per step (0.5 rad) at 20 steps a second.
+TURN_RAD_S = 1.0
+
+
+def rotation_of(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
 
 
 def top_down(yaw: float) -> np.ndarray:
@@ -28,7 +40,7 @@ def top_down(yaw: float) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def grasp_yaw(world: World, block_xy, block_yaw: float) -> float:
+def grasp_yaw(world: World, block_xy, block_yaw: float, start_r: np.ndarray) -> float:
     """The block is symmetric under half a turn: of its two grasp yaws take the one the wrist reaches best."""
     best, best_err = block_yaw, float("inf")
     for yaw in (block_yaw, block_yaw + math.pi, block_yaw - math.pi):
@@ -39,17 +51,22 @@ def grasp_yaw(world: World, block_xy, block_yaw: float) -> float:
 
         mujoco.mj_kinematics(world.model, world.scratch)
         _, got = world.ee_pose(world.scratch)
-        err = float(np.linalg.norm(got[:, 0] - r[:, 0]))
+        # Reachable first, then the least turn from where the tool starts.
+        err = float(np.linalg.norm(got[:, 0] - r[:, 0])) + 0.05 * float(np.linalg.norm(rotvec(r @ start_r.T)))
         if err < best_err:
             best, best_err = yaw, err
     return best
 
 
-def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, fps: int) -> list[list[float]]:
+def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, start_r: np.ndarray,
+                    fps: int) -> list[list[float]]:
     """Absolute end-effector steps (the Policy API's ABSOLUTE_EE layout) at `fps` for one scene."""
     bx, by = layout.block_xy
-    yaw = grasp_yaw(world, layout.block_xy, layout.block_yaw)
+    yaw = grasp_yaw(world, layout.block_xy, layout.block_yaw, start_r)
     grasp_r = top_down(yaw)
+    # Aim the jaws' midpoint (not the tool frame, which sits on the fixed jaw) at the block.
+    off = grasp_r @ world.grasp_offset_tool_m
+    bx, by = bx - off[0], by - off[1]
     kx, ky = layout.basket_xy
     drop_r = top_down(yaw)
     # (position, rotation, gripper, dwell seconds at the waypoint)
@@ -64,14 +81,15 @@ def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, fps: in
         (np.array([kx, ky, CARRY_Z_M]), drop_r, 0.0, 1.0),
     ]
     steps: list[list[float]] = []
-    pos, grip = start_pos.copy(), 0.0
-    rot = waypoints[0][1]
+    pos, rot, grip = start_pos.copy(), start_r.copy(), 0.0
     dt = 1.0 / fps
     for target, r, g, dwell in waypoints:
-        n = max(1, math.ceil(np.linalg.norm(target - pos) / SPEED_M_S / dt))
+        turn = rotvec(rot.T @ r)
+        n = max(1, math.ceil(np.linalg.norm(target - pos) / SPEED_M_S / dt),
+                math.ceil(np.linalg.norm(turn) / TURN_RAD_S / dt))
         for i in range(1, n + 1):
             p = pos + (target - pos) * i / n
-            steps.append(ee_step(p, r, grip))
+            steps.append(ee_step(p, rot @ rotation_of(turn * i / n), grip))
         pos, rot = target, r
         grip = g
         for _ in range(max(1, round(dwell / dt))):
@@ -93,12 +111,14 @@ def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_tim
                                silence_timeout_s=10.0) as s:
         t0 = time.monotonic()
         while time.monotonic() - t0 < episode_time_s:
-            obs = s.next_observation(timeout_s=10.0)
+            s.next_observation(timeout_s=10.0)  # paces the loop on the server's observations
             k = min(len(steps) - 1, int((time.monotonic() - t0) / period))
             # Past the plan's end the last step is held (padded, so the chunk never lies wholly in the past).
             window = (steps[k:k + chunk] + [steps[-1]] * chunk)[:chunk]
             try:
-                s.push(arm, window, period, observation_id=obs.observation_id, mode=ABSOLUTE_EE)
+                # Anchored at its arrival (observation 0): the plan runs on this process's clock, and an
+                # observation that waited in the session's queue would shift it.
+                s.push(arm, window, period, observation_id=0, mode=ABSOLUTE_EE)
             except InvalidArgument:  # answered an observation too late (a loaded machine): take a newer one
                 continue
             if client.scene.get(arm).success:
@@ -136,8 +156,8 @@ def record_demos(bridge, args) -> dict:
             reset_scene(c, bridge.arm, seed)
             with bridge.lock:
                 layout = bridge.world.layout
-                start = bridge.world.ee_pose()[0]
-                steps = plan_for_layout(bridge.world, layout, start, args.fps)
+                start_p, start_r = bridge.world.ee_pose()
+                steps = plan_for_layout(bridge.world, layout, start_p, start_r, args.fps)
             c.episodes.start(args.task, operator="scripted-demo")
             ok = drive_plan(c, bridge.arm, steps, args.fps, args.episode_time_s)
             if ok:

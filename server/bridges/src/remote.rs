@@ -766,6 +766,90 @@ mod tests {
         assert_eq!(remote.attach(names(), true).err(), Some(RemoteError::ShutDown));
         assert!(matches!(remote.health(), Health::Disconnected(m) if m == "shut down"));
     }
+    fn scene(seed: u64, task_success: bool) -> SceneState {
+        SceneState {
+            seed,
+            resets: seed,
+            ball_center_m: nalgebra::Vector3::new(0.2, 0.0, 0.01),
+            ball_state: crate::scene::BallState::Resting,
+            ball_radius_m: 0.01,
+            basket_xy_m: [0.25, 0.1],
+            basket_radius_m: 0.04,
+            basket_height_m: 0.03,
+            task_success,
+            ball_area_m: crate::scene::TableArea {
+                x_min_m: 0.1,
+                x_max_m: 0.3,
+                y_min_m: -0.1,
+                y_max_m: 0.1,
+            },
+            basket_area_m: None,
+        }
+    }
+
+    #[test]
+    fn a_bridge_without_a_scene_has_none_and_cannot_report_one() {
+        let remote = RemoteBridge::new("main");
+        let handle = remote.attach(names(), true).unwrap();
+        assert!(matches!(remote.scene(), Err(BridgeError::Unsupported(_))));
+        assert!(matches!(
+            remote.reset_scene(Some(1), true),
+            Err(BridgeError::Unsupported(_))
+        ));
+        assert_eq!(
+            handle.publish_scene(scene(1, false), 0, None),
+            Err(RemoteError::UndeclaredScene)
+        );
+        assert_eq!(handle.next(SHORT), Ok(None), "nothing was forwarded");
+    }
+
+    #[test]
+    fn a_scene_reset_is_forwarded_and_answered_and_success_rides_on_feedback() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        handle.declare_scene().unwrap();
+        // Declared but not reported yet: the scene exists, its state is not known.
+        assert!(matches!(remote.scene(), Err(BridgeError::Protocol(_))));
+        handle.publish_scene(scene(0, false), 0, None).unwrap();
+        assert_eq!(remote.scene().unwrap(), scene(0, false));
+        // The remote side: answers the first reset with the scene of its seed, and fails the second.
+        let bridge_side = Arc::clone(&handle);
+        let t = std::thread::spawn(move || {
+            let mut seen = Vec::new();
+            for answer_error in [None, Some("no such seed".to_owned())] {
+                let Ok(Some(Downstream::SceneReset(r))) = bridge_side.next(Duration::from_secs(10)) else {
+                    panic!("expected a scene reset");
+                };
+                seen.push(r);
+                bridge_side
+                    .publish_scene(scene(r.seed.unwrap_or(0), true), r.request_id, answer_error)
+                    .unwrap();
+            }
+            seen
+        });
+        assert_eq!(remote.reset_scene(Some(7), true).unwrap(), scene(7, true));
+        assert!(matches!(
+            remote.reset_scene(None, false),
+            Err(BridgeError::Protocol(m)) if m.contains("no such seed")
+        ));
+        let seen = t.join().unwrap();
+        assert_eq!(
+            seen.iter().map(|r| (r.seed, r.home_arm)).collect::<Vec<_>>(),
+            [(Some(7), true), (None, false)]
+        );
+        assert_ne!(seen[0].request_id, seen[1].request_id);
+        // The scene's success reaches the arm's feedback, as the built-in simulator's does.
+        handle.publish_feedback(feedback(vec![0.0; 3])).unwrap();
+        assert!(remote.feedback().unwrap().task_success);
+        // Detached: the scene is unavailable (not absent), and a reset fails at once rather than waiting.
+        handle.detach();
+        assert!(matches!(remote.scene(), Err(BridgeError::Connect { .. })));
+        assert!(matches!(
+            remote.reset_scene(Some(1), false),
+            Err(BridgeError::Connect { .. })
+        ));
+    }
+
     #[test]
     fn joints_measured_faster_than_their_limits_are_counted_and_shown() {
         let remote = RemoteBridge::with_joint_names("arm", names());

@@ -3,6 +3,7 @@
 
 use crate::app::App;
 use crate::arm::ArmController;
+use crate::services::error::RequestError;
 use phone2act_bridges::sim::{BallState, SceneState, TableArea};
 use phone2act_proto::v1;
 use phone2act_proto::v1::scene_server::Scene;
@@ -40,7 +41,7 @@ impl Scene for SceneService {
         let state =
             tokio::task::spawn_blocking(move || resetting.reset_scene(request.seed, request.home_arm))
                 .await
-                .map_err(|e| Status::internal(format!("scene reset task: {e}")))??;
+                .map_err(|e| Status::from(RequestError::Internal(format!("scene reset task: {e}"))))??;
         tracing::info!(
             arm = %arm.name,
             seed = state.seed,
