@@ -65,7 +65,7 @@ BASKET_HALF_M = 0.045
 BASKET_WALL_M = 0.035
 BASKET_THICK_M = 0.004
 # Where the block, the distractor and the basket centre are drawn from (robot base frame, m).
-AREA_M = {"x_min_m": 0.17, "x_max_m": 0.30, "y_min_m": -0.16, "y_max_m": 0.16}
+AREA_M = {"x_min_m": 0.17, "x_max_m": 0.29, "y_min_m": -0.14, "y_max_m": 0.14}
 # The block's "grasp tolerance": how far from its centre the jaws still close on it (half the jaw opening
 # minus half the block's width, rounded up). Held-out starts are compared against it.
 GRASP_TOLERANCE_M = 0.01
@@ -278,14 +278,13 @@ class World:
         q = self.data.qpos[self.gripper_qpos]
         return float(np.clip((GRIPPER_OPEN_RAD - q) / (GRIPPER_OPEN_RAD - GRIPPER_CLOSED_RAD), 0.0, 1.0))
 
-    def solve(self, position: np.ndarray, rotation: np.ndarray, seed_q: np.ndarray) -> np.ndarray:
+    def solve(self, position: np.ndarray, rotation: np.ndarray, seed_q: np.ndarray, w_rot: float = 0.1) -> np.ndarray:
         """Damped least squares from `seed_q` towards the pose (orientation weighted below position: a
         five-joint arm cannot reach every orientation; what it can reach, it reaches)."""
         m, s = self.model, self.scratch
         q = seed_q.copy()
         jacp = np.zeros((3, m.nv))
         jacr = np.zeros((3, m.nv))
-        w_rot = 0.1
         for _ in range(30):
             s.qpos[self.arm_qpos] = q
             mujoco.mj_kinematics(m, s)
@@ -302,6 +301,11 @@ class World:
             q = np.clip(q + dq, self.lo, self.hi)
         return q
 
+    def fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.scratch.qpos[self.arm_qpos] = q
+        mujoco.mj_kinematics(self.model, self.scratch)
+        return self.ee_pose(self.scratch)
+
     def set_target(self, position: np.ndarray, rotation: np.ndarray, gripper: float) -> None:
         self.target_q = self.solve(position, rotation, self.target_q)
         self.gripper_target = float(np.clip(gripper, 0.0, 1.0))
@@ -316,11 +320,24 @@ class World:
         for _ in range(max(1, round(seconds / PHYSICS_DT_S))):
             mujoco.mj_step(self.model, self.data)
 
-    def render(self) -> np.ndarray:
+    def capture(self) -> None:
+        """Copies what the camera sees (fast; under the world's lock). `draw` then renders it (slow; without
+        the lock, so rendering never holds the physics back)."""
         if self.renderer is None:
             self.renderer = mujoco.Renderer(self.model, self.image_px, self.image_px)
         self.renderer.update_scene(self.data, camera=self.camera)
+        # Shadows and reflections multiply a software renderer's time several times over (the arm's meshes
+        # have 300k faces) and tell a policy nothing the plain image does not.
+        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
+            self.renderer.scene.flags[flag] = 0
+
+    def draw(self) -> np.ndarray:
+        assert self.renderer is not None, "capture first"
         return self.renderer.render()
+
+    def render(self) -> np.ndarray:
+        self.capture()
+        return self.draw()
 
 
 def rotvec(r: np.ndarray) -> np.ndarray:
@@ -405,14 +422,41 @@ class PhysicsBridge:
             self.stop()
             raise
 
-    def _simulate(self) -> None:
+    def _render_loop(self) -> None:
+        """The camera on its own thread (it owns the GL context): frames at the camera rate, or slower when
+        rendering takes longer, stamped with the time the scene was captured."""
         from phone2act.v1 import common_pb2
+
+        frame_seq = 0
+        next_frame = time.monotonic()
+        while not self._stop.is_set():
+            with self.lock:
+                self.world.capture()
+                captured_ns = time.monotonic_ns()
+            image = self.world.draw()
+            frame_seq += 1
+            frame = common_pb2.CameraFrame(
+                camera=self.camera, width=image.shape[1], height=image.shape[0],
+                encoding=common_pb2.IMAGE_ENCODING_RGB8, data=image.tobytes(),
+                capture_time_ns=captured_ns, frame_seq=frame_seq)
+            if self._frames.full():
+                try:
+                    self._frames.get_nowait()
+                except queue.Empty:
+                    pass
+            self._frames.put_nowait(frame)
+            next_frame += self.camera_period_s
+            delay = next_frame - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                next_frame = time.monotonic()
+
+    def _simulate(self) -> None:
 
         period = 1.0 / CONTROL_HZ
         next_tick = time.monotonic()
-        next_frame = next_tick
         last_success = None
-        frame_seq = 0
         while not self._stop.is_set():
             with self.lock:
                 while not self._resets.empty():
@@ -428,27 +472,13 @@ class PhysicsBridge:
                     self.world.set_target(np.array([t.position_m.x, t.position_m.y, t.position_m.z]),
                                           matrix_of(q.x, q.y, q.z, q.w), cmd.gripper_target)
                     self._applied_seq = cmd.seq
+                    self._last_cmd_pos = np.round([t.position_m.x, t.position_m.y, t.position_m.z], 3)
                 self.world.step(period)
                 self._put_up(self._feedback())
                 success = self.world.success()
                 if success != last_success:
                     self._put_up(self._scene())
                     last_success = success
-                now = time.monotonic()
-                if now >= next_frame:
-                    image = self.world.render()
-                    frame_seq += 1
-                    frame = common_pb2.CameraFrame(
-                        camera=self.camera, width=image.shape[1], height=image.shape[0],
-                        encoding=common_pb2.IMAGE_ENCODING_RGB8, data=image.tobytes(),
-                        capture_time_ns=time.monotonic_ns(), frame_seq=frame_seq)
-                    if self._frames.full():
-                        try:
-                            self._frames.get_nowait()
-                        except queue.Empty:
-                            pass
-                    self._frames.put_nowait(frame)
-                    next_frame = max(next_frame + self.camera_period_s, now)
             next_tick += period
             # Behind (a loaded machine): the world goes on from now rather than racing to catch up.
             delay = next_tick - time.monotonic()
@@ -490,6 +520,7 @@ class PhysicsBridge:
                         with self.lock:
                             self._up.put(self._scene())
                         threading.Thread(target=self._sim_loop, daemon=True, name="mujoco-sim").start()
+                        threading.Thread(target=self._render_loop, daemon=True, name="mujoco-render").start()
                         threading.Thread(target=self._camera_loop, args=(channel,), daemon=True,
                                          name="mujoco-camera").start()
                         self.attached.set()

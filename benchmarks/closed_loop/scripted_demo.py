@@ -17,7 +17,7 @@ from mujoco_bridge import BASKET_WALL_M, BLOCK_HALF_M, HOME_RAD, Layout, World, 
 
 APPROACH_Z_M = 0.07
 GRASP_Z_M = 0.024
-CARRY_Z_M = 0.10
+CARRY_Z_M = 0.075
 SPEED_M_S = 0.12
 # Well inside the safety gate's jump threshold per step (0.5 rad) at 20 steps a second.
 TURN_RAD_S = 1.0
@@ -38,6 +38,20 @@ def top_down(yaw: float) -> np.ndarray:
     x = np.array([math.cos(yaw), math.sin(yaw), 0.0])
     z = np.array([0.0, 0.0, -1.0])
     return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def reachable(world: World, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """The orientation nearest `rotation` the arm can hold at `position` (a five-joint arm cannot point straight
+    down everywhere): every waypoint of a plan is then a pose the arm reaches exactly."""
+    q = np.array(HOME_RAD)
+    for _ in range(3):
+        q = world.solve(position, rotation, q)
+    p, r = world.fk(q)
+    if np.linalg.norm(p - position) > 0.002:
+        for _ in range(3):
+            q = world.solve(position, rotation, q, w_rot=0.01)
+        p, r = world.fk(q)
+    return r
 
 
 def grasp_yaw(world: World, block_xy, block_yaw: float, start_r: np.ndarray) -> float:
@@ -67,10 +81,10 @@ def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, start_r
     # Aim the jaws' midpoint (not the tool frame, which sits on the fixed jaw) at the block.
     off = grasp_r @ world.grasp_offset_tool_m
     bx, by = bx - off[0], by - off[1]
-    kx, ky = layout.basket_xy
+    kx, ky = layout.basket_xy[0] - off[0], layout.basket_xy[1] - off[1]
     drop_r = top_down(yaw)
     # (position, rotation, gripper, dwell seconds at the waypoint)
-    waypoints = [
+    raw = [
         (np.array([bx, by, APPROACH_Z_M]), grasp_r, 0.0, 0.3),
         (np.array([bx, by, GRASP_Z_M]), grasp_r, 0.0, 0.3),
         (np.array([bx, by, GRASP_Z_M]), grasp_r, 1.0, 0.6),
@@ -80,6 +94,7 @@ def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, start_r
         (np.array([kx, ky, BASKET_WALL_M + 0.03]), drop_r, 0.0, 0.5),
         (np.array([kx, ky, CARRY_Z_M]), drop_r, 0.0, 1.0),
     ]
+    waypoints = [(p, reachable(world, p, r), g, dwell) for p, r, g, dwell in raw]
     steps: list[list[float]] = []
     pos, rot, grip = start_pos.copy(), start_r.copy(), 0.0
     dt = 1.0 / fps
