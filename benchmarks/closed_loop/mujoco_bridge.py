@@ -429,6 +429,17 @@ class PhysicsBridge:
 
         frame_seq = 0
         next_frame = time.monotonic()
+        try:
+            self._render(frame_seq, next_frame)
+        finally:
+            # The GL context goes with the thread that made it, before the interpreter tears down.
+            if self.world.renderer is not None:
+                self.world.renderer.close()
+                self.world.renderer = None
+
+    def _render(self, frame_seq: int, next_frame: float) -> None:
+        from phone2act.v1 import common_pb2
+
         while not self._stop.is_set():
             with self.lock:
                 self.world.capture()
@@ -520,7 +531,9 @@ class PhysicsBridge:
                         with self.lock:
                             self._up.put(self._scene())
                         threading.Thread(target=self._sim_loop, daemon=True, name="mujoco-sim").start()
-                        threading.Thread(target=self._render_loop, daemon=True, name="mujoco-render").start()
+                        self._render_thread = threading.Thread(target=self._render_loop, daemon=True,
+                                                               name="mujoco-render")
+                        self._render_thread.start()
                         threading.Thread(target=self._camera_loop, args=(channel,), daemon=True,
                                          name="mujoco-camera").start()
                         self.attached.set()
@@ -548,6 +561,9 @@ class PhysicsBridge:
         call = getattr(self, "_call", None)
         if call is not None:
             call.cancel()
+        render = getattr(self, "_render_thread", None)
+        if render is not None and render is not threading.current_thread():
+            render.join(timeout=10)
 
 
 def main(argv: list[str]) -> int:

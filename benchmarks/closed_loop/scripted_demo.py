@@ -117,10 +117,12 @@ def ee_step(p: np.ndarray, r: np.ndarray, gripper: float) -> list[float]:
 
 
 def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_time_s: float,
-               chunk: int = 20) -> bool:
-    """Plays `steps` through a policy session, a chunk anchored on each observation; True on scene success."""
+               chunk: int = 20, mode: int | None = None) -> bool:
+    """Plays `steps` (in `mode`'s layout, default absolute end-effector) open loop through a policy session,
+    a chunk at a time; True once the scene reports success."""
     from phone2act import ABSOLUTE_EE, InvalidArgument
 
+    mode = ABSOLUTE_EE if mode is None else mode
     period = 1.0 / fps
     with client.policy_session([arm], observation_rate_hz=fps, policy_name="scripted-demo",
                                silence_timeout_s=10.0) as s:
@@ -133,7 +135,7 @@ def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_tim
             try:
                 # Anchored at its arrival (observation 0): the plan runs on this process's clock, and an
                 # observation that waited in the session's queue would shift it.
-                s.push(arm, window, period, observation_id=0, mode=ABSOLUTE_EE)
+                s.push(arm, window, period, observation_id=0, mode=mode)
             except InvalidArgument:  # answered an observation too late (a loaded machine): take a newer one
                 continue
             if client.scene.get(arm).success:
