@@ -463,8 +463,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--paths", default=None,
                    help="evaluation paths, comma-separated: api (Policy API, chunks), plugin (lerobot-rollout), "
                         "async (lerobot's async inference); physics only: blind (the same model trained and run "
-                        "with black images, Policy API), replay (the nearest demonstration replayed open loop). "
-                        "Default: api,plugin (kinematic), api,plugin,blind,replay (physics)")
+                        "with black images, Policy API), replay (the nearest demonstration replayed open loop); "
+                        "shifted (ablation: the same model trained on the demonstrations with their actions "
+                        "lagging by --shift-ms, Policy API). Default: api,plugin (kinematic), "
+                        "api,plugin,blind,replay (physics)")
+    p.add_argument("--shift-ms", type=float, default=100.0, help="the shifted ablation's action lag")
     p.add_argument("--record-to", type=Path,
                    help="also copy the run's record (record.json, results.md) into this directory, e.g. "
                         "benchmarks/closed_loop/results/<name>")
@@ -490,7 +493,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-PATHS = ("api", "plugin", "async", "blind", "replay")
+PATHS = ("api", "plugin", "async", "blind", "replay", "shifted")
 
 
 def main(argv: list[str]) -> int:
@@ -501,8 +504,8 @@ def main(argv: list[str]) -> int:
     unknown = [p for p in paths if p not in PATHS]
     if unknown:
         raise SystemExit(f"--paths: unknown {unknown}; choose among {', '.join(PATHS)}")
-    if not physics and ({"blind", "replay"} & set(paths)):
-        raise SystemExit("--paths: blind and replay run on the physics task only (--sim physics)")
+    if not physics and ({"blind", "replay", "shifted"} & set(paths)):
+        raise SystemExit("--paths: blind, replay and shifted run on the physics task only (--sim physics)")
     if physics:
         import physics_task
 
@@ -564,6 +567,13 @@ def main(argv: list[str]) -> int:
             extra["models"]["blind"] = model_checksum(blind_model)
             results.append(evaluate_policy_api(args, server, token, blind_model, seeds, blank=True,
                                                name="blind (black images), Policy API"))
+        if "shifted" in paths:
+            lag = round(args.shift_ms / 1000 * args.fps)
+            shifted_root = physics_task.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
+            shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
+            extra["models"]["shifted"] = model_checksum(shifted_model)
+            results.append(evaluate_policy_api(args, server, token, shifted_model, seeds,
+                                               name=f"ablation: actions {lag} frames late, Policy API"))
         if "api" in paths:
             results.append(evaluate_policy_api(args, server, token, model, seeds))
         if "plugin" in paths:

@@ -201,3 +201,28 @@ def evaluate_replay(args, server, token: str, arm: str, dataset_root: Path, trai
                                      "replayed_seed": nearest, "start_distance_cm": round(distance * 100, 2)})
     result.seconds = time.monotonic() - start
     return result
+
+
+def shifted_dataset(src: Path, dst: Path, frames: int) -> Path:
+    """A copy of the dataset whose actions lag the observations by `frames` (a recorder timing bug: the action
+    recorded at frame t is the one commanded at t - frames; an episode's first frames repeat its first action).
+    What the data-quality ablation trains on."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    for f in sorted((dst / "data").rglob("*.parquet")):
+        table = pq.read_table(f)
+        episodes = table.column("episode_index").to_pylist()
+        actions = table.column("action").to_pylist()
+        # Rows are in frame order within each episode (the recorder appends them so).
+        shifted, first_row = [], {}
+        for i, ep in enumerate(episodes):
+            first_row.setdefault(ep, i)
+            shifted.append(actions[max(first_row[ep], i - frames)])
+        column = pa.array(shifted, type=table.schema.field("action").type)
+        table = table.set_column(table.schema.get_field_index("action"), "action", column)
+        pq.write_table(table, f)
+    return dst
