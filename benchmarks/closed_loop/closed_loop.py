@@ -433,13 +433,14 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
 # --- the table -----------------------------------------------------------------------------------------------
 
 
-def table(demos: int, train_s: float, steps: int, results: list[PathResult]) -> str:
+def table(demos: int, train_s: float, steps: int, results: list[PathResult], model_given: bool = True) -> str:
     rows = ["| path | demonstrations | training | trials | successes | success rate (95 % Wilson) |",
             "|---|---|---|---|---|---|"]
     for r in results:
         lo, hi = wilson_interval(r.successes, r.trials)
         rate = r.successes / r.trials if r.trials else 0.0
-        training = f"{steps} steps, {train_s / 60:.1f} min" if steps else "a given model (--model)"
+        training = (f"{steps} steps, {train_s / 60:.1f} min" if steps
+                    else "a given model (--model)" if model_given else "none (baselines only)")
         rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
                     f"{rate:.0%} ({lo:.0%}–{hi:.0%}) |")
     return "\n".join(rows)
@@ -540,6 +541,9 @@ def main(argv: list[str]) -> int:
             raise SystemExit("no successful demonstration was saved: nothing to train on")
         if args.model:
             model, train_s, steps = args.model, float("nan"), 0
+        elif not {"api", "plugin", "async"} & set(paths):
+            # Only baselines (replay needs no model; blind and shifted train their own).
+            model, train_s, steps = None, float("nan"), 0
         else:
             model, train_s, steps = train(args, dataset_root, out)
         if physics:
@@ -556,7 +560,7 @@ def main(argv: list[str]) -> int:
                                                 out / "bridge-eval.log")
         else:
             seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
-        extra["models"] = {"policy": model_checksum(model)}
+        extra["models"] = {"policy": model_checksum(model)} if model else {}
         results = []
         if "replay" in paths:
             results.append(physics_task.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
@@ -584,7 +588,7 @@ def main(argv: list[str]) -> int:
         if bridge is not None:
             bridge.stop()
         server.stop()
-    text = table(n_demos, train_s, steps, results)
+    text = table(n_demos, train_s, steps, results, model_given=bool(args.model))
     print(text)
     (out / "results.md").write_text(text + "\n")
     record = {
