@@ -144,7 +144,7 @@ class Server:
 # --- the scene (Scene API) -----------------------------------------------------------------------------------
 
 
-def reset_scene(client, seed: int) -> None:
+def reset_scene(client, seed: int, arm: str = ARM) -> None:
     """Puts the ball at the position `seed` draws and the arm at home (Scene.Reset)."""
     from phone2act import FailedPrecondition
 
@@ -153,7 +153,7 @@ def reset_scene(client, seed: int) -> None:
     deadline = time.monotonic() + 10.0
     while True:
         try:
-            client.scene.reset(ARM, seed=seed, home_arm=True)
+            client.scene.reset(arm, seed=seed, home_arm=True)
             return
         except FailedPrecondition:
             if time.monotonic() > deadline:
@@ -512,6 +512,8 @@ def main(argv: list[str]) -> int:
 
         TASK = physics_task.TASK
     started = time.time()
+    # Read when the run starts: the code that runs is the code checked out now.
+    commit = git_commit()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     token = secrets.token_hex(16)
@@ -594,7 +596,7 @@ def main(argv: list[str]) -> int:
     record = {
         "command": " ".join([sys.argv[0], *argv]), "sim": args.sim, "started_utc": time.strftime(
             "%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)), "minutes": round((time.time() - started) / 60, 1),
-        "commit": git_commit(), "machine": machine(), "versions": versions(),
+        "commit": commit, "machine": machine(), "versions": versions(),
         "demos": n_demos, "frames": int(info["total_frames"]), "operator": demos, "train_seconds": train_s,
         "train_steps": steps, "training_curve": training_curve(out / "train.log"),
         "settings": {k: str(v) for k, v in vars(args).items()}, **extra,

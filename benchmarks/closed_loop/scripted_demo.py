@@ -147,19 +147,10 @@ def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_tim
 
 
 def reset_scene(client, arm: str, seed: int) -> None:
-    from phone2act import FailedPrecondition
+    """`Scene.Reset(seed, home_arm)`, retried while the previous session still owns the arm."""
+    from closed_loop import reset_scene as reset
 
-    # Refused while the previous session still owns the arm: the server learns it ended a moment after the
-    # stream closes. 10 s is far beyond that on a loaded machine.
-    deadline = time.monotonic() + 10.0
-    while True:
-        try:
-            client.scene.reset(arm, seed=seed, home_arm=True)
-            return
-        except FailedPrecondition:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.1)
+    reset(client, seed, arm)
 
 
 def record_demos(bridge, args) -> dict:
