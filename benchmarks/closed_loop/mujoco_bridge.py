@@ -483,7 +483,6 @@ class PhysicsBridge:
                     self.world.set_target(np.array([t.position_m.x, t.position_m.y, t.position_m.z]),
                                           matrix_of(q.x, q.y, q.z, q.w), cmd.gripper_target)
                     self._applied_seq = cmd.seq
-                    self._last_cmd_pos = np.round([t.position_m.x, t.position_m.y, t.position_m.z], 3)
                 self.world.step(period)
                 self._put_up(self._feedback())
                 success = self.world.success()

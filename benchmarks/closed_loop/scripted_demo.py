@@ -60,11 +60,7 @@ def grasp_yaw(world: World, block_xy, block_yaw: float, start_r: np.ndarray) -> 
     for yaw in (block_yaw, block_yaw + math.pi, block_yaw - math.pi):
         r = top_down(yaw)
         q = world.solve(np.array([*block_xy, APPROACH_Z_M]), r, np.array(HOME_RAD))
-        world.scratch.qpos[world.arm_qpos] = q
-        import mujoco
-
-        mujoco.mj_kinematics(world.model, world.scratch)
-        _, got = world.ee_pose(world.scratch)
+        _, got = world.fk(q)
         # Reachable first, then the least turn from where the tool starts.
         err = float(np.linalg.norm(got[:, 0] - r[:, 0])) + 0.05 * float(np.linalg.norm(rotvec(r @ start_r.T)))
         if err < best_err:
