@@ -74,22 +74,25 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[f
 # --- the server --------------------------------------------------------------------------------------------
 
 
-def server_config(dataset_root: Path, image_px: int, fps: int, token: str) -> str:
+def server_config(dataset_root: Path, image_px: int, fps: int, token: str, bridge: str = '"sim"',
+                  camera_kind: str = "sim_render", robot_type: str = "so101_sim") -> str:
+    """One SO-101 arm and its camera. `bridge`: the TOML value of the arm's `bridge` key, optionally followed
+    by the arm's own table (the physics task's remote arm and its joint names)."""
     return f"""[server]
 listen = "127.0.0.1:0"
 token = "{token}"
 
 [[arms]]
 name = "{ARM}"
-bridge = "sim"
 # lerobot's own SO-101 names and units (`shoulder_pan.pos` ... in degrees, `gripper.pos` 0..100): lerobot-rollout
 # routes only `.pos`/`.vel` robot features to a policy, so the end-effector layout would reach it empty.
 action_mode = "joint"
 dataset_layout = "lerobot_so101"
+bridge = {bridge}
 
 [[cameras]]
 name = "{CAMERA}"
-kind = "sim_render"
+kind = "{camera_kind}"
 width = {image_px}
 height = {image_px}
 fps = {fps}
@@ -98,7 +101,7 @@ fps = {fps}
 root = "{dataset_root}"
 format = "v3.0"
 fps = {fps}
-robot_type = "so101_sim"
+robot_type = "{robot_type}"
 video_codec = "libx264"
 """
 
@@ -521,7 +524,7 @@ def main(argv: list[str]) -> int:
     if not args.dataset and dataset_root.exists():
         raise SystemExit(f"{dataset_root} exists: choose a new --out (a run never appends to another's demos)")
     recorder_root = out / "eval-dataset" if args.dataset else dataset_root
-    config = (physics_task.server_config(recorder_root, args.image_px, args.fps, token, ARM, CAMERA) if physics
+    config = (server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER) if physics
               else server_config(recorder_root, args.image_px, args.fps, token))
     server = Server(args.server_bin, out, config)
     bridge = None

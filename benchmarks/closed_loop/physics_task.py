@@ -21,35 +21,13 @@ ARM_JOINTS = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wris
 TASK = "put the red block in the basket"
 
 
-def server_config(dataset_root: Path, image_px: int, fps: int, token: str, arm: str, camera: str) -> str:
-    return f"""[server]
-listen = "127.0.0.1:0"
-token = "{token}"
-
-[[arms]]
-name = "{arm}"
-bridge = "remote"
-# lerobot's own SO-101 layout, as the kinematic task: the arm's joints are the SO-101's, so the server solves
-# joint actions with the same kinematics the MuJoCo model has.
-action_mode = "joint"
-dataset_layout = "lerobot_so101"
-[arms.remote]
-joint_names = {json.dumps(ARM_JOINTS)}
-
-[[cameras]]
-name = "{camera}"
-kind = "remote"
-width = {image_px}
-height = {image_px}
-fps = {fps}
-
-[recorder]
-root = "{dataset_root}"
-format = "v3.0"
-fps = {fps}
-robot_type = "so101_mujoco"
-video_codec = "libx264"
-"""
+# The server's arm and camera for `closed_loop.server_config`: a remote arm with the SO-101's joints (so the
+# server solves joint actions with the kinematics the MuJoCo model has) and a pushed camera.
+SERVER = {
+    "bridge": f'"remote"\n[arms.remote]\njoint_names = {json.dumps(ARM_JOINTS)}',
+    "camera_kind": "remote",
+    "robot_type": "so101_mujoco",
+}
 
 
 class BridgeProcess:

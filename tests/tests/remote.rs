@@ -50,8 +50,8 @@ fn feedback(pose: v1::Pose, applied_seq: u64) -> v1::BridgeUpstream {
     }))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_state() {
+/// A server with the test config, and a channel to it.
+async fn start() -> (tempfile::TempDir, TestServer, tonic::transport::Channel) {
     let dir = tempfile::tempdir().unwrap();
     let server = TestServer::start(config(dir.path())).await.unwrap();
     let channel = tonic::transport::Endpoint::from_shared(server.url())
@@ -59,6 +59,12 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
         .connect()
         .await
         .unwrap();
+    (dir, server, channel)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_state() {
+    let (_dir, server, channel) = start().await;
     let mut bridge = BridgeClient::new(channel.clone());
 
     // Wrong arm and wrong joints are refused with clear statuses.
@@ -287,13 +293,7 @@ async fn pushed_frames_fill_a_remote_camera_and_bad_frames_are_refused() {
 /// built-in simulator answers them in process.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
-    let dir = tempfile::tempdir().unwrap();
-    let server = TestServer::start(config(dir.path())).await.unwrap();
-    let channel = tonic::transport::Endpoint::from_shared(server.url())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let (_dir, server, channel) = start().await;
     let client = server.client().await.unwrap();
     let mut scene = client.scene();
     // Before any bridge declares one, the remote arm has no scene.
