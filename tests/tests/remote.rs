@@ -50,8 +50,8 @@ fn feedback(pose: v1::Pose, applied_seq: u64) -> v1::BridgeUpstream {
     }))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_state() {
+/// A server with the test config, and a channel to it.
+async fn start() -> (tempfile::TempDir, TestServer, tonic::transport::Channel) {
     let dir = tempfile::tempdir().unwrap();
     let server = TestServer::start(config(dir.path())).await.unwrap();
     let channel = tonic::transport::Endpoint::from_shared(server.url())
@@ -59,6 +59,12 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
         .connect()
         .await
         .unwrap();
+    (dir, server, channel)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_state() {
+    let (_dir, server, channel) = start().await;
     let mut bridge = BridgeClient::new(channel.clone());
 
     // Wrong arm and wrong joints are refused with clear statuses.
@@ -97,6 +103,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
         bridge_name: "test".into(),
         joint_names: vec!["a".into(), "b".into(), "c".into()],
         supports_orientation: true,
+        ..v1::BridgeHello::default()
     })))
     .await
     .unwrap();
@@ -280,4 +287,117 @@ async fn pushed_frames_fill_a_remote_camera_and_bad_frames_are_refused() {
         .into_inner();
     assert_eq!(summary.frames_accepted, 1);
     server.shutdown().await.unwrap();
+}
+
+/// A remote bridge that declares a scene answers Scene.Get and Scene.Reset over its own stream, as the
+/// built-in simulator answers them in process.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
+    let (_dir, server, channel) = start().await;
+    let client = server.client().await.unwrap();
+    let mut scene = client.scene();
+    // Before any bridge declares one, the remote arm has no scene.
+    let err = scene.get("ext").await.unwrap_err();
+    assert!(
+        err.to_string().contains("UNIMPLEMENTED") || format!("{err:?}").contains("Unimplemented"),
+        "{err:?}"
+    );
+
+    let state = |seed: u64, success: bool| v1::SceneState {
+        seed,
+        ball_position_m: Some(v1::Vec3::new(0.2, 0.01 * seed as f64, 0.02)),
+        ball_state: v1::BallState::Resting as i32,
+        ball_radius_m: 0.012,
+        basket_position_m: Some(v1::Vec3::new(0.25, 0.1, 0.0)),
+        basket_radius_m: 0.045,
+        basket_height_m: 0.035,
+        success,
+        resets: seed,
+        ..v1::SceneState::default()
+    };
+    let scene_report = |s: v1::SceneState, answers: u64, error: &str| {
+        upstream(v1::bridge_upstream::Message::Scene(v1::BridgeScene {
+            state: Some(s),
+            reset_request_id: answers,
+            error: error.into(),
+        }))
+    };
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+        arm: "ext".into(),
+        joint_names: vec!["a".into(), "b".into(), "c".into()],
+        has_scene: true,
+        ..v1::BridgeHello::default()
+    })))
+    .await
+    .unwrap();
+    let mut down = BridgeClient::new(channel)
+        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(matches!(
+        down.next().await.unwrap().unwrap().message,
+        Some(v1::bridge_downstream::Message::Welcome(_))
+    ));
+    let start = v1::Pose::from_parts([0.2, 0.05, 0.1], [0.0, 0.0, 0.0, 1.0]);
+    tx.send(feedback(start, 0)).await.unwrap();
+    tx.send(scene_report(state(0, false), 0, "")).await.unwrap();
+
+    // The bridge side: answers seed 5 with its scene (success set, to see it reach the arm) and refuses seed 6.
+    let answer_tx = tx.clone();
+    let bridge = tokio::spawn(async move {
+        let mut resets = Vec::new();
+        while let Some(Ok(msg)) = down.next().await {
+            if let Some(v1::bridge_downstream::Message::SceneReset(r)) = msg.message {
+                resets.push(r);
+                let seed = r.seed.unwrap_or(0);
+                let error = if seed == 6 { "no scene for seed 6" } else { "" };
+                answer_tx.send(feedback(start, 0)).await.unwrap();
+                answer_tx
+                    .send(scene_report(state(seed, seed == 5), r.request_id, error))
+                    .await
+                    .unwrap();
+                if resets.len() == 2 {
+                    return resets;
+                }
+            }
+        }
+        resets
+    });
+    // The first report arrives with the stream's next messages; a loaded machine may take a moment.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    let got = loop {
+        match scene.get("ext").await {
+            Ok(s) => break s,
+            Err(_) if tokio::time::Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            Err(e) => panic!("no scene from the bridge: {e:?}"),
+        }
+    };
+    assert_eq!((got.arm.as_str(), got.seed, got.success), ("ext", 0, false));
+
+    let reset = scene.reset("ext", Some(5), true).await.unwrap();
+    assert_eq!((reset.seed, reset.success), (5, true));
+    assert!((reset.ball_position_m.unwrap().y - 0.05).abs() < 1e-12);
+    assert_eq!(scene.get("ext").await.unwrap().seed, 5);
+    // The scene's success is the arm's.
+    let arm = client
+        .system()
+        .list_arms()
+        .await
+        .unwrap()
+        .into_iter()
+        .find(|a| a.arm == "ext")
+        .unwrap();
+    assert!(arm.task_success, "{arm:?}");
+    // A refused reset fails with the bridge's reason; the scene is what the bridge reports (seed 6, no success).
+    let err = scene.reset("ext", Some(6), false).await.unwrap_err();
+    assert!(format!("{err:?}").contains("no scene for seed 6"), "{err:?}");
+    let resets = bridge.await.unwrap();
+    assert_eq!(
+        resets.iter().map(|r| (r.seed, r.home_arm)).collect::<Vec<_>>(),
+        [(Some(5), true), (Some(6), false)]
+    );
 }

@@ -14,6 +14,7 @@
 //! remote is attached are dropped, not queued: a target from before a reconnect must not move the arm
 //! after it. A new attach replaces the old one; the old handle's waits end with [`RemoteError::Superseded`].
 
+use crate::scene::SceneState;
 use crate::{Bridge, BridgeError, Command, Control, Feedback, Health};
 use parking_lot::{Condvar, Mutex};
 use std::collections::VecDeque;
@@ -23,6 +24,11 @@ use std::time::{Duration, Instant};
 /// Control requests waiting for the remote beyond this are dropped oldest first; they are rare and a
 /// backlog of stale enable/disable toggles is worse than losing the oldest.
 const MAX_PENDING_CONTROLS: usize = 16;
+
+/// How long a forwarded scene reset waits for the bridge's answer. A simulator re-draws its scene in well
+/// under a second; 10 s leaves room for a bridge starved on a loaded machine, and a bridge that never
+/// answers costs the caller only this wait (the arm holds meanwhile).
+pub const SCENE_RESET_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Why a remote-bridge call failed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -39,6 +45,8 @@ pub enum RemoteError {
     Detached,
     #[error("the arm is shut down")]
     ShutDown,
+    #[error("a scene report from a bridge whose hello did not set has_scene")]
+    UndeclaredScene,
 }
 
 /// A message for the remote bridge.
@@ -46,6 +54,31 @@ pub enum RemoteError {
 pub enum Downstream {
     Command(Command),
     Control(Control),
+    /// `Scene.Reset` for a bridge that owns its scene; answered through [`AttachHandle::publish_scene`].
+    SceneReset(SceneReset),
+}
+
+/// A scene reset forwarded to the remote bridge.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SceneReset {
+    pub request_id: u64,
+    pub seed: Option<u64>,
+    pub home_arm: bool,
+}
+
+/// The remote side of the arm's scene (bridges that simulate one, see [`AttachHandle::declare_scene`]).
+#[derive(Debug, Default)]
+struct RemoteScene {
+    /// The attached bridge declared a scene; kept after it detaches, so the scene reads as unavailable rather
+    /// than absent until a bridge without one attaches.
+    declared: bool,
+    /// The newest scene the bridge reported.
+    state: Option<SceneState>,
+    /// Resets waiting to go down, and the id of the last one handed out.
+    pending: VecDeque<SceneReset>,
+    last_request_id: u64,
+    /// The newest answer: the request it answers and the scene, or the bridge's reason for failing.
+    answer: Option<(u64, Result<SceneState, String>)>,
 }
 
 #[derive(Debug)]
@@ -66,6 +99,7 @@ struct State {
     speed_watch: Option<phone2act_core::joint_limit::JointSpeedWatch>,
     /// The last joint measured over its limit, for [`Bridge::warning`].
     overspeed: Option<String>,
+    scene: RemoteScene,
 }
 
 #[derive(Debug)]
@@ -125,6 +159,7 @@ impl RemoteBridge {
                     shut_down: false,
                     speed_watch: None,
                     overspeed: None,
+                    scene: RemoteScene::default(),
                 }),
                 changed: Condvar::new(),
                 joint_names,
@@ -188,6 +223,11 @@ impl RemoteBridge {
         state.feedback_problem = None;
         state.health = Health::Ready;
         state.supports_orientation = supports_orientation;
+        // A scene is declared by each attachment anew (after the attach, see `AttachHandle::declare_scene`).
+        state.scene = RemoteScene {
+            last_request_id: state.scene.last_request_id,
+            ..RemoteScene::default()
+        };
         let generation = state.generation;
         drop(state);
         // Wakes the replaced handle's waiter so its stream ends now rather than at its next timeout.
@@ -198,6 +238,13 @@ impl RemoteBridge {
             generation,
             arm: self.arm.clone(),
         })
+    }
+
+    fn not_attached(&self) -> BridgeError {
+        BridgeError::Connect {
+            target: format!("remote bridge for arm {}", self.arm),
+            message: "no remote bridge attached".into(),
+        }
     }
 
     /// True while a remote bridge is attached.
@@ -267,6 +314,67 @@ impl Bridge for RemoteBridge {
         Ok(())
     }
 
+    /// The scene the attached bridge reported last; `Unsupported` unless the bridge declared one.
+    fn scene(&self) -> Result<SceneState, BridgeError> {
+        let state = self.shared.state.lock();
+        if !state.scene.declared {
+            return Err(BridgeError::Unsupported(format!(
+                "arm {}: the remote bridge has no scene (its hello did not set has_scene)",
+                self.arm
+            )));
+        }
+        if !state.attached || state.shut_down {
+            return Err(self.not_attached());
+        }
+        state.scene.state.clone().ok_or_else(|| {
+            BridgeError::Protocol(format!(
+                "arm {}: the remote bridge has not reported its scene yet",
+                self.arm
+            ))
+        })
+    }
+
+    /// Forwards the reset to the attached bridge and waits (at most [`SCENE_RESET_TIMEOUT`]) for its answer.
+    fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, BridgeError> {
+        // Answers `Unsupported`, or why there is no scene to reset.
+        self.scene()?;
+        let mut state = self.shared.state.lock();
+        let generation = state.generation;
+        state.scene.last_request_id += 1;
+        let request_id = state.scene.last_request_id;
+        state.scene.pending.push_back(SceneReset {
+            request_id,
+            seed,
+            home_arm,
+        });
+        self.shared.changed.notify_all();
+        let deadline = Instant::now() + SCENE_RESET_TIMEOUT;
+        loop {
+            if state.generation != generation || !state.attached || state.shut_down {
+                return Err(self.not_attached());
+            }
+            if let Some((id, _)) = &state.scene.answer
+                && *id == request_id
+            {
+                let (_, answer) = state.scene.answer.take().expect("checked above");
+                return answer.map_err(|e| {
+                    BridgeError::Protocol(format!(
+                        "arm {}: the bridge failed the scene reset: {e}",
+                        self.arm
+                    ))
+                });
+            }
+            if self.shared.changed.wait_until(&mut state, deadline).timed_out() {
+                state.scene.pending.retain(|r| r.request_id != request_id);
+                return Err(BridgeError::Protocol(format!(
+                    "arm {}: the remote bridge did not answer the scene reset within {} s",
+                    self.arm,
+                    SCENE_RESET_TIMEOUT.as_secs()
+                )));
+            }
+        }
+    }
+
     fn shutdown(&self) {
         let mut state = self.shared.state.lock();
         if state.shut_down {
@@ -300,6 +408,7 @@ impl AttachHandle {
                 .controls
                 .pop_front()
                 .map(Downstream::Control)
+                .or_else(|| state.scene.pending.pop_front().map(Downstream::SceneReset))
                 .or_else(|| state.command.take().map(Downstream::Command))
         })
     }
@@ -358,6 +467,11 @@ impl AttachHandle {
             return Err(RemoteError::InvalidFeedback(problem));
         }
         state.feedback_problem = None;
+        // A remote scene's success rides on the arm's feedback, as the simulator's does.
+        let mut feedback = feedback;
+        if let Some(scene) = &state.scene.state {
+            feedback.task_success = scene.task_success;
+        }
         let time_s = feedback.capture_time_ns as f64 * 1e-9;
         let over = state
             .speed_watch
@@ -384,6 +498,40 @@ impl AttachHandle {
         Ok(())
     }
 
+    /// This bridge simulates the arm's scene: `Scene.Get` reads what it reports through
+    /// [`Self::publish_scene`] and `Scene.Reset` reaches it as [`Downstream::SceneReset`].
+    pub fn declare_scene(&self) -> Result<(), RemoteError> {
+        let mut state = self.shared.state.lock();
+        Shared::check(&state, self.generation)?;
+        state.scene.declared = true;
+        Ok(())
+    }
+
+    /// The bridge's scene now; `answers` is the id of the reset it answers (0: none) and `error` the bridge's
+    /// reason for failing that reset. Refused from a bridge that declared no scene.
+    pub fn publish_scene(
+        &self,
+        scene: SceneState,
+        answers: u64,
+        error: Option<String>,
+    ) -> Result<(), RemoteError> {
+        let mut state = self.shared.state.lock();
+        Shared::check(&state, self.generation)?;
+        if !state.scene.declared {
+            return Err(RemoteError::UndeclaredScene);
+        }
+        if let Some(feedback) = state.feedback.as_mut() {
+            feedback.task_success = scene.task_success;
+        }
+        if answers != 0 {
+            state.scene.answer = Some((answers, error.map_or_else(|| Ok(scene.clone()), Err)));
+        }
+        state.scene.state = Some(scene);
+        drop(state);
+        self.shared.changed.notify_all();
+        Ok(())
+    }
+
     /// Reports the remote robot's health (errors, reconnects to its own robot).
     pub fn report_health(&self, health: Health) -> Result<(), RemoteError> {
         let mut state = self.shared.state.lock();
@@ -402,6 +550,7 @@ impl AttachHandle {
         state.attached = false;
         state.command = None;
         state.controls.clear();
+        state.scene.pending.clear();
         state.feedback = None;
         state.health = Health::Disconnected("remote bridge detached".into());
         drop(state);
@@ -617,6 +766,90 @@ mod tests {
         assert_eq!(remote.attach(names(), true).err(), Some(RemoteError::ShutDown));
         assert!(matches!(remote.health(), Health::Disconnected(m) if m == "shut down"));
     }
+    fn scene(seed: u64, task_success: bool) -> SceneState {
+        SceneState {
+            seed,
+            resets: seed,
+            ball_center_m: nalgebra::Vector3::new(0.2, 0.0, 0.01),
+            ball_state: crate::scene::BallState::Resting,
+            ball_radius_m: 0.01,
+            basket_xy_m: [0.25, 0.1],
+            basket_radius_m: 0.04,
+            basket_height_m: 0.03,
+            task_success,
+            ball_area_m: crate::scene::TableArea {
+                x_min_m: 0.1,
+                x_max_m: 0.3,
+                y_min_m: -0.1,
+                y_max_m: 0.1,
+            },
+            basket_area_m: None,
+        }
+    }
+
+    #[test]
+    fn a_bridge_without_a_scene_has_none_and_cannot_report_one() {
+        let remote = RemoteBridge::new("main");
+        let handle = remote.attach(names(), true).unwrap();
+        assert!(matches!(remote.scene(), Err(BridgeError::Unsupported(_))));
+        assert!(matches!(
+            remote.reset_scene(Some(1), true),
+            Err(BridgeError::Unsupported(_))
+        ));
+        assert_eq!(
+            handle.publish_scene(scene(1, false), 0, None),
+            Err(RemoteError::UndeclaredScene)
+        );
+        assert_eq!(handle.next(SHORT), Ok(None), "nothing was forwarded");
+    }
+
+    #[test]
+    fn a_scene_reset_is_forwarded_and_answered_and_success_rides_on_feedback() {
+        let remote = RemoteBridge::new("main");
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        handle.declare_scene().unwrap();
+        // Declared but not reported yet: the scene exists, its state is not known.
+        assert!(matches!(remote.scene(), Err(BridgeError::Protocol(_))));
+        handle.publish_scene(scene(0, false), 0, None).unwrap();
+        assert_eq!(remote.scene().unwrap(), scene(0, false));
+        // The remote side: answers the first reset with the scene of its seed, and fails the second.
+        let bridge_side = Arc::clone(&handle);
+        let t = std::thread::spawn(move || {
+            let mut seen = Vec::new();
+            for answer_error in [None, Some("no such seed".to_owned())] {
+                let Ok(Some(Downstream::SceneReset(r))) = bridge_side.next(Duration::from_secs(10)) else {
+                    panic!("expected a scene reset");
+                };
+                seen.push(r);
+                bridge_side
+                    .publish_scene(scene(r.seed.unwrap_or(0), true), r.request_id, answer_error)
+                    .unwrap();
+            }
+            seen
+        });
+        assert_eq!(remote.reset_scene(Some(7), true).unwrap(), scene(7, true));
+        assert!(matches!(
+            remote.reset_scene(None, false),
+            Err(BridgeError::Protocol(m)) if m.contains("no such seed")
+        ));
+        let seen = t.join().unwrap();
+        assert_eq!(
+            seen.iter().map(|r| (r.seed, r.home_arm)).collect::<Vec<_>>(),
+            [(Some(7), true), (None, false)]
+        );
+        assert_ne!(seen[0].request_id, seen[1].request_id);
+        // The scene's success reaches the arm's feedback, as the built-in simulator's does.
+        handle.publish_feedback(feedback(vec![0.0; 3])).unwrap();
+        assert!(remote.feedback().unwrap().task_success);
+        // Detached: the scene is unavailable (not absent), and a reset fails at once rather than waiting.
+        handle.detach();
+        assert!(matches!(remote.scene(), Err(BridgeError::Connect { .. })));
+        assert!(matches!(
+            remote.reset_scene(Some(1), false),
+            Err(BridgeError::Connect { .. })
+        ));
+    }
+
     #[test]
     fn joints_measured_faster_than_their_limits_are_counted_and_shown() {
         let remote = RemoteBridge::with_joint_names("arm", names());

@@ -6,7 +6,7 @@
 use crate::app::App;
 use crate::services::convert;
 use crate::services::error::{self, RequestError, check_len};
-use phone2act_bridges::remote::Downstream;
+use phone2act_bridges::remote::{AttachHandle, Downstream};
 use phone2act_proto::v1;
 use phone2act_proto::v1::bridge_server::Bridge;
 use std::pin::Pin;
@@ -56,6 +56,16 @@ fn check_hello(hello: &v1::BridgeHello) -> Result<(), RequestError> {
         .try_for_each(|n| check_len("a joint name", n, MAX_NAME_BYTES))
 }
 
+/// A scene report from the bridge: stored as the arm's scene, and the answer to a reset if it names one.
+fn publish_scene(handle: &AttachHandle, report: &v1::BridgeScene) -> Result<(), String> {
+    let state = report.state.as_ref().ok_or("BridgeScene has no state")?;
+    let scene = crate::services::scene::scene_from_proto(state)?;
+    let error = (!report.error.is_empty()).then(|| report.error.clone());
+    handle
+        .publish_scene(scene, report.reset_request_id, error)
+        .map_err(|e| e.to_string())
+}
+
 #[tonic::async_trait]
 impl Bridge for BridgeService {
     type AttachStream = DownStream;
@@ -79,8 +89,12 @@ impl Bridge for BridgeService {
                 .attach(hello.joint_names.clone(), hello.supports_orientation)
                 .map_err(|e| error::remote(&e))?,
         );
+        if hello.has_scene {
+            handle.declare_scene().map_err(|e| error::remote(&e))?;
+        }
         // Debug formatting escapes control characters: a bridge name cannot forge log lines.
-        tracing::info!(arm = %hello.arm, bridge = ?hello.bridge_name, "remote bridge attached");
+        tracing::info!(arm = %hello.arm, bridge = ?hello.bridge_name, has_scene = hello.has_scene,
+            "remote bridge attached");
         let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::BridgeDownstream, Status>>(4);
         tx.try_send(Ok(down(v1::bridge_downstream::Message::Welcome(
             v1::BridgeWelcome {
@@ -105,6 +119,13 @@ impl Bridge for BridgeService {
                         }
                         Ok(Some(Downstream::Control(c))) => {
                             v1::bridge_downstream::Message::Control(convert::bridge_control(c))
+                        }
+                        Ok(Some(Downstream::SceneReset(r))) => {
+                            v1::bridge_downstream::Message::SceneReset(v1::BridgeSceneReset {
+                                request_id: r.request_id,
+                                seed: r.seed,
+                                home_arm: r.home_arm,
+                            })
                         }
                         Ok(None) => continue,
                         Err(e) => {
@@ -137,6 +158,7 @@ impl Bridge for BridgeService {
                             v1::bridge_upstream::Message::Status(report) => handle
                                 .report_health(convert::bridge_health(report))
                                 .map_err(|e| e.to_string()),
+                            v1::bridge_upstream::Message::Scene(report) => publish_scene(&handle, &report),
                             v1::bridge_upstream::Message::Hello(_) => {
                                 Err(RequestError::HelloTwice("BridgeHello").to_string())
                             }

@@ -134,9 +134,10 @@ impl From<ArmError> for Status {
 pub fn remote(e: &RemoteError) -> Status {
     let message = e.to_string();
     match e {
-        RemoteError::NoJoints | RemoteError::JointNamesMismatch { .. } | RemoteError::InvalidFeedback(_) => {
-            Status::invalid_argument(message)
-        }
+        RemoteError::NoJoints
+        | RemoteError::JointNamesMismatch { .. }
+        | RemoteError::InvalidFeedback(_)
+        | RemoteError::UndeclaredScene => Status::invalid_argument(message),
         // The attachment ended under the bridge (replaced, detached, shut down): it may attach again.
         RemoteError::Superseded | RemoteError::Detached | RemoteError::ShutDown => Status::aborted(message),
     }

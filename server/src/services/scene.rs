@@ -3,6 +3,7 @@
 
 use crate::app::App;
 use crate::arm::ArmController;
+use crate::services::error::RequestError;
 use phone2act_bridges::sim::{BallState, SceneState, TableArea};
 use phone2act_proto::v1;
 use phone2act_proto::v1::scene_server::Scene;
@@ -34,7 +35,13 @@ impl Scene for SceneService {
     ) -> Result<Response<v1::SceneState>, Status> {
         let request = request.into_inner();
         let arm = self.arm(&request.arm)?;
-        let state = arm.reset_scene(request.seed, request.home_arm)?;
+        // A remote bridge's scene answers over its stream: the wait is a blocking one, off the async runtime
+        // whose tasks carry that answer.
+        let resetting = Arc::clone(&arm);
+        let state =
+            tokio::task::spawn_blocking(move || resetting.reset_scene(request.seed, request.home_arm))
+                .await
+                .map_err(|e| Status::from(RequestError::Internal(format!("scene reset task: {e}"))))??;
         tracing::info!(
             arm = %arm.name,
             seed = state.seed,
@@ -60,6 +67,65 @@ fn area_to_proto(area: &TableArea) -> v1::TableArea {
         y_min_m: area.y_min_m,
         y_max_m: area.y_max_m,
     }
+}
+
+fn area_from_proto(area: &v1::TableArea) -> TableArea {
+    TableArea {
+        x_min_m: area.x_min_m,
+        x_max_m: area.x_max_m,
+        y_min_m: area.y_min_m,
+        y_max_m: area.y_max_m,
+    }
+}
+
+/// A scene as a remote bridge reports it (the inverse of [`scene_to_proto`]; a held or falling ball's
+/// offset and velocity are not on the wire and read as zero). Refuses non-finite numbers.
+pub fn scene_from_proto(scene: &v1::SceneState) -> Result<SceneState, String> {
+    let vec = |v: &Option<v1::Vec3>, what: &str| {
+        let v = v.as_ref().ok_or_else(|| format!("scene has no {what}"))?;
+        let v = nalgebra::Vector3::new(v.x, v.y, v.z);
+        if v.iter().all(|c| c.is_finite()) {
+            Ok(v)
+        } else {
+            Err(format!("scene {what} is not finite"))
+        }
+    };
+    let ball_center_m = vec(&scene.ball_position_m, "ball_position_m")?;
+    let basket = vec(&scene.basket_position_m, "basket_position_m")?;
+    let ball_state = match v1::BallState::try_from(scene.ball_state).unwrap_or_default() {
+        v1::BallState::Held => BallState::Held {
+            tcp_from_ball: nalgebra::Vector3::zeros(),
+        },
+        v1::BallState::Falling => BallState::Falling {
+            velocity_m_s: nalgebra::Vector3::zeros(),
+        },
+        _ => BallState::Resting,
+    };
+    let scalars = [scene.ball_radius_m, scene.basket_radius_m, scene.basket_height_m];
+    if !scalars.iter().all(|v| v.is_finite()) {
+        return Err("scene radius or height is not finite".into());
+    }
+    Ok(SceneState {
+        seed: scene.seed,
+        resets: scene.resets,
+        ball_center_m,
+        ball_state,
+        ball_radius_m: scene.ball_radius_m,
+        basket_xy_m: [basket.x, basket.y],
+        basket_radius_m: scene.basket_radius_m,
+        basket_height_m: scene.basket_height_m,
+        task_success: scene.success,
+        ball_area_m: scene.ball_area_m.as_ref().map_or(
+            TableArea {
+                x_min_m: 0.0,
+                x_max_m: 0.0,
+                y_min_m: 0.0,
+                y_max_m: 0.0,
+            },
+            area_from_proto,
+        ),
+        basket_area_m: scene.basket_area_m.as_ref().map(area_from_proto),
+    })
 }
 
 /// The wire form of a scene.

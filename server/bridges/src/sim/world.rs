@@ -22,6 +22,9 @@ const RELEASE_THRESHOLD: f64 = 0.4;
 /// A gripper closed on the ball stops at the ball's width instead of closing fully.
 const GRIPPER_ON_BALL: f64 = 0.7;
 const GRAVITY_M_S2: f64 = 9.81;
+/// The closed jaws as a sphere of this radius at the tool centre point: what a closed gripper pushes a resting
+/// ball with. An open gripper straddles the ball (a ball within the grasp radius is between its jaws).
+const CLOSED_JAWS_RADIUS_M: f64 = 0.01;
 /// Longest step taken in one go; a stalled thread resumes without the ball tunnelling through the table.
 const MAX_STEP_S: f64 = 0.02;
 /// Thickness of the basket floor.
@@ -329,6 +332,8 @@ impl SimWorld {
                     };
                     self.task_success = false;
                     self.gripper = self.gripper.min(GRIPPER_ON_BALL);
+                } else if self.ball_state == BallState::Resting && self.gripper >= GRASP_CLOSE_THRESHOLD {
+                    self.push_ball(&tcp);
                 }
             }
         }
@@ -345,6 +350,31 @@ impl SimWorld {
                 self.ball_state = BallState::Falling { velocity_m_s };
             }
         }
+    }
+
+    /// A closed gripper cannot pass through a ball resting on the table: where the jaws overlap it, the ball
+    /// slides away from them across the table, just far enough to touch. A ball in the basket stays (its wall
+    /// holds it), and so does a ball the push would carry over the basket's wall.
+    fn push_ball(&mut self, tcp: &Isometry3<f64>) {
+        if self.task_success {
+            return;
+        }
+        let contact_m = self.config.ball_radius_m + CLOSED_JAWS_RADIUS_M;
+        let offset = self.ball_center_m - tcp.translation.vector;
+        if offset.norm() >= contact_m {
+            return;
+        }
+        let horizontal = Vector3::new(offset.x, offset.y, 0.0);
+        // Straight down onto the ball's top: pushed along +x (any direction is as good; this one is fixed).
+        let direction = horizontal.try_normalize(1e-9).unwrap_or_else(Vector3::x);
+        let reach_m = (contact_m * contact_m - offset.z * offset.z).max(0.0).sqrt();
+        let pushed = tcp.translation.vector + direction * reach_m;
+        let [bx, by] = self.basket_xy_m;
+        if (pushed.x - bx).hypot(pushed.y - by) <= self.config.basket_radius_m + self.config.ball_radius_m {
+            return;
+        }
+        self.ball_center_m.x = pushed.x;
+        self.ball_center_m.y = pushed.y;
     }
 
     /// True if a ball centred at (x, y) fits inside the basket wall.
@@ -674,6 +704,38 @@ mod tests {
         assert_eq!(w.ball_state(), BallState::Resting);
         assert!((w.ball_center_m().z - w.config().ball_radius_m).abs() < 1e-12);
         assert!(!w.task_success());
+    }
+
+    #[test]
+    fn a_closed_gripper_pushes_a_resting_ball_instead_of_passing_through_it() {
+        let mut w = world();
+        let [bx, by] = w.config().ball_xy_m;
+        let radius = w.config().ball_radius_m;
+        // Closed, at the ball's height, 8 cm to its -y side, then swept through where the ball is to 4 cm
+        // past it.
+        for (seq, y) in [(1, by - 0.08), (2, by - 0.04), (3, by), (4, by + 0.04)] {
+            for _ in 0..25 {
+                w.apply_command(&command(seq, down_at(bx, y, radius), 1.0));
+                run(&mut w, 0.02);
+                let tcp = w.tool_pose().translation.vector;
+                let gap = (w.ball_center_m() - tcp).norm();
+                assert!(
+                    gap >= radius + CLOSED_JAWS_RADIUS_M - 1e-9,
+                    "the jaws are inside the ball: {gap}"
+                );
+            }
+        }
+        assert_eq!(w.ball_state(), BallState::Resting);
+        let ball = w.ball_center_m();
+        assert!(ball.y > by + 0.04, "pushed ahead of the jaws along +y: {ball:?}");
+        // The jaws' path between targets is the joints' lag, not a straight line: the ball goes where they go.
+        assert!((ball.x - bx).abs() < 0.03, "{ball:?}");
+        assert!((ball.z - radius).abs() < 1e-12, "still on the table: {ball:?}");
+        assert!(!w.task_success());
+        // Opening does not take the ball: it was never between the jaws.
+        w.apply_command(&command(5, w.tool_pose(), 0.0));
+        run(&mut w, 0.3);
+        assert_eq!(w.ball_state(), BallState::Resting);
     }
 
     #[test]
