@@ -50,7 +50,7 @@ def test_scene_reset_and_get(make_server: Callable[..., Server]) -> None:
 
         with pytest.raises(NotFound, match="ghost"):
             c.scene.get("ghost")
-        with pytest.raises(Unimplemented, match="scene reset is not supported by the remote bridge"):
+        with pytest.raises(Unimplemented, match="the remote bridge has no scene"):
             c.scene.reset("ext", seed=1)
         with pytest.raises(Unimplemented):
             c.scene.get("ext")
