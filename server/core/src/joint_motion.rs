@@ -359,6 +359,12 @@ impl<const N: usize> JointStage<N> {
 pub enum ArmJointStage {
     So101(So101JointStage),
     Cr5(Cr5JointStage),
+    /// A chain a remote bridge declared (see [`crate::joint_model`]), by its number of joints.
+    Chain3(JointStage<3>),
+    Chain4(JointStage<4>),
+    Chain5(JointStage<5>),
+    Chain6(JointStage<6>),
+    Chain7(JointStage<7>),
 }
 
 macro_rules! each_stage {
@@ -366,6 +372,11 @@ macro_rules! each_stage {
         match $self {
             ArmJointStage::So101($stage) => $body,
             ArmJointStage::Cr5($stage) => $body,
+            ArmJointStage::Chain3($stage) => $body,
+            ArmJointStage::Chain4($stage) => $body,
+            ArmJointStage::Chain5($stage) => $body,
+            ArmJointStage::Chain6($stage) => $body,
+            ArmJointStage::Chain7($stage) => $body,
         }
     };
 }
@@ -399,6 +410,16 @@ impl ArmJointStage {
     /// See [`JointStage::counters`].
     pub fn counters(&self) -> JointCounters {
         each_stage!(self, s => s.counters())
+    }
+
+    /// See [`JointStage::max_velocity_rad_s`].
+    pub fn max_velocity_rad_s(&self) -> &[f64] {
+        each_stage!(self, s => s.max_velocity_rad_s())
+    }
+
+    /// Number of joints the stage drives.
+    pub fn joints(&self) -> usize {
+        self.max_velocity_rad_s().len()
     }
 
     /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
