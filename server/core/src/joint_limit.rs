@@ -10,12 +10,19 @@
 
 use crate::config::ConfigError;
 
+/// The longest time one step is allowed the motion of, s: one period of a 50 Hz control loop (a phone's
+/// sample rate). A command after a pause (the arm idle, a thread stalled) would otherwise carry the whole
+/// pause's worth of motion at once, a jump the robot executes as fast as it can; capped, the step is one
+/// period's and the rest follows at the arm's tick rate, since a shortened step leaves the stage behind.
+pub const MAX_STEP_S: f64 = 0.02;
+
 /// A rate limiter over one arm's joints (the gripper is not one of them).
 #[derive(Debug, Clone, PartialEq)]
 pub struct JointRateLimiter {
     max_velocity_rad_s: Vec<f64>,
     last_rad: Option<Vec<f64>>,
     last_time_s: f64,
+    max_step_s: f64,
 }
 
 /// What one limited command is.
@@ -44,7 +51,15 @@ impl JointRateLimiter {
             max_velocity_rad_s,
             last_rad: None,
             last_time_s: f64::NEG_INFINITY,
+            max_step_s: MAX_STEP_S,
         })
+    }
+
+    /// The same limiter with another longest step time ([`MAX_STEP_S`] by default), s.
+    #[must_use]
+    pub fn with_max_step_s(mut self, max_step_s: f64) -> Self {
+        self.max_step_s = max_step_s;
+        self
     }
 
     /// The largest speed of each joint.
@@ -68,11 +83,12 @@ impl JointRateLimiter {
         self.last_time_s
     }
 
-    /// Seconds since the last step for a step at `time_s`: 0 when time did not move on (a second command in
-    /// the same instant gets no new motion) or is not a number.
+    /// Seconds of motion a step at `time_s` is allowed: the time since the last step, at most the longest
+    /// step time ([`MAX_STEP_S`]); 0 when time did not move on (a second command in the same instant gets no
+    /// new motion) or is not a number.
     pub fn elapsed_s(&self, time_s: f64) -> f64 {
         let dt = time_s - self.last_time_s;
-        if dt > 0.0 { dt } else { 0.0 }
+        if dt > 0.0 { dt.min(self.max_step_s) } else { 0.0 }
     }
 
     /// The fraction of the step to `desired_rad` that [`Self::step`] would take at `time_s` (1 = all of it),
@@ -248,8 +264,31 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    /// A limiter without the step-time cap, for the properties that do not depend on it.
     fn limiter(v: &[f64]) -> JointRateLimiter {
-        JointRateLimiter::new(v.to_vec()).unwrap()
+        JointRateLimiter::new(v.to_vec())
+            .unwrap()
+            .with_max_step_s(f64::INFINITY)
+    }
+
+    /// After a pause, a step gets one period's motion, not the pause's; the next continues from there.
+    #[test]
+    fn a_step_after_a_pause_gets_one_period_of_motion() {
+        let mut l = JointRateLimiter::new(vec![1.0, 2.0]).unwrap();
+        l.reset(&[0.0, 0.0], 0.0);
+        assert_eq!(l.elapsed_s(10.0), MAX_STEP_S);
+        assert_eq!(l.elapsed_s(0.5 * MAX_STEP_S), 0.5 * MAX_STEP_S);
+        let s = l.step(&[1.0, 0.0], 10.0);
+        assert!(s.limited);
+        assert!((s.joints_rad[0] - MAX_STEP_S).abs() < 1e-15, "{s:?}");
+        let s = l.step(&[1.0, 0.0], 10.01);
+        assert!((s.joints_rad[0] - MAX_STEP_S - 0.01).abs() < 1e-12, "{s:?}");
+        let s = l.step(&[0.0, 0.0], 20.0);
+        assert!((s.joints_rad[0] - 0.01).abs() < 1e-12, "{s:?}");
+        // A step that fits in one period passes whole, however long the pause.
+        let mut l = JointRateLimiter::new(vec![1.0]).unwrap();
+        l.reset(&[0.0], 0.0);
+        assert_eq!(l.step(&[0.015], 5.0).joints_rad, vec![0.015]);
     }
 
     #[test]

@@ -102,7 +102,11 @@ pub fn declared_stage(
             return Ok(model_speeds);
         }
         let configured = configured.resolve(model_speeds.len(), f64::INFINITY)?;
-        Ok(model_speeds.iter().zip(configured).map(|(m, c)| m.min(c)).collect())
+        Ok(model_speeds
+            .iter()
+            .zip(configured)
+            .map(|(m, c)| m.min(c))
+            .collect())
     };
     let count = |model: &str, expected: usize| {
         if joint_names.len() == expected {
@@ -217,7 +221,12 @@ fn check_chain(joints: &[DeclaredJoint], joint_names: &[String]) -> Result<(), M
             joint: j.name.clone(),
             field,
         };
-        if !j.origin_xyz_m.iter().chain(&j.origin_rpy_rad).all(|v| v.is_finite()) {
+        if !j
+            .origin_xyz_m
+            .iter()
+            .chain(&j.origin_rpy_rad)
+            .all(|v| v.is_finite())
+        {
             return Err(not_finite("origin"));
         }
         if !j.axis.iter().all(|v| v.is_finite()) {
@@ -225,7 +234,9 @@ fn check_chain(joints: &[DeclaredJoint], joint_names: &[String]) -> Result<(), M
         }
         // Below this an axis's direction is rounding noise, not a direction.
         if j.axis.iter().map(|v| v * v).sum::<f64>().sqrt() < 1e-9 {
-            return Err(ModelError::ZeroAxis { joint: j.name.clone() });
+            return Err(ModelError::ZeroAxis {
+                joint: j.name.clone(),
+            });
         }
         if !(j.lower_rad.is_finite() && j.upper_rad.is_finite()) {
             return Err(not_finite("the position limits"));
@@ -304,7 +315,13 @@ mod tests {
         .unwrap();
         assert!(matches!(so101, ArmJointStage::So101(_)));
         assert_eq!(so101.max_velocity_rad_s(), &[STS3215_MAX_VELOCITY_RAD_S; 5]);
-        let cr5 = declared_stage(&DeclaredModel::Known("cr5".into()), &names(&CR5_JOINT_NAMES), &none, 0.0).unwrap();
+        let cr5 = declared_stage(
+            &DeclaredModel::Known("cr5".into()),
+            &names(&CR5_JOINT_NAMES),
+            &none,
+            0.0,
+        )
+        .unwrap();
         assert!(matches!(cr5, ArmJointStage::Cr5(_)));
         assert_eq!(cr5.joints(), 6);
         // A configured speed lowers the model's, never raises it.
@@ -312,11 +329,17 @@ mod tests {
             max_velocity_rad_s: vec![1.0, 9.0, 1.0, 9.0, 1.0, 9.0],
             ..JointLimitConfig::default()
         };
-        let cr5 = declared_stage(&DeclaredModel::Known("cr5".into()), &names(&CR5_JOINT_NAMES), &configured, 1.0)
-            .unwrap();
+        let cr5 = declared_stage(
+            &DeclaredModel::Known("cr5".into()),
+            &names(&CR5_JOINT_NAMES),
+            &configured,
+            1.0,
+        )
+        .unwrap();
         let pi = CR5_MAX_VELOCITY_RAD_S;
         assert_eq!(cr5.max_velocity_rad_s(), &[1.0, pi, 1.0, pi, 1.0, pi]);
-        let e = declared_stage(&DeclaredModel::Known("cr5".into()), &names(&["a"; 5]), &none, 1.0).unwrap_err();
+        let e =
+            declared_stage(&DeclaredModel::Known("cr5".into()), &names(&["a"; 5]), &none, 1.0).unwrap_err();
         assert_eq!(
             e,
             ModelError::JointCount {
@@ -325,7 +348,8 @@ mod tests {
                 got: 5
             }
         );
-        let e = declared_stage(&DeclaredModel::Known("ur5".into()), &names(&["a"; 6]), &none, 1.0).unwrap_err();
+        let e =
+            declared_stage(&DeclaredModel::Known("ur5".into()), &names(&["a"; 6]), &none, 1.0).unwrap_err();
         assert!(e.to_string().contains("unknown joint model \"ur5\""), "{e}");
     }
 
@@ -353,20 +377,51 @@ mod tests {
         let refuse = |edit: &dyn Fn(&mut Vec<DeclaredJoint>)| {
             let mut j = four();
             edit(&mut j);
-            declared_stage(&chain(j), &bridge, &none, 1.0).unwrap_err().to_string()
+            declared_stage(&chain(j), &bridge, &none, 1.0)
+                .unwrap_err()
+                .to_string()
         };
         let cases: [(&dyn Fn(&mut Vec<DeclaredJoint>), &str); 11] = [
-            (&|j| j[1].origin_xyz_m[0] = f64::NAN, "joint \"b\": origin must be finite"),
-            (&|j| j[1].origin_rpy_rad[2] = f64::INFINITY, "joint \"b\": origin must be finite"),
+            (
+                &|j| j[1].origin_xyz_m[0] = f64::NAN,
+                "joint \"b\": origin must be finite",
+            ),
+            (
+                &|j| j[1].origin_rpy_rad[2] = f64::INFINITY,
+                "joint \"b\": origin must be finite",
+            ),
             (&|j| j[2].axis = [0.0; 3], "joint \"c\": the axis is zero"),
-            (&|j| j[2].axis = [f64::NAN, 0.0, 1.0], "joint \"c\": axis must be finite"),
-            (&|j| j[3].lower_rad = 2.5, "joint \"d\": lower limit 2.5 rad is above the upper limit 2 rad"),
+            (
+                &|j| j[2].axis = [f64::NAN, 0.0, 1.0],
+                "joint \"c\": axis must be finite",
+            ),
+            (
+                &|j| j[3].lower_rad = 2.5,
+                "joint \"d\": lower limit 2.5 rad is above the upper limit 2 rad",
+            ),
             (&|j| j[3].upper_rad = f64::NAN, "position limits must be finite"),
-            (&|j| j[0].max_velocity_rad_s = 0.0, "max_velocity_rad_s must be finite and > 0, got 0"),
-            (&|j| j[0].max_velocity_rad_s = f64::NAN, "max_velocity_rad_s must be finite and > 0, got NaN"),
-            (&|j| j[0].max_acceleration_rad_s2 = Some(-1.0), "max_acceleration_rad_s2 must be finite and > 0"),
-            (&|j| j[1].name = "x".into(), "declared joint 1 is named \"x\", the bridge's joint 1 is \"b\""),
-            (&|j| { j.pop(); }, "has 3 joints, the bridge names 4"),
+            (
+                &|j| j[0].max_velocity_rad_s = 0.0,
+                "max_velocity_rad_s must be finite and > 0, got 0",
+            ),
+            (
+                &|j| j[0].max_velocity_rad_s = f64::NAN,
+                "max_velocity_rad_s must be finite and > 0, got NaN",
+            ),
+            (
+                &|j| j[0].max_acceleration_rad_s2 = Some(-1.0),
+                "max_acceleration_rad_s2 must be finite and > 0",
+            ),
+            (
+                &|j| j[1].name = "x".into(),
+                "declared joint 1 is named \"x\", the bridge's joint 1 is \"b\"",
+            ),
+            (
+                &|j| {
+                    j.pop();
+                },
+                "has 3 joints, the bridge names 4",
+            ),
         ];
         for (edit, reason) in cases {
             let e = refuse(edit);
@@ -412,7 +467,11 @@ mod tests {
         for _ in 0..200 {
             t += 0.02;
             let q = stage.plan(&target, t);
-            let step = q.iter().zip(&previous).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            let step = q
+                .iter()
+                .zip(&previous)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
             assert!(step <= 1.5 * 0.02 * (1.0 + 1e-9), "{step}");
             previous = q;
             if !stage.behind() {

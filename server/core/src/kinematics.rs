@@ -92,7 +92,7 @@ const CR5_JOINT_ORIGINS: [([f64; 3], [f64; 3]); CR5_DOF] = [
 /// URDF joint origins `(xyz m, rpy rad)` parent → child, base to wrist_roll. The URDF's 3.14159/1.5708 are kept
 /// as written so that the FK matches tools that read the same file.
 #[allow(clippy::approx_constant)]
-const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
+pub const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
     (
         [0.038_835_3, -8.976_57e-9, 0.0624],
         [3.14159, 4.182_53e-17, -3.14159],
@@ -111,7 +111,8 @@ const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
 
 /// Fixed joint gripper_link → gripper_frame_link (the tool centre point).
 #[allow(clippy::approx_constant)]
-const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) = ([-0.0079, -0.000_218_121, -0.098_127_4], [0.0, 3.14159, 0.0]);
+pub const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) =
+    ([-0.0079, -0.000_218_121, -0.098_127_4], [0.0, 3.14159, 0.0]);
 
 /// Extra position-only iterations after an orientation solve that left position short of tolerance.
 const POLISH_ITERATIONS: usize = 20;
@@ -1070,7 +1071,13 @@ mod tests {
         assert!(a.rotation.angle_to(&b.rotation) < 1e-12);
         assert_eq!(chain.limits_rad(), so101.limits_rad());
 
-        let axes = [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [1.0, -1.0, 0.5], [0.0, 0.0, 3.0]];
+        let axes = [
+            [0.0, 0.0, -1.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0],
+            [1.0, -1.0, 0.5],
+            [0.0, 0.0, 3.0],
+        ];
         let joints = std::array::from_fn::<_, 5, _>(|i| UrdfJoint {
             origin_xyz_m: [0.01 * i as f64, 0.05, 0.1],
             origin_rpy_rad: [0.1, -0.2 * i as f64, 0.3],
@@ -1089,12 +1096,19 @@ mod tests {
         };
         for q in [[0.0; 5], q, [-1.0, 2.0, -0.3, 1.4, 2.9]] {
             let (a, b) = (chain.forward(&q), urdf(&q));
-            assert!((a.translation.vector - b.translation.vector).norm() < 1e-12, "{q:?}");
+            assert!(
+                (a.translation.vector - b.translation.vector).norm() < 1e-12,
+                "{q:?}"
+            );
             assert!(a.rotation.angle_to(&b.rotation) < 1e-9, "{q:?}");
         }
         // The solver works on it: a pose of the chain is solved back from a nearby seed.
         let goal = [0.4, -0.2, 0.5, 0.3, 0.1];
-        let sol = chain.inverse(&chain.forward(&goal), &[0.3, -0.1, 0.4, 0.2, 0.0], IkWeights::FULL);
+        let sol = chain.inverse(
+            &chain.forward(&goal),
+            &[0.3, -0.1, 0.4, 0.2, 0.0],
+            IkWeights::FULL,
+        );
         assert!(sol.position_reached, "{sol:?}");
     }
 }

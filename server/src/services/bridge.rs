@@ -79,7 +79,10 @@ fn joint_setup(app: &App, hello: &v1::BridgeHello) -> Result<JointSetup, Request
     let Some(model) = &hello.joint_model else {
         let watch_rad_s = config
             .joint_limits
-            .resolve(hello.joint_names.len(), phone2act_core::joint_motion::REMOTE_DEFAULT_MAX_VELOCITY_RAD_S)
+            .resolve(
+                hello.joint_names.len(),
+                phone2act_core::joint_motion::REMOTE_DEFAULT_MAX_VELOCITY_RAD_S,
+            )
             .map_err(|e| RequestError::Refused(format!("the arm's joint_limits: {e}")))?;
         let note = format!(
             "no joint model declared: the bridge solves its own joints from the pose targets; the server only \
@@ -96,8 +99,13 @@ fn joint_setup(app: &App, hello: &v1::BridgeHello) -> Result<JointSetup, Request
     let refused = |e: String| RequestError::Refused(format!("joint_model refused: {e}"));
     let declared = convert::declared_model(model).map_err(refused)?;
     let weight = if hello.supports_orientation { 1.0 } else { 0.0 };
-    let stage = phone2act_core::joint_model::declared_stage(&declared, &hello.joint_names, &config.joint_limits, weight)
-        .map_err(|e| refused(e.to_string()))?;
+    let stage = phone2act_core::joint_model::declared_stage(
+        &declared,
+        &hello.joint_names,
+        &config.joint_limits,
+        weight,
+    )
+    .map_err(|e| refused(e.to_string()))?;
     let watch_rad_s = stage.max_velocity_rad_s().to_vec();
     let note = format!(
         "joint model declared ({} joints): the server solves every target and limits each joint's step to {} rad/s; \
@@ -205,15 +213,14 @@ impl Bridge for BridgeService {
                         message: Some(message),
                     })) => {
                         let result = match message {
-                            v1::bridge_upstream::Message::Feedback(fb) => {
-                                convert::bridge_feedback(&fb).and_then(|f| {
+                            v1::bridge_upstream::Message::Feedback(fb) => convert::bridge_feedback(&fb)
+                                .and_then(|f| {
                                     if !model_checked {
                                         arm.check_joint_model(&f).map_err(|e| e.to_string())?;
                                         model_checked = true;
                                     }
                                     handle.publish_feedback(f).map_err(|e| e.to_string())
-                                })
-                            }
+                                }),
                             v1::bridge_upstream::Message::Status(report) => handle
                                 .report_health(convert::bridge_health(report))
                                 .map_err(|e| e.to_string()),

@@ -219,7 +219,13 @@ pub fn declared_model(m: &v1::JointModel) -> Result<phone2act_core::joint_model:
                 })
                 .collect::<Result<Vec<_>, String>>()?;
             // An unset tool origin is the last link's own frame.
-            let or_zero = |what: &str, v: &[f64]| if v.is_empty() { Ok([0.0; 3]) } else { three(what, v) };
+            let or_zero = |what: &str, v: &[f64]| {
+                if v.is_empty() {
+                    Ok([0.0; 3])
+                } else {
+                    three(what, v)
+                }
+            };
             Ok(DeclaredModel::Chain {
                 joints,
                 tool_xyz_m: or_zero("tool_xyz_m", &chain.tool_xyz_m)?,
