@@ -513,6 +513,7 @@ fn bridge_message() -> impl Strategy<Value = v1::BridgeUpstream> {
                 bridge_name: "fuzz".into(),
                 joint_names: joints.into_iter().map(str::to_owned).collect(),
                 supports_orientation: orientation,
+                ..v1::BridgeHello::default()
             })),
         (
             any::<i64>(),

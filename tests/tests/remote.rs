@@ -97,6 +97,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
         bridge_name: "test".into(),
         joint_names: vec!["a".into(), "b".into(), "c".into()],
         supports_orientation: true,
+        ..v1::BridgeHello::default()
     })))
     .await
     .unwrap();

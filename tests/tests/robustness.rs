@@ -114,6 +114,7 @@ fn hello(joints: Vec<String>) -> v1::BridgeUpstream {
         bridge_name: "robustness".into(),
         joint_names: joints,
         supports_orientation: true,
+        ..v1::BridgeHello::default()
     }))
 }
 
