@@ -575,7 +575,12 @@ impl ArmConfig {
                 REMOTE_DEFAULT_MAX_VELOCITY_RAD_S,
             ),
         };
-        self.joint_limits.resolve(joints, default_rad_s)
+        let speeds = self.joint_limits.resolve(joints, default_rad_s)?;
+        // A remote arm's joint count may come from its bridge: an acceleration list is checked against it then.
+        if joints > 0 || self.joint_limits.max_acceleration_rad_s2.len() <= 1 {
+            self.joint_limits.resolve_acceleration(joints.max(1))?;
+        }
+        Ok(speeds)
     }
 
     /// Ranges serde cannot check, for this arm and the bridge section it uses.

@@ -161,17 +161,43 @@ pub fn declared_stage(
                 speeds,
                 orientation_weight,
             };
-            match urdf.len() {
+            let stage = match urdf.len() {
                 3 => ArmJointStage::Chain3(chain.build()?),
                 4 => ArmJointStage::Chain4(chain.build()?),
                 5 => ArmJointStage::Chain5(chain.build()?),
                 6 => ArmJointStage::Chain6(chain.build()?),
                 7 => ArmJointStage::Chain7(chain.build()?),
                 got => return Err(ModelError::ChainLength { got }),
-            }
+            };
+            let declared: Vec<f64> = joints
+                .iter()
+                .map(|j| j.max_acceleration_rad_s2.unwrap_or(f64::INFINITY))
+                .collect();
+            return with_accelerations(stage, Some(declared), configured);
         }
     };
-    Ok(stage)
+    with_accelerations(stage, None, configured)
+}
+
+/// `stage` with the declared accelerations (infinite where none), lowered by the configured ones; unchanged
+/// when neither sets any.
+fn with_accelerations(
+    stage: ArmJointStage,
+    declared: Option<Vec<f64>>,
+    configured: &JointLimitConfig,
+) -> Result<ArmJointStage, ModelError> {
+    let joints = stage.joints();
+    let configured = configured.resolve_acceleration(joints)?;
+    let accelerations = match (declared, configured) {
+        (None, None) => return Ok(stage),
+        (Some(d), None) => d,
+        (None, Some(c)) => c,
+        (Some(d), Some(c)) => d.iter().zip(c).map(|(d, c)| d.min(c)).collect(),
+    };
+    if accelerations.iter().all(|a| a.is_infinite()) {
+        return Ok(stage);
+    }
+    Ok(stage.with_max_acceleration_rad_s2(accelerations)?)
 }
 
 /// The parts of a declared chain's stage, for one joint count.
@@ -367,6 +393,48 @@ mod tests {
             let stage = declared_stage(&chain(joints), &bridge, &none, 1.0).unwrap();
             assert_eq!(stage.joints(), n);
         }
+    }
+
+    /// Declared accelerations reach the stage, lowered by configured ones; none declared and none configured
+    /// leaves the stage without acceleration limits.
+    #[test]
+    fn accelerations_are_declared_and_lowered_by_the_configuration() {
+        let bridge = names(&["a", "b", "c", "d"]);
+        let none = JointLimitConfig::default();
+        let stage = declared_stage(&chain(four()), &bridge, &none, 1.0).unwrap();
+        assert!(accelerations(&stage).is_none());
+        let mut joints = four();
+        joints[1].max_acceleration_rad_s2 = Some(3.0);
+        let stage = declared_stage(&chain(joints.clone()), &bridge, &none, 1.0).unwrap();
+        let inf = f64::INFINITY;
+        assert_eq!(accelerations(&stage).unwrap(), vec![inf, 3.0, inf, inf]);
+        let configured = JointLimitConfig {
+            max_acceleration_rad_s2: vec![2.0, 9.0, 9.0, 9.0],
+            ..JointLimitConfig::default()
+        };
+        let stage = declared_stage(&chain(joints), &bridge, &configured, 1.0).unwrap();
+        assert_eq!(accelerations(&stage).unwrap(), vec![2.0, 3.0, 9.0, 9.0]);
+        let configured = JointLimitConfig {
+            max_acceleration_rad_s2: vec![5.0],
+            ..JointLimitConfig::default()
+        };
+        let so101 = declared_stage(
+            &DeclaredModel::Known("so101".into()),
+            &names(&SO101_ARM_JOINT_NAMES),
+            &configured,
+            1.0,
+        )
+        .unwrap();
+        assert_eq!(accelerations(&so101).unwrap(), vec![5.0; 5]);
+        let bad = JointLimitConfig {
+            max_acceleration_rad_s2: vec![1.0, 2.0],
+            ..JointLimitConfig::default()
+        };
+        assert!(declared_stage(&chain(four()), &bridge, &bad, 1.0).is_err());
+    }
+
+    fn accelerations(stage: &ArmJointStage) -> Option<Vec<f64>> {
+        stage.max_acceleration_rad_s2().map(<[f64]>::to_vec)
     }
 
     /// Every malformed declaration is refused, each with its own reason.

@@ -39,8 +39,10 @@ use std::f64::consts::PI;
 /// behind them unseen.
 pub const STS3215_MAX_VELOCITY_RAD_S: f64 = 4.7;
 
-/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6 in Dobot's CR5 specifications (user guide,
-/// "Technical specifications", maximum joint speed).
+/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6, the figure usually quoted for the CR5. Not
+/// confirmed against a Dobot data sheet (the user guide pages reachable here do not state it, and Dobot's URDF,
+/// `Dobot-Arm/DOBOT_6Axis_ROS2_V4` `cr5_robot.urdf`, gives `velocity="0"`); the controller limits `ServoJ`
+/// itself too (docs/joint-limits.md).
 pub const CR5_MAX_VELOCITY_RAD_S: f64 = PI;
 
 /// Joint speed assumed for a remote bridge, whose robot the server does not know: 1 rad/s (57°/s), below
@@ -76,6 +78,10 @@ pub struct JointLimitConfig {
     /// joint; empty means the robot's default ([`STS3215_MAX_VELOCITY_RAD_S`] for an SO-101,
     /// [`CR5_MAX_VELOCITY_RAD_S`] for a CR5, [`REMOTE_DEFAULT_MAX_VELOCITY_RAD_S`] for a remote bridge).
     pub max_velocity_rad_s: Vec<f64>,
+    /// Largest acceleration of each arm joint (rad/s²), in the same order; one value applies to every joint.
+    /// Empty means none: the SO-101's servos ramp their own speed (their `Acceleration` register) and the CR5's
+    /// controller plans its own acceleration, and no data sheet here gives a joint figure for either.
+    pub max_acceleration_rad_s2: Vec<f64>,
 }
 
 impl JointLimitConfig {
@@ -97,6 +103,30 @@ impl JointLimitConfig {
         // The limiter refuses what is not a speed.
         JointRateLimiter::new(speeds.clone())?;
         Ok(speeds)
+    }
+
+    /// The acceleration of each of `joints` joints, `None` when none is configured. Refuses a list of another
+    /// length and a value that is not finite and positive.
+    pub fn resolve_acceleration(&self, joints: usize) -> Result<Option<Vec<f64>>, ConfigError> {
+        let values = match self.max_acceleration_rad_s2.as_slice() {
+            [] => return Ok(None),
+            [one] => vec![*one; joints],
+            many if many.len() == joints => many.to_vec(),
+            many => {
+                return Err(ConfigError::WrongLength {
+                    name: "max_acceleration_rad_s2",
+                    expected: joints,
+                    got: many.len(),
+                });
+            }
+        };
+        if let Some(&a) = values.iter().find(|a| !(a.is_finite() && **a > 0.0)) {
+            return Err(ConfigError::NotPositive {
+                name: "max_acceleration_rad_s2",
+                value: a,
+            });
+        }
+        Ok(Some(values))
     }
 }
 
@@ -211,10 +241,7 @@ impl<const N: usize> JointStage<N> {
         match joints {
             Some(q) => self.limiter.reset(&q, time_s),
             // Not this arm's joints: no start, so the next command is not limited from a wrong one.
-            None => {
-                self.limiter = JointRateLimiter::new(self.limiter.max_velocity_rad_s().to_vec())
-                    .expect("speeds were validated");
-            }
+            None => self.limiter.forget(),
         }
         self.turn_axis = None;
         self.behind = false;
@@ -244,6 +271,19 @@ impl<const N: usize> JointStage<N> {
     /// The joint speeds in force.
     pub fn max_velocity_rad_s(&self) -> &[f64] {
         self.limiter.max_velocity_rad_s()
+    }
+
+    /// The same stage with acceleration limits (`N` values, rad/s²; infinite for a joint without one): each
+    /// joint's commanded velocity then changes by at most `a·dt` per command and slows in time to stop at
+    /// its target (see [`JointRateLimiter::with_max_acceleration_rad_s2`]).
+    pub fn with_max_acceleration_rad_s2(
+        mut self,
+        max_acceleration_rad_s2: Vec<f64>,
+    ) -> Result<Self, ConfigError> {
+        self.limiter = self
+            .limiter
+            .with_max_acceleration_rad_s2(max_acceleration_rad_s2)?;
+        Ok(self)
     }
 
     /// The joints to command for `target` at `time_s`.
@@ -303,7 +343,13 @@ impl<const N: usize> JointStage<N> {
         }
         let (ik, missed) = solution.expect("at least one solve");
         let step = self.limiter.step(&ik.joints_rad, time_s);
-        let joints_rad = to_joints(&step.joints_rad).expect("the limiter keeps the width");
+        let stepped: [f64; N] = to_joints(&step.joints_rad).expect("the limiter keeps the width");
+        // A joint still moving when its target turned back may be carried past it by the acceleration limit; its
+        // range is a hard stop.
+        let joints_rad = self.kinematics.clamp(&stepped);
+        if joints_rad != stepped {
+            self.limiter.stop_at(&joints_rad);
+        }
         let achieved = self.kinematics.forward(&joints_rad);
         let moved = joints_rad
             .iter()
@@ -412,9 +458,30 @@ impl ArmJointStage {
         each_stage!(self, s => s.counters())
     }
 
+    /// See [`JointStage::with_max_acceleration_rad_s2`].
+    pub fn with_max_acceleration_rad_s2(
+        self,
+        max_acceleration_rad_s2: Vec<f64>,
+    ) -> Result<Self, ConfigError> {
+        Ok(match self {
+            Self::So101(s) => Self::So101(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Cr5(s) => Self::Cr5(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain3(s) => Self::Chain3(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain4(s) => Self::Chain4(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain5(s) => Self::Chain5(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain6(s) => Self::Chain6(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain7(s) => Self::Chain7(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+        })
+    }
+
     /// See [`JointStage::max_velocity_rad_s`].
     pub fn max_velocity_rad_s(&self) -> &[f64] {
         each_stage!(self, s => s.max_velocity_rad_s())
+    }
+
+    /// The acceleration limits in force, if any.
+    pub fn max_acceleration_rad_s2(&self) -> Option<&[f64]> {
+        each_stage!(self, s => s.limiter.max_acceleration_rad_s2())
     }
 
     /// Number of joints the stage drives.
@@ -559,10 +626,12 @@ mod tests {
         assert_eq!(none.resolve(3, 2.0).unwrap(), vec![2.0; 3]);
         let one = JointLimitConfig {
             max_velocity_rad_s: vec![1.5],
+            ..JointLimitConfig::default()
         };
         assert_eq!(one.resolve(2, 2.0).unwrap(), vec![1.5; 2]);
         let each = JointLimitConfig {
             max_velocity_rad_s: vec![1.0, 2.0],
+            ..JointLimitConfig::default()
         };
         assert_eq!(each.resolve(2, 9.0).unwrap(), vec![1.0, 2.0]);
         assert!(matches!(
@@ -575,6 +644,7 @@ mod tests {
         ));
         let zero = JointLimitConfig {
             max_velocity_rad_s: vec![0.0],
+            ..JointLimitConfig::default()
         };
         assert!(zero.resolve(2, 1.0).is_err());
         assert!(So101JointStage::new(vec![1.0; 4], 1.0).is_err());
@@ -780,6 +850,47 @@ mod tests {
             so101.forward(&[0.0, -0.4, 0.6, 0.9, 0.0]),
             Some(So101Kinematics::new().forward(&[0.0, -0.4, 0.6, 0.9, 0.0]))
         );
+    }
+
+    /// With acceleration limits the stage reaches a far target too: every step within the speed limit, every
+    /// velocity change within `a·dt` (the landing one within twice it), the joints inside their ranges.
+    #[test]
+    fn a_far_target_is_reached_under_acceleration_limits() {
+        const A: f64 = 20.0;
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let target = k.forward(&[0.8, 0.2, 0.1, 0.5, 1.0]);
+        let mut s = stage()
+            .with_max_acceleration_rad_s2(vec![A; SO101_ARM_DOF])
+            .unwrap();
+        assert!(stage().with_max_acceleration_rad_s2(vec![A; 4]).is_err());
+        s.reset(&start, 0.0);
+        let (mut previous, mut velocity, mut t) = (start, [0.0; SO101_ARM_DOF], 0.0);
+        for _ in 0..400 {
+            t += PERIOD_S;
+            let p = s.plan(&target, t);
+            assert!(within_limits(&p.joints_rad));
+            for j in 0..SO101_ARM_DOF {
+                let v = (p.joints_rad[j] - previous[j]) / PERIOD_S;
+                assert!(
+                    v.abs() <= STS3215_MAX_VELOCITY_RAD_S * (1.0 + 1e-9),
+                    "joint {j}: {v}"
+                );
+                assert!(
+                    (v - velocity[j]).abs() <= 2.0 * A * PERIOD_S * (1.0 + 1e-9),
+                    "joint {j}: {} -> {v}",
+                    velocity[j]
+                );
+                velocity[j] = v;
+            }
+            previous = p.joints_rad;
+            if !s.behind() {
+                break;
+            }
+        }
+        assert!(!s.behind(), "still behind after 8 s");
+        let done = s.plan(&target, t + PERIOD_S);
+        assert!(done.position_error_m < 1e-4, "{done:?}");
     }
 
     /// A reachable CR5 target far from the start (a 6-DoF arm: position and orientation both) is approached
