@@ -167,7 +167,11 @@ def test_a_declared_chain_gets_joint_targets_within_its_limit(so_server: Server)
 def test_a_malformed_chain_is_refused_with_the_reason(so_server: Server) -> None:
     chain = so101_chain(LIMIT_RAD_S)
     chain[2] = replace(chain[2], axis=(0.0, 0.0, 0.0))
-    bridge = ExampleBridge(so_server.target, "so", FirstOrderArm(joint_names=SO101_NAMES, chain=chain))
+    robot = FirstOrderArm(joint_names=SO101_NAMES, chain=so101_chain(LIMIT_RAD_S))
+    robot.chain = chain  # declared as is: the SDK's own forward kinematics would refuse it first
+    with pytest.raises(ValueError, match="not a direction"):
+        forward(chain, [0.0] * 5)
+    bridge = ExampleBridge(so_server.target, "so", robot)
     thread = bridge.start()
     thread.join(timeout=10)
     assert bridge.error is not None and bridge.error.code() == grpc.StatusCode.INVALID_ARGUMENT, bridge.error

@@ -68,6 +68,8 @@ def _rotate(q: Sequence[float], v: Sequence[float]) -> Vec3:
 
 def _axis_angle(axis: Sequence[float], angle: float) -> Quat:
     n = math.sqrt(sum(a * a for a in axis))
+    if not n > 0.0:
+        raise ValueError(f"axis {tuple(axis)} is not a direction")
     s = math.sin(angle / 2) / n
     return (axis[0] * s, axis[1] * s, axis[2] * s, math.cos(angle / 2))
 
