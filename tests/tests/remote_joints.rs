@@ -164,6 +164,8 @@ impl TestBridge {
             loop {
                 tick.tick().await;
                 let (q, pose, seq) = feedback_joints.lock().clone();
+                // Any field the message gains later keeps its default.
+                #[allow(clippy::needless_update)]
                 let fb = v1::RobotFeedback {
                     capture_time_ns: phone2act_clock::monotonic_ns(),
                     joint_positions_rad: q,
@@ -225,13 +227,16 @@ impl Drop for TestBridge {
 }
 
 fn hello(arm: &str, model: Option<v1::JointModel>) -> v1::BridgeHello {
-    let mut hello = v1::BridgeHello::default();
-    hello.arm = arm.into();
-    hello.bridge_name = "joint-model-test".into();
-    hello.joint_names = names();
-    hello.supports_orientation = true;
-    hello.joint_model = model;
-    hello
+    // Any field the message gains later keeps its default.
+    #[allow(clippy::needless_update)]
+    v1::BridgeHello {
+        arm: arm.into(),
+        bridge_name: "joint-model-test".into(),
+        joint_names: names(),
+        supports_orientation: true,
+        joint_model: model,
+        ..v1::BridgeHello::default()
+    }
 }
 
 /// The largest joint step of `commands` as a fraction of what the declared limit allows between their issue

@@ -74,7 +74,7 @@ impl JointRateLimiter {
                 got: max_acceleration_rad_s2.len(),
             });
         }
-        if let Some(&a) = max_acceleration_rad_s2.iter().find(|a| !(**a > 0.0)) {
+        if let Some(&a) = max_acceleration_rad_s2.iter().find(|a| a.is_nan() || **a <= 0.0) {
             return Err(ConfigError::NotPositive {
                 name: "max_acceleration_rad_s2",
                 value: a,
@@ -107,7 +107,7 @@ impl JointRateLimiter {
                 .zip(joints_rad)
                 .zip(self.velocity_rad_s.iter_mut())
             {
-                if q != new {
+                if q.to_bits() != new.to_bits() {
                     *q = *new;
                     *v = 0.0;
                 }

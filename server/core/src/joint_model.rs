@@ -437,6 +437,8 @@ mod tests {
         stage.max_acceleration_rad_s2().map(<[f64]>::to_vec)
     }
 
+    type Edit<'a> = &'a dyn Fn(&mut Vec<DeclaredJoint>);
+
     /// Every malformed declaration is refused, each with its own reason.
     #[test]
     fn a_malformed_chain_is_refused_with_the_reason() {
@@ -449,7 +451,7 @@ mod tests {
                 .unwrap_err()
                 .to_string()
         };
-        let cases: [(&dyn Fn(&mut Vec<DeclaredJoint>), &str); 11] = [
+        let cases: [(Edit, &str); 11] = [
             (
                 &|j| j[1].origin_xyz_m[0] = f64::NAN,
                 "joint \"b\": origin must be finite",

@@ -347,7 +347,7 @@ impl<const N: usize> JointStage<N> {
         // A joint still moving when its target turned back may be carried past it by the acceleration limit; its
         // range is a hard stop.
         let joints_rad = self.kinematics.clamp(&stepped);
-        if joints_rad != stepped {
+        if !self.kinematics.within_limits(&stepped) {
             self.limiter.stop_at(&joints_rad);
         }
         let achieved = self.kinematics.forward(&joints_rad);
