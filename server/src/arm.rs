@@ -295,17 +295,7 @@ impl ArmController {
             });
         }
         if let Some(feedback) = self.bridge.feedback() {
-            if let Some(model) = stage.forward(&feedback.joint_positions_rad) {
-                let off_m = (model.translation.vector - feedback.robot_from_ee.translation.vector).norm();
-                let off_rad = model.rotation.angle_to(&feedback.robot_from_ee.rotation);
-                if off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD {
-                    return Err(ArmError::JointModelMismatch {
-                        arm: self.name.clone(),
-                        off_mm: off_m * 1e3,
-                        off_deg: off_rad.to_degrees(),
-                    });
-                }
-            }
+            self.model_matches(&stage, &feedback)?;
             stage.reset(&feedback.joint_positions_rad, now_s());
         } else {
             tracing::warn!(arm = %self.name, "no feedback at start: the joint model was not checked against the robot");
@@ -325,12 +315,16 @@ impl ArmController {
     /// joints (the check [`Self::with_joint_stage`] makes at start, for a stage put in place later). Ok
     /// without a joint stage or for joints of another width.
     pub fn check_joint_model(&self, feedback: &Feedback) -> Result<(), ArmError> {
-        let inner = self.inner.lock();
-        let Some(model) = inner
-            .joints
-            .as_ref()
-            .and_then(|j| j.forward(&feedback.joint_positions_rad))
-        else {
+        match self.inner.lock().joints.as_ref() {
+            Some(stage) => self.model_matches(stage, feedback),
+            None => Ok(()),
+        }
+    }
+
+    /// Ok if `stage`'s pose of the reported joints is within [`MODEL_MATCH_M`] and [`MODEL_MATCH_RAD`] of the
+    /// reported tool pose (or the joints are not the stage's width).
+    fn model_matches(&self, stage: &ArmJointStage, feedback: &Feedback) -> Result<(), ArmError> {
+        let Some(model) = stage.forward(&feedback.joint_positions_rad) else {
             return Ok(());
         };
         let off_m = (model.translation.vector - feedback.robot_from_ee.translation.vector).norm();

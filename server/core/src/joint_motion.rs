@@ -893,6 +893,52 @@ mod tests {
         assert!(done.position_error_m < 1e-4, "{done:?}");
     }
 
+    /// Near the CR5's wrist singularity (J5 close to 0) a small turn of the tool needs a large turn of J4 and J6,
+    /// so the orientation step is halved until it fits: down to an eighth of the aimed step before position
+    /// only. Scanning J5 toward the singularity finds starts where only the eighth fits; there the tool turns
+    /// by about an eighth of the aim (not by nothing, which is what giving up one halving early would do), and
+    /// no command ever exceeds the limit.
+    #[test]
+    fn near_a_singularity_the_orientation_step_is_halved_three_times_before_giving_up() {
+        let k = Cr5Kinematics::new();
+        let aim_rad = CR5_MAX_VELOCITY_RAD_S * PERIOD_S;
+        let mut eighths = 0;
+        let mut position_only = 0;
+        for i in 1..=120 {
+            let j5 = f64::from(i) * 0.005;
+            let start = [0.3, 0.2, 1.6, 0.4, j5, -0.2];
+            let from = k.forward(&start);
+            // A turn about the tool's own x axis: J5 near 0 leaves J4 and J6 to make it.
+            let turn = UnitQuaternion::from_axis_angle(&(from.rotation * Vector3::x_axis()), 0.4);
+            let target = Isometry3::from_parts(from.translation, turn * from.rotation);
+            let mut s = cr5_stage();
+            s.reset(&start, 0.0);
+            let p = s.plan(&target, PERIOD_S);
+            let step = start
+                .iter()
+                .zip(&p.joints_rad)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                step <= CR5_MAX_VELOCITY_RAD_S * PERIOD_S * (1.0 + 1e-9),
+                "J5 {j5}: step {step}"
+            );
+            let turned = from.rotation.angle_to(&p.achieved.rotation);
+            if turned > aim_rad / 12.0 && turned < aim_rad / 6.0 {
+                eighths += 1;
+            }
+            position_only += usize::from(turned < 1e-9);
+        }
+        assert!(
+            eighths > 0,
+            "no start needed exactly three halvings ({position_only} gave up)"
+        );
+        assert!(
+            position_only > 0,
+            "no start was close enough to the singularity to give up"
+        );
+    }
+
     /// A reachable CR5 target far from the start (a 6-DoF arm: position and orientation both) is approached
     /// at the limit and reached, position and orientation.
     #[test]
