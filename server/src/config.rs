@@ -1088,6 +1088,25 @@ mod tests {
     }
 
     #[test]
+    fn joint_accelerations_are_checked_like_speeds() {
+        let arm = "[[arms]]\nname = \"a\"\nbridge = \"sim\"\n[arms.joint_limits]\n";
+        let ok = parse(&format!("{arm}max_acceleration_rad_s2 = [20.0]\n")).unwrap();
+        assert_eq!(ok.arms[0].joint_limits.max_acceleration_rad_s2, vec![20.0]);
+        for (value, why) in [
+            ("[1.0, 2.0]", "needs 5 values"),
+            ("[0.0]", "must be finite and > 0"),
+        ] {
+            let err = parse(&format!("{arm}max_acceleration_rad_s2 = {value}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("max_acceleration_rad_s2") && err.contains(why),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
     fn a_flight_log_needs_a_directory_and_room_for_more_than_a_few_seconds() {
         let arm = "[[arms]]\nname = \"a\"\nbridge = \"sim\"\n";
         let ok = parse(&format!("{arm}[flight_log]\ndir = \"logs\"\n")).unwrap();
