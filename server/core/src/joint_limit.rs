@@ -658,6 +658,51 @@ mod tests {
         assert_eq!(l.step(&[3.0], t + 0.03).joints_rad, vec![3.0]);
     }
 
+    /// Under acceleration limits: a request in the same instant holds (and keeps the velocity, so the next step
+    /// carries on), a non-finite request holds and stops the joints (the next step starts from rest), and the
+    /// reported scale is the fraction of the asked step taken.
+    #[test]
+    fn accelerated_steps_hold_on_bad_input_and_in_no_time() {
+        let (v, a, dt) = (1.0, 10.0, 0.01);
+        let mut l = accelerating(&[v, v], &[a, a]);
+        l.reset(&[0.5, 0.5], 0.0);
+        let mut t = 0.0;
+        // 0.1 s to reach the speed limit; twice that to be sure of cruising.
+        for _ in 0..20 {
+            t += dt;
+            l.step(&[5.0, 5.0], t);
+        }
+        let cruising = l.last().unwrap().to_vec();
+        assert_eq!(l.step(&cruising, t).joints_rad, cruising);
+        let s = l.step(&[5.0, 5.0], t);
+        assert_eq!(s.joints_rad, cruising);
+        t += dt;
+        let s = l.step(&[5.0, 5.0], t);
+        assert!(
+            (s.joints_rad[0] - cruising[0] - v * dt).abs() < 1e-12,
+            "{s:?} after {cruising:?}"
+        );
+        assert!((s.scale - v * dt / (5.0 - cruising[0])).abs() < 1e-12, "{s:?}");
+        let held = s.joints_rad.clone();
+        t += dt;
+        let s = l.step(&[f64::NAN, 5.0], t);
+        assert_eq!(s.joints_rad, held);
+        assert!(s.limited);
+        // Stopped: asking for where it is moves nothing and takes all of the (empty) step.
+        t += dt;
+        let s = l.step(&held, t);
+        assert_eq!(
+            (s.joints_rad.clone(), s.scale, s.limited),
+            (held.clone(), 1.0, false)
+        );
+        t += dt;
+        let s = l.step(&[5.0, 5.0], t);
+        assert!(
+            (s.joints_rad[0] - held[0] - a * dt * dt).abs() < 1e-12,
+            "{s:?} after {held:?}"
+        );
+    }
+
     proptest! {
         /// Speed and acceleration limits together, for any request sequence and any step times: no joint moves
         /// faster than its speed limit, and no joint's velocity changes by more than its acceleration limit
