@@ -451,7 +451,7 @@ mod tests {
                 .unwrap_err()
                 .to_string()
         };
-        let cases: [(Edit, &str); 11] = [
+        let cases: [(Edit, &str); 14] = [
             (
                 &|j| j[1].origin_xyz_m[0] = f64::NAN,
                 "joint \"b\": origin must be finite",
@@ -461,6 +461,11 @@ mod tests {
                 "joint \"b\": origin must be finite",
             ),
             (&|j| j[2].axis = [0.0; 3], "joint \"c\": the axis is zero"),
+            // Shorter than 1e-9 is no direction either.
+            (
+                &|j| j[2].axis = [5e-10, 0.0, 0.0],
+                "joint \"c\": the axis is zero",
+            ),
             (
                 &|j| j[2].axis = [f64::NAN, 0.0, 1.0],
                 "joint \"c\": axis must be finite",
@@ -472,15 +477,23 @@ mod tests {
             (&|j| j[3].upper_rad = f64::NAN, "position limits must be finite"),
             (
                 &|j| j[0].max_velocity_rad_s = 0.0,
-                "max_velocity_rad_s must be finite and > 0, got 0",
+                "joint \"a\": max_velocity_rad_s must be finite and > 0, got 0",
             ),
             (
                 &|j| j[0].max_velocity_rad_s = f64::NAN,
-                "max_velocity_rad_s must be finite and > 0, got NaN",
+                "joint \"a\": max_velocity_rad_s must be finite and > 0, got NaN",
+            ),
+            (
+                &|j| j[0].max_velocity_rad_s = f64::INFINITY,
+                "joint \"a\": max_velocity_rad_s must be finite and > 0, got inf",
             ),
             (
                 &|j| j[0].max_acceleration_rad_s2 = Some(-1.0),
-                "max_acceleration_rad_s2 must be finite and > 0",
+                "joint \"a\": max_acceleration_rad_s2 must be finite and > 0",
+            ),
+            (
+                &|j| j[0].max_acceleration_rad_s2 = Some(0.0),
+                "joint \"a\": max_acceleration_rad_s2 must be finite and > 0, got 0",
             ),
             (
                 &|j| j[1].name = "x".into(),
@@ -497,6 +510,12 @@ mod tests {
             let e = refuse(edit);
             assert!(e.contains(reason), "{e:?} lacks {reason:?}");
         }
+        // A joint whose range is one value (held there) is a joint, not an inverted range; a short axis is one.
+        let mut fixed = four();
+        fixed[3].lower_rad = 0.5;
+        fixed[3].upper_rad = 0.5;
+        fixed[1].axis = [2e-9, 0.0, 0.0];
+        assert!(declared_stage(&chain(fixed), &bridge, &none, 1.0).is_ok());
         let two = vec![joint("a"), joint("b")];
         let e = declared_stage(&chain(two), &names(&["a", "b"]), &none, 1.0).unwrap_err();
         assert_eq!(e, ModelError::ChainLength { got: 2 });
