@@ -613,6 +613,13 @@ mod tests {
         s.reset(&start, 1.0);
         let moved = Isometry3::translation(0.01, 0.0, 0.0) * k.forward(&start);
         assert_eq!(s.plan(&moved, 1.0).joints_rad, start);
+        // Nor for a turn: the arm holds and is not behind (nothing moved, so nothing is left to catch up on).
+        let turned = Isometry3::from_parts(
+            k.forward(&start).translation,
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3) * k.forward(&start).rotation,
+        );
+        assert_eq!(s.plan(&turned, 1.0).joints_rad, start);
+        assert!(!s.behind());
         let bad = Isometry3::translation(f64::NAN, 0.0, 0.0);
         let p = s.plan(&bad, 2.0);
         assert!(p.invalid_input);
@@ -648,6 +655,31 @@ mod tests {
         };
         assert!(zero.resolve(2, 1.0).is_err());
         assert!(So101JointStage::new(vec![1.0; 4], 1.0).is_err());
+        // Accelerations the same way; none configured is none.
+        assert_eq!(none.resolve_acceleration(3).unwrap(), None);
+        let accelerations = |v: Vec<f64>| JointLimitConfig {
+            max_acceleration_rad_s2: v,
+            ..JointLimitConfig::default()
+        };
+        assert_eq!(
+            accelerations(vec![2.0]).resolve_acceleration(2).unwrap(),
+            Some(vec![2.0; 2])
+        );
+        assert_eq!(
+            accelerations(vec![1.0, 2.0]).resolve_acceleration(2).unwrap(),
+            Some(vec![1.0, 2.0])
+        );
+        assert!(matches!(
+            accelerations(vec![1.0, 2.0]).resolve_acceleration(3),
+            Err(ConfigError::WrongLength {
+                expected: 3,
+                got: 2,
+                ..
+            })
+        ));
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(accelerations(vec![bad]).resolve_acceleration(2).is_err(), "{bad}");
+        }
         assert!(So101JointStage::new(vec![1.0; 5], 1.5).is_err());
     }
 
