@@ -218,7 +218,13 @@ impl JointRateLimiter {
                 .fold((0.0f64, 0.0f64), |(m, a), ((q, d), l)| {
                     (m.max((q - l).abs()), a.max((d - l).abs()))
                 });
-            self.velocity_rad_s = joints_rad.iter().zip(last).map(|(q, l)| (q - l) / dt).collect();
+            // A joint that landed on its target stops there (see `profiled`).
+            self.velocity_rad_s = joints_rad
+                .iter()
+                .zip(last)
+                .zip(desired_rad)
+                .map(|((q, l), d)| if q == d { 0.0 } else { (q - l) / dt })
+                .collect();
             self.last_rad = Some(joints_rad.clone());
             return LimitedStep {
                 joints_rad,
@@ -284,9 +290,10 @@ fn profiled(
                 .clamp(v_prev - a * dt, v_prev + a * dt)
                 .clamp(-v_limit, v_limit);
             // Landing on the target, or a step that would pass it (the braking curve sampled at this step's time
-            // can sit a rounding error below the last step's speed): the target exactly, so a joint that arrived
-            // holds its value bit for bit and never passes a target that stays put.
-            if v * toward * dt >= distance {
+            // can sit a rounding error below the last step's speed): the target exactly, and the joint stops
+            // there, so it holds its value bit for bit and never passes a target that stays put. A joint still
+            // moving when its target is where it already is (the target came back to it) brakes at the limit.
+            if distance > 0.0 && v * toward * dt >= distance {
                 target
             } else {
                 q + v * dt
@@ -666,7 +673,13 @@ mod tests {
         let (v, a, dt) = (1.0, 10.0, 0.01);
         let mut l = accelerating(&[v, v], &[a, a]);
         l.reset(&[0.5, 0.5], 0.0);
-        let mut t = 0.0;
+        let mut t = dt;
+        // At rest, asking for where it is moves nothing and takes all of the (empty) step.
+        let s = l.step(&[0.5, 0.5], t);
+        assert_eq!(
+            (s.joints_rad.clone(), s.scale, s.limited),
+            (vec![0.5, 0.5], 1.0, false)
+        );
         // 0.1 s to reach the speed limit; twice that to be sure of cruising.
         for _ in 0..20 {
             t += dt;
@@ -683,18 +696,21 @@ mod tests {
             "{s:?} after {cruising:?}"
         );
         assert!((s.scale - v * dt / (5.0 - cruising[0])).abs() < 1e-12, "{s:?}");
+        // Asked to be where it is while cruising: it brakes at the limit rather than stopping at once.
+        let here = s.joints_rad.clone();
+        t += dt;
+        let s = l.step(&here, t);
+        assert!(
+            (s.joints_rad[0] - here[0] - (v - a * dt) * dt).abs() < 1e-12,
+            "{s:?} after {here:?}"
+        );
+        assert!(s.limited);
         let held = s.joints_rad.clone();
         t += dt;
         let s = l.step(&[f64::NAN, 5.0], t);
         assert_eq!(s.joints_rad, held);
         assert!(s.limited);
-        // Stopped: asking for where it is moves nothing and takes all of the (empty) step.
-        t += dt;
-        let s = l.step(&held, t);
-        assert_eq!(
-            (s.joints_rad.clone(), s.scale, s.limited),
-            (held.clone(), 1.0, false)
-        );
+        // Stopped: the next step starts from rest.
         t += dt;
         let s = l.step(&[5.0, 5.0], t);
         assert!(
@@ -730,7 +746,8 @@ mod tests {
                         let landed = s.joints_rad[j] == ask[j];
                         prop_assert!(landed || (speed - velocity[j]).abs() <= a[j] * used * (1.0 + 1e-6) + 1e-9,
                             "joint {j}: velocity {} -> {speed} in {used} s", velocity[j]);
-                        velocity[j] = speed;
+                        // A joint that landed stopped there.
+                        velocity[j] = if landed { 0.0 } else { speed };
                     }
                     prop_assert_eq!(s.limited, s.joints_rad != ask.to_vec());
                     last = s.joints_rad;
@@ -768,7 +785,8 @@ mod tests {
                     let allowed = if landed { 2.0 } else { 1.0 } * a[j] * dt;
                     prop_assert!((speed - velocity[j]).abs() <= allowed * (1.0 + 1e-6) + 1e-12,
                         "joint {j}: velocity {} -> {speed} in {dt} s", velocity[j]);
-                    velocity[j] = speed;
+                    // It stops there (see `profiled`).
+                    velocity[j] = if landed { 0.0 } else { speed };
                     let before = target[j] - q[j];
                     let after = target[j] - s.joints_rad[j];
                     prop_assert!(after == 0.0 || after.signum() == before.signum(), "joint {j} passed its target");
