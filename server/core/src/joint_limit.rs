@@ -223,7 +223,13 @@ impl JointRateLimiter {
                 .iter()
                 .zip(last)
                 .zip(desired_rad)
-                .map(|((q, l), d)| if q == d { 0.0 } else { (q - l) / dt })
+                .map(|((q, l), d)| {
+                    if q.to_bits() == d.to_bits() {
+                        0.0
+                    } else {
+                        (q - l) / dt
+                    }
+                })
                 .collect();
             self.last_rad = Some(joints_rad.clone());
             return LimitedStep {
