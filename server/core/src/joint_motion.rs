@@ -88,18 +88,8 @@ impl JointLimitConfig {
     /// The speed of each of `joints` joints, `default_rad_s` where none is configured. Refuses a list of
     /// another length and a speed that is not finite and positive.
     pub fn resolve(&self, joints: usize, default_rad_s: f64) -> Result<Vec<f64>, ConfigError> {
-        let speeds = match self.max_velocity_rad_s.as_slice() {
-            [] => vec![default_rad_s; joints],
-            [one] => vec![*one; joints],
-            many if many.len() == joints => many.to_vec(),
-            many => {
-                return Err(ConfigError::WrongLength {
-                    name: "max_velocity_rad_s",
-                    expected: joints,
-                    got: many.len(),
-                });
-            }
-        };
+        let speeds = per_joint(&self.max_velocity_rad_s, joints, "max_velocity_rad_s")?
+            .unwrap_or_else(|| vec![default_rad_s; joints]);
         // The limiter refuses what is not a speed.
         JointRateLimiter::new(speeds.clone())?;
         Ok(speeds)
@@ -108,17 +98,9 @@ impl JointLimitConfig {
     /// The acceleration of each of `joints` joints, `None` when none is configured. Refuses a list of another
     /// length and a value that is not finite and positive.
     pub fn resolve_acceleration(&self, joints: usize) -> Result<Option<Vec<f64>>, ConfigError> {
-        let values = match self.max_acceleration_rad_s2.as_slice() {
-            [] => return Ok(None),
-            [one] => vec![*one; joints],
-            many if many.len() == joints => many.to_vec(),
-            many => {
-                return Err(ConfigError::WrongLength {
-                    name: "max_acceleration_rad_s2",
-                    expected: joints,
-                    got: many.len(),
-                });
-            }
+        let Some(values) = per_joint(&self.max_acceleration_rad_s2, joints, "max_acceleration_rad_s2")?
+        else {
+            return Ok(None);
         };
         if let Some(&a) = values.iter().find(|a| !(a.is_finite() && **a > 0.0)) {
             return Err(ConfigError::NotPositive {
@@ -127,6 +109,20 @@ impl JointLimitConfig {
             });
         }
         Ok(Some(values))
+    }
+}
+
+/// `values` for `joints` joints: one value for every joint, or one each; `None` when there is none.
+fn per_joint(values: &[f64], joints: usize, name: &'static str) -> Result<Option<Vec<f64>>, ConfigError> {
+    match values {
+        [] => Ok(None),
+        [one] => Ok(Some(vec![*one; joints])),
+        many if many.len() == joints => Ok(Some(many.to_vec())),
+        many => Err(ConfigError::WrongLength {
+            name,
+            expected: joints,
+            got: many.len(),
+        }),
     }
 }
 
