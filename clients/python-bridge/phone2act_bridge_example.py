@@ -7,6 +7,13 @@ pose, a made-up joint vector and the gripper as `RobotFeedback` at the rate the 
     python phone2act_bridge_example.py --server 127.0.0.1:50051 --arm ext \
         --joint-names j1,j2,j3,j4,j5,j6
 
+Given a joint chain (`--so101-chain`: the SO-101's, with `--max-velocity` rad/s), the bridge declares it in its
+hello: the server then solves every target and limits every joint step, and the robot follows the commands'
+`joint_targets_rad` instead of the pose, reporting the chain's forward kinematics as its pose:
+
+    python phone2act_bridge_example.py --arm so101 --so101-chain --max-velocity 2.0 \
+        --joint-names shoulder_pan,shoulder_lift,elbow_flex,wrist_flex,wrist_roll
+
 The arm must be configured with `bridge = "remote"` and the same joint names:
 
     [[arms]]
@@ -29,6 +36,7 @@ from dataclasses import dataclass, field
 import grpc
 from phone2act import make_pose
 from phone2act._common import auth_metadata, channel_options
+from phone2act.joint_model import SO101_TOOL, ChainJoint, chain_model, forward, so101_chain
 from phone2act.poses import rpy_from_quat, slerp
 from phone2act.v1 import bridge_pb2 as pb
 from phone2act.v1 import bridge_pb2_grpc as rpc
@@ -49,16 +57,46 @@ class FirstOrderArm:
     target_orientation_xyzw: tuple[float, float, float, float] | None = None
     target_gripper: float | None = None
     applied_seq: int = 0
+    # A declared joint chain: the robot then follows the server's joint targets (see the module docstring).
+    chain: Sequence[ChainJoint] | None = None
+    # The tool's origin on the chain's last link (xyz m, rpy rad).
+    tool: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    joints: list[float] = field(default_factory=list)
+    target_joints: list[float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.chain is not None:
+            if not self.joints:
+                self.joints = [0.5 * (j.lower_rad + j.upper_rad) for j in self.chain]
+            self._pose_from_joints()
+
+    def joint_model(self) -> pb.JointModel | None:
+        return None if self.chain is None else chain_model(self.chain, *self.tool)
+
+    def _pose_from_joints(self) -> None:
+        assert self.chain is not None
+        p, q = forward(self.chain, self.joints, *self.tool)
+        self.position_m, self.orientation_xyzw = list(p), q
 
     def command(self, cmd: pb.BridgeCommand) -> None:
         p, q = cmd.robot_from_target.position_m, cmd.robot_from_target.orientation
         self.target_position_m = [p.x, p.y, p.z]
         self.target_orientation_xyzw = (q.x, q.y, q.z, q.w)
+        if self.chain is not None and len(cmd.joint_targets_rad) == len(self.chain):
+            self.target_joints = list(cmd.joint_targets_rad)
         self.target_gripper = cmd.gripper_target
         self.applied_seq = cmd.seq
 
     def step(self, dt_s: float) -> None:
         alpha = 1.0 - math.exp(-dt_s / self.tau_s)
+        if self.chain is not None:
+            # Joints, not the pose: the server already kept every step within the joints' speed limits.
+            if self.target_joints is not None:
+                self.joints = [x + alpha * (t - x) for x, t in zip(self.joints, self.target_joints)]
+                self._pose_from_joints()
+            if self.target_gripper is not None:
+                self.gripper += alpha * (self.target_gripper - self.gripper)
+            return
         if self.target_position_m is not None:
             self.position_m = [x + alpha * (t - x) for x, t in zip(self.position_m, self.target_position_m)]
         if self.target_orientation_xyzw is not None:
@@ -67,6 +105,8 @@ class FirstOrderArm:
             self.gripper += alpha * (self.target_gripper - self.gripper)
 
     def joints_rad(self) -> list[float]:
+        if self.chain is not None:
+            return list(self.joints)
         # A stand-in joint vector (position and rpy), enough for the dataset's joint columns to move.
         values = [*self.position_m, *rpy_from_quat(self.orientation_xyzw)]
         return [values[i % len(values)] for i in range(len(self.joint_names))]
@@ -119,6 +159,9 @@ class ExampleBridge:
     def run(self) -> None:
         hello = pb.BridgeHello(arm=self.arm, bridge_name="python-example",
                                joint_names=list(self.robot.joint_names), supports_orientation=True)
+        model = self.robot.joint_model()
+        if model is not None:
+            hello.joint_model.CopyFrom(model)
         self._up.put(pb.BridgeUpstream(hello=hello))
         ready = pb.BridgeStatusReport(health=common_pb2.BRIDGE_HEALTH_READY, message="")
         with grpc.insecure_channel(self.target, options=channel_options(self.target)) as channel:
@@ -129,6 +172,8 @@ class ExampleBridge:
                     kind = down.WhichOneof("message")
                     if kind == "welcome":
                         self.welcome = down.welcome
+                        # Whether the server limits this robot's joints, or only watches them.
+                        print(f"phone2act bridge attached to {self.arm}: {down.welcome.joint_limits}", flush=True)
                         self._up.put(pb.BridgeUpstream(status=ready))
                         rate = down.welcome.expected_feedback_hz or 50.0
                         threading.Thread(target=self._feedback_loop, args=(rate,), daemon=True).start()
@@ -165,8 +210,12 @@ def main() -> None:
     p.add_argument("--arm", required=True)
     p.add_argument("--joint-names", required=True, help="comma-separated, as in [arms.remote] joint_names")
     p.add_argument("--tau", type=float, default=0.05, help="first-order time constant, seconds")
+    p.add_argument("--so101-chain", action="store_true",
+                   help="declare the SO-101's joint chain (five joints, the SO-101's names)")
+    p.add_argument("--max-velocity", type=float, default=4.7, help="declared joint speed limit, rad/s")
     args = p.parse_args()
-    robot = FirstOrderArm(joint_names=args.joint_names.split(","), tau_s=args.tau)
+    chain = so101_chain(args.max_velocity) if args.so101_chain else None
+    robot = FirstOrderArm(joint_names=args.joint_names.split(","), tau_s=args.tau, chain=chain, tool=SO101_TOOL)
     bridge = ExampleBridge(args.server, args.arm, robot, args.token)
     try:
         bridge.run()

@@ -211,9 +211,21 @@ impl App {
                 BridgeKind::Remote => None,
             };
             let controller = match stage {
-                Some(stage) => controller
-                    .with_joint_stage(stage.map_err(|e| arm_err(e.to_string()))?)
-                    .map_err(|e| arm_err(e.to_string()))?,
+                Some(stage) => {
+                    let mut stage = stage.map_err(|e| arm_err(e.to_string()))?;
+                    if let Some(accelerations) = arm
+                        .joint_limits
+                        .resolve_acceleration(stage.joints())
+                        .map_err(|e| arm_err(format!("joint_limits: {e}")))?
+                    {
+                        stage = stage
+                            .with_max_acceleration_rad_s2(accelerations)
+                            .map_err(|e| arm_err(format!("joint_limits: {e}")))?;
+                    }
+                    controller
+                        .with_joint_stage(stage)
+                        .map_err(|e| arm_err(e.to_string()))?
+                }
                 None => controller,
             };
             let controller = match arm.dataset_layout {

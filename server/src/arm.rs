@@ -287,7 +287,7 @@ impl ArmController {
     pub fn with_joint_stage(self, mut stage: ArmJointStage) -> Result<Self, ArmError> {
         let fits = match &stage {
             ArmJointStage::So101(_) => self.kinematics.is_some(),
-            ArmJointStage::Cr5(_) => self.bridge.joint_names().len() == phone2act_core::kinematics::CR5_DOF,
+            other => self.bridge.joint_names().len() == other.joints(),
         };
         if !fits {
             return Err(ArmError::JointStageUnsupported {
@@ -295,23 +295,48 @@ impl ArmController {
             });
         }
         if let Some(feedback) = self.bridge.feedback() {
-            if let Some(model) = stage.forward(&feedback.joint_positions_rad) {
-                let off_m = (model.translation.vector - feedback.robot_from_ee.translation.vector).norm();
-                let off_rad = model.rotation.angle_to(&feedback.robot_from_ee.rotation);
-                if off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD {
-                    return Err(ArmError::JointModelMismatch {
-                        arm: self.name.clone(),
-                        off_mm: off_m * 1e3,
-                        off_deg: off_rad.to_degrees(),
-                    });
-                }
-            }
+            self.model_matches(&stage, &feedback)?;
             stage.reset(&feedback.joint_positions_rad, now_s());
         } else {
             tracing::warn!(arm = %self.name, "no feedback at start: the joint model was not checked against the robot");
         }
         self.inner.lock().joints = Some(stage);
         Ok(self)
+    }
+
+    /// Puts `stage` in place of the arm's joint stage (for a remote bridge, at every attach: the stage of the
+    /// joint model it declared, or none). A new stage starts from the next measured joints, so the first
+    /// command after an attach is limited from where that robot is. Returns the stage it replaced.
+    pub fn replace_joint_stage(&self, stage: Option<ArmJointStage>) -> Option<ArmJointStage> {
+        std::mem::replace(&mut self.inner.lock().joints, stage)
+    }
+
+    /// Refuses feedback whose reported tool pose disagrees with the arm's joint model's pose of its reported
+    /// joints (the check [`Self::with_joint_stage`] makes at start, for a stage put in place later). Ok
+    /// without a joint stage or for joints of another width.
+    pub fn check_joint_model(&self, feedback: &Feedback) -> Result<(), ArmError> {
+        match self.inner.lock().joints.as_ref() {
+            Some(stage) => self.model_matches(stage, feedback),
+            None => Ok(()),
+        }
+    }
+
+    /// Ok if `stage`'s pose of the reported joints is within [`MODEL_MATCH_M`] and [`MODEL_MATCH_RAD`] of the
+    /// reported tool pose (or the joints are not the stage's width).
+    fn model_matches(&self, stage: &ArmJointStage, feedback: &Feedback) -> Result<(), ArmError> {
+        let Some(model) = stage.forward(&feedback.joint_positions_rad) else {
+            return Ok(());
+        };
+        let off_m = (model.translation.vector - feedback.robot_from_ee.translation.vector).norm();
+        let off_rad = model.rotation.angle_to(&feedback.robot_from_ee.rotation);
+        if off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD {
+            return Err(ArmError::JointModelMismatch {
+                arm: self.name.clone(),
+                off_mm: off_m * 1e3,
+                off_deg: off_rad.to_degrees(),
+            });
+        }
+        Ok(())
     }
 
     /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
@@ -412,6 +437,12 @@ impl ArmController {
     /// time.
     fn send_locked(&self, inner: &mut Inner, seq: u64, target: &Isometry3<f64>, gripper: f64) -> i64 {
         let issue_time_ns = monotonic_ns();
+        // A stage that has no joints to start from (no measurement since it was put in place) cannot limit
+        // the step: the robot holds rather than be sent a target it might jump to.
+        if inner.joints.as_ref().is_some_and(|j| j.commanded().is_none()) {
+            tracing::warn!(arm = %self.name, seq, "no measured joints to limit from: command held");
+            return issue_time_ns;
+        }
         let joint_targets_rad = inner
             .joints
             .as_mut()

@@ -581,7 +581,12 @@ impl ArmConfig {
                 REMOTE_DEFAULT_MAX_VELOCITY_RAD_S,
             ),
         };
-        self.joint_limits.resolve(joints, default_rad_s)
+        let speeds = self.joint_limits.resolve(joints, default_rad_s)?;
+        // A remote arm's joint count may come from its bridge: an acceleration list is checked against it then.
+        if joints > 0 || self.joint_limits.max_acceleration_rad_s2.len() <= 1 {
+            self.joint_limits.resolve_acceleration(joints.max(1))?;
+        }
+        Ok(speeds)
     }
 
     /// Ranges serde cannot check, for this arm and the bridge section it uses.
@@ -1086,6 +1091,25 @@ mod tests {
                 .unwrap_err()
                 .to_string();
         assert!(err.contains("appears twice"), "{err}");
+    }
+
+    #[test]
+    fn joint_accelerations_are_checked_like_speeds() {
+        let arm = "[[arms]]\nname = \"a\"\nbridge = \"sim\"\n[arms.joint_limits]\n";
+        let ok = parse(&format!("{arm}max_acceleration_rad_s2 = [20.0]\n")).unwrap();
+        assert_eq!(ok.arms[0].joint_limits.max_acceleration_rad_s2, vec![20.0]);
+        for (value, why) in [
+            ("[1.0, 2.0]", "needs 5 values"),
+            ("[0.0]", "must be finite and > 0"),
+        ] {
+            let err = parse(&format!("{arm}max_acceleration_rad_s2 = {value}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("max_acceleration_rad_s2") && err.contains(why),
+                "{err}"
+            );
+        }
     }
 
     #[test]

@@ -10,12 +10,23 @@
 
 use crate::config::ConfigError;
 
+/// The longest time one step is allowed the motion of, s: one period of a 50 Hz control loop (a phone's
+/// sample rate). A command after a pause (the arm idle, a thread stalled) would otherwise carry the whole
+/// pause's worth of motion at once, a jump the robot executes as fast as it can; capped, the step is one
+/// period's and the rest follows at the arm's tick rate, since a shortened step leaves the stage behind.
+pub const MAX_STEP_S: f64 = 0.02;
+
 /// A rate limiter over one arm's joints (the gripper is not one of them).
 #[derive(Debug, Clone, PartialEq)]
 pub struct JointRateLimiter {
     max_velocity_rad_s: Vec<f64>,
     last_rad: Option<Vec<f64>>,
     last_time_s: f64,
+    max_step_s: f64,
+    /// Largest acceleration of each joint, rad/s² (infinite: not limited); `None` when no joint has one.
+    max_acceleration_rad_s2: Option<Vec<f64>>,
+    /// Velocity of each joint over the last step, rad/s (zero after a reset).
+    velocity_rad_s: Vec<f64>,
 }
 
 /// What one limited command is.
@@ -44,7 +55,71 @@ impl JointRateLimiter {
             max_velocity_rad_s,
             last_rad: None,
             last_time_s: f64::NEG_INFINITY,
+            max_step_s: MAX_STEP_S,
+            max_acceleration_rad_s2: None,
+            velocity_rad_s: Vec::new(),
         })
+    }
+
+    /// The same limiter with acceleration limits (rad/s², one per joint; infinite for a joint without one).
+    /// Refuses a list of another length and a value that is not positive.
+    pub fn with_max_acceleration_rad_s2(
+        mut self,
+        max_acceleration_rad_s2: Vec<f64>,
+    ) -> Result<Self, ConfigError> {
+        if max_acceleration_rad_s2.len() != self.max_velocity_rad_s.len() {
+            return Err(ConfigError::WrongLength {
+                name: "max_acceleration_rad_s2",
+                expected: self.max_velocity_rad_s.len(),
+                got: max_acceleration_rad_s2.len(),
+            });
+        }
+        if let Some(&a) = max_acceleration_rad_s2.iter().find(|a| a.is_nan() || **a <= 0.0) {
+            return Err(ConfigError::NotPositive {
+                name: "max_acceleration_rad_s2",
+                value: a,
+            });
+        }
+        self.max_acceleration_rad_s2 = max_acceleration_rad_s2
+            .iter()
+            .any(|a| a.is_finite())
+            .then_some(max_acceleration_rad_s2);
+        Ok(self)
+    }
+
+    /// The acceleration limits in force, if any joint has one.
+    pub fn max_acceleration_rad_s2(&self) -> Option<&[f64]> {
+        self.max_acceleration_rad_s2.as_deref()
+    }
+
+    /// Forgets the start: the next step is taken as the new start (see [`Self::step`]).
+    pub fn forget(&mut self) {
+        self.last_rad = None;
+        self.velocity_rad_s.clear();
+    }
+
+    /// Replaces the last joints with `joints_rad` (the same width), stopping every joint that changed: for a
+    /// joint held at a hard stop (its range) after a step.
+    pub fn stop_at(&mut self, joints_rad: &[f64]) {
+        if let Some(last) = self.last_rad.as_mut().filter(|l| l.len() == joints_rad.len()) {
+            for ((q, new), v) in last
+                .iter_mut()
+                .zip(joints_rad)
+                .zip(self.velocity_rad_s.iter_mut())
+            {
+                if q.to_bits() != new.to_bits() {
+                    *q = *new;
+                    *v = 0.0;
+                }
+            }
+        }
+    }
+
+    /// The same limiter with another longest step time ([`MAX_STEP_S`] by default), s.
+    #[must_use]
+    pub fn with_max_step_s(mut self, max_step_s: f64) -> Self {
+        self.max_step_s = max_step_s;
+        self
     }
 
     /// The largest speed of each joint.
@@ -53,9 +128,11 @@ impl JointRateLimiter {
     }
 
     /// Starts from `joints_rad` (the measured joints) at `time_s`: the next step is limited from there.
+    /// The arm is taken to be at rest there.
     pub fn reset(&mut self, joints_rad: &[f64], time_s: f64) {
         self.last_rad = Some(joints_rad.to_vec());
         self.last_time_s = time_s;
+        self.velocity_rad_s = vec![0.0; joints_rad.len()];
     }
 
     /// The joints last handed out (or reset to).
@@ -68,11 +145,12 @@ impl JointRateLimiter {
         self.last_time_s
     }
 
-    /// Seconds since the last step for a step at `time_s`: 0 when time did not move on (a second command in
-    /// the same instant gets no new motion) or is not a number.
+    /// Seconds of motion a step at `time_s` is allowed: the time since the last step, at most the longest
+    /// step time ([`MAX_STEP_S`]); 0 when time did not move on (a second command in the same instant gets no
+    /// new motion) or is not a number.
     pub fn elapsed_s(&self, time_s: f64) -> f64 {
         let dt = time_s - self.last_time_s;
-        if dt > 0.0 { dt } else { 0.0 }
+        if dt > 0.0 { dt.min(self.max_step_s) } else { 0.0 }
     }
 
     /// The fraction of the step to `desired_rad` that [`Self::step`] would take at `time_s` (1 = all of it),
@@ -111,6 +189,7 @@ impl JointRateLimiter {
             }
             _ => {
                 self.last_rad = Some(desired_rad.to_vec());
+                self.velocity_rad_s = vec![0.0; desired_rad.len()];
                 return LimitedStep {
                     joints_rad: desired_rad.to_vec(),
                     scale: 1.0,
@@ -119,6 +198,46 @@ impl JointRateLimiter {
             }
         };
         let scale = self.scale_of(last, desired_rad, dt);
+        if let Some(accelerations) = self.max_acceleration_rad_s2.as_deref()
+            && scale > 0.0
+            && dt > 0.0
+        {
+            let joints_rad = profiled(
+                last,
+                desired_rad,
+                &self.velocity_rad_s,
+                &self.max_velocity_rad_s,
+                accelerations,
+                dt,
+            );
+            let limited = joints_rad != desired_rad;
+            let (moved, asked) = joints_rad
+                .iter()
+                .zip(desired_rad)
+                .zip(last)
+                .fold((0.0f64, 0.0f64), |(m, a), ((q, d), l)| {
+                    (m.max((q - l).abs()), a.max((d - l).abs()))
+                });
+            // A joint that landed on its target stops there (see `profiled`).
+            self.velocity_rad_s = joints_rad
+                .iter()
+                .zip(last)
+                .zip(desired_rad)
+                .map(|((q, l), d)| {
+                    if q.to_bits() == d.to_bits() {
+                        0.0
+                    } else {
+                        (q - l) / dt
+                    }
+                })
+                .collect();
+            self.last_rad = Some(joints_rad.clone());
+            return LimitedStep {
+                joints_rad,
+                scale: if asked > 0.0 { moved / asked } else { 1.0 },
+                limited,
+            };
+        }
         // No motion at all (no time passed, or a non-finite request) holds the last joints exactly; a step that
         // fits is taken exactly (`last + (q - last)` can differ from `q` in the last bit), so joint targets that
         // need no limiting reach the bridge as asked.
@@ -133,6 +252,11 @@ impl JointRateLimiter {
         } else {
             desired_rad.to_vec()
         };
+        // No time, no motion: the velocity of the last step stands (a second command in the same instant
+        // neither stops nor starts anything).
+        if dt > 0.0 {
+            self.velocity_rad_s = joints_rad.iter().zip(last).map(|(q, l)| (q - l) / dt).collect();
+        }
         self.last_rad = Some(joints_rad.clone());
         LimitedStep {
             joints_rad,
@@ -140,6 +264,48 @@ impl JointRateLimiter {
             limited: scale < 1.0,
         }
     }
+}
+
+/// One step of each joint toward `desired` under speed and acceleration limits, each joint on its own: the
+/// velocity changes by at most `a·dt` from the last step's, never exceeds the speed limit, and never exceeds
+/// what still stops at the desired joint with deceleration `a` (`v·dt/2 + v²/(2a) ≤ distance`, the discrete
+/// form of `v ≤ √(2·a·distance)`), so a joint driven to a target that stays put arrives without overshoot. A
+/// joint that can land on its target in this step lands exactly. `dt > 0`.
+fn profiled(
+    last: &[f64],
+    desired: &[f64],
+    velocity: &[f64],
+    v_max: &[f64],
+    a_max: &[f64],
+    dt: f64,
+) -> Vec<f64> {
+    last.iter()
+        .zip(desired)
+        .zip(velocity.iter().chain(std::iter::repeat(&0.0)))
+        .zip(v_max.iter().zip(a_max))
+        .map(|(((&q, &target), &v_prev), (&v_limit, &a))| {
+            let distance = (target - q).abs();
+            let stoppable = if a.is_finite() {
+                a * (-0.5 * dt + (0.25 * dt * dt + 2.0 * distance / a).sqrt())
+            } else {
+                f64::INFINITY
+            };
+            let toward = (target - q).signum();
+            let goal = toward * v_limit.min(distance / dt).min(stoppable);
+            let v = goal
+                .clamp(v_prev - a * dt, v_prev + a * dt)
+                .clamp(-v_limit, v_limit);
+            // Landing on the target, or a step that would pass it (the braking curve sampled at this step's time
+            // can sit a rounding error below the last step's speed): the target exactly, and the joint stops
+            // there, so it holds its value bit for bit and never passes a target that stays put. A joint still
+            // moving when its target is where it already is (the target came back to it) brakes at the limit.
+            if distance > 0.0 && v * toward * dt >= distance {
+                target
+            } else {
+                q + v * dt
+            }
+        })
+        .collect()
 }
 
 /// Speeds are measured over at least this long (s): feedback stamped on arrival jitters by milliseconds, which
@@ -248,8 +414,31 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    /// A limiter without the step-time cap, for the properties that do not depend on it.
     fn limiter(v: &[f64]) -> JointRateLimiter {
-        JointRateLimiter::new(v.to_vec()).unwrap()
+        JointRateLimiter::new(v.to_vec())
+            .unwrap()
+            .with_max_step_s(f64::INFINITY)
+    }
+
+    /// After a pause, a step gets one period's motion, not the pause's; the next continues from there.
+    #[test]
+    fn a_step_after_a_pause_gets_one_period_of_motion() {
+        let mut l = JointRateLimiter::new(vec![1.0, 2.0]).unwrap();
+        l.reset(&[0.0, 0.0], 0.0);
+        assert_eq!(l.elapsed_s(10.0), MAX_STEP_S);
+        assert_eq!(l.elapsed_s(0.5 * MAX_STEP_S), 0.5 * MAX_STEP_S);
+        let s = l.step(&[1.0, 0.0], 10.0);
+        assert!(s.limited);
+        assert!((s.joints_rad[0] - MAX_STEP_S).abs() < 1e-15, "{s:?}");
+        let s = l.step(&[1.0, 0.0], 10.01);
+        assert!((s.joints_rad[0] - MAX_STEP_S - 0.01).abs() < 1e-12, "{s:?}");
+        let s = l.step(&[0.0, 0.0], 20.0);
+        assert!((s.joints_rad[0] - 0.01).abs() < 1e-12, "{s:?}");
+        // A step that fits in one period passes whole, however long the pause.
+        let mut l = JointRateLimiter::new(vec![1.0]).unwrap();
+        l.reset(&[0.0], 0.0);
+        assert_eq!(l.step(&[0.015], 5.0).joints_rad, vec![0.015]);
     }
 
     #[test]
@@ -389,6 +578,232 @@ mod tests {
             }
         }
     }
+    fn accelerating(v: &[f64], a: &[f64]) -> JointRateLimiter {
+        JointRateLimiter::new(v.to_vec())
+            .unwrap()
+            .with_max_acceleration_rad_s2(a.to_vec())
+            .unwrap()
+    }
+
+    #[test]
+    fn accelerations_must_be_positive_and_one_per_joint() {
+        let l = JointRateLimiter::new(vec![1.0, 1.0]).unwrap();
+        assert!(l.clone().with_max_acceleration_rad_s2(vec![1.0]).is_err());
+        for bad in [0.0, -1.0, f64::NAN] {
+            assert!(
+                l.clone().with_max_acceleration_rad_s2(vec![1.0, bad]).is_err(),
+                "{bad}"
+            );
+        }
+        // Infinite everywhere is no acceleration limit at all.
+        let none = l
+            .clone()
+            .with_max_acceleration_rad_s2(vec![f64::INFINITY; 2])
+            .unwrap();
+        assert_eq!(none.max_acceleration_rad_s2(), None);
+        let some = l.with_max_acceleration_rad_s2(vec![f64::INFINITY, 2.0]).unwrap();
+        assert_eq!(some.max_acceleration_rad_s2(), Some(&[f64::INFINITY, 2.0][..]));
+    }
+
+    /// From rest toward a far target: the speed grows by a·dt per step, cruises at the limit, and slows down
+    /// in time to land on the target; each step that is not the asked one counts as limited.
+    #[test]
+    fn a_far_target_is_reached_through_a_trapezoid() {
+        let (v, a, dt) = (1.0, 4.0, 0.01);
+        let mut l = accelerating(&[v], &[a]);
+        l.reset(&[0.0], 0.0);
+        let mut q = 0.0;
+        let mut speeds = Vec::new();
+        let mut limited = 0;
+        for k in 1..=400 {
+            let s = l.step(&[1.0], f64::from(k) * dt);
+            speeds.push((s.joints_rad[0] - q) / dt);
+            limited += usize::from(s.limited);
+            q = s.joints_rad[0];
+            if q == 1.0 {
+                break;
+            }
+        }
+        assert_eq!(q, 1.0, "not reached");
+        assert!((speeds[0] - a * dt).abs() < 1e-12, "{:?}", &speeds[..3]);
+        assert!(speeds.iter().any(|s| (s - v).abs() < 1e-9), "never cruised");
+        // 1 rad at 1 rad/s with 0.25 s to speed up and to slow down: about 1.25 s.
+        assert!((120..=135).contains(&speeds.len()), "{}", speeds.len());
+        assert_eq!(limited, speeds.len() - 1);
+        assert!(
+            *speeds.last().unwrap() <= a * dt * 1.5,
+            "arrived at {}",
+            speeds.last().unwrap()
+        );
+        // Arrived: it holds exactly, and a step back starts again from rest.
+        assert_eq!(l.step(&[1.0], 5.0).joints_rad, vec![1.0]);
+        let s = l.step(&[0.0], 5.01);
+        assert!((s.joints_rad[0] - (1.0 - a * dt * dt)).abs() < 1e-12, "{s:?}");
+    }
+
+    /// A joint moving away from a target that turned back keeps decelerating at the limit rather than stopping
+    /// at once; a joint stopped by [`JointRateLimiter::stop_at`] starts again from rest.
+    #[test]
+    fn a_turned_target_is_braked_for_and_a_stop_is_a_stop() {
+        let mut l = accelerating(&[2.0], &[10.0]);
+        l.reset(&[0.0], 0.0);
+        let mut t = 0.0;
+        for _ in 0..30 {
+            t += 0.01;
+            l.step(&[5.0], t);
+        }
+        let before = l.last().unwrap()[0];
+        let s = l.step(&[0.0], t + 0.01);
+        assert!(
+            s.joints_rad[0] > before,
+            "reversed at once: {before} -> {:?}",
+            s.joints_rad
+        );
+        l.stop_at(&[1.0]);
+        assert_eq!(l.last(), Some(&[1.0][..]));
+        let s = l.step(&[5.0], t + 0.02);
+        assert!(
+            (s.joints_rad[0] - (1.0 + 10.0 * 0.01 * 0.01)).abs() < 1e-12,
+            "{s:?}"
+        );
+        // `forget` drops the start: the next request is the new start.
+        l.forget();
+        assert_eq!(l.step(&[3.0], t + 0.03).joints_rad, vec![3.0]);
+    }
+
+    /// Under acceleration limits: a request in the same instant holds (and keeps the velocity, so the next step
+    /// carries on), a non-finite request holds and stops the joints (the next step starts from rest), and the
+    /// reported scale is the fraction of the asked step taken.
+    #[test]
+    fn accelerated_steps_hold_on_bad_input_and_in_no_time() {
+        let (v, a, dt) = (1.0, 10.0, 0.01);
+        let mut l = accelerating(&[v, v], &[a, a]);
+        l.reset(&[0.5, 0.5], 0.0);
+        let mut t = dt;
+        // At rest, asking for where it is moves nothing and takes all of the (empty) step.
+        let s = l.step(&[0.5, 0.5], t);
+        assert_eq!(
+            (s.joints_rad.clone(), s.scale, s.limited),
+            (vec![0.5, 0.5], 1.0, false)
+        );
+        // 0.1 s to reach the speed limit; twice that to be sure of cruising.
+        for _ in 0..20 {
+            t += dt;
+            l.step(&[5.0, 5.0], t);
+        }
+        let cruising = l.last().unwrap().to_vec();
+        assert_eq!(l.step(&cruising, t).joints_rad, cruising);
+        let s = l.step(&[5.0, 5.0], t);
+        assert_eq!(s.joints_rad, cruising);
+        t += dt;
+        let s = l.step(&[5.0, 5.0], t);
+        assert!(
+            (s.joints_rad[0] - cruising[0] - v * dt).abs() < 1e-12,
+            "{s:?} after {cruising:?}"
+        );
+        assert!((s.scale - v * dt / (5.0 - cruising[0])).abs() < 1e-12, "{s:?}");
+        // Asked to be where it is while cruising: it brakes at the limit rather than stopping at once.
+        let here = s.joints_rad.clone();
+        t += dt;
+        let s = l.step(&here, t);
+        assert!(
+            (s.joints_rad[0] - here[0] - (v - a * dt) * dt).abs() < 1e-12,
+            "{s:?} after {here:?}"
+        );
+        assert!(s.limited);
+        let held = s.joints_rad.clone();
+        t += dt;
+        let s = l.step(&[f64::NAN, 5.0], t);
+        assert_eq!(s.joints_rad, held);
+        assert!(s.limited);
+        // Stopped: the next step starts from rest.
+        t += dt;
+        let s = l.step(&[5.0, 5.0], t);
+        assert!(
+            (s.joints_rad[0] - held[0] - a * dt * dt).abs() < 1e-12,
+            "{s:?} after {held:?}"
+        );
+    }
+
+    proptest! {
+        /// Speed and acceleration limits together, for any request sequence and any step times: no joint moves
+        /// faster than its speed limit, and no joint's velocity changes by more than its acceleration limit
+        /// allows in the step (velocities being each step's motion over its time).
+        #[test]
+        fn no_step_exceeds_the_speed_or_the_acceleration(
+            v in prop::array::uniform3(0.2f64..6.0),
+            a in prop::array::uniform3(0.5f64..40.0),
+            start in prop::array::uniform3(-3.0f64..3.0),
+            asks in prop::collection::vec((prop::array::uniform3(-3.0f64..3.0), 0.001f64..0.05, 1usize..20), 1..12),
+        ) {
+            let mut l = accelerating(&v, &a);
+            l.reset(&start, 0.0);
+            let (mut t, mut last, mut velocity) = (0.0, start.to_vec(), vec![0.0; 3]);
+            for (ask, dt, repeat) in asks {
+                for _ in 0..repeat {
+                    t += dt;
+                    let s = l.step(&ask, t);
+                    let used = dt.min(MAX_STEP_S);
+                    for j in 0..3 {
+                        let speed = (s.joints_rad[j] - last[j]) / used;
+                        prop_assert!(speed.abs() <= v[j] * (1.0 + 1e-9), "joint {j}: {speed} rad/s");
+                        // A step that lands on the target may brake harder: the braking curve of a longer step
+                        // time than the last lies lower, and passing the target is the worse of the two.
+                        let landed = s.joints_rad[j] == ask[j];
+                        prop_assert!(landed || (speed - velocity[j]).abs() <= a[j] * used * (1.0 + 1e-6) + 1e-9,
+                            "joint {j}: velocity {} -> {speed} in {used} s", velocity[j]);
+                        // A joint that landed stopped there.
+                        velocity[j] = if landed { 0.0 } else { speed };
+                    }
+                    prop_assert_eq!(s.limited, s.joints_rad != ask.to_vec());
+                    last = s.joints_rad;
+                }
+            }
+        }
+
+        /// From rest toward a target that stays put, at a steady step time: every joint approaches it without
+        /// passing it and arrives, within the time a trapezoid (speeding up, cruising, slowing down) needs plus
+        /// a few steps.
+        #[test]
+        fn a_still_target_is_reached_without_overshoot(
+            v in prop::array::uniform3(0.2f64..6.0),
+            a in prop::array::uniform3(0.5f64..40.0),
+            start in prop::array::uniform3(-3.0f64..3.0),
+            target in prop::array::uniform3(-3.0f64..3.0),
+            dt in 0.001f64..0.02,
+        ) {
+            let mut l = accelerating(&v, &a);
+            l.reset(&start, 0.0);
+            let needed_s = (0..3)
+                .map(|j| (target[j] - start[j]).abs() / v[j] + v[j] / a[j] + 2.0 * ((target[j] - start[j]).abs() / a[j]).sqrt())
+                .fold(0.0, f64::max);
+            let steps = (needed_s / dt).ceil() as usize + 10;
+            let mut q = start.to_vec();
+            let mut velocity = [0.0; 3];
+            for k in 1..=steps {
+                let s = l.step(&target, k as f64 * dt);
+                for j in 0..3 {
+                    // At a steady step time every step keeps the acceleration limit but the landing one, which
+                    // keeps twice it: the braking curve is continuous, the steps are not, so the last one
+                    // brakes the rest of a step's worth of speed (less than two steps' change).
+                    let speed = (s.joints_rad[j] - q[j]) / dt;
+                    let landed = s.joints_rad[j] == target[j] && q[j] != target[j];
+                    let allowed = if landed { 2.0 } else { 1.0 } * a[j] * dt;
+                    prop_assert!((speed - velocity[j]).abs() <= allowed * (1.0 + 1e-6) + 1e-12,
+                        "joint {j}: velocity {} -> {speed} in {dt} s", velocity[j]);
+                    // It stops there (see `profiled`).
+                    velocity[j] = if landed { 0.0 } else { speed };
+                    let before = target[j] - q[j];
+                    let after = target[j] - s.joints_rad[j];
+                    prop_assert!(after == 0.0 || after.signum() == before.signum(), "joint {j} passed its target");
+                    prop_assert!(after.abs() <= before.abs(), "joint {j} moved away");
+                }
+                q = s.joints_rad;
+            }
+            prop_assert_eq!(q, target.to_vec());
+        }
+    }
+
     #[test]
     fn a_joint_measured_over_its_limit_is_reported_and_counted() {
         let mut w = JointSpeedWatch::new(vec![1.0, 2.0]).unwrap();

@@ -39,8 +39,10 @@ use std::f64::consts::PI;
 /// behind them unseen.
 pub const STS3215_MAX_VELOCITY_RAD_S: f64 = 4.7;
 
-/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6 in Dobot's CR5 specifications (user guide,
-/// "Technical specifications", maximum joint speed).
+/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6, the figure usually quoted for the CR5. Not
+/// confirmed against a Dobot data sheet (the user guide pages reachable here do not state it, and Dobot's URDF,
+/// `Dobot-Arm/DOBOT_6Axis_ROS2_V4` `cr5_robot.urdf`, gives `velocity="0"`); the controller limits `ServoJ`
+/// itself too (docs/joint-limits.md).
 pub const CR5_MAX_VELOCITY_RAD_S: f64 = PI;
 
 /// Joint speed assumed for a remote bridge, whose robot the server does not know: 1 rad/s (57°/s), below
@@ -76,27 +78,51 @@ pub struct JointLimitConfig {
     /// joint; empty means the robot's default ([`STS3215_MAX_VELOCITY_RAD_S`] for an SO-101,
     /// [`CR5_MAX_VELOCITY_RAD_S`] for a CR5, [`REMOTE_DEFAULT_MAX_VELOCITY_RAD_S`] for a remote bridge).
     pub max_velocity_rad_s: Vec<f64>,
+    /// Largest acceleration of each arm joint (rad/s²), in the same order; one value applies to every joint.
+    /// Empty means none: the SO-101's servos ramp their own speed (their `Acceleration` register) and the CR5's
+    /// controller plans its own acceleration, and no data sheet here gives a joint figure for either.
+    pub max_acceleration_rad_s2: Vec<f64>,
 }
 
 impl JointLimitConfig {
     /// The speed of each of `joints` joints, `default_rad_s` where none is configured. Refuses a list of
     /// another length and a speed that is not finite and positive.
     pub fn resolve(&self, joints: usize, default_rad_s: f64) -> Result<Vec<f64>, ConfigError> {
-        let speeds = match self.max_velocity_rad_s.as_slice() {
-            [] => vec![default_rad_s; joints],
-            [one] => vec![*one; joints],
-            many if many.len() == joints => many.to_vec(),
-            many => {
-                return Err(ConfigError::WrongLength {
-                    name: "max_velocity_rad_s",
-                    expected: joints,
-                    got: many.len(),
-                });
-            }
-        };
+        let speeds = per_joint(&self.max_velocity_rad_s, joints, "max_velocity_rad_s")?
+            .unwrap_or_else(|| vec![default_rad_s; joints]);
         // The limiter refuses what is not a speed.
         JointRateLimiter::new(speeds.clone())?;
         Ok(speeds)
+    }
+
+    /// The acceleration of each of `joints` joints, `None` when none is configured. Refuses a list of another
+    /// length and a value that is not finite and positive.
+    pub fn resolve_acceleration(&self, joints: usize) -> Result<Option<Vec<f64>>, ConfigError> {
+        let Some(values) = per_joint(&self.max_acceleration_rad_s2, joints, "max_acceleration_rad_s2")?
+        else {
+            return Ok(None);
+        };
+        if let Some(&a) = values.iter().find(|a| !(a.is_finite() && **a > 0.0)) {
+            return Err(ConfigError::NotPositive {
+                name: "max_acceleration_rad_s2",
+                value: a,
+            });
+        }
+        Ok(Some(values))
+    }
+}
+
+/// `values` for `joints` joints: one value for every joint, or one each; `None` when there is none.
+fn per_joint(values: &[f64], joints: usize, name: &'static str) -> Result<Option<Vec<f64>>, ConfigError> {
+    match values {
+        [] => Ok(None),
+        [one] => Ok(Some(vec![*one; joints])),
+        many if many.len() == joints => Ok(Some(many.to_vec())),
+        many => Err(ConfigError::WrongLength {
+            name,
+            expected: joints,
+            got: many.len(),
+        }),
     }
 }
 
@@ -211,10 +237,7 @@ impl<const N: usize> JointStage<N> {
         match joints {
             Some(q) => self.limiter.reset(&q, time_s),
             // Not this arm's joints: no start, so the next command is not limited from a wrong one.
-            None => {
-                self.limiter = JointRateLimiter::new(self.limiter.max_velocity_rad_s().to_vec())
-                    .expect("speeds were validated");
-            }
+            None => self.limiter.forget(),
         }
         self.turn_axis = None;
         self.behind = false;
@@ -244,6 +267,19 @@ impl<const N: usize> JointStage<N> {
     /// The joint speeds in force.
     pub fn max_velocity_rad_s(&self) -> &[f64] {
         self.limiter.max_velocity_rad_s()
+    }
+
+    /// The same stage with acceleration limits (`N` values, rad/s²; infinite for a joint without one): each
+    /// joint's commanded velocity then changes by at most `a·dt` per command and slows in time to stop at
+    /// its target (see [`JointRateLimiter::with_max_acceleration_rad_s2`]).
+    pub fn with_max_acceleration_rad_s2(
+        mut self,
+        max_acceleration_rad_s2: Vec<f64>,
+    ) -> Result<Self, ConfigError> {
+        self.limiter = self
+            .limiter
+            .with_max_acceleration_rad_s2(max_acceleration_rad_s2)?;
+        Ok(self)
     }
 
     /// The joints to command for `target` at `time_s`.
@@ -303,7 +339,13 @@ impl<const N: usize> JointStage<N> {
         }
         let (ik, missed) = solution.expect("at least one solve");
         let step = self.limiter.step(&ik.joints_rad, time_s);
-        let joints_rad = to_joints(&step.joints_rad).expect("the limiter keeps the width");
+        let stepped: [f64; N] = to_joints(&step.joints_rad).expect("the limiter keeps the width");
+        // A joint still moving when its target turned back may be carried past it by the acceleration limit; its
+        // range is a hard stop.
+        let joints_rad = self.kinematics.clamp(&stepped);
+        if !self.kinematics.within_limits(&stepped) {
+            self.limiter.stop_at(&joints_rad);
+        }
         let achieved = self.kinematics.forward(&joints_rad);
         let moved = joints_rad
             .iter()
@@ -359,6 +401,12 @@ impl<const N: usize> JointStage<N> {
 pub enum ArmJointStage {
     So101(So101JointStage),
     Cr5(Cr5JointStage),
+    /// A chain a remote bridge declared (see [`crate::joint_model`]), by its number of joints.
+    Chain3(JointStage<3>),
+    Chain4(JointStage<4>),
+    Chain5(JointStage<5>),
+    Chain6(JointStage<6>),
+    Chain7(JointStage<7>),
 }
 
 macro_rules! each_stage {
@@ -366,6 +414,11 @@ macro_rules! each_stage {
         match $self {
             ArmJointStage::So101($stage) => $body,
             ArmJointStage::Cr5($stage) => $body,
+            ArmJointStage::Chain3($stage) => $body,
+            ArmJointStage::Chain4($stage) => $body,
+            ArmJointStage::Chain5($stage) => $body,
+            ArmJointStage::Chain6($stage) => $body,
+            ArmJointStage::Chain7($stage) => $body,
         }
     };
 }
@@ -399,6 +452,37 @@ impl ArmJointStage {
     /// See [`JointStage::counters`].
     pub fn counters(&self) -> JointCounters {
         each_stage!(self, s => s.counters())
+    }
+
+    /// See [`JointStage::with_max_acceleration_rad_s2`].
+    pub fn with_max_acceleration_rad_s2(
+        self,
+        max_acceleration_rad_s2: Vec<f64>,
+    ) -> Result<Self, ConfigError> {
+        Ok(match self {
+            Self::So101(s) => Self::So101(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Cr5(s) => Self::Cr5(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain3(s) => Self::Chain3(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain4(s) => Self::Chain4(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain5(s) => Self::Chain5(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain6(s) => Self::Chain6(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+            Self::Chain7(s) => Self::Chain7(s.with_max_acceleration_rad_s2(max_acceleration_rad_s2)?),
+        })
+    }
+
+    /// See [`JointStage::max_velocity_rad_s`].
+    pub fn max_velocity_rad_s(&self) -> &[f64] {
+        each_stage!(self, s => s.max_velocity_rad_s())
+    }
+
+    /// The acceleration limits in force, if any.
+    pub fn max_acceleration_rad_s2(&self) -> Option<&[f64]> {
+        each_stage!(self, s => s.limiter.max_acceleration_rad_s2())
+    }
+
+    /// Number of joints the stage drives.
+    pub fn joints(&self) -> usize {
+        self.max_velocity_rad_s().len()
     }
 
     /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
@@ -525,6 +609,13 @@ mod tests {
         s.reset(&start, 1.0);
         let moved = Isometry3::translation(0.01, 0.0, 0.0) * k.forward(&start);
         assert_eq!(s.plan(&moved, 1.0).joints_rad, start);
+        // Nor for a turn: the arm holds and is not behind (nothing moved, so nothing is left to catch up on).
+        let turned = Isometry3::from_parts(
+            k.forward(&start).translation,
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3) * k.forward(&start).rotation,
+        );
+        assert_eq!(s.plan(&turned, 1.0).joints_rad, start);
+        assert!(!s.behind());
         let bad = Isometry3::translation(f64::NAN, 0.0, 0.0);
         let p = s.plan(&bad, 2.0);
         assert!(p.invalid_input);
@@ -538,10 +629,12 @@ mod tests {
         assert_eq!(none.resolve(3, 2.0).unwrap(), vec![2.0; 3]);
         let one = JointLimitConfig {
             max_velocity_rad_s: vec![1.5],
+            ..JointLimitConfig::default()
         };
         assert_eq!(one.resolve(2, 2.0).unwrap(), vec![1.5; 2]);
         let each = JointLimitConfig {
             max_velocity_rad_s: vec![1.0, 2.0],
+            ..JointLimitConfig::default()
         };
         assert_eq!(each.resolve(2, 9.0).unwrap(), vec![1.0, 2.0]);
         assert!(matches!(
@@ -554,9 +647,35 @@ mod tests {
         ));
         let zero = JointLimitConfig {
             max_velocity_rad_s: vec![0.0],
+            ..JointLimitConfig::default()
         };
         assert!(zero.resolve(2, 1.0).is_err());
         assert!(So101JointStage::new(vec![1.0; 4], 1.0).is_err());
+        // Accelerations the same way; none configured is none.
+        assert_eq!(none.resolve_acceleration(3).unwrap(), None);
+        let accelerations = |v: Vec<f64>| JointLimitConfig {
+            max_acceleration_rad_s2: v,
+            ..JointLimitConfig::default()
+        };
+        assert_eq!(
+            accelerations(vec![2.0]).resolve_acceleration(2).unwrap(),
+            Some(vec![2.0; 2])
+        );
+        assert_eq!(
+            accelerations(vec![1.0, 2.0]).resolve_acceleration(2).unwrap(),
+            Some(vec![1.0, 2.0])
+        );
+        assert!(matches!(
+            accelerations(vec![1.0, 2.0]).resolve_acceleration(3),
+            Err(ConfigError::WrongLength {
+                expected: 3,
+                got: 2,
+                ..
+            })
+        ));
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(accelerations(vec![bad]).resolve_acceleration(2).is_err(), "{bad}");
+        }
         assert!(So101JointStage::new(vec![1.0; 5], 1.5).is_err());
     }
 
@@ -758,6 +877,93 @@ mod tests {
         assert_eq!(
             so101.forward(&[0.0, -0.4, 0.6, 0.9, 0.0]),
             Some(So101Kinematics::new().forward(&[0.0, -0.4, 0.6, 0.9, 0.0]))
+        );
+    }
+
+    /// With acceleration limits the stage reaches a far target too: every step within the speed limit, every
+    /// velocity change within `a·dt` (the landing one within twice it), the joints inside their ranges.
+    #[test]
+    fn a_far_target_is_reached_under_acceleration_limits() {
+        const A: f64 = 20.0;
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let target = k.forward(&[0.8, 0.2, 0.1, 0.5, 1.0]);
+        let mut s = stage()
+            .with_max_acceleration_rad_s2(vec![A; SO101_ARM_DOF])
+            .unwrap();
+        assert!(stage().with_max_acceleration_rad_s2(vec![A; 4]).is_err());
+        s.reset(&start, 0.0);
+        let (mut previous, mut velocity, mut t) = (start, [0.0; SO101_ARM_DOF], 0.0);
+        for _ in 0..400 {
+            t += PERIOD_S;
+            let p = s.plan(&target, t);
+            assert!(within_limits(&p.joints_rad));
+            for j in 0..SO101_ARM_DOF {
+                let v = (p.joints_rad[j] - previous[j]) / PERIOD_S;
+                assert!(
+                    v.abs() <= STS3215_MAX_VELOCITY_RAD_S * (1.0 + 1e-9),
+                    "joint {j}: {v}"
+                );
+                assert!(
+                    (v - velocity[j]).abs() <= 2.0 * A * PERIOD_S * (1.0 + 1e-9),
+                    "joint {j}: {} -> {v}",
+                    velocity[j]
+                );
+                velocity[j] = v;
+            }
+            previous = p.joints_rad;
+            if !s.behind() {
+                break;
+            }
+        }
+        assert!(!s.behind(), "still behind after 8 s");
+        let done = s.plan(&target, t + PERIOD_S);
+        assert!(done.position_error_m < 1e-4, "{done:?}");
+    }
+
+    /// Near the CR5's wrist singularity (J5 close to 0) a small turn of the tool needs a large turn of J4 and J6,
+    /// so the orientation step is halved until it fits: down to an eighth of the aimed step before position
+    /// only. Scanning J5 toward the singularity finds starts where only the eighth fits; there the tool turns
+    /// by about an eighth of the aim (not by nothing, which is what giving up one halving early would do), and
+    /// no command ever exceeds the limit.
+    #[test]
+    fn near_a_singularity_the_orientation_step_is_halved_three_times_before_giving_up() {
+        let k = Cr5Kinematics::new();
+        let aim_rad = CR5_MAX_VELOCITY_RAD_S * PERIOD_S;
+        let mut eighths = 0;
+        let mut position_only = 0;
+        for i in 1..=120 {
+            let j5 = f64::from(i) * 0.005;
+            let start = [0.3, 0.2, 1.6, 0.4, j5, -0.2];
+            let from = k.forward(&start);
+            // A turn about the tool's own x axis: J5 near 0 leaves J4 and J6 to make it.
+            let turn = UnitQuaternion::from_axis_angle(&(from.rotation * Vector3::x_axis()), 0.4);
+            let target = Isometry3::from_parts(from.translation, turn * from.rotation);
+            let mut s = cr5_stage();
+            s.reset(&start, 0.0);
+            let p = s.plan(&target, PERIOD_S);
+            let step = start
+                .iter()
+                .zip(&p.joints_rad)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                step <= CR5_MAX_VELOCITY_RAD_S * PERIOD_S * (1.0 + 1e-9),
+                "J5 {j5}: step {step}"
+            );
+            let turned = from.rotation.angle_to(&p.achieved.rotation);
+            if turned > aim_rad / 12.0 && turned < aim_rad / 6.0 {
+                eighths += 1;
+            }
+            position_only += usize::from(turned < 1e-9);
+        }
+        assert!(
+            eighths > 0,
+            "no start needed exactly three halvings ({position_only} gave up)"
+        );
+        assert!(
+            position_only > 0,
+            "no start was close enough to the singularity to give up"
         );
     }
 

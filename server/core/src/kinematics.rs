@@ -92,7 +92,7 @@ const CR5_JOINT_ORIGINS: [([f64; 3], [f64; 3]); CR5_DOF] = [
 /// URDF joint origins `(xyz m, rpy rad)` parent → child, base to wrist_roll. The URDF's 3.14159/1.5708 are kept
 /// as written so that the FK matches tools that read the same file.
 #[allow(clippy::approx_constant)]
-const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
+pub const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
     (
         [0.038_835_3, -8.976_57e-9, 0.0624],
         [3.14159, 4.182_53e-17, -3.14159],
@@ -111,7 +111,8 @@ const SO101_JOINT_ORIGINS: [([f64; 3], [f64; 3]); SO101_ARM_DOF] = [
 
 /// Fixed joint gripper_link → gripper_frame_link (the tool centre point).
 #[allow(clippy::approx_constant)]
-const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) = ([-0.0079, -0.000_218_121, -0.098_127_4], [0.0, 3.14159, 0.0]);
+pub const SO101_TCP_ORIGIN: ([f64; 3], [f64; 3]) =
+    ([-0.0079, -0.000_218_121, -0.098_127_4], [0.0, 3.14159, 0.0]);
 
 /// Extra position-only iterations after an orientation solve that left position short of tolerance.
 const POLISH_ITERATIONS: usize = 20;
@@ -336,7 +337,51 @@ impl Cr5Kinematics {
     }
 }
 
+/// One revolute joint of a chain given in URDF terms: its origin on the parent link, its axis in its own frame
+/// and its range.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UrdfJoint {
+    pub origin_xyz_m: [f64; 3],
+    pub origin_rpy_rad: [f64; 3],
+    /// Any non-zero direction (normalised here).
+    pub axis: [f64; 3],
+    pub limits_rad: (f64, f64),
+}
+
+/// The rotation that takes the z axis to `axis` (non-zero): a joint turning about `axis` is that rotation, a
+/// turn about z, and the rotation back.
+fn z_to(axis: &Vector3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::rotation_between(&Vector3::z(), axis)
+        // Only an axis opposite to z has no unique shortest rotation: any half turn about a perpendicular does.
+        .unwrap_or_else(|| UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI))
+}
+
 impl<const N: usize> ChainKinematics<N> {
+    /// A chain of `joints` (URDF origins and axes, base to last link) and the tool's origin on the last link
+    /// (`tool_xyz_m`, `tool_rpy_rad`). The caller checks that everything is finite, axes are non-zero and
+    /// ranges are not inverted. Each joint's frame is turned so that it rotates about its z axis, which is the
+    /// form the solver works in; the poses of the links and the tool are the URDF's.
+    pub fn from_urdf(joints: &[UrdfJoint; N], tool_xyz_m: [f64; 3], tool_rpy_rad: [f64; 3]) -> Self {
+        let mut previous = UnitQuaternion::identity();
+        let mut joint_origins = [Isometry3::identity(); N];
+        let mut limits_rad = [(0.0, 0.0); N];
+        for ((origin, limits), joint) in joint_origins.iter_mut().zip(&mut limits_rad).zip(joints) {
+            let turn = z_to(&Vector3::from(joint.axis));
+            *origin = Isometry3::from_parts(Translation3::identity(), previous.inverse())
+                * urdf_origin(joint.origin_xyz_m, joint.origin_rpy_rad)
+                * Isometry3::from_parts(Translation3::identity(), turn);
+            *limits = joint.limits_rad;
+            previous = turn;
+        }
+        Self {
+            joint_origins,
+            last_from_tcp: Isometry3::from_parts(Translation3::identity(), previous.inverse())
+                * urdf_origin(tool_xyz_m, tool_rpy_rad),
+            limits_rad,
+            solver: IkSolverConfig::default(),
+        }
+    }
+
     /// The joint limits `(min, max)`, radians.
     pub fn limits_rad(&self) -> &[(f64, f64); N] {
         &self.limits_rad
@@ -1005,5 +1050,65 @@ mod tests {
             prop_assert!(within_limits(&sol.joints_rad));
             prop_assert!(sol.position_error_m.is_finite() && sol.orientation_error_rad.is_finite());
         }
+    }
+
+    /// A chain given in URDF terms, axes in any direction, puts the tool where the URDF's own product of
+    /// `origin · Rot(axis, q)` does; the SO-101's constants with z axes are the SO-101 model.
+    #[test]
+    fn a_urdf_chain_with_any_axes_is_the_urdf() {
+        use nalgebra::Unit;
+        let so101_joints = std::array::from_fn::<_, SO101_ARM_DOF, _>(|i| UrdfJoint {
+            origin_xyz_m: SO101_JOINT_ORIGINS[i].0,
+            origin_rpy_rad: SO101_JOINT_ORIGINS[i].1,
+            axis: [0.0, 0.0, 1.0],
+            limits_rad: SO101_JOINT_LIMITS_RAD[i],
+        });
+        let chain = ChainKinematics::from_urdf(&so101_joints, SO101_TCP_ORIGIN.0, SO101_TCP_ORIGIN.1);
+        let so101 = So101Kinematics::new();
+        let q = [0.3, -0.5, 0.7, 0.2, -1.1];
+        let (a, b) = (chain.forward(&q), so101.forward(&q));
+        assert!((a.translation.vector - b.translation.vector).norm() < 1e-12);
+        assert!(a.rotation.angle_to(&b.rotation) < 1e-12);
+        assert_eq!(chain.limits_rad(), so101.limits_rad());
+
+        let axes = [
+            [0.0, 0.0, -1.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 2.0, 0.0],
+            [1.0, -1.0, 0.5],
+            [0.0, 0.0, 3.0],
+        ];
+        let joints = std::array::from_fn::<_, 5, _>(|i| UrdfJoint {
+            origin_xyz_m: [0.01 * i as f64, 0.05, 0.1],
+            origin_rpy_rad: [0.1, -0.2 * i as f64, 0.3],
+            axis: axes[i],
+            limits_rad: (-3.0, 3.0),
+        });
+        let tool = ([0.02, 0.0, 0.08], [0.0, 0.4, 0.0]);
+        let chain = ChainKinematics::from_urdf(&joints, tool.0, tool.1);
+        let urdf = |q: &[f64; 5]| {
+            let mut pose = Isometry3::identity();
+            for (j, q) in joints.iter().zip(q) {
+                let turn = UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::from(j.axis)), *q);
+                pose = pose * urdf_origin(j.origin_xyz_m, j.origin_rpy_rad) * turn;
+            }
+            pose * urdf_origin(tool.0, tool.1)
+        };
+        for q in [[0.0; 5], q, [-1.0, 2.0, -0.3, 1.4, 2.9]] {
+            let (a, b) = (chain.forward(&q), urdf(&q));
+            assert!(
+                (a.translation.vector - b.translation.vector).norm() < 1e-12,
+                "{q:?}"
+            );
+            assert!(a.rotation.angle_to(&b.rotation) < 1e-9, "{q:?}");
+        }
+        // The solver works on it: a pose of the chain is solved back from a nearby seed.
+        let goal = [0.4, -0.2, 0.5, 0.3, 0.1];
+        let sol = chain.inverse(
+            &chain.forward(&goal),
+            &[0.3, -0.1, 0.4, 0.2, 0.0],
+            IkWeights::FULL,
+        );
+        assert!(sol.position_reached, "{sol:?}");
     }
 }

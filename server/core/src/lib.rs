@@ -9,6 +9,7 @@ pub mod flight;
 pub mod gate;
 pub mod gripper;
 pub mod joint_limit;
+pub mod joint_model;
 pub mod joint_motion;
 pub mod kinematics;
 pub mod layout;

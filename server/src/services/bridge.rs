@@ -66,6 +66,75 @@ fn publish_scene(handle: &AttachHandle, report: &v1::BridgeScene) -> Result<(), 
         .map_err(|e| e.to_string())
 }
 
+/// What the server does with an attaching bridge's joints.
+struct JointSetup {
+    /// The stage that solves and limits its joints (it declared a model), or none.
+    stage: Option<phone2act_core::ArmJointStage>,
+    /// The speeds its measured joints are watched against.
+    watch_rad_s: Vec<f64>,
+    enforced: bool,
+    /// The same in words, for the welcome and the log.
+    note: String,
+}
+
+/// The joint stage of the model `hello` declares (refused with the reason if malformed), or, without one, the
+/// arm's configured speeds to watch.
+fn joint_setup(app: &App, hello: &v1::BridgeHello) -> Result<JointSetup, RequestError> {
+    let config = app
+        .config()
+        .arms
+        .iter()
+        .find(|a| a.name == hello.arm)
+        .ok_or_else(|| RequestError::Internal(format!("arm {:?} has no configuration", hello.arm)))?;
+    let Some(model) = &hello.joint_model else {
+        let watch_rad_s = config
+            .joint_limits
+            .resolve(
+                hello.joint_names.len(),
+                phone2act_core::joint_motion::REMOTE_DEFAULT_MAX_VELOCITY_RAD_S,
+            )
+            .map_err(|e| RequestError::Refused(format!("the arm's joint_limits: {e}")))?;
+        let note = format!(
+            "no joint model declared: the bridge solves its own joints from the pose targets; the server only \
+             watches their measured speeds (limit {:.2} rad/s)",
+            watch_rad_s.iter().copied().fold(f64::INFINITY, f64::min)
+        );
+        return Ok(JointSetup {
+            stage: None,
+            watch_rad_s,
+            enforced: false,
+            note,
+        });
+    };
+    let refused = |e: String| RequestError::Refused(format!("joint_model refused: {e}"));
+    let declared = convert::declared_model(model).map_err(refused)?;
+    let weight = if hello.supports_orientation { 1.0 } else { 0.0 };
+    let stage = phone2act_core::joint_model::declared_stage(
+        &declared,
+        &hello.joint_names,
+        &config.joint_limits,
+        weight,
+    )
+    .map_err(|e| refused(e.to_string()))?;
+    let watch_rad_s = stage.max_velocity_rad_s().to_vec();
+    let note = format!(
+        "joint model declared ({} joints): the server solves every target and limits each joint's step to {} rad/s; \
+         commands carry joint_targets_rad",
+        stage.joints(),
+        watch_rad_s
+            .iter()
+            .map(|v| format!("{v:.2}"))
+            .collect::<Vec<_>>()
+            .join("/")
+    );
+    Ok(JointSetup {
+        stage: Some(stage),
+        watch_rad_s,
+        enforced: true,
+        note,
+    })
+}
+
 #[tonic::async_trait]
 impl Bridge for BridgeService {
     type AttachStream = DownStream;
@@ -84,6 +153,8 @@ impl Bridge for BridgeService {
         };
         check_hello(&hello)?;
         let remote = self.app.find_remote_bridge(&hello.arm)?;
+        let arm = self.app.find_arm(&hello.arm)?;
+        let joints = joint_setup(&self.app, &hello)?;
         let handle = Arc::new(
             remote
                 .attach(hello.joint_names.clone(), hello.supports_orientation)
@@ -92,17 +163,27 @@ impl Bridge for BridgeService {
         if hello.has_scene {
             handle.declare_scene().map_err(|e| error::remote(&e))?;
         }
+        // Put in place after the attach, which clears the feedback: the new stage starts from this robot's first
+        // measured joints, and nothing is commanded before them.
+        arm.replace_joint_stage(joints.stage);
+        if let Err(e) = remote.watch_joint_speeds(joints.watch_rad_s) {
+            tracing::warn!(arm = %hello.arm, error = %e, "joint speed watch off");
+        }
         // Debug formatting escapes control characters: a bridge name cannot forge log lines.
         tracing::info!(arm = %hello.arm, bridge = ?hello.bridge_name, has_scene = hello.has_scene,
-            "remote bridge attached");
+            joint_limits = %joints.note, "remote bridge attached");
         let (tx, rx) = tokio::sync::mpsc::channel::<Result<v1::BridgeDownstream, Status>>(4);
         tx.try_send(Ok(down(v1::bridge_downstream::Message::Welcome(
             v1::BridgeWelcome {
                 arm: hello.arm.clone(),
                 expected_feedback_hz: 50.0,
+                joint_targets: joints.enforced,
+                joint_limits: joints.note,
             },
         ))))
         .map_err(|_| RequestError::Internal("stream queue".to_owned()))?;
+        // The model is checked against the robot on the first feedback of the attachment.
+        let mut model_checked = !joints.enforced;
 
         let down_handle = Arc::clone(&handle);
         let down_tx = tx.clone();
@@ -154,7 +235,13 @@ impl Bridge for BridgeService {
                     })) => {
                         let result = match message {
                             v1::bridge_upstream::Message::Feedback(fb) => convert::bridge_feedback(&fb)
-                                .and_then(|f| handle.publish_feedback(f).map_err(|e| e.to_string())),
+                                .and_then(|f| {
+                                    if !model_checked {
+                                        arm.check_joint_model(&f).map_err(|e| e.to_string())?;
+                                        model_checked = true;
+                                    }
+                                    handle.publish_feedback(f).map_err(|e| e.to_string())
+                                }),
                             v1::bridge_upstream::Message::Status(report) => handle
                                 .report_health(convert::bridge_health(report))
                                 .map_err(|e| e.to_string()),

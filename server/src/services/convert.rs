@@ -184,6 +184,54 @@ pub fn bridge_command(c: &Command) -> v1::BridgeCommand {
         robot_from_target: Some(pose_to_proto(&c.robot_from_target)),
         gripper_target: c.gripper_target,
         issue_time_ns: c.issue_time_ns,
+        joint_targets_rad: c.joint_targets_rad.clone().unwrap_or_default(),
+    }
+}
+
+/// The joint model a bridge declared, checked for shape (three values where three are meant); its values are
+/// checked by `phone2act_core::joint_model`.
+pub fn declared_model(m: &v1::JointModel) -> Result<phone2act_core::joint_model::DeclaredModel, String> {
+    use phone2act_core::joint_model::{DeclaredJoint, DeclaredModel};
+    use v1::joint_model::Model;
+    let three = |what: &str, v: &[f64]| -> Result<[f64; 3], String> {
+        v.try_into()
+            .map_err(|_| format!("{what} needs 3 values, got {}", v.len()))
+    };
+    match &m.model {
+        None => Err("joint_model names no model (set known or chain)".to_owned()),
+        Some(Model::Known(name)) => Ok(DeclaredModel::Known(name.clone())),
+        Some(Model::Chain(chain)) => {
+            let joints = chain
+                .joints
+                .iter()
+                .map(|j| {
+                    let field = |f: &str| format!("joint {:?}: {f}", j.name);
+                    Ok(DeclaredJoint {
+                        name: j.name.clone(),
+                        origin_xyz_m: three(&field("origin_xyz_m"), &j.origin_xyz_m)?,
+                        origin_rpy_rad: three(&field("origin_rpy_rad"), &j.origin_rpy_rad)?,
+                        axis: three(&field("axis"), &j.axis)?,
+                        lower_rad: j.lower_rad,
+                        upper_rad: j.upper_rad,
+                        max_velocity_rad_s: j.max_velocity_rad_s,
+                        max_acceleration_rad_s2: j.max_acceleration_rad_s2,
+                    })
+                })
+                .collect::<Result<Vec<_>, String>>()?;
+            // An unset tool origin is the last link's own frame.
+            let or_zero = |what: &str, v: &[f64]| {
+                if v.is_empty() {
+                    Ok([0.0; 3])
+                } else {
+                    three(what, v)
+                }
+            };
+            Ok(DeclaredModel::Chain {
+                joints,
+                tool_xyz_m: or_zero("tool_xyz_m", &chain.tool_xyz_m)?,
+                tool_rpy_rad: or_zero("tool_rpy_rad", &chain.tool_rpy_rad)?,
+            })
+        }
     }
 }
 

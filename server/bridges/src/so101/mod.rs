@@ -354,8 +354,11 @@ impl ThreadedBridge<So101Link> {
             }),
             goal_rad: Mutex::new(None),
             ramp: Mutex::new(Ramp {
+                // Two bus periods of motion at most per write: a loop slower than 50 Hz keeps its full speed,
+                // and a stalled write does not turn into one long jump.
                 limiter: JointRateLimiter::new(config.max_velocity_rad_s.clone())
-                    .map_err(|e| BridgeError::Config(format!("so101: {e}")))?,
+                    .map_err(|e| BridgeError::Config(format!("so101: {e}")))?
+                    .with_max_step_s((2.0 / config.rate_hz).max(phone2act_core::joint_limit::MAX_STEP_S)),
                 target: None,
                 moving: false,
             }),
