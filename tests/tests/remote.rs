@@ -137,14 +137,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
     });
     let client = server.client().await.unwrap();
     tokio::time::sleep(Duration::from_millis(100)).await;
-    let arm = client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "ext")
-        .unwrap();
+    let arm = phone2act_tests::arm_state(&client, "ext").await;
     assert_eq!(arm.joint_names, ["a", "b", "c"]);
     assert!((pos(arm.robot_from_ee.as_ref().unwrap())[1] - 0.05).abs() < 1e-9);
 
@@ -171,14 +164,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
         phone.feedback_for(seq).await.unwrap();
     }
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let arm = client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "ext")
-        .unwrap();
+    let arm = phone2act_tests::arm_state(&client, "ext").await;
     let ee = pos(arm.robot_from_ee.as_ref().unwrap());
     assert!(
         (ee[0] - 0.24).abs() < 1e-6,
@@ -205,14 +191,7 @@ async fn a_remote_bridge_receives_gated_commands_and_its_feedback_is_the_arm_sta
     drop(tx);
     drop(phone);
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let arm = client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "ext")
-        .unwrap();
+    let arm = phone2act_tests::arm_state(&client, "ext").await;
     assert_eq!(arm.health(), v1::BridgeHealth::Disconnected, "{arm:?}");
     server.shutdown().await.unwrap();
 }
@@ -383,14 +362,7 @@ async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
     assert!((reset.ball_position_m.unwrap().y - 0.05).abs() < 1e-12);
     assert_eq!(scene.get("ext").await.unwrap().seed, 5);
     // The scene's success is the arm's.
-    let arm = client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "ext")
-        .unwrap();
+    let arm = phone2act_tests::arm_state(&client, "ext").await;
     assert!(arm.task_success, "{arm:?}");
     // A refused reset fails with the bridge's reason; the scene is what the bridge reports (seed 6, no success).
     let err = scene.reset("ext", Some(6), false).await.unwrap_err();

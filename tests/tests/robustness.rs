@@ -123,14 +123,7 @@ fn abc() -> Vec<String> {
 }
 
 async fn ext_arm(client: &phone2act_sdk::Client) -> v1::ArmState {
-    client
-        .system()
-        .list_arms()
-        .await
-        .unwrap()
-        .into_iter()
-        .find(|a| a.arm == "ext")
-        .unwrap()
+    phone2act_tests::arm_state(client, "ext").await
 }
 
 type Down = tonic::Streaming<v1::BridgeDownstream>;
