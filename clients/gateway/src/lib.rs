@@ -34,7 +34,6 @@ mod shared;
 pub mod takeover;
 pub mod tls;
 mod upstream;
-mod video_encode;
 mod web;
 mod web_preview;
 mod webrtc;

@@ -4,7 +4,7 @@
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
 //! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB), encodes
-//!   it once (`video_encode`, on the blocking pool: the gateway's runtime may be a single thread that also
+//!   it once (`phone2act_recorder::live`, on the blocking pool: the gateway's runtime may be a single thread that also
 //!   carries the control path) and publishes it on a broadcast channel. A viewer that falls behind loses the
 //!   oldest frames (the channel's lag) and waits for a keyframe, so video never queues.
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
@@ -17,9 +17,9 @@
 
 use crate::conn::Out;
 use crate::upstream::Upstream;
-use crate::video_encode::H264Encoder;
 use parking_lot::Mutex;
 use phone2act_proto::v1::{GetObservationRequest, ImageEncoding};
+use phone2act_recorder::live::H264Encoder;
 use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};

@@ -401,7 +401,7 @@ impl<const N: usize> JointStage<N> {
 pub enum ArmJointStage {
     So101(So101JointStage),
     Cr5(Cr5JointStage),
-    /// A chain a remote bridge declared (see [`crate::joint_model`]), by its number of joints.
+    /// A chain a remote bridge declared (its model checked by the `joint_model` module), by its number of joints.
     Chain3(JointStage<3>),
     Chain4(JointStage<4>),
     Chain5(JointStage<5>),

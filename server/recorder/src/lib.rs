@@ -10,6 +10,7 @@ pub mod error;
 pub mod events;
 pub mod fsutil;
 pub mod jpeg;
+pub mod live;
 pub mod memory;
 pub mod parquet_io;
 pub mod quantiles;

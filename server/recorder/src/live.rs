@@ -1,5 +1,5 @@
-//! H.264 for the operator's live video: packed RGB frames in, Annex-B access units out, through the FFmpeg the
-//! recorder already links (libx264). Tuned for latency, not size: no B-frames, no lookahead
+//! H.264 for the operator's live video (the gateway's WebRTC view): packed RGB frames in, Annex-B access units
+//! out, through the same FFmpeg as the recorder's encoders (libx264). Tuned for latency, not size: no B-frames, no lookahead
 //! (`tune=zerolatency`), one slice per frame, SPS/PPS repeated before every keyframe so that a viewer who joins
 //! late decodes from the next keyframe, and constrained baseline, which every browser's decoder (and hardware
 //! decoders) take.
@@ -14,14 +14,14 @@ use std::sync::Once;
 /// Why the encoder could not be made or used.
 #[derive(Debug, thiserror::Error)]
 #[error("H.264 encoder: {0}")]
-pub(crate) struct EncodeError(pub String);
+pub struct EncodeError(pub String);
 
 fn ff(what: &str, e: ffmpeg_next::Error) -> EncodeError {
     EncodeError(format!("{what}: {e}"))
 }
 
 /// One encoder for one camera at one size.
-pub(crate) struct H264Encoder {
+pub struct H264Encoder {
     encoder: encoder::Video,
     scaler: scaling::Context,
     rgb: VideoFrame,
@@ -43,7 +43,7 @@ impl std::fmt::Debug for H264Encoder {
 
 impl H264Encoder {
     /// An encoder for `width`x`height` RGB frames at about `fps`, aiming at `bitrate_bps`.
-    pub(crate) fn new(width: u32, height: u32, fps: u32, bitrate_bps: usize) -> Result<Self, EncodeError> {
+    pub fn new(width: u32, height: u32, fps: u32, bitrate_bps: usize) -> Result<Self, EncodeError> {
         static INIT: Once = Once::new();
         INIT.call_once(|| {
             let _ = ffmpeg_next::init();
@@ -102,13 +102,13 @@ impl H264Encoder {
     }
 
     /// The size this encoder takes (the camera's, rounded down to even).
-    pub(crate) fn size(&self) -> (u32, u32) {
+    pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
 
     /// Encodes one packed RGB frame of the camera's size (`src_width` pixels a row, at least this encoder's
     /// size); returns the access unit (Annex B) and whether it is a keyframe. `keyframe` forces one.
-    pub(crate) fn encode(
+    pub fn encode(
         &mut self,
         rgb: &[u8],
         src_width: u32,
