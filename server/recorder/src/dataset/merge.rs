@@ -94,8 +94,10 @@ struct SourceEpisode {
     from: u64,
     /// Per camera: chunk * CHUNKS + file, from_timestamp, to_timestamp.
     videos: BTreeMap<String, (u64, f64, f64)>,
-    /// Its row of `meta/episodes`, to be copied with the renumbered columns replaced.
-    row: RecordBatch,
+    /// Where its row of `meta/episodes` is (file in `Input::meta_files`, batch, row), read again when the
+    /// merged metadata is written: holding every episode's row (a batch of a hundred-odd stats columns each)
+    /// would grow the merge's memory with the number of episodes.
+    meta_at: (usize, usize, usize),
 }
 
 struct Input {
@@ -106,6 +108,7 @@ struct Input {
     tasks: Vec<String>,
     episodes: Vec<SourceEpisode>,
     data_files: Vec<PathBuf>,
+    meta_files: Vec<PathBuf>,
     provenance: Option<Provenance>,
     stats: Value,
 }
@@ -173,8 +176,9 @@ impl Input {
         let tasks = parquet_io::read_tasks(&root.join("meta/tasks.parquet"))?;
         let mut episodes = Vec::new();
         let keys: Vec<String> = video_keys(&info);
-        for f in parquet_files(&root.join("meta/episodes")) {
-            for b in parquet_io::read_batches(&f)? {
+        let meta_files = parquet_files(&root.join("meta/episodes"));
+        for (fi, f) in meta_files.iter().enumerate() {
+            for (bi, b) in parquet_io::read_batches(f)?.into_iter().enumerate() {
                 let idx = int_column(&b, "episode_index")
                     .ok_or_else(|| bad(&label, "meta/episodes has no episode_index"))?;
                 let len =
@@ -201,7 +205,7 @@ impl Input {
                         from: u64::try_from(from[r])
                             .map_err(|_| bad(&label, "negative dataset_from_index"))?,
                         videos,
-                        row: b.slice(r, 1),
+                        meta_at: (fi, bi, r),
                     });
                 }
             }
@@ -236,6 +240,7 @@ impl Input {
         let stats = read_json(&root.join("meta/stats.json")).unwrap_or(Value::Null);
         Ok(Input {
             data_files: parquet_files(&root.join("data")),
+            meta_files,
             label,
             root,
             info,
@@ -253,6 +258,25 @@ impl Input {
 
     fn frames(&self) -> u64 {
         self.episodes.iter().map(|e| e.length).sum()
+    }
+
+    /// The `meta/episodes` row of `episode`, reading its file only when `cache` holds another one (episodes
+    /// are in file order, so each file is read once).
+    fn meta_row(
+        &self,
+        episode: &SourceEpisode,
+        cache: &mut Option<(usize, Vec<RecordBatch>)>,
+    ) -> Result<RecordBatch, MergeError> {
+        let (file, batch, row) = episode.meta_at;
+        if cache.as_ref().is_none_or(|(f, _)| *f != file) {
+            *cache = Some((file, parquet_io::read_batches(&self.meta_files[file])?));
+        }
+        let batches = &cache.as_ref().expect("just filled").1;
+        let b = batches
+            .get(batch)
+            .filter(|b| row < b.num_rows())
+            .ok_or_else(|| bad(&self.label, "meta/episodes changed during the merge"))?;
+        Ok(b.slice(row, 1))
     }
 
     fn video_path(&self, key: &str, n: u64) -> PathBuf {
@@ -868,7 +892,7 @@ fn write_merged(
     report.files_out += data.next;
 
     // Episode metadata: each source row with its locations, indices and renumbered stats replaced.
-    let first_row_schema = first.episodes[0].row.schema();
+    let first_row_schema = first.meta_row(&first.episodes[0], &mut None)?.schema();
     let mut meta = RollingWriter::new(
         dst,
         "meta/episodes",
@@ -880,10 +904,12 @@ fn write_merged(
     let mut episodes_prov = Vec::new();
     for (i, input) in inputs.iter().enumerate() {
         report.files_in += parquet_files(&input.root.join("meta/episodes")).len() as u64;
+        let mut cache = None;
         for (src, place) in input.episodes.iter().zip(&placed[i]) {
             let new_ep = episode_offset + src.index;
             let from = frame_offset + src.from;
-            let mut row = src.row.clone();
+            let source_row = input.meta_row(src, &mut cache)?;
+            let mut row = source_row.clone();
             row = set_column(&row, "episode_index", one_int(new_ep));
             row = set_column(&row, "data/chunk_index", one_int(place.data_file / chunks));
             row = set_column(&row, "data/file_index", one_int(place.data_file % chunks));
@@ -914,7 +940,7 @@ fn write_merged(
             row = set_column(&row, "meta/episodes/file_index", one_int(n % chunks));
             meta.write(&row, estimate)?;
 
-            let task = parquet_io::episode_task(&src.row, 0);
+            let task = parquet_io::episode_task(&source_row, 0);
             episodes_prov.push(carry_episode(
                 &input.label,
                 &input.root,
