@@ -921,6 +921,62 @@ mod tests {
         assert!(done.position_error_m < 1e-4, "{done:?}");
     }
 
+    /// A joint braking under its acceleration limit for a target that turned back can be carried past the old
+    /// target when the commands come faster than they did while it sped up (braking at shorter steps covers
+    /// more ground): here past the range of a pan driven to its stop. The range is a hard stop: the command
+    /// stays inside it, and the joint, stopped there, starts back at once instead of first returning from a
+    /// point beyond the stop that the arm never reached.
+    #[test]
+    fn a_joint_carried_to_its_range_stop_stops_there_and_starts_back_from_it() {
+        const A: f64 = 20.0;
+        const FAST_S: f64 = 0.001;
+        let k = So101Kinematics::new();
+        let (_, pan_max) = SO101_JOINT_LIMITS_RAD[0];
+        let rest = [-0.4, 0.6, 0.9, 0.0];
+        let at_pan = |pan: f64| k.forward(&[pan, rest[0], rest[1], rest[2], rest[3]]);
+        let start_pan = pan_max - 0.6;
+        let mut s = stage()
+            .with_max_acceleration_rad_s2(vec![A; SO101_ARM_DOF])
+            .unwrap();
+        s.reset(&[start_pan, rest[0], rest[1], rest[2], rest[3]], 0.0);
+        let (mut t, mut pan) = (0.0, start_pan);
+        // Speed up toward the stop at 20 ms commands until braking at 1 ms commands would pass it.
+        let mut turned = false;
+        for _ in 0..100 {
+            t += PERIOD_S;
+            let p = s.plan(&at_pan(pan_max), t);
+            let v = (p.joints_rad[0] - pan) / PERIOD_S;
+            pan = p.joints_rad[0];
+            if v > 0.0 && pan_max - pan < v * v / (2.0 * A) - v * FAST_S / 2.0 - 1e-3 {
+                turned = true;
+                break;
+            }
+        }
+        assert!(turned, "the pan never came fast enough to the stop");
+        let mut at_stop = None;
+        let mut pans = Vec::new();
+        for i in 0..600 {
+            t += FAST_S;
+            let p = s.plan(&at_pan(start_pan), t);
+            assert!(within_limits(&p.joints_rad), "{:?}", p.joints_rad);
+            pans.push(p.joints_rad[0]);
+            if at_stop.is_none() && p.joints_rad[0] == pan_max {
+                at_stop = Some(i);
+            }
+        }
+        let at_stop = at_stop.expect("braking at shorter steps did not carry the pan to its stop");
+        assert!(
+            pans[at_stop + 1] < pan_max,
+            "the pan stayed at its stop after reaching it: {:?}",
+            &pans[at_stop..(at_stop + 20).min(pans.len())]
+        );
+        assert!(
+            pans[599] < pans[at_stop + 1],
+            "the pan never went back: {:?}",
+            &pans[590..]
+        );
+    }
+
     /// Near the CR5's wrist singularity (J5 close to 0) a small turn of the tool needs a large turn of J4 and J6,
     /// so the orientation step is halved until it fits: down to an eighth of the aimed step before position
     /// only. Scanning J5 toward the singularity finds starts where only the eighth fits; there the tool turns
