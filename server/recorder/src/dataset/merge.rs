@@ -469,10 +469,26 @@ struct RollingWriter {
     schema: SchemaRef,
     current: Option<(u64, ArrowWriter<File>, f64, SchemaRef)>,
     next: u64,
+    /// Rows per row group: 1 writes each batch as its own row group.
+    group_rows: usize,
+    /// Rows written to the current file since its last row group ended.
+    pending_rows: usize,
 }
 
+/// Rows per row group of the merged `meta/episodes` files. An open Parquet writer keeps every finished row
+/// group's column metadata until the file closes, about 45 kB for an episode row with its hundred-odd stats
+/// columns: a row group per episode would make the merge's memory grow with the number of episodes.
+const META_GROUP_ROWS: usize = 1000;
+
 impl RollingWriter {
-    fn new(dir: &Path, top: &'static str, chunks: u64, limit_mb: f64, schema: SchemaRef) -> Self {
+    fn new(
+        dir: &Path,
+        top: &'static str,
+        chunks: u64,
+        limit_mb: f64,
+        schema: SchemaRef,
+        group_rows: usize,
+    ) -> Self {
         RollingWriter {
             dir: dir.to_owned(),
             top,
@@ -481,6 +497,8 @@ impl RollingWriter {
             schema,
             current: None,
             next: 0,
+            group_rows: group_rows.max(1),
+            pending_rows: 0,
         }
     }
 
@@ -509,11 +527,13 @@ impl RollingWriter {
             let w = ArrowWriter::try_new(file, Arc::clone(&s), Some(props(&s)))
                 .map_err(|e| RecorderError::parquet(&path, &e))?;
             self.current = Some((n, w, 0.0, s));
+            self.pending_rows = 0;
         }
         Ok(self.current.as_ref().map_or(0, |c| c.0))
     }
 
-    /// Writes `batch` as its own row group (lerobot writes one per episode).
+    /// Writes `batch`, ending the row group once it holds `group_rows` rows (data: 1, each episode its own
+    /// row group, as lerobot writes them).
     fn write(&mut self, batch: &RecordBatch, estimated_bytes: f64) -> Result<(), RecorderError> {
         let path = self.dir.join(self.top);
         if let Some((_, w, written, file_schema)) = &mut self.current {
@@ -525,7 +545,11 @@ impl RollingWriter {
                     }
                 })?;
             w.write(&batch).map_err(|e| RecorderError::parquet(&path, &e))?;
-            w.flush().map_err(|e| RecorderError::parquet(&path, &e))?;
+            self.pending_rows += batch.num_rows();
+            if self.pending_rows >= self.group_rows {
+                w.flush().map_err(|e| RecorderError::parquet(&path, &e))?;
+                self.pending_rows = 0;
+            }
             *written += estimated_bytes;
         }
         Ok(())
@@ -796,6 +820,7 @@ fn write_merged(
         chunks,
         opts.data_file_size_mb,
         Arc::clone(data_schema),
+        1,
     );
     let mut aggregates: BTreeMap<String, Aggregate> = BTreeMap::new();
     let mut quantiles = QuantileStore::default();
@@ -899,6 +924,7 @@ fn write_merged(
         chunks,
         opts.data_file_size_mb,
         first_row_schema,
+        META_GROUP_ROWS,
     );
     let (mut episode_offset, mut frame_offset) = (0u64, 0u64);
     let mut episodes_prov = Vec::new();
@@ -1130,4 +1156,58 @@ pub(super) fn write_stats_and_provenance(
     )
     .map_err(|e| RecorderError::io(&path, e))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row_groups(path: &Path) -> Vec<i64> {
+        let file = File::open(path).unwrap();
+        let reader = ParquetRecordBatchReaderBuilder::try_new(file).unwrap();
+        reader
+            .metadata()
+            .row_groups()
+            .iter()
+            .map(parquet::file::metadata::RowGroupMetaData::num_rows)
+            .collect()
+    }
+
+    /// Episode rows share row groups of `META_GROUP_ROWS` (the writer's memory then stays flat however many
+    /// episodes a file holds); data rows keep one row group per episode, as lerobot writes them.
+    #[test]
+    fn metadata_rows_share_row_groups_and_data_rows_keep_one_per_episode() {
+        let dir = tempfile::tempdir().unwrap();
+        let schema = Arc::new(Schema::new(vec![Field::new(
+            "episode_index",
+            DataType::Int64,
+            false,
+        )]));
+        let one = |i: i64| {
+            RecordBatch::try_new(
+                Arc::clone(&schema),
+                vec![Arc::new(Int64Array::from(vec![i])) as ArrayRef],
+            )
+            .unwrap()
+        };
+        let episodes = 2 * META_GROUP_ROWS + 7;
+        for (top, group, expected) in [
+            (
+                "meta/episodes",
+                META_GROUP_ROWS,
+                vec![META_GROUP_ROWS as i64, META_GROUP_ROWS as i64, 7],
+            ),
+            ("data", 1, vec![1; episodes]),
+        ] {
+            let mut w = RollingWriter::new(dir.path(), top, CHUNKS_SIZE, 100.0, Arc::clone(&schema), group);
+            for i in 0..episodes {
+                let row = one(i as i64);
+                w.file_for(10.0, &row.schema()).unwrap();
+                w.write(&row, 10.0).unwrap();
+            }
+            w.close().unwrap();
+            let path = dir.path().join(file_rel(top, 0, CHUNKS_SIZE, "parquet"));
+            assert_eq!(row_groups(&path), expected, "{top}");
+        }
+    }
 }
