@@ -89,6 +89,12 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
         let st = rec.start_episode(&t)?;
         say(format!("started {}", st.episode_index));
         std::thread::sleep(Duration::from_secs_f64(seconds));
+        // On a busy machine a short episode can end before its first frame is in; an episode without frames is
+        // not saved, so wait for one (up to 10 s) rather than end the run.
+        let waited = std::time::Instant::now();
+        while rec.status().frames_recorded == 0 && waited.elapsed() < Duration::from_secs(10) {
+            std::thread::sleep(Duration::from_millis(5));
+        }
         say(format!("stopping {}", st.episode_index));
         let s = rec.stop_episode()?;
         say(format!(
