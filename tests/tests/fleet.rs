@@ -1,7 +1,8 @@
 //! Episodes flow to S3-compatible storage (issue 26), against a real S3 server on loopback (moto, see
 //! `phone2act_tests::s3`): an episode recorded with `[storage]` appears remotely complete; wrong
 //! credentials and a missing bucket are clear errors that leave everything local and complete once fixed;
-//! the storage server killed mid-upload and restarted finishes the upload with nothing half-visible.
+//! the storage server killed mid-upload and restarted finishes the upload with nothing half-visible; a v2.1
+//! station's remote `episodes.jsonl` never lists an episode before its files.
 //!
 //! Timing: every wait below is a liveness bound (generous: a minute or more, for work that takes about a
 //! second on an idle machine), never a performance assertion, so a loaded two-core machine slows these tests
@@ -626,6 +627,112 @@ async fn a_full_disk_with_uploads_pending_is_a_clear_error_and_loses_no_committe
     .await;
     let remote = remote(&moto, "st-f");
     remote_is_consistent(&remote, 1).await.unwrap();
+    pull_and_verify(&remote, &dir.path().join("back"), 2).await;
+    server.shutdown().await.unwrap();
+}
+
+/// A reader's view of a v2.1 prefix: every episode `meta/episodes.jsonl` lists has its data file and its
+/// videos remote, and `meta/info.json` counts no more episodes than that. Returns the episodes listed.
+async fn remote_v21_is_consistent(remote: &Remote, camera_keys: &[String]) -> Result<usize, String> {
+    let listed = remote.list().await.map_err(|e| e.to_string())?;
+    let has = |k: &str| listed.iter().any(|(key, _)| key == k);
+    let lines = match remote
+        .get_bytes("meta/episodes.jsonl")
+        .await
+        .map_err(|e| e.to_string())?
+    {
+        Some(b) => String::from_utf8(b.to_vec()).map_err(|e| e.to_string())?,
+        None => String::new(),
+    };
+    let mut episodes = 0;
+    for line in lines.lines().filter(|l| !l.trim().is_empty()) {
+        let v: serde_json::Value = serde_json::from_str(line).map_err(|e| format!("{e}: {line}"))?;
+        let i = v["episode_index"].as_u64().ok_or("no episode_index")?;
+        let data = format!("data/chunk-000/episode_{i:06}.parquet");
+        if !has(&data) {
+            return Err(format!(
+                "episodes.jsonl lists episode {i} but {data} is not remote"
+            ));
+        }
+        for key in camera_keys {
+            let video = format!("videos/chunk-000/{key}/episode_{i:06}.mp4");
+            if !has(&video) {
+                return Err(format!(
+                    "episodes.jsonl lists episode {i} but {video} is not remote"
+                ));
+            }
+        }
+        episodes += 1;
+    }
+    if let Some(info) = remote
+        .get_bytes("meta/info.json")
+        .await
+        .map_err(|e| e.to_string())?
+    {
+        let info: serde_json::Value = serde_json::from_slice(&info).map_err(|e| e.to_string())?;
+        let n = info["total_episodes"].as_u64().unwrap_or(0) as usize;
+        if n > episodes {
+            return Err(format!(
+                "info.json counts {n} episodes, episodes.jsonl lists {episodes}"
+            ));
+        }
+    }
+    Ok(episodes)
+}
+
+/// v2.1 (GR00T) datasets replace `meta/episodes.jsonl` whole at each save: uploaded slowly, the remote copy
+/// never lists an episode whose data or video is not there yet, and it ends equal to the local one.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_v21_dataset_uploads_so_that_every_listed_episode_is_remote() {
+    let test = "a_v21_dataset_uploads_so_that_every_listed_episode_is_remote";
+    let Some(bin) = moto_server_path(test) else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(&bin, dir.path(), true);
+    moto.create_bucket(BUCKET);
+    let creds = moto.credentials_file(dir.path(), None);
+    let root = dir.path().join("ds");
+    let mut config = default_config(&root);
+    config.recorder.format = phone2act_server::config::DatasetFormat::V21;
+    let mut s = storage(&moto, &creds, "st-v21");
+    // Slow enough that each episode's files go up over seconds, so the polls below see it part-way.
+    s.max_upload_bytes_per_s = Some(20_000);
+    config.storage = Some(s);
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    record(&client, "pick", "eve", 700).await;
+    record(&client, "place", "eve", 700).await;
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(root.join("meta/info.json")).unwrap()).unwrap();
+    let camera_keys: Vec<String> = info["features"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .filter(|(_, f)| f["dtype"] == "video")
+        .map(|(k, _)| k.clone())
+        .collect();
+    assert!(!camera_keys.is_empty());
+
+    let remote = remote(&moto, "st-v21");
+    let total = phone2act_storage::order::dataset_files(&root).unwrap().len();
+    let (mut partial_polls, mut listed_max) = (0, 0);
+    let deadline = Instant::now() + Duration::from_mins(3);
+    loop {
+        let listed = remote_v21_is_consistent(&remote, &camera_keys).await.unwrap();
+        listed_max = listed_max.max(listed);
+        let objects = remote.list().await.unwrap().len();
+        partial_polls += usize::from(objects > 0 && objects < total);
+        let list = client.episodes().list().await.unwrap();
+        if all_uploaded(&list, 2) {
+            break;
+        }
+        assert!(Instant::now() < deadline, "upload not finished: {list:#?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(remote_v21_is_consistent(&remote, &camera_keys).await.unwrap(), 2);
+    assert!(
+        partial_polls > 0,
+        "no poll saw the upload part-way (the test did not test anything)"
+    );
     pull_and_verify(&remote, &dir.path().join("back"), 2).await;
     server.shutdown().await.unwrap();
 }
