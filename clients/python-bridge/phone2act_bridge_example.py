@@ -27,20 +27,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import queue
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import grpc
 from phone2act import make_pose
-from phone2act._common import auth_metadata, channel_options
+from phone2act.bridge import BridgeHandler, BridgeLink
 from phone2act.joint_model import SO101_TOOL, ChainJoint, chain_model, forward, so101_chain
 from phone2act.poses import rpy_from_quat, slerp
 from phone2act.v1 import bridge_pb2 as pb
-from phone2act.v1 import bridge_pb2_grpc as rpc
-from phone2act.v1 import common_pb2
 
 
 @dataclass
@@ -121,86 +118,66 @@ class FirstOrderArm:
         )
 
 
-class ExampleBridge:
+class ExampleBridge(BridgeHandler):
     """Attach `robot` to `arm` on the server and run until `stop()` or the stream ends."""
 
     def __init__(self, target: str, arm: str, robot: FirstOrderArm, token: str | None = None) -> None:
-        self.target, self.arm, self.robot = target, arm, robot
-        self._token = token
-        self._up: queue.Queue[pb.BridgeUpstream | None] = queue.Queue(maxsize=64)
-        self._stop = threading.Event()
+        self.arm, self.robot = arm, robot
         self._lock = threading.Lock()
-        self.welcome: pb.BridgeWelcome | None = None
-        self.commands = 0
-        self.error: grpc.RpcError | None = None
-        self.attached = threading.Event()
+        hello = pb.BridgeHello(arm=arm, bridge_name="python-example", joint_names=list(robot.joint_names),
+                               supports_orientation=True)
+        model = robot.joint_model()
+        if model is not None:
+            hello.joint_model.CopyFrom(model)
+        self.link = BridgeLink(target, hello, self, token)
 
-    def _upstream(self) -> Iterator[pb.BridgeUpstream]:
-        while True:
-            msg = self._up.get()
-            if msg is None:
-                return
-            yield msg
+    def on_welcome(self, link: BridgeLink, welcome: pb.BridgeWelcome) -> None:
+        # Whether the server limits this robot's joints, or only watches them.
+        print(f"phone2act bridge attached to {self.arm}: {welcome.joint_limits}", flush=True)
+        link.ready()
+        rate = welcome.expected_feedback_hz or 50.0
+        threading.Thread(target=self._feedback_loop, args=(link, rate), daemon=True).start()
 
-    def _feedback_loop(self, rate_hz: float) -> None:
+    def on_command(self, link: BridgeLink, command: pb.BridgeCommand) -> None:
+        with self._lock:
+            self.robot.command(command)
+
+    def _feedback_loop(self, link: BridgeLink, rate_hz: float) -> None:
         period = 1.0 / rate_hz
         last = time.monotonic()
-        while not self._stop.wait(period):
+        while not link.stopped.wait(period):
             now = time.monotonic()
             with self._lock:
                 self.robot.step(now - last)
                 fb = self.robot.feedback()
             last = now
-            try:
-                self._up.put_nowait(pb.BridgeUpstream(feedback=fb))
-            except queue.Full:  # the stream is not draining; newer feedback will follow
-                pass
+            link.feedback(fb)
+
+    # The link's state, as the tests and `main` read it.
+    @property
+    def attached(self) -> threading.Event:
+        return self.link.attached
+
+    @property
+    def welcome(self) -> pb.BridgeWelcome | None:
+        return self.link.welcome
+
+    @property
+    def commands(self) -> int:
+        return self.link.commands
+
+    @property
+    def error(self) -> grpc.RpcError | None:
+        return self.link.error
 
     def run(self) -> None:
-        hello = pb.BridgeHello(arm=self.arm, bridge_name="python-example",
-                               joint_names=list(self.robot.joint_names), supports_orientation=True)
-        model = self.robot.joint_model()
-        if model is not None:
-            hello.joint_model.CopyFrom(model)
-        self._up.put(pb.BridgeUpstream(hello=hello))
-        ready = pb.BridgeStatusReport(health=common_pb2.BRIDGE_HEALTH_READY, message="")
-        with grpc.insecure_channel(self.target, options=channel_options(self.target)) as channel:
-            call = rpc.BridgeStub(channel).Attach(self._upstream(), metadata=auth_metadata(self._token))
-            self._call = call
-            try:
-                for down in call:
-                    kind = down.WhichOneof("message")
-                    if kind == "welcome":
-                        self.welcome = down.welcome
-                        # Whether the server limits this robot's joints, or only watches them.
-                        print(f"phone2act bridge attached to {self.arm}: {down.welcome.joint_limits}", flush=True)
-                        self._up.put(pb.BridgeUpstream(status=ready))
-                        rate = down.welcome.expected_feedback_hz or 50.0
-                        threading.Thread(target=self._feedback_loop, args=(rate,), daemon=True).start()
-                        self.attached.set()
-                    elif kind == "command":
-                        with self._lock:
-                            self.robot.command(down.command)
-                        self.commands += 1
-                    # BridgeControl (enable, disable, clear error, reconnect) means nothing to this robot.
-            except grpc.RpcError as e:
-                if e.code() != grpc.StatusCode.CANCELLED:
-                    self.error = e
-            finally:
-                self._stop.set()
-                self.attached.set()
+        self.link.run()
 
     def start(self) -> threading.Thread:
-        t = threading.Thread(target=self.run, name="phone2act-bridge", daemon=True)
-        t.start()
-        return t
+        return self.link.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        self._up.put(None)
-        call = getattr(self, "_call", None)
-        if call is not None:
-            call.cancel()
+        self.link.stop()
 
 
 def main() -> None:
