@@ -284,6 +284,12 @@ pub struct RecorderConfig {
     /// features it was created with: resuming one with the other setting is refused.
     #[serde(default)]
     pub intervention: bool,
+    /// Record `next.success` (bool per frame) also when no arm has a scene (hardware arms): every frame is
+    /// false except the last one of an episode the operator stops as a success. With a scene the column is
+    /// always recorded (the scene's success flag). Like `intervention`, a dataset keeps the features it was
+    /// created with.
+    #[serde(default)]
+    pub success: bool,
 }
 
 impl Default for RecorderConfig {
@@ -295,6 +301,7 @@ impl Default for RecorderConfig {
             robot_type: default_robot_type(),
             video_codec: None,
             intervention: false,
+            success: false,
         }
     }
 }

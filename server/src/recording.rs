@@ -33,8 +33,10 @@ impl RobotSource for ArmsSource {
         let mut state = Vec::new();
         let mut action = Vec::new();
         let mut oldest_ns = i64::MAX;
-        // The task is done when every arm that has one has done its own (a bimanual sim has two scenes).
+        // The task is done when every arm that has a scene has done its own (a bimanual sim has two scenes).
+        // Without any scene nothing measures it: false, until the operator's outcome marks the last frame.
         let mut success = true;
+        let mut scenes = 0;
         let mut activity = Vec::with_capacity(self.arms.len());
         for arm in &self.arms {
             let sample = arm.state_and_action()?;
@@ -42,12 +44,15 @@ impl RobotSource for ArmsSource {
             state.extend(sample.state);
             action.extend(sample.action);
             oldest_ns = oldest_ns.min(sample.capture_time_ns);
-            success &= sample.task_success || !arm.has_scene();
+            if arm.has_scene() {
+                scenes += 1;
+                success &= sample.task_success;
+            }
         }
         Some(RobotSample {
             state,
             action,
-            success,
+            success: success && scenes > 0,
             capture_time_ns: oldest_ns,
             arms: activity,
         })
@@ -107,8 +112,9 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         root: config.recorder.root.clone(),
         format: config.recorder.format,
         fps: fps as u32,
-        // `next.success` is the scene's success flag: recorded when an arm has a scene (the simulator's).
-        success: arms.iter().any(|a| a.has_scene()),
+        // `next.success` is the scene's success flag when an arm has a scene (the simulator's); hardware arms
+        // get the column from `[recorder] success`, set by the operator's outcome at Stop.
+        success: config.recorder.success || arms.iter().any(|a| a.has_scene()),
         intervention: config.recorder.intervention,
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),

@@ -365,9 +365,20 @@ impl Recorder {
 
     /// Stops recording and saves the episode. Returns when it is committed to disk.
     pub fn stop_episode(&self) -> Result<EpisodeSummary, RecorderError> {
+        self.stop_episode_with(None)
+    }
+
+    /// Stops recording and saves the episode with the operator's outcome (`Some(true)`: a success), kept in
+    /// its provenance and, in a dataset with `next.success`, as the last frame's value: the task is done (or
+    /// not) after that frame, as LeRobot's evaluation and HIL recordings mark it. The frames before keep what
+    /// was sampled (a scene's success flag, false without one). Returns when it is committed to disk.
+    pub fn stop_episode_with(&self, success: Option<bool>) -> Result<EpisodeSummary, RecorderError> {
         let t0 = std::time::Instant::now();
         let mut ds = self.shared.dataset.lock();
-        let active = self.take_active()?;
+        let mut active = self.take_active()?;
+        if let Some(v) = success {
+            active.writer.set_last_success(v);
+        }
         let summary = EpisodeSummary {
             index: active.writer.index,
             task: active.writer.task.clone(),
@@ -377,6 +388,7 @@ impl Recorder {
             start_unix_ns: active.start_unix_ns,
             operator: active.operator.clone(),
             first_frame_time_ns: self.shared.clock.time_ns(active.first_tick),
+            success,
             ..EpisodeSummary::default()
         };
         if let Some(e) = active.error {

@@ -87,6 +87,12 @@ pub fn episode(e: &EpisodeSummary) -> v1::EpisodeInfo {
         dropped_frames: e.dropped_frames,
         operator: e.operator.clone(),
         station_id: e.station_id.clone(),
+        outcome: match e.success {
+            Some(true) => v1::EpisodeOutcome::Success,
+            Some(false) => v1::EpisodeOutcome::Failure,
+            None => v1::EpisodeOutcome::Unspecified,
+        }
+        .into(),
         ..v1::EpisodeInfo::default()
     }
 }

@@ -59,11 +59,20 @@ impl Episodes for EpisodesService {
 
     async fn stop(
         &self,
-        _: Request<v1::StopEpisodeRequest>,
+        request: Request<v1::StopEpisodeRequest>,
     ) -> Result<Response<v1::StopEpisodeResponse>, Status> {
         let started = Instant::now();
+        // An unknown outcome (a newer client's) is refused before anything stops: the episode is kept recording.
+        let success = match v1::EpisodeOutcome::try_from(request.into_inner().outcome) {
+            Ok(v1::EpisodeOutcome::Unspecified) => None,
+            Ok(v1::EpisodeOutcome::Success) => Some(true),
+            Ok(v1::EpisodeOutcome::Failure) => Some(false),
+            Err(e) => return Err(Status::invalid_argument(format!("outcome: {e}"))),
+        };
         let app = &self.app;
-        let summary = blocking(|| app.with_recorder(|r| r.stop_episode().map_err(RecordingError::from)))?;
+        let summary = blocking(|| {
+            app.with_recorder(|r| r.stop_episode_with(success).map_err(RecordingError::from))
+        })?;
         Ok(Response::new(v1::StopEpisodeResponse {
             episode: Some(episode(&summary)),
             save_latency_s: started.elapsed().as_secs_f64(),
