@@ -447,7 +447,7 @@ impl App {
             self.with_recorder(|r| {
                 match action {
                     RecordAction::Start { task } => r.start_episode(task).map(drop),
-                    RecordAction::Stop => r.stop_episode().map(drop),
+                    RecordAction::Stop { success } => r.stop_episode_with(success).map(drop),
                     RecordAction::Discard => r.discard_episode().map(drop),
                 }
                 .map_err(RecordingError::from)

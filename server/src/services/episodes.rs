@@ -8,6 +8,7 @@ use crate::services::convert::{
     current_recording_status, episode, episode_with_upload, recording_status, storage_status,
 };
 use crate::services::error::RequestError;
+use phone2act_proto::convert_episode::outcome_success;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;
@@ -62,13 +63,9 @@ impl Episodes for EpisodesService {
         request: Request<v1::StopEpisodeRequest>,
     ) -> Result<Response<v1::StopEpisodeResponse>, Status> {
         let started = Instant::now();
-        // An unknown outcome (a newer client's) is refused before anything stops: the episode is kept recording.
-        let success = match v1::EpisodeOutcome::try_from(request.into_inner().outcome) {
-            Ok(v1::EpisodeOutcome::Unspecified) => None,
-            Ok(v1::EpisodeOutcome::Success) => Some(true),
-            Ok(v1::EpisodeOutcome::Failure) => Some(false),
-            Err(e) => return Err(Status::invalid_argument(format!("outcome: {e}"))),
-        };
+        // An unknown outcome (a newer client's) is refused before anything stops: the episode keeps recording.
+        let success = outcome_success(request.into_inner().outcome)
+            .map_err(|e| Status::invalid_argument(format!("outcome: {e}")))?;
         let app = &self.app;
         let summary = blocking(|| {
             app.with_recorder(|r| r.stop_episode_with(success).map_err(RecordingError::from))
