@@ -281,6 +281,10 @@
         ? `${r.phase.toUpperCase()} ep ${r.episode} · ${r.frames} frames · ${r.duration_s.toFixed(1)} s · "${r.task}"`
         : `${r.phase} · ${r.saved} saved`;
       if (r.warning) rec.textContent += ` · ${r.warning}`;
+      // The outcome buttons save the episode in progress, so they are live only while one is.
+      const live = r.phase === 'recording' || r.phase === 'paused';
+      $('rec-success').disabled = !live;
+      $('rec-failure').disabled = !live;
       // Storage upload of the saved episodes (empty when the server has no [storage]).
       if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
@@ -460,6 +464,10 @@
     buttons([{ record: 'start', task }]);
   });
   $('rec-stop').addEventListener('click', () => buttons([{ record: 'stop' }]));
+  // The operator's verdict, given as the episode is saved: kept in its provenance, and `next.success` of its
+  // last frame in a dataset that records the column (docs/datasets.md).
+  $('rec-success').addEventListener('click', () => buttons([{ record: 'stop', outcome: 'success' }]));
+  $('rec-failure').addEventListener('click', () => buttons([{ record: 'stop', outcome: 'failure' }]));
   $('rec-discard').addEventListener('click', () => {
     if (confirm('Discard the episode in progress?')) buttons([{ record: 'discard' }]);
   });
