@@ -234,8 +234,8 @@ class AsyncScene:
 def _outcome(success: bool | None) -> int:
     """`StopEpisodeRequest.outcome` for an operator's verdict."""
     if success is None:
-        return episodes_pb2.EPISODE_OUTCOME_UNSPECIFIED
-    return episodes_pb2.EPISODE_OUTCOME_SUCCESS if success else episodes_pb2.EPISODE_OUTCOME_FAILURE
+        return common_pb2.EPISODE_OUTCOME_UNSPECIFIED
+    return common_pb2.EPISODE_OUTCOME_SUCCESS if success else common_pb2.EPISODE_OUTCOME_FAILURE
 
 
 class AsyncEpisodes:
