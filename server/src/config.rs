@@ -290,6 +290,18 @@ pub struct RecorderConfig {
     /// created with.
     #[serde(default)]
     pub success: bool,
+    /// Save an episode when its recorded length reaches this many seconds (LeRobot's `episode_time_s`);
+    /// unset: episodes run until Stop. The episode then has exactly `episode_time_s * fps` frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub episode_time_s: Option<f64>,
+    /// After each save, a reset period of this many seconds (LeRobot's `reset_time_s`): nothing is recorded,
+    /// simulated scenes re-draw themselves, the phone counts down. Starting an episode cuts it short.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reset_time_s: Option<f64>,
+    /// At the end of the reset period, start the next episode with the same task and operator (as LeRobot's
+    /// record loop goes on to its next episode). Needs `reset_time_s` (0 for none).
+    #[serde(default)]
+    pub start_next_after_reset: bool,
 }
 
 impl Default for RecorderConfig {
@@ -302,7 +314,46 @@ impl Default for RecorderConfig {
             video_codec: None,
             intervention: false,
             success: false,
+            episode_time_s: None,
+            reset_time_s: None,
+            start_next_after_reset: false,
         }
+    }
+}
+
+/// Longest episode time limit and reset period accepted (a day): a longer one is a typo.
+pub const MAX_EPISODE_TIMING_S: f64 = 86_400.0;
+
+impl RecorderConfig {
+    /// The episode time limit and reset period, checked (see `phone2act_core::episode_clock`).
+    pub fn episode_limits(&self) -> Result<phone2act_core::episode_clock::EpisodeLimits, String> {
+        let fps = self.fps;
+        let check = |name: &str, v: Option<f64>, min_s: f64| match v {
+            Some(s) if !(s.is_finite() && (min_s..=MAX_EPISODE_TIMING_S).contains(&s)) => Err(format!(
+                "recorder.{name} must be in {min_s}..={MAX_EPISODE_TIMING_S} s, got {s}"
+            )),
+            _ => Ok(v),
+        };
+        // At least one frame: a shorter limit would save empty episodes, which are refused.
+        let episode_time_s = check("episode_time_s", self.episode_time_s, 1.0 / fps.max(1.0))?;
+        let reset_time_s = check("reset_time_s", self.reset_time_s, 0.0)?;
+        if self.start_next_after_reset && reset_time_s.is_none() {
+            return Err(
+                "recorder.start_next_after_reset needs recorder.reset_time_s (0 starts the next episode at once)"
+                    .to_owned(),
+            );
+        }
+        Ok(phone2act_core::episode_clock::EpisodeLimits {
+            episode_time_s,
+            reset_time_s,
+            auto_start: self.start_next_after_reset,
+        })
+    }
+
+    /// Frames an episode holds at most under `episode_time_s`.
+    pub fn frame_limit(&self) -> Option<u64> {
+        self.episode_time_s
+            .map(|s| ((s * self.fps).round() as u64).max(1))
     }
 }
 
@@ -489,6 +540,7 @@ impl Config {
                 self.recorder.fps
             ));
         }
+        self.recorder.episode_limits()?;
         self.check_root()?;
         let cameras: Vec<_> = self
             .cameras

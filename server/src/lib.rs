@@ -180,6 +180,10 @@ pub async fn serve_app_with_local(
         app.shutdown_signal(),
     ));
 
+    if app.episode_timing().limits().any() {
+        tokio::spawn(recording::run_episode_timing(Arc::clone(&app)));
+    }
+
     let app_for_shutdown = Arc::clone(&app);
     tokio::spawn(async move {
         shutdown.await;

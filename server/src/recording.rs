@@ -2,12 +2,17 @@
 //! layout, prefixed per arm when there are several; GR00T modality groups), the robot source the recorder's
 //! tick samples, and the recording layer's errors.
 
+use crate::app::App;
 use crate::arm::ArmController;
 use crate::config::Config;
+use parking_lot::Mutex;
+use phone2act_clock::monotonic_ns;
+use phone2act_core::episode_clock::{ClockPhase, EpisodeClock, EpisodeLimits, Observed, Step};
 use phone2act_recorder::error::RecorderError;
-use phone2act_recorder::recorder::{RobotSample, RobotSource};
+use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
+use std::time::Duration;
 
 /// Why a recording request failed.
 #[derive(Debug, thiserror::Error)]
@@ -20,6 +25,8 @@ pub enum RecordingError {
     WatchThread(#[source] std::io::Error),
     #[error("recorder.fps must be a whole number for LeRobot datasets, got {0}")]
     FractionalFps(f64),
+    #[error("{0}")]
+    Config(String),
 }
 
 /// Samples every arm: concatenated state and executed action, stamped with the oldest feedback time so a
@@ -56,6 +63,119 @@ impl RobotSource for ArmsSource {
             capture_time_ns: oldest_ns,
             arms: activity,
         })
+    }
+}
+
+/// The episode time limit and reset period of `[recorder]`: the core's [`EpisodeClock`] and the task and
+/// operator the next episode starts with.
+#[derive(Debug)]
+pub struct EpisodeTiming {
+    clock: Mutex<EpisodeClock>,
+    /// The task and operator of the newest episode seen recording.
+    last: Mutex<(String, String)>,
+}
+
+/// Where the shell stands, for the recording status.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimingStatus {
+    /// Seconds left of the episode's limit or of the reset period.
+    pub remaining_s: Option<f64>,
+    pub resetting: bool,
+}
+
+fn observed(s: &RecorderStatus) -> Observed {
+    Observed {
+        recording: s.phase != Phase::Idle,
+        duration_s: s.duration_s,
+        episodes_saved: s.episodes_saved,
+    }
+}
+
+impl EpisodeTiming {
+    pub fn new(limits: EpisodeLimits) -> Self {
+        Self {
+            clock: Mutex::new(EpisodeClock::new(limits)),
+            last: Mutex::new((String::new(), String::new())),
+        }
+    }
+
+    pub fn limits(&self) -> EpisodeLimits {
+        self.clock.lock().limits()
+    }
+
+    /// The clock's view at `now_ns` of the recorder state `s`.
+    pub fn status(&self, s: &RecorderStatus, now_ns: i64) -> TimingStatus {
+        let clock = self.clock.lock();
+        TimingStatus {
+            remaining_s: clock.remaining_s(observed(s), now_ns),
+            resetting: matches!(clock.phase(), ClockPhase::Resetting { .. }),
+        }
+    }
+
+    fn observe(&self, s: &RecorderStatus, now_ns: i64) -> Option<Step> {
+        if s.phase != Phase::Idle && !s.task.is_empty() {
+            *self.last.lock() = (s.task.clone(), s.operator.clone());
+        }
+        self.clock.lock().observe(observed(s), now_ns)
+    }
+}
+
+/// How often the clock looks at the recorder besides its changes: the countdown's resolution and how late a
+/// reset period may end.
+const TIMING_POLL: Duration = Duration::from_millis(50);
+
+/// Runs `[recorder] episode_time_s` / `reset_time_s` until shutdown: feeds the clock the recorder's state and
+/// carries out its steps (a save as Stop does it, a scene reset that does not move the arm, the next start).
+pub async fn run_episode_timing(app: Arc<App>) {
+    let Ok(mut changes) = app.recorder_changes() else {
+        return;
+    };
+    let mut shutdown = app.shutdown_signal();
+    loop {
+        let Some(status) = app.recorder_status() else {
+            return;
+        };
+        let timing = app.episode_timing();
+        if let Some(step) = timing.observe(&status, monotonic_ns()) {
+            let worker = Arc::clone(&app);
+            let last = timing.last.lock().clone();
+            let done = tokio::task::spawn_blocking(move || carry_out(&worker, step, &last)).await;
+            if let Ok(Err(e)) = done {
+                tracing::warn!(?step, error = %e, "episode timing step failed");
+            }
+        }
+        tokio::select! {
+            changed = changes.changed() => if changed.is_err() { return },
+            () = tokio::time::sleep(TIMING_POLL) => {}
+            () = crate::runtime::stopped(&mut shutdown) => return,
+        }
+    }
+}
+
+fn carry_out(app: &App, step: Step, (task, operator): &(String, String)) -> Result<(), String> {
+    match step {
+        Step::SaveEpisode => {
+            tracing::info!("episode time limit reached: saving");
+            // The operator may have stopped it in the meantime: nothing to save is no error.
+            match app.with_recorder(|r| r.stop_episode().map_err(RecordingError::from)) {
+                Ok(_) | Err(RecordingError::Recorder(RecorderError::NotRecording)) => Ok(()),
+                Err(e) => Err(e.to_string()),
+            }
+        }
+        Step::ResetScenes => {
+            // Scenes re-draw in place; the arm is not homed (nothing moves a robot the operator did not move).
+            for arm in app.arms().iter().filter(|a| a.has_scene()) {
+                arm.reset_scene(None, false)
+                    .map_err(|e| format!("arm {}: scene reset: {e}", arm.name))?;
+            }
+            Ok(())
+        }
+        Step::StartNext => {
+            tracing::info!(task = %task, "reset period over: starting the next episode");
+            app.with_recorder(|r| r.start_episode_by(task, operator).map_err(RecordingError::from))
+                .map(drop)
+                .map_err(|e| e.to_string())
+        }
     }
 }
 
