@@ -1240,6 +1240,38 @@ mod tests {
     }
 
     #[test]
+    fn episode_time_limit_and_reset_period_are_checked() {
+        let c = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "30"),
+                ("PHONE2ACT_RECORDER__RESET_TIME_S", "0"),
+                ("PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET", "true"),
+            ],
+        )
+        .unwrap();
+        assert_eq!(c.recorder.frame_limit(), Some(600), "30 s at 20 fps");
+        let limits = c.recorder.episode_limits().unwrap();
+        assert_eq!(
+            (limits.episode_time_s, limits.reset_time_s, limits.auto_start),
+            (Some(30.0), Some(0.0), true)
+        );
+        // The effective configuration (`serve --check`, provenance) shows them.
+        assert!(c.to_redacted_toml().unwrap().contains("episode_time_s = 30.0"));
+        assert_eq!(with_env(SIM, &[]).unwrap().recorder.frame_limit(), None);
+        for (key, value, says) in [
+            ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "0", "recorder.episode_time_s must be in 0.05"),
+            ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "nan", "recorder.episode_time_s"),
+            ("PHONE2ACT_RECORDER__RESET_TIME_S", "-1", "recorder.reset_time_s must be in 0"),
+            ("PHONE2ACT_RECORDER__RESET_TIME_S", "1e9", "recorder.reset_time_s must be in 0"),
+            ("PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET", "true", "needs recorder.reset_time_s"),
+        ] {
+            let err = with_env(SIM, &[(key, value)]).unwrap_err().to_string();
+            assert!(err.contains(says), "{key}={value}: {err}");
+        }
+    }
+
+    #[test]
     fn storage_is_optional_checked_and_overridable_from_the_environment() {
         assert!(with_env(SIM, &[]).unwrap().storage.is_none());
         let c = with_env(

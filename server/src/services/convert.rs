@@ -331,6 +331,7 @@ mod tests {
             phase: Phase::Recording,
             episode_index: 4,
             task: "pick".into(),
+            operator: String::new(),
             frames_recorded: 120,
             duration_s: 6.0,
             held_ticks: 3,
