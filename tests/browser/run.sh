@@ -42,7 +42,17 @@ if [[ "${BROWSER_SUITES:-page headset habits}" == *habits* ]]; then
     STACK_HTTPS=1
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
-    node --experimental-websocket --no-warnings test_habits.mjs
+    node --experimental-websocket --no-warnings test_habits.mjs outcome
+  ) || rc=1
+  (
+    STACK_HTTPS=1
+    # A short episode limit and reset period, and the next episode started after each reset.
+    export EPISODE_TIME_S=2 RESET_TIME_S=2
+    export PHONE2ACT_RECORDER__EPISODE_TIME_S=$EPISODE_TIME_S PHONE2ACT_RECORDER__RESET_TIME_S=$RESET_TIME_S
+    export PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET=true
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_habits.mjs countdown
   ) || rc=1
 fi
 exit $rc

@@ -1,6 +1,8 @@
-// Recording habits on the phone page (issue 27): the operator saves an episode as a success or a failure with the
-// page's outcome buttons. Checked on the server side through independent paths: the status topic (rosbridge)
-// and the episode's provenance in the dataset on disk. Prints "habits: N passed, M failed".
+// Recording habits on the phone page (issue 27). `node test_habits.mjs outcome`: the operator saves an episode
+// as a success or a failure with the page's outcome buttons. `node test_habits.mjs countdown` (a server with
+// [recorder] episode_time_s, reset_time_s and start_next_after_reset, see run.sh): the page counts the episode
+// and the reset period down and cues their transitions. Checked on the server side through independent paths:
+// the status topic (rosbridge) and the dataset on disk. Prints "habits: N passed, M failed".
 import { readFileSync } from 'node:fs';
 import { join } from 'node:path';
 import {
@@ -40,6 +42,9 @@ async function recordThenPress(button, task) {
   return saved;
 }
 
+const suite = process.argv[2] || 'outcome';
+
+if (suite === 'outcome') {
 await check('the outcome buttons are off while nothing is recorded', async () => {
   await waitPage(page, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
   await page.click('#start-ar');
@@ -71,6 +76,48 @@ await check('SAVE keeps an episode without an outcome', async () => {
   assert(outcomes[saved] === null, `episode ${saved} has outcome ${outcomes[saved]}`);
   assert(!(await pageState(page, () => window.phone2act.errors.length)), 'the page reported errors');
 });
+
+}
+
+if (suite === 'countdown') {
+  const { EPISODE_TIME_S, RESET_TIME_S } = process.env;
+  await check('the page counts the episode down, then the reset, and cues each transition', async () => {
+    await waitPage(page, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
+    await page.click('#start-ar');
+    await page.fill('#task', 'put the ball in the basket');
+    await page.click('#rec-start');
+    await server.until((s) => s.recording.phase === 'recording', 'recording to start');
+    await waitPage(page, () => !document.querySelector('#countdown').hidden
+      && /^\d+ s$/.test(document.querySelector('#countdown').textContent), 'the episode countdown');
+    const shown = Number((await page.textContent('#countdown')).split(' ')[0]);
+    assert(shown >= 0 && shown <= Number(EPISODE_TIME_S), `countdown ${shown} s for a ${EPISODE_TIME_S} s limit`);
+    assert(/s left/.test(await page.textContent('#st-rec')), 'the status line does not say the time left');
+    // The limit saves the episode and the reset period begins: the server says so, and the page follows.
+    // Each wait allows several times the configured periods: a loaded machine slows the page, not the rule.
+    await server.until((s) => s.recording.resetting && s.recording.saved >= 1, 'the reset period', 30000);
+    await waitPage(page, () => /^reset \d+ s$/.test(document.querySelector('#countdown').textContent), 'the reset countdown');
+    await page.screenshot({ path: join(OUT_DIR, 'phone-page-reset-countdown.png'), fullPage: true });
+    await waitPage(page, () => window.phone2act.cues.some((c) => c.to === 'resetting'), 'a cue at the reset');
+    // start_next_after_reset: the next episode starts by itself with the same task.
+    await server.until((s) => !s.recording.resetting && s.recording.phase === 'recording' && s.recording.saved >= 1,
+      'the next episode to start by itself', 30000);
+    assert(server.status.recording.task === 'put the ball in the basket', `task ${server.status.recording.task}`);
+    await waitPage(page, () => window.phone2act.cues.some((c) => c.to === 'recording'), 'a cue at the next start');
+    const [cues, vibrations] = await pageState(page, () => [window.phone2act.cues, window.__vibrations]);
+    const patterns = vibrations.map((v) => JSON.stringify(v));
+    assert(patterns.includes('[300,100,300]') && patterns.includes('[500]'), `vibrations ${patterns}`);
+    console.log(`  cues: ${JSON.stringify(cues.map((c) => [c.to, c.sound]))}`);
+    assert(cues[0].to === 'resetting' && cues[1].to === 'recording', `cues out of order: ${JSON.stringify(cues)}`);
+    // The episode saved at the limit has exactly the limit's frames (info.json, the dataset's own count).
+    const info = JSON.parse(readFileSync(join(STACK_DIR, 'dataset', 'meta', 'info.json'), 'utf8'));
+    assert(info.total_frames % Math.round(Number(EPISODE_TIME_S) * info.fps) === 0,
+      `total_frames ${info.total_frames} for ${info.total_episodes} episodes of ${EPISODE_TIME_S} s`);
+    // Stop the loop: a discard starts no reset period and no next episode.
+    await page.click('#rec-discard');
+    await server.until((s) => s.recording.phase === 'idle' && !s.recording.resetting, 'idle after the discard', 30000);
+    await waitPage(page, () => document.querySelector('#countdown').hidden, 'the countdown hidden when idle');
+  });
+}
 
 server.close();
 await context.close();

@@ -66,6 +66,9 @@ pub struct EpisodeClock {
     phase: ClockPhase,
     saved: Option<u64>,
     save_asked: bool,
+    /// The reset period is over and the next episode was asked for: the period is shown until it records (so
+    /// a phone sees the reset end as the next episode's start), or ends idle if it did not start.
+    start_asked: bool,
 }
 
 impl EpisodeClock {
@@ -75,6 +78,7 @@ impl EpisodeClock {
             phase: ClockPhase::Idle,
             saved: None,
             save_asked: false,
+            start_asked: false,
         }
     }
 
@@ -93,6 +97,7 @@ impl EpisodeClock {
             (ClockPhase::Idle | ClockPhase::Resetting { .. }, true) => {
                 self.phase = ClockPhase::Recording;
                 self.save_asked = false;
+                self.start_asked = false;
                 self.limit_step(obs)
             }
             (ClockPhase::Recording, true) => self.limit_step(obs),
@@ -112,8 +117,13 @@ impl EpisodeClock {
                 }
             }
             (ClockPhase::Resetting { until_ns }, false) if now_ns >= until_ns => {
+                if self.limits.auto_start && !self.start_asked {
+                    self.start_asked = true;
+                    return Some(Step::StartNext);
+                }
                 self.phase = ClockPhase::Idle;
-                self.limits.auto_start.then_some(Step::StartNext)
+                self.start_asked = false;
+                None
             }
             (ClockPhase::Resetting { .. } | ClockPhase::Idle, false) => None,
         }
@@ -178,7 +188,9 @@ mod tests {
         assert_eq!(c.remaining_s(obs(false, 0.0, 1), 13 * S), Some(2.0));
         assert_eq!(c.observe(obs(false, 0.0, 1), 15 * S - 1), None);
         assert_eq!(c.observe(obs(false, 0.0, 1), 15 * S), Some(Step::StartNext));
-        assert_eq!(c.phase(), ClockPhase::Idle);
+        // Shown as the reset (0 s left) until the next episode records: no idle moment in between.
+        assert_eq!(c.phase(), ClockPhase::Resetting { until_ns: 15 * S });
+        assert_eq!(c.remaining_s(obs(false, 0.0, 1), 15 * S), Some(0.0));
         // The next episode gets its own limit.
         assert_eq!(c.observe(obs(true, 0.05, 1), 16 * S), None);
         assert_eq!(c.observe(obs(true, 10.0, 1), 26 * S), Some(Step::SaveEpisode));
@@ -197,6 +209,18 @@ mod tests {
         c.observe(obs(true, 0.0, 5), 6 * S);
         assert_eq!(c.observe(obs(false, 0.0, 5), 7 * S), None, "discarded: nothing saved");
         assert_eq!(c.phase(), ClockPhase::Idle);
+    }
+
+    #[test]
+    fn a_next_episode_that_does_not_start_ends_the_reset_idle() {
+        let mut c = EpisodeClock::new(limits(None, Some(1.0), true));
+        c.observe(obs(true, 0.0, 0), 0);
+        c.observe(obs(false, 0.0, 1), S);
+        assert_eq!(c.observe(obs(false, 0.0, 1), 2 * S), Some(Step::StartNext));
+        // The start failed (the shell observes again after carrying it out): idle, asked only once.
+        assert_eq!(c.observe(obs(false, 0.0, 1), 2 * S + 1), None);
+        assert_eq!(c.phase(), ClockPhase::Idle);
+        assert_eq!(c.observe(obs(false, 0.0, 1), 3 * S), None);
     }
 
     #[test]
