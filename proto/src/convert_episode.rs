@@ -75,10 +75,7 @@ mod tests {
             action(buttons::record_start("pick")).unwrap(),
             r#"Start { task: "pick" }"#
         );
-        assert_eq!(
-            action(buttons::record_stop()).unwrap(),
-            "Stop { success: None }"
-        );
+        assert_eq!(action(buttons::record_stop()).unwrap(), "Stop { success: None }");
         assert_eq!(
             action(buttons::record_stop_with(v1::EpisodeOutcome::Success)).unwrap(),
             "Stop { success: Some(true) }"

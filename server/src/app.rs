@@ -319,10 +319,7 @@ impl App {
         let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
         recorder.set_frame_limit(config.recorder.frame_limit());
         let episode_timing = crate::recording::EpisodeTiming::new(
-            config
-                .recorder
-                .episode_limits()
-                .map_err(RecordingError::Config)?,
+            config.recorder.episode_limits().map_err(RecordingError::Config)?,
         );
         // After the recorder's open (which finishes an interrupted commit) and before anything can commit.
         let uploader = match &station_id {

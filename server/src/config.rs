@@ -1260,11 +1260,31 @@ mod tests {
         assert!(c.to_redacted_toml().unwrap().contains("episode_time_s = 30.0"));
         assert_eq!(with_env(SIM, &[]).unwrap().recorder.frame_limit(), None);
         for (key, value, says) in [
-            ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "0", "recorder.episode_time_s must be in 0.05"),
-            ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "nan", "recorder.episode_time_s"),
-            ("PHONE2ACT_RECORDER__RESET_TIME_S", "-1", "recorder.reset_time_s must be in 0"),
-            ("PHONE2ACT_RECORDER__RESET_TIME_S", "1e9", "recorder.reset_time_s must be in 0"),
-            ("PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET", "true", "needs recorder.reset_time_s"),
+            (
+                "PHONE2ACT_RECORDER__EPISODE_TIME_S",
+                "0",
+                "recorder.episode_time_s must be in 0.05",
+            ),
+            (
+                "PHONE2ACT_RECORDER__EPISODE_TIME_S",
+                "nan",
+                "recorder.episode_time_s",
+            ),
+            (
+                "PHONE2ACT_RECORDER__RESET_TIME_S",
+                "-1",
+                "recorder.reset_time_s must be in 0",
+            ),
+            (
+                "PHONE2ACT_RECORDER__RESET_TIME_S",
+                "1e9",
+                "recorder.reset_time_s must be in 0",
+            ),
+            (
+                "PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET",
+                "true",
+                "needs recorder.reset_time_s",
+            ),
         ] {
             let err = with_env(SIM, &[(key, value)]).unwrap_err().to_string();
             assert!(err.contains(says), "{key}={value}: {err}");

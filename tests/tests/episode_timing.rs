@@ -24,7 +24,10 @@ async fn episodes_are_saved_at_their_limit_and_the_next_starts_after_the_reset()
     let mut episodes = client.episodes();
     let resets_before = client.scene().get("main").await.unwrap().resets;
 
-    episodes.start_by("put the ball in the basket", "timer").await.unwrap();
+    episodes
+        .start_by("put the ball in the basket", "timer")
+        .await
+        .unwrap();
     let status = episodes.status().await.unwrap();
     let remaining = status.remaining_s.expect("a limited episode counts down");
     assert!((0.0..=EPISODE_S).contains(&remaining), "{status:?}");
@@ -48,7 +51,11 @@ async fn episodes_are_saved_at_their_limit_and_the_next_starts_after_the_reset()
     }
     assert!(reached, "the next episode never started by itself");
     let reset = saw_reset.expect("the status showed the reset period");
-    assert_eq!(reset.phase(), v1::RecordingPhase::Idle, "nothing records while resetting");
+    assert_eq!(
+        reset.phase(),
+        v1::RecordingPhase::Idle,
+        "nothing records while resetting"
+    );
     let left = reset.remaining_s.expect("the reset period counts down");
     assert!(left > 0.0 && left <= RESET_S, "{reset:?}");
 
@@ -57,13 +64,15 @@ async fn episodes_are_saved_at_their_limit_and_the_next_starts_after_the_reset()
     assert_eq!(status.task, "put the ball in the basket");
     let resets = client.scene().get("main").await.unwrap().resets;
     // At least once: on a stalled machine the next episode may already have had its own limit and reset.
-    assert!(resets > resets_before, "the scene was not re-drawn during the reset period");
+    assert!(
+        resets > resets_before,
+        "the scene was not re-drawn during the reset period"
+    );
     let saved = episodes.list().await.unwrap().episodes;
     let first = &saved[0];
     assert_eq!(first.operator, "timer");
     // Saved at the limit, with exactly the limit's frames whenever the save came.
     assert_eq!(first.length_frames, (EPISODE_S * fps).round() as u64, "{first:?}");
-
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -101,7 +110,11 @@ async fn a_stop_starts_the_reset_period_a_start_cuts_it_short_and_a_discard_star
     episodes.start("put the ball in the basket").await.unwrap();
     let cut = wait_until(Duration::from_secs(10), || {
         let mut e = client.episodes();
-        async move { e.status().await.is_ok_and(|s| !s.resetting && s.phase() == v1::RecordingPhase::Recording) }
+        async move {
+            e.status()
+                .await
+                .is_ok_and(|s| !s.resetting && s.phase() == v1::RecordingPhase::Recording)
+        }
     })
     .await;
     assert!(cut, "a start ends the reset period");

@@ -61,7 +61,7 @@ async fn attach_bridge(server: &TestServer) -> tokio::task::JoinHandle<()> {
             let feedback = v1::RobotFeedback {
                 capture_time_ns: 0,
                 joint_positions_rad: vec![0.1, 0.2, 0.3],
-                robot_from_ee: Some(pose.clone()),
+                robot_from_ee: Some(pose),
                 gripper_position: 0.0,
                 applied_seq: 0,
             };
@@ -109,7 +109,10 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
         (v1::EpisodeOutcome::Unspecified, None),
     ];
     for (i, (outcome, _)) in takes.iter().enumerate() {
-        episodes.start_by("put the part in the tray", "tester").await.unwrap();
+        episodes
+            .start_by("put the part in the tray", "tester")
+            .await
+            .unwrap();
         // 8 frames at 20 fps take 0.4 s; 20 s covers a machine stalled by parallel builds.
         let recorded = wait_until(Duration::from_secs(20), || {
             let mut e = client.episodes();
@@ -126,10 +129,7 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
                     .await
                     .unwrap(),
             );
-            let err = raw
-                .stop(v1::StopEpisodeRequest { outcome: 7 })
-                .await
-                .unwrap_err();
+            let err = raw.stop(v1::StopEpisodeRequest { outcome: 7 }).await.unwrap_err();
             assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err}");
             assert!(err.message().contains("outcome"), "{err}");
             let status = episodes.status().await.unwrap();
@@ -168,7 +168,8 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
     }
     assert_eq!(success_frames, 1);
 
-    let read = |p: &str| -> Value { serde_json::from_str(&std::fs::read_to_string(root.join(p)).unwrap()).unwrap() };
+    let read =
+        |p: &str| -> Value { serde_json::from_str(&std::fs::read_to_string(root.join(p)).unwrap()).unwrap() };
     let info = read("meta/info.json");
     assert_eq!(
         info["features"]["next.success"],
@@ -180,7 +181,11 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
     if format == DatasetFormat::V30 {
         // Stats count the outcome: one true frame among all of them.
         let stats = &read("meta/stats.json")["next.success"];
-        assert_eq!((&stats["min"], &stats["max"]), (&json!([0.0]), &json!([1.0])), "{stats}");
+        assert_eq!(
+            (&stats["min"], &stats["max"]),
+            (&json!([0.0]), &json!([1.0])),
+            "{stats}"
+        );
         let mean = stats["mean"][0].as_f64().unwrap();
         assert!((mean - 1.0 / rows.len() as f64).abs() < 1e-6, "{stats}");
     }
@@ -189,7 +194,9 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
     if let Some(dir) = std::env::var_os("PHONE2ACT_CONFORMANCE_DIR") {
         let expect = json!({"episodes": 3, "success_last": [true, false, false], "success_frames": 1});
         std::fs::write(
-            Path::new(&dir).join(conformance_name).join("phone2act_expect.json"),
+            Path::new(&dir)
+                .join(conformance_name)
+                .join("phone2act_expect.json"),
             expect.to_string(),
         )
         .unwrap();

@@ -441,10 +441,17 @@ mod tests {
                 other => panic!("{other:?}"),
             }
         };
-        let stop = |extra: &str| format!(r#"{{"type":"sample","seq":1,"buttons":[{{"record":"stop"{extra}}}]}}"#);
+        let stop =
+            |extra: &str| format!(r#"{{"type":"sample","seq":1,"buttons":[{{"record":"stop"{extra}}}]}}"#);
         assert_eq!(outcome(&stop("")), Ok(EpisodeOutcome::Unspecified as i32));
-        assert_eq!(outcome(&stop(r#","outcome":"success""#)), Ok(EpisodeOutcome::Success as i32));
-        assert_eq!(outcome(&stop(r#","outcome":"failure""#)), Ok(EpisodeOutcome::Failure as i32));
+        assert_eq!(
+            outcome(&stop(r#","outcome":"success""#)),
+            Ok(EpisodeOutcome::Success as i32)
+        );
+        assert_eq!(
+            outcome(&stop(r#","outcome":"failure""#)),
+            Ok(EpisodeOutcome::Failure as i32)
+        );
         let bad = outcome(&stop(r#","outcome":"maybe""#)).unwrap_err();
         assert!(bad.contains("success or failure"), "{bad}");
     }

@@ -85,7 +85,10 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
     let (ok, _, err) = run(&["episode", "stop", "--success", "--failure"], &server.url);
     assert!(!ok && err.contains("cannot be used with"), "{err}");
     let (ok, out, err) = run(&["episode", "stop", "--success"], &server.url);
-    assert!(ok && out.contains("saved episode 1") && out.contains("[success]"), "{out}{err}");
+    assert!(
+        ok && out.contains("saved episode 1") && out.contains("[success]"),
+        "{out}{err}"
+    );
     let (ok, out, _) = run(&["episode", "list"], &server.url);
     assert!(ok && out.contains("2 episodes"), "{out}");
     assert_eq!(out.matches("[success]").count(), 1, "{out}");

@@ -45,7 +45,9 @@ pub enum ClockPhase {
     Idle,
     Recording,
     /// Between a save and the next episode, until `until_ns`.
-    Resetting { until_ns: i64 },
+    Resetting {
+        until_ns: i64,
+    },
 }
 
 /// What the shell must do.
@@ -207,7 +209,11 @@ mod tests {
         assert_eq!(c.observe(obs(false, 0.0, 5), 5 * S), None);
         assert_eq!(c.phase(), ClockPhase::Idle);
         c.observe(obs(true, 0.0, 5), 6 * S);
-        assert_eq!(c.observe(obs(false, 0.0, 5), 7 * S), None, "discarded: nothing saved");
+        assert_eq!(
+            c.observe(obs(false, 0.0, 5), 7 * S),
+            None,
+            "discarded: nothing saved"
+        );
         assert_eq!(c.phase(), ClockPhase::Idle);
     }
 
@@ -242,7 +248,11 @@ mod tests {
         // A minute of wall time with only 1.5 s recorded (the episode was paused): not at the limit.
         assert_eq!(c.observe(obs(true, 1.5, 0), 60 * S), None);
         assert_eq!(c.remaining_s(obs(true, 1.5, 0), 60 * S), Some(0.5));
-        assert_eq!(c.observe(obs(false, 0.0, 1), 61 * S), None, "no reset period configured");
+        assert_eq!(
+            c.observe(obs(false, 0.0, 1), 61 * S),
+            None,
+            "no reset period configured"
+        );
         let mut none = EpisodeClock::new(limits(None, None, false));
         assert!(!none.limits().any());
         for t in 0..5 {

@@ -711,7 +711,10 @@ mod tests {
                 task_index: 0,
             })
             .unwrap();
-        assert!(!without.set_last_success(true), "a dataset without the column has nothing to mark");
+        assert!(
+            !without.set_last_success(true),
+            "a dataset without the column has nothing to mark"
+        );
     }
 
     #[test]

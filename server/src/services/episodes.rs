@@ -65,11 +65,10 @@ impl Episodes for EpisodesService {
         let started = Instant::now();
         // An unknown outcome (a newer client's) is refused before anything stops: the episode keeps recording.
         let success = outcome_success(request.into_inner().outcome)
-            .map_err(|e| Status::invalid_argument(format!("outcome: {e}")))?;
+            .map_err(|e| RequestError::Refused(format!("outcome: {e}")))?;
         let app = &self.app;
-        let summary = blocking(|| {
-            app.with_recorder(|r| r.stop_episode_with(success).map_err(RecordingError::from))
-        })?;
+        let summary =
+            blocking(|| app.with_recorder(|r| r.stop_episode_with(success).map_err(RecordingError::from)))?;
         Ok(Response::new(v1::StopEpisodeResponse {
             episode: Some(episode(&summary)),
             save_latency_s: started.elapsed().as_secs_f64(),

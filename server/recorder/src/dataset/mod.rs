@@ -756,7 +756,8 @@ impl EpisodeWriter {
         if let Some(previous) = self.last_flags.replace(flags) {
             count_flags(&mut self.flag_stats, previous);
         }
-        let row_flag = |name: &str, value: bool| self.flag_stats.iter().any(|(n, _)| *n == name).then_some(value);
+        let row_flag =
+            |name: &str, value: bool| self.flag_stats.iter().any(|(n, _)| *n == name).then_some(value);
         let success = row_flag(SUCCESS_FEATURE, flags.success);
         let intervention = row_flag(INTERVENTION_FEATURE, flags.intervention);
         let i = self.frames;
