@@ -2,17 +2,14 @@
 //! layout, prefixed per arm when there are several; GR00T modality groups), the robot source the recorder's
 //! tick samples, and the recording layer's errors.
 
-use crate::app::App;
 use crate::arm::ArmController;
 use crate::config::Config;
 use parking_lot::Mutex;
-use phone2act_clock::monotonic_ns;
 use phone2act_core::episode_clock::{ClockPhase, EpisodeClock, EpisodeLimits, Observed, Step};
 use phone2act_recorder::error::RecorderError;
 use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
-use std::time::Duration;
 
 /// Why a recording request failed.
 #[derive(Debug, thiserror::Error)]
@@ -103,6 +100,11 @@ impl EpisodeTiming {
         self.clock.lock().limits()
     }
 
+    /// The task and operator the next episode starts with.
+    pub fn last_episode(&self) -> (String, String) {
+        self.last.lock().clone()
+    }
+
     /// The clock's view at `now_ns` of the recorder state `s`.
     pub fn status(&self, s: &RecorderStatus, now_ns: i64) -> TimingStatus {
         let clock = self.clock.lock();
@@ -112,70 +114,12 @@ impl EpisodeTiming {
         }
     }
 
-    fn observe(&self, s: &RecorderStatus, now_ns: i64) -> Option<Step> {
+    /// Feeds the clock the recorder's state at `now_ns`; returns the step to carry out.
+    pub fn observe(&self, s: &RecorderStatus, now_ns: i64) -> Option<Step> {
         if s.phase != Phase::Idle && !s.task.is_empty() {
             *self.last.lock() = (s.task.clone(), s.operator.clone());
         }
         self.clock.lock().observe(observed(s), now_ns)
-    }
-}
-
-/// How often the clock looks at the recorder besides its changes: the countdown's resolution and how late a
-/// reset period may end.
-const TIMING_POLL: Duration = Duration::from_millis(50);
-
-/// Runs `[recorder] episode_time_s` / `reset_time_s` until shutdown: feeds the clock the recorder's state and
-/// carries out its steps (a save as Stop does it, a scene reset that does not move the arm, the next start).
-pub async fn run_episode_timing(app: Arc<App>) {
-    let Ok(mut changes) = app.recorder_changes() else {
-        return;
-    };
-    let mut shutdown = app.shutdown_signal();
-    loop {
-        let Some(status) = app.recorder_status() else {
-            return;
-        };
-        let timing = app.episode_timing();
-        if let Some(step) = timing.observe(&status, monotonic_ns()) {
-            let worker = Arc::clone(&app);
-            let last = timing.last.lock().clone();
-            let done = tokio::task::spawn_blocking(move || carry_out(&worker, step, &last)).await;
-            if let Ok(Err(e)) = done {
-                tracing::warn!(?step, error = %e, "episode timing step failed");
-            }
-        }
-        tokio::select! {
-            changed = changes.changed() => if changed.is_err() { return },
-            () = tokio::time::sleep(TIMING_POLL) => {}
-            () = crate::runtime::stopped(&mut shutdown) => return,
-        }
-    }
-}
-
-fn carry_out(app: &App, step: Step, (task, operator): &(String, String)) -> Result<(), String> {
-    match step {
-        Step::SaveEpisode => {
-            tracing::info!("episode time limit reached: saving");
-            // The operator may have stopped it in the meantime: nothing to save is no error.
-            match app.with_recorder(|r| r.stop_episode().map_err(RecordingError::from)) {
-                Ok(_) | Err(RecordingError::Recorder(RecorderError::NotRecording)) => Ok(()),
-                Err(e) => Err(e.to_string()),
-            }
-        }
-        Step::ResetScenes => {
-            // Scenes re-draw in place; the arm is not homed (nothing moves a robot the operator did not move).
-            for arm in app.arms().iter().filter(|a| a.has_scene()) {
-                arm.reset_scene(None, false)
-                    .map_err(|e| format!("arm {}: scene reset: {e}", arm.name))?;
-            }
-            Ok(())
-        }
-        Step::StartNext => {
-            tracing::info!(task = %task, "reset period over: starting the next episode");
-            app.with_recorder(|r| r.start_episode_by(task, operator).map_err(RecordingError::from))
-                .map(drop)
-                .map_err(|e| e.to_string())
-        }
     }
 }
 
