@@ -1767,6 +1767,8 @@ device = "/dev/video0"
 arm = "a"
 [recorder]
 video_codec = "libx264"
+episode_time_s = 30.0
+reset_time_s = 10.0
 [storage]
 url = "s3://b/p"
 endpoint = "http://127.0.0.1:9000"
