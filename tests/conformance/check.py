@@ -134,6 +134,16 @@ def check_common(root: Path, info: dict, ds, version: str, pairing=None):
 DAGGER_FEATURE = ("intervention", {"dtype": "bool", "shape": (1,), "names": None})
 
 
+def bool_column(ds, key: str, declared: dict, declared_by: str) -> np.ndarray:
+    """A bool feature's values, as lerobot's table hands them out (no video decoding), once lerobot sees it
+    declared as `declared_by` declares it."""
+    seen = ds.meta.features[key]
+    seen = {"dtype": seen["dtype"], "shape": tuple(seen["shape"]), "names": seen["names"]}
+    if seen != declared:
+        fail(f"lerobot sees {key} as {seen}, {declared_by} declares {declared}")
+    return np.asarray([bool(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset[key]])
+
+
 def check_dagger(root: Path, info: dict, ds, version: str, expect: dict):
     """A dataset with `intervention` declares it exactly as lerobot's DAgger recording does, lerobot loads it
     as that feature, its stats are those lerobot writes for a bool column (min/max as floats in v3.0 from
@@ -144,12 +154,7 @@ def check_dagger(root: Path, info: dict, ds, version: str, expect: dict):
         if "intervention_frames" in expect:
             fail(f"the producing test recorded interventions but info.json has no {key} feature")
         return
-    seen = ds.meta.features[key]
-    seen = {"dtype": seen["dtype"], "shape": tuple(seen["shape"]), "names": seen["names"]}
-    if seen != declared:
-        fail(f"lerobot sees {key} as {seen}, lerobot's DAgger recording declares {declared}")
-    # The frames' values as lerobot's table hands them out (no video decoding).
-    values = np.asarray([bool(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset[key]])
+    values = bool_column(ds, key, declared, "lerobot's DAgger recording")
     if "intervention_frames" in expect and int(values.sum()) != expect["intervention_frames"]:
         fail(f"{int(values.sum())} intervention frames, the producing test saw {expect['intervention_frames']}")
     if version == "v3.0":
@@ -174,11 +179,7 @@ def check_success(info: dict, ds, expect: dict):
         if "success_last" in expect or "success_frames" in expect:
             fail(f"the producing test marked outcomes but info.json has no {key} feature")
         return
-    seen = ds.meta.features[key]
-    seen = {"dtype": seen["dtype"], "shape": tuple(seen["shape"]), "names": seen["names"]}
-    if seen != declared:
-        fail(f"lerobot sees {key} as {seen}, lerobot's evaluation recording declares {declared}")
-    values = np.asarray([bool(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset[key]])
+    values = bool_column(ds, key, declared, "lerobot's evaluation recording")
     if "success_frames" in expect and int(values.sum()) != expect["success_frames"]:
         fail(f"{int(values.sum())} frames with {key}, the producing test marked {expect['success_frames']}")
     if "success_last" in expect:

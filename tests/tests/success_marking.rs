@@ -8,7 +8,7 @@ use phone2act_recorder::parquet_io::read_rows;
 use phone2act_sdk::proto as v1;
 use phone2act_server::Config;
 use phone2act_server::config::DatasetFormat;
-use phone2act_tests::{TestServer, keep_for_conformance, wait_until};
+use phone2act_tests::{TestServer, keep_for_conformance_expecting, wait_until};
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -190,17 +190,8 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
         assert!((mean - 1.0 / rows.len() as f64).abs() < 1e-6, "{stats}");
     }
 
-    keep_for_conformance(conformance_name, &root);
-    if let Some(dir) = std::env::var_os("PHONE2ACT_CONFORMANCE_DIR") {
-        let expect = json!({"episodes": 3, "success_last": [true, false, false], "success_frames": 1});
-        std::fs::write(
-            Path::new(&dir)
-                .join(conformance_name)
-                .join("phone2act_expect.json"),
-            expect.to_string(),
-        )
-        .unwrap();
-    }
+    let expect = json!({"episodes": 3, "success_last": [true, false, false], "success_frames": 1});
+    keep_for_conformance_expecting(conformance_name, &root, &expect);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
