@@ -68,6 +68,8 @@ pub struct EpisodeClock {
     phase: ClockPhase,
     saved: Option<u64>,
     save_asked: bool,
+    /// The recorded length last seen: a shorter one is a new take (a re-record), which gets its own limit.
+    last_duration_s: f64,
     /// The reset period is over and the next episode was asked for: the period is shown until it records (so
     /// a phone sees the reset end as the next episode's start), or ends idle if it did not start.
     start_asked: bool,
@@ -80,6 +82,7 @@ impl EpisodeClock {
             phase: ClockPhase::Idle,
             saved: None,
             save_asked: false,
+            last_duration_s: 0.0,
             start_asked: false,
         }
     }
@@ -99,6 +102,7 @@ impl EpisodeClock {
             (ClockPhase::Idle | ClockPhase::Resetting { .. }, true) => {
                 self.phase = ClockPhase::Recording;
                 self.save_asked = false;
+                self.last_duration_s = 0.0;
                 self.start_asked = false;
                 self.limit_step(obs)
             }
@@ -132,6 +136,10 @@ impl EpisodeClock {
     }
 
     fn limit_step(&mut self, obs: Observed) -> Option<Step> {
+        if obs.duration_s < self.last_duration_s {
+            self.save_asked = false;
+        }
+        self.last_duration_s = obs.duration_s;
         let limit = self.limits.episode_time_s?;
         if obs.duration_s >= limit && !self.save_asked {
             self.save_asked = true;
@@ -227,6 +235,16 @@ mod tests {
         assert_eq!(c.observe(obs(false, 0.0, 1), 2 * S + 1), None);
         assert_eq!(c.phase(), ClockPhase::Idle);
         assert_eq!(c.observe(obs(false, 0.0, 1), 3 * S), None);
+    }
+
+    #[test]
+    fn a_retake_seen_only_as_a_shorter_episode_gets_its_own_limit() {
+        let mut c = EpisodeClock::new(limits(Some(2.0), None, false));
+        c.observe(obs(true, 0.0, 0), 0);
+        assert_eq!(c.observe(obs(true, 2.0, 0), 2 * S), Some(Step::SaveEpisode));
+        // The save did not happen (the operator re-recorded at that moment); the new take starts over.
+        assert_eq!(c.observe(obs(true, 0.1, 0), 3 * S), None);
+        assert_eq!(c.observe(obs(true, 2.0, 0), 5 * S), Some(Step::SaveEpisode));
     }
 
     #[test]
