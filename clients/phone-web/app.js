@@ -34,6 +34,11 @@
     last: null, // last feedback
     counters: null, // {rejected, clamped}
     recPhase: null,
+    // The episode clock's phase ('recording' / 'resetting' / 'idle', from `[recorder] episode_time_s` /
+    // `reset_time_s`) and the cues given at its transitions, for tests.
+    timerPhase: null,
+    cues: [],
+    audio: null,
     lastClampBuzz: 0,
     feedbackCount: 0,
     errors: [],
@@ -95,6 +100,44 @@
     if (navigator.vibrate) {
       try { navigator.vibrate(pattern); } catch (_) { /* vibration is best effort */ }
     }
+  }
+
+  // A short tone at an episode clock transition: high when an episode starts recording, low when the reset
+  // period starts. WebAudio needs a user gesture first (see the pointerdown listener); before one, and where
+  // there is no WebAudio, the vibration alone is the cue.
+  function beep(freqHz) {
+    const ctx = state.audio;
+    if (!ctx || ctx.state !== 'running') return false;
+    const osc = ctx.createOscillator();
+    const gain = ctx.createGain();
+    osc.frequency.value = freqHz;
+    gain.gain.setValueAtTime(0.2, ctx.currentTime);
+    gain.gain.exponentialRampToValueAtTime(0.001, ctx.currentTime + 0.18);
+    osc.connect(gain).connect(ctx.destination);
+    osc.start();
+    osc.stop(ctx.currentTime + 0.2);
+    return true;
+  }
+  document.addEventListener('pointerdown', () => {
+    const Ctx = window.AudioContext || window.webkitAudioContext;
+    if (!Ctx) return;
+    if (!state.audio) state.audio = new Ctx();
+    if (state.audio.state === 'suspended') state.audio.resume().catch(() => {});
+  }, { capture: true });
+
+  function clockCue(from, to) {
+    if (from === null || from === to) return;
+    let sound = false;
+    if (to === 'resetting') {
+      buzz([300, 100, 300]);
+      sound = beep(440);
+    } else if (to === 'recording' && from === 'resetting') {
+      buzz([500]);
+      sound = beep(880);
+    } else {
+      return;
+    }
+    state.cues.push({ to, sound, at: performance.now() });
   }
 
   function setPill(el, text, cls) {
@@ -280,7 +323,26 @@
       rec.textContent = r.phase === 'recording' || r.phase === 'paused'
         ? `${r.phase.toUpperCase()} ep ${r.episode} · ${r.frames} frames · ${r.duration_s.toFixed(1)} s · "${r.task}"`
         : `${r.phase} · ${r.saved} saved`;
+      const left = typeof r.remaining_s === 'number' ? Math.ceil(r.remaining_s) : null;
+      if (r.resetting) {
+        rec.textContent = `RESET · ${r.saved} saved · reset the scene`;
+      } else if (left !== null && (r.phase === 'recording' || r.phase === 'paused')) {
+        rec.textContent += ` · ${left} s left`;
+      }
+      const timer = r.resetting ? 'resetting' : (r.phase === 'recording' || r.phase === 'paused' ? 'recording' : 'idle');
+      clockCue(state.timerPhase, timer);
+      state.timerPhase = timer;
+      const cd = $('countdown');
+      cd.hidden = left === null;
+      if (left !== null) {
+        cd.textContent = r.resetting ? `reset ${left} s` : `${left} s`;
+        cd.className = r.resetting ? 'countdown resetting' : 'countdown';
+      }
       if (r.warning) rec.textContent += ` · ${r.warning}`;
+      // The outcome buttons save the episode in progress, so they are live only while one is.
+      const live = r.phase === 'recording' || r.phase === 'paused';
+      $('rec-success').disabled = !live;
+      $('rec-failure').disabled = !live;
       // Storage upload of the saved episodes (empty when the server has no [storage]).
       if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
@@ -460,6 +522,10 @@
     buttons([{ record: 'start', task }]);
   });
   $('rec-stop').addEventListener('click', () => buttons([{ record: 'stop' }]));
+  // The operator's verdict, given as the episode is saved: kept in its provenance, and `next.success` of its
+  // last frame in a dataset that records the column (docs/datasets.md).
+  $('rec-success').addEventListener('click', () => buttons([{ record: 'stop', outcome: 'success' }]));
+  $('rec-failure').addEventListener('click', () => buttons([{ record: 'stop', outcome: 'failure' }]));
   $('rec-discard').addEventListener('click', () => {
     if (confirm('Discard the episode in progress?')) buttons([{ record: 'discard' }]);
   });

@@ -56,6 +56,17 @@ pub fn record_stop() -> v1::ButtonEvent {
     record(v1::record_command::Kind::Stop, "")
 }
 
+/// Stop and save with the operator's outcome.
+pub fn record_stop_with(outcome: v1::EpisodeOutcome) -> v1::ButtonEvent {
+    v1::ButtonEvent {
+        event: Some(v1::button_event::Event::Record(v1::RecordCommand {
+            kind: v1::record_command::Kind::Stop as i32,
+            outcome: outcome as i32,
+            ..v1::RecordCommand::default()
+        })),
+    }
+}
+
 /// Stop and discard.
 pub fn record_discard() -> v1::ButtonEvent {
     record(v1::record_command::Kind::Discard, "")
@@ -67,6 +78,7 @@ pub fn record(kind: v1::record_command::Kind, task: &str) -> v1::ButtonEvent {
         event: Some(v1::button_event::Event::Record(v1::RecordCommand {
             kind: kind as i32,
             task: task.to_owned(),
+            ..v1::RecordCommand::default()
         })),
     }
 }

@@ -10,8 +10,8 @@ pub use phone2act_core::config::MAX_TASK_BYTES;
 pub enum RecordAction<'a> {
     /// Start an episode with this task text.
     Start { task: &'a str },
-    /// Stop and save the episode in progress.
-    Stop,
+    /// Stop and save the episode in progress, with the operator's outcome (`Some(true)`: a success).
+    Stop { success: Option<bool> },
     /// Stop and throw away the episode in progress.
     Discard,
 }
@@ -22,13 +22,29 @@ impl<'a> TryFrom<&'a v1::RecordCommand> for RecordAction<'a> {
     fn try_from(command: &'a v1::RecordCommand) -> Result<Self, ConvertError> {
         match v1::record_command::Kind::try_from(command.kind) {
             Ok(v1::record_command::Kind::Start) => Ok(Self::Start { task: &command.task }),
-            Ok(v1::record_command::Kind::Stop) => Ok(Self::Stop),
+            Ok(v1::record_command::Kind::Stop) => Ok(Self::Stop {
+                success: outcome_success(command.outcome)?,
+            }),
             Ok(v1::record_command::Kind::Discard) => Ok(Self::Discard),
             Ok(v1::record_command::Kind::Unspecified) | Err(_) => Err(ConvertError::UnknownEnum {
                 what: "record command",
                 value: command.kind,
             }),
         }
+    }
+}
+
+/// A wire episode outcome as the recorder takes it: `Some(true)` for a success, `Some(false)` for a failure,
+/// `None` when not given; an unknown value is refused (nothing is stopped with an outcome it cannot keep).
+pub fn outcome_success(outcome: i32) -> Result<Option<bool>, ConvertError> {
+    match v1::EpisodeOutcome::try_from(outcome) {
+        Ok(v1::EpisodeOutcome::Unspecified) => Ok(None),
+        Ok(v1::EpisodeOutcome::Success) => Ok(Some(true)),
+        Ok(v1::EpisodeOutcome::Failure) => Ok(Some(false)),
+        Err(_) => Err(ConvertError::UnknownEnum {
+            what: "episode outcome",
+            value: outcome,
+        }),
     }
 }
 
@@ -59,11 +75,28 @@ mod tests {
             action(buttons::record_start("pick")).unwrap(),
             r#"Start { task: "pick" }"#
         );
-        assert_eq!(action(buttons::record_stop()).unwrap(), "Stop");
+        assert_eq!(action(buttons::record_stop()).unwrap(), "Stop { success: None }");
+        assert_eq!(
+            action(buttons::record_stop_with(v1::EpisodeOutcome::Success)).unwrap(),
+            "Stop { success: Some(true) }"
+        );
+        assert_eq!(
+            action(buttons::record_stop_with(v1::EpisodeOutcome::Failure)).unwrap(),
+            "Stop { success: Some(false) }"
+        );
+        let unknown = v1::RecordCommand {
+            kind: v1::record_command::Kind::Stop as i32,
+            outcome: 9,
+            ..v1::RecordCommand::default()
+        };
+        assert_eq!(
+            RecordAction::try_from(&unknown).unwrap_err().to_string(),
+            "unknown episode outcome 9"
+        );
         assert_eq!(action(buttons::record_discard()).unwrap(), "Discard");
         let bad = v1::RecordCommand {
             kind: 42,
-            task: String::new(),
+            ..v1::RecordCommand::default()
         };
         assert_eq!(
             RecordAction::try_from(&bad).unwrap_err().to_string(),

@@ -80,6 +80,8 @@ pub struct App {
     recorder_version: std::sync::OnceLock<watch::Receiver<u64>>,
     /// `[storage]`: uploads every committed episode.
     uploader: Option<Arc<phone2act_storage::Uploader>>,
+    /// `[recorder] episode_time_s` / `reset_time_s`.
+    episode_timing: crate::recording::EpisodeTiming,
 }
 
 impl std::fmt::Debug for App {
@@ -315,6 +317,10 @@ impl App {
             .map(|c| (c.config.name.clone(), Arc::clone(&c.slot)))
             .collect();
         let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
+        recorder.set_frame_limit(config.recorder.frame_limit());
+        let episode_timing = crate::recording::EpisodeTiming::new(
+            config.recorder.episode_limits().map_err(RecordingError::Config)?,
+        );
         // After the recorder's open (which finishes an interrupted commit) and before anything can commit.
         let uploader = match &station_id {
             Some(id) => crate::upload::start(&config, id)?,
@@ -335,6 +341,7 @@ impl App {
             shutdown_tx,
             recorder_version: std::sync::OnceLock::new(),
             uploader,
+            episode_timing,
         })
     }
 
@@ -430,6 +437,11 @@ impl App {
         }
     }
 
+    /// The episode time limit and reset period (see `recording::run_episode_timing`).
+    pub fn episode_timing(&self) -> &crate::recording::EpisodeTiming {
+        &self.episode_timing
+    }
+
     /// The recorder's state; `None` once it is closed.
     pub fn recorder_status(&self) -> Option<RecorderStatus> {
         self.with_recorder(|r| Ok(r.status())).ok()
@@ -447,7 +459,7 @@ impl App {
             self.with_recorder(|r| {
                 match action {
                     RecordAction::Start { task } => r.start_episode(task).map(drop),
-                    RecordAction::Stop => r.stop_episode().map(drop),
+                    RecordAction::Stop { success } => r.stop_episode_with(success).map(drop),
                     RecordAction::Discard => r.discard_episode().map(drop),
                 }
                 .map_err(RecordingError::from)

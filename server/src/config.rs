@@ -284,6 +284,24 @@ pub struct RecorderConfig {
     /// features it was created with: resuming one with the other setting is refused.
     #[serde(default)]
     pub intervention: bool,
+    /// Record `next.success` (bool per frame) also when no arm has a scene (hardware arms): every frame is
+    /// false except the last one of an episode the operator stops as a success. With a scene the column is
+    /// always recorded (the scene's success flag). Like `intervention`, a dataset keeps the features it was
+    /// created with.
+    #[serde(default)]
+    pub success: bool,
+    /// Save an episode when its recorded length reaches this many seconds (LeRobot's `episode_time_s`);
+    /// unset: episodes run until Stop. The episode then has exactly `episode_time_s * fps` frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub episode_time_s: Option<f64>,
+    /// After each save, a reset period of this many seconds (LeRobot's `reset_time_s`): nothing is recorded,
+    /// simulated scenes re-draw themselves, the phone counts down. Starting an episode cuts it short.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reset_time_s: Option<f64>,
+    /// At the end of the reset period, start the next episode with the same task and operator (as LeRobot's
+    /// record loop goes on to its next episode). Needs `reset_time_s` (0 for none).
+    #[serde(default)]
+    pub start_next_after_reset: bool,
 }
 
 impl Default for RecorderConfig {
@@ -295,7 +313,47 @@ impl Default for RecorderConfig {
             robot_type: default_robot_type(),
             video_codec: None,
             intervention: false,
+            success: false,
+            episode_time_s: None,
+            reset_time_s: None,
+            start_next_after_reset: false,
         }
+    }
+}
+
+/// Longest episode time limit and reset period accepted (a day): a longer one is a typo.
+pub const MAX_EPISODE_TIMING_S: f64 = 86_400.0;
+
+impl RecorderConfig {
+    /// The episode time limit and reset period, checked (see `phone2act_core::episode_clock`).
+    pub fn episode_limits(&self) -> Result<phone2act_core::episode_clock::EpisodeLimits, String> {
+        let fps = self.fps;
+        let check = |name: &str, v: Option<f64>, min_s: f64| match v {
+            Some(s) if !(s.is_finite() && (min_s..=MAX_EPISODE_TIMING_S).contains(&s)) => Err(format!(
+                "recorder.{name} must be in {min_s}..={MAX_EPISODE_TIMING_S} s, got {s}"
+            )),
+            _ => Ok(v),
+        };
+        // At least one frame: a shorter limit would save empty episodes, which are refused.
+        let episode_time_s = check("episode_time_s", self.episode_time_s, 1.0 / fps.max(1.0))?;
+        let reset_time_s = check("reset_time_s", self.reset_time_s, 0.0)?;
+        if self.start_next_after_reset && reset_time_s.is_none() {
+            return Err(
+                "recorder.start_next_after_reset needs recorder.reset_time_s (0 starts the next episode at once)"
+                    .to_owned(),
+            );
+        }
+        Ok(phone2act_core::episode_clock::EpisodeLimits {
+            episode_time_s,
+            reset_time_s,
+            auto_start: self.start_next_after_reset,
+        })
+    }
+
+    /// Frames an episode holds at most under `episode_time_s`.
+    pub fn frame_limit(&self) -> Option<u64> {
+        self.episode_time_s
+            .map(|s| ((s * self.fps).round() as u64).max(1))
     }
 }
 
@@ -482,6 +540,7 @@ impl Config {
                 self.recorder.fps
             ));
         }
+        self.recorder.episode_limits()?;
         self.check_root()?;
         let cameras: Vec<_> = self
             .cameras
@@ -1181,6 +1240,58 @@ mod tests {
     }
 
     #[test]
+    fn episode_time_limit_and_reset_period_are_checked() {
+        let c = with_env(
+            SIM,
+            &[
+                ("PHONE2ACT_RECORDER__EPISODE_TIME_S", "30"),
+                ("PHONE2ACT_RECORDER__RESET_TIME_S", "0"),
+                ("PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET", "true"),
+            ],
+        )
+        .unwrap();
+        assert_eq!(c.recorder.frame_limit(), Some(600), "30 s at 20 fps");
+        let limits = c.recorder.episode_limits().unwrap();
+        assert_eq!(
+            (limits.episode_time_s, limits.reset_time_s, limits.auto_start),
+            (Some(30.0), Some(0.0), true)
+        );
+        // The effective configuration (`serve --check`, provenance) shows them.
+        assert!(c.to_redacted_toml().unwrap().contains("episode_time_s = 30.0"));
+        assert_eq!(with_env(SIM, &[]).unwrap().recorder.frame_limit(), None);
+        for (key, value, says) in [
+            (
+                "PHONE2ACT_RECORDER__EPISODE_TIME_S",
+                "0",
+                "recorder.episode_time_s must be in 0.05",
+            ),
+            (
+                "PHONE2ACT_RECORDER__EPISODE_TIME_S",
+                "nan",
+                "recorder.episode_time_s",
+            ),
+            (
+                "PHONE2ACT_RECORDER__RESET_TIME_S",
+                "-1",
+                "recorder.reset_time_s must be in 0",
+            ),
+            (
+                "PHONE2ACT_RECORDER__RESET_TIME_S",
+                "1e9",
+                "recorder.reset_time_s must be in 0",
+            ),
+            (
+                "PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET",
+                "true",
+                "needs recorder.reset_time_s",
+            ),
+        ] {
+            let err = with_env(SIM, &[(key, value)]).unwrap_err().to_string();
+            assert!(err.contains(says), "{key}={value}: {err}");
+        }
+    }
+
+    #[test]
     fn storage_is_optional_checked_and_overridable_from_the_environment() {
         assert!(with_env(SIM, &[]).unwrap().storage.is_none());
         let c = with_env(
@@ -1656,6 +1767,8 @@ device = "/dev/video0"
 arm = "a"
 [recorder]
 video_codec = "libx264"
+episode_time_s = 30.0
+reset_time_s = 10.0
 [storage]
 url = "s3://b/p"
 endpoint = "http://127.0.0.1:9000"

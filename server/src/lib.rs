@@ -5,6 +5,7 @@
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod episode_timing;
 pub mod flight_log;
 pub mod policy_session;
 pub mod recording;
@@ -179,6 +180,10 @@ pub async fn serve_app_with_local(
         ARM_TICK_HZ,
         app.shutdown_signal(),
     ));
+
+    if app.episode_timing().limits().any() {
+        tokio::spawn(episode_timing::run_episode_timing(Arc::clone(&app)));
+    }
 
     let app_for_shutdown = Arc::clone(&app);
     tokio::spawn(async move {

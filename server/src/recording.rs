@@ -4,8 +4,10 @@
 
 use crate::arm::ArmController;
 use crate::config::Config;
+use parking_lot::Mutex;
+use phone2act_core::episode_clock::{ClockPhase, EpisodeClock, EpisodeLimits, Observed, Step};
 use phone2act_recorder::error::RecorderError;
-use phone2act_recorder::recorder::{RobotSample, RobotSource};
+use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
 
@@ -20,6 +22,8 @@ pub enum RecordingError {
     WatchThread(#[source] std::io::Error),
     #[error("recorder.fps must be a whole number for LeRobot datasets, got {0}")]
     FractionalFps(f64),
+    #[error("{0}")]
+    Config(String),
 }
 
 /// Samples every arm: concatenated state and executed action, stamped with the oldest feedback time so a
@@ -33,8 +37,10 @@ impl RobotSource for ArmsSource {
         let mut state = Vec::new();
         let mut action = Vec::new();
         let mut oldest_ns = i64::MAX;
-        // The task is done when every arm that has one has done its own (a bimanual sim has two scenes).
+        // The task is done when every arm that has a scene has done its own (a bimanual sim has two scenes).
+        // Without any scene nothing measures it: false, until the operator's outcome marks the last frame.
         let mut success = true;
+        let mut scenes = 0;
         let mut activity = Vec::with_capacity(self.arms.len());
         for arm in &self.arms {
             let sample = arm.state_and_action()?;
@@ -42,15 +48,78 @@ impl RobotSource for ArmsSource {
             state.extend(sample.state);
             action.extend(sample.action);
             oldest_ns = oldest_ns.min(sample.capture_time_ns);
-            success &= sample.task_success || !arm.has_scene();
+            if arm.has_scene() {
+                scenes += 1;
+                success &= sample.task_success;
+            }
         }
         Some(RobotSample {
             state,
             action,
-            success,
+            success: success && scenes > 0,
             capture_time_ns: oldest_ns,
             arms: activity,
         })
+    }
+}
+
+/// The episode time limit and reset period of `[recorder]`: the core's [`EpisodeClock`] and the task and
+/// operator the next episode starts with.
+#[derive(Debug)]
+pub struct EpisodeTiming {
+    clock: Mutex<EpisodeClock>,
+    /// The task and operator of the newest episode seen recording.
+    last: Mutex<(String, String)>,
+}
+
+/// Where the shell stands, for the recording status.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimingStatus {
+    /// Seconds left of the episode's limit or of the reset period.
+    pub remaining_s: Option<f64>,
+    pub resetting: bool,
+}
+
+fn observed(s: &RecorderStatus) -> Observed {
+    Observed {
+        recording: s.phase != Phase::Idle,
+        duration_s: s.duration_s,
+        episodes_saved: s.episodes_saved,
+    }
+}
+
+impl EpisodeTiming {
+    pub fn new(limits: EpisodeLimits) -> Self {
+        Self {
+            clock: Mutex::new(EpisodeClock::new(limits)),
+            last: Mutex::new((String::new(), String::new())),
+        }
+    }
+
+    pub fn limits(&self) -> EpisodeLimits {
+        self.clock.lock().limits()
+    }
+
+    /// The task and operator the next episode starts with.
+    pub fn last_episode(&self) -> (String, String) {
+        self.last.lock().clone()
+    }
+
+    /// The clock's view at `now_ns` of the recorder state `s`.
+    pub fn status(&self, s: &RecorderStatus, now_ns: i64) -> TimingStatus {
+        let clock = self.clock.lock();
+        TimingStatus {
+            remaining_s: clock.remaining_s(observed(s), now_ns),
+            resetting: matches!(clock.phase(), ClockPhase::Resetting { .. }),
+        }
+    }
+
+    /// Feeds the clock the recorder's state at `now_ns`; returns the step to carry out.
+    pub fn observe(&self, s: &RecorderStatus, now_ns: i64) -> Option<Step> {
+        if s.phase != Phase::Idle && !s.task.is_empty() {
+            *self.last.lock() = (s.task.clone(), s.operator.clone());
+        }
+        self.clock.lock().observe(observed(s), now_ns)
     }
 }
 
@@ -107,8 +176,9 @@ pub fn dataset_spec(config: &Config, arms: &[Arc<ArmController>]) -> Result<Data
         root: config.recorder.root.clone(),
         format: config.recorder.format,
         fps: fps as u32,
-        // `next.success` is the scene's success flag: recorded when an arm has a scene (the simulator's).
-        success: arms.iter().any(|a| a.has_scene()),
+        // `next.success` is the scene's success flag when an arm has a scene (the simulator's); hardware arms
+        // get the column from `[recorder] success`, set by the operator's outcome at Stop.
+        success: config.recorder.success || arms.iter().any(|a| a.has_scene()),
         intervention: config.recorder.intervention,
         robot_type: config.recorder.robot_type.clone(),
         video_codec: config.recorder.video_codec.clone(),

@@ -15,9 +15,9 @@ if [[ ! -d "$HERE/node_modules/playwright-core" || ! -d "$HERE/node_modules/iwer
   (cd "$HERE" && npm ci --no-audit --no-fund --silent)
 fi
 # Each suite in a subshell of its own: stack.sh stops its server and gateway when that subshell exits.
-# BROWSER_SUITES=headset (or page) runs one.
+# BROWSER_SUITES=headset (or page, or habits) runs one.
 rc=0
-if [[ "${BROWSER_SUITES:-page headset}" == *page* ]]; then
+if [[ "${BROWSER_SUITES:-page headset habits}" == *page* ]]; then
   (
     STACK_HTTPS=1
     source "$HERE/../rosbridge/stack.sh"
@@ -25,7 +25,7 @@ if [[ "${BROWSER_SUITES:-page headset}" == *page* ]]; then
     node --experimental-websocket --no-warnings test_page.mjs
   ) || rc=1
 fi
-if [[ "${BROWSER_SUITES:-page headset}" == *headset* ]]; then
+if [[ "${BROWSER_SUITES:-page headset habits}" == *headset* ]]; then
   (
     STACK_HTTPS=1
     STACK_CONFIG="$HERE/../../server/config/bimanual-sim.toml"
@@ -34,6 +34,25 @@ if [[ "${BROWSER_SUITES:-page headset}" == *headset* ]]; then
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
     node --experimental-websocket --no-warnings test_headset.mjs
+  ) || rc=1
+fi
+if [[ "${BROWSER_SUITES:-page headset habits}" == *habits* ]]; then
+  # Recording habits (outcome buttons), on a stack of its own so its dataset holds only its episodes.
+  (
+    STACK_HTTPS=1
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_habits.mjs outcome
+  ) || rc=1
+  (
+    STACK_HTTPS=1
+    # A short episode limit and reset period, and the next episode started after each reset.
+    export EPISODE_TIME_S=2 RESET_TIME_S=2
+    export PHONE2ACT_RECORDER__EPISODE_TIME_S=$EPISODE_TIME_S PHONE2ACT_RECORDER__RESET_TIME_S=$RESET_TIME_S
+    export PHONE2ACT_RECORDER__START_NEXT_AFTER_RESET=true
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_habits.mjs countdown
   ) || rc=1
 fi
 exit $rc

@@ -75,6 +75,7 @@ def check_common(root: Path, info: dict, ds, version: str, pairing=None):
     if "min_episodes" in expect and total_episodes < expect["min_episodes"]:
         fail(f"dataset has {total_episodes} episodes, expected at least {expect['min_episodes']}")
     check_dagger(root, info, ds, version, expect)
+    check_success(info, ds, expect)
     ep_len = {}
     last_ep, last_fi = -1, -1
     for i in range(len(ds)):
@@ -133,6 +134,16 @@ def check_common(root: Path, info: dict, ds, version: str, pairing=None):
 DAGGER_FEATURE = ("intervention", {"dtype": "bool", "shape": (1,), "names": None})
 
 
+def bool_column(ds, key: str, declared: dict, declared_by: str) -> np.ndarray:
+    """A bool feature's values, as lerobot's table hands them out (no video decoding), once lerobot sees it
+    declared as `declared_by` declares it."""
+    seen = ds.meta.features[key]
+    seen = {"dtype": seen["dtype"], "shape": tuple(seen["shape"]), "names": seen["names"]}
+    if seen != declared:
+        fail(f"lerobot sees {key} as {seen}, {declared_by} declares {declared}")
+    return np.asarray([bool(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset[key]])
+
+
 def check_dagger(root: Path, info: dict, ds, version: str, expect: dict):
     """A dataset with `intervention` declares it exactly as lerobot's DAgger recording does, lerobot loads it
     as that feature, its stats are those lerobot writes for a bool column (min/max as floats in v3.0 from
@@ -143,12 +154,7 @@ def check_dagger(root: Path, info: dict, ds, version: str, expect: dict):
         if "intervention_frames" in expect:
             fail(f"the producing test recorded interventions but info.json has no {key} feature")
         return
-    seen = ds.meta.features[key]
-    seen = {"dtype": seen["dtype"], "shape": tuple(seen["shape"]), "names": seen["names"]}
-    if seen != declared:
-        fail(f"lerobot sees {key} as {seen}, lerobot's DAgger recording declares {declared}")
-    # The frames' values as lerobot's table hands them out (no video decoding).
-    values = np.asarray([bool(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset[key]])
+    values = bool_column(ds, key, declared, "lerobot's DAgger recording")
     if "intervention_frames" in expect and int(values.sum()) != expect["intervention_frames"]:
         fail(f"{int(values.sum())} intervention frames, the producing test saw {expect['intervention_frames']}")
     if version == "v3.0":
@@ -158,6 +164,29 @@ def check_dagger(root: Path, info: dict, ds, version: str, expect: dict):
                 fail(f"stats.json {key}.{k} = {entry[k]}: lerobot 0.6 writes a bool column's {k} as a float")
         if values.size and abs(entry["mean"][0] - values.mean()) > 1e-6:
             fail(f"stats.json {key}.mean = {entry['mean']} but the frames give {values.mean()}")
+
+
+# `next.success` as lerobot's evaluation recording declares it (lerobot 0.6.1 `scripts/lerobot_eval.py`).
+SUCCESS_FEATURE = ("next.success", {"dtype": "bool", "shape": (1,), "names": None})
+
+
+def check_success(info: dict, ds, expect: dict):
+    """A dataset with `next.success` declares it as lerobot's evaluation recording does, and the values lerobot
+    reads are those the producing test set (`phone2act_expect.json`: "success_last", each episode's last frame
+    in order; "success_frames", the count of true frames)."""
+    key, declared = SUCCESS_FEATURE
+    if key not in info["features"]:
+        if "success_last" in expect or "success_frames" in expect:
+            fail(f"the producing test marked outcomes but info.json has no {key} feature")
+        return
+    values = bool_column(ds, key, declared, "lerobot's evaluation recording")
+    if "success_frames" in expect and int(values.sum()) != expect["success_frames"]:
+        fail(f"{int(values.sum())} frames with {key}, the producing test marked {expect['success_frames']}")
+    if "success_last" in expect:
+        episodes = np.asarray([int(np.asarray(v).reshape(-1)[0]) for v in ds.hf_dataset["episode_index"]])
+        last = [bool(values[np.nonzero(episodes == e)[0][-1]]) for e in range(int(episodes.max()) + 1)]
+        if last != expect["success_last"]:
+            fail(f"last frames' {key} = {last}, the producing test gave {expect['success_last']}")
 
 
 class Skip(Exception):

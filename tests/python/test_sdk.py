@@ -88,6 +88,19 @@ def test_episode_lifecycle_and_errors(server: Server) -> None:
         statuses.close()
 
 
+def test_stop_with_the_operators_outcome(server: Server) -> None:
+    with Client(server.target) as c:
+        outcomes = []
+        for success in (True, False, None):
+            c.episodes.start("stack the cubes")
+            time.sleep(0.3)
+            outcomes.append(c.episodes.stop(success=success).outcome)
+        expected = [common_pb2.EPISODE_OUTCOME_SUCCESS, common_pb2.EPISODE_OUTCOME_FAILURE,
+                    common_pb2.EPISODE_OUTCOME_UNSPECIFIED]
+        assert outcomes == expected
+        assert [e.outcome for e in c.episodes.list()[-3:]] == expected
+
+
 def test_policy_delta_chunk_moves_the_arm_and_reports_events(server: Server) -> None:
     # The silence clock runs from the last chunk's arrival; this test pauses longer than the default 1 s.
     with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=20, silence_timeout_s=10) as s:

@@ -133,6 +133,18 @@ pub fn keep_for_conformance(name: &str, dataset: &std::path::Path) {
     copy_dir(dataset, &dest).expect("copy dataset for conformance");
 }
 
+/// [`keep_for_conformance`] with what the producing test expects the conformance check to find
+/// (`phone2act_expect.json`, see tests/conformance/check.py).
+pub fn keep_for_conformance_expecting(name: &str, dataset: &std::path::Path, expect: &serde_json::Value) {
+    keep_for_conformance(name, dataset);
+    if let Some(root) = std::env::var_os("PHONE2ACT_CONFORMANCE_DIR") {
+        let path = std::path::Path::new(&root)
+            .join(name)
+            .join("phone2act_expect.json");
+        std::fs::write(path, expect.to_string()).expect("write phone2act_expect.json");
+    }
+}
+
 fn copy_dir(from: &std::path::Path, to: &std::path::Path) -> std::io::Result<()> {
     std::fs::create_dir_all(to)?;
     for entry in std::fs::read_dir(from)? {

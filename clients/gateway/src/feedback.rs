@@ -40,6 +40,9 @@ pub fn recording_json(rec: Option<&RecordingStatus>) -> Value {
         "saved": rec.episodes_saved,
         "warning": rec.warning,
         "upload": rec.upload_summary,
+        // `[recorder] episode_time_s` / `reset_time_s`: the countdown (null when no limit applies).
+        "remaining_s": rec.remaining_s,
+        "resetting": rec.resetting,
     })
 }
 

@@ -6,7 +6,8 @@
 //!   controller's own socket);
 //! - `{"type":"sample","seq":1,"t_ns":…,"pose":{"p":[x,y,z],"q":[x,y,z,w]},"tracking":"tracking","buttons":[…]}`
 //!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
-//!   `{"record":"start","task":"…"}`, `{"record":"stop"}`, `{"record":"discard"}`.
+//!   `{"record":"start","task":"…"}`, `{"record":"stop"}` (with `"outcome":"success"` or `"failure"`, the
+//!   operator's verdict on the episode), `{"record":"discard"}`.
 //!
 //! - `{"type":"video_offer","camera":"front","sdp":"…","host":"192.168.1.20"}` asks for the camera's live
 //!   WebRTC video (see `webrtc`; `host` is where the page reached the gateway), `{"type":"video_off"}` ends it;
@@ -23,7 +24,9 @@ use crate::rosbridge::parse_json;
 use crate::session::{Session, SessionEvent};
 use crate::shared::Shared;
 use crate::web_preview::{self, PreviewRequest};
-use phone2act_proto::v1::{ButtonEvent, PhoneSample, Pose, TrackingState, clutch_command, record_command};
+use phone2act_proto::v1::{
+    ButtonEvent, EpisodeOutcome, PhoneSample, Pose, TrackingState, clutch_command, record_command,
+};
 use phone2act_proto::{MAX_TASK_BYTES, buttons};
 use serde::Deserialize;
 use serde_json::{Value, json};
@@ -108,7 +111,15 @@ fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
                 }
                 record_command::Kind::Start
             }
-            Some("stop") => record_command::Kind::Stop,
+            Some("stop") => {
+                let outcome = match v.get("outcome").map(|o| (o, o.as_str())) {
+                    None => EpisodeOutcome::Unspecified,
+                    Some((_, Some("success"))) => EpisodeOutcome::Success,
+                    Some((_, Some("failure"))) => EpisodeOutcome::Failure,
+                    Some((o, _)) => return Err(format!("outcome must be success or failure, got {o}")),
+                };
+                return Ok(buttons::record_stop_with(outcome));
+            }
             Some("discard") => record_command::Kind::Discard,
             _ => return Err(format!("record must be start, stop or discard, got {r}")),
         };
@@ -419,6 +430,30 @@ mod tests {
             panic!()
         };
         assert_eq!(r.task, "pick the ball");
+    }
+
+    #[test]
+    fn a_stop_carries_the_operators_outcome() {
+        let outcome = |text: &str| -> Result<i32, String> {
+            let s = sample(text)?;
+            match &s.buttons[0].event {
+                Some(phone2act_proto::v1::button_event::Event::Record(r)) => Ok(r.outcome),
+                other => panic!("{other:?}"),
+            }
+        };
+        let stop =
+            |extra: &str| format!(r#"{{"type":"sample","seq":1,"buttons":[{{"record":"stop"{extra}}}]}}"#);
+        assert_eq!(outcome(&stop("")), Ok(EpisodeOutcome::Unspecified as i32));
+        assert_eq!(
+            outcome(&stop(r#","outcome":"success""#)),
+            Ok(EpisodeOutcome::Success as i32)
+        );
+        assert_eq!(
+            outcome(&stop(r#","outcome":"failure""#)),
+            Ok(EpisodeOutcome::Failure as i32)
+        );
+        let bad = outcome(&stop(r#","outcome":"maybe""#)).unwrap_err();
+        assert!(bad.contains("success or failure"), "{bad}");
     }
 
     #[test]

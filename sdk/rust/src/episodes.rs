@@ -47,7 +47,19 @@ impl EpisodesApi {
 
     /// Stops and saves the episode in progress; returns once it is committed.
     pub async fn stop(&mut self) -> Result<v1::StopEpisodeResponse> {
-        Ok(self.inner.stop(v1::StopEpisodeRequest {}).await?.into_inner())
+        self.stop_with(v1::EpisodeOutcome::Unspecified).await
+    }
+
+    /// Stops and saves the episode in progress with the operator's outcome (kept in its provenance and, in a
+    /// dataset that records `next.success`, as its last frame's value); returns once it is committed.
+    pub async fn stop_with(&mut self, outcome: v1::EpisodeOutcome) -> Result<v1::StopEpisodeResponse> {
+        Ok(self
+            .inner
+            .stop(v1::StopEpisodeRequest {
+                outcome: outcome.into(),
+            })
+            .await?
+            .into_inner())
     }
 
     /// Throws away the episode in progress; returns the number of frames dropped.

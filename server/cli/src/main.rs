@@ -4,6 +4,7 @@
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use phone2act_gateway::GatewayConfig;
+use phone2act_sdk::proto as v1;
 use phone2act_server::config::ConfigSource;
 use phone2act_server::{bind, run_with_local};
 use std::net::SocketAddr;
@@ -98,8 +99,16 @@ enum EpisodeAction {
         #[arg(long, env = "PHONE2ACT_OPERATOR", default_value = "")]
         operator: String,
     },
-    /// Stop and save the episode in progress.
-    Stop,
+    /// Stop and save the episode in progress, optionally with the operator's outcome (kept in the episode's
+    /// provenance and, in a dataset that records `next.success`, as its last frame's value).
+    Stop {
+        /// The episode succeeded.
+        #[arg(long, conflicts_with = "failure")]
+        success: bool,
+        /// The episode failed.
+        #[arg(long)]
+        failure: bool,
+    },
     /// Stop and throw away the episode in progress.
     Discard,
     /// Throw away the episode in progress and start again (same task unless --task).
@@ -437,6 +446,15 @@ fn dataset_info(path: &std::path::Path, name: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// How an episode line shows the operator's outcome.
+fn outcome_suffix(outcome: v1::EpisodeOutcome) -> &'static str {
+    match outcome {
+        v1::EpisodeOutcome::Success => " [success]",
+        v1::EpisodeOutcome::Failure => " [failure]",
+        v1::EpisodeOutcome::Unspecified => "",
+    }
+}
+
 fn real_main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
@@ -448,15 +466,21 @@ fn real_main() -> anyhow::Result<()> {
                     let s = episodes.start_by(&task, &operator).await?;
                     outln!("recording episode {} ({:?})", s.episode_index, s.task);
                 }
-                EpisodeAction::Stop => {
-                    let r = episodes.stop().await?;
+                EpisodeAction::Stop { success, failure } => {
+                    let outcome = match (success, failure) {
+                        (true, _) => v1::EpisodeOutcome::Success,
+                        (_, true) => v1::EpisodeOutcome::Failure,
+                        _ => v1::EpisodeOutcome::Unspecified,
+                    };
+                    let r = episodes.stop_with(outcome).await?;
                     let ep = r.episode.unwrap_or_default();
                     outln!(
-                        "saved episode {}: {} frames, {:.2} s, task {:?} (save took {:.0} ms)",
+                        "saved episode {}: {} frames, {:.2} s, task {:?}{} (save took {:.0} ms)",
                         ep.episode_index,
                         ep.length_frames,
                         ep.duration_s,
                         ep.task,
+                        outcome_suffix(ep.outcome()),
                         r.save_latency_s * 1000.0
                     );
                 }
@@ -473,7 +497,7 @@ fn real_main() -> anyhow::Result<()> {
                     }
                     for ep in list.episodes {
                         outln!(
-                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}{}",
+                            "  {:>4}  {:>6} frames  {:>7.2} s  held {:>3} paused {:>3} late {:>3} dropped {:>3}  {}{}{}",
                             ep.episode_index,
                             ep.length_frames,
                             ep.duration_s,
@@ -482,6 +506,7 @@ fn real_main() -> anyhow::Result<()> {
                             ep.late_ticks,
                             ep.dropped_frames,
                             ep.task,
+                            outcome_suffix(ep.outcome()),
                             fleet::upload_suffix(&ep)
                         );
                     }

@@ -78,6 +78,20 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         ok && out.contains("1 episodes") && out.contains("stack the cube"),
         "{out}"
     );
+    // The operator's outcome: given with stop, listed, and both flags at once refused by the parser.
+    let (ok, _, err) = run(&["episode", "start", "--task", "stack the cube"], &server.url);
+    assert!(ok, "{err}");
+    std::thread::sleep(Duration::from_millis(700));
+    let (ok, _, err) = run(&["episode", "stop", "--success", "--failure"], &server.url);
+    assert!(!ok && err.contains("cannot be used with"), "{err}");
+    let (ok, out, err) = run(&["episode", "stop", "--success"], &server.url);
+    assert!(
+        ok && out.contains("saved episode 1") && out.contains("[success]"),
+        "{out}{err}"
+    );
+    let (ok, out, _) = run(&["episode", "list"], &server.url);
+    assert!(ok && out.contains("2 episodes"), "{out}");
+    assert_eq!(out.matches("[success]").count(), 1, "{out}");
     // Stopping twice is a clear error, not a crash, said once (no "code: ..., message: ..." echo).
     let (ok, _, err) = run(&["episode", "stop"], &server.url);
     assert!(!ok && err.contains("no episode is being recorded"), "{err}");
@@ -120,6 +134,12 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
     assert!(cells[1].parse::<u64>().unwrap() > 0, "{row}");
     assert_eq!(cells[3], "no", "{row}");
     assert!(row.ends_with("stack the cube"), "{row}");
+    // Episode 1 was stopped with --success: the operator's word is its last frame's `next.success`.
+    let row = text
+        .lines()
+        .find(|l| l.trim_start().starts_with("1 "))
+        .unwrap_or_else(|| panic!("no row for episode 1: {text}"));
+    assert_eq!(row.split_whitespace().nth(3), Some("yes"), "{row}");
     let out = Command::new(BIN)
         .args(["dataset", "verify"])
         .arg(dir.path().join("ds"))
@@ -131,7 +151,7 @@ fn episode_status_and_dataset_commands_against_a_served_binary() {
         "{text}{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(text.contains("valid LeRobot v3.0 dataset, 1 episodes"), "{text}");
+    assert!(text.contains("valid LeRobot v3.0 dataset, 2 episodes"), "{text}");
 
     // SIGTERM: gone within a second.
     let mut server = server;

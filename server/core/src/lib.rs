@@ -5,6 +5,7 @@
 pub mod arbiter;
 pub mod chunk;
 pub mod config;
+pub mod episode_clock;
 pub mod flight;
 pub mod gate;
 pub mod gripper;

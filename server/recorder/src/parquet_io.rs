@@ -152,7 +152,9 @@ impl Row {
     }
 }
 
-/// Streams rows of one episode into a parquet file, one row group per [`ROWS_PER_GROUP`] rows.
+/// Streams rows of one episode into a parquet file, one row group per [`ROWS_PER_GROUP`] rows. The newest row
+/// stays in memory until the next one or [`DataWriter::finish`], so that an outcome given at the episode's end
+/// can still set its `next.success` ([`DataWriter::set_last_success`]).
 pub struct DataWriter {
     path: PathBuf,
     schema: SchemaRef,
@@ -199,10 +201,23 @@ impl DataWriter {
         );
         self.buf.push(row);
         self.rows += 1;
-        if self.buf.len() >= ROWS_PER_GROUP {
+        if self.buf.len() > ROWS_PER_GROUP {
+            let newest = self.buf.split_off(ROWS_PER_GROUP);
             self.flush_group()?;
+            self.buf = newest;
         }
         Ok(())
+    }
+
+    /// Sets `next.success` of the newest row (in a dataset with the column). False when there is no row.
+    pub fn set_last_success(&mut self, success: bool) -> bool {
+        match self.buf.last_mut() {
+            Some(row) if self.flags.success => {
+                row.success = Some(success);
+                true
+            }
+            _ => false,
+        }
     }
 
     fn flush_group(&mut self) -> Result<(), RecorderError> {
@@ -646,6 +661,61 @@ pub fn read_rows(path: &Path) -> Result<Vec<Row>, RecorderError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_newest_row_takes_an_outcome_even_at_a_row_group_boundary() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("d.parquet");
+        let flags = FlagColumns {
+            success: true,
+            intervention: false,
+        };
+        let mut w = DataWriter::create(&p, 1, 1, true, flags).unwrap();
+        assert!(!w.set_last_success(true), "no row yet");
+        // Exactly one full row group: the row that completes it is the one an outcome at Stop marks.
+        for i in 0..ROWS_PER_GROUP as i64 {
+            w.push(Row {
+                state: vec![0.0],
+                action: vec![0.0],
+                success: Some(false),
+                intervention: None,
+                timestamp: i as f32 / 20.0,
+                frame_index: i,
+                episode_index: 0,
+                index: i,
+                task_index: 0,
+            })
+            .unwrap();
+        }
+        assert!(w.set_last_success(true));
+        w.finish().unwrap();
+        let rows = read_rows(&p).unwrap();
+        let marked: Vec<i64> = rows
+            .iter()
+            .filter(|r| r.success == Some(true))
+            .map(|r| r.frame_index)
+            .collect();
+        assert_eq!(marked, [ROWS_PER_GROUP as i64 - 1]);
+        let without = DataWriter::create(&dir.path().join("e.parquet"), 1, 1, true, FlagColumns::default());
+        let mut without = without.unwrap();
+        without
+            .push(Row {
+                state: vec![0.0],
+                action: vec![0.0],
+                success: None,
+                intervention: None,
+                timestamp: 0.0,
+                frame_index: 0,
+                episode_index: 0,
+                index: 0,
+                task_index: 0,
+            })
+            .unwrap();
+        assert!(
+            !without.set_last_success(true),
+            "a dataset without the column has nothing to mark"
+        );
+    }
 
     #[test]
     fn data_rows_round_trip_in_row_groups() {

@@ -63,6 +63,8 @@ pub struct RecorderStatus {
     /// The episode being recorded, or the index the next one will get.
     pub episode_index: u64,
     pub task: String,
+    /// Who records the episode in progress (empty when unknown or idle).
+    pub operator: String,
     pub frames_recorded: u64,
     pub duration_s: f64,
     pub held_ticks: u64,
@@ -154,6 +156,9 @@ struct Shared {
     fps: u32,
     sync: SyncConfig,
     commit_hook: Mutex<Option<Arc<dyn CommitHook>>>,
+    /// Frames an episode holds at most (0: no limit); ticks past it are not written, so an episode saved at
+    /// its time limit has exactly the limit's frames whenever the save comes.
+    frame_limit: std::sync::atomic::AtomicU64,
 }
 
 /// Told about every committed episode, on the recorder's thread and under its dataset lock (so before the
@@ -237,6 +242,7 @@ impl Recorder {
             fps,
             sync,
             commit_hook: Mutex::new(None),
+            frame_limit: std::sync::atomic::AtomicU64::new(0),
         });
         let s2 = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
@@ -260,6 +266,13 @@ impl Recorder {
     /// Sets the hook told about every committed episode (see [`CommitHook`]).
     pub fn set_commit_hook(&self, hook: Arc<dyn CommitHook>) {
         *self.shared.commit_hook.lock() = Some(hook);
+    }
+
+    /// Sets the most frames an episode holds (`None`: no limit; see `[recorder] episode_time_s`).
+    pub fn set_frame_limit(&self, frames: Option<u64>) {
+        self.shared
+            .frame_limit
+            .store(frames.unwrap_or(0), Ordering::Relaxed);
     }
 
     /// Starts recording an episode of `task`.
@@ -365,9 +378,20 @@ impl Recorder {
 
     /// Stops recording and saves the episode. Returns when it is committed to disk.
     pub fn stop_episode(&self) -> Result<EpisodeSummary, RecorderError> {
+        self.stop_episode_with(None)
+    }
+
+    /// Stops recording and saves the episode with the operator's outcome (`Some(true)`: a success), kept in
+    /// its provenance and, in a dataset with `next.success`, as the last frame's value: the task is done (or
+    /// not) after that frame, as LeRobot's evaluation and HIL recordings mark it. The frames before keep what
+    /// was sampled (a scene's success flag, false without one). Returns when it is committed to disk.
+    pub fn stop_episode_with(&self, success: Option<bool>) -> Result<EpisodeSummary, RecorderError> {
         let t0 = std::time::Instant::now();
         let mut ds = self.shared.dataset.lock();
-        let active = self.take_active()?;
+        let mut active = self.take_active()?;
+        if let Some(v) = success {
+            active.writer.set_last_success(v);
+        }
         let summary = EpisodeSummary {
             index: active.writer.index,
             task: active.writer.task.clone(),
@@ -377,6 +401,7 @@ impl Recorder {
             start_unix_ns: active.start_unix_ns,
             operator: active.operator.clone(),
             first_frame_time_ns: self.shared.clock.time_ns(active.first_tick),
+            success,
             ..EpisodeSummary::default()
         };
         if let Some(e) = active.error {
@@ -516,22 +541,24 @@ fn bump(shared: &Shared, t: &mut TickState) {
 
 fn status_of(shared: &Shared, t: &TickState) -> RecorderStatus {
     let fps = shared.fps;
-    let (episode_index, task, frames, held, paused, late, dropped) = match &t.active {
+    let (episode_index, task, operator, frames, held, paused, late, dropped) = match &t.active {
         Some(a) => (
             a.writer.index,
             a.writer.task.clone(),
+            a.operator.clone(),
             a.writer.frames(),
             a.held,
             a.paused,
             a.late,
             a.writer.dropped(),
         ),
-        None => (t.saved, String::new(), 0, 0, 0, 0, 0),
+        None => (t.saved, String::new(), String::new(), 0, 0, 0, 0, 0),
     };
     RecorderStatus {
         phase: t.phase,
         episode_index,
         task,
+        operator,
         frames_recorded: frames,
         duration_s: frames as f64 / f64::from(fps),
         held_ticks: held,
@@ -612,6 +639,10 @@ fn picked<T: Clone>(pick: &Pick<'_, T>) -> Option<T> {
 fn tick(shared: &Shared, t: &mut TickState, index: u64) {
     let Some(a) = &mut t.active else { return };
     if a.error.is_some() || index < a.first_tick {
+        return;
+    }
+    let limit = shared.frame_limit.load(Ordering::Relaxed);
+    if limit > 0 && a.writer.frames() >= limit {
         return;
     }
     let tick_ns = shared.clock.time_ns(index);

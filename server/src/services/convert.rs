@@ -34,8 +34,10 @@ pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingSta
         warning: s.warning.clone().unwrap_or_default(),
         fps: f64::from(s.fps),
         late_ticks: s.late_ticks,
-        // Filled in by `current_recording_status`, which knows the uploader.
+        // Filled in by `current_recording_status`, which knows the uploader and the episode timing.
         upload_summary: String::new(),
+        remaining_s: None,
+        resetting: false,
     }
 }
 
@@ -61,7 +63,15 @@ pub fn upload_summary(u: &Uploader) -> String {
 
 fn recorder_status_only(app: &App) -> v1::RecordingStatus {
     match app.recorder_status() {
-        Some(status) => recording_status(&status, app.config()),
+        Some(status) => {
+            let mut wire = recording_status(&status, app.config());
+            let timing = app
+                .episode_timing()
+                .status(&status, phone2act_clock::monotonic_ns());
+            wire.remaining_s = timing.remaining_s;
+            wire.resetting = timing.resetting;
+            wire
+        }
         None => v1::RecordingStatus {
             phase: v1::RecordingPhase::Idle as i32,
             dataset_root: app.config().recorder.root.display().to_string(),
@@ -87,6 +97,12 @@ pub fn episode(e: &EpisodeSummary) -> v1::EpisodeInfo {
         dropped_frames: e.dropped_frames,
         operator: e.operator.clone(),
         station_id: e.station_id.clone(),
+        outcome: match e.success {
+            Some(true) => v1::EpisodeOutcome::Success,
+            Some(false) => v1::EpisodeOutcome::Failure,
+            None => v1::EpisodeOutcome::Unspecified,
+        }
+        .into(),
         ..v1::EpisodeInfo::default()
     }
 }
@@ -315,6 +331,7 @@ mod tests {
             phase: Phase::Recording,
             episode_index: 4,
             task: "pick".into(),
+            operator: String::new(),
             frames_recorded: 120,
             duration_s: 6.0,
             held_ticks: 3,

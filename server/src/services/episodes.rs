@@ -8,6 +8,7 @@ use crate::services::convert::{
     current_recording_status, episode, episode_with_upload, recording_status, storage_status,
 };
 use crate::services::error::RequestError;
+use phone2act_proto::convert_episode::outcome_success;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
 use std::pin::Pin;
@@ -59,11 +60,15 @@ impl Episodes for EpisodesService {
 
     async fn stop(
         &self,
-        _: Request<v1::StopEpisodeRequest>,
+        request: Request<v1::StopEpisodeRequest>,
     ) -> Result<Response<v1::StopEpisodeResponse>, Status> {
         let started = Instant::now();
+        // An unknown outcome (a newer client's) is refused before anything stops: the episode keeps recording.
+        let success = outcome_success(request.into_inner().outcome)
+            .map_err(|e| RequestError::Refused(format!("outcome: {e}")))?;
         let app = &self.app;
-        let summary = blocking(|| app.with_recorder(|r| r.stop_episode().map_err(RecordingError::from)))?;
+        let summary =
+            blocking(|| app.with_recorder(|r| r.stop_episode_with(success).map_err(RecordingError::from)))?;
         Ok(Response::new(v1::StopEpisodeResponse {
             episode: Some(episode(&summary)),
             save_latency_s: started.elapsed().as_secs_f64(),

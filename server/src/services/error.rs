@@ -160,7 +160,9 @@ impl From<RecordingError> for Status {
         match e {
             RecordingError::Closed => Status::unavailable(message),
             RecordingError::Recorder(e) => recorder_status(&e, message),
-            RecordingError::FractionalFps(_) => Status::failed_precondition(message),
+            RecordingError::FractionalFps(_) | RecordingError::Config(_) => {
+                Status::failed_precondition(message)
+            }
             RecordingError::WatchThread(_) => Status::internal(message),
         }
     }

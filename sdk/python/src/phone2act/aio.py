@@ -231,6 +231,13 @@ class AsyncScene:
         return await self._c._call("Scene.Get", self._stub.Get, scene_pb2.GetSceneRequest(arm=arm))
 
 
+def _outcome(success: bool | None) -> int:
+    """`StopEpisodeRequest.outcome` for an operator's verdict."""
+    if success is None:
+        return common_pb2.EPISODE_OUTCOME_UNSPECIFIED
+    return common_pb2.EPISODE_OUTCOME_SUCCESS if success else common_pb2.EPISODE_OUTCOME_FAILURE
+
+
 class AsyncEpisodes:
     def __init__(self, client: AsyncClient, stub: episodes_pb2_grpc.EpisodesStub) -> None:
         self._c = client
@@ -242,12 +249,15 @@ class AsyncEpisodes:
         r = await self._c._call("Episodes.Start", self._stub.Start, request)
         return r.status
 
-    async def stop(self) -> episodes_pb2.EpisodeInfo:
-        """Stop and save; returns when the episode is on disk."""
-        return (await self.stop_with_latency())[0]
+    async def stop(self, success: bool | None = None) -> episodes_pb2.EpisodeInfo:
+        """Stop and save; returns when the episode is on disk. `success` is the operator's outcome (True: a
+        success, False: a failure, None: not given), kept in the episode's provenance and, in a dataset that
+        records `next.success`, as its last frame's value."""
+        return (await self.stop_with_latency(success))[0]
 
-    async def stop_with_latency(self) -> tuple[episodes_pb2.EpisodeInfo, float]:
-        r = await self._c._call("Episodes.Stop", self._stub.Stop, episodes_pb2.StopEpisodeRequest())
+    async def stop_with_latency(self, success: bool | None = None) -> tuple[episodes_pb2.EpisodeInfo, float]:
+        request = episodes_pb2.StopEpisodeRequest(outcome=_outcome(success))
+        r = await self._c._call("Episodes.Stop", self._stub.Stop, request)
         return r.episode, r.save_latency_s
 
     async def discard(self) -> int:

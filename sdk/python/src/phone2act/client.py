@@ -198,12 +198,13 @@ class Episodes:
         """Start recording `task`; `operator` (who records it) goes into the episode's provenance."""
         return _run(self._a.start(task, operator))
 
-    def stop(self) -> episodes_pb2.EpisodeInfo:
-        """Stop and save; returns when the episode is on disk."""
-        return _run(self._a.stop())
+    def stop(self, success: bool | None = None) -> episodes_pb2.EpisodeInfo:
+        """Stop and save; returns when the episode is on disk. `success`: the operator's outcome (None: not
+        given; see `AsyncEpisodes.stop`)."""
+        return _run(self._a.stop(success))
 
-    def stop_with_latency(self) -> tuple[episodes_pb2.EpisodeInfo, float]:
-        return _run(self._a.stop_with_latency())
+    def stop_with_latency(self, success: bool | None = None) -> tuple[episodes_pb2.EpisodeInfo, float]:
+        return _run(self._a.stop_with_latency(success))
 
     def discard(self) -> int:
         return _run(self._a.discard())

@@ -83,6 +83,11 @@ pub struct EpisodeSummary {
     /// arm and when is in the episode's events sidecar (`policy_start`, `policy_stop`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub policies: Vec<String>,
+    /// The outcome the operator gave when stopping it (`Episodes.Stop`'s `outcome`): true for a success, false
+    /// for a failure; absent when none was given. A given outcome is also the last frame's `next.success` in a
+    /// dataset that records the column.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success: Option<bool>,
     /// In a merged dataset: the dataset and episode it was copied from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub merged_from: Option<MergedFrom>,
@@ -188,6 +193,9 @@ pub struct EpisodeWriter {
     action_stats: ColumnStats,
     /// The optional bool columns the dataset records (`next.success`, `intervention`), in order.
     flag_stats: Vec<(&'static str, ColumnStats)>,
+    /// The newest row's flags, counted in `flag_stats` only once the row can no longer change (the next row or
+    /// the commit): an outcome given at Stop may still set its `next.success`.
+    last_flags: Option<FrameFlags>,
     frames: u64,
     fps: u32,
     staging: PathBuf,
@@ -410,6 +418,7 @@ impl Dataset {
                 .into_iter()
                 .map(|name| (name, ColumnStats::new(StatKind::Bool, 1)))
                 .collect(),
+            last_flags: None,
             frames: 0,
             fps: self.spec.fps,
             events: EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?,
@@ -479,12 +488,16 @@ impl Dataset {
             encoders,
             state_stats,
             action_stats,
-            flag_stats,
+            mut flag_stats,
+            last_flags,
             frames,
             fps,
             staging,
             events,
         } = ep;
+        if let Some(flags) = last_flags {
+            count_flags(&mut flag_stats, flags);
+        }
         if frames == 0 {
             drop(encoders);
             return Err(RecorderError::EmptyEpisode(index));
@@ -711,6 +724,18 @@ pub struct FrameFlags {
     pub intervention: bool,
 }
 
+/// Counts one frame's flags in the stats of the columns the dataset records.
+fn count_flags(stats: &mut [(&'static str, ColumnStats)], flags: FrameFlags) {
+    for (name, column) in stats {
+        let value = match *name {
+            SUCCESS_FEATURE => flags.success,
+            INTERVENTION_FEATURE => flags.intervention,
+            _ => continue,
+        };
+        column.push(&[f64::from(u8::from(value))]);
+    }
+}
+
 /// LeRobot's default `tolerance_s` between a frame's timestamp and the decoded frame's time (0.3 to 0.6).
 pub const LEROBOT_TOLERANCE_S: f64 = 1e-4;
 
@@ -728,11 +753,11 @@ impl EpisodeWriter {
         let action: Vec<f32> = action.iter().map(|v| *v as f32).collect();
         self.state_stats.push_f32(&state);
         self.action_stats.push_f32(&action);
-        let mut row_flag = |name: &str, value: bool| {
-            let column = self.flag_stats.iter_mut().find(|(n, _)| *n == name)?;
-            column.1.push(&[f64::from(u8::from(value))]);
-            Some(value)
-        };
+        if let Some(previous) = self.last_flags.replace(flags) {
+            count_flags(&mut self.flag_stats, previous);
+        }
+        let row_flag =
+            |name: &str, value: bool| self.flag_stats.iter().any(|(n, _)| *n == name).then_some(value);
         let success = row_flag(SUCCESS_FEATURE, flags.success);
         let intervention = row_flag(INTERVENTION_FEATURE, flags.intervention);
         let i = self.frames;
@@ -749,6 +774,18 @@ impl EpisodeWriter {
         })?;
         self.frames += 1;
         Ok(())
+    }
+
+    /// Sets `next.success` of the newest frame: the operator's outcome, given when the episode stops. False
+    /// when the dataset has no `next.success` column or no frame was recorded.
+    pub fn set_last_success(&mut self, success: bool) -> bool {
+        match &mut self.last_flags {
+            Some(flags) if self.data.set_last_success(success) => {
+                flags.success = success;
+                true
+            }
+            _ => false,
+        }
     }
 
     /// Notes the arms' clutch and gate state at the frame about to be pushed; their changes since the
