@@ -29,6 +29,10 @@
     state: 'off',
     reason: '',
     fallbacks: 0,
+    bitrateBps: null, // what the gateway's encoder aims at (it follows the link's estimate)
+    linkEstimateBps: null, // the gateway's estimate of this page's link
+    notes: [], // [page ms, bitrate_bps, link_estimate_bps] of recent frames (for tests)
+    generation: 0, // one requestVideoFrameCallback chain per connection
   };
   app.video = v;
 
@@ -60,7 +64,8 @@
     const fps = n > 1 ? ((n - 1) * 1000) / (v.frameTimes[n - 1] - v.frameTimes[0]) : 0;
     const p50 = quantile(v.g2g, 0.5);
     const lat = Number.isFinite(p50) ? ` · glass-to-glass ${p50.toFixed(0)} ms` : '';
-    setPill(`${v.camera} · ${fps.toFixed(0)} fps${lat}`, p50 < 150 ? 'ok' : 'warn');
+    const rate = v.bitrateBps ? ` · ${(v.bitrateBps / 1e6).toFixed(2)} Mbit/s` : '';
+    setPill(`${v.camera} · ${fps.toFixed(0)} fps${lat}${rate}`, p50 < 150 ? 'ok' : 'warn');
   }
 
   // ---- clock offset from control-socket round trips -------------------------------------------------------
@@ -80,9 +85,10 @@
 
   // ---- WebRTC ---------------------------------------------------------------------------------------------
 
-  function onVideoFrame(now, md) {
-    if (!v.pc) return;
-    $('video').requestVideoFrameCallback(onVideoFrame);
+  function onVideoFrame(generation, now, md) {
+    // A callback of an earlier connection ends its chain.
+    if (!v.pc || generation !== v.generation) return;
+    $('video').requestVideoFrameCallback((t, m) => onVideoFrame(generation, t, m));
     v.frames += 1;
     const t = performance.now();
     v.frameTimes.push(t);
@@ -114,6 +120,9 @@
     v.g2gAll = [];
     v.unmatched = 0;
     v.captures.clear();
+    v.generation += 1;
+    v.bitrateBps = null;
+    v.linkEstimateBps = null;
     v.state = 'connecting';
     const pc = new RTCPeerConnection({ iceServers: [] });
     v.pc = pc;
@@ -124,6 +133,12 @@
       let m;
       try { m = JSON.parse(e.data); } catch (_) { return; }
       v.captures.set(m.rtp, m.capture_unix_ms);
+      if (m.bitrate_bps) {
+        v.bitrateBps = m.bitrate_bps;
+        v.linkEstimateBps = m.link_estimate_bps ?? null;
+        v.notes.push([performance.now(), m.bitrate_bps, v.linkEstimateBps]);
+        if (v.notes.length > 600) v.notes.shift();
+      }
       if (v.captures.size > 300) v.captures.delete(v.captures.keys().next().value);
     };
     pc.ontrack = (e) => {
@@ -131,7 +146,8 @@
       el.srcObject = new MediaStream([e.track]);
       el.hidden = false;
       el.play().catch(() => { /* muted autoplay is allowed; a refusal shows as no frames */ });
-      el.requestVideoFrameCallback(onVideoFrame);
+      const generation = v.generation;
+      el.requestVideoFrameCallback((t, m) => onVideoFrame(generation, t, m));
     };
     pc.onconnectionstatechange = () => {
       v.state = pc.connectionState;

@@ -15,9 +15,9 @@ if [[ ! -d "$HERE/node_modules/playwright-core" || ! -d "$HERE/node_modules/iwer
   (cd "$HERE" && npm ci --no-audit --no-fund --silent)
 fi
 # Each suite in a subshell of its own: stack.sh stops its server and gateway when that subshell exits.
-# BROWSER_SUITES=headset (or page) runs one.
+# BROWSER_SUITES=headset (or page, or video) runs one.
 rc=0
-if [[ "${BROWSER_SUITES:-page headset}" == *page* ]]; then
+if [[ "${BROWSER_SUITES:-page headset video}" == *page* ]]; then
   (
     STACK_HTTPS=1
     source "$HERE/../rosbridge/stack.sh"
@@ -25,7 +25,7 @@ if [[ "${BROWSER_SUITES:-page headset}" == *page* ]]; then
     node --experimental-websocket --no-warnings test_page.mjs
   ) || rc=1
 fi
-if [[ "${BROWSER_SUITES:-page headset}" == *headset* ]]; then
+if [[ "${BROWSER_SUITES:-page headset video}" == *headset* ]]; then
   (
     STACK_HTTPS=1
     STACK_CONFIG="$HERE/../../server/config/bimanual-sim.toml"
@@ -34,6 +34,14 @@ if [[ "${BROWSER_SUITES:-page headset}" == *headset* ]]; then
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
     node --experimental-websocket --no-warnings test_headset.mjs
+  ) || rc=1
+fi
+if [[ "${BROWSER_SUITES:-page headset video}" == *video* ]]; then
+  (
+    STACK_HTTPS=1
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_video.mjs
   ) || rc=1
 fi
 exit $rc

@@ -13,7 +13,11 @@ use crate::error::GatewayError;
 
 /// The shared connection to the server.
 #[derive(Clone, Debug)]
-pub struct Upstream(Client);
+pub struct Upstream {
+    client: Client,
+    /// How to dial the server again (`None` for an in-process server, whose calls run on the caller's thread).
+    dial: Option<(String, ConnectOptions)>,
+}
 
 impl Upstream {
     /// A lazily connecting channel to `server_url` (`http://host:port`).
@@ -23,31 +27,52 @@ impl Upstream {
             connect_timeout_s: 3.0,
             ..ConnectOptions::default()
         };
-        Client::connect_lazy(server_url, &options).map(Self).map_err(|e| {
+        let client = Client::connect_lazy(server_url, &options).map_err(|e| {
             // The SDK keeps the reason in the error's source; say it on the one line a user sees.
             let reason = std::error::Error::source(&e).map_or_else(|| e.to_string(), ToString::to_string);
             GatewayError::ServerUrl(format!("{server_url}: {reason}"))
+        })?;
+        Ok(Self {
+            client,
+            dial: Some((server_url.to_owned(), options)),
         })
     }
 
     /// An already made client (the embedded gateway's in-process one).
     pub fn from_client(client: Client) -> Self {
-        Self(client)
+        Self { client, dial: None }
+    }
+
+    /// A connection of its own to the same server, its I/O on the runtime this is called in (the live video's
+    /// bulk frames then never share the control path's connection or thread). An in-process upstream is
+    /// shared: its calls already run on the calling thread.
+    pub(crate) fn separate(&self) -> Self {
+        match &self.dial {
+            Some((url, options)) => match Client::connect_lazy(url, options) {
+                Ok(client) => Self {
+                    client,
+                    dial: self.dial.clone(),
+                },
+                // The same URL and options made the first connection; keep sharing it if that ever changes.
+                Err(_) => self.clone(),
+            },
+            None => self.clone(),
+        }
     }
 
     /// The shared SDK client (teleop sessions are its [`phone2act_sdk::TeleopLink`]s).
     pub fn client(&self) -> &Client {
-        &self.0
+        &self.client
     }
 
     /// A System client on the shared channel.
     pub fn system(&self) -> SystemClient<AuthChannel> {
-        self.0.system_raw()
+        self.client.system_raw()
     }
 
     /// A Policy client on the shared channel (read-only use: `GetObservation` for camera images).
     pub fn policy(&self) -> PolicyClient<AuthChannel> {
-        self.0.policy_raw()
+        self.client.policy_raw()
     }
 
     /// The newest frame of `camera` as a JPEG, through `Policy.GetObservation` (read-only: it takes no

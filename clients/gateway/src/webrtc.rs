@@ -3,15 +3,24 @@
 //!
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
-//! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB), encodes
-//!   it once (`phone2act_recorder::live`, on the blocking pool: the gateway's runtime may be a single thread that also
-//!   carries the control path) and publishes it on a broadcast channel. A viewer that falls behind loses the
-//!   oldest frames (the channel's lag) and waits for a keyframe, so video never queues.
+//! - Video never runs on the control path's thread: the feeds and viewers run on a runtime of their own (one
+//!   thread, `video-io`) with a connection of their own to the server, and the encoder on a thread per camera;
+//!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
+//!   path's threads get the CPU first and the video is what slows down.
+//! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
+//!   hands it to its encoder thread (`phone2act_recorder::live`) through a slot of one frame, the newest
+//!   winning: an encoder that falls behind skips frames, it never queues them. Each frame is encoded once and
+//!   published on a broadcast channel. A viewer that falls behind loses the oldest frames (the channel's lag)
+//!   and waits for a keyframe.
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
 //!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
-//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…}` on the page's data channel so that the
-//!   page can show glass-to-glass latency (its clock offset comes from `clock` round trips on the control
-//!   socket).
+//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
+//!   channel so that the page can show glass-to-glass latency (its clock offset comes from `clock` round trips
+//!   on the control socket) and the bitrate.
+//! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
+//!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
+//!   [`MIN_BITRATE_BPS`]..[`MAX_BITRATE_BPS`]), so a slow link gets fewer bits instead of a queue that would
+//!   also hold up the control socket's packets.
 //! - The feed stops when its last viewer leaves; a page's viewer ends with its socket, a new offer or
 //!   `video_off`.
 
@@ -24,8 +33,9 @@ use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use str0m::bwe::{Bitrate, BweKind};
 use str0m::change::SdpOffer;
 use str0m::format::Codec;
 use str0m::media::{MediaKind, MediaTime, Mid};
@@ -39,8 +49,18 @@ use tokio::task::JoinHandle;
 const VIEWER_QUEUE: usize = 4;
 /// The rate asked of a camera that says nothing else, and the cap.
 const MAX_FPS: f64 = 30.0;
-/// Bits per second for 640x480 at 30 fps: sharp enough to read the scene, a small share of a Wi-Fi link.
-const BITRATE_BPS: usize = 1_500_000;
+/// The most bits per second the encoder is given (640x480 at 30 fps: sharp enough to read the scene, a small
+/// share of a Wi-Fi link), and where it starts before a link estimate exists.
+pub(crate) const MAX_BITRATE_BPS: u64 = 1_500_000;
+/// The least: below this 640x480 turns to blocks; a link slower than this gets late frames instead.
+pub(crate) const MIN_BITRATE_BPS: u64 = 150_000;
+/// The share of a viewer's link estimate given to the video: the rest is headroom for the control socket, the
+/// data channel's notes and the estimate's own error.
+const LINK_SHARE: f64 = 0.85;
+/// A new target within this fraction of the encoder's bitrate is not worth a rate-control change.
+const RETARGET_FRACTION: f64 = 0.1;
+/// How much less CPU priority the video's threads get than the control path's (nice steps).
+const VIDEO_NICE: i32 = 10;
 /// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
 const VIEWER_IDLE: Duration = Duration::from_secs(30);
 
@@ -52,6 +72,8 @@ pub(crate) struct EncodedFrame {
     /// Capture time on this gateway's wall clock (Unix), in nanoseconds.
     pub capture_unix_ns: i64,
     pub seq: u64,
+    /// The bitrate the encoder aimed at for this frame.
+    pub bitrate_bps: u64,
 }
 
 #[derive(Debug)]
@@ -60,18 +82,113 @@ struct Feed {
     /// A viewer joined or lost frames: the next frame is a keyframe.
     force_key: AtomicBool,
     task: Mutex<Option<JoinHandle<()>>>,
+    /// Each viewer's share of its link (bits per second), by viewer id; the encoder aims at the lowest.
+    link_bps: Mutex<HashMap<u64, u64>>,
+    /// The lowest of `link_bps` ([`MAX_BITRATE_BPS`] while no viewer has an estimate).
+    target_bps: AtomicU64,
+}
+
+impl Feed {
+    fn set_link(&self, viewer: u64, bps: Option<u64>) {
+        let mut links = self.link_bps.lock();
+        match bps {
+            Some(bps) => links.insert(viewer, bps),
+            None => links.remove(&viewer),
+        };
+        let target = links.values().copied().min().unwrap_or(MAX_BITRATE_BPS);
+        self.target_bps.store(target, Ordering::Release);
+    }
+}
+
+/// The bitrate to give a viewer whose link is estimated at `estimate_bps`.
+fn share_of_link(estimate_bps: u64) -> u64 {
+    ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(MIN_BITRATE_BPS, MAX_BITRATE_BPS)
+}
+
+/// The video's own runtime thread and its connection to the server.
+#[derive(Debug)]
+struct VideoIo {
+    handle: tokio::runtime::Handle,
+    upstream: Upstream,
+    /// Dropped with the hub: the thread's runtime ends, and with it every feed and viewer.
+    _stop: tokio::sync::oneshot::Sender<()>,
+}
+
+/// Starts the `video-io` thread: a single-threaded runtime at a lower priority, with its own connection to the
+/// server (`upstream` dialled again there).
+fn start_io(upstream: &Upstream) -> Result<VideoIo, String> {
+    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel(1);
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let upstream = upstream.clone();
+    std::thread::Builder::new()
+        .name("video-io".into())
+        .spawn(move || {
+            lower_priority();
+            let runtime = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                Ok(r) => r,
+                Err(e) => {
+                    let _ = ready_tx.send(Err(format!("video runtime: {e}")));
+                    return;
+                }
+            };
+            let own = {
+                let _in_runtime = runtime.enter();
+                upstream.separate()
+            };
+            let _ = ready_tx.send(Ok((runtime.handle().clone(), own)));
+            runtime.block_on(async {
+                let _ = stop_rx.await;
+            });
+        })
+        .map_err(|e| format!("video thread: {e}"))?;
+    // The thread answers once its runtime is built: a millisecond, once per gateway.
+    let (handle, upstream) = ready_rx
+        .recv()
+        .map_err(|_| "video thread ended at start".to_owned())??;
+    Ok(VideoIo {
+        handle,
+        upstream,
+        _stop: stop_tx,
+    })
+}
+
+/// Lowers the calling thread's CPU priority by [`VIDEO_NICE`] (Linux, where nice is per thread; threads it
+/// starts inherit it). Elsewhere the video runs at the control path's priority.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        use rustix::process::{getpriority_process, setpriority_process};
+        let tid = rustix::thread::gettid();
+        let now = getpriority_process(Some(tid)).unwrap_or(0);
+        if let Err(e) = setpriority_process(Some(tid), (now + VIDEO_NICE).min(19)) {
+            tracing::debug!("video thread keeps its priority: {e}");
+        }
+    }
 }
 
 /// The cameras' feeds, shared by every page socket.
 #[derive(Debug, Default)]
 pub(crate) struct VideoHub {
     feeds: Mutex<HashMap<String, Arc<Feed>>>,
+    io: Mutex<Option<VideoIo>>,
+    viewers: AtomicU64,
 }
 
 impl VideoHub {
-    /// A receiver of `camera`'s frames, starting its feed if none runs.
+    /// The video runtime's handle and connection, starting it on first use.
+    fn io(&self, upstream: &Upstream) -> Result<(tokio::runtime::Handle, Upstream), String> {
+        let mut io = self.io.lock();
+        if io.is_none() {
+            *io = Some(start_io(upstream)?);
+        }
+        let io = io.as_ref().expect("just started");
+        Ok((io.handle.clone(), io.upstream.clone()))
+    }
+
+    /// A receiver of `camera`'s frames, starting its feed (on the video runtime) if none runs.
     fn subscribe(
         &self,
+        runtime: &tokio::runtime::Handle,
         upstream: &Upstream,
         camera: &str,
     ) -> (broadcast::Receiver<Arc<EncodedFrame>>, Arc<Feed>) {
@@ -83,6 +200,8 @@ impl VideoHub {
                     tx: broadcast::channel(VIEWER_QUEUE).0,
                     force_key: AtomicBool::new(true),
                     task: Mutex::new(None),
+                    link_bps: Mutex::new(HashMap::new()),
+                    target_bps: AtomicU64::new(MAX_BITRATE_BPS),
                 })
             })
             .clone();
@@ -90,11 +209,7 @@ impl VideoHub {
         feed.force_key.store(true, Ordering::Release);
         let mut task = feed.task.lock();
         if task.as_ref().is_none_or(JoinHandle::is_finished) {
-            *task = Some(tokio::spawn(run_feed(
-                upstream.clone(),
-                camera.to_owned(),
-                feed.clone(),
-            )));
+            *task = Some(runtime.spawn(run_feed(upstream.clone(), camera.to_owned(), feed.clone())));
         }
         drop(task);
         (rx, feed)
@@ -115,24 +230,81 @@ struct RawFrame {
     capture_unix_ns: i64,
 }
 
-/// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them, and
-/// the runtime, possibly a single thread carrying the control path, never waits for an encode) and publishes
-/// them. Ends when the fetch loop drops its sender.
-fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<RawFrame>) {
+/// The one frame waiting for the encoder: a newer frame replaces it, so an encoder that falls behind encodes
+/// the newest frame next and never works through a queue.
+#[derive(Default)]
+struct FrameSlot {
+    frame: Mutex<Option<RawFrame>>,
+    closed: AtomicBool,
+    ready: parking_lot::Condvar,
+}
+
+impl FrameSlot {
+    /// Puts `frame` in the slot; true when it replaced one the encoder had not taken.
+    fn put(&self, frame: RawFrame) -> bool {
+        let replaced = self.frame.lock().replace(frame).is_some();
+        self.ready.notify_one();
+        replaced
+    }
+
+    /// The newest frame, waiting for one; `None` once closed.
+    fn take(&self) -> Option<RawFrame> {
+        let mut slot = self.frame.lock();
+        loop {
+            if self.closed.load(Ordering::Acquire) {
+                return None;
+            }
+            if let Some(frame) = slot.take() {
+                return Some(frame);
+            }
+            self.ready.wait(&mut slot);
+        }
+    }
+
+    fn close(&self) {
+        let _slot = self.frame.lock();
+        self.closed.store(true, Ordering::Release);
+        self.ready.notify_one();
+    }
+}
+
+/// Closes the slot when the fetch loop ends, however it ends (an aborted task too).
+struct CloseOnDrop(Arc<FrameSlot>);
+
+impl Drop for CloseOnDrop {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
+/// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them)
+/// at the video's lower priority, at the bitrate its viewers' links allow, and publishes them. Ends when the
+/// slot closes.
+fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
+    lower_priority();
     let mut encoder: Option<H264Encoder> = None;
     let mut seq = 0u64;
-    while let Ok(frame) = frames.recv() {
+    while let Some(frame) = frames.take() {
+        let target = feed.target_bps.load(Ordering::Acquire);
         let enc = match encoder.take() {
             Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
-            _ => match H264Encoder::new(frame.width, frame.height, frame.fps, BITRATE_BPS) {
-                Ok(e) => e,
-                Err(e) => {
-                    tracing::warn!("video of camera {camera}: {e}");
-                    return;
+            _ => {
+                let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
+                match H264Encoder::new(frame.width, frame.height, frame.fps, bitrate) {
+                    Ok(e) => e,
+                    Err(e) => {
+                        tracing::warn!("video of camera {camera}: {e}");
+                        return;
+                    }
                 }
-            },
+            }
         };
         let enc = encoder.insert(enc);
+        let current = enc.bitrate_bps() as u64;
+        if current.abs_diff(target) as f64 > current as f64 * RETARGET_FRACTION {
+            tracing::debug!("video of camera {camera}: {current} -> {target} bit/s");
+            enc.set_bitrate_bps(usize::try_from(target).unwrap_or(usize::MAX));
+        }
         let key = feed.force_key.swap(false, Ordering::AcqRel);
         match enc.encode(&frame.rgb, frame.width, key) {
             Ok(Some((data, keyframe))) => {
@@ -142,6 +314,7 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<R
                     keyframe,
                     capture_unix_ns: frame.capture_unix_ns,
                     seq,
+                    bitrate_bps: enc.bitrate_bps() as u64,
                 }));
             }
             Ok(None) => {}
@@ -152,18 +325,18 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<R
 
 /// Fetches one camera's frames while anyone watches and hands them to its encoder thread.
 async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
-    // One frame waits at most: while the encoder is busy a newer frame is dropped, never queued.
-    let (to_encoder, frames) = std::sync::mpsc::sync_channel::<RawFrame>(1);
+    let slot = Arc::new(FrameSlot::default());
     let thread = {
-        let (camera, feed) = (camera.clone(), feed.clone());
+        let (camera, feed, slot) = (camera.clone(), feed.clone(), slot.clone());
         std::thread::Builder::new()
             .name(format!("video-{camera}"))
-            .spawn(move || encode_thread(&camera, &feed, &frames))
+            .spawn(move || encode_thread(&camera, &feed, &slot))
     };
     if let Err(e) = thread {
         tracing::warn!("video of camera {camera}: no encoder thread: {e}");
         return;
     }
+    let _close = CloseOnDrop(slot.clone());
     let mut last: Option<(u64, i64)> = None; // (frame_seq, capture_time_ns on the server's clock)
     let mut period = Duration::from_secs_f64(1.0 / MAX_FPS);
     let mut failing = false;
@@ -219,9 +392,8 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
             fps: (1.0 / period.as_secs_f64()).round() as u32,
             capture_unix_ns,
         };
-        match to_encoder.try_send(raw) {
-            Ok(()) | Err(std::sync::mpsc::TrySendError::Full(_)) => {}
-            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => return,
+        if slot.put(raw) {
+            tracing::trace!("video of camera {camera}: the encoder skipped a frame");
         }
         // The next frame is due one period after this one was captured.
         let age =
@@ -245,7 +417,8 @@ pub(crate) fn bind_ip(
         .or_else(|| public_host.and_then(parse))
 }
 
-/// Answers `offer_sdp` for `camera` and starts the viewer; its task ends with the returned handle's abort.
+/// Answers `offer_sdp` for `camera` and starts the viewer on the video runtime; its task ends with the returned
+/// handle's abort.
 pub(crate) fn start_viewer(
     hub: &VideoHub,
     upstream: &Upstream,
@@ -255,17 +428,17 @@ pub(crate) fn start_viewer(
     out: Out,
 ) -> Result<(String, JoinHandle<()>), String> {
     let offer = SdpOffer::from_sdp_string(offer_sdp).map_err(|e| format!("bad video offer: {e}"))?;
+    // A std socket here; the video runtime registers it with its own reactor.
     let socket = std::net::UdpSocket::bind(SocketAddr::new(ip, 0))
-        .and_then(|s| {
-            s.set_nonblocking(true)?;
-            UdpSocket::from_std(s)
-        })
+        .and_then(|s| s.set_nonblocking(true).map(|()| s))
         .map_err(|e| format!("video socket on {ip}: {e}"))?;
     let local = socket.local_addr().map_err(|e| e.to_string())?;
     let mut rtc = RtcConfig::new()
         .clear_codecs()
         .enable_h264(true)
         .set_ice_lite(true)
+        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down.
+        .enable_bwe(Some(Bitrate::bps(MAX_BITRATE_BPS)))
         .build(Instant::now());
     let candidate = Candidate::host(local, "udp").map_err(|e| format!("video candidate: {e}"))?;
     rtc.add_local_candidate(candidate)
@@ -274,11 +447,18 @@ pub(crate) fn start_viewer(
         .sdp_api()
         .accept_offer(offer)
         .map_err(|e| format!("video offer refused: {e}"))?;
-    let (rx, feed) = hub.subscribe(upstream, camera);
+    let (runtime, video_upstream) = hub.io(upstream)?;
+    let (rx, feed) = hub.subscribe(&runtime, &video_upstream, camera);
+    let viewer = hub.viewers.fetch_add(1, Ordering::Relaxed);
     let camera = camera.to_owned();
-    let task = tokio::spawn(async move {
-        // Boxed: the Rtc is large, and the task's future need not carry it inline.
-        if let Err(e) = Box::pin(run_viewer(rtc, socket, local, rx, &feed)).await {
+    let task = runtime.spawn(async move {
+        let ended = match UdpSocket::from_std(socket) {
+            // Boxed: the Rtc is large, and the task's future need not carry it inline.
+            Ok(socket) => Box::pin(run_viewer(rtc, socket, local, rx, &feed, viewer)).await,
+            Err(e) => Err(format!("video socket: {e}")),
+        };
+        feed.set_link(viewer, None);
+        if let Err(e) = ended {
             tracing::debug!("video viewer of {camera} ended: {e}");
         }
         out.text(json!({"type": "video", "state": "off", "camera": camera}).to_string());
@@ -314,6 +494,7 @@ async fn run_viewer(
     local: SocketAddr,
     mut rx: broadcast::Receiver<Arc<EncodedFrame>>,
     feed: &Feed,
+    viewer: u64,
 ) -> Result<(), String> {
     let mut buf = vec![0u8; 2048];
     let mut video: Option<(Mid, str0m::format::PayloadParams)> = None;
@@ -322,6 +503,7 @@ async fn run_viewer(
     // A decoder starts at a keyframe: until one went out to this viewer, other frames are skipped.
     let mut need_key = true;
     let mut last_heard = Instant::now();
+    let mut estimate_bps: Option<u64> = None;
     loop {
         let deadline = loop {
             match rtc.poll_output().map_err(|e| e.to_string())? {
@@ -331,7 +513,18 @@ async fn run_viewer(
                     let _ = socket.try_send_to(&t.contents, t.destination);
                 }
                 Output::Event(e) => match e {
-                    Event::Connected => connected = true,
+                    Event::Connected => {
+                        connected = true;
+                        // Probe up to the top rate: the estimate can then rise back after a slow spell.
+                        rtc.bwe().set_desired_bitrate(Bitrate::bps(MAX_BITRATE_BPS));
+                    }
+                    Event::EgressBitrateEstimate(
+                        BweKind::Twcc { estimate, .. } | BweKind::Remb { estimate, .. },
+                    ) => {
+                        let bps = estimate.as_u64();
+                        estimate_bps = Some(bps);
+                        feed.set_link(viewer, Some(share_of_link(bps)));
+                    }
                     Event::MediaAdded(m) if m.kind == MediaKind::Video => {
                         video = h264_pt(&mut rtc, m.mid).map(|p| (m.mid, p));
                         if video.is_none() {
@@ -381,6 +574,8 @@ async fn run_viewer(
                             "capture_unix_ms": frame.capture_unix_ns as f64 / 1e6,
                             "seq": frame.seq,
                             "key": frame.keyframe,
+                            "bitrate_bps": frame.bitrate_bps,
+                            "link_estimate_bps": estimate_bps,
                         });
                         // A full SCTP buffer drops the note; the page skips that frame's latency.
                         let _ = ch.write(false, msg.to_string().as_bytes());
