@@ -179,9 +179,14 @@ await check('on a throttled link the video bitrate comes down and control does n
     await waitPage(page, `window.phone2act.video.frames >= 10 && (${baseline} || window.phone2act.video.bitrateBps)`,
       'video through the relay', 20000);
     let t = await pageNow(page);
+    let sent0 = link.sentBytes;
     await sleep(3000);
-    const before = { rtt: await rttsSince(page, t), bitrate: await page.evaluate(() => window.phone2act.video.bitrateBps) };
-    const kbps = Number(process.env.VIDEO_LINK_KBPS || 800);
+    const before = {
+      rtt: await rttsSince(page, t),
+      bitrate: await page.evaluate(() => window.phone2act.video.bitrateBps),
+      kbps: ((link.sentBytes - sent0) * 8) / 3000,
+    };
+    const kbps = Number(process.env.VIDEO_LINK_KBPS || 600);
     link.bps = kbps * 1000;
     const throttledAt = Date.now();
     // Congestion control lowers its estimate within a few seconds of the queue growing; 30 s leaves room for a
@@ -198,18 +203,22 @@ await check('on a throttled link the video bitrate comes down and control does n
     link.maxWaitMs = 0;
     const dropped0 = link.dropped;
     t = await pageNow(page);
+    sent0 = link.sentBytes;
     await sleep(4000);
     const after = {
+      kbps: ((link.sentBytes - sent0) * 8) / 4000,
       rtt: await rttsSince(page, t),
       bitrate: await page.evaluate(() => window.phone2act.video.bitrateBps),
       estimate: await page.evaluate(() => window.phone2act.video.linkEstimateBps),
+      notes: await page.evaluate(() => window.phone2act.video.notes.map(([, b, e]) => `${(b / 1e3).toFixed(0)}/${((e || 0) / 1e3).toFixed(0)}`).filter((x, i, a) => i === 0 || x !== a[i - 1]).join(' ')),
       fps: ((await videoFrames(page)) - f0) / 4,
     };
-    console.log(`  unthrottled: bitrate ${(before.bitrate / 1e3).toFixed(0)} kbit/s, control ${fmt(before.rtt)}`);
+    console.log(`  unthrottled: bitrate ${(before.bitrate / 1e3).toFixed(0)} kbit/s, ${before.kbps.toFixed(0)} kbit/s towards the page, control ${fmt(before.rtt)}`);
     console.log(`  link at ${kbps} kbit/s (300 ms queue): bitrate under 80% of it after ${adaptedS.toFixed(1)} s; then `
       + `bitrate ${(after.bitrate / 1e3).toFixed(0)} kbit/s (link estimate ${(after.estimate / 1e3).toFixed(0)} kbit/s), `
-      + `${after.fps.toFixed(1)} fps decoded, control ${fmt(after.rtt)}, longest queue wait ${link.maxWaitMs.toFixed(0)} ms, `
+      + `${after.fps.toFixed(1)} fps decoded, ${after.kbps.toFixed(0)} kbit/s towards the page, control ${fmt(after.rtt)}, longest queue wait ${link.maxWaitMs.toFixed(0)} ms, `
       + `${link.dropped - dropped0} datagrams dropped`);
+    if (process.env.VIDEO_VERBOSE) console.log(`  bitrate/estimate kbit/s over time: ${after.notes}`);
     if (baseline) return;
     assert(after.bitrate <= 0.8 * kbps * 1000, `bitrate back up to ${after.bitrate} on a ${kbps} kbit/s link`);
     assert(after.rtt.length >= 20, `control nearly stopped on the slow link: ${after.rtt.length} round trips in 4 s`);
