@@ -47,7 +47,7 @@ await check('control round trip with video on and off, alternating windows of on
   try {
     await page.click('#start-ar');
     await waitPage(page, () => window.phone2act.feedbackCount > 20, 'feedback');
-    const on = []; const off = []; let frames = 0; let onMs = 0;
+    const on = []; const off = []; const g2g = []; let frames = 0; let onMs = 0; const rates = [];
     // Three rounds of 3 s off, 3 s on: alternating spreads the other load on the shared machine over both.
     for (let round = 0; round < 3; round += 1) {
       let t = await pageNow(page);
@@ -57,16 +57,25 @@ await check('control round trip with video on and off, alternating windows of on
       // The first frame can take seconds on a loaded machine (ICE, DTLS, a keyframe); the window starts there.
       await waitPage(page, () => window.phone2act.video.frames >= 1, 'a decoded frame', 20000);
       const f0 = await videoFrames(page);
+      const g0 = await page.evaluate(() => window.phone2act.video.g2gAll.length);
       t = await pageNow(page);
       await sleep(3000);
       on.push(...await rttsSince(page, t));
       frames += (await videoFrames(page)) - f0;
+      g2g.push(...await page.evaluate((n) => window.phone2act.video.g2gAll.slice(n), g0));
+      rates.push(...await page.evaluate((since) => window.phone2act.video.notes.filter(([at]) => at > since).map(([, b, e]) => [b, e]), t));
       onMs += (await pageNow(page)) - t;
       await page.uncheck('#video-on');
     }
     console.log(`  control round trip, video off: ${fmt(off)}`);
     console.log(`  control round trip, video on:  ${fmt(on)}; video ${(frames * 1000 / onMs).toFixed(1)} fps decoded`
       + `${process.env.VIDEO_CPU_HOGS ? `; ${process.env.VIDEO_CPU_HOGS} busy threads beside` : ''}`);
+    if (g2g.length) console.log(`  glass to glass: ${fmt(g2g)}`);
+    if (rates.length) {
+      const b = rates.map(([x]) => x / 1e3); const e = rates.filter(([, x]) => x).map(([, x]) => x / 1e3);
+      console.log(`  encoder bitrate ${Math.min(...b).toFixed(0)}-${Math.max(...b).toFixed(0)} kbit/s`
+        + (e.length ? `, link estimate ${Math.min(...e).toFixed(0)}-${Math.max(...e).toFixed(0)} kbit/s` : ''));
+    }
     // The page streams at 60 Hz: 9 s of each give 540 round trips on an idle machine; 50 is "control kept going".
     assert(on.length >= 50 && off.length >= 50, `too few round trips: ${on.length} on, ${off.length} off`);
     // Not a latency bound (the machine is shared and its load varies between windows): a stall of control
