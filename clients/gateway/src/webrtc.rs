@@ -615,4 +615,56 @@ mod tests {
         );
         assert_eq!(bind_ip(None, any, Some("robot.local")), None);
     }
+
+    fn raw(capture_unix_ns: i64) -> RawFrame {
+        RawFrame {
+            rgb: Vec::new(),
+            width: 2,
+            height: 2,
+            fps: 30,
+            capture_unix_ns,
+        }
+    }
+
+    #[test]
+    fn the_encoder_takes_the_newest_frame_and_stops_when_closed() {
+        let slot = FrameSlot::default();
+        assert!(!slot.put(raw(1)));
+        // The encoder was busy: the newer frame replaces the waiting one.
+        assert!(slot.put(raw(2)));
+        assert_eq!(slot.take().map(|f| f.capture_unix_ns), Some(2));
+        let slot = Arc::new(slot);
+        let waiter = {
+            let slot = slot.clone();
+            std::thread::spawn(move || slot.take().map(|f| f.capture_unix_ns))
+        };
+        slot.close();
+        assert_eq!(
+            waiter.join().unwrap(),
+            None,
+            "a waiting encoder ends when the feed closes"
+        );
+    }
+
+    #[test]
+    fn the_bitrate_follows_the_slowest_viewer_within_bounds() {
+        let feed = Feed {
+            tx: broadcast::channel(1).0,
+            force_key: AtomicBool::new(false),
+            task: Mutex::new(None),
+            link_bps: Mutex::new(HashMap::new()),
+            target_bps: AtomicU64::new(MAX_BITRATE_BPS),
+        };
+        let target = || feed.target_bps.load(Ordering::Acquire);
+        assert_eq!(share_of_link(1_000_000), 850_000);
+        assert_eq!(share_of_link(10_000_000), MAX_BITRATE_BPS);
+        assert_eq!(share_of_link(10_000), MIN_BITRATE_BPS);
+        feed.set_link(1, Some(share_of_link(1_000_000)));
+        feed.set_link(2, Some(share_of_link(400_000)));
+        assert_eq!(target(), 340_000, "the slower viewer's share");
+        feed.set_link(2, None);
+        assert_eq!(target(), 850_000, "the slow viewer left");
+        feed.set_link(1, None);
+        assert_eq!(target(), MAX_BITRATE_BPS, "no estimate: the top rate");
+    }
 }
