@@ -33,6 +33,9 @@
     linkEstimateBps: null, // the gateway's estimate of this page's link
     notes: [], // [page ms, bitrate_bps, link_estimate_bps] of recent frames (for tests)
     generation: 0, // one requestVideoFrameCallback chain per connection
+    // The JPEG preview's glass-to-glass latency, on the same clock offset: capture times by frame size.
+    previewCaptures: new Map(),
+    previewG2g: [],
   };
   app.video = v;
 
@@ -80,8 +83,16 @@
     v.offsetMs = v.clock.reduce((best, s) => (s[0] < best[0] ? s : best))[1];
   }
   setInterval(() => {
-    if (v.want) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
+    if (v.want || app.preview.want) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
   }, CLOCK_EVERY_MS);
+
+  // A preview image is on screen once decoded (its load event; the next paint follows within a frame).
+  $('preview').addEventListener('load', () => {
+    const capture = v.previewCaptures.get(app.preview.bytes);
+    if (capture === undefined || v.offsetMs === null) return;
+    v.previewG2g.push(pageUnixMs() + v.offsetMs - capture);
+    if (v.previewG2g.length > 300) v.previewG2g.shift();
+  });
 
   // ---- WebRTC ---------------------------------------------------------------------------------------------
 
@@ -200,6 +211,11 @@
 
   app.listeners.push((msg) => {
     if (msg.type === 'clock') onClock(msg);
+    else if (msg.type === 'preview_frame') {
+      v.previewCaptures.set(msg.bytes, msg.capture_unix_ms);
+      if (v.previewCaptures.size > 20) v.previewCaptures.delete(v.previewCaptures.keys().next().value);
+      if (v.offsetMs === null) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
+    }
     else if (msg.type === 'video_answer' && v.pc && msg.camera === v.camera) {
       v.pc.setRemoteDescription({ type: 'answer', sdp: msg.sdp }).catch((e) => fallback(`bad answer: ${e.message}`));
     } else if (msg.type === 'video' && msg.state === 'error') {

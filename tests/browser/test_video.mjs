@@ -87,6 +87,30 @@ await check('control round trip with video on and off, alternating windows of on
   }
 });
 
+await check('glass to glass of the WebRTC video and of the JPEG preview, one run', async () => {
+  const { context, page } = await phonePage();
+  try {
+    await page.check('#video-on');
+    // Up to 20 s for the first frames: ICE, DTLS and a keyframe on a machine with a load average near 18.
+    await waitPage(page, () => window.phone2act.video.frames >= 10, 'video frames', 20000);
+    const n = await page.evaluate(() => window.phone2act.video.g2gAll.length);
+    await sleep(4000);
+    const video = await page.evaluate((k) => window.phone2act.video.g2gAll.slice(k), n);
+    await page.uncheck('#video-on');
+    await page.check('#preview-on');
+    // The preview runs at 5 fps at most: 8 frames take 1.6 s, and up to 15 s on a loaded machine.
+    await waitPage(page, () => window.phone2act.video.previewG2g.length >= 8, 'preview frames with a capture time', 15000);
+    await sleep(4000);
+    const jpeg = await page.evaluate(() => window.phone2act.video.previewG2g.slice());
+    await page.uncheck('#preview-on');
+    console.log(`  glass to glass, WebRTC video: ${fmt(video)}; JPEG preview: ${fmt(jpeg)}`);
+    assert(video.length >= 5, `latency known for only ${video.length} video frames in 4 s`);
+    assert(jpeg.every((ms) => ms > 0 && ms < 5000), `implausible preview latencies: ${jpeg.slice(0, 10)}`);
+  } finally {
+    await context.close();
+  }
+});
+
 // A slow link towards the page, shared by the page's socket and its video like one Wi-Fi hop: everything the
 // gateway sends (TCP through a relay in front of its HTTPS port, UDP through a relay the page's answer is
 // pointed at) waits in one FIFO drained at `bps`. UDP datagrams that would wait longer than `bufferMs` are

@@ -6,10 +6,26 @@
 
 use phone2act_proto::v1::policy_client::PolicyClient;
 use phone2act_proto::v1::system_client::SystemClient;
-use phone2act_proto::v1::{GetObservationRequest, ImageEncoding, ListCamerasRequest};
+use phone2act_proto::v1::{CameraFrame, GetObservationRequest, ImageEncoding, ListCamerasRequest};
 use phone2act_sdk::{AuthChannel, Client, ConnectOptions};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::GatewayError;
+
+/// A camera frame and when it was captured on this gateway's wall clock.
+#[derive(Debug)]
+pub(crate) struct TimedFrame {
+    pub frame: CameraFrame,
+    /// Capture time (Unix, nanoseconds): the frame's age at the server when it answered, counted back from
+    /// the middle of the call (the two machines' clocks need not agree).
+    pub capture_unix_ns: i64,
+}
+
+/// `t` as Unix nanoseconds.
+pub(crate) fn unix_ns(t: SystemTime) -> i64 {
+    t.duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+}
 
 /// The shared connection to the server.
 #[derive(Clone, Debug)]
@@ -80,17 +96,39 @@ impl Upstream {
     /// so callers that must tell "unknown" from "not yet" ask [`Self::camera_names`]). Shared by the
     /// rosbridge image topics and the phone page's preview.
     pub async fn camera_jpeg(&self, camera: &str) -> Result<Option<Vec<u8>>, tonic::Status> {
+        Ok(self
+            .camera_frame(camera, ImageEncoding::Jpeg)
+            .await?
+            .map(|t| t.frame.data))
+    }
+
+    /// The newest frame of `camera` in `encoding`, with its capture time on this gateway's clock; `None`
+    /// while the server has no frame of it.
+    pub(crate) async fn camera_frame(
+        &self,
+        camera: &str,
+        encoding: ImageEncoding,
+    ) -> Result<Option<TimedFrame>, tonic::Status> {
         let request = GetObservationRequest {
             arms: Vec::new(),
-            image_encoding: ImageEncoding::Jpeg.into(),
+            image_encoding: encoding.into(),
             cameras: vec![camera.to_owned()],
         };
+        let sent_at = SystemTime::now();
+        let started = Instant::now();
         let observation = self.policy().get_observation(request).await?.into_inner();
+        let rpc: Duration = started.elapsed();
         Ok(observation
             .frames
             .into_iter()
             .find(|f| f.camera == camera && !f.data.is_empty())
-            .map(|f| f.data))
+            .map(|frame| {
+                let age_ns = (observation.timestamp_ns - frame.capture_time_ns).max(0);
+                TimedFrame {
+                    capture_unix_ns: unix_ns(sent_at + rpc / 2) - age_ns,
+                    frame,
+                }
+            }))
     }
 
     /// The names of the server's cameras.

@@ -25,16 +25,16 @@
 //!   `video_off`.
 
 use crate::conn::Out;
-use crate::upstream::Upstream;
+use crate::upstream::{Upstream, unix_ns};
 use parking_lot::Mutex;
-use phone2act_proto::v1::{GetObservationRequest, ImageEncoding};
+use phone2act_proto::v1::ImageEncoding;
 use phone2act_recorder::live::H264Encoder;
 use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime};
 use str0m::bwe::{Bitrate, BweKind};
 use str0m::change::SdpOffer;
 use str0m::format::Codec;
@@ -52,8 +52,12 @@ const MAX_FPS: f64 = 30.0;
 /// The most bits per second the encoder is given (640x480 at 30 fps: sharp enough to read the scene, a small
 /// share of a Wi-Fi link), and where it starts before a link estimate exists.
 pub(crate) const MAX_BITRATE_BPS: u64 = 1_500_000;
-/// The least: below this 640x480 turns to blocks; a link slower than this gets late frames instead.
-pub(crate) const MIN_BITRATE_BPS: u64 = 150_000;
+/// The least. It must stay under what a slow link's estimate can fall to: str0m paces at 1.1 times its estimate,
+/// and an encoder above that fills the pacer's queue (late frames for every viewer).
+pub(crate) const MIN_BITRATE_BPS: u64 = 60_000;
+/// Frame-rate steps for a low bitrate, so that each frame keeps enough bits to be legible: below the first
+/// bitrate one frame in the second is encoded.
+const FRAME_STEPS: [(u64, u64); 2] = [(150_000, 3), (300_000, 2)];
 /// The share of a viewer's link estimate given to the video: the rest is headroom for the control socket, the
 /// data channel's notes and the estimate's own error.
 const LINK_SHARE: f64 = 0.85;
@@ -103,6 +107,14 @@ impl Feed {
 /// The bitrate to give a viewer whose link is estimated at `estimate_bps`.
 fn share_of_link(estimate_bps: u64) -> u64 {
     ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(MIN_BITRATE_BPS, MAX_BITRATE_BPS)
+}
+
+/// Of the camera's frames, one in this many is encoded at `target_bps`.
+fn frame_divisor(target_bps: u64) -> u64 {
+    FRAME_STEPS
+        .iter()
+        .find(|(below, _)| target_bps < *below)
+        .map_or(1, |(_, n)| *n)
 }
 
 /// The video's own runtime thread and its connection to the server.
@@ -216,11 +228,6 @@ impl VideoHub {
     }
 }
 
-fn unix_ns(t: SystemTime) -> i64 {
-    t.duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-}
-
 /// A raw frame on its way to the encoder thread.
 struct RawFrame {
     rgb: Vec<u8>,
@@ -284,8 +291,16 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
     lower_priority();
     let mut encoder: Option<H264Encoder> = None;
     let mut seq = 0u64;
+    let mut taken = 0u64;
     while let Some(frame) = frames.take() {
-        let target = feed.target_bps.load(Ordering::Acquire);
+        let link = feed.target_bps.load(Ordering::Acquire);
+        let divisor = frame_divisor(link);
+        taken += 1;
+        if !taken.is_multiple_of(divisor) {
+            continue;
+        }
+        // x264 budgets bits for the camera's rate: with frames skipped it is given that much more.
+        let target = link * divisor;
         let enc = match encoder.take() {
             Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
             _ => {
@@ -314,7 +329,7 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
                     keyframe,
                     capture_unix_ns: frame.capture_unix_ns,
                     seq,
-                    bitrate_bps: enc.bitrate_bps() as u64,
+                    bitrate_bps: enc.bitrate_bps() as u64 / divisor,
                 }));
             }
             Ok(None) => {}
@@ -341,15 +356,12 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
     let mut period = Duration::from_secs_f64(1.0 / MAX_FPS);
     let mut failing = false;
     while feed.tx.receiver_count() > 0 {
-        let sent_at = SystemTime::now();
-        let started = Instant::now();
-        let request = GetObservationRequest {
-            arms: Vec::new(),
-            image_encoding: ImageEncoding::Rgb8.into(),
-            cameras: vec![camera.clone()],
-        };
-        let observation = match upstream.policy().get_observation(request).await {
-            Ok(o) => o.into_inner(),
+        let timed = match upstream.camera_frame(&camera, ImageEncoding::Rgb8).await {
+            Ok(Some(t)) => t,
+            Ok(None) => {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
             Err(e) => {
                 if !failing {
                     tracing::warn!("video of camera {camera}: {}", e.message());
@@ -359,15 +371,7 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
                 continue;
             }
         };
-        let rpc = started.elapsed();
-        let Some(frame) = observation
-            .frames
-            .into_iter()
-            .find(|f| f.camera == camera && !f.data.is_empty())
-        else {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-            continue;
-        };
+        let (frame, capture_unix_ns) = (timed.frame, timed.capture_unix_ns);
         failing = false;
         if last.is_some_and(|(s, _)| s == frame.frame_seq) {
             // Not captured yet: poll again soon (a few ms of latency at most, a cheap call on loopback).
@@ -382,9 +386,6 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
             period = measured.max(Duration::from_secs_f64(1.0 / MAX_FPS));
         }
         last = Some((frame.frame_seq, frame.capture_time_ns));
-        // The frame's age at the server when it answered, moved to this gateway's clock at half the call.
-        let age_ns = (observation.timestamp_ns - frame.capture_time_ns).max(0);
-        let capture_unix_ns = unix_ns(sent_at + rpc / 2) - age_ns;
         let raw = RawFrame {
             rgb: frame.data,
             width: frame.width,
@@ -666,5 +667,8 @@ mod tests {
         assert_eq!(target(), 850_000, "the slow viewer left");
         feed.set_link(1, None);
         assert_eq!(target(), MAX_BITRATE_BPS, "no estimate: the top rate");
+        assert_eq!(frame_divisor(MAX_BITRATE_BPS), 1);
+        assert_eq!(frame_divisor(299_999), 2);
+        assert_eq!(frame_divisor(MIN_BITRATE_BPS), 3);
     }
 }
