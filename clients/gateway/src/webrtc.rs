@@ -104,6 +104,18 @@ impl Feed {
     }
 }
 
+/// A viewer's entry in its feed's `link_bps`, removed when dropped.
+struct ViewerLink<'a> {
+    feed: &'a Feed,
+    viewer: u64,
+}
+
+impl Drop for ViewerLink<'_> {
+    fn drop(&mut self) {
+        self.feed.set_link(self.viewer, None);
+    }
+}
+
 /// The bitrate to give a viewer whose link is estimated at `estimate_bps`.
 fn share_of_link(estimate_bps: u64) -> u64 {
     ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(MIN_BITRATE_BPS, MAX_BITRATE_BPS)
@@ -453,12 +465,13 @@ pub(crate) fn start_viewer(
     let viewer = hub.viewers.fetch_add(1, Ordering::Relaxed);
     let camera = camera.to_owned();
     let task = runtime.spawn(async move {
+        // Forgets this viewer's link however the task ends (`video_off` and a new offer abort it).
+        let _share = ViewerLink { feed: &feed, viewer };
         let ended = match UdpSocket::from_std(socket) {
             // Boxed: the Rtc is large, and the task's future need not carry it inline.
             Ok(socket) => Box::pin(run_viewer(rtc, socket, local, rx, &feed, viewer)).await,
             Err(e) => Err(format!("video socket: {e}")),
         };
-        feed.set_link(viewer, None);
         if let Err(e) = ended {
             tracing::debug!("video viewer of {camera} ended: {e}");
         }
