@@ -1,6 +1,7 @@
 // Live video against control, in headless Chromium (Debian's) over loopback, against the real server and gateway:
 //  - the control round trip (pose sample -> feedback) with video on and off, in alternating windows of one run,
 //    optionally with CPU hogs beside it (VIDEO_CPU_HOGS=N busy threads), printed as p50 / p95 for each;
+//  - glass to glass of the WebRTC video and of the JPEG preview, one after the other in one run;
 //  - a throttled link: a relay in this process carries both the page's socket (TCP) and the video (UDP) through
 //    one bandwidth-limited queue towards the page, like a slow Wi-Fi hop; the gateway's video bitrate must come
 //    down under the link's rate and the control round trip must not stall behind the video.
@@ -10,15 +11,14 @@ import { createSocket } from 'node:dgram';
 import { join } from 'node:path';
 import { Worker } from 'node:worker_threads';
 import {
-  BASE, HTTPS_PORT, PAIRING_TOKEN, assert, check, finish, here, launch, pageState, sleep, waitPage,
+  BASE, HTTPS_PORT, PAIRING_TOKEN, assert, check, finish, here, launch, sleep, waitPage,
 } from './harness.mjs';
 
 const browser = await launch();
 
-async function phonePage(base = BASE, initScript = null) {
+async function phonePage(base = BASE) {
   const context = await browser.newContext({ ignoreHTTPSErrors: true, viewport: { width: 412, height: 915 } });
   await context.addInitScript({ path: join(here, 'webxr-shim.js') });
-  if (initScript) await context.addInitScript(initScript);
   const page = await context.newPage();
   page.on('dialog', (d) => d.accept());
   page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
