@@ -29,6 +29,13 @@
     state: 'off',
     reason: '',
     fallbacks: 0,
+    bitrateBps: null, // what the gateway's encoder aims at (it follows the link's estimate)
+    linkEstimateBps: null, // the gateway's estimate of this page's link
+    notes: [], // [page ms, bitrate_bps, link_estimate_bps] of recent frames (for tests)
+    generation: 0, // one requestVideoFrameCallback chain per connection
+    // The JPEG preview's glass-to-glass latency, on the same clock offset: capture times by frame size.
+    previewCaptures: new Map(),
+    previewG2g: [],
   };
   app.video = v;
 
@@ -60,7 +67,8 @@
     const fps = n > 1 ? ((n - 1) * 1000) / (v.frameTimes[n - 1] - v.frameTimes[0]) : 0;
     const p50 = quantile(v.g2g, 0.5);
     const lat = Number.isFinite(p50) ? ` · glass-to-glass ${p50.toFixed(0)} ms` : '';
-    setPill(`${v.camera} · ${fps.toFixed(0)} fps${lat}`, p50 < 150 ? 'ok' : 'warn');
+    const rate = v.bitrateBps ? ` · ${(v.bitrateBps / 1e6).toFixed(2)} Mbit/s` : '';
+    setPill(`${v.camera} · ${fps.toFixed(0)} fps${lat}${rate}`, p50 < 150 ? 'ok' : 'warn');
   }
 
   // ---- clock offset from control-socket round trips -------------------------------------------------------
@@ -75,14 +83,23 @@
     v.offsetMs = v.clock.reduce((best, s) => (s[0] < best[0] ? s : best))[1];
   }
   setInterval(() => {
-    if (v.want) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
+    if (v.want || app.preview.want) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
   }, CLOCK_EVERY_MS);
+
+  // A preview image is on screen once decoded (its load event; the next paint follows within a frame).
+  $('preview').addEventListener('load', () => {
+    const capture = v.previewCaptures.get(app.preview.bytes);
+    if (capture === undefined || v.offsetMs === null) return;
+    v.previewG2g.push(pageUnixMs() + v.offsetMs - capture);
+    if (v.previewG2g.length > 300) v.previewG2g.shift();
+  });
 
   // ---- WebRTC ---------------------------------------------------------------------------------------------
 
-  function onVideoFrame(now, md) {
-    if (!v.pc) return;
-    $('video').requestVideoFrameCallback(onVideoFrame);
+  function onVideoFrame(generation, now, md) {
+    // A callback of an earlier connection ends its chain.
+    if (!v.pc || generation !== v.generation) return;
+    $('video').requestVideoFrameCallback((t, m) => onVideoFrame(generation, t, m));
     v.frames += 1;
     const t = performance.now();
     v.frameTimes.push(t);
@@ -114,6 +131,9 @@
     v.g2gAll = [];
     v.unmatched = 0;
     v.captures.clear();
+    v.generation += 1;
+    v.bitrateBps = null;
+    v.linkEstimateBps = null;
     v.state = 'connecting';
     const pc = new RTCPeerConnection({ iceServers: [] });
     v.pc = pc;
@@ -124,6 +144,12 @@
       let m;
       try { m = JSON.parse(e.data); } catch (_) { return; }
       v.captures.set(m.rtp, m.capture_unix_ms);
+      if (m.bitrate_bps) {
+        v.bitrateBps = m.bitrate_bps;
+        v.linkEstimateBps = m.link_estimate_bps ?? null;
+        v.notes.push([performance.now(), m.bitrate_bps, v.linkEstimateBps]);
+        if (v.notes.length > 600) v.notes.shift();
+      }
       if (v.captures.size > 300) v.captures.delete(v.captures.keys().next().value);
     };
     pc.ontrack = (e) => {
@@ -131,7 +157,8 @@
       el.srcObject = new MediaStream([e.track]);
       el.hidden = false;
       el.play().catch(() => { /* muted autoplay is allowed; a refusal shows as no frames */ });
-      el.requestVideoFrameCallback(onVideoFrame);
+      const generation = v.generation;
+      el.requestVideoFrameCallback((t, m) => onVideoFrame(generation, t, m));
     };
     pc.onconnectionstatechange = () => {
       v.state = pc.connectionState;
@@ -184,6 +211,11 @@
 
   app.listeners.push((msg) => {
     if (msg.type === 'clock') onClock(msg);
+    else if (msg.type === 'preview_frame') {
+      v.previewCaptures.set(msg.bytes, msg.capture_unix_ms);
+      if (v.previewCaptures.size > 20) v.previewCaptures.delete(v.previewCaptures.keys().next().value);
+      if (v.offsetMs === null) app.send({ type: 'clock', t_page_ms: pageUnixMs() });
+    }
     else if (msg.type === 'video_answer' && v.pc && msg.camera === v.camera) {
       v.pc.setRemoteDescription({ type: 'answer', sdp: msg.sdp }).catch((e) => fallback(`bad answer: ${e.message}`));
     } else if (msg.type === 'video' && msg.state === 'error') {

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Browser tests of the phone page: Debian's Chromium, headless, driven by playwright-core, against the real server
 # and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
-# controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms). Installs
+# controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms); live video
+# against control, and on a throttled link, in test_video.mjs; the recording habits in test_habits.mjs. Installs
 # what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
 set -euo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
@@ -15,9 +16,10 @@ if [[ ! -d "$HERE/node_modules/playwright-core" || ! -d "$HERE/node_modules/iwer
   (cd "$HERE" && npm ci --no-audit --no-fund --silent)
 fi
 # Each suite in a subshell of its own: stack.sh stops its server and gateway when that subshell exits.
-# BROWSER_SUITES=headset (or page, or habits) runs one.
+# BROWSER_SUITES=headset (or page, habits, video) runs one.
+suites="${BROWSER_SUITES:-page headset habits video}"
 rc=0
-if [[ "${BROWSER_SUITES:-page headset habits}" == *page* ]]; then
+if [[ "$suites" == *page* ]]; then
   (
     STACK_HTTPS=1
     source "$HERE/../rosbridge/stack.sh"
@@ -25,7 +27,7 @@ if [[ "${BROWSER_SUITES:-page headset habits}" == *page* ]]; then
     node --experimental-websocket --no-warnings test_page.mjs
   ) || rc=1
 fi
-if [[ "${BROWSER_SUITES:-page headset habits}" == *headset* ]]; then
+if [[ "$suites" == *headset* ]]; then
   (
     STACK_HTTPS=1
     STACK_CONFIG="$HERE/../../server/config/bimanual-sim.toml"
@@ -36,7 +38,7 @@ if [[ "${BROWSER_SUITES:-page headset habits}" == *headset* ]]; then
     node --experimental-websocket --no-warnings test_headset.mjs
   ) || rc=1
 fi
-if [[ "${BROWSER_SUITES:-page headset habits}" == *habits* ]]; then
+if [[ "$suites" == *habits* ]]; then
   # Recording habits (outcome buttons), on a stack of its own so its dataset holds only its episodes.
   (
     STACK_HTTPS=1
@@ -53,6 +55,14 @@ if [[ "${BROWSER_SUITES:-page headset habits}" == *habits* ]]; then
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
     node --experimental-websocket --no-warnings test_habits.mjs countdown
+  ) || rc=1
+fi
+if [[ "$suites" == *video* ]]; then
+  (
+    STACK_HTTPS=1
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_video.mjs
   ) || rc=1
 fi
 exit $rc

@@ -7,10 +7,13 @@
 //! ([`Upstream::camera_jpeg`]), are shrunk to at most `width` pixels wide while decoding (the JPEG's own
 //! 1/2, 1/4, 1/8 scaling, no resampling pass) and re-encoded at `quality`. A fetch happens at most once per
 //! `1 / max_fps` and only when the previous frame has reached the page (see `conn::PreviewSlot`), so a slow
-//! link lowers the preview's rate instead of queueing images in front of feedback.
+//! link lowers the preview's rate instead of queueing images in front of feedback. Before each frame a text
+//! message `{"type":"preview_frame","bytes":…,"capture_unix_ms":…}` gives its capture time on the gateway's
+//! clock, keyed by the frame's size, for the page's glass-to-glass latency.
 
 use crate::conn::{Out, PreviewSlot};
 use crate::upstream::Upstream;
+use phone2act_proto::v1::ImageEncoding;
 use serde::Deserialize;
 use serde_json::json;
 use std::sync::Arc;
@@ -159,19 +162,31 @@ pub(crate) fn spawn(
                 // The page has not taken the last frame: the link is slower than max_fps.
                 continue;
             }
-            let result = match upstream.camera_jpeg(&camera).await {
-                Ok(Some(jpeg)) => {
+            let result = match upstream.camera_frame(&camera, ImageEncoding::Jpeg).await {
+                Ok(Some(timed)) => {
                     // Decoding and encoding a frame takes milliseconds: off the async workers.
                     let (width, quality) = (params.width_px, params.quality);
+                    let jpeg = timed.frame.data;
                     tokio::task::spawn_blocking(move || shrink(&jpeg, width, quality))
                         .await
                         .unwrap_or_else(|e| Err(e.to_string()))
+                        .map(|shrunk| (shrunk, timed.capture_unix_ns))
                 }
                 Ok(None) => continue,
                 Err(status) => Err(status.message().to_owned()),
             };
             match result {
-                Ok(shrunk) => {
+                Ok((shrunk, capture_unix_ns)) => {
+                    // The frame's capture time, keyed by its size (the binary frame carries none), so that the
+                    // page can show the preview's glass-to-glass latency as it does the video's.
+                    out.text(
+                        json!({
+                            "type": "preview_frame",
+                            "bytes": shrunk.len(),
+                            "capture_unix_ms": capture_unix_ns as f64 / 1e6,
+                        })
+                        .to_string(),
+                    );
                     slot.put(generation, shrunk.into());
                     warned = false;
                 }

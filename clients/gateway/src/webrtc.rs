@@ -3,29 +3,39 @@
 //!
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
-//! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB), encodes
-//!   it once (`phone2act_recorder::live`, on the blocking pool: the gateway's runtime may be a single thread that also
-//!   carries the control path) and publishes it on a broadcast channel. A viewer that falls behind loses the
-//!   oldest frames (the channel's lag) and waits for a keyframe, so video never queues.
+//! - Video never runs on the control path's thread: the feeds and viewers run on a runtime of their own (one
+//!   thread, `video-io`) with a connection of their own to the server, and the encoder on a thread per camera;
+//!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
+//!   path's threads get the CPU first and the video is what slows down.
+//! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
+//!   hands it to its encoder thread (`phone2act_recorder::live`) through a slot of one frame, the newest
+//!   winning: an encoder that falls behind skips frames, it never queues them. Each frame is encoded once and
+//!   published on a broadcast channel. A viewer that falls behind loses the oldest frames (the channel's lag)
+//!   and waits for a keyframe.
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
 //!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
-//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…}` on the page's data channel so that the
-//!   page can show glass-to-glass latency (its clock offset comes from `clock` round trips on the control
-//!   socket).
+//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
+//!   channel so that the page can show glass-to-glass latency (its clock offset comes from `clock` round trips
+//!   on the control socket) and the bitrate.
+//! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
+//!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
+//!   [`MIN_BITRATE_BPS`]..[`MAX_BITRATE_BPS`]), so a slow link gets fewer bits instead of a queue that would
+//!   also hold up the control socket's packets.
 //! - The feed stops when its last viewer leaves; a page's viewer ends with its socket, a new offer or
 //!   `video_off`.
 
 use crate::conn::Out;
-use crate::upstream::Upstream;
+use crate::upstream::{Upstream, unix_ns};
 use parking_lot::Mutex;
-use phone2act_proto::v1::{GetObservationRequest, ImageEncoding};
+use phone2act_proto::v1::ImageEncoding;
 use phone2act_recorder::live::H264Encoder;
 use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant, SystemTime};
+use str0m::bwe::{Bitrate, BweKind};
 use str0m::change::SdpOffer;
 use str0m::format::Codec;
 use str0m::media::{MediaKind, MediaTime, Mid};
@@ -39,8 +49,22 @@ use tokio::task::JoinHandle;
 const VIEWER_QUEUE: usize = 4;
 /// The rate asked of a camera that says nothing else, and the cap.
 const MAX_FPS: f64 = 30.0;
-/// Bits per second for 640x480 at 30 fps: sharp enough to read the scene, a small share of a Wi-Fi link.
-const BITRATE_BPS: usize = 1_500_000;
+/// The most bits per second the encoder is given (640x480 at 30 fps: sharp enough to read the scene, a small
+/// share of a Wi-Fi link), and where it starts before a link estimate exists.
+pub(crate) const MAX_BITRATE_BPS: u64 = 1_500_000;
+/// The least. It must stay under what a slow link's estimate can fall to: str0m paces at 1.1 times its estimate,
+/// and an encoder above that fills the pacer's queue (late frames for every viewer).
+pub(crate) const MIN_BITRATE_BPS: u64 = 60_000;
+/// Frame-rate steps for a low bitrate, so that each frame keeps enough bits to be legible: below the first
+/// bitrate one frame in the second is encoded.
+const FRAME_STEPS: [(u64, u64); 2] = [(150_000, 3), (300_000, 2)];
+/// The share of a viewer's link estimate given to the video: the rest is headroom for the control socket, the
+/// data channel's notes and the estimate's own error.
+const LINK_SHARE: f64 = 0.85;
+/// A new target within this fraction of the encoder's bitrate is not worth a rate-control change.
+const RETARGET_FRACTION: f64 = 0.1;
+/// How much less CPU priority the video's threads get than the control path's (nice steps).
+const VIDEO_NICE: i32 = 10;
 /// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
 const VIEWER_IDLE: Duration = Duration::from_secs(30);
 
@@ -52,6 +76,8 @@ pub(crate) struct EncodedFrame {
     /// Capture time on this gateway's wall clock (Unix), in nanoseconds.
     pub capture_unix_ns: i64,
     pub seq: u64,
+    /// The bitrate the encoder aimed at for this frame.
+    pub bitrate_bps: u64,
 }
 
 #[derive(Debug)]
@@ -60,18 +86,133 @@ struct Feed {
     /// A viewer joined or lost frames: the next frame is a keyframe.
     force_key: AtomicBool,
     task: Mutex<Option<JoinHandle<()>>>,
+    /// Each viewer's share of its link (bits per second), by viewer id; the encoder aims at the lowest.
+    link_bps: Mutex<HashMap<u64, u64>>,
+    /// The lowest of `link_bps` ([`MAX_BITRATE_BPS`] while no viewer has an estimate).
+    target_bps: AtomicU64,
+}
+
+impl Feed {
+    fn set_link(&self, viewer: u64, bps: Option<u64>) {
+        let mut links = self.link_bps.lock();
+        match bps {
+            Some(bps) => links.insert(viewer, bps),
+            None => links.remove(&viewer),
+        };
+        let target = links.values().copied().min().unwrap_or(MAX_BITRATE_BPS);
+        self.target_bps.store(target, Ordering::Release);
+    }
+}
+
+/// A viewer's entry in its feed's `link_bps`, removed when dropped.
+struct ViewerLink<'a> {
+    feed: &'a Feed,
+    viewer: u64,
+}
+
+impl Drop for ViewerLink<'_> {
+    fn drop(&mut self) {
+        self.feed.set_link(self.viewer, None);
+    }
+}
+
+/// The bitrate to give a viewer whose link is estimated at `estimate_bps`.
+fn share_of_link(estimate_bps: u64) -> u64 {
+    ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(MIN_BITRATE_BPS, MAX_BITRATE_BPS)
+}
+
+/// Of the camera's frames, one in this many is encoded at `target_bps`.
+fn frame_divisor(target_bps: u64) -> u64 {
+    FRAME_STEPS
+        .iter()
+        .find(|(below, _)| target_bps < *below)
+        .map_or(1, |(_, n)| *n)
+}
+
+/// The video's own runtime thread and its connection to the server.
+#[derive(Debug)]
+struct VideoIo {
+    handle: tokio::runtime::Handle,
+    upstream: Upstream,
+    /// Dropped with the hub: the thread's runtime ends, and with it every feed and viewer.
+    _stop: tokio::sync::oneshot::Sender<()>,
+}
+
+/// Starts the `video-io` thread: a single-threaded runtime at a lower priority, with its own connection to the
+/// server (`upstream` dialled again there).
+fn start_io(upstream: &Upstream) -> Result<VideoIo, String> {
+    let (ready_tx, ready_rx) = std::sync::mpsc::sync_channel(1);
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let upstream = upstream.clone();
+    std::thread::Builder::new()
+        .name("video-io".into())
+        .spawn(move || {
+            lower_priority();
+            let runtime = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                Ok(r) => r,
+                Err(e) => {
+                    let _ = ready_tx.send(Err(format!("video runtime: {e}")));
+                    return;
+                }
+            };
+            let own = {
+                let _in_runtime = runtime.enter();
+                upstream.separate()
+            };
+            let _ = ready_tx.send(Ok((runtime.handle().clone(), own)));
+            runtime.block_on(async {
+                let _ = stop_rx.await;
+            });
+        })
+        .map_err(|e| format!("video thread: {e}"))?;
+    // The thread answers once its runtime is built: a millisecond, once per gateway.
+    let (handle, upstream) = ready_rx
+        .recv()
+        .map_err(|_| "video thread ended at start".to_owned())??;
+    Ok(VideoIo {
+        handle,
+        upstream,
+        _stop: stop_tx,
+    })
+}
+
+/// Lowers the calling thread's CPU priority by [`VIDEO_NICE`] (Linux, where nice is per thread; threads it
+/// starts inherit it). Elsewhere the video runs at the control path's priority.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        use rustix::process::{getpriority_process, setpriority_process};
+        let tid = rustix::thread::gettid();
+        let now = getpriority_process(Some(tid)).unwrap_or(0);
+        if let Err(e) = setpriority_process(Some(tid), (now + VIDEO_NICE).min(19)) {
+            tracing::debug!("video thread keeps its priority: {e}");
+        }
+    }
 }
 
 /// The cameras' feeds, shared by every page socket.
 #[derive(Debug, Default)]
 pub(crate) struct VideoHub {
     feeds: Mutex<HashMap<String, Arc<Feed>>>,
+    io: Mutex<Option<VideoIo>>,
+    viewers: AtomicU64,
 }
 
 impl VideoHub {
-    /// A receiver of `camera`'s frames, starting its feed if none runs.
+    /// The video runtime's handle and connection, starting it on first use.
+    fn io(&self, upstream: &Upstream) -> Result<(tokio::runtime::Handle, Upstream), String> {
+        let mut io = self.io.lock();
+        if io.is_none() {
+            *io = Some(start_io(upstream)?);
+        }
+        let io = io.as_ref().expect("just started");
+        Ok((io.handle.clone(), io.upstream.clone()))
+    }
+
+    /// A receiver of `camera`'s frames, starting its feed (on the video runtime) if none runs.
     fn subscribe(
         &self,
+        runtime: &tokio::runtime::Handle,
         upstream: &Upstream,
         camera: &str,
     ) -> (broadcast::Receiver<Arc<EncodedFrame>>, Arc<Feed>) {
@@ -83,6 +224,8 @@ impl VideoHub {
                     tx: broadcast::channel(VIEWER_QUEUE).0,
                     force_key: AtomicBool::new(true),
                     task: Mutex::new(None),
+                    link_bps: Mutex::new(HashMap::new()),
+                    target_bps: AtomicU64::new(MAX_BITRATE_BPS),
                 })
             })
             .clone();
@@ -90,20 +233,11 @@ impl VideoHub {
         feed.force_key.store(true, Ordering::Release);
         let mut task = feed.task.lock();
         if task.as_ref().is_none_or(JoinHandle::is_finished) {
-            *task = Some(tokio::spawn(run_feed(
-                upstream.clone(),
-                camera.to_owned(),
-                feed.clone(),
-            )));
+            *task = Some(runtime.spawn(run_feed(upstream.clone(), camera.to_owned(), feed.clone())));
         }
         drop(task);
         (rx, feed)
     }
-}
-
-fn unix_ns(t: SystemTime) -> i64 {
-    t.duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
 }
 
 /// A raw frame on its way to the encoder thread.
@@ -115,24 +249,89 @@ struct RawFrame {
     capture_unix_ns: i64,
 }
 
-/// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them, and
-/// the runtime, possibly a single thread carrying the control path, never waits for an encode) and publishes
-/// them. Ends when the fetch loop drops its sender.
-fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<RawFrame>) {
+/// The one frame waiting for the encoder: a newer frame replaces it, so an encoder that falls behind encodes
+/// the newest frame next and never works through a queue.
+#[derive(Default)]
+struct FrameSlot {
+    frame: Mutex<Option<RawFrame>>,
+    closed: AtomicBool,
+    ready: parking_lot::Condvar,
+}
+
+impl FrameSlot {
+    /// Puts `frame` in the slot; true when it replaced one the encoder had not taken.
+    fn put(&self, frame: RawFrame) -> bool {
+        let replaced = self.frame.lock().replace(frame).is_some();
+        self.ready.notify_one();
+        replaced
+    }
+
+    /// The newest frame, waiting for one; `None` once closed.
+    fn take(&self) -> Option<RawFrame> {
+        let mut slot = self.frame.lock();
+        loop {
+            if self.closed.load(Ordering::Acquire) {
+                return None;
+            }
+            if let Some(frame) = slot.take() {
+                return Some(frame);
+            }
+            self.ready.wait(&mut slot);
+        }
+    }
+
+    fn close(&self) {
+        let _slot = self.frame.lock();
+        self.closed.store(true, Ordering::Release);
+        self.ready.notify_one();
+    }
+}
+
+/// Closes the slot when the fetch loop ends, however it ends (an aborted task too).
+struct CloseOnDrop(Arc<FrameSlot>);
+
+impl Drop for CloseOnDrop {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
+/// Encodes one camera's frames on a thread of its own (FFmpeg's contexts stay on the thread that made them)
+/// at the video's lower priority, at the bitrate its viewers' links allow, and publishes them. Ends when the
+/// slot closes.
+fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
+    lower_priority();
     let mut encoder: Option<H264Encoder> = None;
     let mut seq = 0u64;
-    while let Ok(frame) = frames.recv() {
+    let mut taken = 0u64;
+    while let Some(frame) = frames.take() {
+        let link = feed.target_bps.load(Ordering::Acquire);
+        let divisor = frame_divisor(link);
+        taken += 1;
+        if !taken.is_multiple_of(divisor) {
+            continue;
+        }
+        // x264 budgets bits for the camera's rate: with frames skipped it is given that much more.
+        let target = link * divisor;
         let enc = match encoder.take() {
             Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
-            _ => match H264Encoder::new(frame.width, frame.height, frame.fps, BITRATE_BPS) {
-                Ok(e) => e,
-                Err(e) => {
-                    tracing::warn!("video of camera {camera}: {e}");
-                    return;
+            _ => {
+                let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
+                match H264Encoder::new(frame.width, frame.height, frame.fps, bitrate) {
+                    Ok(e) => e,
+                    Err(e) => {
+                        tracing::warn!("video of camera {camera}: {e}");
+                        return;
+                    }
                 }
-            },
+            }
         };
         let enc = encoder.insert(enc);
+        let current = enc.bitrate_bps() as u64;
+        if current.abs_diff(target) as f64 > current as f64 * RETARGET_FRACTION {
+            tracing::debug!("video of camera {camera}: {current} -> {target} bit/s");
+            enc.set_bitrate_bps(usize::try_from(target).unwrap_or(usize::MAX));
+        }
         let key = feed.force_key.swap(false, Ordering::AcqRel);
         match enc.encode(&frame.rgb, frame.width, key) {
             Ok(Some((data, keyframe))) => {
@@ -142,6 +341,7 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<R
                     keyframe,
                     capture_unix_ns: frame.capture_unix_ns,
                     seq,
+                    bitrate_bps: enc.bitrate_bps() as u64 / divisor,
                 }));
             }
             Ok(None) => {}
@@ -152,31 +352,28 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &std::sync::mpsc::Receiver<R
 
 /// Fetches one camera's frames while anyone watches and hands them to its encoder thread.
 async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
-    // One frame waits at most: while the encoder is busy a newer frame is dropped, never queued.
-    let (to_encoder, frames) = std::sync::mpsc::sync_channel::<RawFrame>(1);
+    let slot = Arc::new(FrameSlot::default());
     let thread = {
-        let (camera, feed) = (camera.clone(), feed.clone());
+        let (camera, feed, slot) = (camera.clone(), feed.clone(), slot.clone());
         std::thread::Builder::new()
             .name(format!("video-{camera}"))
-            .spawn(move || encode_thread(&camera, &feed, &frames))
+            .spawn(move || encode_thread(&camera, &feed, &slot))
     };
     if let Err(e) = thread {
         tracing::warn!("video of camera {camera}: no encoder thread: {e}");
         return;
     }
+    let _close = CloseOnDrop(slot.clone());
     let mut last: Option<(u64, i64)> = None; // (frame_seq, capture_time_ns on the server's clock)
     let mut period = Duration::from_secs_f64(1.0 / MAX_FPS);
     let mut failing = false;
     while feed.tx.receiver_count() > 0 {
-        let sent_at = SystemTime::now();
-        let started = Instant::now();
-        let request = GetObservationRequest {
-            arms: Vec::new(),
-            image_encoding: ImageEncoding::Rgb8.into(),
-            cameras: vec![camera.clone()],
-        };
-        let observation = match upstream.policy().get_observation(request).await {
-            Ok(o) => o.into_inner(),
+        let timed = match upstream.camera_frame(&camera, ImageEncoding::Rgb8).await {
+            Ok(Some(t)) => t,
+            Ok(None) => {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
             Err(e) => {
                 if !failing {
                     tracing::warn!("video of camera {camera}: {}", e.message());
@@ -186,15 +383,7 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
                 continue;
             }
         };
-        let rpc = started.elapsed();
-        let Some(frame) = observation
-            .frames
-            .into_iter()
-            .find(|f| f.camera == camera && !f.data.is_empty())
-        else {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-            continue;
-        };
+        let (frame, capture_unix_ns) = (timed.frame, timed.capture_unix_ns);
         failing = false;
         if last.is_some_and(|(s, _)| s == frame.frame_seq) {
             // Not captured yet: poll again soon (a few ms of latency at most, a cheap call on loopback).
@@ -209,9 +398,6 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
             period = measured.max(Duration::from_secs_f64(1.0 / MAX_FPS));
         }
         last = Some((frame.frame_seq, frame.capture_time_ns));
-        // The frame's age at the server when it answered, moved to this gateway's clock at half the call.
-        let age_ns = (observation.timestamp_ns - frame.capture_time_ns).max(0);
-        let capture_unix_ns = unix_ns(sent_at + rpc / 2) - age_ns;
         let raw = RawFrame {
             rgb: frame.data,
             width: frame.width,
@@ -219,9 +405,8 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
             fps: (1.0 / period.as_secs_f64()).round() as u32,
             capture_unix_ns,
         };
-        match to_encoder.try_send(raw) {
-            Ok(()) | Err(std::sync::mpsc::TrySendError::Full(_)) => {}
-            Err(std::sync::mpsc::TrySendError::Disconnected(_)) => return,
+        if slot.put(raw) {
+            tracing::trace!("video of camera {camera}: the encoder skipped a frame");
         }
         // The next frame is due one period after this one was captured.
         let age =
@@ -245,7 +430,8 @@ pub(crate) fn bind_ip(
         .or_else(|| public_host.and_then(parse))
 }
 
-/// Answers `offer_sdp` for `camera` and starts the viewer; its task ends with the returned handle's abort.
+/// Answers `offer_sdp` for `camera` and starts the viewer on the video runtime; its task ends with the returned
+/// handle's abort.
 pub(crate) fn start_viewer(
     hub: &VideoHub,
     upstream: &Upstream,
@@ -255,17 +441,17 @@ pub(crate) fn start_viewer(
     out: Out,
 ) -> Result<(String, JoinHandle<()>), String> {
     let offer = SdpOffer::from_sdp_string(offer_sdp).map_err(|e| format!("bad video offer: {e}"))?;
+    // A std socket here; the video runtime registers it with its own reactor.
     let socket = std::net::UdpSocket::bind(SocketAddr::new(ip, 0))
-        .and_then(|s| {
-            s.set_nonblocking(true)?;
-            UdpSocket::from_std(s)
-        })
+        .and_then(|s| s.set_nonblocking(true).map(|()| s))
         .map_err(|e| format!("video socket on {ip}: {e}"))?;
     let local = socket.local_addr().map_err(|e| e.to_string())?;
     let mut rtc = RtcConfig::new()
         .clear_codecs()
         .enable_h264(true)
         .set_ice_lite(true)
+        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down.
+        .enable_bwe(Some(Bitrate::bps(MAX_BITRATE_BPS)))
         .build(Instant::now());
     let candidate = Candidate::host(local, "udp").map_err(|e| format!("video candidate: {e}"))?;
     rtc.add_local_candidate(candidate)
@@ -274,11 +460,19 @@ pub(crate) fn start_viewer(
         .sdp_api()
         .accept_offer(offer)
         .map_err(|e| format!("video offer refused: {e}"))?;
-    let (rx, feed) = hub.subscribe(upstream, camera);
+    let (runtime, video_upstream) = hub.io(upstream)?;
+    let (rx, feed) = hub.subscribe(&runtime, &video_upstream, camera);
+    let viewer = hub.viewers.fetch_add(1, Ordering::Relaxed);
     let camera = camera.to_owned();
-    let task = tokio::spawn(async move {
-        // Boxed: the Rtc is large, and the task's future need not carry it inline.
-        if let Err(e) = Box::pin(run_viewer(rtc, socket, local, rx, &feed)).await {
+    let task = runtime.spawn(async move {
+        // Forgets this viewer's link however the task ends (`video_off` and a new offer abort it).
+        let _share = ViewerLink { feed: &feed, viewer };
+        let ended = match UdpSocket::from_std(socket) {
+            // Boxed: the Rtc is large, and the task's future need not carry it inline.
+            Ok(socket) => Box::pin(run_viewer(rtc, socket, local, rx, &feed, viewer)).await,
+            Err(e) => Err(format!("video socket: {e}")),
+        };
+        if let Err(e) = ended {
             tracing::debug!("video viewer of {camera} ended: {e}");
         }
         out.text(json!({"type": "video", "state": "off", "camera": camera}).to_string());
@@ -314,6 +508,7 @@ async fn run_viewer(
     local: SocketAddr,
     mut rx: broadcast::Receiver<Arc<EncodedFrame>>,
     feed: &Feed,
+    viewer: u64,
 ) -> Result<(), String> {
     let mut buf = vec![0u8; 2048];
     let mut video: Option<(Mid, str0m::format::PayloadParams)> = None;
@@ -322,6 +517,7 @@ async fn run_viewer(
     // A decoder starts at a keyframe: until one went out to this viewer, other frames are skipped.
     let mut need_key = true;
     let mut last_heard = Instant::now();
+    let mut estimate_bps: Option<u64> = None;
     loop {
         let deadline = loop {
             match rtc.poll_output().map_err(|e| e.to_string())? {
@@ -331,7 +527,18 @@ async fn run_viewer(
                     let _ = socket.try_send_to(&t.contents, t.destination);
                 }
                 Output::Event(e) => match e {
-                    Event::Connected => connected = true,
+                    Event::Connected => {
+                        connected = true;
+                        // Probe up to the top rate: the estimate can then rise back after a slow spell.
+                        rtc.bwe().set_desired_bitrate(Bitrate::bps(MAX_BITRATE_BPS));
+                    }
+                    Event::EgressBitrateEstimate(
+                        BweKind::Twcc { estimate, .. } | BweKind::Remb { estimate, .. },
+                    ) => {
+                        let bps = estimate.as_u64();
+                        estimate_bps = Some(bps);
+                        feed.set_link(viewer, Some(share_of_link(bps)));
+                    }
                     Event::MediaAdded(m) if m.kind == MediaKind::Video => {
                         video = h264_pt(&mut rtc, m.mid).map(|p| (m.mid, p));
                         if video.is_none() {
@@ -381,6 +588,8 @@ async fn run_viewer(
                             "capture_unix_ms": frame.capture_unix_ns as f64 / 1e6,
                             "seq": frame.seq,
                             "key": frame.keyframe,
+                            "bitrate_bps": frame.bitrate_bps,
+                            "link_estimate_bps": estimate_bps,
                         });
                         // A full SCTP buffer drops the note; the page skips that frame's latency.
                         let _ = ch.write(false, msg.to_string().as_bytes());
@@ -419,5 +628,60 @@ mod tests {
             Some("10.0.0.5".parse().unwrap())
         );
         assert_eq!(bind_ip(None, any, Some("robot.local")), None);
+    }
+
+    fn raw(capture_unix_ns: i64) -> RawFrame {
+        RawFrame {
+            rgb: Vec::new(),
+            width: 2,
+            height: 2,
+            fps: 30,
+            capture_unix_ns,
+        }
+    }
+
+    #[test]
+    fn the_encoder_takes_the_newest_frame_and_stops_when_closed() {
+        let slot = FrameSlot::default();
+        assert!(!slot.put(raw(1)));
+        // The encoder was busy: the newer frame replaces the waiting one.
+        assert!(slot.put(raw(2)));
+        assert_eq!(slot.take().map(|f| f.capture_unix_ns), Some(2));
+        let slot = Arc::new(slot);
+        let waiter = {
+            let slot = slot.clone();
+            std::thread::spawn(move || slot.take().map(|f| f.capture_unix_ns))
+        };
+        slot.close();
+        assert_eq!(
+            waiter.join().unwrap(),
+            None,
+            "a waiting encoder ends when the feed closes"
+        );
+    }
+
+    #[test]
+    fn the_bitrate_follows_the_slowest_viewer_within_bounds() {
+        let feed = Feed {
+            tx: broadcast::channel(1).0,
+            force_key: AtomicBool::new(false),
+            task: Mutex::new(None),
+            link_bps: Mutex::new(HashMap::new()),
+            target_bps: AtomicU64::new(MAX_BITRATE_BPS),
+        };
+        let target = || feed.target_bps.load(Ordering::Acquire);
+        assert_eq!(share_of_link(1_000_000), 850_000);
+        assert_eq!(share_of_link(10_000_000), MAX_BITRATE_BPS);
+        assert_eq!(share_of_link(10_000), MIN_BITRATE_BPS);
+        feed.set_link(1, Some(share_of_link(1_000_000)));
+        feed.set_link(2, Some(share_of_link(400_000)));
+        assert_eq!(target(), 340_000, "the slower viewer's share");
+        feed.set_link(2, None);
+        assert_eq!(target(), 850_000, "the slow viewer left");
+        feed.set_link(1, None);
+        assert_eq!(target(), MAX_BITRATE_BPS, "no estimate: the top rate");
+        assert_eq!(frame_divisor(MAX_BITRATE_BPS), 1);
+        assert_eq!(frame_divisor(299_999), 2);
+        assert_eq!(frame_divisor(MIN_BITRATE_BPS), 3);
     }
 }

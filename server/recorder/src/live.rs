@@ -29,6 +29,12 @@ pub struct H264Encoder {
     height: u32,
     frames: i64,
     packet: Packet,
+    bitrate_bps: usize,
+}
+
+/// A VBV buffer of two frames at `bitrate_bps`.
+fn vbv_buffer_bits(bitrate_bps: usize, fps: u32) -> usize {
+    bitrate_bps / fps.max(1) as usize * 2
 }
 
 impl std::fmt::Debug for H264Encoder {
@@ -70,15 +76,15 @@ impl H264Encoder {
         opts.set("preset", "ultrafast");
         opts.set("tune", "zerolatency");
         opts.set("profile", "baseline");
-        // The rate control's buffer of about one frame keeps a burst from queueing on the link.
-        opts.set(
-            "x264-params",
-            &format!(
-                "repeat-headers=1:vbv-maxrate={}:vbv-bufsize={}",
-                bitrate_bps / 1000,
-                bitrate_bps / 1000 / fps.max(1) as usize * 2
-            ),
-        );
+        // One thread: the encode shares a small machine with the control path, and x264's default (1.5 threads
+        // a core, sliced) wakes a burst of threads for every frame; ultrafast 640x480 takes a few ms on one.
+        opts.set("threads", "1");
+        // The rate control's buffer of about two frames keeps a burst from queueing on the link. Set on the
+        // codec context (`maxrate`, `bufsize`), not in `x264-params`: FFmpeg's libx264 wrapper re-applies the
+        // context's values before each frame, which would clear VBV limits given only to x264.
+        opts.set("maxrate", &bitrate_bps.to_string());
+        opts.set("bufsize", &vbv_buffer_bits(bitrate_bps, fps).to_string());
+        opts.set("x264-params", "repeat-headers=1");
         let encoder = enc.open_with(opts).map_err(|e| ff("cannot open libx264", e))?;
         let scaler = scaling::Context::get(
             Pixel::RGB24,
@@ -98,7 +104,22 @@ impl H264Encoder {
             height,
             frames: 0,
             packet: Packet::empty(),
+            bitrate_bps,
         })
+    }
+
+    /// The bitrate the encoder aims at.
+    pub fn bitrate_bps(&self) -> usize {
+        self.bitrate_bps
+    }
+
+    /// Aims at `bitrate_bps` from the next frame on (x264 reconfigures its rate control in place: no keyframe).
+    /// The VBV buffer keeps the size it was opened with, so at a lower rate a frame may burst over more
+    /// frame periods; the sender's pacer spreads it.
+    pub fn set_bitrate_bps(&mut self, bitrate_bps: usize) {
+        self.encoder.set_bit_rate(bitrate_bps);
+        self.encoder.set_max_bit_rate(bitrate_bps);
+        self.bitrate_bps = bitrate_bps;
     }
 
     /// The size this encoder takes (the camera's, rounded down to even).
@@ -184,5 +205,51 @@ mod tests {
         }
         // The first frame, the forced one, and one a GOP (30 frames) later.
         assert_eq!(keys, vec![0, 5, 35]);
+    }
+
+    #[test]
+    fn a_lower_bitrate_takes_effect_without_a_keyframe() {
+        // Noise does not compress: each frame's size follows the rate control's budget.
+        let (w, h) = (320u32, 240u32);
+        let mut state = 0x2545_f491_u32;
+        let mut noise = || -> Vec<u8> {
+            (0..w * h * 3)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 17;
+                    state ^= state << 5;
+                    state as u8
+                })
+                .collect()
+        };
+        let mut enc = H264Encoder::new(w, h, 30, 2_000_000).unwrap();
+        let mut sizes = Vec::new();
+        let mut keys = Vec::new();
+        for i in 0..90 {
+            if i == 30 {
+                enc.set_bitrate_bps(200_000);
+            }
+            let (au, key) = enc.encode(&noise(), w, false).unwrap().unwrap();
+            sizes.push(au.len());
+            if key {
+                keys.push(i);
+            }
+        }
+        assert_eq!(enc.bitrate_bps(), 200_000);
+        assert_eq!(
+            keys,
+            vec![0, 30, 60],
+            "a keyframe a second (GOP of 30), none for the change"
+        );
+        let mean = |r: std::ops::Range<usize>| {
+            let p: Vec<usize> = r.filter(|i| i % 30 != 0).map(|i| sizes[i]).collect();
+            p.iter().sum::<usize>() as f64 / p.len() as f64
+        };
+        let (before, after) = (mean(5..30), mean(65..90));
+        // 2 Mbit/s at 30 fps is about 8.3 kB a frame, 200 kbit/s about 0.8 kB.
+        assert!(
+            after * 4.0 < before && after < 2_000.0,
+            "P-frames of {before:.0} B at 2 Mbit/s and {after:.0} B at 200 kbit/s"
+        );
     }
 }
