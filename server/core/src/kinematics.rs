@@ -982,6 +982,8 @@ mod tests {
             (state >> 11) as f64 / (1u64 << 53) as f64
         };
         let (mut retried, mut improved, mut single) = (0, 0, 0);
+        let budget = k.solver.max_iterations;
+        let mut longest_better = 0;
         for case in 0..600 {
             let mut joints = [0.0; SO101_ARM_DOF];
             let mut seed = [0.0; SO101_ARM_DOF];
@@ -1007,8 +1009,16 @@ mod tests {
             if retries_cautiously(&first, w, newly_at_limit(&k.limits_rad, &q, &first.joints_rad)) {
                 retried += 1;
                 assert!(full.iterations > first.iterations, "case {case}: no retry");
+                // The retry's own iterations: its doubled budget, the position polish, and the doubled budget
+                // again for the position-only fallback.
+                let spent = full.iterations - first.iterations;
+                assert!(
+                    spent <= 4 * budget + POLISH_ITERATIONS,
+                    "case {case}: the retry took {spent} iterations"
+                );
                 if full.joints_rad != first.joints_rad {
                     improved += 1;
+                    longest_better = longest_better.max(spent);
                     assert!(
                         full.position_reached && full.orientation_error_rad < first.orientation_error_rad,
                         "case {case}: {full:?} replaced {first:?}"
@@ -1020,10 +1030,18 @@ mod tests {
                 assert_eq!(full.joints_rad, first.joints_rad, "case {case}");
             }
         }
-        println!("retried {retried} (better {improved}), single solve {single}");
+        println!(
+            "retried {retried} (better {improved}, the longest better one {longest_better} iterations of {}), single solve {single}",
+            2 * budget
+        );
         assert!(
             improved > 0 && retried > improved && single > 0,
             "retried {retried}, better {improved}"
+        );
+        // Some retries that answer run past one solve's budget and polish: the doubled budget is used.
+        assert!(
+            longest_better > budget + POLISH_ITERATIONS,
+            "no better retry needed the doubled budget ({longest_better} of {budget})"
         );
     }
 
