@@ -181,6 +181,12 @@ impl SimConfig {
                 "sim.basket_radius_m must be larger than sim.ball_radius_m".into(),
             ));
         }
+        if self.ball_radius_m >= super::world::OPEN_HALF_GAP_M {
+            return Err(BridgeError::Config(format!(
+                "sim.ball_radius_m must be below {} m: a larger ball does not fit between the open fingers",
+                super::world::OPEN_HALF_GAP_M
+            )));
+        }
         self.validate_areas()?;
         let eye = nalgebra::Vector3::from(self.camera.eye_m);
         if (eye - nalgebra::Vector3::from(self.camera.look_at_m)).norm() < 1e-3 {
