@@ -948,6 +948,32 @@ mod tests {
     }
 
     #[test]
+    fn closing_beside_the_ball_squeezes_it_out_and_takes_nothing() {
+        let mut w = world();
+        let ball = w.ball_center_m();
+        let radius = w.config().ball_radius_m;
+        // 2 cm off along the fingers' width: within the grasp radius of the tool centre point, clear of the
+        // open fingers' edges, but not between them (they are 2.4 cm wide).
+        let width = down_at(ball.x, ball.y, 0.1).rotation * Vector3::x();
+        let beside = ball - width * 0.02;
+        drive(&mut w, 1, down_at(beside.x, beside.y, 0.10), 0.0, 0.6);
+        drive(&mut w, 1, down_at(beside.x, beside.y, radius), 0.0, 0.8);
+        assert_eq!(w.ball_center_m(), ball, "the open fingers pass beside it");
+        assert!((w.ball_center_m() - w.tool_pose().translation.vector).norm() < w.config().grasp_radius_m);
+        drive(&mut w, 2, down_at(beside.x, beside.y, radius), 1.0, 0.5);
+        assert_eq!(
+            w.ball_state(),
+            BallState::Resting,
+            "not between the fingers: not taken"
+        );
+        let moved = w.ball_center_m() - ball;
+        assert!(
+            moved.dot(&width) > 0.003,
+            "squeezed out along the width: {moved:?}"
+        );
+    }
+
+    #[test]
     fn the_palm_descending_onto_the_ball_pushes_it() {
         let mut w = world();
         let ball = w.ball_center_m();
