@@ -491,6 +491,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         "images, Policy API), replay (the nearest demonstration replayed open loop); shifted "
                         "(ablation: the same model trained on the demonstrations with their actions lagging by "
                         "--shift-ms, Policy API). Default: api,plugin,blind,replay")
+    p.add_argument("--basket-area", metavar="X0,X1,Y0,Y1",
+                   help="kinematic task: draw the basket's centre from this table area (metres, robot base frame) "
+                        "at every scene reset instead of keeping it at its configured place, e.g. "
+                        "0.17,0.25,0.07,0.15; a replayed demonstration then carries the ball to the basket of its "
+                        "own scene")
     p.add_argument("--shift-ms", type=float, default=100.0, help="the shifted ablation's action lag")
     p.add_argument("--record-to", type=Path,
                    help="also copy the run's record (record.json, results.md) into this directory, e.g. "
@@ -542,8 +547,14 @@ def main(argv: list[str]) -> int:
     if not args.dataset and dataset_root.exists():
         raise SystemExit(f"{dataset_root} exists: choose a new --out (a run never appends to another's demos)")
     recorder_root = out / "eval-dataset" if args.dataset else dataset_root
-    config = (server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER) if physics
-              else server_config(recorder_root, args.image_px, args.fps, token))
+    if physics:
+        config = server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER)
+    elif args.basket_area:
+        x0, x1, y0, y1 = (float(v) for v in args.basket_area.split(","))
+        config = server_config(recorder_root, args.image_px, args.fps, token, bridge=(
+            f'"sim"\n[arms.sim.basket_area_m]\nx_min_m = {x0}\nx_max_m = {x1}\ny_min_m = {y0}\ny_max_m = {y1}'))
+    else:
+        config = server_config(recorder_root, args.image_px, args.fps, token)
     server = Server(args.server_bin, out, config)
     bridge = None
     extra: dict = {}
