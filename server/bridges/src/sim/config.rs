@@ -39,7 +39,8 @@ pub struct SimConfig {
     /// Inner radius of the (cylindrical) basket.
     pub basket_radius_m: f64,
     pub basket_height_m: f64,
-    /// The gripper closes on the ball when the tool centre point is within this distance of its centre.
+    /// A closing gripper takes the ball only if its centre is between the fingers and within this distance of
+    /// the tool centre point.
     pub grasp_radius_m: f64,
     /// Camera of [`crate::sim::SimBridge::render_rgb`].
     pub camera: SimCameraConfig,

@@ -1,8 +1,9 @@
 //! The simulated world, as a pure state machine: SO-101 joints with first-order dynamics toward the IK
-//! solution of the command in force, a first-order gripper, and a ball that can be grasped, carried, dropped
-//! and land in a basket. No threads and no clock reads: [`SimWorld::step`] advances by an explicit `dt_s`,
-//! and [`SimWorld::apply_command_at`] puts a command in force at the time it was issued, so the arm's path is
-//! a function of the command history and time alone, whoever calls it and whenever.
+//! solution of the command in force, a first-order gripper whose fingers, palm and wrist push a resting ball,
+//! and a ball that can be grasped from between the fingers, carried, dropped and land in a basket. No threads
+//! and no clock reads: [`SimWorld::step`] advances by an explicit `dt_s`, and [`SimWorld::apply_command_at`]
+//! puts a command in force at the time it was issued, so the arm's path is a function of the command history
+//! and time alone, whoever calls it and whenever.
 
 use super::config::SimConfig;
 pub use crate::scene::{BallState, SceneState};
