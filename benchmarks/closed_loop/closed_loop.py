@@ -7,13 +7,17 @@ Stages, each logged under the run's output directory:
   2. the scripted operator records `--demos` successful episodes through Teleop.Stream (seeds from
      `--seed`), or `--dataset DIR` reuses demonstrations recorded before;
   3. `lerobot-train` trains ACT from the rendered camera and the arm's state (never the ball position);
-  4. evaluation on seeds from `--eval-seed` (disjoint from the training seeds), each trial starting from a scene
-     reset with the arm at home: (a) this process runs the policy and pushes its chunks through the Policy API
+  4. evaluation on `--eval-trials` seeds from `--eval-seed` on whose object starts farther than the grasp
+     tolerance from every training start (baselines.held_out_seeds; candidates nearer are skipped and counted),
+     each trial starting from a scene reset with the arm at home, every path on the same seeds:
+     (a) this process runs the policy and pushes its chunks through the Policy API
      (joint steps, the dataset's action layout, anchored on the observation they answer);
      (b) lerobot's own `lerobot-rollout` (base strategy: lerobot 0.6's entry point for running a trained
      policy on a real robot) drives the `phone2act` robot plugin; (c) lerobot's async inference: its policy
      server (one for the evaluation) and one robot client per trial, interrupted with Ctrl-C at the trial's end,
-     drive the plugin (lerobot_async.py). Success is the scene's, read with Scene.Get.
+     drive the plugin (lerobot_async.py). Beside them, the baselines (baselines.py): blind (the same model
+     trained and run on black images) and the nearest demonstration's actions replayed open loop.
+     Success is the scene's, read with Scene.Get.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import baselines
 from lerobot_async import (
     STOPPED_BY_SIGINT,
     PolicyServer,
@@ -47,6 +52,10 @@ CAMERA = "front"
 TASK = "put the ball in the basket"
 # Training seeds are `--seed ..`; evaluation seeds start far above any number of demonstrations.
 DEFAULT_EVAL_SEED = 1_000_000
+# The kinematic sim's grasp tolerance: how far the ball's centre may lie from the tool axis along the fingers'
+# width and still be taken (their half width, FINGER_HALF_WIDTH_M in server/bridges/src/sim/world.rs). Across
+# the fingers the open gap leaves 1.4 cm, and a descending finger pushes a ball up to 4 cm off inward.
+KINEMATIC_GRASP_TOLERANCE_M = 0.012
 
 
 @dataclass
@@ -179,12 +188,17 @@ def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None and proc.stderr is not None
     saved = 0
+    # The seed of each saved episode, in episode order (the operator's summary lists every attempted seed).
+    saved_seeds: dict[int, int] = {}
     with (log_dir / "operator.log").open("w") as log, tqdm(total=args.demos, desc="demonstrations", unit="ep") as bar:
         for line in proc.stderr:
             log.write(line)
             log.flush()
             if line.startswith("episode "):
-                saved += " saved as " in line
+                m = re.search(r"seed (\d+): saved as episode (\d+)", line)
+                if m:
+                    saved_seeds[int(m.group(2))] = int(m.group(1))
+                saved += m is not None
                 bar.update(1)
                 bar.set_postfix(saved=saved)
     stdout = proc.stdout.read()
@@ -198,6 +212,7 @@ def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
             continue
     if proc.returncode != 0 or not summary:
         raise RuntimeError(f"operator failed (exit {proc.returncode}); see {log_dir / 'operator.log'}")
+    summary["saved_seeds"] = [saved_seeds[i] for i in sorted(saved_seeds)]
     return summary
 
 
@@ -290,6 +305,12 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
     from phone2act.v1 import policy_pb2
 
     policy = ChunkPolicy(model)
+    # The first inference is far slower than the rest (lazy initialisation in torch); run before a session
+    # opens, it cannot outlast the session's silence timeout on a loaded machine.
+    features = policy.policy.config.input_features
+    _, height, width = features[f"observation.images.{CAMERA}"].shape
+    policy.chunk(np.zeros(features["observation.state"].shape, dtype=np.float32),
+                 np.zeros((height, width, 3), dtype=np.uint8), TASK)
     late = 0
     result = PathResult(name)
     period_s = 1.0 / args.fps
@@ -466,11 +487,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         "attached as a remote arm (block, distractor, basket; contact grasping)")
     p.add_argument("--paths", default=None,
                    help="evaluation paths, comma-separated: api (Policy API, chunks), plugin (lerobot-rollout), "
-                        "async (lerobot's async inference); physics only: blind (the same model trained and run "
-                        "with black images, Policy API), replay (the nearest demonstration replayed open loop); "
-                        "shifted (ablation: the same model trained on the demonstrations with their actions "
-                        "lagging by --shift-ms, Policy API). Default: api,plugin (kinematic), "
-                        "api,plugin,blind,replay (physics)")
+                        "async (lerobot's async inference); blind (the same model trained and run with black "
+                        "images, Policy API), replay (the nearest demonstration replayed open loop); shifted "
+                        "(ablation: the same model trained on the demonstrations with their actions lagging by "
+                        "--shift-ms, Policy API). Default: api,plugin,blind,replay")
+    p.add_argument("--basket-area", metavar="X0,X1,Y0,Y1",
+                   help="kinematic task: draw the basket's centre from this table area (metres, robot base frame) "
+                        "at every scene reset instead of keeping it at its configured place, e.g. "
+                        "0.17,0.25,0.07,0.15; a replayed demonstration then carries the ball to the basket of its "
+                        "own scene")
     p.add_argument("--shift-ms", type=float, default=100.0, help="the shifted ablation's action lag")
     p.add_argument("--record-to", type=Path,
                    help="also copy the run's record (record.json, results.md) into this directory, e.g. "
@@ -504,12 +529,10 @@ def main(argv: list[str]) -> int:
     global TASK
     args = parse_args(argv)
     physics = args.sim == "physics"
-    paths = (args.paths or ("api,plugin,blind,replay" if physics else "api,plugin")).split(",")
+    paths = (args.paths or "api,plugin,blind,replay").split(",")
     unknown = [p for p in paths if p not in PATHS]
     if unknown:
         raise SystemExit(f"--paths: unknown {unknown}; choose among {', '.join(PATHS)}")
-    if not physics and ({"blind", "replay", "shifted"} & set(paths)):
-        raise SystemExit("--paths: blind, replay and shifted run on the physics task only (--sim physics)")
     if physics:
         import physics_task
 
@@ -524,8 +547,14 @@ def main(argv: list[str]) -> int:
     if not args.dataset and dataset_root.exists():
         raise SystemExit(f"{dataset_root} exists: choose a new --out (a run never appends to another's demos)")
     recorder_root = out / "eval-dataset" if args.dataset else dataset_root
-    config = (server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER) if physics
-              else server_config(recorder_root, args.image_px, args.fps, token))
+    if physics:
+        config = server_config(recorder_root, args.image_px, args.fps, token, **physics_task.SERVER)
+    elif args.basket_area:
+        x0, x1, y0, y1 = (float(v) for v in args.basket_area.split(","))
+        config = server_config(recorder_root, args.image_px, args.fps, token, bridge=(
+            f'"sim"\n[arms.sim.basket_area_m]\nx_min_m = {x0}\nx_max_m = {x1}\ny_min_m = {y0}\ny_max_m = {y1}'))
+    else:
+        config = server_config(recorder_root, args.image_px, args.fps, token)
     server = Server(args.server_bin, out, config)
     bridge = None
     extra: dict = {}
@@ -551,34 +580,48 @@ def main(argv: list[str]) -> int:
             model, train_s, steps = None, float("nan"), 0
         else:
             model, train_s, steps = train(args, dataset_root, out)
+        # The demonstrations' seeds, in episode order (a reused --dataset carries them in its record).
+        demos = demos or json.loads((dataset_root / "meta" / "scripted_demos.json").read_text())
+        if not args.dataset:
+            (dataset_root / "meta" / "scripted_demos.json").write_text(json.dumps(demos))
+        train_seeds = demos["seeds"] if physics else demos["saved_seeds"]
         if physics:
-            # The demonstrations' seeds, in episode order (a reused --dataset carries them in its record).
-            train_seeds = (demos or json.loads((dataset_root / "meta" / "scripted_demos.json").read_text()))["seeds"]
-            if not args.dataset:
-                (dataset_root / "meta" / "scripted_demos.json").write_text(json.dumps(demos))
-            seeds, skipped = physics_task.held_out_seeds(args.eval_seed, args.eval_trials, train_seeds)
-            extra["held_out"] = {"skipped_nearer_than_tolerance": skipped,
-                                 **physics_task.distance_summary(seeds, train_seeds)}
-            extra["train_seeds"] = train_seeds
-            print(f"held-out starts: {json.dumps(extra['held_out'])}")
+            start_of, tolerance_m, workspace_m = (physics_task.block_start, physics_task.GRASP_TOLERANCE_M,
+                                                  physics_task.AREA_M)
+        else:
+            # The ball's start of a seed is the server's to draw: asked once per seed, before any trial.
+            from phone2act import Client
+
+            starts_client = Client(server.target, token=token)
+            start_of = baselines.SceneStarts(starts_client, ARM)
+            area = starts_client.scene.get(ARM).ball_area_m
+            tolerance_m = KINEMATIC_GRASP_TOLERANCE_M
+            workspace_m = {k: round(getattr(area, k), 4) for k in ("x_min_m", "x_max_m", "y_min_m", "y_max_m")}
+        seeds, skipped = baselines.held_out_seeds(args.eval_seed, args.eval_trials, train_seeds, start_of,
+                                                  tolerance_m)
+        extra["held_out"] = {"skipped_nearer_than_tolerance": skipped,
+                             **baselines.distance_summary(seeds, train_seeds, start_of, tolerance_m, workspace_m)}
+        extra["train_seeds"] = train_seeds
+        print(f"held-out starts: {json.dumps(extra['held_out'])}")
+        if physics:
             bridge = physics_task.BridgeProcess(server.target, token, ARM, CAMERA, args.image_px, args.fps,
                                                 out / "bridge-eval.log")
         else:
-            seeds = list(range(args.eval_seed, args.eval_seed + args.eval_trials))
+            starts_client.close()
         extra["models"] = {"policy": model_checksum(model)} if model else {}
         results = []
         if "replay" in paths:
-            results.append(physics_task.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
-                                                        PathResult("nearest demonstration, replayed")))
+            results.append(baselines.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
+                                                     PathResult("nearest demonstration, replayed"), start_of))
         if "blind" in paths:
-            blind_root = physics_task.blank_dataset(dataset_root, out / "dataset-blind")
+            blind_root = baselines.blank_dataset(dataset_root, out / "dataset-blind")
             blind_model, _, _ = train(args, blind_root, out, name="train-blind")
             extra["models"]["blind"] = model_checksum(blind_model)
             results.append(evaluate_policy_api(args, server, token, blind_model, seeds, blank=True,
                                                name="blind (black images), Policy API"))
         if "shifted" in paths:
             lag = round(args.shift_ms / 1000 * args.fps)
-            shifted_root = physics_task.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
+            shifted_root = baselines.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
             shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
             extra["models"]["shifted"] = model_checksum(shifted_model)
             results.append(evaluate_policy_api(args, server, token, shifted_model, seeds,

@@ -1,20 +1,18 @@
 """The physics task of the closed-loop benchmark (`closed_loop.py --sim physics`): the MuJoCo SO-101 of
-`mujoco_bridge.py` attached as a remote arm, its scripted demonstrations, the held-out seeds and the two
-baselines that run beside the trained policy (a blind policy, and the nearest demonstration replayed).
+`mujoco_bridge.py` attached as a remote arm, its scripted demonstrations and where its block starts. The
+held-out seeds and the baselines are `baselines.py`'s, shared with the kinematic task.
 """
 
 from __future__ import annotations
 
 import json
-import math
-import shutil
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
-from mujoco_bridge import AREA_M, GRASP_TOLERANCE_M, draw_layout
+from mujoco_bridge import AREA_M, GRASP_TOLERANCE_M, draw_layout  # noqa: F401 (the task's workspace and tolerance)
 
 HERE = Path(__file__).resolve().parent
 ARM_JOINTS = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
@@ -96,111 +94,6 @@ def record_demos(args, server, token: str, arm: str, camera: str, out: Path) -> 
     return summary
 
 
-def nearest_start_m(seed: int, train_seeds: list[int]) -> tuple[float, int]:
-    """Distance from `seed`'s block start to the nearest training start, and that training seed."""
-    xy = draw_layout(seed).block_xy
-    return min((math.dist(xy, draw_layout(s).block_xy), s) for s in train_seeds)
-
-
-def held_out_seeds(first: int, count: int, train_seeds: list[int]) -> tuple[list[int], int]:
-    """`count` evaluation seeds from `first` on whose block starts farther than the grasp tolerance from every
-    training start (a policy that replays a memorised start misses them); also how many candidates were
-    passed over for lying nearer."""
-    seeds, skipped, seed = [], 0, first
-    while len(seeds) < count:
-        if nearest_start_m(seed, train_seeds)[0] > GRASP_TOLERANCE_M:
-            seeds.append(seed)
-        else:
-            skipped += 1
-        seed += 1
-    return seeds, skipped
-
-
-def distance_summary(seeds: list[int], train_seeds: list[int]) -> dict:
-    d = sorted(nearest_start_m(s, train_seeds)[0] for s in seeds)
-
-    def q(f: float) -> float:
-        return round(d[min(len(d) - 1, int(f * len(d)))] * 100, 2)
-
-    return {"nearest_training_start_cm": {"min": round(d[0] * 100, 2), "p10": q(0.1), "median": q(0.5),
-                                          "p90": q(0.9), "max": round(d[-1] * 100, 2)},
-            "grasp_tolerance_cm": GRASP_TOLERANCE_M * 100,
-            "share_beyond_tolerance": round(sum(x > GRASP_TOLERANCE_M for x in d) / len(d), 3),
-            "workspace_m": AREA_M}
-
-
-def blank_dataset(src: Path, dst: Path) -> Path:
-    """A copy of the dataset whose camera frames are all black (same frames, timestamps and actions): what the
-    blind baseline trains on."""
-    if dst.exists():
-        shutil.rmtree(dst)
-    shutil.copytree(src, dst)
-    for video in sorted((dst / "videos").rglob("*.mp4")):
-        tmp = video.with_suffix(".black.mp4")
-        subprocess.run(["ffmpeg", "-v", "error", "-y", "-i", str(video), "-vf", "drawbox=color=black:t=fill",
-                        "-c:v", "libx264", "-pix_fmt", "yuv420p", "-g", "2", str(tmp)], check=True)
-        tmp.replace(video)
-    return dst
-
-
-def demo_actions(dataset_root: Path) -> dict[int, list[list[float]]]:
-    """Each episode's recorded actions (the dataset's layout: joints in degrees, gripper 0..100)."""
-    import pyarrow.parquet as pq
-
-    episodes: dict[int, list[list[float]]] = {}
-    for f in sorted((dataset_root / "data").rglob("*.parquet")):
-        t = pq.read_table(f, columns=["episode_index", "frame_index", "action"]).to_pylist()
-        for row in sorted(t, key=lambda r: (r["episode_index"], r["frame_index"])):
-            episodes.setdefault(int(row["episode_index"]), []).append([float(v) for v in row["action"]])
-    return episodes
-
-
-def evaluate_replay(args, server, token: str, arm: str, dataset_root: Path, train_seeds: list[int],
-                    seeds: list[int], result):
-    """Nearest-demonstration replay: for each trial, the recorded actions of the demonstration whose block
-    started nearest, played open loop through the Policy API (joint chunks)."""
-    from phone2act import Client
-    from phone2act.v1 import policy_pb2
-    from scripted_demo import drive_plan, reset_scene
-    from tqdm import tqdm
-
-    actions = demo_actions(dataset_root)
-    start = time.monotonic()
-    with Client(server.target, token=token) as c:
-        for seed in tqdm(seeds, desc="eval: nearest-demo replay", unit="trial"):
-            distance, nearest = nearest_start_m(seed, train_seeds)
-            steps = actions[train_seeds.index(nearest)]
-            reset_scene(c, arm, seed)
-            t0 = time.monotonic()
-            ok = drive_plan(c, arm, steps, args.fps, args.episode_time_s, mode=policy_pb2.ACTION_MODE_JOINT)
-            result.trials += 1
-            result.successes += int(ok)
-            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0,
-                                     "replayed_seed": nearest, "start_distance_cm": round(distance * 100, 2)})
-    result.seconds = time.monotonic() - start
-    return result
-
-
-def shifted_dataset(src: Path, dst: Path, frames: int) -> Path:
-    """A copy of the dataset whose actions lag the observations by `frames` (a recorder timing bug: the action
-    recorded at frame t is the one commanded at t - frames; an episode's first frames repeat its first action).
-    What the data-quality ablation trains on."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    if dst.exists():
-        shutil.rmtree(dst)
-    shutil.copytree(src, dst)
-    for f in sorted((dst / "data").rglob("*.parquet")):
-        table = pq.read_table(f)
-        episodes = table.column("episode_index").to_pylist()
-        actions = table.column("action").to_pylist()
-        # Rows are in frame order within each episode (the recorder appends them so).
-        shifted, first_row = [], {}
-        for i, ep in enumerate(episodes):
-            first_row.setdefault(ep, i)
-            shifted.append(actions[max(first_row[ep], i - frames)])
-        column = pa.array(shifted, type=table.schema.field("action").type)
-        table = table.set_column(table.schema.get_field_index("action"), "action", column)
-        pq.write_table(table, f)
-    return dst
+def block_start(seed: int) -> tuple[float, float]:
+    """The block's start `seed` draws (for `baselines.held_out_seeds` and the replay baseline)."""
+    return draw_layout(seed).block_xy

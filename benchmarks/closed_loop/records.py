@@ -21,10 +21,13 @@ def main() -> int:
             "success rate (95 % Wilson) |", "|---|---|---|---|---|---|---|---|---|"]
     for record_path in sorted(RESULTS.glob("*/record.json")):
         r = json.loads(record_path.read_text())
+        task = r.get("sim", "kinematic")
+        if r.get("settings", {}).get("basket_area") not in (None, "None"):
+            task += ", random basket"
         for p in r["paths"]:
             lo, hi = wilson(p["successes"], p["trials"])
             rate = p["successes"] / p["trials"] if p["trials"] else 0.0
-            rows.append(f"| {record_path.parent.name} | {r.get('sim', 'kinematic')} | {r['commit'][:12]} | "
+            rows.append(f"| {record_path.parent.name} | {task} | {r['commit'][:12]} | "
                         f"{p['path']} | {r['demos']} | {r['train_steps'] or '–'} | {p['trials']} | "
                         f"{p['successes']} | {rate:.0%} ({lo:.0%}–{hi:.0%}) |")
     print("\n".join(rows))

@@ -6,8 +6,9 @@
 #
 #   benchmarks/closed_loop/run.sh [--demos N] [--train-steps K] [--eval-trials M] [--short] [--out DIR] [...]
 #
-# --short is the CI version: 2 demonstrations, 20 training steps, 1 trial on each of the three paths. Other
-# options go to closed_loop.py (`--help` lists them).
+# --short is the CI version: 2 demonstrations, 20 training steps, 1 trial on each of the three paths and the
+# nearest-demonstration replay. Without it: 100 demonstrations, 5,000 steps, 50 held-out trials on the Policy
+# API and plugin paths and the blind and replay baselines. Other options go to closed_loop.py (`--help`).
 #
 # `--sim physics` runs the physics task instead: the MuJoCo SO-101 of mujoco_bridge.py attached as a remote arm
 # (block, distractor, basket, contact grasping), scripted demonstrations through the Policy API, and beside
@@ -44,7 +45,8 @@ if ((short && physics)); then
     --paths api,replay "${args[@]}")
 elif ((short)); then
   # Given first, so explicit options after --short still win (argparse keeps the last value).
-  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 --paths api,plugin,async "${args[@]}")
+  # The replay baseline is cheap and runs here; the blind one is a second training, left to the full run.
+  args=(--demos 2 --train-steps 20 --eval-trials 1 --batch-size 4 --paths replay,api,plugin,async "${args[@]}")
 fi
 out="${out:-$REPO/target/closed-loop/$(date -u +%Y%m%dT%H%M%SZ)}"
 

@@ -9,10 +9,10 @@ The same planner, replayed open loop from a training scene's plan on another sce
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
+from baselines import drive_plan
 from mujoco_bridge import BASKET_WALL_M, BLOCK_HALF_M, HOME_RAD, Layout, World, rotvec
 
 APPROACH_Z_M = 0.07
@@ -110,36 +110,6 @@ def plan_for_layout(world: World, layout: Layout, start_pos: np.ndarray, start_r
 
 def ee_step(p: np.ndarray, r: np.ndarray, gripper: float) -> list[float]:
     return [*p.tolist(), *r[:, 0].tolist(), *r[:, 1].tolist(), float(gripper)]
-
-
-def drive_plan(client, arm: str, steps: list[list[float]], fps: int, episode_time_s: float,
-               chunk: int = 20, mode: int | None = None) -> bool:
-    """Plays `steps` (in `mode`'s layout, default absolute end-effector) open loop through a policy session,
-    a chunk at a time; True once the scene reports success."""
-    from phone2act import ABSOLUTE_EE, InvalidArgument
-
-    mode = ABSOLUTE_EE if mode is None else mode
-    period = 1.0 / fps
-    with client.policy_session([arm], observation_rate_hz=fps, policy_name="scripted-demo",
-                               silence_timeout_s=10.0) as s:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < episode_time_s:
-            s.next_observation(timeout_s=10.0)  # paces the loop on the server's observations
-            k = min(len(steps) - 1, int((time.monotonic() - t0) / period))
-            # Past the plan's end the last step is held (padded, so the chunk never lies wholly in the past).
-            window = (steps[k:k + chunk] + [steps[-1]] * chunk)[:chunk]
-            try:
-                # Anchored at its arrival (observation 0): the plan runs on this process's clock, and an
-                # observation that waited in the session's queue would shift it.
-                s.push(arm, window, period, observation_id=0, mode=mode)
-            except InvalidArgument:  # answered an observation too late (a loaded machine): take a newer one
-                continue
-            if client.scene.get(arm).success:
-                return True
-            if k >= len(steps) - 1 and time.monotonic() - t0 > len(steps) * period + 2.0:
-                break
-            time.sleep(chunk * period / 4)
-    return bool(client.scene.get(arm).success)
 
 
 def reset_scene(client, arm: str, seed: int) -> None:

@@ -39,7 +39,8 @@ pub struct SimConfig {
     /// Inner radius of the (cylindrical) basket.
     pub basket_radius_m: f64,
     pub basket_height_m: f64,
-    /// The gripper closes on the ball when the tool centre point is within this distance of its centre.
+    /// A closing gripper takes the ball only if its centre is between the fingers and within this distance of
+    /// the tool centre point.
     pub grasp_radius_m: f64,
     /// Camera of [`crate::sim::SimBridge::render_rgb`].
     pub camera: SimCameraConfig,
@@ -180,6 +181,12 @@ impl SimConfig {
             return Err(BridgeError::Config(
                 "sim.basket_radius_m must be larger than sim.ball_radius_m".into(),
             ));
+        }
+        if self.ball_radius_m >= super::world::OPEN_HALF_GAP_M {
+            return Err(BridgeError::Config(format!(
+                "sim.ball_radius_m must be below {} m: a larger ball does not fit between the open fingers",
+                super::world::OPEN_HALF_GAP_M
+            )));
         }
         self.validate_areas()?;
         let eye = nalgebra::Vector3::from(self.camera.eye_m);

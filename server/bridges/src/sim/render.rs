@@ -8,7 +8,10 @@
 //! person) to judge height above the table.
 
 use super::config::SimCameraConfig;
-use super::world::{BASKET_FLOOR_M, SceneSnapshot};
+use super::world::{
+    BASKET_FLOOR_M, FINGER_HALF_THICKNESS_M, FINGER_HALF_WIDTH_M, FINGER_ROOT_M, FINGER_TIP_M, SceneSnapshot,
+    half_gap_m,
+};
 use nalgebra::Vector3;
 use small::{V2, V3};
 
@@ -497,26 +500,38 @@ impl Renderer {
                 colour: JOINT,
             });
         }
-        // Gripper body from the wrist roll joint to the jaw roots, then two jaws opening along the tool y.
-        let approach = f(&(tcp.rotation * Vector3::z()));
-        let across = f(&(tcp.rotation * Vector3::y()));
-        let tip = f(&tcp.translation.vector);
-        let root = tip - approach * 0.055;
+        // The gripper as the world models it (`world::gripper_solids`): the wrist, the palm, and each finger
+        // drawn as three rods across its width.
+        let width = f(&(tcp.rotation * Vector3::x()));
+        let tool = |x: f64, y: f64, z: f64| f(&(tcp * nalgebra::Point3::new(x, y, z)).coords);
+        let root = tool(0.0, 0.0, FINGER_ROOT_M - 0.008);
         capsules.push(Capsule {
             a: f(&links[4].translation.vector),
             b: root,
             radius: 0.017,
             colour: LINK,
         });
-        let half_open = 0.006 + 0.024 * (1.0 - scene.gripper_position.clamp(0.0, 1.0) as f32);
-        for side in [-1.0f32, 1.0] {
-            let offset = across * (half_open * side);
-            capsules.push(Capsule {
-                a: root + offset,
-                b: tip + approach * 0.008 + offset,
-                radius: 0.006,
-                colour: FINGER,
-            });
+        let finger_y = half_gap_m(scene.gripper_position) + FINGER_HALF_THICKNESS_M;
+        capsules.push(Capsule {
+            a: tool(0.0, -finger_y, FINGER_ROOT_M - 0.008),
+            b: tool(0.0, finger_y, FINGER_ROOT_M - 0.008),
+            radius: 0.008,
+            colour: LINK,
+        });
+        let half_width = FINGER_HALF_WIDTH_M as f32;
+        for side in [-1.0, 1.0] {
+            let (a, b) = (
+                tool(0.0, side * finger_y, FINGER_ROOT_M),
+                tool(0.0, side * finger_y, FINGER_TIP_M),
+            );
+            for x in [-half_width, 0.0, half_width] {
+                capsules.push(Capsule {
+                    a: a + width * x,
+                    b: b + width * x,
+                    radius: FINGER_HALF_THICKNESS_M as f32,
+                    colour: FINGER,
+                });
+            }
         }
         capsules
     }

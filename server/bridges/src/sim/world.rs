@@ -1,8 +1,9 @@
 //! The simulated world, as a pure state machine: SO-101 joints with first-order dynamics toward the IK
-//! solution of the command in force, a first-order gripper, and a ball that can be grasped, carried, dropped
-//! and land in a basket. No threads and no clock reads: [`SimWorld::step`] advances by an explicit `dt_s`,
-//! and [`SimWorld::apply_command_at`] puts a command in force at the time it was issued, so the arm's path is
-//! a function of the command history and time alone, whoever calls it and whenever.
+//! solution of the command in force, a first-order gripper whose fingers, palm and wrist push a resting ball,
+//! and a ball that can be grasped from between the fingers, carried, dropped and land in a basket. No threads
+//! and no clock reads: [`SimWorld::step`] advances by an explicit `dt_s`, and [`SimWorld::apply_command_at`]
+//! puts a command in force at the time it was issued, so the arm's path is a function of the command history
+//! and time alone, whoever calls it and whenever.
 
 use super::config::SimConfig;
 pub use crate::scene::{BallState, SceneState};
@@ -14,17 +15,28 @@ use phone2act_core::kinematics::{
 use rand_chacha::ChaCha8Rng;
 use rand_chacha::rand_core::{RngCore, SeedableRng};
 
-/// Gripper position at which a closing gripper takes hold of a ball within reach.
-const GRASP_CLOSE_THRESHOLD: f64 = 0.5;
-/// Gripper position below which a held ball is released. Lower than the grasp threshold so that noise on
-/// a half-closed gripper does not drop and re-grasp the ball.
-const RELEASE_THRESHOLD: f64 = 0.4;
-/// A gripper closed on the ball stops at the ball's width instead of closing fully.
-const GRIPPER_ON_BALL: f64 = 0.7;
+/// The two-finger gripper, in the tool frame (z: approach, y: the direction the fingers close along, x: the
+/// fingers' width). Each finger is a plate with rounded edges from the palm (z = `FINGER_ROOT_M`) to its tip
+/// (z = `FINGER_TIP_M`), `2 * FINGER_HALF_WIDTH_M` wide; the palm is a plate across the finger roots, the wrist
+/// body a rod behind it. All are solids for a resting ball; the ball can be taken only from between the
+/// fingers.
+pub(crate) const FINGER_TIP_M: f64 = 0.008;
+pub(crate) const FINGER_ROOT_M: f64 = -0.055;
+pub(crate) const FINGER_HALF_WIDTH_M: f64 = 0.012;
+/// Half the thickness of a finger (the radius of its rounded edges).
+pub(crate) const FINGER_HALF_THICKNESS_M: f64 = 0.006;
+/// Gap between each finger's inner face and the tool axis when the gripper is fully open (position 0); it
+/// shrinks linearly with the gripper position to 0 at fully closed (1). A 2 cm ball fits with 1.4 cm to spare
+/// on each side.
+pub(crate) const OPEN_HALF_GAP_M: f64 = 0.034;
+const PALM_HALF_THICKNESS_M: f64 = 0.008;
+const WRIST_RADIUS_M: f64 = 0.017;
+/// A held ball is let go once the gripper has opened this far past the ball's width (hysteresis, so that
+/// noise on a gripper closed on the ball does not drop and re-grasp it).
+const RELEASE_MARGIN: f64 = 0.1;
+/// Contact passes per substep: a push by one solid can put the ball into another (a finger into the palm).
+const CONTACT_PASSES: usize = 8;
 const GRAVITY_M_S2: f64 = 9.81;
-/// The closed jaws as a sphere of this radius at the tool centre point: what a closed gripper pushes a resting
-/// ball with. An open gripper straddles the ball (a ball within the grasp radius is between its jaws).
-const CLOSED_JAWS_RADIUS_M: f64 = 0.01;
 /// Longest step taken in one go; a stalled thread resumes without the ball tunnelling through the table.
 const MAX_STEP_S: f64 = 0.02;
 /// Thickness of the basket floor.
@@ -310,30 +322,32 @@ impl SimWorld {
         let gripper_alpha = 1.0 - (-dt_s / self.config.gripper_time_constant_s).exp();
         self.gripper += (self.gripper_target - self.gripper) * gripper_alpha;
 
-        let tcp = self.kinematics.forward(&self.joints_rad);
+        let poses = self.kinematics.link_poses(&self.joints_rad);
+        let tcp = poses.tcp;
+        let on_ball = self.gripper_on_ball();
         match self.ball_state {
             BallState::Held { tcp_from_ball } => {
-                if self.gripper < RELEASE_THRESHOLD {
+                if self.gripper < on_ball - RELEASE_MARGIN {
                     self.ball_state = BallState::Falling {
                         velocity_m_s: Vector3::zeros(),
                     };
                 } else {
-                    self.gripper = self.gripper.min(GRIPPER_ON_BALL);
+                    self.gripper = self.gripper.min(on_ball);
                     self.ball_center_m = (tcp * Point3::from(tcp_from_ball)).coords;
                 }
             }
             BallState::Resting | BallState::Falling { .. } => {
-                let closing_through =
-                    previous_gripper < GRASP_CLOSE_THRESHOLD && self.gripper >= GRASP_CLOSE_THRESHOLD;
-                let tcp_to_ball = self.ball_center_m - tcp.translation.vector;
-                if closing_through && tcp_to_ball.norm() <= self.config.grasp_radius_m {
+                // The fingers reach the ball's width in this step: it is taken if it is between them.
+                let closing_onto = previous_gripper < on_ball && self.gripper >= on_ball;
+                if closing_onto && self.between_fingers(&tcp, previous_gripper) {
                     self.ball_state = BallState::Held {
-                        tcp_from_ball: tcp.rotation.inverse() * tcp_to_ball,
+                        tcp_from_ball: tcp.rotation.inverse() * (self.ball_center_m - tcp.translation.vector),
                     };
                     self.task_success = false;
-                    self.gripper = self.gripper.min(GRIPPER_ON_BALL);
-                } else if self.ball_state == BallState::Resting && self.gripper >= GRASP_CLOSE_THRESHOLD {
-                    self.push_ball(&tcp);
+                    self.gripper = self.gripper.min(on_ball);
+                } else if self.ball_state == BallState::Resting {
+                    let wrist = poses.links[4].translation.vector;
+                    self.push_ball(&tcp, &wrist);
                 }
             }
         }
@@ -352,29 +366,63 @@ impl SimWorld {
         }
     }
 
-    /// A closed gripper cannot pass through a ball resting on the table: where the jaws overlap it, the ball
-    /// slides away from them across the table, just far enough to touch. A ball in the basket stays (its wall
-    /// holds it), and so does a ball the push would carry over the basket's wall.
-    fn push_ball(&mut self, tcp: &Isometry3<f64>) {
+    /// Gripper position at which the fingers' inner faces touch the ball: where a gripper closed on it stops.
+    fn gripper_on_ball(&self) -> f64 {
+        1.0 - self.config.ball_radius_m / OPEN_HALF_GAP_M
+    }
+
+    /// The ball's centre lies between the fingers of a gripper at `gripper`: within their width and length
+    /// (below the palm by at least its radius), between their inner faces, and within the grasp radius of the
+    /// tool centre point.
+    fn between_fingers(&self, tcp: &Isometry3<f64>, gripper: f64) -> bool {
+        let offset = self.ball_center_m - tcp.translation.vector;
+        let local = tcp.rotation.inverse() * offset;
+        local.x.abs() <= FINGER_HALF_WIDTH_M
+            && local.y.abs() <= half_gap_m(gripper)
+            && (FINGER_ROOT_M + self.config.ball_radius_m..=FINGER_TIP_M).contains(&local.z)
+            && offset.norm() <= self.config.grasp_radius_m
+    }
+
+    /// The gripper cannot pass through a ball resting on the table, open or closed: where a finger, the palm or
+    /// the wrist overlaps the ball, the ball slides away from it across the table, just far enough to touch.
+    /// A ball between open fingers touches none of them and stays. A ball in the basket stays (its wall holds
+    /// it), and so does a ball the push would carry over the basket's wall.
+    fn push_ball(&mut self, tcp: &Isometry3<f64>, wrist_m: &Vector3<f64>) {
         if self.task_success {
             return;
         }
-        let contact_m = self.config.ball_radius_m + CLOSED_JAWS_RADIUS_M;
-        let offset = self.ball_center_m - tcp.translation.vector;
-        if offset.norm() >= contact_m {
-            return;
+        let radius_m = self.config.ball_radius_m;
+        let solids = gripper_solids(tcp, wrist_m, self.gripper);
+        let mut ball = self.ball_center_m;
+        for _ in 0..CONTACT_PASSES {
+            let mut touched = false;
+            for solid in &solids {
+                let nearest = solid.nearest_point(&ball);
+                let offset = ball - nearest;
+                let contact_m = radius_m + solid.radius_m;
+                // A hair inside contact counts as touching, so a ball just pushed to touch is left alone.
+                if offset.norm() >= contact_m - 1e-9 {
+                    continue;
+                }
+                // Straight down onto the ball: away from the tool axis, else along the fingers' width.
+                let direction = horizontal(&offset)
+                    .or_else(|| horizontal(&(ball - tcp.translation.vector)))
+                    .or_else(|| horizontal(&(tcp.rotation * Vector3::x())))
+                    .unwrap_or_else(Vector3::x);
+                let reach_m = (contact_m * contact_m - offset.z * offset.z).max(0.0).sqrt();
+                ball.x = nearest.x + direction.x * reach_m;
+                ball.y = nearest.y + direction.y * reach_m;
+                touched = true;
+            }
+            if !touched {
+                break;
+            }
         }
-        let horizontal = Vector3::new(offset.x, offset.y, 0.0);
-        // Straight down onto the ball's top: pushed along +x (any direction is as good; this one is fixed).
-        let direction = horizontal.try_normalize(1e-9).unwrap_or_else(Vector3::x);
-        let reach_m = (contact_m * contact_m - offset.z * offset.z).max(0.0).sqrt();
-        let pushed = tcp.translation.vector + direction * reach_m;
         let [bx, by] = self.basket_xy_m;
-        if (pushed.x - bx).hypot(pushed.y - by) <= self.config.basket_radius_m + self.config.ball_radius_m {
+        if (ball.x - bx).hypot(ball.y - by) <= self.config.basket_radius_m + radius_m {
             return;
         }
-        self.ball_center_m.x = pushed.x;
-        self.ball_center_m.y = pushed.y;
+        self.ball_center_m = ball;
     }
 
     /// True if a ball centred at (x, y) fits inside the basket wall.
@@ -454,6 +502,89 @@ impl SimWorld {
             task_success: self.task_success,
         }
     }
+}
+
+/// Gap between a finger's inner face and the tool axis at gripper position `gripper` (0 open, 1 closed).
+pub(crate) fn half_gap_m(gripper: f64) -> f64 {
+    OPEN_HALF_GAP_M * (1.0 - gripper.clamp(0.0, 1.0))
+}
+
+/// A solid of the gripper: the points within `radius_m` of a rectangle (centre, half extents `half_u_m` along
+/// unit `u` and `half_v_m` along unit `v`; a segment when `half_v_m` is 0).
+#[derive(Clone, Copy, Debug)]
+struct Solid {
+    centre_m: Vector3<f64>,
+    u: Vector3<f64>,
+    half_u_m: f64,
+    v: Vector3<f64>,
+    half_v_m: f64,
+    radius_m: f64,
+}
+
+impl Solid {
+    /// The rectangle's point nearest `p`.
+    fn nearest_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        let d = p - self.centre_m;
+        let s = d.dot(&self.u).clamp(-self.half_u_m, self.half_u_m);
+        let t = d.dot(&self.v).clamp(-self.half_v_m, self.half_v_m);
+        self.centre_m + self.u * s + self.v * t
+    }
+
+    /// Distance from `p` to the solid's surface (negative inside).
+    #[cfg(test)]
+    fn distance_m(&self, p: &Vector3<f64>) -> f64 {
+        (p - self.nearest_point(p)).norm() - self.radius_m
+    }
+}
+
+/// The gripper's solids in the base frame: the two fingers, the palm across their roots, and the wrist from
+/// `wrist_m` (the wrist roll joint) to the palm.
+fn gripper_solids(tcp: &Isometry3<f64>, wrist_m: &Vector3<f64>, gripper: f64) -> [Solid; 4] {
+    let width = tcp.rotation * Vector3::x();
+    let across = tcp.rotation * Vector3::y();
+    let approach = tcp.rotation * Vector3::z();
+    let origin = tcp.translation.vector;
+    let finger_offset_m = half_gap_m(gripper) + FINGER_HALF_THICKNESS_M;
+    let finger = |side: f64| Solid {
+        centre_m: origin
+            + approach * (0.5 * (FINGER_TIP_M + FINGER_ROOT_M))
+            + across * (side * finger_offset_m),
+        u: approach,
+        half_u_m: 0.5 * (FINGER_TIP_M - FINGER_ROOT_M),
+        v: width,
+        half_v_m: FINGER_HALF_WIDTH_M,
+        radius_m: FINGER_HALF_THICKNESS_M,
+    };
+    let palm_centre = origin + approach * (FINGER_ROOT_M - PALM_HALF_THICKNESS_M);
+    let wrist_end = origin + approach * (FINGER_ROOT_M - 2.0 * PALM_HALF_THICKNESS_M);
+    let wrist_axis = wrist_end - wrist_m;
+    let wrist_length_m = wrist_axis.norm();
+    let wrist = Solid {
+        centre_m: 0.5 * (wrist_end + wrist_m),
+        u: wrist_axis.try_normalize(1e-9).unwrap_or(approach),
+        half_u_m: 0.5 * wrist_length_m,
+        v: width,
+        half_v_m: 0.0,
+        radius_m: WRIST_RADIUS_M,
+    };
+    [
+        finger(-1.0),
+        finger(1.0),
+        Solid {
+            centre_m: palm_centre,
+            u: across,
+            half_u_m: finger_offset_m,
+            v: width,
+            half_v_m: FINGER_HALF_WIDTH_M,
+            radius_m: PALM_HALF_THICKNESS_M,
+        },
+        wrist,
+    ]
+}
+
+/// The horizontal part of `v`, as a unit vector; `None` if it has (almost) none.
+fn horizontal(v: &Vector3<f64>) -> Option<Vector3<f64>> {
+    Vector3::new(v.x, v.y, 0.0).try_normalize(1e-9)
 }
 
 #[cfg(test)]
@@ -717,12 +848,8 @@ mod tests {
             for _ in 0..25 {
                 w.apply_command(&command(seq, down_at(bx, y, radius), 1.0));
                 run(&mut w, 0.02);
-                let tcp = w.tool_pose().translation.vector;
-                let gap = (w.ball_center_m() - tcp).norm();
-                assert!(
-                    gap >= radius + CLOSED_JAWS_RADIUS_M - 1e-9,
-                    "the jaws are inside the ball: {gap}"
-                );
+                let overlap = overlap_m(&w);
+                assert!(overlap < 1e-6, "the gripper is {overlap} m inside the ball");
             }
         }
         assert_eq!(w.ball_state(), BallState::Resting);
@@ -735,6 +862,137 @@ mod tests {
         // Opening does not take the ball: it was never between the jaws.
         w.apply_command(&command(5, w.tool_pose(), 0.0));
         run(&mut w, 0.3);
+        assert_eq!(w.ball_state(), BallState::Resting);
+    }
+
+    /// How deep the gripper's deepest solid is inside the ball (negative: clear of it).
+    fn overlap_m(w: &SimWorld) -> f64 {
+        let poses = w.kinematics.link_poses(&w.joints_rad);
+        let wrist = poses.links[4].translation.vector;
+        gripper_solids(&poses.tcp, &wrist, w.gripper_position())
+            .iter()
+            .map(|s| w.config().ball_radius_m - s.distance_m(&w.ball_center_m()))
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// Streams `target` for `seconds` like a teleop stream (re-sent every 20 ms), checking after every 20 ms
+    /// that the gripper never sinks into a resting ball.
+    fn drive(w: &mut SimWorld, seq: u64, target: Isometry3<f64>, gripper: f64, seconds: f64) {
+        for _ in 0..(seconds / 0.02).round() as usize {
+            w.apply_command(&command(seq, target, gripper));
+            run(w, 0.02);
+            if w.ball_state() == BallState::Resting {
+                let overlap = overlap_m(w);
+                assert!(overlap < 1e-6, "the gripper is {overlap} m inside the ball");
+            }
+        }
+    }
+
+    /// The tool's closing direction (its y axis) in the base frame for the straight-down pose.
+    fn across(w: &SimWorld, x: f64, y: f64) -> Vector3<f64> {
+        let _ = w;
+        down_at(x, y, 0.1).rotation * Vector3::y()
+    }
+
+    #[test]
+    fn an_open_gripper_descending_off_centre_pushes_the_ball_aside() {
+        let mut w = world();
+        let ball = w.ball_center_m();
+        let radius = w.config().ball_radius_m;
+        let across = across(&w, ball.x, ball.y);
+        // The tool axis 4.5 cm from the ball's centre along the closing direction: the finger on that side
+        // (its middle 4 cm out) comes down on the ball's top, just inside the ball's centre.
+        let aside = ball - across * 0.045;
+        drive(&mut w, 1, down_at(aside.x, aside.y, 0.10), 0.0, 0.6);
+        assert_eq!(w.ball_center_m(), ball, "nothing touched it from above");
+        drive(&mut w, 1, down_at(aside.x, aside.y, radius), 0.0, 0.8);
+        let moved = w.ball_center_m() - ball;
+        assert_eq!(w.ball_state(), BallState::Resting);
+        assert!(
+            moved.dot(&across) > 0.015,
+            "pushed outward, away from the gripper: {moved:?}"
+        );
+        assert!((w.ball_center_m().z - radius).abs() < 1e-12, "still on the table");
+        // Closing there takes nothing: the ball is outside the fingers.
+        drive(&mut w, 2, down_at(aside.x, aside.y, radius), 1.0, 0.5);
+        assert_eq!(w.ball_state(), BallState::Resting);
+        assert!(w.gripper_position() > 0.95, "closes fully on nothing");
+    }
+
+    #[test]
+    fn an_open_gripper_descending_centred_encloses_the_ball_and_closing_grasps_it() {
+        let mut w = world();
+        let ball = w.ball_center_m();
+        let radius = w.config().ball_radius_m;
+        // 8 mm off along the closing direction: still within the gap (1.4 cm to spare on each side).
+        let near = ball - across(&w, ball.x, ball.y) * 0.008;
+        drive(&mut w, 1, down_at(near.x, near.y, 0.10), 0.0, 0.6);
+        drive(&mut w, 1, down_at(near.x, near.y, radius), 0.0, 0.8);
+        assert_eq!(w.ball_center_m(), ball, "the open fingers pass either side of it");
+        assert!(w.between_fingers(&w.tool_pose(), w.gripper_position()));
+        drive(&mut w, 2, down_at(near.x, near.y, radius), 1.0, 0.5);
+        assert!(
+            matches!(w.ball_state(), BallState::Held { .. }),
+            "{:?}",
+            w.ball_state()
+        );
+        // Stopped on the ball's width; the closing finger centred the ball between the two.
+        assert!((w.gripper_position() - w.gripper_on_ball()).abs() < 1e-9);
+        let local = w.tool_pose().rotation.inverse() * (w.ball_center_m() - w.tool_pose().translation.vector);
+        assert!(local.y.abs() < 1e-3, "{local:?}");
+        drive(&mut w, 3, down_at(near.x, near.y, 0.12), 1.0, 0.5);
+        assert!(
+            w.ball_center_m().z > 0.09,
+            "lifted with the tool: {:?}",
+            w.ball_center_m()
+        );
+    }
+
+    #[test]
+    fn closing_beside_the_ball_squeezes_it_out_and_takes_nothing() {
+        let mut w = world();
+        let ball = w.ball_center_m();
+        let radius = w.config().ball_radius_m;
+        // 2 cm off along the fingers' width: within the grasp radius of the tool centre point, clear of the
+        // open fingers' edges, but not between them (they are 2.4 cm wide).
+        let width = down_at(ball.x, ball.y, 0.1).rotation * Vector3::x();
+        let beside = ball - width * 0.02;
+        drive(&mut w, 1, down_at(beside.x, beside.y, 0.10), 0.0, 0.6);
+        drive(&mut w, 1, down_at(beside.x, beside.y, radius), 0.0, 0.8);
+        assert_eq!(w.ball_center_m(), ball, "the open fingers pass beside it");
+        assert!((w.ball_center_m() - w.tool_pose().translation.vector).norm() < w.config().grasp_radius_m);
+        drive(&mut w, 2, down_at(beside.x, beside.y, radius), 1.0, 0.5);
+        assert_eq!(
+            w.ball_state(),
+            BallState::Resting,
+            "not between the fingers: not taken"
+        );
+        let moved = w.ball_center_m() - ball;
+        assert!(
+            moved.dot(&width) > 0.003,
+            "squeezed out along the width: {moved:?}"
+        );
+    }
+
+    #[test]
+    fn the_palm_descending_onto_the_ball_pushes_it() {
+        let mut w = world();
+        let ball = w.ball_center_m();
+        let radius = w.config().ball_radius_m;
+        // Centred between the open fingers, then on down: the palm (5.5 cm above the tool centre) reaches the
+        // ball's top once the tool centre is below the table's surface (the kinematic arm passes through the
+        // table; only the ball is a solid).
+        drive(&mut w, 1, down_at(ball.x, ball.y, 0.10), 0.0, 0.6);
+        drive(&mut w, 1, down_at(ball.x, ball.y, radius), 0.0, 0.6);
+        assert_eq!(w.ball_center_m(), ball);
+        drive(&mut w, 2, down_at(ball.x, ball.y, -0.03), 0.0, 1.0);
+        let tcp = w.tool_pose().translation.vector;
+        assert!(tcp.z < -0.02, "{tcp:?}");
+        let moved = (w.ball_center_m() - ball).norm();
+        assert!(moved > 0.02, "squeezed out from under the palm: {moved} m");
+        assert_eq!(w.ball_state(), BallState::Resting);
+        // Out of the fingers' gap: closing grasps nothing.
+        drive(&mut w, 3, down_at(ball.x, ball.y, -0.03), 1.0, 0.5);
         assert_eq!(w.ball_state(), BallState::Resting);
     }
 
