@@ -265,8 +265,12 @@ impl VideoEncoder {
             // timestamps to multiples of 1 / average rate, then lands an ulp before frame k's start and reads
             // frame k - 1. One tick more keeps the rate 1 / (frames * ticks per period) below fps: every
             // snapped time falls inside its frame, drifting less than 1 % of a frame by the end (GR00T's
-            // refusal threshold) up to 156 fps.
-            last.set_duration(last.duration() + 1);
+            // refusal threshold) up to 156 fps. A single frame needs none (frame 0 snaps to 0 at any rate), and
+            // with it the stream's guessed rate would be the one duration's, 19.96 at 20 fps, which lerobot's
+            // aggregate reads as 19 fps and refuses to join with the dataset's other videos.
+            if self.frames > 1 {
+                last.set_duration(last.duration() + 1);
+            }
             last.write_interleaved(&mut self.octx)
                 .map_err(|e| ff_err(&self.path, "cannot write", e))?;
         }
@@ -557,6 +561,13 @@ mod tests {
                     f64::from(stream.time_base().numerator()) / f64::from(stream.time_base().denominator());
                 let ticks_per_frame = i64::from(stream.time_base().denominator()) / i64::from(fps);
                 let tick_s = 1.0 / f64::from(stream.time_base().denominator());
+                // The rate readers guess from the packets' durations (lerobot's `get_video_info` rounds it
+                // down and refuses to join files whose rates differ).
+                assert_eq!(
+                    stream.rate(),
+                    ffmpeg::Rational::new(fps as i32, 1),
+                    "{fps} fps, {n} frames"
+                );
                 let duration_s = stream.duration() as f64 * tb;
                 let average_rate = n as f64 / duration_s;
                 for k in 0..n {
