@@ -7,7 +7,6 @@
 
 use crate::arbiter::{Arbiter, Driver};
 use crate::chunk::ChunkStep;
-use crate::joint_limit::MAX_STEP_S;
 use crate::joint_motion::ArmJointStage;
 use crate::kinematics::So101Kinematics;
 use crate::layout::{
@@ -15,11 +14,6 @@ use crate::layout::{
     target_from_joint_step, target_from_step,
 };
 use nalgebra::Isometry3;
-
-/// Most longest steps ([`MAX_STEP_S`]) a joint stage is followed on a copy to the joints it settles at for
-/// a target (see [`ArmVectors::sample`]): one second of motion. A gated target is close to the last one, so a
-/// stage catches up in a few steps; a stage still behind after these gives the joints it has reached then.
-const SETTLE_STEPS: usize = 50;
 
 /// A chunk step that does not convert to a target (the whole chunk is refused).
 #[derive(Debug, thiserror::Error)]
@@ -142,13 +136,11 @@ impl ArmVectors<'_> {
     }
 
     /// The recorded sample of `reading` with the arbiter's last gated target as the action (absolute, so it
-    /// means the same from any frame). A joint arm's action is the joints that target asks for. With a joint
-    /// stage they are the stage's own for the target: those it last commanded, or, while it is still
-    /// catching up (it was handed a step longer than it may take at once), those it commands once caught up,
-    /// found by following a copy of it (so the action does not depend on when the sample is taken within the
-    /// catch-up; no second solve with another seed). Without a stage they are solved seeded with
-    /// `joint_seed`, the last joint action (or the measured joints), which becomes this action's joints, so
-    /// the recorded joints follow one solution branch. None when the reading does not fit the layout.
+    /// means the same from any frame). A joint arm's action is the joints that target asks for: exactly those
+    /// `joints` last commanded when the arm has a joint stage (no second solve with another seed); otherwise
+    /// solved seeded with `joint_seed`, the last joint action (or the measured joints), which becomes this
+    /// action's joints, so the recorded joints follow one solution branch. None when the reading does not fit
+    /// the layout.
     pub fn sample(
         &self,
         reading: &Reading<'_>,
@@ -166,7 +158,7 @@ impl ArmVectors<'_> {
             .ok()?;
         let (target, gripper) = arbiter.target();
         let activity = activity(arbiter, joints);
-        let commanded = joints.and_then(|stage| settled_joints(stage, &target));
+        let commanded = joints.and_then(ArmJointStage::commanded);
         let action = match (self.action_mode, commanded, self.kinematics) {
             (ActionMode::Joint, Some(mut native), _) => {
                 native.push(gripper);
@@ -188,26 +180,6 @@ impl ArmVectors<'_> {
             activity,
         })
     }
-}
-
-/// The joints `stage` commands for `target` once it has caught up with it: those it last commanded when it is
-/// not behind, else those a copy of it plans one longest step ([`MAX_STEP_S`]) at a time until it is not (at
-/// most [`SETTLE_STEPS`]). None before it has commanded anything.
-fn settled_joints(stage: &ArmJointStage, target: &Isometry3<f64>) -> Option<Vec<f64>> {
-    let commanded = stage.commanded()?;
-    if !stage.behind() {
-        return Some(commanded);
-    }
-    let mut probe = stage.clone();
-    let mut joints = commanded;
-    let start_s = probe.commanded_time_s();
-    for k in 1..=SETTLE_STEPS {
-        joints = probe.plan(target, start_s + k as f64 * MAX_STEP_S);
-        if !probe.behind() {
-            break;
-        }
-    }
-    Some(joints)
 }
 
 /// What `arbiter` is doing and has counted, with the joint stage's count of shortened commands.
@@ -490,55 +462,5 @@ mod tests {
         assert_eq!(staged.action, native);
         assert_eq!(untouched, Some(vec![9.0; 5]));
         assert_eq!(staged.activity.joint_limited, stage.counters().limited);
-    }
-
-    #[test]
-    fn a_joint_stage_still_catching_up_records_the_joints_it_settles_at_whenever_sampled() {
-        let kinematics = So101Kinematics::new();
-        let layout = so101_layout();
-        let vectors = ArmVectors {
-            layout: &layout,
-            kinematics: Some(&kinematics),
-            action_mode: ActionMode::Joint,
-        };
-        let measured = kinematics.forward(&JOINTS_RAD);
-        // 0.04 rad on every joint at 0.5 rad/s: 80 ms of motion, so the first command (at most one longest
-        // step of motion, 20 ms) leaves the stage behind.
-        let target = kinematics.forward(&JOINTS_RAD.map(|q| q + 0.04));
-        let arbiter = policy_driving("p", measured, &[target]);
-        assert_eq!(arbiter.target().0, target, "the gate passed the step");
-        let mut stage = ArmJointStage::So101(So101JointStage::new(vec![0.5; 5], 1.0).unwrap());
-        stage.reset(&JOINTS_RAD, 0.0);
-        let reading = Reading {
-            joint_positions_rad: &JOINTS_RAD,
-            robot_from_ee: &measured,
-            gripper_position: 0.0,
-        };
-        let mut seed = None;
-        let mut actions = Vec::new();
-        let mut time_s = 1.0;
-        stage.plan(&target, time_s);
-        assert!(stage.behind(), "the test needs a stage that is catching up");
-        while stage.behind() {
-            let action = vectors
-                .sample(&reading, &arbiter, Some(&stage), &mut seed)
-                .unwrap();
-            actions.push(action.action);
-            // The catch-up at the tick rate, with a jitter a loaded machine gives.
-            time_s += if actions.len() % 2 == 0 { 0.002 } else { 0.007 };
-            stage.plan(&target, time_s);
-        }
-        let settled = stage.commanded().unwrap();
-        assert!(actions.len() > 3, "{} samples", actions.len());
-        for action in &actions {
-            let miss = action[..5]
-                .iter()
-                .zip(&settled)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max);
-            // The solver stops within about 1e-3 rad of orientation; every sample is within that of the
-            // joints the stage settled at, however far its catch-up had got.
-            assert!(miss < 1e-3, "{miss} rad: {action:?} vs {settled:?}");
-        }
     }
 }
