@@ -3,6 +3,7 @@
 //! everything here is deterministic and property-testable.
 
 pub mod arbiter;
+pub mod arm_vectors;
 pub mod chunk;
 pub mod config;
 pub mod episode_clock;
@@ -22,6 +23,7 @@ pub use arbiter::{
     Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
     Input, Measured, NotReady, Owner, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
 };
+pub use arm_vectors::{Activity, ArmVectors, Reading, Sample, StepError};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
 pub use flight::{
