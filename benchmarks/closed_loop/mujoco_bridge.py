@@ -50,6 +50,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+from phone2act.bridge import BridgeHandler  # noqa: E402
 
 ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll")
 HOME_RAD = (0.0, -0.8, 0.6, 1.1, 0.0)
@@ -368,7 +369,7 @@ def matrix_of(x: float, y: float, z: float, w: float) -> np.ndarray:
 # --- the bridge ------------------------------------------------------------------------------------------------
 
 
-class PhysicsBridge:
+class PhysicsBridge(BridgeHandler):
     """Runs the world in real time on one thread and attaches it to the server (arm + camera)."""
 
     def __init__(self, target: str, token: str | None, arm: str, camera: str, image_px: int, camera_fps: float):
@@ -376,27 +377,34 @@ class PhysicsBridge:
         self.world = World(image_px)
         self.camera_period_s = 1.0 / camera_fps
         self.lock = threading.Lock()  # the world, between the sim thread and a demonstrator
-        self._up: queue.Queue = queue.Queue(maxsize=256)
         self._frames: queue.Queue = queue.Queue(maxsize=2)
         self._resets: queue.Queue = queue.Queue()
         self._command = None
         self._applied_seq = 0
-        self._stop = threading.Event()
-        self.attached = threading.Event()
-        self.error: Exception | None = None
+        self._error: Exception | None = None
+        from phone2act.bridge import BridgeLink
+        from phone2act.v1 import bridge_pb2 as pb
 
-    def _gen(self, q: queue.Queue) -> Iterator:
+        hello = pb.BridgeHello(arm=arm, bridge_name="mujoco-so101", joint_names=list(ARM_JOINTS),
+                               supports_orientation=True, has_scene=True)
+        self.link = BridgeLink(target, hello, self, token, queue_size=256)
+        self._stop = self.link.stopped
+
+    @property
+    def attached(self) -> threading.Event:
+        return self.link.attached
+
+    @property
+    def error(self) -> Exception | None:
+        """The world's own failure, else the stream's."""
+        return self._error if self._error is not None else self.link.error
+
+    def _frames_gen(self) -> Iterator:
         while True:
-            item = q.get()
+            item = self._frames.get()
             if item is None:
                 return
             yield item
-
-    def _put_up(self, msg) -> None:
-        try:
-            self._up.put_nowait(msg)
-        except queue.Full:  # the stream is not draining; newer feedback follows
-            pass
 
     def _feedback(self):
         from phone2act import make_pose
@@ -418,7 +426,7 @@ class PhysicsBridge:
         try:
             self._simulate()
         except Exception as e:  # the arm must not look alive with its world dead: end the attachment
-            self.error = e
+            self._error = e
             self.stop()
             raise
 
@@ -474,8 +482,8 @@ class PhysicsBridge:
                     r = self._resets.get()
                     self.world.reset(r.seed if r.HasField("seed") else self.world.layout.seed + 1, r.home_arm)
                     # The homed pose reaches the server before the answer that lets the reset return.
-                    self._put_up(self._feedback())
-                    self._up.put(self._scene(answers=r.request_id))
+                    self.link.send(self._feedback())
+                    self.link.send(self._scene(answers=r.request_id), drop_if_full=False)
                 cmd, self._command = self._command, None
                 if cmd is not None:
                     t = cmd.robot_from_target
@@ -484,10 +492,10 @@ class PhysicsBridge:
                                           matrix_of(q.x, q.y, q.z, q.w), cmd.gripper_target)
                     self._applied_seq = cmd.seq
                 self.world.step(period)
-                self._put_up(self._feedback())
+                self.link.send(self._feedback())
                 success = self.world.success()
                 if success != last_success:
-                    self._put_up(self._scene())
+                    self.link.send(self._scene())
                     last_success = success
             next_tick += period
             # Behind (a loaded machine): the world goes on from now rather than racing to catch up.
@@ -503,63 +511,39 @@ class PhysicsBridge:
         from phone2act.v1 import cameras_pb2_grpc
 
         try:
-            cameras_pb2_grpc.CamerasStub(channel).Push(self._gen(self._frames), metadata=auth_metadata(self.token))
+            cameras_pb2_grpc.CamerasStub(channel).Push(self._frames_gen(), metadata=auth_metadata(self.token))
         except grpc.RpcError as e:
             if not self._stop.is_set():
-                self.error = e
+                self._error = e
                 self.stop()
 
-    def run(self) -> None:
-        import grpc
-        from phone2act._common import auth_metadata, channel_options
-        from phone2act.v1 import bridge_pb2 as pb
-        from phone2act.v1 import bridge_pb2_grpc, common_pb2
+    def on_welcome(self, link, welcome) -> None:
+        link.ready()
+        with self.lock:
+            link.send(self._scene(), drop_if_full=False)
+        threading.Thread(target=self._sim_loop, daemon=True, name="mujoco-sim").start()
+        self._render_thread = threading.Thread(target=self._render_loop, daemon=True, name="mujoco-render")
+        self._render_thread.start()
+        threading.Thread(target=self._camera_loop, args=(link.channel,), daemon=True, name="mujoco-camera").start()
 
-        hello = pb.BridgeHello(arm=self.arm, bridge_name="mujoco-so101", joint_names=list(ARM_JOINTS),
-                               supports_orientation=True, has_scene=True)
-        self._up.put(pb.BridgeUpstream(hello=hello))
-        with grpc.insecure_channel(self.target, options=channel_options(self.target)) as channel:
-            call = bridge_pb2_grpc.BridgeStub(channel).Attach(self._gen(self._up), metadata=auth_metadata(self.token))
-            self._call = call
-            try:
-                for down in call:
-                    kind = down.WhichOneof("message")
-                    if kind == "welcome":
-                        self._up.put(pb.BridgeUpstream(status=pb.BridgeStatusReport(
-                            health=common_pb2.BRIDGE_HEALTH_READY)))
-                        with self.lock:
-                            self._up.put(self._scene())
-                        threading.Thread(target=self._sim_loop, daemon=True, name="mujoco-sim").start()
-                        self._render_thread = threading.Thread(target=self._render_loop, daemon=True,
-                                                               name="mujoco-render")
-                        self._render_thread.start()
-                        threading.Thread(target=self._camera_loop, args=(channel,), daemon=True,
-                                         name="mujoco-camera").start()
-                        self.attached.set()
-                    elif kind == "command":
-                        self._command = down.command
-                    elif kind == "scene_reset":
-                        self._resets.put(down.scene_reset)
-            except grpc.RpcError as e:
-                if e.code() != grpc.StatusCode.CANCELLED:
-                    self.error = e
-            finally:
-                self._stop.set()
-                self.attached.set()
-                self._frames.put(None)
+    def on_command(self, link, command) -> None:
+        self._command = command
+
+    def on_scene_reset(self, link, reset) -> None:
+        self._resets.put(reset)
+
+    def on_end(self, link) -> None:
+        self._frames.put(None)
+
+    def run(self) -> None:
+        self.link.run()
 
     def start(self) -> threading.Thread:
-        t = threading.Thread(target=self.run, name="mujoco-bridge", daemon=True)
-        t.start()
-        return t
+        return self.link.start(name="mujoco-bridge")
 
     def stop(self) -> None:
-        self._stop.set()
-        self._up.put(None)
+        self.link.stop()
         self._frames.put(None)
-        call = getattr(self, "_call", None)
-        if call is not None:
-            call.cancel()
         render = getattr(self, "_render_thread", None)
         if render is not None and render is not threading.current_thread():
             render.join(timeout=10)
