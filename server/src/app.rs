@@ -437,7 +437,7 @@ impl App {
         }
     }
 
-    /// The episode time limit and reset period (see `recording::run_episode_timing`).
+    /// The episode time limit and reset period (see `episode_timing::run_episode_timing`).
     pub fn episode_timing(&self) -> &crate::recording::EpisodeTiming {
         &self.episode_timing
     }
