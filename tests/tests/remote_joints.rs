@@ -431,6 +431,15 @@ async fn a_declared_model_turns_every_jump_into_a_ramp_within_its_limits() {
     settled(&abs).await;
     check_ramp("phone turn", &abs.received(), from, Some(0.2));
     drop(phone);
+    // The server learns of the closed stream on its own time; until then the phone still drives and a policy's
+    // claim is refused. 10 s is a liveness bound for what takes milliseconds on an idle machine.
+    assert!(
+        phone2act_tests::wait_until(Duration::from_secs(10), || async {
+            !arm_state(&client, "abs").await.engaged
+        })
+        .await,
+        "the phone's closed stream never released the arm"
+    );
 
     // A policy in the absolute mode: the same jump, back again, as one chunk step.
     let state = arm_state(&client, "abs").await;
