@@ -811,12 +811,7 @@ impl ArmController {
         };
         let activity = ArmActivity {
             arm: self.name.clone(),
-            engaged: activity.engaged,
-            policy: activity.policy,
-            rejected: activity.rejected,
-            clamped: activity.clamped,
-            joint_limited: activity.joint_limited,
-            last_reason: activity.last_reason,
+            arbiter: activity,
             warning,
         };
         Some(ArmSample {

@@ -9,6 +9,7 @@
 //! commit, before `info.json`: a discarded episode leaves none, a re-recorded take replaces it.
 
 use crate::error::RecorderError;
+use phone2act_core::Activity;
 use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::io::{BufWriter, Write as _};
@@ -23,18 +24,9 @@ pub fn events_path(index: u64) -> PathBuf {
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct ArmActivity {
     pub arm: String,
-    /// The operator's clutch is in (teleop drives the arm).
-    pub engaged: bool,
-    /// The name of the policy driving the arm; empty when none does (a person or nobody).
-    pub policy: String,
-    /// Commands the safety gate refused so far (jumps, invalid targets), since the server started.
-    pub rejected: u64,
-    /// Commands the safety gate clamped into the workspace so far.
-    pub clamped: u64,
-    /// Commands the joint speed limits shortened so far (arms whose joints the server solves).
-    pub joint_limited: u64,
-    /// The reason of the gate's last decision (kept as the event's detail).
-    pub last_reason: String,
+    /// What the arbiter was doing and had counted (clutch, driving policy, gate and joint-limit counters,
+    /// the gate's last reason), read with the frame's action.
+    pub arbiter: Activity,
     /// What the robot reports while it keeps working (a servo alarm that does not stop the arm, naming
     /// the part and the reason); empty when nothing is reported.
     pub warning: String,
@@ -108,10 +100,12 @@ pub fn transitions(
         let before = previous
             .and_then(|p| p.iter().find(|b| b.arm == now.arm))
             .filter(|b| {
-                b.rejected <= now.rejected && b.clamped <= now.clamped && b.joint_limited <= now.joint_limited
+                b.arbiter.rejected <= now.arbiter.rejected
+                    && b.arbiter.clamped <= now.arbiter.clamped
+                    && b.arbiter.joint_limited <= now.arbiter.joint_limited
             });
         let Some(before) = before else {
-            if now.engaged {
+            if now.arbiter.engaged {
                 events.push(event(
                     now,
                     EventKind::ClutchEngage,
@@ -119,8 +113,8 @@ pub fn transitions(
                     "engaged when the episode started",
                 ));
             }
-            if !now.policy.is_empty() {
-                events.push(event(now, EventKind::PolicyStart, 1, &now.policy));
+            if !now.arbiter.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStart, 1, &now.arbiter.policy));
             }
             // Unlike the counters, a warning is a state: one present at the start belongs to the episode.
             if !now.warning.is_empty() {
@@ -128,25 +122,25 @@ pub fn transitions(
             }
             continue;
         };
-        match (before.engaged, now.engaged) {
+        match (before.arbiter.engaged, now.arbiter.engaged) {
             (false, true) => events.push(event(now, EventKind::ClutchEngage, 1, "")),
             (true, false) => events.push(event(now, EventKind::ClutchRelease, 1, "")),
             _ => {}
         }
-        if before.policy != now.policy {
+        if before.arbiter.policy != now.arbiter.policy {
             // A take-over between two frames stops the policy and engages the clutch at the same frame.
-            if !before.policy.is_empty() {
-                events.push(event(now, EventKind::PolicyStop, 1, &before.policy));
+            if !before.arbiter.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStop, 1, &before.arbiter.policy));
             }
-            if !now.policy.is_empty() {
-                events.push(event(now, EventKind::PolicyStart, 1, &now.policy));
+            if !now.arbiter.policy.is_empty() {
+                events.push(event(now, EventKind::PolicyStart, 1, &now.arbiter.policy));
             }
         }
-        let rejected = now.rejected - before.rejected;
-        let clamped = now.clamped - before.clamped;
+        let rejected = now.arbiter.rejected - before.arbiter.rejected;
+        let clamped = now.arbiter.clamped - before.arbiter.clamped;
         // The last reason belongs to one kind of decision; when both kinds happened it is not known which.
         let reason = if rejected == 0 || clamped == 0 {
-            now.last_reason.as_str()
+            now.arbiter.last_reason.as_str()
         } else {
             ""
         };
@@ -156,7 +150,7 @@ pub fn transitions(
         if clamped > 0 {
             events.push(event(now, EventKind::GateClamped, clamped, reason));
         }
-        let joint_limited = now.joint_limited - before.joint_limited;
+        let joint_limited = now.arbiter.joint_limited - before.arbiter.joint_limited;
         if joint_limited > 0 {
             events.push(event(
                 now,
@@ -226,9 +220,9 @@ impl EventWriter {
             return Ok(());
         }
         // Only when the arms changed: a policy name is cloned once per change, not once per frame.
-        for a in arms.iter().filter(|a| !a.policy.is_empty()) {
-            if !self.policies.contains(&a.policy) {
-                self.policies.insert(a.policy.clone());
+        for a in arms.iter().filter(|a| !a.arbiter.policy.is_empty()) {
+            if !self.policies.contains(&a.arbiter.policy) {
+                self.policies.insert(a.arbiter.policy.clone());
             }
         }
         for e in transitions(self.previous.as_deref(), arms, frame_index, self.fps) {
@@ -289,13 +283,15 @@ mod tests {
     fn arm(engaged: bool, rejected: u64, clamped: u64) -> ArmActivity {
         ArmActivity {
             arm: "main".into(),
-            engaged,
-            rejected,
-            clamped,
-            joint_limited: 0,
-            last_reason: "jump of 120 mm".into(),
+            arbiter: Activity {
+                engaged,
+                rejected,
+                clamped,
+                joint_limited: 0,
+                last_reason: "jump of 120 mm".into(),
+                policy: String::new(),
+            },
             warning: String::new(),
-            policy: String::new(),
         }
     }
 
@@ -346,7 +342,7 @@ mod tests {
     fn joint_limited_commands_are_events_too() {
         let before = arm(true, 0, 0);
         let mut now = arm(true, 0, 0);
-        now.joint_limited = 4;
+        now.arbiter.joint_limited = 4;
         let e = transitions(Some(&[before]), &[now.clone()], 12, 20);
         assert_eq!(kinds(&e), [(EventKind::JointLimited, 4)]);
         assert_eq!(e[0].detail, "joint speed limit");
@@ -356,7 +352,7 @@ mod tests {
     #[test]
     fn a_policy_driving_is_a_span_that_a_take_over_ends_at_the_clutch_frame() {
         let mut driving = arm(false, 0, 0);
-        driving.policy = "gr00t".into();
+        driving.arbiter.policy = "gr00t".into();
         // Driving when the episode starts: a start at frame 0, named.
         let e = transitions(None, std::slice::from_ref(&driving), 0, 20);
         assert_eq!(kinds(&e), [(EventKind::PolicyStart, 1)]);
@@ -376,7 +372,7 @@ mod tests {
         assert_eq!((e[1].frame_index, e[1].detail.as_str()), (9, "gr00t"));
         // Another policy between two frames: one stops, the other starts.
         let mut other = driving.clone();
-        other.policy = "replay".into();
+        other.arbiter.policy = "replay".into();
         let e = transitions(Some(&[driving]), std::slice::from_ref(&other), 12, 20);
         assert_eq!(
             kinds(&e),
@@ -388,7 +384,7 @@ mod tests {
         w.observe(std::slice::from_ref(&other), 0).unwrap();
         w.observe(&[taken], 1).unwrap();
         let mut back = other;
-        back.policy = "gr00t".into();
+        back.arbiter.policy = "gr00t".into();
         w.observe(&[back], 2).unwrap();
         assert_eq!(
             w.policies(),
@@ -436,7 +432,7 @@ mod tests {
         let mut left = arm(false, 0, 0);
         left.arm = "left".into();
         let mut left_on = left.clone();
-        left_on.engaged = true;
+        left_on.arbiter.engaged = true;
         let e = transitions(
             Some(&[left.clone(), arm(false, 0, 0)]),
             &[arm(false, 2, 0), left_on],

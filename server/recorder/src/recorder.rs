@@ -732,7 +732,7 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
             let flags = FrameFlags {
                 success: s.success,
                 // LeRobot's DAgger `intervention`: a person drove (the clutch was in on) at least one arm.
-                intervention: s.arms.iter().any(|arm| arm.engaged),
+                intervention: s.arms.iter().any(|arm| arm.arbiter.engaged),
             };
             a.writer.push_row(&s.state, &s.action, flags)
         });
