@@ -178,6 +178,13 @@ async fn outcomes(format: DatasetFormat, conformance_name: &str) {
     let provenance = read("meta/phone2act_provenance.json");
     let recorded: Vec<&Value> = (0..3).map(|i| &provenance["episodes"][i]["success"]).collect();
     assert_eq!(recorded, [&json!(true), &json!(false), &Value::Null]);
+    if format == DatasetFormat::V21 {
+        // GR00T reaches the column through modality.json's annotations, as it reaches `intervention`.
+        assert_eq!(
+            read("meta/modality.json")["annotation"]["human.success"],
+            json!({"original_key": "next.success"})
+        );
+    }
     if format == DatasetFormat::V30 {
         // Stats count the outcome: one true frame among all of them.
         let stats = &read("meta/stats.json")["next.success"];

@@ -209,6 +209,14 @@ fn modality_json(spec: &DatasetSpec) -> Value {
             json!({"original_key": crate::parquet_io::INTERVENTION_FEATURE}),
         );
     }
+    if spec.success {
+        // The outcome the operator gave at Stop (or the scene's flag), for data configs that filter or weight
+        // episodes by it.
+        annotation.insert(
+            "human.success".into(),
+            json!({"original_key": crate::parquet_io::SUCCESS_FEATURE}),
+        );
+    }
     json!({
         "state": state,
         "action": action,
