@@ -316,8 +316,10 @@ impl Handler for PageHandler {
             Ok(PageMsg::Preview(request)) => match request.check() {
                 Ok(params) => {
                     self.stop_preview();
+                    let (runtime, upstream) = self.shared.video.background(&self.shared.upstream);
                     self.preview = Some(web_preview::spawn(
-                        self.shared.upstream.clone(),
+                        &runtime,
+                        upstream,
                         params,
                         self.wiring.preview.clone(),
                         self.wiring.out.clone(),

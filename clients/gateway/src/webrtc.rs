@@ -3,8 +3,9 @@
 //!
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
-//! - Video never runs on the control path's thread: the feeds and viewers run on a runtime of their own (one
-//!   thread, `video-io`) with a connection of their own to the server, and the encoder on a thread per camera;
+//! - Video never runs on the control path's thread: the feeds and viewers (and the JPEG preview's fetches, see
+//!   `web_preview`) run on a runtime of their own (one thread, `video-io`) with a connection of their own to the
+//!   server, and the encoder on a thread per camera;
 //!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
 //!   path's threads get the CPU first and the video is what slows down.
 //! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
@@ -64,7 +65,7 @@ const LINK_SHARE: f64 = 0.85;
 /// A new target within this fraction of the encoder's bitrate is not worth a rate-control change.
 const RETARGET_FRACTION: f64 = 0.1;
 /// How much less CPU priority the video's threads get than the control path's (nice steps).
-const VIDEO_NICE: i32 = 10;
+const VIDEO_NICE: i32 = phone2act_recorder::priority::BACKGROUND_NICE;
 /// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
 const VIEWER_IDLE: Duration = Duration::from_secs(30);
 
@@ -176,18 +177,9 @@ fn start_io(upstream: &Upstream) -> Result<VideoIo, String> {
     })
 }
 
-/// Lowers the calling thread's CPU priority by [`VIDEO_NICE`] (Linux, where nice is per thread; threads it
-/// starts inherit it). Elsewhere the video runs at the control path's priority.
+/// Lowers the calling thread's CPU priority (threads it starts inherit it).
 fn lower_priority() {
-    #[cfg(target_os = "linux")]
-    {
-        use rustix::process::{getpriority_process, setpriority_process};
-        let tid = rustix::thread::gettid();
-        let now = getpriority_process(Some(tid)).unwrap_or(0);
-        if let Err(e) = setpriority_process(Some(tid), (now + VIDEO_NICE).min(19)) {
-            tracing::debug!("video thread keeps its priority: {e}");
-        }
-    }
+    phone2act_recorder::priority::lower_current_thread(VIDEO_NICE);
 }
 
 /// The cameras' feeds, shared by every page socket.
@@ -207,6 +199,15 @@ impl VideoHub {
         }
         let io = io.as_ref().expect("just started");
         Ok((io.handle.clone(), io.upstream.clone()))
+    }
+
+    /// Where other camera work of the pages runs (the JPEG preview's fetches): the video runtime and its
+    /// connection, or, if its thread cannot start, the caller's runtime and connection.
+    pub(crate) fn background(&self, upstream: &Upstream) -> (tokio::runtime::Handle, Upstream) {
+        self.io(upstream).unwrap_or_else(|e| {
+            tracing::warn!("camera work stays on the control thread: {e}");
+            (tokio::runtime::Handle::current(), upstream.clone())
+        })
     }
 
     /// A receiver of `camera`'s frames, starting its feed (on the video runtime) if none runs.
