@@ -200,6 +200,7 @@ impl PageHandler {
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
                 "controllers": self.shared.config.controllers,
+                "video": self.shared.config.video.enabled,
             })
             .to_string(),
         );
