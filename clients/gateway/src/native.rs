@@ -174,17 +174,20 @@ pub(crate) struct PageHandler {
     preview: Option<JoinHandle<()>>,
     /// The page's WebRTC viewer task, while it watches.
     video: Option<JoinHandle<()>>,
+    /// Where the page's socket comes from (a page on this machine gets video without congestion control).
+    peer: std::net::IpAddr,
     close: bool,
 }
 
 impl PageHandler {
-    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring, peer: std::net::IpAddr) -> Self {
         Self {
             shared,
             wiring,
             session: None,
             preview: None,
             video: None,
+            peer,
             close: false,
         }
     }
@@ -240,7 +243,7 @@ impl PageHandler {
                 &self.shared.upstream,
                 camera,
                 sdp,
-                ip,
+                (ip, self.peer),
                 self.wiring.out.clone(),
             )
         } else {

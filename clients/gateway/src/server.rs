@@ -458,7 +458,7 @@ async fn page_socket(
         let max = shared.config.max_message_bytes;
         let stop = shared.shutdown.clone();
         conn::run(socket, max, stop, |wiring| {
-            let handler = PageHandler::new(shared, wiring);
+            let handler = PageHandler::new(shared, wiring, peer.ip());
             handler.welcome(&arms, &cameras);
             handler
         })

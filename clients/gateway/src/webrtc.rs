@@ -24,6 +24,10 @@
 //!   queue that would also hold up the control socket's packets.
 //! - `[gateway.video]` ([`VideoConfig`]) also caps the frame rate, the picture's size (a larger camera is scaled
 //!   down in the encoder's colour conversion) and the number of viewers, or turns the video off.
+//! - A page on this very machine (its socket comes from the address the viewer's UDP socket is bound to) has no
+//!   link to congest: its viewer runs without congestion control and pacing and gets the ceiling. On a busy
+//!   machine the estimator reads the scheduler's delays as queueing and would lower the bitrate to its floor
+//!   for nothing. A page elsewhere always gets the estimator, however near.
 //! - The feed stops when its last viewer leaves; a page's viewer ends with its socket, a new offer or
 //!   `video_off`.
 
@@ -470,16 +474,25 @@ pub(crate) fn bind_ip(
         .or_else(|| public_host.and_then(parse))
 }
 
+/// Whether a page whose socket comes from `page_ip` runs on this machine, the viewer's socket being bound to
+/// `bind_ip` (the address the page reached the gateway at): a local connection's source address is its
+/// destination's.
+fn same_host(bind_ip: IpAddr, page_ip: IpAddr) -> bool {
+    bind_ip == page_ip
+}
+
 /// Answers `offer_sdp` for `camera` and starts the viewer on the video runtime; its task ends with the returned
-/// handle's abort.
+/// handle's abort. `ips` is (where the viewer's UDP socket binds, where the page's socket comes from).
 pub(crate) fn start_viewer(
     hub: &VideoHub,
     upstream: &Upstream,
     camera: &str,
     offer_sdp: &str,
-    ip: IpAddr,
+    ips: (IpAddr, IpAddr),
     out: Out,
 ) -> Result<(String, JoinHandle<()>), String> {
+    let (ip, page_ip) = ips;
+    let local_page = same_host(ip, page_ip);
     let place = hub.take_place()?;
     let offer = SdpOffer::from_sdp_string(offer_sdp).map_err(|e| format!("bad video offer: {e}"))?;
     // A std socket here; the video runtime registers it with its own reactor.
@@ -491,8 +504,9 @@ pub(crate) fn start_viewer(
         .clear_codecs()
         .enable_h264(true)
         .set_ice_lite(true)
-        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down.
-        .enable_bwe(Some(Bitrate::bps(hub.config.max_bitrate_bps())))
+        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down; none for a
+        // page on this machine (no estimate: the ceiling, unpaced).
+        .enable_bwe((!local_page).then(|| Bitrate::bps(hub.config.max_bitrate_bps())))
         .build(Instant::now());
     let candidate = Candidate::host(local, "udp").map_err(|e| format!("video candidate: {e}"))?;
     rtc.add_local_candidate(candidate)
@@ -655,6 +669,17 @@ async fn run_viewer(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn only_a_page_from_the_viewers_own_address_counts_as_this_machine() {
+        let ip = |s: &str| s.parse::<IpAddr>().unwrap();
+        assert!(same_host(ip("127.0.0.1"), ip("127.0.0.1")));
+        assert!(same_host(ip("192.168.1.20"), ip("192.168.1.20")));
+        // Another loopback address plays another machine (the throttled-link test's relay), and a LAN peer is one.
+        assert!(!same_host(ip("127.0.0.1"), ip("127.0.0.2")));
+        assert!(!same_host(ip("192.168.1.20"), ip("192.168.1.30")));
+        assert!(!same_host(ip("::1"), ip("127.0.0.1")));
+    }
 
     #[test]
     fn the_viewer_binds_where_the_page_reached_the_gateway() {
