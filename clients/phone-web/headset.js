@@ -463,6 +463,7 @@
     const back = () => {
       // The page's socket takes its arm back once the controllers' sockets are gone.
       app.headsetActive = false;
+      hs.reclaims = CLAIM_RETRIES;
       app.hello(false);
     };
     for (const h of hands) {
@@ -485,6 +486,19 @@
     $('start-headset').hidden = !(hs.supported.vr || hs.supported.ar);
     hs.detected = true;
   }
+
+  // The server learns that a controller's stream ended on its own time: the page's claim of the arm right after
+  // the session may be refused as still held, and is retried like a controller's.
+  hs.reclaims = 0;
+  app.listeners.push((msg) => {
+    if (msg.type !== 'session') return;
+    if (msg.state === 'refused' && msg.code === 'AlreadyExists' && hs.reclaims > 0 && !app.headsetActive) {
+      hs.reclaims -= 1;
+      setTimeout(() => app.hello(false), 300);
+    } else if (msg.state === 'open') {
+      hs.reclaims = 0;
+    }
+  });
 
   $('start-headset').addEventListener('click', start);
   document.addEventListener('visibilitychange', () => {

@@ -228,8 +228,16 @@ const p95 = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.
 await check('the live video is drawn on a panel in the headset, and control keeps its pace', async () => {
   // The session started the page's video (the server has a camera). Up to 20 s for the first frames: ICE,
   // DTLS and a keyframe on a machine with a load average near 18.
-  await waitPage(page, () => window.phone2act.headset.video.uploads >= 10 && window.phone2act.headset.video.drawn >= 10,
-    'video frames on the headset\'s panel', 20000);
+  const panelState = () => page.evaluate(() => {
+    const { video: v, headset: { video: p } } = window.phone2act;
+    return `video ${v.state}, ${v.frames} frames, fallbacks ${v.fallbacks} (${v.reason}); panel ${p.uploads} uploads, ${p.drawn} drawn`;
+  });
+  try {
+    await waitPage(page, () => window.phone2act.headset.video.uploads >= 10 && window.phone2act.headset.video.drawn >= 10,
+      'video frames on the headset\'s panel', 20000);
+  } catch (e) {
+    throw new Error(`${e.message}; ${await panelState()}`);
+  }
   const windows = { on: [], off: [] };
   const frames = { on: 0, drawn: 0, s: 0 };
   // Video on, off, on: 3 s each, alternating so that the machine's other load falls on both.
