@@ -470,7 +470,10 @@ mod tests {
                 "video = { min_bitrate_kbps = 2000 }",
                 "gateway.video.min_bitrate_kbps (2000) must not exceed max_bitrate_kbps (1500)",
             ),
-            ("video = { max_fps = 0 }", "gateway.video.max_fps must be in 1..=60, got 0"),
+            (
+                "video = { max_fps = 0 }",
+                "gateway.video.max_fps must be in 1..=60, got 0",
+            ),
             ("video = { max_width_px = 8 }", "gateway.video.max_width_px"),
             ("video = { max_height_px = 5000 }", "gateway.video.max_height_px"),
             ("video = { max_viewers = 0 }", "gateway.video.max_viewers"),
@@ -490,7 +493,10 @@ mod tests {
         let table: toml::Table = toml::from_str("[video]\nmax_fps = 15\nmax_viewers = 2\n").unwrap();
         let video = GatewayConfig::from_table(&table).unwrap().video;
         assert_eq!((video.max_fps, video.max_viewers), (15, 2));
-        assert_eq!((video.min_bitrate_bps(), video.max_bitrate_bps()), (60_000, 1_500_000));
+        assert_eq!(
+            (video.min_bitrate_bps(), video.max_bitrate_bps()),
+            (60_000, 1_500_000)
+        );
         assert!(video.enabled);
         // Under the caps: sent as captured.
         assert_eq!(video.sent_size(640, 480), (640, 480));

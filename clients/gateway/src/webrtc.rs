@@ -235,7 +235,9 @@ impl VideoHub {
         }
         let max = self.config.max_viewers;
         self.watching
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < max).then_some(n + 1))
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
             .map(|_| ViewerPlace(self.watching.clone()))
             .map_err(|_| format!("{max} pages already watch the video ([gateway.video] max_viewers)"))
     }
@@ -587,7 +589,8 @@ async fn run_viewer(
                     Event::Connected => {
                         connected = true;
                         // Probe up to the top rate: the estimate can then rise back after a slow spell.
-                        rtc.bwe().set_desired_bitrate(Bitrate::bps(feed.config.max_bitrate_bps()));
+                        rtc.bwe()
+                            .set_desired_bitrate(Bitrate::bps(feed.config.max_bitrate_bps()));
                     }
                     Event::EgressBitrateEstimate(
                         BweKind::Twcc { estimate, .. } | BweKind::Remb { estimate, .. },

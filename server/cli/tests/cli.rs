@@ -955,7 +955,8 @@ fn check_shows_the_video_keys_and_refuses_bad_ones() {
     let (code, err) = check_config(&path, &[("PHONE2ACT_GATEWAY__VIDEO__MAX_FPS", "0")]);
     assert_eq!(code, Some(1), "{err}");
     assert!(
-        err.contains("(with PHONE2ACT_GATEWAY__VIDEO__MAX_FPS)") && err.contains("gateway.video.max_fps must be in 1..=60, got 0"),
+        err.contains("(with PHONE2ACT_GATEWAY__VIDEO__MAX_FPS)")
+            && err.contains("gateway.video.max_fps must be in 1..=60, got 0"),
         "{err}"
     );
 }

@@ -587,7 +587,10 @@ mod tests {
         // The recorder reads the history: the capture thread draws, at the priority it was started with.
         slot.with_history(|_| ());
         assert!(slot.recorded());
-        assert_eq!(frames_by("frames drawn at full priority", "camera-prio"), full_nice);
+        assert_eq!(
+            frames_by("frames drawn at full priority", "camera-prio"),
+            full_nice
+        );
         // Past the idle time without a recorder read: back to the background.
         NOW_NS.store(IDLE_AFTER_NS + 1, Ordering::SeqCst);
         let _ = slot.latest();

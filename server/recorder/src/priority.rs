@@ -51,6 +51,10 @@ mod tests {
         .unwrap();
         let expected = (before + BACKGROUND_NICE).min(19);
         assert_eq!((own, child), (Some(expected), Some(expected)));
-        assert_eq!(current_thread_nice(), Some(before), "the caller's own priority is untouched");
+        assert_eq!(
+            current_thread_nice(),
+            Some(before),
+            "the caller's own priority is untouched"
+        );
     }
 }
