@@ -6,7 +6,8 @@
 //   upper face button (B / Y) held for 1 s while recording = discard.
 // Which controller drives which arm comes from the gateway's `welcome` (`[gateway.controllers]`).
 // The live video (video.js, started with the session where the gateway offers it) is drawn on a panel in the
-// scene, above eye level and ahead, so that the controllers held in front of the chest stay in view.
+// scene, above eye level and ahead, so that the controllers held in front of the chest stay in view; where
+// WebRTC cannot connect, the JPEG preview the page falls back to is drawn there instead.
 // Loaded after app.js; uses its state (window.phone2act) for the token, the arm list and the task field.
 'use strict';
 
@@ -42,6 +43,9 @@
   const UPLOAD_EVERY_MS = 33;
   const pv = {
     uploads: 0, // texture uploads (one per video frame shown)
+    previewUploads: 0, // uploads of the JPEG preview's image, where the page fell back to it
+    previewLoads: 0,
+    lastPreviewLoads: 0,
     drawn: 0, // XR frames with the panel drawn
     glErrors: 0, // XR frames whose drawing WebGL refused
     g2g: [], // glass to glass at upload: capture on the gateway's clock to the panel's frame, ms
@@ -55,6 +59,8 @@
     loc: null,
   };
   hs.video = pv;
+
+  $('preview').addEventListener('load', () => { pv.previewLoads += 1; });
 
   function panelSetup(gl) {
     const shader = (type, src) => {
@@ -101,8 +107,13 @@
   function drawVideo(frame, layer) {
     const gl = hs.gl;
     const v = app.video;
-    const el = $('video');
-    if (!gl || !v || !v.pc || !el || el.readyState < 2 || !el.videoWidth) return;
+    const video = $('video');
+    const img = $('preview');
+    // The live video; where WebRTC could not connect (the page fell back), the JPEG preview's image.
+    let el = null;
+    if (v && v.pc && video && video.readyState >= 2 && video.videoWidth) el = video;
+    else if (app.preview && app.preview.want && img && img.complete && img.naturalWidth) el = img;
+    if (!gl || !el) return;
     if (pv.gl !== gl) {
       try {
         panelSetup(gl);
@@ -116,9 +127,16 @@
     const now = performance.now();
     // A new frame from the page's frame callback, or, where the page is not composited while immersive (no
     // callbacks), whatever the video shows now, at most every UPLOAD_EVERY_MS.
-    const fresh = v.frames !== pv.lastFrames;
-    if (fresh || (now - pv.lastUploadMs >= UPLOAD_EVERY_MS && now - v.lastFrameAt > 500)) {
-      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, el);
+    if (el === img) {
+      if (pv.previewLoads !== pv.lastPreviewLoads) {
+        gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, img);
+        pv.previewUploads += 1;
+        pv.lastPreviewLoads = pv.previewLoads;
+      }
+    }
+    const fresh = el === video && v.frames !== pv.lastFrames;
+    if (el === video && (fresh || (now - pv.lastUploadMs >= UPLOAD_EVERY_MS && now - v.lastFrameAt > 500))) {
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, video);
       pv.uploads += 1;
       pv.lastUploadMs = now;
       // Glass to glass of a frame the page showed (its capture time is known), on the panel from this frame.
@@ -131,7 +149,7 @@
     const pose = frame.getViewerPose(hs.refSpace);
     if (!pose) return;
     const halfW = PANEL.widthM / 2;
-    const halfH = (halfW * el.videoHeight) / el.videoWidth;
+    const halfH = el === video ? (halfW * video.videoHeight) / video.videoWidth : (halfW * img.naturalHeight) / img.naturalWidth;
     // Column-major: scale the unit quad to the panel, then move it ahead and up.
     const model = new Float32Array([halfW, 0, 0, 0, 0, halfH, 0, 0, 0, 0, 1, 0, 0, PANEL.upM, -PANEL.aheadM, 1]);
     gl.useProgram(pv.prog);

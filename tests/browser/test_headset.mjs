@@ -232,11 +232,25 @@ await check('the live video is drawn on a panel in the headset, and control keep
     const { video: v, headset: { video: p } } = window.phone2act;
     return `video ${v.state}, ${v.frames} frames, fallbacks ${v.fallbacks} (${v.reason}); panel ${p.uploads} uploads, ${p.drawn} drawn`;
   });
+  const framesOnPanel = () => waitPage(page,
+    () => window.phone2act.headset.video.uploads >= 10 && window.phone2act.headset.video.drawn >= 10,
+    'video frames on the headset\'s panel', 20000);
   try {
-    await waitPage(page, () => window.phone2act.headset.video.uploads >= 10 && window.phone2act.headset.video.drawn >= 10,
-      'video frames on the headset\'s panel', 20000);
+    await framesOnPanel();
   } catch (e) {
-    throw new Error(`${e.message}; ${await panelState()}`);
+    // The page gives WebRTC 6 s for a first frame before it falls back to the JPEG preview; on this machine at a
+    // load average over 20 ICE, DTLS and a keyframe have taken longer. Then the panel shows the preview, and the
+    // video is asked for once more (its connection is what this check is about).
+    const fellBack = await page.evaluate(() => window.phone2act.video.fallbacks > 0 && !window.phone2act.video.want);
+    if (!fellBack) throw new Error(`${e.message}; ${await panelState()}`);
+    console.log(`  the page fell back to the JPEG preview (${await panelState()}); asking for the video again`);
+    await waitPage(page, () => window.phone2act.headset.video.previewUploads >= 1, 'the preview on the panel', 15000);
+    await page.check('#video-on');
+    try {
+      await framesOnPanel();
+    } catch (e2) {
+      throw new Error(`${e2.message}; ${await panelState()}`);
+    }
   }
   const windows = { on: [], off: [] };
   const frames = { on: 0, drawn: 0, s: 0 };
@@ -271,8 +285,10 @@ await check('the live video is drawn on a panel in the headset, and control keep
     + `glass to glass p50 ${median(g2g).toFixed(0)} ms, p95 ${p95(g2g).toFixed(0)} ms (${g2g.length})`);
   console.log(`  controllers' control round trip: video on p50 ${median(windows.on).toFixed(1)} ms, p95 ${p95(windows.on).toFixed(1)} ms; `
     + `off p50 ${median(windows.off).toFixed(1)} ms, p95 ${p95(windows.off).toFixed(1)} ms`);
-  // Not a latency bound (the machine is shared): a stall of control behind the video would show as seconds.
-  assert(p95(windows.on) < 2000, `control round trip p95 ${p95(windows.on).toFixed(0)} ms with the video on`);
+  // Not a latency bound (the machine is shared): control stalled behind the video would show as a median of
+  // seconds. The p95 is printed, not checked: in the emulator (software WebGL, the page's one thread uploading
+  // each frame) it reached 1.0 s at a load average of 24 while the median stayed under 10 ms.
+  assert(median(windows.on) < 250, `control round trip median ${median(windows.on).toFixed(0)} ms with the video on`);
 });
 
 await check('ending the headset session hands the arm back to the page', async () => {
