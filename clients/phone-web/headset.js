@@ -5,6 +5,9 @@
 //   lower face button (A / X) = start recording, or save while recording;
 //   upper face button (B / Y) held for 1 s while recording = discard.
 // Which controller drives which arm comes from the gateway's `welcome` (`[gateway.controllers]`).
+// The live video (video.js, started with the session where the gateway offers it) is drawn on a panel in the
+// scene, above eye level and ahead, so that the controllers held in front of the chest stay in view; where
+// WebRTC cannot connect, the JPEG preview the page falls back to is drawn there instead.
 // Loaded after app.js; uses its state (window.phone2act) for the token, the arm list and the task field.
 'use strict';
 
@@ -28,6 +31,143 @@
     frames: 0,
   };
   app.headset = hs;
+
+  // ---- the live video on a panel in the scene ------------------------------------------------------------
+
+  // Where the panel hangs in the session's 'local' space (origin: the head at the session's start, -Z ahead):
+  // 1.6 m ahead, its centre 0.35 m above the eyes, 1.2 m wide. Hands work below eye level, so the panel
+  // leaves them in view; looking up a little shows the robot.
+  const PANEL = { aheadM: 1.6, upM: 0.35, widthM: 1.2 };
+  // Without a frame callback from the page (a headset browser may not composite the page while immersive), a
+  // new texture is uploaded at most this often.
+  const UPLOAD_EVERY_MS = 33;
+  const pv = {
+    uploads: 0, // texture uploads (one per video frame shown)
+    previewUploads: 0, // uploads of the JPEG preview's image, where the page fell back to it
+    previewLoads: 0,
+    lastPreviewLoads: 0,
+    drawn: 0, // XR frames with the panel drawn
+    glErrors: 0, // XR frames whose drawing WebGL refused
+    g2g: [], // glass to glass at upload: capture on the gateway's clock to the panel's frame, ms
+    startedVideo: false,
+    lastFrames: -1,
+    lastUploadMs: 0,
+    gl: null,
+    prog: null,
+    buf: null,
+    tex: null,
+    loc: null,
+  };
+  hs.video = pv;
+
+  $('preview').addEventListener('load', () => { pv.previewLoads += 1; });
+
+  function panelSetup(gl) {
+    const shader = (type, src) => {
+      const sh = gl.createShader(type);
+      gl.shaderSource(sh, src);
+      gl.compileShader(sh);
+      if (!gl.getShaderParameter(sh, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(sh));
+      return sh;
+    };
+    const prog = gl.createProgram();
+    gl.attachShader(prog, shader(gl.VERTEX_SHADER, `
+      attribute vec2 a;
+      uniform mat4 proj, view, model;
+      varying vec2 uv;
+      void main() { uv = vec2(a.x * 0.5 + 0.5, 0.5 - a.y * 0.5); gl_Position = proj * view * model * vec4(a, 0.0, 1.0); }`));
+    gl.attachShader(prog, shader(gl.FRAGMENT_SHADER, `
+      precision mediump float;
+      uniform sampler2D tex;
+      varying vec2 uv;
+      void main() { gl_FragColor = texture2D(tex, uv); }`));
+    gl.linkProgram(prog);
+    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+    pv.buf = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, pv.buf);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
+    pv.tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, pv.tex);
+    // A camera's size is rarely a power of two: WebGL 1 then needs clamping and no mipmaps.
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    pv.loc = {
+      a: gl.getAttribLocation(prog, 'a'),
+      proj: gl.getUniformLocation(prog, 'proj'),
+      view: gl.getUniformLocation(prog, 'view'),
+      model: gl.getUniformLocation(prog, 'model'),
+    };
+    pv.prog = prog;
+    pv.gl = gl;
+  }
+
+  // Draws the live video's newest frame on the panel, in every view of this XR frame.
+  function drawVideo(frame, layer) {
+    const gl = hs.gl;
+    const v = app.video;
+    const video = $('video');
+    const img = $('preview');
+    // The live video; where WebRTC could not connect (the page fell back), the JPEG preview's image.
+    let el = null;
+    if (v && v.pc && video && video.readyState >= 2 && video.videoWidth) el = video;
+    else if (app.preview && app.preview.want && img && img.complete && img.naturalWidth) el = img;
+    if (!gl || !el) return;
+    if (pv.gl !== gl) {
+      try {
+        panelSetup(gl);
+      } catch (e) {
+        console.warn('no video panel', e);
+        hs.gl = null;
+        return;
+      }
+    }
+    gl.bindTexture(gl.TEXTURE_2D, pv.tex);
+    const now = performance.now();
+    // A new frame from the page's frame callback, or, where the page is not composited while immersive (no
+    // callbacks), whatever the video shows now, at most every UPLOAD_EVERY_MS.
+    if (el === img) {
+      if (pv.previewLoads !== pv.lastPreviewLoads) {
+        gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, img);
+        pv.previewUploads += 1;
+        pv.lastPreviewLoads = pv.previewLoads;
+      }
+    }
+    const fresh = el === video && v.frames !== pv.lastFrames;
+    if (el === video && (fresh || (now - pv.lastUploadMs >= UPLOAD_EVERY_MS && now - v.lastFrameAt > 500))) {
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, video);
+      pv.uploads += 1;
+      pv.lastUploadMs = now;
+      // Glass to glass of a frame the page showed (its capture time is known), on the panel from this frame.
+      if (fresh && v.lastCaptureMs !== null && v.offsetMs !== null) {
+        pv.g2g.push(v.pageUnixMs() + v.offsetMs - v.lastCaptureMs);
+        if (pv.g2g.length > 300) pv.g2g.shift();
+      }
+      pv.lastFrames = v.frames;
+    }
+    const pose = frame.getViewerPose(hs.refSpace);
+    if (!pose) return;
+    const halfW = PANEL.widthM / 2;
+    const halfH = el === video ? (halfW * video.videoHeight) / video.videoWidth : (halfW * img.naturalHeight) / img.naturalWidth;
+    // Column-major: scale the unit quad to the panel, then move it ahead and up.
+    const model = new Float32Array([halfW, 0, 0, 0, 0, halfH, 0, 0, 0, 0, 1, 0, 0, PANEL.upM, -PANEL.aheadM, 1]);
+    gl.useProgram(pv.prog);
+    gl.bindBuffer(gl.ARRAY_BUFFER, pv.buf);
+    gl.enableVertexAttribArray(pv.loc.a);
+    gl.vertexAttribPointer(pv.loc.a, 2, gl.FLOAT, false, 0, 0);
+    gl.uniformMatrix4fv(pv.loc.model, false, model);
+    for (const view of pose.views) {
+      const vp = layer.getViewport(view);
+      if (!vp) continue;
+      gl.viewport(vp.x, vp.y, vp.width, vp.height);
+      gl.uniformMatrix4fv(pv.loc.proj, false, view.projectionMatrix);
+      gl.uniformMatrix4fv(pv.loc.view, false, view.transform.inverse.matrix);
+      gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+    }
+    if (gl.getError() !== gl.NO_ERROR) pv.glErrors += 1;
+    pv.drawn += 1;
+  }
 
   // Controller -> arm: the gateway's map when it has one, else each controller drives the arm of its own name
   // and, when no arm is named left or right, the right controller drives the arm picked on the page.
@@ -258,13 +398,6 @@
     const session = frame.session;
     session.requestAnimationFrame(onFrame);
     hs.frames += 1;
-    const layer = session.renderState && session.renderState.baseLayer;
-    if (layer && hs.gl) {
-      // Transparent clear: in immersive-ar the passthrough shows through.
-      hs.gl.bindFramebuffer(hs.gl.FRAMEBUFFER, layer.framebuffer);
-      hs.gl.clearColor(0, 0, 0, 0);
-      hs.gl.clear(hs.gl.COLOR_BUFFER_BIT);
-    }
     const seen = new Set();
     for (const source of session.inputSources) {
       // Tracked controllers only: a hand-tracking source has no gamepad buttons for the clutch.
@@ -275,6 +408,15 @@
     }
     for (const [handedness, hand] of Object.entries(hs.hands)) {
       if (!seen.has(handedness)) hand.missing();
+    }
+    // Drawn after the samples went out: a slow texture upload never holds a pose back.
+    const layer = session.renderState && session.renderState.baseLayer;
+    if (layer && hs.gl) {
+      // Transparent clear: in immersive-ar the passthrough shows through.
+      hs.gl.bindFramebuffer(hs.gl.FRAMEBUFFER, layer.framebuffer);
+      hs.gl.clearColor(0, 0, 0, 0);
+      hs.gl.clear(hs.gl.COLOR_BUFFER_BIT);
+      drawVideo(frame, layer);
     }
     if (hs.frames % 30 === 0) render();
   }
@@ -316,6 +458,14 @@
     app.send({ type: 'release' });
     for (const [handedness, arm] of Object.entries(map)) hs.hands[handedness] = new Hand(handedness, arm);
     session.addEventListener('end', stop);
+    // The operator cannot reach the page's switch in the headset: the video starts with the session (and
+    // stops with it if it started here).
+    const video = app.video;
+    pv.startedVideo = false;
+    if (video && !video.want && video.available()) {
+      video.start();
+      pv.startedVideo = true;
+    }
     $('start-headset').hidden = true;
     session.requestAnimationFrame(onFrame);
     render();
@@ -325,10 +475,13 @@
     const hands = Object.values(hs.hands);
     hs.hands = {};
     hs.session = null;
+    if (pv.startedVideo && app.video && app.video.want) app.video.stop();
+    pv.startedVideo = false;
     let left = hands.length;
     const back = () => {
       // The page's socket takes its arm back once the controllers' sockets are gone.
       app.headsetActive = false;
+      hs.reclaims = CLAIM_RETRIES;
       app.hello(false);
     };
     for (const h of hands) {
@@ -351,6 +504,19 @@
     $('start-headset').hidden = !(hs.supported.vr || hs.supported.ar);
     hs.detected = true;
   }
+
+  // The server learns that a controller's stream ended on its own time: the page's claim of the arm right after
+  // the session may be refused as still held, and is retried like a controller's.
+  hs.reclaims = 0;
+  app.listeners.push((msg) => {
+    if (msg.type !== 'session') return;
+    if (msg.state === 'refused' && msg.code === 'AlreadyExists' && hs.reclaims > 0 && !app.headsetActive) {
+      hs.reclaims -= 1;
+      setTimeout(() => app.hello(false), 300);
+    } else if (msg.state === 'open') {
+      hs.reclaims = 0;
+    }
+  });
 
   $('start-headset').addEventListener('click', start);
   document.addEventListener('visibilitychange', () => {

@@ -36,6 +36,8 @@
     // The JPEG preview's glass-to-glass latency, on the same clock offset: capture times by frame size.
     previewCaptures: new Map(),
     previewG2g: [],
+    lastCaptureMs: null, // capture time (gateway's Unix ms) of the frame last shown, for the headset's panel
+    lastFrameAt: 0, // performance.now() of the last frame callback
   };
   app.video = v;
 
@@ -102,6 +104,7 @@
     $('video').requestVideoFrameCallback((t, m) => onVideoFrame(generation, t, m));
     v.frames += 1;
     const t = performance.now();
+    v.lastFrameAt = t;
     v.frameTimes.push(t);
     while (v.frameTimes.length && t - v.frameTimes[0] > 2000) v.frameTimes.shift();
     const capture = v.captures.get(md.rtpTimestamp);
@@ -111,6 +114,7 @@
       // When the frame is on screen, on the gateway's clock, minus when the camera captured it.
       const shown = performance.timeOrigin + (md.expectedDisplayTime || now) + v.offsetMs;
       const ms = shown - capture;
+      v.lastCaptureMs = capture;
       v.g2g.push(ms);
       if (v.g2g.length > 90) v.g2g.shift();
       v.g2gAll.push(ms);
@@ -209,6 +213,12 @@
     render();
   }
 
+  // For the headset (headset.js shows the same video on a panel in the scene).
+  v.start = start;
+  v.stop = stop;
+  v.available = () => !$('video-box').hidden;
+  v.pageUnixMs = pageUnixMs;
+
   app.listeners.push((msg) => {
     if (msg.type === 'clock') onClock(msg);
     else if (msg.type === 'preview_frame') {
@@ -222,7 +232,8 @@
       fallback(msg.message);
     } else if (msg.type === 'welcome') {
       // After a reconnect the gateway has forgotten the viewer.
-      $('video-box').hidden = !(msg.cameras && msg.cameras.length) || !window.RTCPeerConnection;
+      // No switch where the gateway's video is off ([gateway.video] enabled = false) or the browser has no WebRTC.
+      $('video-box').hidden = !(msg.cameras && msg.cameras.length) || !window.RTCPeerConnection || msg.video === false;
       if (v.want) start();
     }
   });

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Browser tests of the phone page: Debian's Chromium, headless, driven by playwright-core, against the real server
 # and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
-# controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms); live video
+# controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms, and the live
+# video on a panel in the immersive session); live video
 # against control, and on a throttled link, in test_video.mjs; the recording habits in test_habits.mjs. Installs
 # what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
 set -euo pipefail

@@ -213,6 +213,84 @@ await check('A starts and saves an episode, B held discards one', async () => {
   assert(arms.left.status.recording.saved === saved + 1, 'the discarded episode was saved');
 });
 
+// Round trips and feedback of both controllers' sockets, and the video panel's counters.
+const headsetNow = () => page.evaluate(() => {
+  const hs = window.phone2act.headset;
+  return {
+    rtts: Object.values(hs.hands).flatMap((h) => h.rtts.slice(-60)),
+    feedback: Object.values(hs.hands).reduce((n, h) => n + h.feedbackCount, 0),
+    uploads: hs.video.uploads, drawn: hs.video.drawn, glErrors: hs.video.glErrors, g2g: hs.video.g2g.length,
+  };
+});
+const median = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.floor(s.length / 2)]; };
+const p95 = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.min(s.length - 1, Math.floor(0.95 * s.length))]; };
+
+await check('the live video is drawn on a panel in the headset, and control keeps its pace', async () => {
+  // The session started the page's video (the server has a camera). Up to 20 s for the first frames: ICE,
+  // DTLS and a keyframe on a machine with a load average near 18.
+  const panelState = () => page.evaluate(() => {
+    const { video: v, headset: { video: p } } = window.phone2act;
+    return `video ${v.state}, ${v.frames} frames, fallbacks ${v.fallbacks} (${v.reason}); panel ${p.uploads} uploads, ${p.drawn} drawn`;
+  });
+  const framesOnPanel = () => waitPage(page,
+    () => window.phone2act.headset.video.uploads >= 10 && window.phone2act.headset.video.drawn >= 10,
+    'video frames on the headset\'s panel', 20000);
+  try {
+    await framesOnPanel();
+  } catch (e) {
+    // The page gives WebRTC 6 s for a first frame before it falls back to the JPEG preview; on this machine at a
+    // load average over 20 ICE, DTLS and a keyframe have taken longer. Then the panel shows the preview, and the
+    // video is asked for once more (its connection is what this check is about).
+    const fellBack = await page.evaluate(() => window.phone2act.video.fallbacks > 0 && !window.phone2act.video.want);
+    if (!fellBack) throw new Error(`${e.message}; ${await panelState()}`);
+    console.log(`  the page fell back to the JPEG preview (${await panelState()}); asking for the video again`);
+    await waitPage(page, () => window.phone2act.headset.video.previewUploads >= 1, 'the preview on the panel', 15000);
+    await page.check('#video-on');
+    try {
+      await framesOnPanel();
+    } catch (e2) {
+      throw new Error(`${e2.message}; ${await panelState()}`);
+    }
+  }
+  const windows = { on: [], off: [] };
+  const frames = { on: 0, drawn: 0, s: 0 };
+  // Video on, off, on: 3 s each, alternating so that the machine's other load falls on both.
+  for (const on of [true, false, true]) {
+    if (on && !(await page.isChecked('#video-on'))) {
+      await page.check('#video-on');
+      await waitPage(page, () => window.phone2act.video.frames >= 1, 'the video back', 20000);
+    } else if (!on) {
+      await page.uncheck('#video-on');
+    }
+    const a = await headsetNow();
+    await sleep(3000);
+    const b = await headsetNow();
+    // Both controllers stream at the emulator's frame rate: 3 s give hundreds of feedback messages on an idle
+    // machine; 50 says control kept going.
+    assert(b.feedback - a.feedback >= 50, `control nearly stopped with the video ${on ? 'on' : 'off'}: ${b.feedback - a.feedback} feedback in 3 s`);
+    windows[on ? 'on' : 'off'].push(...b.rtts);
+    if (on) {
+      frames.on += b.uploads - a.uploads;
+      frames.drawn += b.drawn - a.drawn;
+      frames.s += 3;
+      assert(b.uploads - a.uploads >= 5, `only ${b.uploads - a.uploads} video frames reached the panel in 3 s`);
+    } else {
+      assert(b.uploads === a.uploads, 'frames reached the panel with the video off');
+    }
+    assert(b.glErrors === 0, `WebGL refused ${b.glErrors} panel draws`);
+  }
+  const g2g = await page.evaluate(() => window.phone2act.headset.video.g2g.slice());
+  assert(g2g.length >= 5, `glass to glass known for only ${g2g.length} panel frames`);
+  console.log(`  headset panel: ${(frames.on / frames.s).toFixed(1)} video frames/s uploaded, ${(frames.drawn / frames.s).toFixed(0)} XR frames/s drawn; `
+    + `glass to glass p50 ${median(g2g).toFixed(0)} ms, p95 ${p95(g2g).toFixed(0)} ms (${g2g.length})`);
+  console.log(`  controllers' control round trip: video on p50 ${median(windows.on).toFixed(1)} ms, p95 ${p95(windows.on).toFixed(1)} ms; `
+    + `off p50 ${median(windows.off).toFixed(1)} ms, p95 ${p95(windows.off).toFixed(1)} ms`);
+  // Not a latency bound (the machine is shared): control stalled behind the video would show as a median of
+  // seconds. The p95 is printed, not checked: in the emulator (software WebGL, the page's one thread uploading
+  // each frame) it reached 1.0 s at a load average of 24 while the median stayed under 10 ms.
+  assert(median(windows.on) < 250, `control round trip median ${median(windows.on).toFixed(0)} ms with the video on`);
+});
+
 await check('ending the headset session hands the arm back to the page', async () => {
   await page.screenshot({ path: join(OUT_DIR, 'headset-page.png'), fullPage: true });
   // A measurement, not a check: sample -> feedback per controller socket, both streaming at the emulator's rate.
@@ -224,6 +302,7 @@ await check('ending the headset session hands the arm back to the page', async (
   await page.evaluate(() => window.phone2act.headset.stop());
   await waitPage(page, () => !window.phone2act.headsetActive && window.phone2act.sessionOpen, 'the page socket to claim its arm again');
   assert(!(await page.isHidden('#start-headset')), 'Start headset is not offered again');
+  assert(!(await pageState(page, () => window.phone2act.video.want)), 'the video the session started is still on');
 });
 await questContext.close();
 

@@ -3,7 +3,8 @@
 # `phone2act-gateway`, starts both on free loopback ports with a throw-away dataset, and stops them on exit.
 #
 # Inputs:  STACK_CONFIG (server config file, default: the embedded default), STACK_HTTPS=1 to serve the page,
-#          STACK_GATEWAY_CONFIG (a file with the gateway's [gateway] table), STACK_DEFAULT_ARM.
+#          STACK_GATEWAY_CONFIG (a file with the gateway's [gateway] table), STACK_DEFAULT_ARM, STACK_BIN_DIR (run
+#          `phone2act` and `phone2act-gateway` from there instead of this tree's debug build: before/after runs).
 # Outputs: GRPC_URL, ROSBRIDGE_PORT, HTTPS_PORT, PAIRING_TOKEN, STACK_DIR, SERVER_PID, GATEWAY_PID.
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
@@ -13,7 +14,7 @@ free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",
 # Debug build: the same artefacts `cargo test` already built, so this costs seconds in the test run.
 (cd "$REPO" && cargo build --quiet -p phone2act-cli --bin phone2act -p phone2act-gateway --bin phone2act-gateway)
 TARGET_DIR="$(cd "$REPO" && cargo metadata --format-version 1 --no-deps | python3 -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')"
-BIN="$TARGET_DIR/debug"
+BIN="${STACK_BIN_DIR:-$TARGET_DIR/debug}"
 
 STACK_DIR="$(mktemp -d -t phone2act-stack.XXXXXX)"
 GRPC_PORT=$(free_port)

@@ -84,6 +84,103 @@ pub struct GatewayConfig {
     /// default): each controller drives the arm of its own name when the server has one, otherwise the right
     /// controller drives the arm picked on the page.
     pub controllers: BTreeMap<String, String>,
+    /// The phone page's live WebRTC video (`[gateway.video]`).
+    pub video: VideoConfig,
+}
+
+/// The `[gateway.video]` table: the phone page's live WebRTC video of a camera.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VideoConfig {
+    /// Offer live video at all. Off: the page shows no video switch and a video offer is refused; the JPEG
+    /// preview stays.
+    pub enabled: bool,
+    /// The least bits per second the encoder is given however slow a viewer's link looks; below about 150
+    /// kbit/s one camera frame in three is sent, below 300 one in two.
+    pub min_bitrate_kbps: u32,
+    /// The most, and where the bitrate starts before a link estimate exists.
+    pub max_bitrate_kbps: u32,
+    /// The highest frame rate sent: a faster camera has frames skipped.
+    pub max_fps: u32,
+    /// The largest picture sent: a larger camera is scaled down to fit, keeping its aspect.
+    pub max_width_px: u32,
+    pub max_height_px: u32,
+    /// Pages watching at once (each viewer is a connection of its own); a page beyond this gets the JPEG
+    /// preview instead.
+    pub max_viewers: u32,
+}
+
+impl Default for VideoConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            // str0m paces at 1.1 times its estimate: an encoder above what a slow link's estimate falls to fills
+            // the pacer's queue, so the floor stays low.
+            min_bitrate_kbps: 60,
+            // 640x480 at 30 fps, sharp enough to read the scene, a small share of a Wi-Fi link.
+            max_bitrate_kbps: 1500,
+            max_fps: 30,
+            max_width_px: 1280,
+            max_height_px: 720,
+            // An operator and an observer or two; each viewer costs the gateway a connection and its packets.
+            max_viewers: 4,
+        }
+    }
+}
+
+/// Bounds of the `[gateway.video]` keys.
+const VIDEO_BITRATE_KBPS: std::ops::RangeInclusive<u32> = 30..=50_000;
+const VIDEO_FPS: std::ops::RangeInclusive<u32> = 1..=60;
+const VIDEO_SIDE_PX: std::ops::RangeInclusive<u32> = 16..=4096;
+const VIDEO_VIEWERS: std::ops::RangeInclusive<u32> = 1..=32;
+
+impl VideoConfig {
+    /// The checks serde cannot make.
+    pub fn validate(&self) -> Result<(), GatewayError> {
+        let range = |key: &str, value: u32, range: &std::ops::RangeInclusive<u32>| {
+            if range.contains(&value) {
+                Ok(())
+            } else {
+                Err(GatewayError::Config(format!(
+                    "gateway.video.{key} must be in {}..={}, got {value}",
+                    range.start(),
+                    range.end()
+                )))
+            }
+        };
+        range("min_bitrate_kbps", self.min_bitrate_kbps, &VIDEO_BITRATE_KBPS)?;
+        range("max_bitrate_kbps", self.max_bitrate_kbps, &VIDEO_BITRATE_KBPS)?;
+        if self.min_bitrate_kbps > self.max_bitrate_kbps {
+            return Err(GatewayError::Config(format!(
+                "gateway.video.min_bitrate_kbps ({}) must not exceed max_bitrate_kbps ({})",
+                self.min_bitrate_kbps, self.max_bitrate_kbps
+            )));
+        }
+        range("max_fps", self.max_fps, &VIDEO_FPS)?;
+        range("max_width_px", self.max_width_px, &VIDEO_SIDE_PX)?;
+        range("max_height_px", self.max_height_px, &VIDEO_SIDE_PX)?;
+        range("max_viewers", self.max_viewers, &VIDEO_VIEWERS)
+    }
+
+    /// The bitrate floor, in bits per second.
+    pub fn min_bitrate_bps(&self) -> u64 {
+        u64::from(self.min_bitrate_kbps) * 1000
+    }
+
+    /// The bitrate ceiling, in bits per second.
+    pub fn max_bitrate_bps(&self) -> u64 {
+        u64::from(self.max_bitrate_kbps) * 1000
+    }
+
+    /// The size a `width` x `height` camera is sent at: scaled down to fit the caps with its aspect kept, even
+    /// sides (4:2:0 chroma halves both), at least 2 x 2.
+    pub fn sent_size(&self, width: u32, height: u32) -> (u32, u32) {
+        let scale = (f64::from(self.max_width_px) / f64::from(width.max(1)))
+            .min(f64::from(self.max_height_px) / f64::from(height.max(1)))
+            .min(1.0);
+        let side = |px: u32| ((f64::from(px) * scale) as u32 & !1).max(2);
+        (side(width), side(height))
+    }
 }
 
 impl Default for GatewayConfig {
@@ -112,6 +209,7 @@ impl Default for GatewayConfig {
             local_addresses: None,
             takeover_silence_ms: 300,
             controllers: BTreeMap::new(),
+            video: VideoConfig::default(),
         }
     }
 }
@@ -180,6 +278,7 @@ impl GatewayConfig {
                 self.rosbridge_status_level
             )));
         }
+        self.video.validate()?;
         // Below 1 KiB a rosbridge advertise with a long topic name is refused.
         if !(1024..=HARD_MAX_MESSAGE_BYTES).contains(&self.max_message_bytes) {
             return Err(GatewayError::Config(format!(
@@ -363,12 +462,54 @@ mod tests {
                 "controllers = { left = \"\" }",
                 "gateway.controllers.left: arm name",
             ),
+            (
+                "video = { max_bitrate_kbps = 10 }",
+                "gateway.video.max_bitrate_kbps must be in 30..=50000, got 10",
+            ),
+            (
+                "video = { min_bitrate_kbps = 2000 }",
+                "gateway.video.min_bitrate_kbps (2000) must not exceed max_bitrate_kbps (1500)",
+            ),
+            (
+                "video = { max_fps = 0 }",
+                "gateway.video.max_fps must be in 1..=60, got 0",
+            ),
+            ("video = { max_width_px = 8 }", "gateway.video.max_width_px"),
+            ("video = { max_height_px = 5000 }", "gateway.video.max_height_px"),
+            ("video = { max_viewers = 0 }", "gateway.video.max_viewers"),
+            ("video = { max_fps = -1 }", "invalid value"),
+            ("video = { bitrate = 1 }", "unknown field `bitrate`"),
+            ("video = { enabled = \"no\" }", "invalid type"),
         ] {
             let err = GatewayConfig::from_table(&toml::from_str(text).unwrap())
                 .unwrap_err()
                 .to_string();
             assert!(err.contains(needle), "{text}: {err}");
         }
+    }
+
+    #[test]
+    fn video_keys_have_defaults_and_a_large_camera_is_scaled_to_fit() {
+        let table: toml::Table = toml::from_str("[video]\nmax_fps = 15\nmax_viewers = 2\n").unwrap();
+        let video = GatewayConfig::from_table(&table).unwrap().video;
+        assert_eq!((video.max_fps, video.max_viewers), (15, 2));
+        assert_eq!(
+            (video.min_bitrate_bps(), video.max_bitrate_bps()),
+            (60_000, 1_500_000)
+        );
+        assert!(video.enabled);
+        // Under the caps: sent as captured.
+        assert_eq!(video.sent_size(640, 480), (640, 480));
+        // 1920x1080 into 1280x720: both sides scale by 2/3.
+        assert_eq!(video.sent_size(1920, 1080), (1280, 720));
+        // A tall camera is held by the height cap, its aspect kept; odd sides become even.
+        assert_eq!(video.sent_size(1000, 1440), (500, 720));
+        let small = VideoConfig {
+            max_width_px: 321,
+            max_height_px: 4096,
+            ..VideoConfig::default()
+        };
+        assert_eq!(small.sent_size(640, 480), (320, 240));
     }
 
     #[test]

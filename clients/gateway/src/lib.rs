@@ -38,7 +38,7 @@ mod web;
 mod web_preview;
 mod webrtc;
 
-pub use config::{GatewayConfig, TopicConfig};
+pub use config::{GatewayConfig, TopicConfig, VideoConfig};
 pub use error::GatewayError;
 pub use server::{Gateway, GatewayInfo, Listeners};
 use std::future::Future;

@@ -174,17 +174,20 @@ pub(crate) struct PageHandler {
     preview: Option<JoinHandle<()>>,
     /// The page's WebRTC viewer task, while it watches.
     video: Option<JoinHandle<()>>,
+    /// Where the page's socket comes from (a page on this machine gets video without congestion control).
+    peer: std::net::IpAddr,
     close: bool,
 }
 
 impl PageHandler {
-    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring) -> Self {
+    pub(crate) fn new(shared: Arc<Shared>, wiring: Wiring, peer: std::net::IpAddr) -> Self {
         Self {
             shared,
             wiring,
             session: None,
             preview: None,
             video: None,
+            peer,
             close: false,
         }
     }
@@ -200,6 +203,7 @@ impl PageHandler {
                 "default_arm": self.shared.config.default_arm,
                 "rosbridge_port": self.shared.rosbridge_port,
                 "controllers": self.shared.config.controllers,
+                "video": self.shared.config.video.enabled,
             })
             .to_string(),
         );
@@ -239,7 +243,7 @@ impl PageHandler {
                 &self.shared.upstream,
                 camera,
                 sdp,
-                ip,
+                (ip, self.peer),
                 self.wiring.out.clone(),
             )
         } else {
@@ -316,8 +320,10 @@ impl Handler for PageHandler {
             Ok(PageMsg::Preview(request)) => match request.check() {
                 Ok(params) => {
                     self.stop_preview();
+                    let (runtime, upstream) = self.shared.video.background(&self.shared.upstream);
                     self.preview = Some(web_preview::spawn(
-                        self.shared.upstream.clone(),
+                        &runtime,
+                        upstream,
                         params,
                         self.wiring.preview.clone(),
                         self.wiring.out.clone(),

@@ -162,6 +162,7 @@ impl Gateway {
             config.allow.clone(),
             Duration::from_secs(config.pair_for_s),
         );
+        let video = crate::webrtc::VideoHub::new(config.video);
         let shared = Arc::new(Shared {
             config,
             upstream,
@@ -169,7 +170,7 @@ impl Gateway {
             pairing,
             holders: Holders::default(),
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
-            video: crate::webrtc::VideoHub::default(),
+            video,
             connections: AtomicU64::new(1),
             shutdown,
         });
@@ -457,7 +458,7 @@ async fn page_socket(
         let max = shared.config.max_message_bytes;
         let stop = shared.shutdown.clone();
         conn::run(socket, max, stop, |wiring| {
-            let handler = PageHandler::new(shared, wiring);
+            let handler = PageHandler::new(shared, wiring, peer.ip());
             handler.welcome(&arms, &cameras);
             handler
         })

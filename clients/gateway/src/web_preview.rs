@@ -111,17 +111,18 @@ pub(crate) fn shrink(jpeg: &[u8], max_width_px: u32, quality: u8) -> Result<Vec<
     Ok(out)
 }
 
-/// Starts the preview of `params.camera` for one page socket: says `preview on` (or, for a camera the
-/// server does not have, an error and `preview off`), then fills `slot` at most `max_fps` times a second
-/// until aborted.
+/// Starts the preview of `params.camera` for one page socket on `runtime` (the live video's, off the control
+/// path's thread; `upstream` is that runtime's connection): says `preview on` (or, for a camera the server does
+/// not have, an error and `preview off`), then fills `slot` at most `max_fps` times a second until aborted.
 pub(crate) fn spawn(
+    runtime: &tokio::runtime::Handle,
     upstream: Upstream,
     params: PreviewParams,
     slot: Arc<PreviewSlot>,
     out: Out,
 ) -> JoinHandle<()> {
     let generation = slot.open();
-    tokio::spawn(async move {
+    runtime.spawn(async move {
         let camera = params.camera.clone();
         match upstream.camera_names().await {
             Ok(names) if names.contains(&camera) => {}
@@ -164,7 +165,8 @@ pub(crate) fn spawn(
             }
             let result = match upstream.camera_frame(&camera, ImageEncoding::Jpeg).await {
                 Ok(Some(timed)) => {
-                    // Decoding and encoding a frame takes milliseconds: off the async workers.
+                    // Decoding and encoding a frame takes milliseconds: off the runtime's thread (its blocking
+                    // threads inherit the video thread's lower priority).
                     let (width, quality) = (params.width_px, params.quality);
                     let jpeg = timed.frame.data;
                     tokio::task::spawn_blocking(move || shrink(&jpeg, width, quality))

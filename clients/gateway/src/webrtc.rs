@@ -3,8 +3,9 @@
 //!
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
-//! - Video never runs on the control path's thread: the feeds and viewers run on a runtime of their own (one
-//!   thread, `video-io`) with a connection of their own to the server, and the encoder on a thread per camera;
+//! - Video never runs on the control path's thread: the feeds and viewers (and the JPEG preview's fetches, see
+//!   `web_preview`) run on a runtime of their own (one thread, `video-io`) with a connection of their own to the
+//!   server, and the encoder on a thread per camera;
 //!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
 //!   path's threads get the CPU first and the video is what slows down.
 //! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
@@ -19,11 +20,18 @@
 //!   on the control socket) and the bitrate.
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
 //!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
-//!   [`MIN_BITRATE_BPS`]..[`MAX_BITRATE_BPS`]), so a slow link gets fewer bits instead of a queue that would
-//!   also hold up the control socket's packets.
+//!   `[gateway.video]`'s `min_bitrate_kbps`..`max_bitrate_kbps`), so a slow link gets fewer bits instead of a
+//!   queue that would also hold up the control socket's packets.
+//! - `[gateway.video]` ([`VideoConfig`]) also caps the frame rate, the picture's size (a larger camera is scaled
+//!   down in the encoder's colour conversion) and the number of viewers, or turns the video off.
+//! - A page on this very machine (its socket comes from the address the viewer's UDP socket is bound to) has no
+//!   link to congest: its viewer runs without congestion control and pacing and gets the ceiling. On a busy
+//!   machine the estimator reads the scheduler's delays as queueing and would lower the bitrate to its floor
+//!   for nothing. A page elsewhere always gets the estimator, however near.
 //! - The feed stops when its last viewer leaves; a page's viewer ends with its socket, a new offer or
 //!   `video_off`.
 
+use crate::config::VideoConfig;
 use crate::conn::Out;
 use crate::upstream::{Upstream, unix_ns};
 use parking_lot::Mutex;
@@ -33,7 +41,7 @@ use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime};
 use str0m::bwe::{Bitrate, BweKind};
 use str0m::change::SdpOffer;
@@ -47,14 +55,6 @@ use tokio::task::JoinHandle;
 
 /// Frames a viewer may fall behind before it loses the oldest (about 130 ms at 30 fps).
 const VIEWER_QUEUE: usize = 4;
-/// The rate asked of a camera that says nothing else, and the cap.
-const MAX_FPS: f64 = 30.0;
-/// The most bits per second the encoder is given (640x480 at 30 fps: sharp enough to read the scene, a small
-/// share of a Wi-Fi link), and where it starts before a link estimate exists.
-pub(crate) const MAX_BITRATE_BPS: u64 = 1_500_000;
-/// The least. It must stay under what a slow link's estimate can fall to: str0m paces at 1.1 times its estimate,
-/// and an encoder above that fills the pacer's queue (late frames for every viewer).
-pub(crate) const MIN_BITRATE_BPS: u64 = 60_000;
 /// Frame-rate steps for a low bitrate, so that each frame keeps enough bits to be legible: below the first
 /// bitrate one frame in the second is encoded.
 const FRAME_STEPS: [(u64, u64); 2] = [(150_000, 3), (300_000, 2)];
@@ -64,7 +64,7 @@ const LINK_SHARE: f64 = 0.85;
 /// A new target within this fraction of the encoder's bitrate is not worth a rate-control change.
 const RETARGET_FRACTION: f64 = 0.1;
 /// How much less CPU priority the video's threads get than the control path's (nice steps).
-const VIDEO_NICE: i32 = 10;
+const VIDEO_NICE: i32 = phone2act_recorder::priority::BACKGROUND_NICE;
 /// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
 const VIEWER_IDLE: Duration = Duration::from_secs(30);
 
@@ -88,18 +88,34 @@ struct Feed {
     task: Mutex<Option<JoinHandle<()>>>,
     /// Each viewer's share of its link (bits per second), by viewer id; the encoder aims at the lowest.
     link_bps: Mutex<HashMap<u64, u64>>,
-    /// The lowest of `link_bps` ([`MAX_BITRATE_BPS`] while no viewer has an estimate).
+    /// The lowest of `link_bps` (the ceiling while no viewer has an estimate).
     target_bps: AtomicU64,
+    config: VideoConfig,
 }
 
 impl Feed {
+    fn new(config: VideoConfig) -> Self {
+        Self {
+            tx: broadcast::channel(VIEWER_QUEUE).0,
+            force_key: AtomicBool::new(true),
+            task: Mutex::new(None),
+            link_bps: Mutex::new(HashMap::new()),
+            target_bps: AtomicU64::new(config.max_bitrate_bps()),
+            config,
+        }
+    }
+
     fn set_link(&self, viewer: u64, bps: Option<u64>) {
         let mut links = self.link_bps.lock();
         match bps {
             Some(bps) => links.insert(viewer, bps),
             None => links.remove(&viewer),
         };
-        let target = links.values().copied().min().unwrap_or(MAX_BITRATE_BPS);
+        let target = links
+            .values()
+            .copied()
+            .min()
+            .unwrap_or(self.config.max_bitrate_bps());
         self.target_bps.store(target, Ordering::Release);
     }
 }
@@ -117,8 +133,8 @@ impl Drop for ViewerLink<'_> {
 }
 
 /// The bitrate to give a viewer whose link is estimated at `estimate_bps`.
-fn share_of_link(estimate_bps: u64) -> u64 {
-    ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(MIN_BITRATE_BPS, MAX_BITRATE_BPS)
+fn share_of_link(estimate_bps: u64, config: &VideoConfig) -> u64 {
+    ((estimate_bps as f64 * LINK_SHARE) as u64).clamp(config.min_bitrate_bps(), config.max_bitrate_bps())
 }
 
 /// Of the camera's frames, one in this many is encoded at `target_bps`.
@@ -176,29 +192,56 @@ fn start_io(upstream: &Upstream) -> Result<VideoIo, String> {
     })
 }
 
-/// Lowers the calling thread's CPU priority by [`VIDEO_NICE`] (Linux, where nice is per thread; threads it
-/// starts inherit it). Elsewhere the video runs at the control path's priority.
+/// Lowers the calling thread's CPU priority (threads it starts inherit it).
 fn lower_priority() {
-    #[cfg(target_os = "linux")]
-    {
-        use rustix::process::{getpriority_process, setpriority_process};
-        let tid = rustix::thread::gettid();
-        let now = getpriority_process(Some(tid)).unwrap_or(0);
-        if let Err(e) = setpriority_process(Some(tid), (now + VIDEO_NICE).min(19)) {
-            tracing::debug!("video thread keeps its priority: {e}");
-        }
-    }
+    phone2act_recorder::priority::lower_current_thread(VIDEO_NICE);
 }
 
 /// The cameras' feeds, shared by every page socket.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct VideoHub {
+    config: VideoConfig,
     feeds: Mutex<HashMap<String, Arc<Feed>>>,
     io: Mutex<Option<VideoIo>>,
     viewers: AtomicU64,
+    /// Viewers running now (at most `config.max_viewers`).
+    watching: Arc<AtomicU32>,
+}
+
+/// A place among the hub's viewers, given back when dropped.
+struct ViewerPlace(Arc<AtomicU32>);
+
+impl Drop for ViewerPlace {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 impl VideoHub {
+    pub(crate) fn new(config: VideoConfig) -> Self {
+        Self {
+            config,
+            feeds: Mutex::new(HashMap::new()),
+            io: Mutex::new(None),
+            viewers: AtomicU64::new(0),
+            watching: Arc::new(AtomicU32::new(0)),
+        }
+    }
+
+    /// A place for one more viewer, if `[gateway.video]` allows it.
+    fn take_place(&self) -> Result<ViewerPlace, String> {
+        if !self.config.enabled {
+            return Err("live video is off on this gateway ([gateway.video] enabled = false)".into());
+        }
+        let max = self.config.max_viewers;
+        self.watching
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < max).then_some(n + 1)
+            })
+            .map(|_| ViewerPlace(self.watching.clone()))
+            .map_err(|_| format!("{max} pages already watch the video ([gateway.video] max_viewers)"))
+    }
+
     /// The video runtime's handle and connection, starting it on first use.
     fn io(&self, upstream: &Upstream) -> Result<(tokio::runtime::Handle, Upstream), String> {
         let mut io = self.io.lock();
@@ -207,6 +250,15 @@ impl VideoHub {
         }
         let io = io.as_ref().expect("just started");
         Ok((io.handle.clone(), io.upstream.clone()))
+    }
+
+    /// Where other camera work of the pages runs (the JPEG preview's fetches): the video runtime and its
+    /// connection, or, if its thread cannot start, the caller's runtime and connection.
+    pub(crate) fn background(&self, upstream: &Upstream) -> (tokio::runtime::Handle, Upstream) {
+        self.io(upstream).unwrap_or_else(|e| {
+            tracing::warn!("camera work stays on the control thread: {e}");
+            (tokio::runtime::Handle::current(), upstream.clone())
+        })
     }
 
     /// A receiver of `camera`'s frames, starting its feed (on the video runtime) if none runs.
@@ -219,15 +271,7 @@ impl VideoHub {
         let mut feeds = self.feeds.lock();
         let feed = feeds
             .entry(camera.to_owned())
-            .or_insert_with(|| {
-                Arc::new(Feed {
-                    tx: broadcast::channel(VIEWER_QUEUE).0,
-                    force_key: AtomicBool::new(true),
-                    task: Mutex::new(None),
-                    link_bps: Mutex::new(HashMap::new()),
-                    target_bps: AtomicU64::new(MAX_BITRATE_BPS),
-                })
-            })
+            .or_insert_with(|| Arc::new(Feed::new(self.config)))
             .clone();
         let rx = feed.tx.subscribe();
         feed.force_key.store(true, Ordering::Release);
@@ -317,7 +361,8 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
             Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
             _ => {
                 let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
-                match H264Encoder::new(frame.width, frame.height, frame.fps, bitrate) {
+                let out = feed.config.sent_size(frame.width, frame.height);
+                match H264Encoder::scaled(frame.width, frame.height, out, frame.fps, bitrate) {
                     Ok(e) => e,
                     Err(e) => {
                         tracing::warn!("video of camera {camera}: {e}");
@@ -365,7 +410,8 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
     }
     let _close = CloseOnDrop(slot.clone());
     let mut last: Option<(u64, i64)> = None; // (frame_seq, capture_time_ns on the server's clock)
-    let mut period = Duration::from_secs_f64(1.0 / MAX_FPS);
+    let shortest = Duration::from_secs_f64(1.0 / f64::from(feed.config.max_fps));
+    let mut period = shortest;
     let mut failing = false;
     while feed.tx.receiver_count() > 0 {
         let timed = match upstream.camera_frame(&camera, ImageEncoding::Rgb8).await {
@@ -395,7 +441,7 @@ async fn run_feed(upstream: Upstream, camera: String, feed: Arc<Feed>) {
             && frame.capture_time_ns > t
         {
             let measured = Duration::from_nanos((frame.capture_time_ns - t).unsigned_abs());
-            period = measured.max(Duration::from_secs_f64(1.0 / MAX_FPS));
+            period = measured.max(shortest);
         }
         last = Some((frame.frame_seq, frame.capture_time_ns));
         let raw = RawFrame {
@@ -430,16 +476,26 @@ pub(crate) fn bind_ip(
         .or_else(|| public_host.and_then(parse))
 }
 
+/// Whether a page whose socket comes from `page_ip` runs on this machine, the viewer's socket being bound to
+/// `bind_ip` (the address the page reached the gateway at): a local connection's source address is its
+/// destination's.
+fn same_host(bind_ip: IpAddr, page_ip: IpAddr) -> bool {
+    bind_ip == page_ip
+}
+
 /// Answers `offer_sdp` for `camera` and starts the viewer on the video runtime; its task ends with the returned
-/// handle's abort.
+/// handle's abort. `ips` is (where the viewer's UDP socket binds, where the page's socket comes from).
 pub(crate) fn start_viewer(
     hub: &VideoHub,
     upstream: &Upstream,
     camera: &str,
     offer_sdp: &str,
-    ip: IpAddr,
+    ips: (IpAddr, IpAddr),
     out: Out,
 ) -> Result<(String, JoinHandle<()>), String> {
+    let (ip, page_ip) = ips;
+    let local_page = same_host(ip, page_ip);
+    let place = hub.take_place()?;
     let offer = SdpOffer::from_sdp_string(offer_sdp).map_err(|e| format!("bad video offer: {e}"))?;
     // A std socket here; the video runtime registers it with its own reactor.
     let socket = std::net::UdpSocket::bind(SocketAddr::new(ip, 0))
@@ -450,8 +506,9 @@ pub(crate) fn start_viewer(
         .clear_codecs()
         .enable_h264(true)
         .set_ice_lite(true)
-        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down.
-        .enable_bwe(Some(Bitrate::bps(MAX_BITRATE_BPS)))
+        // Send-side bandwidth estimation on the page's transport-wide feedback, from the top rate down; none for a
+        // page on this machine (no estimate: the ceiling, unpaced).
+        .enable_bwe((!local_page).then(|| Bitrate::bps(hub.config.max_bitrate_bps())))
         .build(Instant::now());
     let candidate = Candidate::host(local, "udp").map_err(|e| format!("video candidate: {e}"))?;
     rtc.add_local_candidate(candidate)
@@ -465,8 +522,10 @@ pub(crate) fn start_viewer(
     let viewer = hub.viewers.fetch_add(1, Ordering::Relaxed);
     let camera = camera.to_owned();
     let task = runtime.spawn(async move {
-        // Forgets this viewer's link however the task ends (`video_off` and a new offer abort it).
+        // Forgets this viewer's link and gives its place back however the task ends (`video_off` and a new
+        // offer abort it).
         let _share = ViewerLink { feed: &feed, viewer };
+        let _place = place;
         let ended = match UdpSocket::from_std(socket) {
             // Boxed: the Rtc is large, and the task's future need not carry it inline.
             Ok(socket) => Box::pin(run_viewer(rtc, socket, local, rx, &feed, viewer)).await,
@@ -530,14 +589,15 @@ async fn run_viewer(
                     Event::Connected => {
                         connected = true;
                         // Probe up to the top rate: the estimate can then rise back after a slow spell.
-                        rtc.bwe().set_desired_bitrate(Bitrate::bps(MAX_BITRATE_BPS));
+                        rtc.bwe()
+                            .set_desired_bitrate(Bitrate::bps(feed.config.max_bitrate_bps()));
                     }
                     Event::EgressBitrateEstimate(
                         BweKind::Twcc { estimate, .. } | BweKind::Remb { estimate, .. },
                     ) => {
                         let bps = estimate.as_u64();
                         estimate_bps = Some(bps);
-                        feed.set_link(viewer, Some(share_of_link(bps)));
+                        feed.set_link(viewer, Some(share_of_link(bps, &feed.config)));
                     }
                     Event::MediaAdded(m) if m.kind == MediaKind::Video => {
                         video = h264_pt(&mut rtc, m.mid).map(|p| (m.mid, p));
@@ -614,6 +674,17 @@ mod tests {
     use super::*;
 
     #[test]
+    fn only_a_page_from_the_viewers_own_address_counts_as_this_machine() {
+        let ip = |s: &str| s.parse::<IpAddr>().unwrap();
+        assert!(same_host(ip("127.0.0.1"), ip("127.0.0.1")));
+        assert!(same_host(ip("192.168.1.20"), ip("192.168.1.20")));
+        // Another loopback address plays another machine (the throttled-link test's relay), and a LAN peer is one.
+        assert!(!same_host(ip("127.0.0.1"), ip("127.0.0.2")));
+        assert!(!same_host(ip("192.168.1.20"), ip("192.168.1.30")));
+        assert!(!same_host(ip("::1"), ip("127.0.0.1")));
+    }
+
+    #[test]
     fn the_viewer_binds_where_the_page_reached_the_gateway() {
         let any: SocketAddr = "0.0.0.0:8443".parse().unwrap();
         let lan: SocketAddr = "192.168.1.20:8443".parse().unwrap();
@@ -662,26 +733,48 @@ mod tests {
 
     #[test]
     fn the_bitrate_follows_the_slowest_viewer_within_bounds() {
-        let feed = Feed {
-            tx: broadcast::channel(1).0,
-            force_key: AtomicBool::new(false),
-            task: Mutex::new(None),
-            link_bps: Mutex::new(HashMap::new()),
-            target_bps: AtomicU64::new(MAX_BITRATE_BPS),
-        };
+        let config = VideoConfig::default();
+        let feed = Feed::new(config);
         let target = || feed.target_bps.load(Ordering::Acquire);
-        assert_eq!(share_of_link(1_000_000), 850_000);
-        assert_eq!(share_of_link(10_000_000), MAX_BITRATE_BPS);
-        assert_eq!(share_of_link(10_000), MIN_BITRATE_BPS);
-        feed.set_link(1, Some(share_of_link(1_000_000)));
-        feed.set_link(2, Some(share_of_link(400_000)));
+        assert_eq!(share_of_link(1_000_000, &config), 850_000);
+        assert_eq!(share_of_link(10_000_000, &config), 1_500_000);
+        assert_eq!(share_of_link(10_000, &config), 60_000);
+        let narrow = VideoConfig {
+            min_bitrate_kbps: 200,
+            max_bitrate_kbps: 800,
+            ..config
+        };
+        assert_eq!(share_of_link(10_000_000, &narrow), 800_000);
+        assert_eq!(share_of_link(10_000, &narrow), 200_000);
+        feed.set_link(1, Some(share_of_link(1_000_000, &config)));
+        feed.set_link(2, Some(share_of_link(400_000, &config)));
         assert_eq!(target(), 340_000, "the slower viewer's share");
         feed.set_link(2, None);
         assert_eq!(target(), 850_000, "the slow viewer left");
         feed.set_link(1, None);
-        assert_eq!(target(), MAX_BITRATE_BPS, "no estimate: the top rate");
-        assert_eq!(frame_divisor(MAX_BITRATE_BPS), 1);
+        assert_eq!(target(), 1_500_000, "no estimate: the top rate");
+        assert_eq!(frame_divisor(1_500_000), 1);
         assert_eq!(frame_divisor(299_999), 2);
-        assert_eq!(frame_divisor(MIN_BITRATE_BPS), 3);
+        assert_eq!(frame_divisor(60_000), 3);
+    }
+
+    #[test]
+    fn viewers_beyond_the_cap_and_a_disabled_video_are_refused() {
+        let hub = VideoHub::new(VideoConfig {
+            max_viewers: 2,
+            ..VideoConfig::default()
+        });
+        let (a, b) = (hub.take_place().unwrap(), hub.take_place().unwrap());
+        let refused = hub.take_place().err().unwrap();
+        assert!(refused.contains("2 pages already watch"), "{refused}");
+        drop(a);
+        let _c = hub.take_place().expect("a viewer left: its place is free");
+        drop(b);
+        let off = VideoHub::new(VideoConfig {
+            enabled: false,
+            ..VideoConfig::default()
+        });
+        let refused = off.take_place().err().unwrap();
+        assert!(refused.contains("enabled = false"), "{refused}");
     }
 }

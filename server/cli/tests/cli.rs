@@ -921,6 +921,47 @@ fn gateway_errors_name_their_line_and_overrides_their_variable() {
 }
 
 #[test]
+fn check_shows_the_video_keys_and_refuses_bad_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = config_with(
+        dir.path(),
+        "video.toml",
+        "\n[gateway]\nprint_qr = false\n\n[gateway.video]\nmax_bitrate_kbps = 800\nmax_viewers = 2\n",
+    );
+    let out = Command::new(BIN)
+        .args(["serve", "--check", "--config"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let back: toml::Table = toml::from_str(&String::from_utf8_lossy(&out.stdout)).unwrap();
+    let video = back["gateway"]["video"].as_table().unwrap();
+    assert_eq!(video["max_bitrate_kbps"].as_integer(), Some(800));
+    assert_eq!(video["max_viewers"].as_integer(), Some(2));
+    // Defaults filled in for what the file leaves out.
+    assert_eq!(video["min_bitrate_kbps"].as_integer(), Some(60));
+    assert_eq!(video["enabled"].as_bool(), Some(true));
+    let bad = config_with(
+        dir.path(),
+        "bad-video.toml",
+        "\n[gateway]\nprint_qr = false\n\n[gateway.video]\nmin_bitrate_kbps = 900\nmax_bitrate_kbps = 800\n",
+    );
+    let (code, err) = check_config(&bad, &[]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("gateway.video.min_bitrate_kbps (900) must not exceed max_bitrate_kbps (800)"),
+        "{err}"
+    );
+    let (code, err) = check_config(&path, &[("PHONE2ACT_GATEWAY__VIDEO__MAX_FPS", "0")]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("(with PHONE2ACT_GATEWAY__VIDEO__MAX_FPS)")
+            && err.contains("gateway.video.max_fps must be in 1..=60, got 0"),
+        "{err}"
+    );
+}
+
+#[test]
 fn secrets_that_look_like_numbers_are_taken_and_never_printed() {
     let dir = tempfile::tempdir().unwrap();
     let path = write_config(dir.path());

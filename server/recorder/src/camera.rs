@@ -1,7 +1,8 @@
 //! Camera sources. Each source runs on its own thread and publishes into a [`FrameSlot`], which hands readers
 //! the newest frame (latest wins) and keeps the last [`HISTORY_FRAMES`] with their capture times on the
 //! process monotonic clock, so that the recorder can take the frame of an instant that has just passed (see
-//! [`crate::timeline`]). Generated sources draw only while someone reads their slot.
+//! [`crate::timeline`]). Generated sources draw only while someone reads their slot, and at a lower CPU priority
+//! while nobody records them (see [`spawn_generated`]).
 
 use crate::timeline::TimedRing;
 use parking_lot::{Condvar, Mutex};
@@ -50,6 +51,8 @@ struct SlotState {
     /// When a reader last asked for a frame (process clock); starts at the slot's creation so that a new
     /// source runs for [`IDLE_AFTER_NS`] before it first parks.
     last_read_ns: i64,
+    /// When the recorder last read the history or touched the slot (process clock); `None` until it does.
+    last_recorded_ns: Option<i64>,
     parked: bool,
 }
 
@@ -80,6 +83,7 @@ impl FrameSlot {
                 latest: None,
                 history: TimedRing::new(HISTORY_FRAMES),
                 last_read_ns: clock(),
+                last_recorded_ns: None,
                 parked: false,
             }),
             changed: Condvar::new(),
@@ -121,6 +125,7 @@ impl FrameSlot {
     pub fn with_history<R>(&self, f: impl FnOnce(&TimedRing<Frame>) -> R) -> R {
         let mut state = self.state.lock();
         state.last_read_ns = (self.clock)();
+        state.last_recorded_ns = Some(state.last_read_ns);
         if state.parked {
             self.changed.notify_all();
         }
@@ -132,6 +137,7 @@ impl FrameSlot {
     pub fn touch(&self) {
         let mut state = self.state.lock();
         state.last_read_ns = (self.clock)();
+        state.last_recorded_ns = Some(state.last_read_ns);
         if state.parked {
             self.changed.notify_all();
         }
@@ -146,6 +152,16 @@ impl FrameSlot {
     /// read).
     pub fn parked(&self) -> bool {
         self.state.lock().parked
+    }
+
+    /// Whether the recorder has read the history or touched the slot within the last [`IDLE_AFTER_NS`]: a
+    /// generated source then renders at full priority, so that no recorded frame waits for the CPU behind the
+    /// control path.
+    pub fn recorded(&self) -> bool {
+        let state = self.state.lock();
+        state
+            .last_recorded_ns
+            .is_some_and(|t| (self.clock)() - t <= IDLE_AFTER_NS)
     }
 
     /// Frames published since start.
@@ -253,21 +269,76 @@ pub fn spawn_test_pattern(
     )
 }
 
+/// A generated camera's drawing function, shared by its capture thread and its background renderer.
+type SharedGenerator = Arc<Mutex<dyn FnMut(u64, &mut Vec<u8>) + Send>>;
+
+/// A thread at [`crate::priority::BACKGROUND_NICE`] that draws a generated camera's frames while nobody records
+/// it (a live view or a policy reads it): on a busy machine the control path's threads then get the CPU first
+/// and the view is what slows down. Ends when dropped.
+struct BackgroundRenderer {
+    jobs: Option<std::sync::mpsc::SyncSender<(u64, Vec<u8>)>>,
+    done: std::sync::mpsc::Receiver<Vec<u8>>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl BackgroundRenderer {
+    fn spawn(name: &str, generator: SharedGenerator) -> std::io::Result<Self> {
+        let (jobs, job_rx) = std::sync::mpsc::sync_channel::<(u64, Vec<u8>)>(1);
+        let (done_tx, done) = std::sync::mpsc::sync_channel(1);
+        let handle = std::thread::Builder::new()
+            .name(format!("camera-{name}-bg"))
+            .spawn(move || {
+                crate::priority::lower_current_thread(crate::priority::BACKGROUND_NICE);
+                while let Ok((seq, mut buf)) = job_rx.recv() {
+                    (generator.lock())(seq, &mut buf);
+                    if done_tx.send(buf).is_err() {
+                        return;
+                    }
+                }
+            })?;
+        Ok(Self {
+            jobs: Some(jobs),
+            done,
+            handle: Some(handle),
+        })
+    }
+
+    /// Frame `seq` drawn on the background thread; `None` if that thread is gone (the generator panicked).
+    fn render(&self, seq: u64, buf: Vec<u8>) -> Option<Vec<u8>> {
+        self.jobs.as_ref()?.send((seq, buf)).ok()?;
+        self.done.recv().ok()
+    }
+}
+
+impl Drop for BackgroundRenderer {
+    fn drop(&mut self) {
+        // Closing the job channel ends the thread's loop.
+        self.jobs = None;
+        if let Some(handle) = self.handle.take() {
+            let _ = handle.join();
+        }
+    }
+}
+
 /// Starts a camera whose frames are drawn by `generator(seq, &mut rgb)` at `fps` (the simulated arm's
 /// rendered view, test patterns). The generator must fill `width * height * 3` bytes. It draws only while the
-/// slot is read (see [`FrameSlot`]).
+/// slot is read (see [`FrameSlot`]); while the recorder reads it ([`FrameSlot::recorded`]) it draws on the
+/// capture thread at full priority, otherwise on a background thread at a lower priority (a live view must not
+/// take the CPU from the control path; a recorded frame must not wait for it).
 pub fn spawn_generated(
     name: &str,
     width: u32,
     height: u32,
     fps: f64,
-    mut generator: impl FnMut(u64, &mut Vec<u8>) + Send + 'static,
+    generator: impl FnMut(u64, &mut Vec<u8>) + Send + 'static,
     slot: Arc<FrameSlot>,
 ) -> std::io::Result<CaptureThread> {
     let stop = Arc::new(AtomicBool::new(false));
     let stop_flag = Arc::clone(&stop);
     let period = Duration::from_secs_f64(1.0 / fps.max(0.1));
     let expected = width as usize * height as usize * 3;
+    let generator: SharedGenerator = Arc::new(Mutex::new(generator));
+    let background = BackgroundRenderer::spawn(name, Arc::clone(&generator))?;
     let handle = std::thread::Builder::new()
         .name(format!("camera-{name}"))
         .spawn(move || {
@@ -278,7 +349,14 @@ pub fn spawn_generated(
             while !stop_flag.load(Ordering::Relaxed) {
                 // A fresh buffer per frame: readers may still hold the previous one through its Arc.
                 let mut buf = Vec::with_capacity(expected);
-                generator(seq, &mut buf);
+                if slot.recorded() {
+                    (generator.lock())(seq, &mut buf);
+                } else if let Some(drawn) = background.render(seq, buf) {
+                    buf = drawn;
+                } else {
+                    buf = Vec::with_capacity(expected);
+                    (generator.lock())(seq, &mut buf);
+                }
                 // Captured when drawing finished, like a real sensor's exposure end.
                 let capture_time_ns = monotonic_ns();
                 if buf.len() == expected {
@@ -467,6 +545,57 @@ mod tests {
             slot.frames_captured() > parked_count
         });
         assert!(!slot.parked());
+        cam.stop();
+    }
+
+    #[test]
+    fn an_unrecorded_source_draws_at_a_lower_priority_and_a_recorded_one_at_full() {
+        static NOW_NS: std::sync::atomic::AtomicI64 = std::sync::atomic::AtomicI64::new(0);
+        let slot = Arc::new(FrameSlot::with_clock(|| NOW_NS.load(Ordering::SeqCst)));
+        // The drawing thread's name and nice value of the newest frame.
+        let drawn_by = Arc::new(Mutex::new((String::new(), None)));
+        let cam = {
+            let drawn_by = Arc::clone(&drawn_by);
+            spawn_generated(
+                "prio",
+                4,
+                2,
+                200.0,
+                move |_, buf| {
+                    let name = std::thread::current().name().unwrap_or_default().to_owned();
+                    *drawn_by.lock() = (name, crate::priority::current_thread_nice());
+                    buf.resize(24, 0);
+                },
+                Arc::clone(&slot),
+            )
+            .unwrap()
+        };
+        let full_nice = crate::priority::current_thread_nice();
+        let frames_by = |what: &str, thread: &str| {
+            let n = slot.frames_captured();
+            wait_for(what, || {
+                slot.frames_captured() > n + 1 && drawn_by.lock().0 == thread
+            });
+            drawn_by.lock().1
+        };
+        // Read (a live view), not recorded: the background thread draws.
+        let _ = slot.latest();
+        let nice = frames_by("frames drawn in the background", "camera-prio-bg");
+        if let (Some(full), Some(low)) = (full_nice, nice) {
+            assert_eq!(low, (full + crate::priority::BACKGROUND_NICE).min(19));
+        }
+        // The recorder reads the history: the capture thread draws, at the priority it was started with.
+        slot.with_history(|_| ());
+        assert!(slot.recorded());
+        assert_eq!(
+            frames_by("frames drawn at full priority", "camera-prio"),
+            full_nice
+        );
+        // Past the idle time without a recorder read: back to the background.
+        NOW_NS.store(IDLE_AFTER_NS + 1, Ordering::SeqCst);
+        let _ = slot.latest();
+        assert!(!slot.recorded());
+        frames_by("frames drawn in the background again", "camera-prio-bg");
         cam.stop();
     }
 

@@ -13,6 +13,7 @@ pub mod jpeg;
 pub mod live;
 pub mod memory;
 pub mod parquet_io;
+pub mod priority;
 pub mod quantiles;
 pub mod readback;
 pub mod recorder;

@@ -25,8 +25,11 @@ pub struct H264Encoder {
     encoder: encoder::Video,
     scaler: scaling::Context,
     rgb: VideoFrame,
+    /// The camera's size (rounded down to even) and the size sent (the scaler converts between them).
     width: u32,
     height: u32,
+    out_width: u32,
+    out_height: u32,
     frames: i64,
     packet: Packet,
     bitrate_bps: usize,
@@ -42,6 +45,8 @@ impl std::fmt::Debug for H264Encoder {
         f.debug_struct("H264Encoder")
             .field("width", &self.width)
             .field("height", &self.height)
+            .field("out_width", &self.out_width)
+            .field("out_height", &self.out_height)
             .field("frames", &self.frames)
             .finish_non_exhaustive()
     }
@@ -50,6 +55,18 @@ impl std::fmt::Debug for H264Encoder {
 impl H264Encoder {
     /// An encoder for `width`x`height` RGB frames at about `fps`, aiming at `bitrate_bps`.
     pub fn new(width: u32, height: u32, fps: u32, bitrate_bps: usize) -> Result<Self, EncodeError> {
+        Self::scaled(width, height, (width, height), fps, bitrate_bps)
+    }
+
+    /// An encoder for `width`x`height` RGB frames that sends them at `out` (width, height; scaled in the
+    /// colour conversion, no extra pass), at about `fps`, aiming at `bitrate_bps`.
+    pub fn scaled(
+        width: u32,
+        height: u32,
+        out: (u32, u32),
+        fps: u32,
+        bitrate_bps: usize,
+    ) -> Result<Self, EncodeError> {
         static INIT: Once = Once::new();
         INIT.call_once(|| {
             let _ = ffmpeg_next::init();
@@ -63,8 +80,9 @@ impl H264Encoder {
             .map_err(|e| ff("video encoder", e))?;
         // Even sizes: 4:2:0 chroma halves both.
         let (width, height) = (width & !1, height & !1);
-        enc.set_width(width);
-        enc.set_height(height);
+        let (out_width, out_height) = ((out.0 & !1).max(2), (out.1 & !1).max(2));
+        enc.set_width(out_width);
+        enc.set_height(out_height);
         enc.set_format(Pixel::YUV420P);
         enc.set_time_base(Rational::new(1, fps.max(1) as i32));
         enc.set_frame_rate(Some(Rational::new(fps.max(1) as i32, 1)));
@@ -91,8 +109,8 @@ impl H264Encoder {
             width,
             height,
             Pixel::YUV420P,
-            width,
-            height,
+            out_width,
+            out_height,
             scaling::Flags::FAST_BILINEAR,
         )
         .map_err(|e| ff("colour conversion", e))?;
@@ -102,6 +120,8 @@ impl H264Encoder {
             rgb: VideoFrame::new(Pixel::RGB24, width, height),
             width,
             height,
+            out_width,
+            out_height,
             frames: 0,
             packet: Packet::empty(),
             bitrate_bps,
@@ -125,6 +145,11 @@ impl H264Encoder {
     /// The size this encoder takes (the camera's, rounded down to even).
     pub fn size(&self) -> (u32, u32) {
         (self.width, self.height)
+    }
+
+    /// The size it sends.
+    pub fn output_size(&self) -> (u32, u32) {
+        (self.out_width, self.out_height)
     }
 
     /// Encodes one packed RGB frame of the camera's size (`src_width` pixels a row, at least this encoder's
@@ -151,7 +176,7 @@ impl H264Encoder {
             data[y * stride..y * stride + row].copy_from_slice(&src[..row]);
         }
         // A fresh output frame each time: the encoder may still hold a reference to the previous one.
-        let mut yuv = VideoFrame::new(Pixel::YUV420P, self.width, self.height);
+        let mut yuv = VideoFrame::new(Pixel::YUV420P, self.out_width, self.out_height);
         self.scaler
             .run(&self.rgb, &mut yuv)
             .map_err(|e| ff("colour conversion", e))?;
@@ -205,6 +230,27 @@ mod tests {
         }
         // The first frame, the forced one, and one a GOP (30 frames) later.
         assert_eq!(keys, vec![0, 5, 35]);
+    }
+
+    #[test]
+    fn a_scaled_encoder_sends_the_smaller_picture() {
+        let mut enc = H264Encoder::scaled(640, 480, (320, 240), 30, 500_000).unwrap();
+        assert_eq!((enc.size(), enc.output_size()), ((640, 480), (320, 240)));
+        let rgb = vec![128u8; 640 * 480 * 3];
+        let (au, key) = enc.encode(&rgb, 640, true).unwrap().unwrap();
+        assert!(key);
+        // FFmpeg's own decoder reads the picture's size from the stream.
+        let mut decoder = codec::context::Context::new_with_codec(
+            ffmpeg_next::decoder::find(codec::Id::H264).expect("an H.264 decoder"),
+        )
+        .decoder()
+        .video()
+        .unwrap();
+        decoder.send_packet(&Packet::copy(&au)).unwrap();
+        decoder.send_eof().unwrap();
+        let mut frame = VideoFrame::empty();
+        decoder.receive_frame(&mut frame).unwrap();
+        assert_eq!((frame.width(), frame.height()), (320, 240));
     }
 
     #[test]
