@@ -265,6 +265,7 @@ mod tests {
             Input::Chunk {
                 session: POLICY,
                 chunk,
+                observed_s: 1.0,
             },
             &robot,
             1.0,
