@@ -181,16 +181,11 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     assert!(state.owner_id.starts_with(&format!("{POLICY}:")), "{}", state.owner_id);
     assert!(state.waiting_policy_id.is_empty());
     let sent_at_hand_back = state.commands_sent;
-    // The stale answer is refused, and the arm holds: no command at all, the measured pose where it was.
-    let refused = policy
-        .push_chunk_checked(&client, chunk(stale.observation_id, 10, 0.03, 0.0))
-        .await
-        .unwrap_err()
-        .to_string();
-    assert!(
-        refused.contains("before the operator handed the arm back"),
-        "{refused}"
-    );
+    // The stale answer (3 s long: most of it would still be ahead if it were taken) is refused, and the arm
+    // holds: no command at all, the measured pose where it was.
+    let stale_answer = policy
+        .push_chunk_checked(&client, chunk(stale.observation_id, 60, 0.03, 0.0))
+        .await;
     tokio::time::sleep(Duration::from_millis(500)).await;
     let state = arm_state(&client, "main").await;
     assert_eq!(
@@ -207,16 +202,24 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         state.commands_sent - sent_at_hand_back,
         dist(after_stale, corrected) * 1e3
     );
+    let refused = stale_answer.unwrap_err().to_string();
+    assert!(
+        refused.contains("before the operator handed the arm back"),
+        "{refused}"
+    );
 
     // A chunk answering a fresh observation drives, from where the operator left the arm.
-    let fresh = observation_after(&mut policy, handed_back_ns).await;
+    // (After the hand-back, and after the wait above: the observations queued meanwhile are older than a
+    // chunk's length.)
+    let fresh = observation_after(&mut policy, handed_back_ns.max(state.feedback_time_ns)).await;
+    assert!(fresh.timestamp_ns > handed_back_ns);
     let anchor = pos(fresh.arms[0].robot_from_ee.as_ref().unwrap());
     assert!(dist(anchor, corrected) < 0.001);
     policy
-        .push_chunk_checked(&client, chunk(fresh.observation_id, 10, 0.02, 0.0))
+        .push_chunk_checked(&client, chunk(fresh.observation_id, 20, 0.02, 0.0))
         .await
         .unwrap();
-    // 2 cm in 0.5 s; 10 s covers a stalled machine.
+    // 2 cm in 1 s; 10 s covers a stalled machine.
     assert!(
         wait_until(Duration::from_secs(10), || async {
             dist(sim_pose_of(&client, "main").await, [corrected[0] + 0.02, corrected[1], corrected[2]]) < 0.002
