@@ -74,7 +74,11 @@ async fn settled(client: &Client) -> [f64; 3] {
     panic!("the arm never settled");
 }
 
-async fn press(phone: &mut TeleopSession, pose: v1::Pose, button: Vec<v1::ButtonEvent>) -> v1::TeleopFeedback {
+async fn press(
+    phone: &mut TeleopSession,
+    pose: v1::Pose,
+    button: Vec<v1::ButtonEvent>,
+) -> v1::TeleopFeedback {
     let seq = phone.send_pose(pose, button, 0).await.unwrap();
     phone.feedback_for(seq).await.unwrap()
 }
@@ -108,10 +112,7 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     // The status previews the rest of the plan: at most 16 points of it, ending with its last target.
     let state = arm_state(&client, "main").await;
     let preview = state.plan_preview.expect("a driving policy's plan is previewed");
-    assert!(
-        (2..=16).contains(&preview.positions_m.len()),
-        "{preview:?}"
-    );
+    assert!((2..=16).contains(&preview.positions_m.len()), "{preview:?}");
     assert_eq!(preview.positions_m.len(), preview.grippers.len());
     let last = preview.positions_m.last().unwrap();
     assert!(
@@ -129,7 +130,12 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
 
     // The operator takes over with the clutch: the policy waits instead of losing the arm.
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-    let fb = press(&mut phone, phone_pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()]).await;
+    let fb = press(
+        &mut phone,
+        phone_pose(0.0, 0.0, 0.0),
+        vec![buttons::clutch_engage()],
+    )
+    .await;
     assert!(fb.error.is_empty(), "{}", fb.error);
     let state = fb.arm_state.unwrap();
     assert_eq!(state.owner(), v1::ControlSource::Teleop);
@@ -137,7 +143,10 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         state.waiting_policy_id.starts_with(&format!("{POLICY}:")),
         "{state:?}"
     );
-    assert!(state.plan_preview.is_none(), "no plan plays while the policy waits");
+    assert!(
+        state.plan_preview.is_none(),
+        "no plan plays while the policy waits"
+    );
     // Its chunks are refused with the reason, and do not move the arm: the phone holds still, so does the arm.
     let held = settled(&client).await;
     let obs = observation_after(&mut policy, 0).await;
@@ -147,7 +156,8 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         .unwrap_err()
         .to_string();
     assert!(
-        refused.contains("FailedPrecondition") && refused.contains("waits for the operator to hand the arm back"),
+        refused.contains("FailedPrecondition")
+            && refused.contains("waits for the operator to hand the arm back"),
         "{refused}"
     );
     tokio::time::sleep(Duration::from_millis(500)).await;
@@ -160,7 +170,12 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     for i in 1..=4 {
         press(&mut phone, phone_pose(0.0, 0.005 * f64::from(i), 0.0), vec![]).await;
     }
-    let fb = press(&mut phone, phone_pose(0.0, 0.02, 0.0), vec![buttons::clutch_disengage()]).await;
+    let fb = press(
+        &mut phone,
+        phone_pose(0.0, 0.02, 0.0),
+        vec![buttons::clutch_disengage()],
+    )
+    .await;
     assert!(!fb.arm_state.as_ref().unwrap().engaged);
     let corrected = settled(&client).await;
     assert!(
@@ -178,7 +193,11 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     let handed_back_ns = fb.server_send_time_ns;
     let state = fb.arm_state.unwrap();
     assert_eq!(state.owner(), v1::ControlSource::Policy);
-    assert!(state.owner_id.starts_with(&format!("{POLICY}:")), "{}", state.owner_id);
+    assert!(
+        state.owner_id.starts_with(&format!("{POLICY}:")),
+        "{}",
+        state.owner_id
+    );
     assert!(state.waiting_policy_id.is_empty());
     let sent_at_hand_back = state.commands_sent;
     // The stale answer (3 s long: most of it would still be ahead if it were taken) is refused, and the arm
@@ -222,7 +241,10 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     // 2 cm in 1 s; 10 s covers a stalled machine.
     assert!(
         wait_until(Duration::from_secs(10), || async {
-            dist(sim_pose_of(&client, "main").await, [corrected[0] + 0.02, corrected[1], corrected[2]]) < 0.002
+            dist(
+                sim_pose_of(&client, "main").await,
+                [corrected[0] + 0.02, corrected[1], corrected[2]],
+            ) < 0.002
         })
         .await,
         "the fresh chunk did not drive the arm from the corrected pose"
@@ -240,5 +262,8 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         .filter(|e| e.kind == EventKind::PolicyResume)
         .collect();
     assert_eq!(resumes.len(), 1, "{events:?}");
-    assert_eq!((resumes[0].arm.as_str(), resumes[0].detail.as_str()), ("main", POLICY));
+    assert_eq!(
+        (resumes[0].arm.as_str(), resumes[0].detail.as_str()),
+        ("main", POLICY)
+    );
 }

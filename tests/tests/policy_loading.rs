@@ -211,6 +211,9 @@ async fn the_operator_takes_over_from_a_loading_policy() {
     // holds for it now.
     assert!(state.waiting_policy_id.starts_with("big-vla:"), "{state:?}");
     let refused = say_loading(&mut policy).await;
-    assert!(refused.arms.is_empty() && refused.error.contains("waits"), "{refused:?}");
+    assert!(
+        refused.arms.is_empty() && refused.error.contains("waits"),
+        "{refused:?}"
+    );
     server.shutdown().await.unwrap();
 }

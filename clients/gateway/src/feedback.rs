@@ -197,8 +197,16 @@ mod tests {
         let mut pacer = PreviewPacer::default();
         let t0 = Instant::now();
         let plan = json!({"p": [[0.0, 0.0, 0.0]]});
-        assert_eq!(pacer.pace(Value::Null, t0), Some(Value::Null), "the first says there is none");
-        assert_eq!(pacer.pace(Value::Null, t0 + PREVIEW_PERIOD), None, "still none: nothing to say");
+        assert_eq!(
+            pacer.pace(Value::Null, t0),
+            Some(Value::Null),
+            "the first says there is none"
+        );
+        assert_eq!(
+            pacer.pace(Value::Null, t0 + PREVIEW_PERIOD),
+            None,
+            "still none: nothing to say"
+        );
         let t1 = t0 + Duration::from_millis(10);
         assert_eq!(pacer.pace(plan.clone(), t1), Some(plan.clone()), "a plan starts");
         assert_eq!(pacer.pace(plan.clone(), t1 + Duration::from_millis(100)), None);

@@ -352,7 +352,10 @@ impl Handler for PageHandler {
                     buttons: vec![buttons::hand_back()],
                     ..PhoneSample::default()
                 }),
-                None => self.error("no arm to hand back: the page drives none (send hello first)", None),
+                None => self.error(
+                    "no arm to hand back: the page drives none (send hello first)",
+                    None,
+                ),
             },
             // Dropping the session ends its stream, which frees the arm on the server.
             Ok(PageMsg::Release) => self.session = None,

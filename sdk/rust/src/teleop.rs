@@ -254,7 +254,8 @@ impl TeleopSession {
     /// seq. Nothing moves: the arm holds until the policy's first chunk answering an observation taken after
     /// the hand-back. Without a waiting policy the feedback's `error` says so.
     pub async fn hand_back(&mut self) -> Result<u64> {
-        self.send_buttons(vec![phone2act_proto::buttons::hand_back()]).await
+        self.send_buttons(vec![phone2act_proto::buttons::hand_back()])
+            .await
     }
 
     /// The next feedback message; `Ok(None)` when the server ended the stream.

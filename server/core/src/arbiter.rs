@@ -551,7 +551,9 @@ impl Arbiter {
                 let owner = self.policy.as_ref().filter(|o| o.session == session);
                 match owner {
                     Some(o) if o.waiting => {
-                        return Err(ArbiterError::PolicyWaiting { policy: o.name.clone() });
+                        return Err(ArbiterError::PolicyWaiting {
+                            policy: o.name.clone(),
+                        });
                     }
                     Some(o) if self.driver == Driver::Policy => {
                         // Not `<`: an observation taken at the very moment of the hand-back may predate it.
@@ -1364,7 +1366,11 @@ mod tests {
             .unwrap();
         // The phone's +x maps to the robot's +y by default? Whatever the mapping, the phone moves the arm.
         let fx = a
-            .handle(round(Some(at(0.02, 0.0, 0.0)), vec![]), &ready(engaged_at, 1.1), 1.1)
+            .handle(
+                round(Some(at(0.02, 0.0, 0.0)), vec![]),
+                &ready(engaged_at, 1.1),
+                1.1,
+            )
             .unwrap();
         let corrected = fx.commands.last().expect("the phone drives").robot_from_target;
         assert!((corrected.translation.vector - engaged_at.translation.vector).norm() > 0.019);
@@ -1430,7 +1436,11 @@ mod tests {
         let (mut a, corrected) = policy_waiting_after_a_correction();
         let robot = ready(corrected, 5.0);
         a.handle(hand_back(), &robot, 5.0).unwrap();
-        assert_eq!(a.tick_need(), TickNeed::At(5.5), "silence counts from the hand-back");
+        assert_eq!(
+            a.tick_need(),
+            TickNeed::At(5.5),
+            "silence counts from the hand-back"
+        );
         // The operator takes it again before the policy answered: it waits again.
         let fx = a.handle(engage(Isometry3::identity()), &robot, 5.2).unwrap();
         assert_eq!(fx.revoked, None);
@@ -1446,7 +1456,9 @@ mod tests {
     #[test]
     fn the_preview_shows_at_most_the_asked_points_of_the_remaining_plan_ending_with_its_last() {
         let (mut a, robot) = phone_bound_policy_driving();
-        let targets: Vec<_> = (0..40).map(|k| at(0.25 + 0.001 * f64::from(k), 0.0, 0.2)).collect();
+        let targets: Vec<_> = (0..40)
+            .map(|k| at(0.25 + 0.001 * f64::from(k), 0.0, 0.2))
+            .collect();
         a.handle(chunk(1.0, &targets), &robot, 1.0).unwrap();
         // At 1.0 all 40 steps remain: every third (stride 3) from the first, which ends on the last (39).
         let p = a.plan_preview(1.0, 16);
@@ -1465,7 +1477,11 @@ mod tests {
         // Few steps: all of them.
         let p = a.plan_preview(4.75, 16);
         assert_eq!(p.positions_m.len(), 3);
-        assert_eq!(a.plan_preview(9.0, 16), PlanPreview::default(), "the plan is over");
+        assert_eq!(
+            a.plan_preview(9.0, 16),
+            PlanPreview::default(),
+            "the plan is over"
+        );
     }
 
     #[test]
@@ -2348,7 +2364,11 @@ mod tests {
             if handed_back {
                 // A hand-back happens only from a waiting policy, on a ready robot, and sends nothing.
                 prop_assert!(before.waiting_policy().is_some() && ready_now);
-                prop_assert!(fx.commands.is_empty(), "a hand-back moved the arm: {:?}", fx.commands);
+                prop_assert!(
+                    fx.commands.is_empty(),
+                    "a hand-back moved the arm: {:?}",
+                    fx.commands
+                );
                 prop_assert_eq!(a.driver(), Driver::Policy);
                 self.handed_back_s = Some(self.latest_s);
                 self.plan_end_s = f64::NEG_INFINITY;
@@ -2359,7 +2379,10 @@ mod tests {
                     let Input::Chunk { observed_s, .. } = &input else {
                         unreachable!("only a chunk input reports a chunk")
                     };
-                    prop_assert!(*observed_s > back_s, "a chunk observed before the hand-back was accepted");
+                    prop_assert!(
+                        *observed_s > back_s,
+                        "a chunk observed before the hand-back was accepted"
+                    );
                     self.handed_back_s = None;
                 } else if a.policy_owner().is_none() {
                     // Taken again, released or revoked: the next hand-back starts over.

@@ -143,7 +143,12 @@ pub fn transitions(
         }
         let handed_back = now.arbiter.handed_back - before.arbiter.handed_back;
         if handed_back > 0 {
-            events.push(event(now, EventKind::PolicyResume, handed_back, &now.arbiter.policy));
+            events.push(event(
+                now,
+                EventKind::PolicyResume,
+                handed_back,
+                &now.arbiter.policy,
+            ));
         }
         let rejected = now.arbiter.rejected - before.arbiter.rejected;
         let clamped = now.arbiter.clamped - before.arbiter.clamped;

@@ -95,10 +95,7 @@ async fn main() -> anyhow::Result<()> {
             for _ in 0..2 {
                 latest.changed().await.context("the session ended")?;
             }
-            latest
-                .borrow_and_update()
-                .clone()
-                .context("no observation")
+            latest.borrow_and_update().clone().context("no observation")
         };
         match cmd["cmd"].as_str() {
             Some("mark") => {
