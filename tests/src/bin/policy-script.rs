@@ -112,7 +112,7 @@ async fn main() -> anyhow::Result<()> {
                     .arms
                     .first()
                     .and_then(|a| a.robot_from_ee.as_ref())
-                    .and_then(|p| p.position_m.clone())
+                    .and_then(|p| p.position_m)
                     .context("the observation has no pose")?;
                 let n = cmd["steps"].as_u64().unwrap_or(20).max(1) as usize;
                 let dx_m = cmd["dx_m"].as_f64().unwrap_or(0.02);
