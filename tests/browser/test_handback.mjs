@@ -121,7 +121,8 @@ await check('the clutch takes the arm, the policy waits and the page offers the 
   assert(refused.event === 'rejected' && refused.reason.includes('waits for the operator'), JSON.stringify(refused));
   await page.mouse.up();
   await server.until((s) => !s.engaged, 'the clutch released');
-  // Released, the policy still waits: the button stays.
+  // Released, the policy still waits: the button stays (300 ms: several feedback messages; a stalled machine
+  // only makes this check weaker, never failing a correct page).
   await sleep(300);
   assert(await page.isVisible('#hand-back'), 'the hand-back went away when the clutch was released');
   await page.screenshot({ path: join(OUT_DIR, 'phone-page-policy-waiting.png'), fullPage: true });
@@ -137,6 +138,8 @@ await check('one press hands the arm back; it holds until a chunk answers a fres
   const stale = await policy.send({ cmd: 'chunk', observation: 'marked', steps: 40, period_s: 0.1, dx_m: 0.03 });
   assert(stale.event === 'rejected' && stale.reason.includes('before the operator handed the arm back'),
     JSON.stringify(stale));
+  // Half a second of the stale chunk's 4 s: had it been taken, its first steps would have been sent by now (a
+  // stalled machine can only hide a wrong acceptance, never fail a correct hold).
   await sleep(500);
   assert(server.status.sent === back.sent, `${server.status.sent - back.sent} commands after the hand-back`);
   assert(dist(server.status.ee_m, before.ee_m) < 0.002, `the arm moved: ${before.ee_m} -> ${server.status.ee_m}`);

@@ -160,6 +160,8 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
             && refused.contains("waits for the operator to hand the arm back"),
         "{refused}"
     );
+    // The whole of the refused chunk's 0.5 s: had it been taken, it would have moved the arm by now; a stalled
+    // machine can only hide a wrong acceptance, never fail a correct refusal.
     tokio::time::sleep(Duration::from_millis(500)).await;
     assert!(
         dist(sim_pose_of(&client, "main").await, held) < 0.001,
@@ -205,6 +207,8 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     let stale_answer = policy
         .push_chunk_checked(&client, chunk(stale.observation_id, 60, 0.03, 0.0))
         .await;
+    // A sixth of the stale chunk's 3 s: had it been taken, its first steps would have been sent by now; a stalled
+    // machine can only hide a wrong acceptance, never fail a correct hold.
     tokio::time::sleep(Duration::from_millis(500)).await;
     let state = arm_state(&client, "main").await;
     assert_eq!(
