@@ -32,6 +32,12 @@
     xrFps: 0,
     rtts: [],
     last: null, // last feedback
+    // The driving policy's plan preview as the gateway last sent it ({p: [[x, y, z]], g: [...], dt_s}, or
+    // null), how many previews arrived and how many were drawn, for tests.
+    plan: null,
+    plansReceived: 0,
+    plansDrawn: 0,
+    waitingPolicy: '',
     counters: null, // {rejected, clamped}
     recPhase: null,
     // The episode clock's phase ('recording' / 'resetting' / 'idle', from `[recorder] episode_time_s` /
@@ -304,14 +310,26 @@
         gate.textContent = s.verdict + (s.reason ? ` — ${s.reason}` : '');
         gate.className = 'verdict-' + s.verdict;
       }
-      // Who drives: the operator, a policy session (by name, loading or driving), or nobody.
+      // Who drives: the operator, a policy session (by name, loading or driving), or nobody; and a policy the
+      // operator took the arm from, which waits for the hand-back button.
       let driver = 'released (robot holds)';
       if (s.engaged) driver = 'ENGAGED (phone drives)';
       else if (s.owner === 'policy') {
         const name = s.policy || 'policy';
         driver = s.policy_loading ? `policy ${name} loading (robot holds)` : `policy ${name} drives`;
       }
+      state.waitingPolicy = s.waiting_policy || '';
+      if (state.waitingPolicy) driver += ` · policy ${state.waitingPolicy} waiting`;
       $('st-clutch').textContent = driver;
+      const handBack = $('hand-back');
+      handBack.hidden = !state.waitingPolicy;
+      handBack.textContent = `Hand back to ${state.waitingPolicy}`;
+      // A message without `preview` keeps the last one (the gateway sends it at most 5 times a second).
+      if ('preview' in fb) {
+        state.plan = fb.preview;
+        state.plansReceived += 1;
+      }
+      drawPlan(s.owner === 'policy' ? state.plan : null, s.ee_m);
       $('st-gripper').textContent = state.gripperClosed ? 'closed' : 'open';
     }
     const r = fb.recording;
@@ -347,6 +365,70 @@
       if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
     render();
+  }
+
+  // The plan preview: the remaining steps of the policy's chunk as a path seen from above (x, y) and from the
+  // side (x, z), one scale for both so that distances compare, the arm's measured tool position as a ring;
+  // below, the gripper targets over the same steps (0 open at the bottom, 1 closed at the top).
+  function drawPlan(plan, eeM) {
+    const box = $('plan-box');
+    box.hidden = !plan || !plan.p || plan.p.length === 0;
+    if (box.hidden) return;
+    const pts = plan.p;
+    const here = Array.isArray(eeM) ? eeM : pts[0];
+    const all = pts.concat([here]);
+    const lo = [0, 1, 2].map((i) => Math.min(...all.map((p) => p[i])));
+    const hi = [0, 1, 2].map((i) => Math.max(...all.map((p) => p[i])));
+    // At least 4 cm across, so that a plan that barely moves does not look like a big one.
+    const span = Math.max(0.04, ...[0, 1, 2].map((i) => hi[i] - lo[i]));
+    const mid = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
+    const c = $('plan-path');
+    const g = c.getContext('2d');
+    g.clearRect(0, 0, c.width, c.height);
+    const half = c.width / 2;
+    const scale = (Math.min(half, c.height) - 20) / span;
+    // Each view maps (horizontal axis, vertical axis) of the robot frame to canvas pixels; up is +y or +z.
+    const views = [
+      { x0: half / 2, h: 1, v: 0, hSign: -1, label: 'top' },   // from above: robot +y to the left, +x up
+      { x0: half + half / 2, h: 0, v: 2, hSign: 1, label: 'side' }, // from the side: +x right, +z up
+    ];
+    g.strokeStyle = '#444';
+    g.beginPath(); g.moveTo(half, 0); g.lineTo(half, c.height); g.stroke();
+    for (const view of views) {
+      const px = (p) => [view.x0 + view.hSign * (p[view.h] - mid[view.h]) * scale,
+        c.height / 2 - (p[view.v] - mid[view.v]) * scale];
+      g.fillStyle = '#777';
+      g.font = '11px system-ui';
+      g.fillText(view.label, view.x0 - half / 2 + 4, 12);
+      g.strokeStyle = '#4fc3f7';
+      g.lineWidth = 2;
+      g.beginPath();
+      pts.forEach((p, k) => { const [x, y] = px(p); if (k === 0) g.moveTo(x, y); else g.lineTo(x, y); });
+      g.stroke();
+      g.fillStyle = '#4fc3f7';
+      for (const p of pts) { const [x, y] = px(p); g.fillRect(x - 1.5, y - 1.5, 3, 3); }
+      const [ex, ey] = px(pts[pts.length - 1]);
+      g.fillStyle = '#ffca28';
+      g.beginPath(); g.arc(ex, ey, 4, 0, 2 * Math.PI); g.fill();
+      const [hx, hy] = px(here);
+      g.strokeStyle = '#fff';
+      g.lineWidth = 2;
+      g.beginPath(); g.arc(hx, hy, 6, 0, 2 * Math.PI); g.stroke();
+    }
+    const gc = $('plan-gripper');
+    const gg = gc.getContext('2d');
+    gg.clearRect(0, 0, gc.width, gc.height);
+    const w = gc.width / Math.max(1, plan.g.length);
+    gg.fillStyle = '#ce93d8';
+    plan.g.forEach((v, k) => {
+      const h = Math.max(1, v * (gc.height - 4));
+      gg.fillRect(k * w + 1, gc.height - 2 - h, w - 2, h);
+    });
+    const d = pts.length > 1 ? Math.hypot(...[0, 1, 2].map((i) => pts[pts.length - 1][i] - pts[0][i])) : 0;
+    const secs = (pts.length - 1) * (plan.dt_s || 0);
+    $('st-plan').textContent = `${pts.length} points · ${(d * 100).toFixed(1)} cm in ${secs.toFixed(1)} s · gripper ${
+      plan.g[0].toFixed(2)} → ${plan.g[plan.g.length - 1].toFixed(2)}`;
+    state.plansDrawn += 1;
   }
 
   function gateEvent(kind, reason) {
@@ -538,6 +620,12 @@
     hello(false);
   });
   $('take-over').addEventListener('click', () => hello(true));
+  // One explicit gesture: the arm goes back to the waiting policy, which drives again only with a chunk that
+  // answers a fresh observation (the arm holds until then).
+  $('hand-back').addEventListener('click', () => {
+    state.seq += 1;
+    if (send({ type: 'hand_back', seq: state.seq })) buzz([30, 40, 30]);
+  });
   state.send = send;
   state.hello = hello;
 

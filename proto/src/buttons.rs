@@ -46,6 +46,13 @@ pub fn gripper_set(position: f64) -> v1::ButtonEvent {
     }
 }
 
+/// Hand the arm back to the policy waiting for it (nothing moves until its next fresh chunk).
+pub fn hand_back() -> v1::ButtonEvent {
+    v1::ButtonEvent {
+        event: Some(v1::button_event::Event::HandBack(v1::HandBackCommand {})),
+    }
+}
+
 /// Start recording with `task`.
 pub fn record_start(task: &str) -> v1::ButtonEvent {
     record(v1::record_command::Kind::Start, task)

@@ -120,6 +120,17 @@ pub fn arm_state_to_proto(s: &ArmSnapshot) -> v1::ArmState {
         joint_targets_time_ns: s.joint_targets_time_ns,
         task_success: s.task_success,
         policy_loading: s.policy_loading,
+        waiting_policy_id: s.waiting_policy_id.clone(),
+        plan_preview: (!s.plan_preview.positions_m.is_empty()).then(|| v1::PlanPreview {
+            positions_m: s
+                .plan_preview
+                .positions_m
+                .iter()
+                .map(|&[x, y, z]| v1::Vec3 { x, y, z })
+                .collect(),
+            grippers: s.plan_preview.grippers.clone(),
+            point_period_s: s.plan_preview.point_period_s,
+        }),
     }
 }
 
@@ -146,6 +157,7 @@ pub fn button_from_proto(event: v1::ButtonEvent) -> ButtonInput {
             _ => TeleopButton::Invalid(format!("unknown gripper kind {}", g.kind)),
         },
         Some(v1::button_event::Event::Record(r)) => return ButtonInput::Record(r),
+        Some(v1::button_event::Event::HandBack(v1::HandBackCommand {})) => TeleopButton::HandBack,
         None => TeleopButton::Invalid("empty button event".to_owned()),
     };
     ButtonInput::Arm(arm)

@@ -17,7 +17,7 @@ use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
     ActionChunk, ActionMode, Arbiter, ArbiterError, ArmJointStage, ArmLayout, ArmSnapshot, ArmVectors,
     BridgeHealth, ChunkConfig, Effects, FlightEntry, FlightHeader, Input, LayoutError, Measured, Outcome,
-    Reading, ReplaceReport, Robot, Sample, TeleopConfig, TeleopRound, TickNeed,
+    PREVIEW_MAX_POINTS, Reading, ReplaceReport, Robot, Sample, TeleopConfig, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
@@ -601,13 +601,16 @@ impl ArmController {
     }
 
     /// Schedules a chunk for the owning policy session. `reference` is the measured pose of the observation
-    /// the chunk answers (relative steps are composed onto it) and `anchor_s` the time of step 0.
+    /// the chunk answers (relative steps are composed onto it), `observed_s` the time it was taken (after a
+    /// hand-back only chunks answering later observations drive) and `anchor_s` the time of step 0.
+    #[allow(clippy::too_many_arguments)]
     pub fn push_chunk(
         &self,
         session: u64,
         actions: &[Vec<f64>],
         step_period_s: f64,
         anchor_s: f64,
+        observed_s: f64,
         reference: Isometry3<f64>,
         mode: ActionMode,
     ) -> Result<ReplaceReport, ArmError> {
@@ -625,7 +628,14 @@ impl ArmController {
             step_period_s,
         };
         let (effects, _) = self
-            .apply(Input::Chunk { session, chunk }, now_s())
+            .apply(
+                Input::Chunk {
+                    session,
+                    chunk,
+                    observed_s,
+                },
+                now_s(),
+            )
             .map_err(|e| self.refused(e))?;
         Ok(effects
             .chunk
@@ -779,6 +789,11 @@ impl ArmController {
                 .map_or(0, |j| (j.commanded_time_s() * 1e9).round() as i64),
             task_success: feedback.as_ref().is_some_and(|f| f.task_success),
             policy_loading: a.policy_loading_until().is_some(),
+            waiting_policy_id: a
+                .waiting_policy()
+                .map(|(session, name)| format!("{name}:{session}"))
+                .unwrap_or_default(),
+            plan_preview: a.plan_preview(now_ns as f64 * 1e-9, PREVIEW_MAX_POINTS),
         }
     }
 
@@ -1014,7 +1029,8 @@ mod tests {
             })
             .collect();
         let sent_before = arm.snapshot().counters.sent;
-        arm.push_chunk(1, &steps, 0.05, now_s(), here, ActionMode::Absolute)
+        let now = now_s();
+        arm.push_chunk(1, &steps, 0.05, now, now, here, ActionMode::Absolute)
             .unwrap();
         // The push plays step 0; only the woken tick task can play steps 1-4 (the chunk lasts 0.25 s; 10 s
         // covers any stall of a loaded machine, and a task that was never woken never gets there).

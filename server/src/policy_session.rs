@@ -434,6 +434,8 @@ impl PolicySessions {
             return Err(PolicyError::ArmNotOpened(chunk.arm.to_owned()));
         }
         check_steps(&arm, chunk)?;
+        // A chunk answering no observation is anchored on the arm's pose at its arrival: it counts as observed
+        // then (a hand-back before it does not make it stale).
         let (anchor_s, reference) = if chunk.observation_id == 0 {
             let sample = arm
                 .state_and_action()
@@ -455,6 +457,7 @@ impl PolicySessions {
             &chunk.steps[keep..],
             chunk.step_period_s,
             anchor_s + keep as f64 * chunk.step_period_s,
+            anchor_s,
             reference,
             chunk.mode,
         )

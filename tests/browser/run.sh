@@ -3,7 +3,8 @@
 # and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
 # controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms, and the live
 # video on a panel in the immersive session); live video
-# against control, and on a throttled link, in test_video.mjs; the recording habits in test_habits.mjs. Installs
+# against control, and on a throttled link, in test_video.mjs; the recording habits in test_habits.mjs; a policy
+# session's plan preview and the hand-back in test_handback.mjs. Installs
 # what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
 set -euo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
@@ -17,8 +18,8 @@ if [[ ! -d "$HERE/node_modules/playwright-core" || ! -d "$HERE/node_modules/iwer
   (cd "$HERE" && npm ci --no-audit --no-fund --silent)
 fi
 # Each suite in a subshell of its own: stack.sh stops its server and gateway when that subshell exits.
-# BROWSER_SUITES=headset (or page, habits, video) runs one.
-suites="${BROWSER_SUITES:-page headset habits video}"
+# BROWSER_SUITES=headset (or page, habits, handback, video) runs one.
+suites="${BROWSER_SUITES:-page headset habits handback video}"
 rc=0
 if [[ "$suites" == *page* ]]; then
   (
@@ -56,6 +57,18 @@ if [[ "$suites" == *habits* ]]; then
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
     node --experimental-websocket --no-warnings test_habits.mjs countdown
+  ) || rc=1
+fi
+if [[ "$suites" == *handback* ]]; then
+  # A scripted policy session drives the arm; the page previews its plan, the operator takes over and hands
+  # the arm back.
+  (
+    STACK_HTTPS=1
+    source "$HERE/../rosbridge/stack.sh"
+    (cd "$REPO" && cargo build --quiet -p phone2act-tests --bin policy-script)
+    export GRPC_URL POLICY_SCRIPT="$BIN/policy-script"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_handback.mjs
   ) || rc=1
 fi
 if [[ "$suites" == *video* ]]; then

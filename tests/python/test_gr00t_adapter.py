@@ -215,7 +215,8 @@ def test_operator_taking_one_arm_stops_the_other_arm_too(make_server) -> None:  
                                    step_period_s=PERIOD)
             with c.teleop("right", take_over=True) as phone:
                 phone.wait_feedback(phone.clutch(True, (0.0, 0.0, 0.0)))
-                assert wait_until(lambda: session.revoked is not None, 3.0)
+                # The policy waits for a hand-back on the right arm (it is not revoked).
+                assert wait_until(lambda: c.arm("right").waiting_policy_id.startswith("gr00t-n1.5:"), 3.0)
                 obs = session.next_observation()
                 left0 = np.array(pose_tuple({a.arm: a for a in obs.arms}["left"].robot_from_ee)[0])
                 with pytest.raises(Phone2ActError):
@@ -251,6 +252,47 @@ def test_instruction_is_the_task_flag_else_the_episode_task(gserver: Server) -> 
                 assert standin.observations[-1][1] == "open the drawer"
             finally:
                 c.episodes.discard()
+
+
+def test_the_loop_waits_through_a_take_over_and_drives_again_after_the_hand_back(gserver: Server) -> None:
+    import threading
+
+    with StandIn() as standin, Client(gserver.target) as c:
+        session, adapter = open_adapter(c, standin, silence_s=5.0)
+        with session:
+            stop = threading.Event()
+            loop = threading.Thread(target=adapter.run, kwargs={"should_stop": stop.is_set})
+            loop.start()
+            try:
+                # The adapter's first chunk within an inference and a push; 10 s covers a stalled machine.
+                assert wait_until(lambda: adapter.stats.chunks >= 1, 10.0)
+                with c.teleop("main", take_over=True) as phone:
+                    phone.wait_feedback(phone.clutch(True, (0.0, 0.0, 0.0)))
+                    # Refused while the operator drives: the loop keeps asking instead of ending.
+                    assert wait_until(lambda: adapter.stats.waiting >= 2, 10.0)
+                    assert loop.is_alive() and session.revoked is None
+                    chunks = adapter.stats.chunks
+                    fb = phone.wait_feedback(phone.hand_back())
+                    assert not fb.error and fb.arm_state.owner == common_pb2.CONTROL_SOURCE_POLICY
+                    # The next chunk answers a fresh observation and drives.
+                    assert wait_until(lambda: adapter.stats.chunks > chunks, 10.0)
+                    assert c.arm("main").owner == common_pb2.CONTROL_SOURCE_POLICY
+            finally:
+                stop.set()
+                loop.join(10.0)
+            assert adapter.stats.errors == 0, adapter.stats.last_error
+        # The server is shared: leave its arm at rest (the released arm reaches its last target within a few
+        # bridge periods; 10 s covers a stalled machine).
+        last = [position(c, "main")]
+
+        def at_rest() -> bool:
+            time.sleep(0.1)
+            now = position(c, "main")
+            still = math.dist(now, last[0]) < 1e-5
+            last[0] = now
+            return still
+
+        assert wait_until(at_rest, 10.0)
 
 
 def test_late_policy_is_reported_and_the_arm_holds(gserver: Server) -> None:

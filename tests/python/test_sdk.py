@@ -156,6 +156,26 @@ def test_a_loading_policy_holds_its_arm_past_the_silence_timeout(server: Server)
         assert not c.list_arms()[0].policy_loading
 
 
+def test_a_taken_over_policy_waits_and_the_phone_hands_the_arm_back(server: Server) -> None:
+    with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=5, silence_timeout_s=5,
+                                                       policy_name="py-policy") as s:
+        s.push("main", [[0.0] * 7] * 10, 0.1)
+        assert c.list_arms()[0].plan_preview.positions_m, "a driving policy's plan is previewed"
+        with c.teleop("main", take_over=True) as phone:
+            fb = phone.wait_feedback(phone.clutch(True, (0.0, 0.0, 0.0)))
+            assert fb.arm_state.waiting_policy_id.startswith("py-policy:")
+            with pytest.raises(FailedPrecondition, match="waits for the operator to hand the arm back"):
+                s.push("main", [[0.0] * 7], 0.1)
+            fb = phone.wait_feedback(phone.hand_back())
+            assert not fb.error and fb.arm_state.owner == common_pb2.CONTROL_SOURCE_POLICY
+            assert not fb.arm_state.waiting_policy_id
+            # A chunk anchored on the arm's pose at its arrival (observation 0) answers a fresh observation.
+            assert s.push("main", [[0.0] * 7] * 3, 0.1).steps_scheduled >= 1
+            # Nothing waits any more: a second hand-back is refused in the feedback and changes nothing.
+            fb = phone.wait_feedback(phone.hand_back())
+            assert "no policy waits" in fb.error
+
+
 def test_observations_carry_the_pending_plan_and_the_inference_delay(server: Server) -> None:
     with Client(server.target) as c, c.policy_session(["main"], observation_rate_hz=0, silence_timeout_s=5) as s:
         s.request_observation()

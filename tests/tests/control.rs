@@ -434,16 +434,27 @@ async fn the_operator_takes_over_from_a_running_policy() {
     let fb = engage(&mut phone).await;
     let state = fb.arm_state.unwrap();
     assert_eq!(state.owner(), v1::ControlSource::Teleop);
-    let revoked = tokio::time::timeout(Duration::from_secs(2), async {
-        loop {
-            if let Some(v1::policy_event::Event::Revoked(r)) = policy.next_event().await.unwrap() {
-                return r;
-            }
-        }
-    })
-    .await
-    .expect("the policy must be told it lost control");
-    assert!(revoked.reason.contains("operator"), "{}", revoked.reason);
+    // The policy keeps the arm reserved and waits for a hand-back (tests/tests/hand_back.rs); its next chunk
+    // is refused with the reason.
+    assert!(state.waiting_policy_id.starts_with("test:"), "{state:?}");
+    let obs = policy.next_observation().await.unwrap();
+    let refused = policy
+        .push_chunk_checked(
+            &client,
+            v1::ActionChunk {
+                arm: "main".into(),
+                steps: chunk_steps(10, 0.02),
+                step_period_s: 0.05,
+                observation_id: obs.observation_id,
+                mode: v1::ActionMode::DeltaEe as i32,
+                blend_steps: 0,
+                keep_steps: 0,
+            },
+        )
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(refused.contains("waits for the operator"), "{refused}");
     // The chunk no longer drives the arm: it holds where the operator took over.
     let taken = sim_pose_of(&client, "main").await;
     tokio::time::sleep(Duration::from_millis(500)).await;

@@ -1,6 +1,6 @@
 //! Who drove each frame (issue 27): a policy drives the simulated arm through the Policy API, the operator
 //! takes over from the phone (the Teleop stream the gateway speaks for the phone page and the app), corrects,
-//! releases, and the policy takes the arm back with a fresh session. The dataset records LeRobot's DAgger
+//! releases, and hands the arm back to the policy, which waited. The dataset records LeRobot's DAgger
 //! column `intervention` at every frame, the events sidecar says which arm and which policy, and the
 //! episode's provenance names the policy.
 
@@ -23,7 +23,8 @@ fn phone_pose(x: f64, y: f64, z: f64) -> v1::Pose {
 }
 
 /// Answers every observation with a short chunk creeping along +x (4 mm/s, relative to that observation)
-/// until the session loses the arm; returns why it lost it.
+/// until the session loses the arm; returns why it lost it. While it waits for a hand-back its chunks are
+/// refused (rejected events) and it keeps answering.
 fn drive(mut policy: PolicySession) -> JoinHandle<String> {
     tokio::spawn(async move {
         loop {
@@ -113,7 +114,7 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
     // About 20 policy frames before the take-over (how many does not matter: every frame is checked).
     tokio::time::sleep(Duration::from_secs(1)).await;
 
-    // Take-over: the clutch engages at the phone's origin and the policy is told it lost the arm.
+    // Take-over: the clutch engages at the phone's origin and the policy waits.
     let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
     let engage_sent = Instant::now();
     let seq = phone
@@ -127,11 +128,13 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
         "{}",
         fb.error
     );
-    let reason = tokio::time::timeout(Duration::from_secs(10), first)
-        .await
-        .expect("the policy is told it lost the arm")
-        .unwrap();
-    assert!(reason.contains("operator"), "{reason}");
+    assert!(
+        arm_state(&client, "main")
+            .await
+            .waiting_policy_id
+            .starts_with(&format!("{POLICY}:")),
+        "the policy waits for the hand-back"
+    );
     // The correction: 3 cm along the phone's +y in 1 cm steps, each answered before the next.
     for i in 1..=3 {
         let seq = phone
@@ -150,19 +153,18 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
     let released_at = Instant::now();
     assert!(!fb.arm_state.unwrap().engaged);
 
-    // Hand-back: the policy takes the arm again; its chunks answer fresh observations.
-    let second = client
-        .policy(phone2act_tests::policy_hello(&["main"], POLICY, 2.0))
-        .await
-        .unwrap();
-    let second = drive(second);
+    // Hand-back: the policy drives again; its chunks answer fresh observations.
+    let seq = phone.hand_back().await.unwrap();
+    let fb = phone.feedback_for(seq).await.unwrap();
+    assert!(fb.error.is_empty(), "{}", fb.error);
     assert!(
         policy_drives(&client).await,
         "the policy did not take the arm back"
     );
     tokio::time::sleep(Duration::from_secs(1)).await;
     let saved = episodes.stop().await.unwrap().episode.unwrap();
-    second.abort();
+    assert!(!first.is_finished(), "the policy session lost the arm");
+    first.abort();
     drop(phone);
     server.shutdown().await.unwrap();
 

@@ -12,14 +12,19 @@
 //! - `{"type":"video_offer","camera":"front","sdp":"…","host":"192.168.1.20"}` asks for the camera's live
 //!   WebRTC video (see `webrtc`; `host` is where the page reached the gateway), `{"type":"video_off"}` ends it;
 //!   `{"type":"clock","t_page_ms":…}` is answered with the gateway's wall clock for the page's clock offset;
+//! - `{"type":"hand_back"}` hands the arm back to the policy waiting for it (the feedback's `state.waiting_policy`
+//!   names it): the page's teleop stream carries it as a `HandBackCommand` button; nothing moves until the
+//!   policy's next chunk answering a newer observation;
 //! - `{"type":"preview","camera":"front","max_fps":5,"width":320}` turns the camera preview on (see
 //!   `web_preview`), `{"type":"preview_off"}` off; `{"type":"preview_ack"}` says a preview frame arrived.
 //!
-//! Gateway → page: `welcome` (arms, cameras, headset controller → arm map), `session` (open/retrying/refused), `feedback`, `error`, `preview`
+//! Gateway → page: `welcome` (arms, cameras, headset controller → arm map), `session` (open/retrying/refused),
+//! `feedback` (with `preview`, the driving policy's plan, at most 5 times a second: see
+//! [`crate::feedback::PreviewPacer`]), `error`, `preview`
 //! (`on` with the settings, `off` with the reason), and while the preview is on, binary messages of one JPEG.
 
 use crate::conn::{Handler, Wiring};
-use crate::feedback::page_feedback;
+use crate::feedback::{PreviewPacer, page_feedback, preview_json};
 use crate::rosbridge::parse_json;
 use crate::session::{Session, SessionEvent};
 use crate::shared::Shared;
@@ -54,6 +59,10 @@ enum PageMsg {
     },
     Preview(PreviewRequest),
     PreviewOff,
+    HandBack {
+        #[serde(default)]
+        seq: u64,
+    },
     PreviewAck,
     Release,
     VideoOffer {
@@ -176,6 +185,8 @@ pub(crate) struct PageHandler {
     video: Option<JoinHandle<()>>,
     /// Where the page's socket comes from (a page on this machine gets video without congestion control).
     peer: std::net::IpAddr,
+    /// Which feedback carries the plan preview.
+    plan_preview: PreviewPacer,
     close: bool,
 }
 
@@ -188,6 +199,7 @@ impl PageHandler {
             preview: None,
             video: None,
             peer,
+            plan_preview: PreviewPacer::default(),
             close: false,
         }
     }
@@ -339,6 +351,18 @@ impl Handler for PageHandler {
                     .text(json!({"type": "preview", "state": "off", "reason": "asked"}).to_string());
             }
             Ok(PageMsg::PreviewAck) => self.wiring.preview.ack(),
+            Ok(PageMsg::HandBack { seq }) => match self.session.as_ref().filter(|s| !s.is_finished()) {
+                Some(session) => session.send(PhoneSample {
+                    seq,
+                    client_name: "phone-web".into(),
+                    buttons: vec![buttons::hand_back()],
+                    ..PhoneSample::default()
+                }),
+                None => self.error(
+                    "no arm to hand back: the page drives none (send hello first)",
+                    None,
+                ),
+            },
             // Dropping the session ends its stream, which frees the arm on the server.
             Ok(PageMsg::Release) => self.session = None,
             Ok(PageMsg::VideoOffer { camera, sdp, host }) => self.start_video(&camera, &sdp, host.as_deref()),
@@ -370,7 +394,15 @@ impl Handler for PageHandler {
             SessionEvent::Open { arm } => json!({"type": "session", "state": "open", "arm": arm}),
             SessionEvent::Feedback { arm, feedback } => {
                 let superseded = self.session.as_ref().map_or(0, Session::superseded);
-                page_feedback(&arm, &feedback, superseded)
+                let mut v = page_feedback(&arm, &feedback, superseded);
+                if let Some(state) = &feedback.arm_state
+                    && let Some(preview) = self
+                        .plan_preview
+                        .pace(preview_json(state), std::time::Instant::now())
+                {
+                    v["preview"] = preview;
+                }
+                v
             }
             SessionEvent::Retrying {
                 arm,

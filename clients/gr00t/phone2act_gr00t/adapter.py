@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from phone2act import Phone2ActError, PolicySession
+from phone2act import FailedPrecondition, Phone2ActError, PolicySession
 from phone2act.v1 import policy_pb2
 
 from phone2act_gr00t.embodiment import ChunkShapeError, Embodiment, NonFiniteActionError, ObservationError
@@ -60,6 +60,22 @@ class AdapterStats:
     errors: int = 0
     last_error: str = ""
     per_arm: dict[str, int] = field(default_factory=dict)
+    # Chunks refused because the operator had taken the arm (the policy waits for the hand-back) or answered an
+    # observation from before the hand-back.
+    waiting: int = 0
+
+
+def waits_for_operator(error: Phone2ActError) -> bool:
+    """True for the server's refusals of a policy the operator took the arm from: it waits for the hand-back, or
+    its chunk answered an observation from before it (the next fresh one drives)."""
+    return isinstance(error, FailedPrecondition) and (
+        "hand the arm back" in error.details or "handed the arm back" in error.details
+    )
+
+
+# How often a waiting policy asks again (one inference each time): soon enough after a hand-back, rarely enough
+# not to keep the inference server busy while the operator drives.
+WAITING_RETRY_S = 0.25
 
 
 class Gr00tAdapter:
@@ -163,7 +179,11 @@ class Gr00tAdapter:
         should_stop: Callable[[], bool] = lambda: False,
         max_consecutive_failures: int = 10,
     ) -> AdapterStats:
-        """Loop until `should_stop()`, `max_chunks`, the operator taking over, or too many failures in a row.
+        """Loop until `should_stop()`, `max_chunks`, control revoked, or too many failures in a row.
+
+        When the operator takes an arm with the phone the session waits: its chunks are refused (counted in
+        `stats.waiting`) and the loop keeps observing, so that the operator's hand-back lets the next chunk, which
+        answers a fresh observation, drive again.
 
         A late or failing policy is logged and retried with a fresh observation; meanwhile the arm holds. A server
         that speaks another wire format (Gr00tProtocolError), an answer whose shape does not fit the arm
@@ -183,6 +203,12 @@ class Gr00tAdapter:
                              acc.steps_scheduled, acc.steps_skipped, r.inference_s * 1e3)
                 # Ask again when about half the chunk has played (the usual receding-horizon cadence).
                 time.sleep(max(0.0, 0.5 * r.horizon * self.step_period_s - r.inference_s))
+            except Phone2ActError as e:
+                if not waits_for_operator(e):
+                    raise
+                self.stats.waiting += 1
+                log.info("%s; asking again in %.1f s", e.details, WAITING_RETRY_S)
+                time.sleep(WAITING_RETRY_S)
             except Gr00tProtocolError as e:
                 self.stats.errors += 1
                 self.stats.last_error = str(e)

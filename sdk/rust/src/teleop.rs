@@ -250,6 +250,14 @@ impl TeleopSession {
         .await
     }
 
+    /// Hands the arm back to the policy waiting for it (`ArmState::waiting_policy_id`); returns the sample's
+    /// seq. Nothing moves: the arm holds until the policy's first chunk answering an observation taken after
+    /// the hand-back. Without a waiting policy the feedback's `error` says so.
+    pub async fn hand_back(&mut self) -> Result<u64> {
+        self.send_buttons(vec![phone2act_proto::buttons::hand_back()])
+            .await
+    }
+
     /// The next feedback message; `Ok(None)` when the server ended the stream.
     pub async fn feedback(&mut self) -> Result<Option<v1::TeleopFeedback>> {
         Ok(self.feedback.message().await?)

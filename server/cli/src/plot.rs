@@ -137,7 +137,8 @@ fn engaged_spans(events: &[EpisodeEvent], end_s: f64) -> Vec<(String, f64, f64)>
             | EventKind::RobotWarning
             | EventKind::RobotWarningCleared
             | EventKind::PolicyStart
-            | EventKind::PolicyStop => {}
+            | EventKind::PolicyStop
+            | EventKind::PolicyResume => {}
         }
     }
     spans.extend(open.into_iter().map(|(arm, from)| (arm, from, end_s)));
@@ -243,7 +244,7 @@ fn panel_svg(
                 // The recorder's timeline: frames that are not at their own time, and where time jumps.
                 EventKind::LateTick | EventKind::Paused => TIMELINE_COLOR,
                 EventKind::RobotWarning | EventKind::RobotWarningCleared => WARNING_COLOR,
-                EventKind::PolicyStart | EventKind::PolicyStop => POLICY_COLOR,
+                EventKind::PolicyStart | EventKind::PolicyStop | EventKind::PolicyResume => POLICY_COLOR,
             };
             chart.draw_series(std::iter::once(PathElement::new(
                 vec![(e.timestamp, y0), (e.timestamp, y1)],

@@ -3,9 +3,14 @@
 //!
 //! The rules, all in [`Arbiter::handle`]:
 //! - one source drives at a time ([`Driver`]);
-//! - the operator always takes over from the phone: engaging revokes a policy;
+//! - the operator always takes over from the phone: engaging stops a driving policy, which then *waits*
+//!   (it keeps the arm reserved, its chunks are refused, nothing of its plan plays) until the operator hands
+//!   the arm back with [`TeleopButton::HandBack`];
+//! - a hand-back never moves the arm: the policy drives again but the arm holds where it is until a chunk
+//!   answering an observation taken after the hand-back arrives (older ones are refused), so its next motion
+//!   is planned from where the operator left the arm;
 //! - a policy may claim the arm only while no phone drives it, the robot is ready and no other policy owns
-//!   it; it loses the arm on take-over, release, session end and silence;
+//!   it or waits for it; it loses the arm on release, session end and silence;
 //! - a silent source holds: nothing here moves the arm without an input asking for it;
 //! - every source change re-indexes at the measured pose (the phone's floating zero, the policy's jump
 //!   reference) and clears the chunk executor, so the new source never continues an old plan;
@@ -138,6 +143,14 @@ pub enum ArbiterError {
     NotControlling,
     #[error("refused the chunk: {0}")]
     Chunk(#[from] ChunkError),
+    #[error(
+        "is driven by the operator's phone: policy {policy:?} waits for the operator to hand the arm back; chunk not executed"
+    )]
+    PolicyWaiting { policy: String },
+    #[error(
+        "refused the chunk: it answers an observation taken {before_s:.3} s before the operator handed the arm back; the arm holds until a chunk answers a newer observation"
+    )]
+    BeforeHandBack { before_s: f64 },
     #[error("is driven by {owner}; release it before homing the arm")]
     DrivenWhileHoming { owner: Owner },
 }
@@ -147,6 +160,8 @@ pub enum ArbiterError {
 pub enum TeleopButton {
     Clutch(ClutchKind),
     Gripper(GripperCommand),
+    /// Hand the arm back to the policy that waits for it (the phone stops driving; nothing moves).
+    HandBack,
     /// An event that could not be decoded; its message is reported to the phone in order with the others.
     Invalid(String),
 }
@@ -181,8 +196,14 @@ pub enum Input {
     /// until its first chunk or until `ChunkConfig::max_loading_s` after its first loading message, whichever
     /// comes first. Later loading messages do not extend that deadline; past it the arm is released.
     PolicyLoading { session: u64 },
-    /// A policy's chunk, already converted to targets.
-    Chunk { session: u64, chunk: ActionChunk },
+    /// A policy's chunk, already converted to targets. `observed_s` is when the observation it answers was
+    /// taken (its arrival for a chunk that answers none: it is anchored on the arm's pose then).
+    Chunk {
+        session: u64,
+        chunk: ActionChunk,
+        #[serde(default)]
+        observed_s: f64,
+    },
     /// Time passes: play due chunk steps, apply the silence and staleness rules.
     Tick,
     /// The robot was teleported to its measured pose (`Robot::feedback`) with its gripper at `gripper` by
@@ -267,7 +288,26 @@ pub struct ArmSnapshot {
     pub task_success: bool,
     /// The owning policy is loading: the arm holds until its first chunk (or the loading limit).
     pub policy_loading: bool,
+    /// The policy that waits for a hand-back, as `"<policy name>:<session id>"`; empty when none waits.
+    pub waiting_policy_id: String,
+    /// What the driving policy is about to do (see [`Arbiter::plan_preview`]).
+    pub plan_preview: PlanPreview,
 }
+
+/// A compact preview of a policy's plan for a display: the tool positions and gripper targets of the steps
+/// still to play, at most [`PREVIEW_MAX_POINTS`], evenly picked and always including the last.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PlanPreview {
+    /// Tool positions in the robot base frame, m.
+    pub positions_m: Vec<[f64; 3]>,
+    /// Gripper targets, 0 open .. 1 closed.
+    pub grippers: Vec<f64>,
+    /// Time between two points of the preview, s (0 when empty).
+    pub point_period_s: f64,
+}
+
+/// Most points in a [`PlanPreview`]: a phone draws a path from them, and they ride on every feedback message.
+pub const PREVIEW_MAX_POINTS: usize = 16;
 
 /// Commands handed out and refused so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -275,6 +315,8 @@ pub struct Counters {
     pub sent: u64,
     pub rejected: u64,
     pub clamped: u64,
+    /// Hand-backs from the operator to a waiting policy.
+    pub handed_back: u64,
 }
 
 #[derive(Debug, Clone)]
@@ -286,6 +328,10 @@ struct PolicyOwner {
     /// While the policy loads: when its loading deadline passes. Set by its first loading message, cleared by
     /// its first chunk; never moved later.
     loading_deadline_s: Option<f64>,
+    /// The operator took the arm with the clutch: the policy keeps it reserved but does not drive.
+    waiting: bool,
+    /// When the operator last handed the arm back: only chunks answering a later observation may drive.
+    handed_back_s: Option<f64>,
 }
 
 /// Source arbitration of one arm (see the module documentation).
@@ -348,9 +394,53 @@ impl Arbiter {
         self.teleop_session
     }
 
-    /// The policy session that owns the arm and its name.
+    /// The policy session that owns (drives) the arm and its name.
     pub fn policy_owner(&self) -> Option<(u64, &str)> {
-        self.policy.as_ref().map(|o| (o.session, o.name.as_str()))
+        self.policy
+            .as_ref()
+            .filter(|o| !o.waiting)
+            .map(|o| (o.session, o.name.as_str()))
+    }
+
+    /// The policy session that waits for the operator to hand the arm back, and its name.
+    pub fn waiting_policy(&self) -> Option<(u64, &str)> {
+        self.policy
+            .as_ref()
+            .filter(|o| o.waiting)
+            .map(|o| (o.session, o.name.as_str()))
+    }
+
+    /// When the operator last handed the arm back to the owning policy (chunks must answer later
+    /// observations).
+    pub fn handed_back_s(&self) -> Option<f64> {
+        self.policy.as_ref().and_then(|o| o.handed_back_s)
+    }
+
+    /// What the driving policy is about to do from `from_s` on: its plan's remaining steps, thinned to at most
+    /// `max_points` (evenly, keeping the first and the last). Empty while no policy plan plays.
+    pub fn plan_preview(&self, from_s: f64, max_points: usize) -> PlanPreview {
+        let (plan, period_s) = self.policy_plan_from(from_s);
+        if plan.is_empty() || max_points == 0 {
+            return PlanPreview::default();
+        }
+        let last = plan.len() - 1;
+        let stride = plan.len().div_ceil(max_points);
+        let mut picked: Vec<&ChunkStep> = plan.iter().step_by(stride).collect();
+        // Where the plan ends matters most to the operator: it is always shown.
+        if last % stride != 0 {
+            if picked.len() == max_points {
+                picked.pop();
+            }
+            picked.push(&plan[last]);
+        }
+        PlanPreview {
+            positions_m: picked
+                .iter()
+                .map(|s| s.robot_from_target.translation.vector.into())
+                .collect(),
+            grippers: picked.iter().map(|s| s.gripper.clamp(0.0, 1.0)).collect(),
+            point_period_s: period_s * stride as f64,
+        }
     }
 
     /// While a policy drives: its plan from `from_s` on, on the grid of its current step (see
@@ -365,7 +455,10 @@ impl Arbiter {
 
     /// While the owning policy loads: the time its loading deadline passes (then the arm is released).
     pub fn policy_loading_until(&self) -> Option<f64> {
-        self.policy.as_ref().and_then(|o| o.loading_deadline_s)
+        self.policy
+            .as_ref()
+            .filter(|o| !o.waiting)
+            .and_then(|o| o.loading_deadline_s)
     }
 
     /// The last target and gripper target handed out (the arm holds them).
@@ -450,11 +543,29 @@ impl Arbiter {
                 }
             }
             Input::PolicyLoading { session } => self.policy_loading(session, now, &mut fx)?,
-            Input::Chunk { session, chunk } => {
-                let owns = self.driver == Driver::Policy
-                    && self.policy.as_ref().is_some_and(|o| o.session == session);
-                if !owns {
-                    return Err(ArbiterError::NotControlling);
+            Input::Chunk {
+                session,
+                chunk,
+                observed_s,
+            } => {
+                let owner = self.policy.as_ref().filter(|o| o.session == session);
+                match owner {
+                    Some(o) if o.waiting => {
+                        return Err(ArbiterError::PolicyWaiting {
+                            policy: o.name.clone(),
+                        });
+                    }
+                    Some(o) if self.driver == Driver::Policy => {
+                        // Not `<`: an observation taken at the very moment of the hand-back may predate it.
+                        if let Some(back_s) = o.handed_back_s
+                            && observed_s.partial_cmp(&back_s) != Some(std::cmp::Ordering::Greater)
+                        {
+                            return Err(ArbiterError::BeforeHandBack {
+                                before_s: back_s - observed_s,
+                            });
+                        }
+                    }
+                    _ => return Err(ArbiterError::NotControlling),
                 }
                 fx.chunk = Some(self.executor.replace(chunk, now)?);
                 if let Some(owner) = self.policy.as_mut() {
@@ -571,6 +682,11 @@ impl Arbiter {
                         Err(e) => fx.phone_error = e.to_string(),
                     }
                 }
+                TeleopButton::HandBack => {
+                    if let Err(e) = self.hand_back(robot, not_ready.as_ref(), now, fx) {
+                        fx.phone_error = e;
+                    }
+                }
                 TeleopButton::Invalid(message) => fx.phone_error = message,
             }
         }
@@ -625,7 +741,7 @@ impl Arbiter {
             .clutch(kind, phone, robot.measured_or(self.target), now);
         if step.engaged {
             if self.driver == Driver::Policy {
-                self.revoke_policy("operator took over from phone", fx);
+                self.pause_policy();
             }
             self.driver = Driver::Teleop;
             // Without a command (no pose at the press) the arm keeps holding the last target it was sent.
@@ -637,6 +753,66 @@ impl Arbiter {
             self.driver = Driver::None;
         }
         self.decide(step.decision, fx);
+    }
+
+    /// The operator takes the arm from the driving policy: it waits, keeping the arm reserved, and nothing
+    /// of its plan plays (see [`Self::hand_back`]).
+    fn pause_policy(&mut self) {
+        self.executor.clear();
+        self.last_policy_step = None;
+        if let Some(owner) = self.policy.as_mut() {
+            owner.waiting = true;
+        }
+        if self.driver == Driver::Policy {
+            self.driver = Driver::None;
+        }
+    }
+
+    /// The operator hands the arm back to the waiting policy. Nothing is sent: the arm holds the last target
+    /// until the policy's first chunk answering an observation taken after now (re-anchored on where the
+    /// operator left the arm). The phone stops driving; the policy's silence timeout counts from now, and a
+    /// policy that was loading starts over as if it had just claimed the arm.
+    fn hand_back(
+        &mut self,
+        robot: &Robot,
+        not_ready: Option<&NotReady>,
+        now: f64,
+        fx: &mut Effects,
+    ) -> Result<(), String> {
+        let Some(name) = self.waiting_policy().map(|(_, name)| name.to_owned()) else {
+            return Err("no policy waits for this arm: nothing to hand back".to_owned());
+        };
+        if let Some(why) = not_ready {
+            return Err(format!(
+                "the arm {}, not handing back",
+                ArbiterError::NotReady(why.clone())
+            ));
+        }
+        let measured = robot.measured_or(self.target);
+        if self.driver == Driver::Teleop {
+            self.teleop.clutch(ClutchKind::Disengage, None, measured, now);
+        }
+        self.teleop.request_reindex();
+        self.policy_gate.reset_reference_at(measured, now);
+        self.executor.clear();
+        self.last_policy_step = None;
+        self.driver = Driver::Policy;
+        if let Some(owner) = self.policy.as_mut() {
+            owner.waiting = false;
+            owner.handed_back_s = Some(now);
+            owner.last_chunk_s = now;
+            owner.loading_deadline_s = None;
+        }
+        self.counters.handed_back += 1;
+        fx.reindexed = true;
+        self.decide(
+            GateDecision::note(
+                GateVerdict::Accepted,
+                format!("handed back to policy {name}: the arm holds until its next chunk"),
+            ),
+            fx,
+        );
+        Ok(())
     }
 
     fn claim_policy(
@@ -654,12 +830,18 @@ impl Arbiter {
         if let Some(why) = robot.not_ready(now) {
             return Err(ArbiterError::NotReady(why));
         }
-        if let Some(owner) = &self.policy
-            && owner.session != session
-        {
-            return Err(ArbiterError::NotOwner {
-                owner: owner.name.clone(),
-            });
+        if let Some(owner) = &self.policy {
+            if owner.session != session {
+                return Err(ArbiterError::NotOwner {
+                    owner: owner.name.clone(),
+                });
+            }
+            // Only the operator's hand-back ends the wait.
+            if owner.waiting {
+                return Err(ArbiterError::PolicyWaiting {
+                    policy: owner.name.clone(),
+                });
+            }
         }
         self.policy_gate
             .reset_reference_at(robot.measured_or(self.target), now);
@@ -677,6 +859,8 @@ impl Arbiter {
             silence_timeout_s,
             last_chunk_s: now,
             loading_deadline_s: None,
+            waiting: false,
+            handed_back_s: None,
         });
         self.decide(note, fx);
         Ok(())
@@ -685,6 +869,11 @@ impl Arbiter {
     fn policy_loading(&mut self, session: u64, now: f64, fx: &mut Effects) -> Result<(), ArbiterError> {
         let limit_s = self.executor.config().max_loading_s;
         let owner = match self.policy.as_mut() {
+            Some(owner) if owner.session == session && owner.waiting => {
+                return Err(ArbiterError::PolicyWaiting {
+                    policy: owner.name.clone(),
+                });
+            }
             Some(owner) if owner.session == session && self.driver == Driver::Policy => owner,
             _ => return Err(ArbiterError::NotControlling),
         };
@@ -890,6 +1079,7 @@ mod tests {
                 anchor_time_s: anchor_s,
                 step_period_s: 0.1,
             },
+            observed_s: anchor_s,
         }
     }
 
@@ -1038,6 +1228,7 @@ mod tests {
                     anchor_time_s: 1.0,
                     step_period_s: 0.1,
                 },
+                observed_s: 1.0,
             },
             &robot,
             1.0,
@@ -1104,7 +1295,7 @@ mod tests {
     }
 
     #[test]
-    fn the_operator_takes_over_from_a_policy_and_the_policy_is_told() {
+    fn the_operator_takes_over_from_a_policy_which_waits_without_driving() {
         let (mut a, robot) = phone_bound_policy_driving();
         a.handle(chunk(1.0, &[at(0.26, 0.0, 0.2); 10]), &robot, 1.0)
             .unwrap();
@@ -1113,19 +1304,183 @@ mod tests {
             .handle(engage(Isometry3::identity()), &ready(moved, 1.05), 1.05)
             .unwrap();
         assert_eq!(a.driver(), Driver::Teleop);
-        let revoked = fx.revoked.expect("the policy is told");
-        assert_eq!(
-            (revoked.session, revoked.reason.as_str()),
-            (POLICY, "operator took over from phone")
-        );
+        assert_eq!(fx.revoked, None, "the policy keeps the arm reserved");
+        assert_eq!(a.waiting_policy(), Some((POLICY, "p")));
+        assert_eq!(a.policy_owner(), None);
+        assert_eq!(a.plan_preview(1.05, 16), PlanPreview::default(), "no plan plays");
         // Re-indexed at the measured pose: the first command is where the arm is.
         assert_close(&fx.commands.last().unwrap().robot_from_target, &moved);
-        // The revoked chunk does not play on.
+        // The paused chunk does not play on, and new chunks are refused with the reason.
         let fx = a.handle(Input::Tick, &ready(moved, 1.3), 1.3).unwrap();
         assert!(fx.commands.is_empty());
         assert_eq!(
             a.handle(chunk(1.3, &[moved]), &robot, 1.3),
-            Err(ArbiterError::NotControlling)
+            Err(ArbiterError::PolicyWaiting { policy: "p".into() })
+        );
+        // Another policy cannot take the reserved arm, even once the phone lets go.
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &robot,
+            1.35,
+        )
+        .unwrap();
+        assert_eq!(a.driver(), Driver::None);
+        assert_eq!(
+            a.handle(
+                Input::ClaimPolicy {
+                    session: POLICY + 1,
+                    name: "q".into(),
+                    silence_timeout_s: 1.0,
+                },
+                &robot,
+                1.4
+            ),
+            Err(ArbiterError::NotOwner { owner: "p".into() })
+        );
+        // Its session ending frees the arm.
+        let fx = a
+            .handle(
+                Input::ReleasePolicy {
+                    session: POLICY,
+                    reason: "session ended".into(),
+                },
+                &robot,
+                1.5,
+            )
+            .unwrap();
+        assert_eq!(fx.revoked.map(|r| r.session), Some(POLICY));
+        assert_eq!(a.waiting_policy(), None);
+    }
+
+    fn hand_back() -> Input {
+        round(None, vec![TeleopButton::HandBack])
+    }
+
+    /// A policy drove, the phone took over at t = 1.05 and moved the arm 2 cm along +y (measured there).
+    fn policy_waiting_after_a_correction() -> (Arbiter, Isometry3<f64>) {
+        let (mut a, robot) = phone_bound_policy_driving();
+        a.handle(chunk(1.0, &[at(0.26, 0.0, 0.2); 10]), &robot, 1.0)
+            .unwrap();
+        let engaged_at = at(0.25, 0.0, 0.2);
+        a.handle(engage(Isometry3::identity()), &ready(engaged_at, 1.05), 1.05)
+            .unwrap();
+        // The phone's +x maps to the robot's +y by default? Whatever the mapping, the phone moves the arm.
+        let fx = a
+            .handle(
+                round(Some(at(0.02, 0.0, 0.0)), vec![]),
+                &ready(engaged_at, 1.1),
+                1.1,
+            )
+            .unwrap();
+        let corrected = fx.commands.last().expect("the phone drives").robot_from_target;
+        assert!((corrected.translation.vector - engaged_at.translation.vector).norm() > 0.019);
+        (a, corrected)
+    }
+
+    #[test]
+    fn a_hand_back_holds_the_arm_until_a_chunk_answers_a_newer_observation() {
+        let (mut a, corrected) = policy_waiting_after_a_correction();
+        let robot = ready(corrected, 2.0);
+        let fx = a.handle(hand_back(), &robot, 2.0).unwrap();
+        assert_eq!(fx.phone_error, "");
+        assert!(fx.commands.is_empty(), "a hand-back never moves the arm");
+        assert_eq!(a.driver(), Driver::Policy);
+        assert!(!a.engaged(), "the phone stopped driving");
+        assert_eq!(a.policy_owner(), Some((POLICY, "p")));
+        assert_eq!(a.handed_back_s(), Some(2.0));
+        assert_eq!(a.counters().handed_back, 1);
+        assert!(a.last_decision().reason.contains("handed back to policy p"));
+        assert_close(&a.target().0, &corrected);
+        // Time passes: the arm holds, the old plan is gone.
+        for t in [2.05, 2.1, 2.2] {
+            assert!(a.handle(Input::Tick, &robot, t).unwrap().commands.is_empty());
+        }
+        // A chunk answering an observation from before the hand-back (or at its very moment) is refused and
+        // changes nothing.
+        for observed_s in [1.9, 2.0] {
+            let mut stale = chunk(2.2, &[at(0.26, 0.0, 0.2)]);
+            if let Input::Chunk { observed_s: o, .. } = &mut stale {
+                *o = observed_s;
+            }
+            assert!(matches!(
+                a.handle(stale, &robot, 2.2),
+                Err(ArbiterError::BeforeHandBack { before_s }) if (before_s - (2.0 - observed_s)).abs() < 1e-12
+            ));
+            assert!(a.handle(Input::Tick, &robot, 2.25).unwrap().commands.is_empty());
+        }
+        // The first chunk answering a newer observation drives.
+        let next = Isometry3::translation(0.002, 0.0, 0.0) * corrected;
+        let fx = a.handle(chunk(2.3, &[next, next]), &robot, 2.3).unwrap();
+        assert_eq!(fx.commands.len(), 1);
+        assert_close(&fx.commands[0].robot_from_target, &next);
+    }
+
+    #[test]
+    fn a_hand_back_needs_a_waiting_policy_and_a_ready_robot() {
+        let mut a = phone_driving();
+        let robot = ready(home(), 1.1);
+        let fx = a.handle(hand_back(), &robot, 1.1).unwrap();
+        assert!(fx.phone_error.contains("no policy waits"), "{fx:?}");
+        assert_eq!(a.driver(), Driver::Teleop, "nothing changed");
+
+        let (mut a, corrected) = policy_waiting_after_a_correction();
+        let stale = ready(corrected, 1.0);
+        let fx = a.handle(hand_back(), &stale, 3.0).unwrap();
+        assert!(fx.phone_error.contains("not ready"), "{fx:?}");
+        assert_eq!(a.waiting_policy(), Some((POLICY, "p")));
+        assert_eq!(a.counters().handed_back, 0);
+    }
+
+    #[test]
+    fn a_handed_back_policy_is_silent_from_the_hand_back_and_the_operator_can_take_it_again() {
+        let (mut a, corrected) = policy_waiting_after_a_correction();
+        let robot = ready(corrected, 5.0);
+        a.handle(hand_back(), &robot, 5.0).unwrap();
+        assert_eq!(
+            a.tick_need(),
+            TickNeed::At(5.5),
+            "silence counts from the hand-back"
+        );
+        // The operator takes it again before the policy answered: it waits again.
+        let fx = a.handle(engage(Isometry3::identity()), &robot, 5.2).unwrap();
+        assert_eq!(fx.revoked, None);
+        assert_eq!(a.waiting_policy(), Some((POLICY, "p")));
+        // Handed back again, and silent past its timeout: it loses the arm, which holds.
+        a.handle(hand_back(), &robot, 5.3).unwrap();
+        let fx = a.handle(Input::Tick, &robot, 5.9).unwrap();
+        assert!(fx.commands.is_empty());
+        assert!(fx.revoked.unwrap().reason.contains("silent"));
+        assert_eq!(a.counters().handed_back, 2);
+    }
+
+    #[test]
+    fn the_preview_shows_at_most_the_asked_points_of_the_remaining_plan_ending_with_its_last() {
+        let (mut a, robot) = phone_bound_policy_driving();
+        let targets: Vec<_> = (0..40)
+            .map(|k| at(0.25 + 0.001 * f64::from(k), 0.0, 0.2))
+            .collect();
+        a.handle(chunk(1.0, &targets), &robot, 1.0).unwrap();
+        // At 1.0 all 40 steps remain: every third (stride 3) from the first, which ends on the last (39).
+        let p = a.plan_preview(1.0, 16);
+        assert_eq!(p.positions_m.len(), 14);
+        assert!((p.positions_m[0][0] - 0.25).abs() < 1e-12);
+        assert!((p.positions_m[1][0] - 0.253).abs() < 1e-12);
+        assert!((p.positions_m.last().unwrap()[0] - 0.289).abs() < 1e-12);
+        assert!((p.point_period_s - 0.3).abs() < 1e-12);
+        assert_eq!(p.grippers, vec![0.5; 14]);
+        // Half way: the 20 remaining steps 20..=39, every second (20, 22, .., 38) and then the last.
+        let p = a.plan_preview(3.0, 16);
+        assert!((p.positions_m[0][0] - 0.27).abs() < 1e-12);
+        assert!((p.positions_m[9][0] - 0.288).abs() < 1e-12);
+        assert!((p.positions_m.last().unwrap()[0] - 0.289).abs() < 1e-12);
+        assert_eq!(p.positions_m.len(), 11);
+        // Few steps: all of them.
+        let p = a.plan_preview(4.75, 16);
+        assert_eq!(p.positions_m.len(), 3);
+        assert_eq!(
+            a.plan_preview(9.0, 16),
+            PlanPreview::default(),
+            "the plan is over"
         );
     }
 
@@ -1330,8 +1685,16 @@ mod tests {
         a.handle(loading(), &robot, 1.0).unwrap();
         let fx = a.handle(engage(Isometry3::identity()), &robot, 2.0).unwrap();
         assert_eq!(a.driver(), Driver::Teleop);
-        assert!(fx.revoked.unwrap().reason.contains("operator"));
-        assert_eq!(a.policy_loading_until(), None);
+        assert_eq!(fx.revoked, None, "the loading policy waits");
+        assert_eq!(a.waiting_policy(), Some((POLICY, "p")));
+        assert_eq!(a.policy_loading_until(), None, "not loading while it waits");
+        // Its keep-alives are refused while it waits, and its loading limit does not release it then.
+        assert_eq!(
+            a.handle(loading(), &robot, 2.1),
+            Err(ArbiterError::PolicyWaiting { policy: "p".into() })
+        );
+        let fx = a.handle(Input::Tick, &ready(home(), 400.0), 400.0).unwrap();
+        assert_eq!(fx.revoked, None);
     }
 
     #[test]
@@ -1534,13 +1897,24 @@ mod tests {
         let mut a = arbiter();
         let robot = ready(home(), 1.0);
         a.handle(claim(), &robot, 1.0).unwrap();
-        let Input::Chunk { session, mut chunk } = chunk(1.0, &[at(0.251, 0.0, 0.2), at(0.252, 0.0, 0.2)])
+        let Input::Chunk {
+            session, mut chunk, ..
+        } = chunk(1.0, &[at(0.251, 0.0, 0.2), at(0.252, 0.0, 0.2)])
         else {
             unreachable!()
         };
         // Binary fractions: the plan ends at exactly 1.5 s.
         chunk.step_period_s = 0.25;
-        a.handle(Input::Chunk { session, chunk }, &robot, 1.0).unwrap();
+        a.handle(
+            Input::Chunk {
+                session,
+                chunk,
+                observed_s: 1.0,
+            },
+            &robot,
+            1.0,
+        )
+        .unwrap();
         assert_eq!(a.tick_need(), TickNeed::Periodic);
         a.handle(Input::Tick, &robot, 1.25).unwrap();
         assert_eq!(
@@ -1707,6 +2081,8 @@ mod tests {
             /// Steps around `home()` rather than around the measured pose: a policy that plans from a pose
             /// the arm has left.
             from_home: bool,
+            /// How long before now the observation it answers was taken (negative: a clock ahead of ours).
+            observed_lag_s: f64,
         },
         Tick,
         Health(u8),
@@ -1731,8 +2107,11 @@ mod tests {
                 prop::collection::vec(prop::array::uniform3(-0.05..0.05f64), 1..6),
                 -0.3..0.2f64,
                 prop::bool::weighted(0.3),
+                -0.1..0.8f64,
             )
-                .prop_map(|(session, offsets, lead_s, from_home)| Op::Chunk { session, offsets, lead_s, from_home }),
+                .prop_map(|(session, offsets, lead_s, from_home, observed_lag_s)| Op::Chunk {
+                    session, offsets, lead_s, from_home, observed_lag_s,
+                }),
             4 => Just(Op::Tick),
             1 => (0..8u8).prop_map(Op::Health),
             1 => prop::array::uniform3(-0.1..0.1f64).prop_map(Op::Home),
@@ -1756,6 +2135,7 @@ mod tests {
             2 => vec![TeleopButton::Clutch(ClutchKind::Toggle)],
             3 => vec![TeleopButton::Gripper(GripperCommand::Toggle)],
             4 => vec![TeleopButton::Gripper(GripperCommand::Set(0.7))],
+            5 | 6 => vec![TeleopButton::HandBack],
             _ => vec![],
         }
     }
@@ -1774,6 +2154,8 @@ mod tests {
         revoked: Vec<u64>,
         /// The end of the newest chunk of the current owner.
         plan_end_s: f64,
+        /// The time of the last hand-back, until the policy's first chunk after it is accepted.
+        handed_back_s: Option<f64>,
     }
 
     impl World {
@@ -1851,6 +2233,7 @@ mod tests {
                     offsets,
                     lead_s,
                     from_home,
+                    observed_lag_s,
                 } => {
                     let origin = if *from_home { home() } else { self.measured };
                     let steps = offsets
@@ -1871,6 +2254,7 @@ mod tests {
                                 anchor_time_s: self.now_s + lead_s,
                                 step_period_s: 0.05,
                             },
+                            observed_s: self.now_s - observed_lag_s,
                         },
                         true,
                     )
@@ -1908,8 +2292,10 @@ mod tests {
             self.latest_s = self.latest_s.max(self.now_s);
             let a = &self.arbiter;
 
-            // Never two drivers: a policy owns the arm exactly when it drives; a driving phone is bound.
+            // Never two drivers: a policy owns the arm exactly when it drives; a driving phone is bound; a
+            // waiting policy does not drive.
             prop_assert_eq!(a.policy_owner().is_some(), a.driver() == Driver::Policy);
+            prop_assert!(a.waiting_policy().is_none() || a.driver() != Driver::Policy);
             if a.driver() == Driver::Teleop {
                 prop_assert!(a.teleop_session().is_some() && a.policy_owner().is_none());
             }
@@ -1967,9 +2353,48 @@ mod tests {
                 && ready_now
                 && round.buttons == [TeleopButton::Clutch(ClutchKind::Engage)]
             {
-                // The operator always takes over.
+                // The operator always takes over, and the policy that drove waits instead of losing the arm.
                 prop_assert_eq!(a.driver(), Driver::Teleop);
-                prop_assert!(before.policy_owner().is_none() || fx.revoked.is_some());
+                if let Some((session, _)) = before.policy_owner() {
+                    prop_assert_eq!(a.waiting_policy().map(|(s, _)| s), Some(session));
+                    prop_assert!(fx.revoked.is_none());
+                }
+            }
+            let handed_back = a.counters().handed_back > before.counters().handed_back;
+            if handed_back {
+                // A hand-back happens only from a waiting policy, on a ready robot, and sends nothing.
+                prop_assert!(before.waiting_policy().is_some() && ready_now);
+                prop_assert!(
+                    fx.commands.is_empty(),
+                    "a hand-back moved the arm: {:?}",
+                    fx.commands
+                );
+                prop_assert_eq!(a.driver(), Driver::Policy);
+                self.handed_back_s = Some(self.latest_s);
+                self.plan_end_s = f64::NEG_INFINITY;
+            } else if let Some(back_s) = self.handed_back_s {
+                // Until the policy's first chunk answering an observation after the hand-back, nothing moves
+                // the arm but the operator taking it again.
+                if fx.chunk.is_some() {
+                    let Input::Chunk { observed_s, .. } = &input else {
+                        unreachable!("only a chunk input reports a chunk")
+                    };
+                    prop_assert!(
+                        *observed_s > back_s,
+                        "a chunk observed before the hand-back was accepted"
+                    );
+                    self.handed_back_s = None;
+                } else if a.policy_owner().is_none() {
+                    // Taken again, released or revoked: the next hand-back starts over.
+                    self.handed_back_s = None;
+                } else {
+                    prop_assert!(
+                        fx.commands.is_empty(),
+                        "motion after a hand-back before a fresh chunk: {:?} after {:?}",
+                        fx.commands,
+                        op
+                    );
+                }
             }
 
             if backwards && matches!(input, Input::Tick) {
@@ -2061,6 +2486,7 @@ mod tests {
                 feedback_age_s: 0.0,
                 revoked: Vec::new(),
                 plan_end_s: f64::NEG_INFINITY,
+                handed_back_s: None,
             };
             for op in &ops {
                 world.step(op)?;

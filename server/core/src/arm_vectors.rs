@@ -47,6 +47,8 @@ pub struct Activity {
     pub clamped: u64,
     /// Commands the joint speed limits shortened so far (0 without a joint stage).
     pub joint_limited: u64,
+    /// Hand-backs from the operator to a waiting policy so far.
+    pub handed_back: u64,
     /// The reason of the gate's last decision.
     pub last_reason: String,
 }
@@ -198,6 +200,7 @@ pub fn activity(arbiter: &Arbiter, joints: Option<&ArmJointStage>) -> Activity {
         rejected: counters.rejected,
         clamped: counters.clamped,
         joint_limited: joints.map_or(0, |j| j.counters().limited),
+        handed_back: counters.handed_back,
         last_reason: arbiter.last_decision().reason.clone(),
     }
 }
@@ -265,6 +268,7 @@ mod tests {
             Input::Chunk {
                 session: POLICY,
                 chunk,
+                observed_s: 1.0,
             },
             &robot,
             1.0,
@@ -403,6 +407,7 @@ mod tests {
                 rejected: 0,
                 clamped: 0,
                 joint_limited: 0,
+                handed_back: 0,
                 last_reason: a.last_decision().reason.clone(),
             }
         );

@@ -200,8 +200,12 @@ pub fn replay<'a>(
 /// The input for a report: a chunk's steps would fill the screen, so it is named by its size.
 fn describe(input: &Input) -> String {
     match input {
-        Input::Chunk { session, chunk } => format!(
-            "Chunk {{ session: {session}, steps: {}, anchor_time_s: {}, step_period_s: {} }}",
+        Input::Chunk {
+            session,
+            chunk,
+            observed_s,
+        } => format!(
+            "Chunk {{ session: {session}, steps: {}, anchor_time_s: {}, step_period_s: {}, observed_s: {observed_s} }}",
             chunk.steps.len(),
             chunk.anchor_time_s,
             chunk.step_period_s
@@ -408,6 +412,7 @@ mod tests {
                         anchor_time_s: 1.42,
                         step_period_s: 0.05,
                     },
+                    observed_s: 1.42,
                 },
             ),
         ]);
@@ -583,7 +588,7 @@ mod tests {
             .unwrap();
         assert_eq!(
             describe(&chunk.input),
-            "Chunk { session: 7, steps: 5, anchor_time_s: 1.42, step_period_s: 0.05 }"
+            "Chunk { session: 7, steps: 5, anchor_time_s: 1.42, step_period_s: 0.05, observed_s: 1.42 }"
         );
         assert_eq!(describe(&Input::Tick), "Tick");
     }

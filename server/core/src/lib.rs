@@ -21,7 +21,8 @@ pub mod teleop;
 
 pub use arbiter::{
     Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
-    Input, Measured, NotReady, Owner, Revocation, Robot, TeleopButton, TeleopRound, TickNeed,
+    Input, Measured, NotReady, Owner, PREVIEW_MAX_POINTS, PlanPreview, Revocation, Robot, TeleopButton,
+    TeleopRound, TickNeed,
 };
 pub use arm_vectors::{Activity, ArmVectors, Reading, Sample, StepError};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};

@@ -54,9 +54,13 @@ pub enum EventKind {
     RobotWarningCleared,
     /// A policy started driving the arm (`detail`: its name).
     PolicyStart,
-    /// The policy that drove the arm stopped (`detail`: its name): a person took over, it released the
-    /// arm, went silent or ended.
+    /// The policy that drove the arm stopped (`detail`: its name): a person took over (the policy then
+    /// waits for a hand-back), it released the arm, went silent or ended.
     PolicyStop,
+    /// The operator handed the arm back to the policy that waited (`detail`: its name; `count`: hand-backs
+    /// since the previous frame). The policy drives again from here (a `policy_start` at the same frame) but
+    /// the arm holds until its first chunk answering a newer observation.
+    PolicyResume,
 }
 
 /// One line of the sidecar.
@@ -103,6 +107,7 @@ pub fn transitions(
                 b.arbiter.rejected <= now.arbiter.rejected
                     && b.arbiter.clamped <= now.arbiter.clamped
                     && b.arbiter.joint_limited <= now.arbiter.joint_limited
+                    && b.arbiter.handed_back <= now.arbiter.handed_back
             });
         let Some(before) = before else {
             if now.arbiter.engaged {
@@ -135,6 +140,15 @@ pub fn transitions(
             if !now.arbiter.policy.is_empty() {
                 events.push(event(now, EventKind::PolicyStart, 1, &now.arbiter.policy));
             }
+        }
+        let handed_back = now.arbiter.handed_back - before.arbiter.handed_back;
+        if handed_back > 0 {
+            events.push(event(
+                now,
+                EventKind::PolicyResume,
+                handed_back,
+                &now.arbiter.policy,
+            ));
         }
         let rejected = now.arbiter.rejected - before.arbiter.rejected;
         let clamped = now.arbiter.clamped - before.arbiter.clamped;
@@ -288,6 +302,7 @@ mod tests {
                 rejected,
                 clamped,
                 joint_limited: 0,
+                handed_back: 0,
                 last_reason: "jump of 120 mm".into(),
                 policy: String::new(),
             },
@@ -347,6 +362,21 @@ mod tests {
         assert_eq!(kinds(&e), [(EventKind::JointLimited, 4)]);
         assert_eq!(e[0].detail, "joint speed limit");
         assert!(transitions(Some(&[now.clone()]), &[now], 13, 20).is_empty());
+    }
+
+    #[test]
+    fn a_hand_back_is_a_policy_resume_beside_the_policy_start() {
+        let waiting = arm(false, 0, 0);
+        let mut resumed = arm(false, 0, 0);
+        resumed.arbiter.policy = "gr00t".into();
+        resumed.arbiter.handed_back = 1;
+        let e = transitions(Some(&[waiting]), std::slice::from_ref(&resumed), 30, 20);
+        assert_eq!(
+            kinds(&e),
+            [(EventKind::PolicyStart, 1), (EventKind::PolicyResume, 1)]
+        );
+        assert_eq!(e[1].detail, "gr00t");
+        assert!(transitions(Some(&[resumed.clone()]), &[resumed], 31, 20).is_empty());
     }
 
     #[test]

@@ -109,7 +109,11 @@ impl From<ArmError> for Status {
                 | ArbiterError::NotReady(_)
                 | ArbiterError::NotOwner { .. }
                 | ArbiterError::NotControlling
-                | ArbiterError::DrivenWhileHoming { .. } => Status::failed_precondition(message),
+                | ArbiterError::DrivenWhileHoming { .. }
+                // States of the arm, not bad chunks: a waiting policy waits for the hand-back, a handed-back one
+                // must observe again.
+                | ArbiterError::PolicyWaiting { .. }
+                | ArbiterError::BeforeHandBack { .. } => Status::failed_precondition(message),
                 ArbiterError::Chunk(_) => Status::invalid_argument(message),
             },
             ArmError::InvalidStep { .. } => Status::invalid_argument(message),

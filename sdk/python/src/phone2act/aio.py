@@ -548,6 +548,13 @@ class AsyncTeleopSession:
         )
         return await self.send(None, buttons=[b])
 
+    async def hand_back(self) -> int:
+        """Hand the arm back to the policy waiting for it (`ArmState.waiting_policy_id`). Nothing moves: the arm
+        holds until the policy's first chunk answering an observation taken after the hand-back. Without a
+        waiting policy the feedback's `error` says so."""
+        b = teleop_pb2.ButtonEvent(hand_back=teleop_pb2.HandBackCommand())
+        return await self.send(None, buttons=[b])
+
     async def wait_feedback(self, seq: int, timeout_s: float = 2.0) -> teleop_pb2.TeleopFeedback:
         """Wait until feedback echoes `seq` (or a later sample)."""
         loop = asyncio.get_running_loop()

@@ -415,6 +415,10 @@ class TeleopSession(_Session):
     def gripper(self, position: float) -> int:
         return _run(self._a.gripper(position))
 
+    def hand_back(self) -> int:
+        """Hand the arm back to the policy waiting for it (see `AsyncTeleopSession.hand_back`)."""
+        return _run(self._a.hand_back())
+
     def wait_feedback(self, seq: int, timeout_s: float = 2.0) -> teleop_pb2.TeleopFeedback:
         """Wait until feedback echoes `seq` (or a later sample)."""
         return _run(self._a.wait_feedback(seq, timeout_s))
