@@ -853,6 +853,13 @@ impl Arbiter {
         self.teleop.request_reindex();
         fx.reindexed = true;
         let note = GateDecision::note(GateVerdict::Accepted, format!("policy {name} in control"));
+        // Claiming again does not lift a hand-back's rule: the chunk that drives must still answer an
+        // observation taken after the hand-back.
+        let handed_back_s = self
+            .policy
+            .as_ref()
+            .filter(|o| o.session == session)
+            .and_then(|o| o.handed_back_s);
         self.policy = Some(PolicyOwner {
             session,
             name,
@@ -860,7 +867,7 @@ impl Arbiter {
             last_chunk_s: now,
             loading_deadline_s: None,
             waiting: false,
-            handed_back_s: None,
+            handed_back_s,
         });
         self.decide(note, fx);
         Ok(())
@@ -1413,6 +1420,25 @@ mod tests {
         let fx = a.handle(chunk(2.3, &[next, next]), &robot, 2.3).unwrap();
         assert_eq!(fx.commands.len(), 1);
         assert_close(&fx.commands[0].robot_from_target, &next);
+    }
+
+    /// The handed-back session claiming the arm again (it already holds it) keeps the hand-back's rule.
+    #[test]
+    fn claiming_again_after_a_hand_back_still_needs_a_newer_observation() {
+        let (mut a, corrected) = policy_waiting_after_a_correction();
+        let robot = ready(corrected, 2.0);
+        a.handle(hand_back(), &robot, 2.0).unwrap();
+        a.handle(claim(), &robot, 2.1).unwrap();
+        assert_eq!(a.handed_back_s(), Some(2.0));
+        let mut stale = chunk(2.2, &[at(0.26, 0.0, 0.2)]);
+        if let Input::Chunk { observed_s, .. } = &mut stale {
+            *observed_s = 2.0;
+        }
+        assert!(matches!(
+            a.handle(stale, &robot, 2.2),
+            Err(ArbiterError::BeforeHandBack { .. })
+        ));
+        assert!(a.handle(Input::Tick, &robot, 2.25).unwrap().commands.is_empty());
     }
 
     #[test]
