@@ -9,7 +9,9 @@ use phone2act_recorder::parquet_io::{Row, read_rows};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, PolicySession, TeleopOptions, buttons};
 use phone2act_server::config::DatasetFormat;
-use phone2act_tests::{TestServer, arm_state, default_config, keep_for_conformance, wait_until};
+use phone2act_tests::{
+    TestServer, arm_state, bimanual_config, default_config, keep_for_conformance, wait_until,
+};
 use serde_json::{Value, json};
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -22,29 +24,31 @@ fn phone_pose(x: f64, y: f64, z: f64) -> v1::Pose {
     v1::Pose::from_parts([x, y, z], [0.0, 0.0, 0.0, 1.0])
 }
 
-/// Answers every observation with a short chunk creeping along +x (4 mm/s, relative to that observation)
-/// until the session loses the arm; returns why it lost it. While it waits for a hand-back its chunks are
-/// refused (rejected events) and it keeps answering.
-fn drive(mut policy: PolicySession) -> JoinHandle<String> {
+/// Answers every observation with a short chunk for each of `arms` creeping along +x (4 mm/s, relative to
+/// that observation) until the session loses them; returns why it lost them. While it waits for a hand-back
+/// of an arm, that arm's chunks are refused (rejected events) and it keeps answering.
+fn drive(mut policy: PolicySession, arms: &'static [&'static str]) -> JoinHandle<String> {
     tokio::spawn(async move {
         loop {
             match policy.next_event().await {
                 Ok(Some(v1::policy_event::Event::Observation(obs))) => {
-                    let chunk = v1::ActionChunk {
-                        arm: "main".into(),
-                        steps: (1..=10)
-                            .map(|k| v1::ActionStep {
-                                values: vec![0.0002 * f64::from(k), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-                            })
-                            .collect(),
-                        step_period_s: 0.05,
-                        observation_id: obs.observation_id,
-                        mode: v1::ActionMode::DeltaEe as i32,
-                        blend_steps: 0,
-                        keep_steps: 0,
-                    };
-                    if policy.push_chunk(chunk).await.is_err() {
-                        return "session closed".to_owned();
+                    for arm in arms {
+                        let chunk = v1::ActionChunk {
+                            arm: (*arm).into(),
+                            steps: (1..=10)
+                                .map(|k| v1::ActionStep {
+                                    values: vec![0.0002 * f64::from(k), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                                })
+                                .collect(),
+                            step_period_s: 0.05,
+                            observation_id: obs.observation_id,
+                            mode: v1::ActionMode::DeltaEe as i32,
+                            blend_steps: 0,
+                            keep_steps: 0,
+                        };
+                        if policy.push_chunk(chunk).await.is_err() {
+                            return "session closed".to_owned();
+                        }
                     }
                 }
                 Ok(Some(v1::policy_event::Event::Revoked(r))) => return r.reason,
@@ -56,9 +60,13 @@ fn drive(mut policy: PolicySession) -> JoinHandle<String> {
 }
 
 async fn policy_drives(client: &Client) -> bool {
+    policy_drives_arm(client, "main").await
+}
+
+async fn policy_drives_arm(client: &Client, arm: &str) -> bool {
     // The policy's first chunk arrives within one observation period (50 ms); 10 s covers a stalled machine.
     wait_until(Duration::from_secs(10), || async {
-        arm_state(client, "main").await.owner() == v1::ControlSource::Policy
+        arm_state(client, arm).await.owner() == v1::ControlSource::Policy
     })
     .await
 }
@@ -107,7 +115,7 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
         .policy(phone2act_tests::policy_hello(&["main"], POLICY, 2.0))
         .await
         .unwrap();
-    let first = drive(first);
+    let first = drive(first, &["main"]);
     assert!(policy_drives(&client).await, "the policy never drove the arm");
     let mut episodes = client.episodes();
     episodes.start("correct the policy").await.unwrap();
@@ -312,4 +320,151 @@ async fn a_correction_is_recorded_as_lerobot_dagger_data_v30() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_correction_is_recorded_as_lerobot_dagger_data_v21() {
     human_in_the_loop(DatasetFormat::V21, "dagger_v21").await;
+}
+
+/// Bimanual: one policy session drives `left` and `right`; the operator corrects `left` only and hands it
+/// back. The robot's one DAgger column is true exactly while the left clutch is in (LeRobot has one column
+/// for the robot), the events say which arm the person drove, and the policy drove `right` all along: its
+/// target kept creeping while `left` was corrected.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_correction_of_one_arm_of_two_is_recorded_for_that_arm_while_the_policy_drives_the_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = bimanual_config(dir.path());
+    for cam in &mut config.cameras {
+        (cam.width, cam.height, cam.fps) = (320, 240, 15.0);
+    }
+    config.recorder.intervention = true;
+    config.recorder.fps = FPS;
+    let server = TestServer::start(config).await.unwrap();
+    let client = server.client().await.unwrap();
+    let session = client
+        .policy(phone2act_tests::policy_hello(&["left", "right"], POLICY, 2.0))
+        .await
+        .unwrap();
+    let policy = drive(session, &["left", "right"]);
+    assert!(policy_drives_arm(&client, "left").await && policy_drives_arm(&client, "right").await);
+    let mut episodes = client.episodes();
+    episodes.start("correct the left arm").await.unwrap();
+    tokio::time::sleep(Duration::from_secs(1)).await;
+
+    let mut phone = client.teleop("left", TeleopOptions::default()).await.unwrap();
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.0, 0.0), vec![buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
+    let fb = phone.feedback_for(seq).await.unwrap();
+    assert!(
+        fb.error.is_empty() && fb.arm_state.unwrap().engaged,
+        "{}",
+        fb.error
+    );
+    for i in 1..=3 {
+        let seq = phone
+            .send_pose(phone_pose(0.0, 0.01 * f64::from(i), 0.0), vec![], 0)
+            .await
+            .unwrap();
+        phone.feedback_for(seq).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    assert_eq!(
+        arm_state(&client, "right").await.owner(),
+        v1::ControlSource::Policy,
+        "the other arm stays the policy's"
+    );
+    let seq = phone
+        .send_pose(phone_pose(0.0, 0.03, 0.0), vec![buttons::clutch_disengage()], 0)
+        .await
+        .unwrap();
+    phone.feedback_for(seq).await.unwrap();
+    let seq = phone.hand_back().await.unwrap();
+    let fb = phone.feedback_for(seq).await.unwrap();
+    assert!(fb.error.is_empty(), "{}", fb.error);
+    assert!(
+        policy_drives_arm(&client, "left").await,
+        "the policy did not take the left arm back"
+    );
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let saved = episodes.stop().await.unwrap().episode.unwrap();
+    assert!(!policy.is_finished(), "the policy session lost its arms");
+    policy.abort();
+    drop(phone);
+    server.shutdown().await.unwrap();
+
+    let root = dir.path();
+    let rows = read_rows(&root.join("data/chunk-000/file-000.parquet")).unwrap();
+    assert_eq!(rows.len() as u64, saved.length_frames);
+    let flags: Vec<bool> = rows.iter().map(|r| r.intervention.unwrap()).collect();
+    let events = read_events(root, 0).unwrap().expect("an events sidecar");
+    let of_arm =
+        |arm: &str| -> Vec<EpisodeEvent> { events.iter().filter(|e| e.arm == arm).cloned().collect() };
+    let (left, right) = (of_arm("left"), of_arm("right"));
+    let left_human = spans(
+        &left,
+        rows.len(),
+        EventKind::ClutchEngage,
+        EventKind::ClutchRelease,
+    );
+    assert_eq!(
+        flags, left_human,
+        "intervention is the left arm's clutch, frame by frame"
+    );
+    let first_human = flags.iter().position(|&f| f).expect("the correction is recorded");
+    let after = first_human + flags[first_human..].iter().take_while(|&&f| f).count();
+    assert!(flags[after..].iter().all(|&f| !f), "{flags:?}");
+    assert!(
+        left.iter()
+            .any(|e| e.kind == EventKind::PolicyResume && e.detail == POLICY),
+        "the hand-back is in the left arm's events: {left:?}"
+    );
+    assert!(
+        right.iter().all(|e| !matches!(
+            e.kind,
+            EventKind::PolicyStop | EventKind::ClutchEngage | EventKind::ClutchRelease
+        )),
+        "nobody but the policy drove the right arm: {right:?}"
+    );
+    let right_policy = spans(&right, rows.len(), EventKind::PolicyStart, EventKind::PolicyStop);
+    assert!(
+        right_policy.iter().all(|&p| p),
+        "the policy drove the right arm at every frame"
+    );
+
+    let info = read(&root.join("meta/info.json"));
+    let names: Vec<&str> = info["features"]["action"]["names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n.as_str().unwrap())
+        .collect();
+    let index = |name: &str| {
+        names
+            .iter()
+            .position(|n| *n == name)
+            .unwrap_or_else(|| panic!("{name} in {names:?}"))
+    };
+    let right_x = index("right_x");
+    // The person moved the left target 3 cm (phone axes map onto the robot's by the arm's configuration);
+    // meanwhile the policy's right target crept along +x at 4 mm/s (each chunk's first step 0.2 mm past the
+    // pose it observed, one chunk a frame).
+    let moved = |col: usize| f64::from(rows[after - 1].action[col] - rows[first_human].action[col]);
+    let left_moved_m = ["left_x", "left_y", "left_z"]
+        .map(|n| moved(index(n)).powi(2))
+        .iter()
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        left_moved_m > 0.015,
+        "the correction moved the left target {left_moved_m} m"
+    );
+    // At least one of the policy's chunks played on the right arm during the correction (0.2 mm each): a
+    // stalled machine delivers fewer of them, an arm the policy no longer drove would not move at all.
+    assert!(
+        moved(right_x) > 0.0001,
+        "the right target moved {} m along x while the left arm was corrected",
+        moved(right_x)
+    );
+    assert_eq!(
+        read(&root.join("meta/phone2act_provenance.json"))["episodes"][0]["policies"],
+        json!([POLICY])
+    );
 }
