@@ -471,16 +471,17 @@ mod tests {
         slow.reset(&JOINTS_RAD, 0.0);
         let first_step = slow.plan(&target, 1.0);
         assert!(slow.behind());
-        let lagging = vectors
-            .sample(&reading, &a, Some(&slow), &mut untouched)
-            .unwrap();
+        let lagging = vectors.sample(&reading, &a, Some(&slow), &mut untouched).unwrap();
         let off = |q: &[f64]| {
             q.iter()
                 .zip(&target_joints)
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0, f64::max)
         };
-        assert!(off(&first_step) > 0.015, "the first step is short: {first_step:?}");
+        assert!(
+            off(&first_step) > 0.015,
+            "the first step is short: {first_step:?}"
+        );
         // The solver's convergence, as for every solve.
         assert!(off(&lagging.action[..5]) < 2e-4, "{:?}", lagging.action);
         assert!(slow.behind(), "sampling leaves the stage as it was");
