@@ -873,8 +873,10 @@ pub async fn run_ticks(
     }
 }
 
-/// Ticks one arm only while its arbiter has work: at `period` while a policy owns the arm or a phone
-/// drives, and not at all when idle (it sleeps until an input wakes it).
+/// Ticks one arm only while its arbiter has work: at `period` while a chunk plays, a phone drives or the joint
+/// stage catches up; once at the arbiter's deadline while a policy owns the arm between chunks (its silence
+/// timeout or loading deadline), or earlier if an input changes what the arbiter needs; and not at all when
+/// idle (it sleeps until an input wakes it).
 async fn tick_arm(
     arm: Arc<ArmController>,
     period: Duration,
@@ -886,14 +888,25 @@ async fn tick_arm(
         // `notify_one` keeps a permit when nobody waits, so a wake between reading the need and waiting
         // below is not lost.
         match arm.tick_need() {
-            // While a policy owns the arm the task ticks at the rate even between chunks instead of sleeping
-            // until the arbiter's deadline (`TickNeed::At`): the actions suite under load failed more often
-            // with the task asleep, and no cause in the tick task has been found. The failures reproduced
-            // under load (the joint replays' executed-joints check) occur with either behaviour, in the
-            // middle of a plan, where the need is `Periodic` either way.
-            TickNeed::Periodic | TickNeed::At(_) => {
+            TickNeed::Periodic => {
                 tokio::select! {
                     _ = ticker.tick() => {}
+                    () = crate::runtime::stopped(&mut shutdown) => return,
+                }
+            }
+            TickNeed::At(deadline_s) => {
+                // The arbiter's rules are "later than" the deadline; the timer's millisecond rounding up gets
+                // there, and a tick that comes too early only finds the same deadline again.
+                let left_s = deadline_s - now_s();
+                let wait = Duration::try_from_secs_f64(left_s).unwrap_or(if left_s > 0.0 {
+                    Duration::MAX
+                } else {
+                    Duration::ZERO
+                });
+                tokio::select! {
+                    () = tokio::time::sleep(wait) => {}
+                    // An input changed the need (a chunk, a new deadline, a release): read it again.
+                    () = arm.wake.notified() => continue,
                     () = crate::runtime::stopped(&mut shutdown) => return,
                 }
             }
@@ -1041,6 +1054,78 @@ mod tests {
             "the chunk did not play to its end: {:?}",
             arm.snapshot().counters
         );
+        stop.send(true).unwrap();
+        ticking.await.unwrap();
+    }
+
+    /// Notes when it is told of a revocation.
+    #[derive(Debug, Default)]
+    struct RevokedAt(parking_lot::Mutex<Option<f64>>);
+
+    impl RevocationSink for RevokedAt {
+        fn revoked(&self, _: &str, _: &str) {
+            self.0.lock().get_or_insert(now_s());
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_silent_policy_is_released_at_its_deadline_not_at_the_next_periodic_tick() {
+        let config = crate::config::Config::embedded_default().unwrap();
+        let a = &config.arms[0];
+        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
+        let arm = Arc::new(
+            ArmController::new(
+                "main",
+                "sim",
+                bridge,
+                &a.teleop,
+                &a.chunk,
+                ActionMode::Absolute,
+                Isometry3::identity(),
+            )
+            .unwrap(),
+        );
+        // One periodic tick every 30 s: a release that waited for one would come 30 s late.
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        let ticking = tokio::spawn(run_ticks(vec![Arc::clone(&arm)], 1.0 / 30.0, stopped));
+        // 10 s for a 50 Hz simulator to report once: a starved 2-core machine stalls for far less.
+        assert!(
+            eventually(Duration::from_secs(10), || arm.snapshot().health
+                == BridgeHealth::Ready)
+            .await
+        );
+        let sink = Arc::new(RevokedAt::default());
+        let silence_s = 0.3;
+        let ticks_before = arm.ticks();
+        let claimed_s = now_s();
+        arm.claim_for_policy(
+            1,
+            "silent",
+            Arc::clone(&sink) as Arc<dyn RevocationSink>,
+            silence_s,
+        )
+        .unwrap();
+        assert!(
+            eventually(Duration::from_secs(20), || sink.0.lock().is_some()).await,
+            "the silent policy still owns the arm"
+        );
+        let late_s = sink.0.lock().unwrap() - (claimed_s + silence_s);
+        let ticks = arm.ticks() - ticks_before;
+        println!(
+            "released {:.1} ms after the silence deadline, {ticks} ticks",
+            late_s * 1e3
+        );
+        // Never before the deadline (the claim came after `claimed_s`, so the true deadline is later still).
+        assert!(late_s >= 0.0, "released {late_s} s early");
+        // The timer wakes within milliseconds; a 2-core machine at load 20 delays a ready task by tens of
+        // milliseconds, far below the 30 s a periodic tick would take.
+        assert!(late_s < 2.0, "released {late_s} s after the deadline");
+        // The tick task slept: the deadline's tick, and at most one more for a wake-up the claim left behind.
+        assert!(
+            ticks <= 2,
+            "{ticks} ticks while the arm waited for a silent policy"
+        );
+        assert_eq!(arm.snapshot().driver, phone2act_core::Driver::None);
         stop.send(true).unwrap();
         ticking.await.unwrap();
     }

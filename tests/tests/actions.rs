@@ -24,9 +24,12 @@ const CHUNK_EVERY: usize = 8;
 /// See [`action_path_miss`]. Each side is one float32 rounding of (nearly) the same float64 value, so they
 /// differ by at most one unit; relative steps add float64 composition error, far smaller. Measured ≤ 0.5.
 const MAX_ACTION_ROUNDINGS: f64 = 2.0;
-/// See [`action_path_miss`]. The server's IK stops within 1e-5 m of position and 1e-3 rad of orientation;
+/// See [`action_path_miss`]. The server's IK stops within 1e-5 m of position and 1e-4 rad of orientation;
 /// every SO-101 joint turns the tool, so a converged solution's joints are within about the orientation
-/// tolerance of the exact ones. Measured ≤ 1.3e-4 rad (0.007°).
+/// tolerance of the exact ones. Measured ≤ 1.3e-4 rad (0.007°), idle and beside `stress-ng --cpu 2` alike.
+/// The bound holds on a loaded 2-core machine because a recorded joint action is where the joint stage takes
+/// the arm for the target, not the speed-limited step it had reached when the frame was taken: a replay whose
+/// commands come late lags further behind, but its targets, and so its recorded actions, are the original's.
 const MAX_JOINT_ACTION_MISS_RAD: f64 = 1e-3;
 
 /// The arm's configured action mode and whether it records in lerobot's `so101_follower` layout.
@@ -231,6 +234,7 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
     start_recording(&client, "replay").await;
     let n = episode.actions.len();
     let t_start = Instant::now();
+    let (mut chunks, mut late_chunks) = (0usize, 0usize);
     for t0 in (0..n).step_by(CHUNK_EVERY) {
         tokio::time::sleep_until(t_start + Duration::from_secs_f64(t0 as f64 / FPS)).await;
         policy.request_observation().await.unwrap();
@@ -261,7 +265,7 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
             Replay::Absolute => v1::ActionMode::AbsoluteEe,
             Replay::Relative | Replay::OldPerFrameDelta => v1::ActionMode::DeltaEe,
         };
-        let accepted = policy
+        let pushed = policy
             .push_chunk_checked(
                 &client,
                 v1::ActionChunk {
@@ -274,10 +278,24 @@ async fn replay(episode: &Episode, how: Replay, setup: Setup) -> Episode {
                     keep_steps: 0,
                 },
             )
-            .await
-            .unwrap();
-        assert!(accepted.steps_scheduled > 0, "{accepted:?}");
+            .await;
+        chunks += 1;
+        match pushed {
+            Ok(accepted) => assert!(accepted.steps_scheduled > 0, "{accepted:?}"),
+            // This client starved for longer than the chunk's 0.8 s (a 2-core machine at load 20 with the test
+            // niced): the server refuses a chunk that has already ended, and the next one carries on. Every
+            // target the replay executes is still a recorded one, which is what is checked.
+            Err(e) if e.to_string().contains("lie in the past") => {
+                println!("replay {how:?}: chunk at frame {t0} came too late: {e}");
+                late_chunks += 1;
+            }
+            Err(e) => panic!("chunk at frame {t0}: {e}"),
+        }
     }
+    assert!(
+        late_chunks * 2 < chunks,
+        "{late_chunks} of {chunks} chunks came after their end: this replay did not replay"
+    );
     tokio::time::sleep(Duration::from_secs_f64(HORIZON as f64 / FPS + 0.3)).await;
     let saved = client.episodes().stop().await.unwrap().episode.unwrap();
     let arm = &client.system().list_arms().await.unwrap()[0];
@@ -410,17 +428,24 @@ fn layout_of(setup: Setup) -> ArmLayout {
 /// arm's recorded joints are re-solved from the target pose by the server's inverse kinematics, so they
 /// differ by its convergence instead: `joints_rad_per_unit` (radians per recorded unit) marks the first five
 /// values as joints and returns their largest difference in radians. None of this depends on timing: a late
-/// tick or a skipped step changes which rows are executed and for how long, never their values. A wrong
-/// frame or convention moves them by millimetres or degrees.
-fn action_path_miss(original: &Episode, replayed: &Episode, joints_rad_per_unit: Option<f64>) -> (f64, f64) {
+/// tick or a skipped step changes which rows are executed and for how long, never their values (a joint
+/// arm records where its joint stage takes the arm, not how far a lagging arm had got). A wrong frame or
+/// convention moves them by millimetres or degrees. Also returns the replayed row with the largest joint miss
+/// and its nearest original row, for the failure message.
+fn action_path_miss(
+    original: &Episode,
+    replayed: &Episode,
+    joints_rad_per_unit: Option<f64>,
+) -> (f64, f64, (usize, usize)) {
     let rounding = |a: f64, b: f64| (a - b).abs() / (f64::from(f32::EPSILON) * a.abs().max(b.abs()).max(1.0));
     let joint_dims = if joints_rad_per_unit.is_some() { 5 } else { 0 };
-    let (mut roundings, mut joint_rad) = (0.0f64, 0.0f64);
-    for row in &replayed.actions {
-        let nearest = original
+    let (mut roundings, mut joint_rad, mut worst) = (0.0f64, 0.0f64, (0, 0));
+    for (r, row) in replayed.actions.iter().enumerate() {
+        let (k, nearest) = original
             .actions
             .iter()
-            .min_by(|x, y| {
+            .enumerate()
+            .min_by(|(_, x), (_, y)| {
                 let d = |o: &Vec<f64>| {
                     row.iter()
                         .zip(o)
@@ -432,13 +457,16 @@ fn action_path_miss(original: &Episode, replayed: &Episode, joints_rad_per_unit:
             .unwrap();
         for (d, (a, b)) in row.iter().zip(nearest).enumerate() {
             if d < joint_dims {
-                joint_rad = joint_rad.max((a - b).abs() * joints_rad_per_unit.unwrap_or(1.0));
+                let miss_rad = (a - b).abs() * joints_rad_per_unit.unwrap_or(1.0);
+                if miss_rad > joint_rad {
+                    (joint_rad, worst) = (miss_rad, (r, k));
+                }
             } else {
                 roundings = roundings.max(rounding(*a, *b));
             }
         }
     }
-    (roundings, joint_rad)
+    (roundings, joint_rad, worst)
 }
 
 /// Replays `original` the way `how` says and checks, once, that the executed targets lie on the original's
@@ -460,7 +488,8 @@ async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay, setup
         Replay::Joint => Some(1.0),
         _ => None,
     };
-    let (roundings, joint_rad) = action_path_miss(original, &replayed, joints_rad_per_unit);
+    let (roundings, joint_rad, (worst_row, nearest_row)) =
+        action_path_miss(original, &replayed, joints_rad_per_unit);
     let (offset, dp, da) = path_errors(layout, original, &replayed);
     println!(
         "{how:?}: executed targets within {roundings:.1} float32 roundings and {joint_rad:.1e} joint rad of the \
@@ -476,7 +505,9 @@ async fn check_replay(layout: &ArmLayout, original: &Episode, how: Replay, setup
     assert!(
         roundings <= MAX_ACTION_ROUNDINGS && joint_rad <= MAX_JOINT_ACTION_MISS_RAD,
         "{how:?}: an executed target is {roundings:.1} float32 roundings / {joint_rad:.1e} joint rad from every \
-         recorded one"
+         recorded one (joints: replayed row {worst_row} {:?}, nearest original row {nearest_row} {:?})",
+        replayed.actions[worst_row],
+        original.actions[nearest_row]
     );
     // The measured path is compared only between two recordings whose every frame holds the motion at its own
     // time: a frame counted in `late_ticks` holds a sample from farther before its time than the recorder's

@@ -122,6 +122,11 @@ impl JointRateLimiter {
         self
     }
 
+    /// The longest time one step is allowed the motion of, s (see [`MAX_STEP_S`]).
+    pub fn max_step_s(&self) -> f64 {
+        self.max_step_s
+    }
+
     /// The largest speed of each joint.
     pub fn max_velocity_rad_s(&self) -> &[f64] {
         &self.max_velocity_rad_s

@@ -64,11 +64,17 @@ pub const ORIENTATION_REACHED_RAD: f64 = 0.01;
 const ORIENTATION_HALVINGS: usize = 3;
 
 /// A missed orientation aim is solved again next tick only if the last command gained this much on the target
-/// (rad, a tenth of [`ORIENTATION_REACHED_RAD`]).
+/// for each [`crate::joint_limit::MAX_STEP_S`] of motion it was allowed (rad, a tenth of
+/// [`ORIENTATION_REACHED_RAD`]), from where the joints it started from stood toward that same target.
 const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
+
+/// Most commands [`JointStage::destination`] plays to find where a stage behind its target settles: at the
+/// longest step time ([`crate::joint_limit::MAX_STEP_S`], 20 ms) 20 s of motion, more than any joint needs
+/// to cross its range at the slowest speed a stage is given (a remote bridge's 1 rad/s).
+const MAX_SETTLE_COMMANDS: usize = 1000;
 
 /// `[arms.<name>.joint_limits]`: per-joint speed limits of an arm.
 #[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
@@ -166,8 +172,8 @@ pub struct JointStage<const N: usize> {
     turn_axis: Option<Vector3<f64>>,
     counters: JointCounters,
     behind: bool,
-    /// Orientation error left by the last command, rad (infinite after a reset).
-    last_orientation_error_rad: f64,
+    /// The target of the last command (none after a reset): what a stage behind still moves toward.
+    target: Option<Isometry3<f64>>,
 }
 
 /// The SO-101's joint stage.
@@ -226,7 +232,7 @@ impl<const N: usize> JointStage<N> {
             turn_axis: None,
             counters: JointCounters::default(),
             behind: false,
-            last_orientation_error_rad: f64::INFINITY,
+            target: None,
         })
     }
 
@@ -241,7 +247,7 @@ impl<const N: usize> JointStage<N> {
         }
         self.turn_axis = None;
         self.behind = false;
-        self.last_orientation_error_rad = f64::INFINITY;
+        self.target = None;
     }
 
     /// The joints last commanded (or reset to).
@@ -252,6 +258,29 @@ impl<const N: usize> JointStage<N> {
     /// Time of the last command (or reset), s.
     pub fn commanded_time_s(&self) -> f64 {
         self.limiter.last_time_s()
+    }
+
+    /// The joints this stage settles at if its target holds: the joints last commanded when it is not
+    /// [`Self::behind`], otherwise those it reaches by solving the same target again each
+    /// [`crate::joint_limit::MAX_STEP_S`] until it is no longer behind (on a copy; this stage is unchanged).
+    /// Unlike the joints commanded, where a stage behind its target has got to depends on when its commands
+    /// were issued; where it goes does not: for a target the arm can reach (the forward kinematics of joints,
+    /// as a joint action commands), it is the target's joints on the branch the stage follows.
+    pub fn destination(&self) -> Option<[f64; N]> {
+        let commanded = self.commanded()?;
+        let Some(target) = self.target.filter(|_| self.behind) else {
+            return Some(commanded);
+        };
+        let mut settling = self.clone();
+        let mut time_s = settling.commanded_time_s();
+        for _ in 0..MAX_SETTLE_COMMANDS {
+            time_s += settling.limiter.max_step_s();
+            settling.plan(&target, time_s);
+            if !settling.behind {
+                break;
+            }
+        }
+        settling.commanded()
     }
 
     /// True while the last command did not reach its target (the limiter shortened it, or the orientation
@@ -306,9 +335,12 @@ impl<const N: usize> JointStage<N> {
                 invalid_input: true,
             };
         }
+        self.target = Some(*target);
         let (axis, wanted_rad) = self.turn_toward(&from.rotation, &target.rotation);
         let mut aim_rad = wanted_rad.min(self.aim_speed_rad_s * dt).min(MAX_AIM_STEP_RAD);
-        let capped = aim_rad < wanted_rad;
+        // The turn the chosen solve aimed at: less than the period allows when the joint limits halved it, none
+        // for position only. Short of the target's, it leaves the stage behind to turn the rest.
+        let mut aimed_rad = aim_rad;
         let mut solution = None;
         // Each halved solve starts halfway between the seed and the previous attempt's joints, where its answer
         // about lies: a few iterations instead of a solve from the seed. Position only starts from the seed,
@@ -328,6 +360,9 @@ impl<const N: usize> JointStage<N> {
             let fits = self.limiter.scale(&ik.joints_rad, time_s) >= 1.0;
             let missed = !position_only && ik.orientation_error_rad > ORIENTATION_REACHED_RAD;
             if fits || position_only {
+                if position_only {
+                    aimed_rad = 0.0;
+                }
                 solution = Some((ik, missed));
                 break;
             }
@@ -336,7 +371,9 @@ impl<const N: usize> JointStage<N> {
             }
             solution = Some((ik, missed));
             aim_rad *= 0.5;
+            aimed_rad = aim_rad;
         }
+        let capped = aimed_rad < wanted_rad;
         let (ik, missed) = solution.expect("at least one solve");
         let step = self.limiter.step(&ik.joints_rad, time_s);
         let stepped: [f64; N] = to_joints(&step.joints_rad).expect("the limiter keeps the width");
@@ -356,8 +393,15 @@ impl<const N: usize> JointStage<N> {
         // A capped aim that was reached leaves more turn to do. One that was missed is worth another solve only
         // while the turn still gains on the target: a 5-DoF arm held at an orientation it cannot reach otherwise
         // re-solves the same pose at the full tick rate for as long as the target stays.
-        let gaining = orientation_error_rad < self.last_orientation_error_rad - CATCH_UP_GAIN_RAD;
-        self.last_orientation_error_rad = orientation_error_rad;
+        //
+        // The gain is measured toward this target from the joints the command started from, not against the
+        // error the previous command left toward its own target: a new target's first step starts farther from
+        // it than that, so a target that moved further than one aim reaches (late commands, a skipped step)
+        // would stop the stage after its first step, wherever it had got to. A command allowed less than a
+        // full step time gains proportionally less.
+        let started_rad = target.rotation.angle_to(&from.rotation);
+        let gaining =
+            orientation_error_rad < started_rad - CATCH_UP_GAIN_RAD * dt / self.limiter.max_step_s();
         self.behind = step.limited || (capped && moved > SETTLED_RAD && (!missed || gaining));
         self.counters.limited += u64::from(step.limited);
         self.counters.orientation_unreachable += u64::from(missed);
@@ -442,6 +486,11 @@ impl ArmJointStage {
     /// See [`JointStage::commanded_time_s`].
     pub fn commanded_time_s(&self) -> f64 {
         each_stage!(self, s => s.commanded_time_s())
+    }
+
+    /// See [`JointStage::destination`].
+    pub fn destination(&self) -> Option<Vec<f64>> {
+        each_stage!(self, s => s.destination().map(|q| q.to_vec()))
     }
 
     /// See [`JointStage::behind`].
@@ -599,6 +648,120 @@ mod tests {
             done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-2,
             "{done:?}"
         );
+    }
+
+    /// Where a stage settles does not depend on when its commands come: the same targets (forward kinematics
+    /// of joints, as joint actions command), each solved again every 20 ms until the stage is no longer
+    /// behind, or late (50-90 ms apart, as a starved thread issues them, each step limited to 20 ms of motion)
+    /// with one 2 ms catch-up each, leave the two stages at different joints but with the same destination,
+    /// the target's joints; and finding it changes nothing.
+    #[test]
+    fn the_destination_of_a_reachable_target_does_not_depend_on_command_timing() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let (mut on_time, mut late) = (stage(), stage());
+        on_time.reset(&start, 0.0);
+        late.reset(&start, 0.0);
+        let (mut t_on_time, mut t_late) = (0.0, 0.0);
+        let mut apart = 0.0f64;
+        for i in 1..=20 {
+            let s = f64::from(i) / 20.0;
+            // A turn of the wrist with a little motion, as the teleoperated episodes make: 0.1 rad a command for
+            // the wrist roll, more than the 0.094 rad 20 ms allow.
+            let joints = [0.05 * s, -0.4 + 0.03 * s, 0.6 - 0.02 * s, 0.9 + 0.02 * s, 2.0 * s];
+            let target = k.forward(&joints);
+            for _ in 0..10 {
+                t_on_time += PERIOD_S;
+                on_time.plan(&target, t_on_time);
+                if !on_time.behind() {
+                    break;
+                }
+            }
+            t_late += 0.05 + 0.01 * f64::from(i % 5);
+            late.plan(&target, t_late);
+            late.plan(&target, t_late + 0.002);
+            apart = apart.max(largest_step_ratio(
+                &on_time.commanded().unwrap(),
+                &late.commanded().unwrap(),
+                1.0,
+            ));
+            let before = late.clone();
+            for d in [on_time.destination().unwrap(), late.destination().unwrap()] {
+                let off = d
+                    .iter()
+                    .zip(&joints)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                // The solver's convergence (it stops within 1e-4 rad of orientation).
+                assert!(
+                    off < 2e-4,
+                    "command {i}: destination {d:?} is {off} rad from {joints:?}"
+                );
+            }
+            assert_eq!(late.commanded(), before.commanded());
+            assert_eq!(late.behind(), before.behind());
+            assert_eq!(late.counters(), before.counters());
+        }
+        assert!(
+            apart * STS3215_MAX_VELOCITY_RAD_S > 0.05,
+            "the late stage lags the other ({apart}): this test lost its point"
+        );
+    }
+
+    /// A new target a 20 ms command does not reach in one step (recorded joint actions a late frame apart): the
+    /// stage stays behind and reaches it, whether its first aim was one a 5-DoF arm misses at the new position
+    /// (0.37 rad of wrist roll with the wrist flexing) or one the joint limits halved (0.095 rad of roll with a
+    /// little of every joint). Before, the first stopped because the previous target had been reached (no
+    /// gain counted), the second because a halved aim did not count as short of the target.
+    #[test]
+    fn a_new_target_is_reached_when_its_first_aim_is_missed_or_halved() {
+        let k = So101Kinematics::new();
+        let cases = [
+            (
+                [-0.06, -0.63, 0.70, 0.83, -2.05],
+                [-0.03, -0.64, 0.66, 0.90, -1.67],
+                true,
+            ),
+            (
+                [-0.0409, -0.6255, 0.6469, 0.8724, -1.0960],
+                [-0.0365, -0.6299, 0.6377, 0.8893, -1.0013],
+                false,
+            ),
+        ];
+        for (from, to, first_missed) in cases {
+            let mut s = stage();
+            s.reset(&from, 0.0);
+            // At rest on the first target.
+            s.plan(&k.forward(&from), PERIOD_S);
+            assert!(!s.behind());
+            let target = k.forward(&to);
+            let first = s.plan(&target, 2.0 * PERIOD_S);
+            assert_eq!(first.orientation_unreachable, first_missed, "{first:?}");
+            assert!(
+                first.orientation_error_rad > 0.04,
+                "reached in one step: this case lost its point"
+            );
+            assert!(
+                s.behind(),
+                "the stage stopped after its first step at {:?}",
+                first.joints_rad
+            );
+            let mut t = 2.0 * PERIOD_S;
+            for _ in 0..50 {
+                t += PERIOD_S;
+                s.plan(&target, t);
+                if !s.behind() {
+                    break;
+                }
+            }
+            let reached = s.commanded().unwrap();
+            let off = reached
+                .iter()
+                .zip(&to)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(off < 2e-4, "settled at {reached:?}, {off} rad from {to:?}");
+        }
     }
 
     #[test]
