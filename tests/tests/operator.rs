@@ -22,7 +22,7 @@ async fn the_operator_records_two_successful_episodes_through_the_phone_path() {
         ..OperatorOptions::default()
     };
     let mut reports = Vec::new();
-    let summary = operator::run(&client, &options, |r| reports.push(r.clone()))
+    let summary = operator::run(&client, &options, |r| reports.push(r.clone()), |_, _, _| {})
         .await
         .unwrap();
     assert_eq!(summary.seeds, vec![500, 501]);
