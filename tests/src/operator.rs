@@ -300,7 +300,7 @@ async fn play(
     let deadline = started + Duration::from_secs_f64(options.episode_time_s);
     let note = match pick_and_place(phone, scene, deadline, options.clutch_cycles).await {
         Ok(()) => String::new(),
-        Err(Stop::TimeUp(what)) => format!("time up while {what}"),
+        Err(Stop::TimeUp(what)) => format!("time up while {what} ({})", phone.account()),
         Err(Stop::Api(e)) => return Err(e),
     };
     phone.disengage(None).await?;
@@ -504,6 +504,39 @@ impl Hand {
             bail!(TimeUp);
         }
         Ok(())
+    }
+
+    /// Where things stood, for a failed episode's note: how far the arm's target and the measured tool are
+    /// from the goal, the gripper, and what the gate last did.
+    fn account(&self) -> String {
+        let cm = |p: Option<Vector3<f64>>| {
+            p.map_or_else(
+                || "unknown".to_owned(),
+                |p| format!("{:.1} cm", (p - self.goal_m).norm() * 100.0),
+            )
+        };
+        let decision = self.state.last_decision.clone().unwrap_or_default();
+        format!(
+            "target {} from the goal, tool {}, gripper {:.2} (target {:.2}), gate {:?}{}{}, joint-limited {}, \
+             orientation unreachable {}",
+            cm(self.target_m()),
+            cm(self.measured_m()),
+            self.state.gripper_position,
+            self.state.gripper_target,
+            decision.verdict(),
+            if decision.workspace_clamped {
+                ", clamped"
+            } else {
+                ""
+            },
+            if decision.velocity_limited {
+                ", velocity-limited"
+            } else {
+                ""
+            },
+            self.state.commands_joint_limited,
+            self.state.commands_orientation_unreachable,
+        )
     }
 
     fn target_m(&self) -> Option<Vector3<f64>> {
