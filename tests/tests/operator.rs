@@ -161,7 +161,7 @@ mod stalling_bridge {
         let (mut seed, mut closed, mut success) = (0, false, false);
         let mut stalls = 0;
         let mut silent_until = tokio::time::Instant::now();
-        tx.send(feedback(at.clone(), gripper, seq)).await.unwrap();
+        tx.send(feedback(at, gripper, seq)).await.unwrap();
         tx.send(scene(seed, false, 0)).await.unwrap();
         let mut every = tokio::time::interval(Duration::from_millis(20));
         loop {
@@ -179,7 +179,7 @@ mod stalling_bridge {
                                     silent_until = tokio::time::Instant::now() + STALL;
                                 }
                             }
-                            let p = at.position_m.clone().unwrap();
+                            let p = at.position_m.unwrap();
                             let over_basket = (p.x - BASKET_M[0]).hypot(p.y - BASKET_M[1]) < 0.03;
                             if closed && c.gripper_target < 0.5 && over_basket && !success {
                                 success = true;
@@ -195,7 +195,7 @@ mod stalling_bridge {
                             if r.home_arm {
                                 (at, gripper) = (pose(HOME_M), 0.0);
                             }
-                            tx.send(feedback(at.clone(), gripper, seq)).await.unwrap();
+                            tx.send(feedback(at, gripper, seq)).await.unwrap();
                             tx.send(scene(seed, false, r.request_id)).await.unwrap();
                         }
                         _ => {}
@@ -204,7 +204,7 @@ mod stalling_bridge {
                 _ = every.tick() => {}
             }
             if tokio::time::Instant::now() >= silent_until {
-                tx.send(feedback(at.clone(), gripper, seq)).await.unwrap();
+                tx.send(feedback(at, gripper, seq)).await.unwrap();
             }
         }
     }
