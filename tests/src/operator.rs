@@ -49,6 +49,11 @@ const HOVER_ABOVE_BALL_M: f64 = 0.08;
 const CARRY_HEIGHT_M: f64 = 0.14;
 /// "Close enough" as a person judges it before closing or opening the gripper; the sim grasps within 3 cm.
 const REACHED_M: f64 = 0.008;
+/// Largest move the hand asks of the arm's target in one sample, from where the server last put it: well
+/// inside the safety gate's 6 cm jump threshold. On a starved machine the frame loop stalls, the path moves
+/// on meanwhile, and one sample asking for the whole gap is refused as a jump; asking for that gap again on
+/// every sample would be refused for ever (the episode times out), so the hand closes it in steps instead.
+const MAX_STEP_M: f64 = 0.04;
 /// Time given to the gripper to close on the ball, and to the ball to fall and settle after opening.
 const CLOSE_S: f64 = 0.4;
 const DROP_S: f64 = 0.8;
@@ -236,7 +241,14 @@ async fn episode(
     let arm = options.arm.as_str();
     let mut scene_api = client.scene();
     scene_api.reset(arm, Some(seed), true).await?;
-    if let Err(e) = phone.idle(options.reset_time_s).await {
+    // The phone's gripper setting outlives the reset (the server keeps it while the homed gripper opens): after
+    // a try that ended with the ball held, the next episode's first move would close the fingers again. A
+    // person opens the gripper before starting, outside the recording.
+    let ready = async {
+        phone.tick(vec![buttons::gripper_set(0.0)], None).await?;
+        phone.idle(options.reset_time_s).await
+    };
+    if let Err(e) = ready.await {
         // Refused before recording started: nothing to discard.
         return refusal(&e).map(Try::Refused).ok_or(e);
     }
@@ -413,6 +425,17 @@ fn vec3(v: Option<&v1::Vec3>) -> Vector3<f64> {
 fn position(pose: Option<&v1::Pose>) -> Option<Vector3<f64>> {
     pose.and_then(|p| p.position_m.as_ref())
         .map(|p| Vector3::new(p.x, p.y, p.z))
+}
+
+/// `goal`, or the point `max_m` from `from` toward it if it is farther.
+fn step_toward(from: Vector3<f64>, goal: Vector3<f64>, max_m: f64) -> Vector3<f64> {
+    let gap = goal - from;
+    let gap_m = gap.norm();
+    if gap_m <= max_m {
+        goal
+    } else {
+        from + gap * (max_m / gap_m)
+    }
 }
 
 /// Minimum-jerk profile: the smooth start and stop of a human reach.
@@ -618,6 +641,16 @@ impl Hand {
         }
     }
 
+    /// Puts the phone where the arm's target goes toward the goal: at the goal, or `MAX_STEP_M` toward it
+    /// from the arm's present target while the clutch is in and the goal is farther.
+    fn aim(&mut self) {
+        let toward = match self.target_m() {
+            Some(target) if self.state.engaged => step_toward(target, self.goal_m, MAX_STEP_M),
+            _ => self.goal_m,
+        };
+        self.phone_m = self.phone_for(toward);
+    }
+
     /// Where the phone must be for the arm's target to be `robot_m`.
     fn phone_for(&self, robot_m: Vector3<f64>) -> Vector3<f64> {
         self.phone_per_robot * (robot_m - self.offset_m)
@@ -637,7 +670,7 @@ impl Hand {
         loop {
             let s = min_jerk(start.elapsed().as_secs_f64() / seconds);
             self.goal_m = from + (goal - from) * s;
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -651,7 +684,7 @@ impl Hand {
     /// gripper around the ball before closing it.
     async fn settle(&mut self, tolerance_m: f64, deadline: Instant, what: &'static str) -> Result<(), Stop> {
         loop {
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -668,7 +701,7 @@ impl Hand {
     async fn hold(&mut self, seconds: f64, deadline: Instant, what: &'static str) -> Result<(), Stop> {
         let start = Instant::now();
         while start.elapsed().as_secs_f64() < seconds {
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -684,7 +717,7 @@ impl Hand {
         deadline: Instant,
         what: &'static str,
     ) -> Result<(), Stop> {
-        self.phone_m = self.phone_for(self.goal_m);
+        self.aim();
         self.tick(vec![buttons::gripper_set(position)], Some(deadline))
             .await
             .map_err(|e| phase(e, what))?;
@@ -775,6 +808,23 @@ mod tests {
         // Slope zero at both ends: small steps where a reach starts and stops.
         assert!(min_jerk(0.01) < 1e-4 && 1.0 - min_jerk(0.99) < 1e-4);
         assert!((min_jerk(2.0) - 1.0).abs() < 1e-15 && min_jerk(-1.0).abs() < 1e-15);
+    }
+
+    #[test]
+    fn a_step_toward_the_goal_is_bounded() {
+        let from = Vector3::new(0.2, 0.0, 0.1);
+        let near = Vector3::new(0.21, 0.01, 0.1);
+        assert_eq!(step_toward(from, near, MAX_STEP_M), near);
+        let far = Vector3::new(0.2, 0.15, 0.1);
+        let step = step_toward(from, far, MAX_STEP_M);
+        assert!(((step - from).norm() - MAX_STEP_M).abs() < 1e-12);
+        assert!((step - from).normalize().dot(&(far - from).normalize()) > 1.0 - 1e-12);
+        // Repeated from where each step ends, it arrives: a refused jump is not asked for again.
+        let mut at = from;
+        for _ in 0..4 {
+            at = step_toward(at, far, MAX_STEP_M);
+        }
+        assert_eq!(at, far);
     }
 
     #[test]
