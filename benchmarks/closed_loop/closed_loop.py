@@ -463,7 +463,9 @@ def table(demos: int, train_s: float, steps: int, results: list[PathResult], mod
     for r in results:
         lo, hi = wilson_interval(r.successes, r.trials)
         rate = r.successes / r.trials if r.trials else 0.0
-        training = (f"the step-{steps} checkpoint given (--model)" if model_given and steps
+        # The replay trains nothing, whatever the run trained for its other paths.
+        training = ("none" if r.path.startswith("nearest demonstration")
+                    else f"the step-{steps} checkpoint given (--model)" if model_given and steps
                     else f"{steps} steps, {train_s / 60:.1f} min" if steps
                     else "a given model (--model)" if model_given else "none (baselines only)")
         rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
