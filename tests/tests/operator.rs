@@ -6,6 +6,16 @@ use phone2act_recorder::parquet_io::read_rows;
 use phone2act_tests::operator::{self, OperatorOptions};
 use phone2act_tests::{TestServer, default_config, keep_for_conformance};
 
+/// Every frame row of the dataset at `root`, read back with the recorder's own parquet reader.
+fn dataset_rows(root: &std::path::Path) -> Vec<phone2act_recorder::parquet_io::Row> {
+    let mut files: Vec<_> = std::fs::read_dir(root.join("data/chunk-000"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    files.iter().flat_map(|f| read_rows(f).unwrap()).collect()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_operator_records_two_successful_episodes_through_the_phone_path() {
     let dir = tempfile::tempdir().unwrap();
@@ -41,12 +51,7 @@ async fn the_operator_records_two_successful_episodes_through_the_phone_path() {
     }
     server.shutdown().await.unwrap();
 
-    let mut files: Vec<_> = std::fs::read_dir(dir.path().join("data/chunk-000"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .collect();
-    files.sort();
-    let rows: Vec<_> = files.iter().flat_map(|f| read_rows(f).unwrap()).collect();
+    let rows = dataset_rows(dir.path());
     let frames: u64 = listed.iter().map(|e| e.length_frames).sum();
     assert_eq!(rows.len() as u64, frames);
     // `next.success`: false while the ball is on the table or in the gripper, true once it rests in the
@@ -277,12 +282,7 @@ async fn a_refused_try_is_discarded_and_its_seed_tried_again() {
     assert_eq!(listed.len(), 2, "{listed:?}");
     server.shutdown().await.unwrap();
     assert_eq!(bridge.await.unwrap(), 1);
-    let mut files: Vec<_> = std::fs::read_dir(dir.path().join("data/chunk-000"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .collect();
-    files.sort();
-    let rows: Vec<_> = files.iter().flat_map(|f| read_rows(f).unwrap()).collect();
+    let rows = dataset_rows(dir.path());
     assert_eq!(
         rows.len() as u64,
         listed.iter().map(|e| e.length_frames).sum::<u64>()
