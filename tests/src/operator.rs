@@ -159,7 +159,7 @@ impl Summary {
 }
 
 /// What became of one try of a seed.
-pub enum Try {
+enum Try {
     /// Played to its end: saved, or discarded as failed.
     Done(EpisodeReport),
     /// The server refused a phone sample (the reason); whatever was recorded was discarded.
@@ -217,8 +217,8 @@ pub async fn run(
                     summary.refused += 1;
                     let next = budget.refused(&reason);
                     on_refused(seed, budget.tries(), &reason);
-                    // Whatever the refusal left (the clutch in, the gripper closed) is undone before the
-                    // next try, which starts from a scene reset like any episode.
+                    // The clutch is let go before the next try, which starts like any episode: a scene
+                    // reset, the gripper opened.
                     phone.recover().await?;
                     if let Next::Skip(reason) = next {
                         summary.skipped.push((seed, reason));
