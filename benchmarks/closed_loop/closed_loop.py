@@ -463,7 +463,10 @@ def table(demos: int, train_s: float, steps: int, results: list[PathResult], mod
     for r in results:
         lo, hi = wilson_interval(r.successes, r.trials)
         rate = r.successes / r.trials if r.trials else 0.0
-        training = (f"{steps} steps, {train_s / 60:.1f} min" if steps
+        # The replay trains nothing, whatever the run trained for its other paths.
+        training = ("none" if r.path.startswith("nearest demonstration")
+                    else f"the step-{steps} checkpoint given (--model)" if model_given and steps
+                    else f"{steps} steps, {train_s / 60:.1f} min" if steps
                     else "a given model (--model)" if model_given else "none (baselines only)")
         rows.append(f"| {r.path} | {demos} | {training} | {r.trials} | {r.successes} | "
                     f"{rate:.0%} ({lo:.0%}–{hi:.0%}) |")
@@ -574,7 +577,8 @@ def main(argv: list[str]) -> int:
         if n_demos == 0:
             raise SystemExit("no successful demonstration was saved: nothing to train on")
         if args.model:
-            model, train_s, steps = args.model, float("nan"), 0
+            # A lerobot-train checkpoint knows its step: the record says which one was evaluated.
+            model, train_s, steps = args.model, float("nan"), checkpoint_step(args.model)
         elif not {"api", "plugin", "async"} & set(paths):
             # Only baselines (replay needs no model; blind and shifted train their own).
             model, train_s, steps = None, float("nan"), 0
@@ -644,7 +648,8 @@ def main(argv: list[str]) -> int:
             "%Y-%m-%dT%H:%M:%SZ", time.gmtime(started)), "minutes": round((time.time() - started) / 60, 1),
         "commit": commit, "machine": machine(), "versions": versions(),
         "demos": n_demos, "frames": int(info["total_frames"]), "operator": demos, "train_seconds": train_s,
-        "train_steps": steps, "training_curve": training_curve(out / "train.log"),
+        "train_steps": steps, "training_curve": [c for c in training_curve(out / "train.log")
+                                                   if not steps or c["step"] <= steps],
         "settings": {k: str(v) for k, v in vars(args).items()}, **extra,
         "paths": [asdict(r) | {"wilson_95": wilson_interval(r.successes, r.trials)} for r in results],
     }
@@ -668,6 +673,15 @@ def model_checksum(model: Path) -> str:
         h.update(str(f.relative_to(model)).encode())
         h.update(f.read_bytes())
     return h.hexdigest()
+
+
+def checkpoint_step(model: Path) -> int:
+    """The training step of a lerobot-train checkpoint (`.../checkpoints/NNNNNN/pretrained_model`), 0 if the
+    model is not one."""
+    try:
+        return int(json.loads((Path(model).parent / "training_state" / "training_step.json").read_text())["step"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
 
 
 def git_commit() -> str:

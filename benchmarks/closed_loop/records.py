@@ -27,8 +27,10 @@ def main() -> int:
         for p in r["paths"]:
             lo, hi = wilson(p["successes"], p["trials"])
             rate = p["successes"] / p["trials"] if p["trials"] else 0.0
+            # The replay trains nothing, whatever the run trained for its other paths.
+            steps = "–" if p["path"].startswith("nearest demonstration") else r["train_steps"] or "–"
             rows.append(f"| {record_path.parent.name} | {task} | {r['commit'][:12]} | "
-                        f"{p['path']} | {r['demos']} | {r['train_steps'] or '–'} | {p['trials']} | "
+                        f"{p['path']} | {r['demos']} | {steps} | {p['trials']} | "
                         f"{p['successes']} | {rate:.0%} ({lo:.0%}–{hi:.0%}) |")
     print("\n".join(rows))
     return 0

@@ -49,11 +49,22 @@ const HOVER_ABOVE_BALL_M: f64 = 0.08;
 const CARRY_HEIGHT_M: f64 = 0.14;
 /// "Close enough" as a person judges it before closing or opening the gripper; the sim grasps within 3 cm.
 const REACHED_M: f64 = 0.008;
+/// Largest move the hand asks of the arm's target in one sample, from where the server last put it: well
+/// inside the safety gate's 6 cm jump threshold. On a starved machine the frame loop stalls, the path moves
+/// on meanwhile, and one sample asking for the whole gap is refused as a jump; asking for that gap again on
+/// every sample would be refused for ever (the episode times out), so the hand closes it in steps instead.
+const MAX_STEP_M: f64 = 0.04;
 /// Time given to the gripper to close on the ball, and to the ball to fall and settle after opening.
 const CLOSE_S: f64 = 0.4;
 const DROP_S: f64 = 0.8;
 /// After the ball lands the operator keeps still this long, so the episode ends with frames of success.
 const TAIL_S: f64 = 0.5;
+/// Times a seed is tried again after the server refused a phone sample during it (the arm not ready: its
+/// measured pose went stale on a starved machine); after that the seed is skipped with the refusal as reason.
+pub const MAX_REFUSED_TRIES: u32 = 3;
+/// How long the operator waits, streaming disengaged, for the server to accept samples again after a refusal
+/// before giving up the run: a stale pose that does not freshen in this long is a stuck bridge, not load.
+const RECOVER_S: f64 = 30.0;
 
 /// What to record.
 #[derive(Clone, Debug)]
@@ -104,10 +115,16 @@ pub struct EpisodeReport {
 /// The run's outcome; [`Summary::to_json`] is the machine-readable line.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Summary {
+    /// Seeds played to their end (saved or discarded as failed); a skipped seed is not counted.
     pub attempted: u64,
     pub succeeded: u64,
     pub saved: u64,
+    /// The seeds attempted, in order.
     pub seeds: Vec<u64>,
+    /// Tries the server cut short by refusing a phone sample; each was discarded and its seed tried again.
+    pub refused: u64,
+    /// Seeds given up after [`MAX_REFUSED_TRIES`] refused tries, with the last refusal.
+    pub skipped: Vec<(u64, String)>,
 }
 
 impl Summary {
@@ -119,25 +136,43 @@ impl Summary {
         }
     }
 
-    /// `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..]}`, keys in that order.
+    /// `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..],"refused":..,"skipped":[..]}`,
+    /// keys in that order; `skipped` lists `{"seed":..,"reason":..}`.
     pub fn to_json(&self) -> String {
+        let skipped: Vec<serde_json::Value> = self
+            .skipped
+            .iter()
+            .map(|(seed, reason)| serde_json::json!({"seed": seed, "reason": reason}))
+            .collect();
         let fields = [
             ("attempted", serde_json::json!(self.attempted)),
             ("succeeded", serde_json::json!(self.succeeded)),
             ("saved", serde_json::json!(self.saved)),
             ("success_rate", serde_json::json!(self.success_rate())),
             ("seeds", serde_json::json!(self.seeds)),
+            ("refused", serde_json::json!(self.refused)),
+            ("skipped", serde_json::json!(skipped)),
         ];
         let body: Vec<String> = fields.iter().map(|(k, v)| format!("\"{k}\":{v}")).collect();
         format!("{{{}}}", body.join(","))
     }
 }
 
-/// Records `options.episodes` episodes through `client`, calling `on_episode` after each.
+/// What became of one try of a seed.
+enum Try {
+    /// Played to its end: saved, or discarded as failed.
+    Done(EpisodeReport),
+    /// The server refused a phone sample (the reason); whatever was recorded was discarded.
+    Refused(String),
+}
+
+/// Records `options.episodes` episodes through `client`, calling `on_episode` after each and `on_refused`
+/// (seed, try from 1, reason) after each try the server cut short.
 pub async fn run(
     client: &Client,
     options: &OperatorOptions,
     mut on_episode: impl FnMut(&EpisodeReport),
+    mut on_refused: impl FnMut(u64, u32, &str),
 ) -> anyhow::Result<Summary> {
     if !(options.episode_time_s.is_finite() && options.episode_time_s > 0.0) {
         bail!("episode time must be a positive number of seconds");
@@ -167,12 +202,31 @@ pub async fn run(
     let mut summary = Summary::default();
     for attempt in 0..options.episodes {
         let seed = options.seed.wrapping_add(attempt);
-        let report = episode(client, &mut phone, options, attempt, seed).await?;
-        summary.attempted += 1;
-        summary.succeeded += u64::from(report.success);
-        summary.saved += u64::from(report.saved);
-        summary.seeds.push(seed);
-        on_episode(&report);
+        let mut budget = RefusalBudget::new(MAX_REFUSED_TRIES);
+        loop {
+            match episode(client, &mut phone, options, attempt, seed).await? {
+                Try::Done(report) => {
+                    summary.attempted += 1;
+                    summary.succeeded += u64::from(report.success);
+                    summary.saved += u64::from(report.saved);
+                    summary.seeds.push(seed);
+                    on_episode(&report);
+                    break;
+                }
+                Try::Refused(reason) => {
+                    summary.refused += 1;
+                    let next = budget.refused(&reason);
+                    on_refused(seed, budget.tries(), &reason);
+                    // The clutch is let go before the next try, which starts like any episode: a scene
+                    // reset, the gripper opened.
+                    phone.recover().await?;
+                    if let Next::Skip(reason) = next {
+                        summary.skipped.push((seed, reason));
+                        break;
+                    }
+                }
+            }
+        }
     }
     Ok(summary)
 }
@@ -183,28 +237,43 @@ async fn episode(
     options: &OperatorOptions,
     attempt: u64,
     seed: u64,
-) -> anyhow::Result<EpisodeReport> {
+) -> anyhow::Result<Try> {
     let arm = options.arm.as_str();
     let mut scene_api = client.scene();
     scene_api.reset(arm, Some(seed), true).await?;
-    phone.idle(options.reset_time_s).await?;
+    // The phone's gripper setting outlives the reset (the server keeps it while the homed gripper opens): after
+    // a try that ended with the ball held, the next episode's first move would close the fingers again. A
+    // person opens the gripper before starting, outside the recording.
+    let ready = async {
+        phone.tick(vec![buttons::gripper_set(0.0)], None).await?;
+        phone.idle(options.reset_time_s).await
+    };
+    if let Err(e) = ready.await {
+        // Refused before recording started: nothing to discard.
+        return refusal(&e).map(Try::Refused).ok_or(e);
+    }
     let scene = scene_api.get(arm).await?;
     let mut episodes = client.episodes();
     episodes.start(&options.task).await?;
     let started = Instant::now();
-    let deadline = started + Duration::from_secs_f64(options.episode_time_s);
-    let note = match pick_and_place(phone, &scene, deadline, options.clutch_cycles).await {
-        Ok(()) => String::new(),
-        Err(Stop::TimeUp(what)) => format!("time up while {what}"),
-        Err(Stop::Api(e)) => {
-            // The stream or the server failed: nothing to save, and nothing more to do this run.
-            let _ = episodes.discard().await;
-            return Err(e);
+    // From here every way out either saves the episode (a success) or discards it, so the dataset never holds
+    // half an episode, whatever the server or the stream does.
+    let played = play(client, phone, options, &scene, started).await;
+    let duration_s = started.elapsed().as_secs_f64();
+    let (success, note) = match played {
+        Ok(outcome) => outcome,
+        Err(e) => {
+            let discarded = episodes.discard().await;
+            return match refusal(&e) {
+                Some(reason) => {
+                    discarded.context("discarding an episode the server cut short")?;
+                    Ok(Try::Refused(reason))
+                }
+                // The stream or the server failed: nothing to save, and nothing more to do this run.
+                None => Err(e),
+            };
         }
     };
-    phone.disengage(None).await?;
-    let success = scene_api.get(arm).await?.success;
-    let duration_s = started.elapsed().as_secs_f64();
     let (saved, episode_index, frames) = if success {
         let info = episodes
             .stop()
@@ -215,7 +284,7 @@ async fn episode(
     } else {
         (false, None, episodes.discard().await?)
     };
-    Ok(EpisodeReport {
+    Ok(Try::Done(EpisodeReport {
         attempt,
         seed,
         success,
@@ -228,7 +297,69 @@ async fn episode(
         } else {
             "the ball did not end in the basket".to_owned()
         },
-    })
+    }))
+}
+
+/// The recorded part of an episode: the pick-and-place, letting go of the clutch, and the scene's verdict.
+/// Returns (success, why it stopped early if it did).
+async fn play(
+    client: &Client,
+    phone: &mut Hand,
+    options: &OperatorOptions,
+    scene: &v1::SceneState,
+    started: Instant,
+) -> anyhow::Result<(bool, String)> {
+    let deadline = started + Duration::from_secs_f64(options.episode_time_s);
+    let note = match pick_and_place(phone, scene, deadline, options.clutch_cycles).await {
+        Ok(()) => String::new(),
+        Err(Stop::TimeUp(what)) => format!("time up while {what} ({})", phone.account()),
+        Err(Stop::Api(e)) => return Err(e),
+    };
+    phone.disengage(None).await?;
+    let success = client.scene().get(&options.arm).await?.success;
+    Ok((success, note))
+}
+
+/// The server's reason, if `error` is its refusal of a phone sample.
+fn refusal(error: &anyhow::Error) -> Option<String> {
+    error.downcast_ref::<Refused>().map(|r| r.0.clone())
+}
+
+/// What the operator does after the server cut a try short.
+#[derive(Debug, PartialEq)]
+enum Next {
+    Retry,
+    /// Give the seed up, for this reason.
+    Skip(String),
+}
+
+/// Counts one seed's refused tries.
+struct RefusalBudget {
+    max_tries: u32,
+    tries: u32,
+}
+
+impl RefusalBudget {
+    fn new(max_tries: u32) -> Self {
+        Self { max_tries, tries: 0 }
+    }
+
+    /// Refused tries so far.
+    fn tries(&self) -> u32 {
+        self.tries
+    }
+
+    fn refused(&mut self, reason: &str) -> Next {
+        self.tries += 1;
+        if self.tries >= self.max_tries {
+            Next::Skip(format!(
+                "the server refused a phone sample on {} tries; last: {reason}",
+                self.tries
+            ))
+        } else {
+            Next::Retry
+        }
+    }
 }
 
 /// Why a pick-and-place stopped early.
@@ -294,6 +425,17 @@ fn vec3(v: Option<&v1::Vec3>) -> Vector3<f64> {
 fn position(pose: Option<&v1::Pose>) -> Option<Vector3<f64>> {
     pose.and_then(|p| p.position_m.as_ref())
         .map(|p| Vector3::new(p.x, p.y, p.z))
+}
+
+/// `goal`, or the point `max_m` from `from` toward it if it is farther.
+fn step_toward(from: Vector3<f64>, goal: Vector3<f64>, max_m: f64) -> Vector3<f64> {
+    let gap = goal - from;
+    let gap_m = gap.norm();
+    if gap_m <= max_m {
+        goal
+    } else {
+        from + gap * (max_m / gap_m)
+    }
 }
 
 /// Minimum-jerk profile: the smooth start and stop of a human reach.
@@ -368,7 +510,7 @@ impl Hand {
         let seq = self.session.send_pose(pose, buttons, capture_time_ns).await?;
         let feedback = self.session.feedback_for(seq).await?;
         if !feedback.error.is_empty() {
-            bail!("the server refused a phone sample: {}", feedback.error);
+            return Err(Refused(feedback.error).into());
         }
         self.state = feedback.arm_state.context("feedback without arm state")?;
         let decision = self.state.last_decision.clone().unwrap_or_default();
@@ -385,6 +527,39 @@ impl Hand {
             bail!(TimeUp);
         }
         Ok(())
+    }
+
+    /// Where things stood, for a failed episode's note: how far the arm's target and the measured tool are
+    /// from the goal, the gripper, and what the gate last did.
+    fn account(&self) -> String {
+        let cm = |p: Option<Vector3<f64>>| {
+            p.map_or_else(
+                || "unknown".to_owned(),
+                |p| format!("{:.1} cm", (p - self.goal_m).norm() * 100.0),
+            )
+        };
+        let decision = self.state.last_decision.clone().unwrap_or_default();
+        format!(
+            "target {} from the goal, tool {}, gripper {:.2} (target {:.2}), gate {:?}{}{}, joint-limited {}, \
+             orientation unreachable {}",
+            cm(self.target_m()),
+            cm(self.measured_m()),
+            self.state.gripper_position,
+            self.state.gripper_target,
+            decision.verdict(),
+            if decision.workspace_clamped {
+                ", clamped"
+            } else {
+                ""
+            },
+            if decision.velocity_limited {
+                ", velocity-limited"
+            } else {
+                ""
+            },
+            self.state.commands_joint_limited,
+            self.state.commands_orientation_unreachable,
+        )
     }
 
     fn target_m(&self) -> Option<Vector3<f64>> {
@@ -466,6 +641,16 @@ impl Hand {
         }
     }
 
+    /// Puts the phone where the arm's target goes toward the goal: at the goal, or `MAX_STEP_M` toward it
+    /// from the arm's present target while the clutch is in and the goal is farther.
+    fn aim(&mut self) {
+        let toward = match self.target_m() {
+            Some(target) if self.state.engaged => step_toward(target, self.goal_m, MAX_STEP_M),
+            _ => self.goal_m,
+        };
+        self.phone_m = self.phone_for(toward);
+    }
+
     /// Where the phone must be for the arm's target to be `robot_m`.
     fn phone_for(&self, robot_m: Vector3<f64>) -> Vector3<f64> {
         self.phone_per_robot * (robot_m - self.offset_m)
@@ -485,7 +670,7 @@ impl Hand {
         loop {
             let s = min_jerk(start.elapsed().as_secs_f64() / seconds);
             self.goal_m = from + (goal - from) * s;
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -499,7 +684,7 @@ impl Hand {
     /// gripper around the ball before closing it.
     async fn settle(&mut self, tolerance_m: f64, deadline: Instant, what: &'static str) -> Result<(), Stop> {
         loop {
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -516,7 +701,7 @@ impl Hand {
     async fn hold(&mut self, seconds: f64, deadline: Instant, what: &'static str) -> Result<(), Stop> {
         let start = Instant::now();
         while start.elapsed().as_secs_f64() < seconds {
-            self.phone_m = self.phone_for(self.goal_m);
+            self.aim();
             self.tick(Vec::new(), Some(deadline))
                 .await
                 .map_err(|e| phase(e, what))?;
@@ -532,7 +717,7 @@ impl Hand {
         deadline: Instant,
         what: &'static str,
     ) -> Result<(), Stop> {
-        self.phone_m = self.phone_for(self.goal_m);
+        self.aim();
         self.tick(vec![buttons::gripper_set(position)], Some(deadline))
             .await
             .map_err(|e| phase(e, what))?;
@@ -552,6 +737,24 @@ impl Hand {
         self.engage(Some(deadline)).await
     }
 
+    /// After a refused sample: lets go of the clutch (sent until the server takes it; a refused sample
+    /// changes nothing) and streams on until the server accepts samples again, at most `RECOVER_S`.
+    async fn recover(&mut self) -> anyhow::Result<()> {
+        let give_up = Instant::now() + Duration::from_secs_f64(RECOVER_S);
+        loop {
+            match self.tick(vec![buttons::clutch_disengage()], None).await {
+                Ok(()) if !self.state.engaged => return Ok(()),
+                Ok(()) => {}
+                Err(e) if e.is::<Refused>() && Instant::now() < give_up => {}
+                Err(e) => {
+                    return Err(e.context(format!(
+                        "the server still refuses phone samples after {RECOVER_S} s"
+                    )));
+                }
+            }
+        }
+    }
+
     /// Keeps the phone streaming, disengaged, for `seconds` (the reset phase).
     async fn idle(&mut self, seconds: f64) -> anyhow::Result<()> {
         let start = Instant::now();
@@ -561,6 +764,18 @@ impl Hand {
         Ok(())
     }
 }
+
+/// The server refused a phone sample (its reason, e.g. the arm not ready because its measured pose is stale).
+#[derive(Debug)]
+struct Refused(String);
+
+impl std::fmt::Display for Refused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "the server refused a phone sample: {}", self.0)
+    }
+}
+
+impl std::error::Error for Refused {}
 
 /// Marker error: the episode's deadline passed.
 #[derive(Debug)]
@@ -596,12 +811,31 @@ mod tests {
     }
 
     #[test]
+    fn a_step_toward_the_goal_is_bounded() {
+        let from = Vector3::new(0.2, 0.0, 0.1);
+        let near = Vector3::new(0.21, 0.01, 0.1);
+        assert_eq!(step_toward(from, near, MAX_STEP_M), near);
+        let far = Vector3::new(0.2, 0.15, 0.1);
+        let step = step_toward(from, far, MAX_STEP_M);
+        assert!(((step - from).norm() - MAX_STEP_M).abs() < 1e-12);
+        assert!((step - from).normalize().dot(&(far - from).normalize()) > 1.0 - 1e-12);
+        // Repeated from where each step ends, it arrives: a refused jump is not asked for again.
+        let mut at = from;
+        for _ in 0..4 {
+            at = step_toward(at, far, MAX_STEP_M);
+        }
+        assert_eq!(at, far);
+    }
+
+    #[test]
     fn the_summary_line_is_the_documented_json() {
         let summary = Summary {
             attempted: 4,
             succeeded: 3,
             saved: 3,
             seeds: vec![10, 11, 12, 13],
+            refused: 4,
+            skipped: vec![(14, "arm not ready".to_owned())],
         };
         let line = summary.to_json();
         assert!(
@@ -612,7 +846,33 @@ mod tests {
         assert_eq!(
             value,
             serde_json::json!({"attempted": 4, "succeeded": 3, "saved": 3, "success_rate": 0.75,
-                               "seeds": [10, 11, 12, 13]})
+                               "seeds": [10, 11, 12, 13], "refused": 4,
+                               "skipped": [{"seed": 14, "reason": "arm not ready"}]})
         );
+    }
+
+    #[test]
+    fn a_refused_seed_is_tried_again_then_skipped_with_the_last_reason() {
+        let mut budget = RefusalBudget::new(3);
+        assert_eq!(budget.refused("pose 1.00 s old"), Next::Retry);
+        assert_eq!(budget.refused("pose 1.20 s old"), Next::Retry);
+        assert_eq!(budget.tries(), 2);
+        let Next::Skip(reason) = budget.refused("pose 1.50 s old") else {
+            panic!("a third refusal must skip the seed");
+        };
+        assert!(
+            reason.contains("3 tries") && reason.ends_with("pose 1.50 s old"),
+            "{reason}"
+        );
+    }
+
+    #[test]
+    fn only_the_servers_refusal_counts_as_one() {
+        let refused = anyhow::Error::from(Refused("arm \"main\" is not ready".to_owned()));
+        // Through the context a phase adds, as the episode sees it.
+        let wrapped = refused.context("carrying");
+        assert_eq!(refusal(&wrapped).as_deref(), Some("arm \"main\" is not ready"));
+        assert_eq!(refusal(&anyhow::anyhow!("stream closed")), None);
+        assert_eq!(refusal(&anyhow::Error::from(TimeUp)), None);
     }
 }

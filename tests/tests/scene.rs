@@ -197,7 +197,9 @@ async fn after_a_scripted_pick_and_place_the_scene_reports_success() {
         reset_time_s: 0.0,
         ..OperatorOptions::default()
     };
-    let summary = operator::run(&client, &options, |_| {}).await.unwrap();
+    let summary = operator::run(&client, &options, |_| {}, |_, _, _| {})
+        .await
+        .unwrap();
     assert_eq!((summary.succeeded, summary.saved), (1, 1), "{summary:?}");
     let scene = client.scene().get("main").await.unwrap();
     assert!(scene.success);

@@ -5,8 +5,10 @@
 //! `cargo run --release -p phone2act-tests --bin operator -- --server http://127.0.0.1:50051 --episodes 50 --seed 0`
 //!
 //! Prints a progress line per episode on stderr and, at the end, one JSON line on stdout:
-//! `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..]}`. Episode `k` uses scene seed
-//! `seed + k`, so a run with `--seed S --episodes N` trains on seeds `S..S+N`; evaluate on a disjoint range.
+//! `{"attempted":..,"succeeded":..,"saved":..,"success_rate":..,"seeds":[..],"refused":..,"skipped":[..]}`.
+//! Episode `k` uses scene seed `seed + k`, so a run with `--seed S --episodes N` trains on seeds `S..S+N`;
+//! evaluate on a disjoint range. A try the server cuts short by refusing a phone sample (the arm not ready) is
+//! discarded and its seed tried again, up to `MAX_REFUSED_TRIES` tries, then skipped (listed in `skipped`).
 
 use anyhow::Context as _;
 use clap::Parser;
@@ -65,18 +67,33 @@ async fn main() -> anyhow::Result<()> {
         clutch_cycles: args.clutch_cycles,
     };
     let total = options.episodes;
-    let summary = operator::run(&client, &options, |r| {
-        let outcome = match (r.success, r.episode_index) {
-            (true, Some(index)) => format!("saved as episode {index} ({} frames)", r.frames),
-            _ => format!("failed, discarded: {}", r.note),
-        };
-        eprintln!(
-            "episode {}/{total} seed {}: {outcome} in {:.1} s",
-            r.attempt + 1,
-            r.seed,
-            r.duration_s
-        );
-    })
+    let summary = operator::run(
+        &client,
+        &options,
+        |r| {
+            let outcome = match (r.success, r.episode_index) {
+                (true, Some(index)) => format!("saved as episode {index} ({} frames)", r.frames),
+                _ => format!("failed, discarded: {}", r.note),
+            };
+            eprintln!(
+                "episode {}/{total} seed {}: {outcome} in {:.1} s",
+                r.attempt + 1,
+                r.seed,
+                r.duration_s
+            );
+        },
+        |seed, tries, reason| {
+            let next = if tries < operator::MAX_REFUSED_TRIES {
+                "trying it again"
+            } else {
+                "skipping it"
+            };
+            eprintln!(
+                "refused: seed {seed}, try {tries}/{}: {reason}; discarded, {next}",
+                operator::MAX_REFUSED_TRIES
+            );
+        },
+    )
     .await?;
     println!("{}", summary.to_json());
     Ok(())
