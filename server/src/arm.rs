@@ -1120,9 +1120,12 @@ mod tests {
         // The timer wakes within milliseconds; a 2-core machine at load 20 delays a ready task by tens of
         // milliseconds, far below the 30 s a periodic tick would take.
         assert!(late_s < 2.0, "released {late_s} s after the deadline");
-        // The tick task slept: the deadline's tick, and at most one more for a wake-up the claim left behind.
+        // The tick task slept: the tick the claim's wake-up runs (which reads the deadline), the deadline's
+        // tick, and at most one tick that the timer ran just short of the deadline (the monotonic clock and
+        // tokio's timer are read apart; that tick finds the same deadline and sleeps the rest). A periodic
+        // 500 Hz tick would have made about 150 over the 0.3 s.
         assert!(
-            ticks <= 2,
+            ticks <= 3,
             "{ticks} ticks while the arm waited for a silent policy"
         );
         assert_eq!(arm.snapshot().driver, phone2act_core::Driver::None);
