@@ -1045,11 +1045,17 @@ mod tests {
         let now = now_s();
         arm.push_chunk(1, &steps, 0.05, now, now, here, ActionMode::Absolute)
             .unwrap();
-        // The push plays step 0; only the woken tick task can play steps 1-4 (the chunk lasts 0.25 s; 10 s
-        // covers any stall of a loaded machine, and a task that was never woken never gets there).
+        // The push plays step 0; only the woken tick task can play steps 1-4 and reach the last step's target
+        // (the chunk lasts 0.25 s; 10 s covers any stall of a loaded machine, and a task that was never woken
+        // never gets there). A tick more than a step late plays the step due then, so a stall may skip a
+        // middle step: the count says only that the tick task sent something.
+        let last = Isometry3::translation(0.008, 0.0, 0.0) * here;
         assert!(
-            eventually(Duration::from_secs(10), || arm.snapshot().counters.sent
-                == sent_before + 5)
+            eventually(Duration::from_secs(10), || {
+                let s = arm.snapshot();
+                s.counters.sent >= sent_before + 2
+                    && (s.robot_from_target.translation.vector - last.translation.vector).norm() < 1e-9
+            })
             .await,
             "the chunk did not play to its end: {:?}",
             arm.snapshot().counters
