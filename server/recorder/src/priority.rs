@@ -1,7 +1,7 @@
 //! Lower CPU priority for threads whose work may wait for the control path's: the live video's threads and a
 //! generated camera that nobody records. On Linux nice is per thread, and threads a thread starts inherit it;
 //! raising it again needs a privilege, so a thread that must sometimes run at full priority hands the work to
-//! a lowered thread instead of lowering itself (see [`crate::camera`]).
+//! a lowered thread instead of lowering itself (as the camera module does).
 
 /// How many nice steps below the control path background work runs: at nice +10 a thread gets about a tenth
 /// of the CPU share of a nice 0 thread that wants the same core.
