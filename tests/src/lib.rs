@@ -2,6 +2,7 @@
 //! connect the real SDK to it; and the scripted operator ([`operator`]), a phone client that records
 //! pick-and-place demonstrations.
 
+pub mod bridge;
 pub mod operator;
 pub mod s3;
 

@@ -90,8 +90,8 @@ async fn the_operator_records_two_successful_episodes_through_the_phone_path() {
 /// gripper first closes, it goes silent for `STALL`: its measured pose goes stale, as the sim's did on a
 /// starved machine, and the server refuses the phone's samples ("the arm is not ready").
 mod stalling_bridge {
-    use phone2act_proto::v1::bridge_client::BridgeClient;
     use phone2act_sdk::proto as v1;
+    use phone2act_tests::bridge::{self, upstream as up};
     use std::time::Duration;
     use tokio_stream::StreamExt;
 
@@ -103,12 +103,6 @@ mod stalling_bridge {
     /// Twice the server's 1 s limit on the measured pose's age: long enough that the operator's next sample
     /// certainly finds it stale, however late a loaded machine delivers it.
     const STALL: Duration = Duration::from_secs(2);
-
-    fn up(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
-        v1::BridgeUpstream {
-            message: Some(message),
-        }
-    }
 
     fn pose(p: [f64; 3]) -> v1::Pose {
         v1::Pose::from_parts(p, [0.0, 0.0, 0.0, 1.0])
@@ -146,22 +140,15 @@ mod stalling_bridge {
 
     /// Attaches to arm `arm` and runs until the server ends the stream; returns how many stalls it made.
     pub(super) async fn run(channel: tonic::transport::Channel, arm: &str) -> u32 {
-        let (tx, rx) = tokio::sync::mpsc::channel(64);
-        tx.send(up(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+        let hello = v1::BridgeHello {
             arm: arm.into(),
             bridge_name: "stalling".into(),
             joint_names: vec!["a".into(), "b".into(), "c".into()],
             supports_orientation: true,
             has_scene: true,
             ..v1::BridgeHello::default()
-        })))
-        .await
-        .unwrap();
-        let mut down = BridgeClient::new(channel)
-            .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
-            .await
-            .unwrap()
-            .into_inner();
+        };
+        let (tx, mut down) = bridge::attach(channel, hello, 64).await.unwrap();
         let (mut at, mut gripper, mut seq) = (pose(HOME_M), 0.0, 0);
         let (mut seed, mut closed, mut success) = (0, false, false);
         let mut stalls = 0;

@@ -5,6 +5,7 @@ use phone2act_proto::v1::cameras_client::CamerasClient;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{TeleopOptions, buttons};
 use phone2act_server::Config;
+use phone2act_tests::bridge::{self, upstream};
 use phone2act_tests::{TestServer, pos};
 use std::time::Duration;
 use tokio_stream::StreamExt;
@@ -32,12 +33,6 @@ fn config(dir: &std::path::Path) -> Config {
     let mut c = Config::from_toml_str(CONFIG, "remote-test", Vec::new()).unwrap();
     dir.clone_into(&mut c.recorder.root);
     c
-}
-
-fn upstream(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
-    v1::BridgeUpstream {
-        message: Some(message),
-    }
 }
 
 fn feedback(pose: v1::Pose, applied_seq: u64) -> v1::BridgeUpstream {
@@ -301,20 +296,13 @@ async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
             error: error.into(),
         }))
     };
-    let (tx, rx) = tokio::sync::mpsc::channel(16);
-    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+    let hello = v1::BridgeHello {
         arm: "ext".into(),
         joint_names: vec!["a".into(), "b".into(), "c".into()],
         has_scene: true,
         ..v1::BridgeHello::default()
-    })))
-    .await
-    .unwrap();
-    let mut down = BridgeClient::new(channel)
-        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
+    };
+    let (tx, mut down) = bridge::attach(channel, hello, 16).await.unwrap();
     assert!(matches!(
         down.next().await.unwrap().unwrap().message,
         Some(v1::bridge_downstream::Message::Welcome(_))

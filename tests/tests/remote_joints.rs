@@ -20,6 +20,7 @@ use phone2act_core::{ActionMode, AxisPreset};
 use phone2act_proto::v1::bridge_client::BridgeClient;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
+use phone2act_tests::bridge::upstream;
 use phone2act_tests::{TestServer, arm_state};
 use std::sync::Arc;
 use std::time::Duration;
@@ -106,12 +107,6 @@ fn pose_of(p: &v1::Pose) -> Isometry3<f64> {
         Translation3::new(t.x, t.y, t.z),
         UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z)),
     )
-}
-
-fn upstream(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
-    v1::BridgeUpstream {
-        message: Some(message),
-    }
 }
 
 /// One command as the bridge received it.

@@ -6,6 +6,7 @@
 #![allow(clippy::err_expect)]
 
 use phone2act_sdk::proto as v1;
+use phone2act_tests::bridge::upstream as up;
 use phone2act_tests::{TestServer, default_config, remote_config};
 use std::time::Duration;
 
@@ -100,12 +101,6 @@ async fn episode_watch_streams_do_not_cost_a_thread_each() {
     client.episodes().discard().await.unwrap();
     drop(streams);
     server.shutdown().await.unwrap();
-}
-
-fn up(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
-    v1::BridgeUpstream {
-        message: Some(message),
-    }
 }
 
 fn hello(joints: Vec<String>) -> v1::BridgeUpstream {

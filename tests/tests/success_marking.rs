@@ -3,11 +3,11 @@
 //! value, every other frame is false, and the outcome is kept in the episode's provenance and listed. Both
 //! dataset formats; the datasets go to the lerobot conformance run, which checks the values lerobot reads.
 
-use phone2act_proto::v1::bridge_client::BridgeClient;
 use phone2act_recorder::parquet_io::read_rows;
 use phone2act_sdk::proto as v1;
 use phone2act_server::Config;
 use phone2act_server::config::DatasetFormat;
+use phone2act_tests::bridge::{self, upstream};
 use phone2act_tests::{TestServer, keep_for_conformance_expecting, wait_until};
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
@@ -24,12 +24,6 @@ bridge = "remote"
 joint_names = ["a", "b", "c"]
 "#;
 
-fn upstream(message: v1::bridge_upstream::Message) -> v1::BridgeUpstream {
-    v1::BridgeUpstream {
-        message: Some(message),
-    }
-}
-
 /// Attaches a bridge to `ext` that reports a fixed pose every 10 ms (well inside the recorder's 0.25 s hold
 /// tolerance) until the returned sender is dropped.
 async fn attach_bridge(server: &TestServer) -> tokio::task::JoinHandle<()> {
@@ -38,21 +32,14 @@ async fn attach_bridge(server: &TestServer) -> tokio::task::JoinHandle<()> {
         .connect()
         .await
         .unwrap();
-    let (tx, rx) = tokio::sync::mpsc::channel(8);
-    tx.send(upstream(v1::bridge_upstream::Message::Hello(v1::BridgeHello {
+    let hello = v1::BridgeHello {
         arm: "ext".into(),
         bridge_name: "success-test".into(),
         joint_names: vec!["a".into(), "b".into(), "c".into()],
         supports_orientation: true,
         ..v1::BridgeHello::default()
-    })))
-    .await
-    .unwrap();
-    let mut down = BridgeClient::new(channel)
-        .attach(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
+    };
+    let (tx, mut down) = bridge::attach(channel, hello, 8).await.unwrap();
     tokio::spawn(async move {
         // Drain the downstream (welcome, commands) so the server never blocks on it.
         let drain = tokio::spawn(async move { while let Some(Ok(_)) = down.message().await.transpose() {} });
