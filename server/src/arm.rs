@@ -934,6 +934,25 @@ mod tests {
         fn revoked(&self, _: &str, _: &str) {}
     }
 
+    /// The embedded default's arm on a simulator, in absolute mode.
+    fn sim_arm() -> Arc<ArmController> {
+        let config = crate::config::Config::embedded_default().unwrap();
+        let a = &config.arms[0];
+        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
+        Arc::new(
+            ArmController::new(
+                "main",
+                "sim",
+                bridge,
+                &a.teleop,
+                &a.chunk,
+                ActionMode::Absolute,
+                Isometry3::identity(),
+            )
+            .unwrap(),
+        )
+    }
+
     /// Polls `done` until it holds or `limit` passes; returns whether it held.
     async fn eventually(limit: Duration, done: impl Fn() -> bool) -> bool {
         let start = Instant::now();
@@ -1006,21 +1025,7 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn the_tick_task_sleeps_while_idle_and_wakes_to_play_a_chunk_to_its_end() {
-        let config = crate::config::Config::embedded_default().unwrap();
-        let a = &config.arms[0];
-        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
-        let arm = Arc::new(
-            ArmController::new(
-                "main",
-                "sim",
-                bridge,
-                &a.teleop,
-                &a.chunk,
-                ActionMode::Absolute,
-                Isometry3::identity(),
-            )
-            .unwrap(),
-        );
+        let arm = sim_arm();
         let (stop, stopped) = tokio::sync::watch::channel(false);
         let ticking = tokio::spawn(run_ticks(vec![Arc::clone(&arm)], 500.0, stopped));
         // 10 s for a 50 Hz simulator to report once: a starved 2-core machine stalls for far less.
@@ -1076,21 +1081,7 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_silent_policy_is_released_at_its_deadline_not_at_the_next_periodic_tick() {
-        let config = crate::config::Config::embedded_default().unwrap();
-        let a = &config.arms[0];
-        let bridge = SimBridge::start_with_clock(SimConfig::default(), monotonic_ns).unwrap();
-        let arm = Arc::new(
-            ArmController::new(
-                "main",
-                "sim",
-                bridge,
-                &a.teleop,
-                &a.chunk,
-                ActionMode::Absolute,
-                Isometry3::identity(),
-            )
-            .unwrap(),
-        );
+        let arm = sim_arm();
         // One periodic tick every 30 s: a release that waited for one would come 30 s late.
         let (stop, stopped) = tokio::sync::watch::channel(false);
         let ticking = tokio::spawn(run_ticks(vec![Arc::clone(&arm)], 1.0 / 30.0, stopped));

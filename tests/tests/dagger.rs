@@ -7,7 +7,7 @@
 use phone2act_recorder::events::{EpisodeEvent, EventKind, read_events};
 use phone2act_recorder::parquet_io::{Row, read_rows};
 use phone2act_sdk::proto as v1;
-use phone2act_sdk::{Client, PolicySession, TeleopOptions, buttons};
+use phone2act_sdk::{Client, PolicySession, TeleopOptions, TeleopSession, buttons};
 use phone2act_server::config::DatasetFormat;
 use phone2act_tests::{
     TestServer, arm_state, bimanual_config, default_config, keep_for_conformance, wait_until,
@@ -69,6 +69,17 @@ async fn policy_drives_arm(client: &Client, arm: &str) -> bool {
         arm_state(client, arm).await.owner() == v1::ControlSource::Policy
     })
     .await
+}
+
+/// The operator hands `arm` back with the phone's gesture; the waiting policy then drives it again.
+async fn hand_back(phone: &mut TeleopSession, client: &Client, arm: &str) {
+    let seq = phone.hand_back().await.unwrap();
+    let fb = phone.feedback_for(seq).await.unwrap();
+    assert!(fb.error.is_empty(), "{}", fb.error);
+    assert!(
+        policy_drives_arm(client, arm).await,
+        "the policy did not take {arm} back"
+    );
 }
 
 /// Per frame, whether a `start` .. `stop` span of the events sidecar is open there.
@@ -162,13 +173,7 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
     assert!(!fb.arm_state.unwrap().engaged);
 
     // Hand-back: the policy drives again; its chunks answer fresh observations.
-    let seq = phone.hand_back().await.unwrap();
-    let fb = phone.feedback_for(seq).await.unwrap();
-    assert!(fb.error.is_empty(), "{}", fb.error);
-    assert!(
-        policy_drives(&client).await,
-        "the policy did not take the arm back"
-    );
+    hand_back(&mut phone, &client, "main").await;
     tokio::time::sleep(Duration::from_secs(1)).await;
     let saved = episodes.stop().await.unwrap().episode.unwrap();
     assert!(!first.is_finished(), "the policy session lost the arm");
@@ -376,13 +381,7 @@ async fn a_correction_of_one_arm_of_two_is_recorded_for_that_arm_while_the_polic
         .await
         .unwrap();
     phone.feedback_for(seq).await.unwrap();
-    let seq = phone.hand_back().await.unwrap();
-    let fb = phone.feedback_for(seq).await.unwrap();
-    assert!(fb.error.is_empty(), "{}", fb.error);
-    assert!(
-        policy_drives_arm(&client, "left").await,
-        "the policy did not take the left arm back"
-    );
+    hand_back(&mut phone, &client, "left").await;
     tokio::time::sleep(Duration::from_secs(1)).await;
     let saved = episodes.stop().await.unwrap().episode.unwrap();
     assert!(!policy.is_finished(), "the policy session lost its arms");
