@@ -1152,7 +1152,7 @@ mod tests {
         // The usual working region, not the whole ±360° ranges: the elbow bent at least 0.8 rad and the wrist
         // away from J5 = 0. Nearer the stretched elbow and J5 = 0 (the CR5's elbow and wrist singularities)
         // the damped solve can stall short of the orientation: over 10⁶ cases each (release build), this
-        // region gave 1 miss, the elbow from 0.6 rad 3 and J5 from 0.2 rad 8. The joint stage reaches such
+        // region gave 1 miss, the elbow from 0.6 rad 3 and J5 from 0.2 rad 10. The joint stage reaches such
         // targets over several commands, which its own property tests cover.
         (
             -2.5f64..2.5,
