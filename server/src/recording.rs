@@ -5,7 +5,7 @@
 use crate::arm::ArmController;
 use crate::config::Config;
 use parking_lot::Mutex;
-use phone2act_core::episode_clock::{ClockPhase, EpisodeClock, EpisodeLimits, Observed, Step};
+use phone2act_core::episode_clock::{EpisodeClock, EpisodeLimits, Observed, Step};
 use phone2act_recorder::error::RecorderError;
 use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
 use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
@@ -110,7 +110,7 @@ impl EpisodeTiming {
         let clock = self.clock.lock();
         TimingStatus {
             remaining_s: clock.remaining_s(observed(s), now_ns),
-            resetting: matches!(clock.phase(), ClockPhase::Resetting { .. }),
+            resetting: clock.resetting(observed(s)),
         }
     }
 

@@ -151,13 +151,21 @@ impl EpisodeClock {
     /// Seconds left of the episode's limit (recording) or of the reset period (resetting); `None` when no
     /// limit applies now.
     pub fn remaining_s(&self, obs: Observed, now_ns: i64) -> Option<f64> {
+        // The recorder's state decides what counts down: the clock is fed that state a moment later, and a
+        // status read right after a Start must already count the new episode down.
+        if obs.recording {
+            return self.limits.episode_time_s.map(|l| (l - obs.duration_s).max(0.0));
+        }
         match self.phase {
-            ClockPhase::Recording if obs.recording => {
-                self.limits.episode_time_s.map(|l| (l - obs.duration_s).max(0.0))
-            }
             ClockPhase::Resetting { until_ns } => Some(((until_ns - now_ns) as f64 / 1e9).max(0.0)),
             _ => None,
         }
+    }
+
+    /// Whether a reset period shows now: the clock is in one and the recorder has not started the next
+    /// episode (an operator may cut the period short before the clock is fed that).
+    pub fn resetting(&self, obs: Observed) -> bool {
+        !obs.recording && matches!(self.phase, ClockPhase::Resetting { .. })
     }
 }
 
@@ -276,5 +284,21 @@ mod tests {
         for t in 0..5 {
             assert_eq!(none.observe(obs(t % 2 == 0, 100.0, t as u64), t * S), None);
         }
+    }
+
+    /// A status read between a Start and the clock's next look at the recorder counts the episode down, and
+    /// one read after a start that cut a reset period short shows no reset.
+    #[test]
+    fn the_countdown_follows_the_recorder_before_the_clock_has_seen_it() {
+        let mut clock = EpisodeClock::new(limits(Some(10.0), Some(3.0), false));
+        assert_eq!(clock.remaining_s(obs(true, 0.5, 0), 0), Some(9.5));
+        assert!(!clock.resetting(obs(true, 0.5, 0)));
+        clock.observe(obs(true, 1.0, 0), S);
+        clock.observe(obs(false, 2.0, 1), 2 * S);
+        assert!(clock.resetting(obs(false, 2.0, 1)));
+        assert_eq!(clock.remaining_s(obs(false, 2.0, 1), 3 * S), Some(2.0));
+        // The operator starts during the reset period, before the clock looks again.
+        assert_eq!(clock.remaining_s(obs(true, 0.0, 1), 3 * S), Some(10.0));
+        assert!(!clock.resetting(obs(true, 0.0, 1)));
     }
 }
