@@ -675,6 +675,9 @@ impl Arbiter {
                         fx.phone_error = format!("the arm {}", ArbiterError::NotReady(why.clone()));
                         continue;
                     }
+                    if self.driver != Driver::Policy {
+                        self.teleop.adopt_gripper(self.gripper_target);
+                    }
                     match self.teleop.gripper(command) {
                         // The gripper follows the phone only while the phone drives or nobody does.
                         Ok(gripper) if self.driver != Driver::Policy => self.send(self.target, gripper, fx),
@@ -735,6 +738,9 @@ impl Arbiter {
         if engaging && let Some(why) = not_ready {
             fx.phone_error = format!("the arm {}, not engaging", ArbiterError::NotReady(why.clone()));
             return;
+        }
+        if engaging && self.driver != Driver::Teleop {
+            self.teleop.adopt_gripper(self.gripper_target);
         }
         let step = self
             .teleop
@@ -920,6 +926,7 @@ impl Arbiter {
         };
         self.target = measured.robot_from_ee;
         self.gripper_target = gripper;
+        self.teleop.adopt_gripper(gripper);
         self.executor.clear();
         self.last_policy_step = None;
         self.teleop.request_reindex();
@@ -2082,6 +2089,75 @@ mod tests {
                 .commands
                 .is_empty()
         );
+    }
+
+    /// The phone's gripper setting is only what the phone last asked for; the arm's gripper may since have
+    /// been moved by a policy or a scene reset. Driving on must not silently re-send the old setting.
+    #[test]
+    fn taking_over_or_homing_keeps_the_gripper_where_the_arm_has_it() {
+        let (mut a, robot) = phone_bound_policy_driving();
+        // The policy closes the gripper (0.5 in every step of `chunk`) on something.
+        a.handle(chunk(1.0, &[home(); 3]), &robot, 1.0).unwrap();
+        a.handle(Input::Tick, &robot, 1.05).unwrap();
+        assert!((a.target().1 - 0.5).abs() < 1e-12);
+        let phone = at(0.5, 0.5, 0.5);
+        let fx = a.handle(engage(phone), &ready(home(), 1.1), 1.1).unwrap();
+        for c in &fx.commands {
+            assert!(
+                (c.gripper - 0.5).abs() < 1e-12,
+                "the take-over moved the gripper: {c:?}"
+            );
+        }
+        let fx = a
+            .handle(
+                round(Some(at(0.51, 0.5, 0.5)), vec![]),
+                &ready(home(), 1.12),
+                1.12,
+            )
+            .unwrap();
+        assert!(!fx.commands.is_empty());
+        for c in &fx.commands {
+            assert!(
+                (c.gripper - 0.5).abs() < 1e-12,
+                "the first pose after a take-over moved the gripper: {c:?}"
+            );
+        }
+        // A toggle then acts on the arm's gripper (half closed or more: open).
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Gripper(GripperCommand::Toggle)]),
+                &ready(home(), 1.13),
+                1.13,
+            )
+            .unwrap();
+        assert!((fx.commands[0].gripper - 0.0).abs() < 1e-12, "{:?}", fx.commands);
+
+        // The phone closes the gripper, lets go, and the scene is reset with the gripper open.
+        a.handle(
+            round(None, vec![TeleopButton::Gripper(GripperCommand::Set(1.0))]),
+            &ready(home(), 1.2),
+            1.2,
+        )
+        .unwrap();
+        a.handle(
+            round(None, vec![TeleopButton::Clutch(ClutchKind::Disengage)]),
+            &ready(home(), 1.25),
+            1.25,
+        )
+        .unwrap();
+        let homed = at(0.3, 0.0, 0.25);
+        a.handle(Input::Homed { gripper: 0.0 }, &ready(homed, 1.3), 1.3)
+            .unwrap();
+        let fx = a.handle(engage(phone), &ready(homed, 1.4), 1.4).unwrap();
+        let fx2 = a
+            .handle(round(Some(at(0.51, 0.5, 0.5)), vec![]), &ready(homed, 1.42), 1.42)
+            .unwrap();
+        for c in fx.commands.iter().chain(&fx2.commands) {
+            assert!(
+                c.gripper.abs() < 1e-12,
+                "the phone's old setting closed the homed gripper: {c:?}"
+            );
+        }
     }
 
     // ---- Property tests of the safety contracts over random input sequences. ----

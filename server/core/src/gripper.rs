@@ -41,6 +41,14 @@ impl Gripper {
         self.target
     }
 
+    /// Takes the gripper's actual target as its own (what another source last sent), unshaped so that
+    /// adopting it never moves the gripper; a non-finite value changes nothing.
+    pub fn adopt(&mut self, target: f64) {
+        if target.is_finite() {
+            self.target = target.clamp(0.0, 1.0);
+        }
+    }
+
     /// Applies a command and returns the new target. An invalid command changes nothing.
     pub fn apply(&mut self, command: GripperCommand) -> Result<f64, GripperError> {
         let value = match command {

@@ -135,7 +135,7 @@ fn per_joint(values: &[f64], joints: usize, name: &'static str) -> Result<Option
 /// Commands the joint stage changed, since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct JointCounters {
-    /// Commands the rate limiter shortened.
+    /// Commands the joint speed limits shortened (see [`PlannedJoints::limited`]).
     pub limited: u64,
     /// Commands whose orientation the arm could not turn to from where it was (a 5-DoF arm's unreachable
     /// orientations, or a joint at its range limit).
@@ -152,7 +152,8 @@ pub struct PlannedJoints<const N: usize = SO101_ARM_DOF> {
     pub position_error_m: f64,
     /// Angle from the achieved tool orientation to the target's.
     pub orientation_error_rad: f64,
-    /// The rate limiter shortened the step.
+    /// The joint speed limits shortened the step: the rate limiter, or the orientation aimed at (capped by what
+    /// the joints turn in the time since the last command) short of a reachable target's.
     pub limited: bool,
     /// The arm could not turn toward the target orientation from here (see the module documentation).
     pub orientation_unreachable: bool,
@@ -403,14 +404,19 @@ impl<const N: usize> JointStage<N> {
         let gaining =
             orientation_error_rad < started_rad - CATCH_UP_GAIN_RAD * dt / self.limiter.max_step_s();
         self.behind = step.limited || (capped && moved > SETTLED_RAD && (!missed || gaining));
-        self.counters.limited += u64::from(step.limited);
+        // An aim cut short by the time since the last command is a speed limit too, and the one that binds a
+        // command issued soon after a late one: the command holds joints short of the target's, which a
+        // dataset that records this command must say. An aim cut short at an orientation the arm cannot
+        // reach is counted as unreachable instead.
+        let limited = step.limited || (capped && !missed);
+        self.counters.limited += u64::from(limited);
         self.counters.orientation_unreachable += u64::from(missed);
         PlannedJoints {
             joints_rad,
             achieved,
             position_error_m: (target.translation.vector - achieved.translation.vector).norm(),
             orientation_error_rad,
-            limited: step.limited,
+            limited,
             orientation_unreachable: missed,
             invalid_input: false,
         }
@@ -1011,6 +1017,28 @@ mod tests {
         // And its orientation, the pose of real joints, was reached: nothing counted as unreachable.
         assert!(!p.orientation_unreachable && p.orientation_error_rad < ORIENTATION_REACHED_RAD);
         assert_eq!(s.counters(), JointCounters::default());
+    }
+
+    /// A wrist turn a frame period allows, commanded 10 ms after the previous command (a late tick followed by
+    /// a punctual one), is aimed only as far as the joints turn in 10 ms: that command holds joints short of
+    /// the target's, and it is counted as limited so that a dataset recording it says so.
+    #[test]
+    fn an_aim_cut_short_by_the_time_since_the_last_command_counts_as_limited() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let mut s = stage();
+        s.reset(&start, 0.0);
+        let turned = |roll: f64| k.forward(&[0.0, -0.4, 0.6, 0.9, roll]);
+        let p = s.plan(&turned(0.08), 0.05);
+        assert!(
+            !p.limited && p.orientation_error_rad < ORIENTATION_REACHED_RAD,
+            "{p:?}"
+        );
+        let p = s.plan(&turned(0.16), 0.06);
+        assert!(p.limited && !p.orientation_unreachable, "{p:?}");
+        assert!(p.orientation_error_rad > 0.02, "{p:?}");
+        assert!(s.behind());
+        assert_eq!(s.counters().limited, 1);
     }
 
     /// The arm controller's handle passes everything through to the robot's stage.

@@ -186,6 +186,12 @@ impl TeleopArm {
         self.hold(decision)
     }
 
+    /// Continues from the gripper target the arm holds, which a policy or a scene reset may have set since
+    /// the phone last asked: the phone's next command must not re-send its own old setting.
+    pub fn adopt_gripper(&mut self, target: f64) {
+        self.gripper.adopt(target);
+    }
+
     /// A gripper command; the server sends `(target(), returned value)`.
     pub fn gripper(&mut self, command: GripperCommand) -> Result<f64, GripperError> {
         self.gripper.apply(command)
