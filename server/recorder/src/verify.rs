@@ -496,9 +496,10 @@ pub fn verify(root: &Path) -> Report {
             }
             Err(_) => report.problems.push("meta/tasks.jsonl is missing".to_owned()),
         }
-        if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
-            check_modality(&text, features, &mut report);
-        }
+    }
+    // GR00T's layout file, in either format (phone2act writes it into both; lerobot ignores it).
+    if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
+        check_modality(&text, features, &mut report);
     }
     if episode_meta.len() as u64 != report.episodes {
         report.problems.push(format!(
@@ -708,6 +709,33 @@ fn check_modality(text: &str, features: &serde_json::Map<String, Value>, report:
             if start >= end || end > width {
                 report.problems.push(format!(
                     "meta/modality.json {group}.{name} = [{start}, {end}) does not fit {key} of width {width}"
+                ));
+            }
+        }
+    }
+    // GR00T's loader reads `video.<name>` from the feature `original_key` names, and an annotation from the
+    // column its `original_key` names: a key the dataset lacks fails there, at training time.
+    for (group, want_video) in [("video", true), ("annotation", false)] {
+        let Some(entries) = modality[group].as_object() else {
+            continue;
+        };
+        for (name, entry) in entries {
+            let Some(original) = entry["original_key"].as_str() else {
+                report
+                    .problems
+                    .push(format!("meta/modality.json {group}.{name} has no original_key"));
+                continue;
+            };
+            let found = features.get(original);
+            let is_video = found.is_some_and(|f| f["dtype"] == "video" || f["dtype"] == "image");
+            if found.is_none() || is_video != want_video {
+                let what = if want_video {
+                    "video feature"
+                } else {
+                    "data column"
+                };
+                report.problems.push(format!(
+                    "meta/modality.json {group}.{name} names {original:?}, which is not a {what} of info.json"
                 ));
             }
         }

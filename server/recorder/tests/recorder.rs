@@ -148,6 +148,23 @@ fn v30_records_resumes_and_appends() {
     let prov = read_json(&root.join("meta/phone2act_provenance.json"));
     assert_eq!(prov["episodes"].as_array().unwrap().len(), 3);
     assert_eq!(prov["config"]["test"], true);
+    // GR00T's layout file rides along in v3.0 too, the same as v2.1 writes it.
+    let modality = read_json(&root.join("meta/modality.json"));
+    assert_eq!(modality["state"]["main_arm"], json!({"start": 0, "end": 12}));
+    assert_eq!(
+        modality["action"]["main_gripper"],
+        json!({"start": 6, "end": 7, "absolute": true})
+    );
+    assert_eq!(
+        modality["video"]["wrist"]["original_key"],
+        "observation.images.wrist"
+    );
+    assert_eq!(
+        modality["annotation"]["human.task_description"]["original_key"],
+        "task_index"
+    );
+    let report = phone2act_recorder::verify::verify(&root);
+    assert!(report.problems.is_empty(), "{:?}", report.problems);
     assert!(!root.join(".phone2act-staging").exists());
     publish_for_conformance(
         "recorder-v30-resume",
