@@ -444,9 +444,11 @@ def test_command_line_errors_are_sentences(gserver: Server) -> None:
 
 # --- N1.7: GR00T's PolicyServer serving ReplayPolicy, the tag's codec and main's ------------------------------------
 
-# A recorded 40-step so100 episode as ReplayPolicy would load it: step k moves the arm 5k..5k+4 (scaled by SCALE).
+# A recorded 40-step so100 episode of relative actions as ReplayPolicy would load it: within each 16-step chunk the
+# arm moves 1 mm a step from the observation (2 * SCALE), and each chunk is offset by its index (0.5 mm), so that
+# which chunk arrived shows in the values while no step jumps past the gate's jump filter.
 REPLAYED = {
-    "single_arm": np.arange(200, dtype=np.float32).reshape(40, 5),
+    "single_arm": np.array([[2 * (k % 16) + k // 16 + 0.1 * j for j in range(5)] for k in range(40)], np.float32),
     "gripper": np.zeros((40, 1), np.float32),
 }
 
