@@ -825,4 +825,34 @@ mod tests {
             report.problems
         );
     }
+
+    #[test]
+    fn a_v30_modality_json_is_checked_against_the_features() {
+        let dir = tempfile::tempdir().unwrap();
+        copy_dir(&golden("lerobot_sample_v30"), dir.path());
+        let path = dir.path().join("meta/modality.json");
+        let good = serde_json::json!({
+            "state": {"arm": {"start": 0, "end": 5}, "gripper": {"start": 5, "end": 6}},
+            "action": {"arm": {"start": 0, "end": 6, "absolute": true}},
+            "video": {"front": {"original_key": "observation.images.front"}},
+            "annotation": {"human.task_description": {"original_key": "task_index"}},
+        });
+        std::fs::write(&path, good.to_string()).unwrap();
+        let report = verify(dir.path());
+        assert!(report.problems.is_empty(), "{:?}", report.problems);
+
+        let mut bad = good;
+        bad["action"]["arm"]["end"] = serde_json::json!(7);
+        bad["video"]["top"] = serde_json::json!({"original_key": "observation.images.top"});
+        bad["annotation"]["human.success"] = serde_json::json!({"original_key": "next.success"});
+        std::fs::write(&path, bad.to_string()).unwrap();
+        let text = verify(dir.path()).problems.join("\n");
+        for want in [
+            "meta/modality.json action.arm = [0, 7) does not fit action of width 6",
+            "meta/modality.json video.top names \"observation.images.top\", which is not a video feature",
+            "meta/modality.json annotation.human.success names \"next.success\", which is not a data column",
+        ] {
+            assert!(text.contains(want), "{want}: {text}");
+        }
+    }
 }

@@ -1,6 +1,7 @@
-//! LeRobot v2.1 with GR00T N1.5's `meta/modality.json`: one data file and one video per camera for each
-//! episode, and JSON-lines metadata (`tasks.jsonl`, `episodes.jsonl`, `episodes_stats.jsonl`) that every
-//! save rewrites whole into staging and renames over the old file.
+//! LeRobot v2.1, the layout GR00T's own loader reads (`meta/modality.json` comes from [`super::meta`]): one
+//! data file and one video per camera for each episode, and JSON-lines metadata (`tasks.jsonl`,
+//! `episodes.jsonl`, `episodes_stats.jsonl`) that every save rewrites whole into staging and renames over the
+//! old file.
 
 use super::journal::Staging;
 use super::meta::stage_modality;
