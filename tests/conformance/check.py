@@ -702,6 +702,7 @@ def check_modality(root: Path, info: dict, decord_codecs: bool) -> dict:
 def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
     """What Isaac-GR00T N1.5's LeRobotSingleDataset needs from a v2 layout."""
     meta = root / "meta"
+    features = info["features"]
     check_modality(root, info, decord_codecs=True)
     # stats.json: every parquet column, each with exactly the keys GR00T validates, consistent with data.
     stats = json.loads((meta / "stats.json").read_text())

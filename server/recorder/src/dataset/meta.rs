@@ -209,74 +209,6 @@ pub(super) fn default_feature_columns(
     ]
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::dataset::{v21::V21, v30::V30};
-    use crate::spec::{CameraSpec, Format};
-    use std::path::PathBuf;
-
-    fn spec(format: Format) -> DatasetSpec {
-        DatasetSpec {
-            root: PathBuf::from("/nonexistent"),
-            format,
-            fps: 30,
-            robot_type: "test".into(),
-            video_codec: None,
-            state_names: vec!["a".into(), "b".into()],
-            action_names: vec!["c".into()],
-            cameras: ["front", "wrist"]
-                .map(|name| CameraSpec {
-                    name: name.into(),
-                    width: 64,
-                    height: 48,
-                })
-                .to_vec(),
-            modality: Vec::new(),
-            provenance: Value::Null,
-            success: false,
-            intervention: false,
-        }
-    }
-
-    /// Keys of a JSON object and of its `features`, in file order.
-    fn key_order(text: &[u8]) -> (Vec<String>, Vec<String>) {
-        let top: IndexMap<String, Value> = serde_json::from_slice(text).unwrap();
-        let features: IndexMap<String, Value> = serde_json::from_value(top["features"].clone()).unwrap();
-        (top.into_keys().collect(), features.into_keys().collect())
-    }
-
-    /// The key order lerobot's own writers produce (the fixtures are lerobot 0.4.4 and 0.3.3 datasets, see
-    /// tests/fixtures/README.md); their extra `next.done` feature is not one phone2act records.
-    #[test]
-    fn info_json_keys_are_in_lerobot_order() {
-        let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures");
-        let v30 = V30::new(1);
-        let v21 = V21::default();
-        let cases: [(Format, &dyn Layout, &str); 2] = [
-            (Format::V30, &v30, "lerobot_sample_v30"),
-            (Format::V21, &v21, "lerobot_sample_v21"),
-        ];
-        for (format, layout, fixture) in cases {
-            let spec = spec(format);
-            let video = VideoSettings::parse(None, format).unwrap();
-            let totals = Totals {
-                episodes: 2,
-                frames: 40,
-                tasks: 1,
-            };
-            let ours = info_json(&spec, &video, layout, &totals);
-            assert!(ours.ends_with(b"}\n"));
-            let theirs = std::fs::read(fixtures.join(fixture).join("meta/info.json")).unwrap();
-            let (our_top, our_features) = key_order(&ours);
-            let (their_top, mut their_features) = key_order(&theirs);
-            assert_eq!(our_top, their_top, "{fixture}");
-            their_features.retain(|k| k != "next.done");
-            assert_eq!(our_features, their_features, "{fixture}");
-        }
-    }
-}
-
 /// GR00T's `meta/modality.json`: which slices of state and action form each body part, and the camera keys.
 /// Both formats carry it (GR00T's own loader, and LeRobot's GR00T training, find the body parts there); it
 /// depends only on the spec, so every save writes the same bytes.
@@ -353,4 +285,72 @@ pub(super) fn stage_modality(spec: &DatasetSpec, staging: &mut Staging) -> Resul
         &pretty(&modality_json(spec)),
         "meta/modality.json",
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::{v21::V21, v30::V30};
+    use crate::spec::{CameraSpec, Format};
+    use std::path::PathBuf;
+
+    fn spec(format: Format) -> DatasetSpec {
+        DatasetSpec {
+            root: PathBuf::from("/nonexistent"),
+            format,
+            fps: 30,
+            robot_type: "test".into(),
+            video_codec: None,
+            state_names: vec!["a".into(), "b".into()],
+            action_names: vec!["c".into()],
+            cameras: ["front", "wrist"]
+                .map(|name| CameraSpec {
+                    name: name.into(),
+                    width: 64,
+                    height: 48,
+                })
+                .to_vec(),
+            modality: Vec::new(),
+            provenance: Value::Null,
+            success: false,
+            intervention: false,
+        }
+    }
+
+    /// Keys of a JSON object and of its `features`, in file order.
+    fn key_order(text: &[u8]) -> (Vec<String>, Vec<String>) {
+        let top: IndexMap<String, Value> = serde_json::from_slice(text).unwrap();
+        let features: IndexMap<String, Value> = serde_json::from_value(top["features"].clone()).unwrap();
+        (top.into_keys().collect(), features.into_keys().collect())
+    }
+
+    /// The key order lerobot's own writers produce (the fixtures are lerobot 0.4.4 and 0.3.3 datasets, see
+    /// tests/fixtures/README.md); their extra `next.done` feature is not one phone2act records.
+    #[test]
+    fn info_json_keys_are_in_lerobot_order() {
+        let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures");
+        let v30 = V30::new(1);
+        let v21 = V21::default();
+        let cases: [(Format, &dyn Layout, &str); 2] = [
+            (Format::V30, &v30, "lerobot_sample_v30"),
+            (Format::V21, &v21, "lerobot_sample_v21"),
+        ];
+        for (format, layout, fixture) in cases {
+            let spec = spec(format);
+            let video = VideoSettings::parse(None, format).unwrap();
+            let totals = Totals {
+                episodes: 2,
+                frames: 40,
+                tasks: 1,
+            };
+            let ours = info_json(&spec, &video, layout, &totals);
+            assert!(ours.ends_with(b"}\n"));
+            let theirs = std::fs::read(fixtures.join(fixture).join("meta/info.json")).unwrap();
+            let (our_top, our_features) = key_order(&ours);
+            let (their_top, mut their_features) = key_order(&theirs);
+            assert_eq!(our_top, their_top, "{fixture}");
+            their_features.retain(|k| k != "next.done");
+            assert_eq!(our_features, their_features, "{fixture}");
+        }
+    }
 }
