@@ -432,6 +432,31 @@ def check_v30(root: Path, info: dict):
                 fail(f"meta/stats.json: {key} lacks {s}")
     check_v30_stats(root, info, stats)
     check_video_files_v30(root, info, ds)
+    if (root / "meta/modality.json").exists():
+        check_v30_modality(root, info)
+
+
+def check_v30_modality(root: Path, info: dict):
+    """phone2act's v3.0 carries GR00T's modality.json. GR00T's own loader (N1.7) reads only the v2.1 layout
+    (episodes.jsonl, tasks.jsonl, one data file per episode), so what is checked here is the layout file itself
+    and that its groups, applied to the v3.0 data as GR00T's `_extract_joint_groups` applies them, give every
+    frame's state and action back whole."""
+    modality = check_modality(root, info, decord_codecs=False)
+    tasks = pq.read_table(root / "meta/tasks.parquet").to_pandas()
+    task_of = dict(zip(tasks["task_index"], tasks.index)) if "task_index" in tasks else {}
+    for f in sorted((root / "data").rglob("*.parquet")):
+        t = pq.read_table(f)
+        for part, key in (("state", "observation.state"), ("action", "action")):
+            full = np.stack(t.column(key).to_numpy(zero_copy_only=False))
+            parts = [full[:, g["start"]:g["end"]] for g in sorted(modality[part].values(), key=lambda g: g["start"])]
+            if not np.array_equal(np.concatenate(parts, axis=1), full):
+                fail(f"{f}: modality.json {part} groups do not give {key} back")
+        for name, a in modality.get("annotation", {}).items():
+            col = a.get("original_key", f"annotation.{name}")
+            if col == "task_index" and task_of:
+                missing = set(t.column(col).to_pylist()) - set(task_of)
+                if missing:
+                    fail(f"{f}: annotation.{name}: task indices {sorted(missing)} not in meta/tasks.parquet")
 
 
 def check_video_files_v30(root: Path, info: dict, ds):
@@ -622,8 +647,10 @@ def pa_mask(mask: np.ndarray):
     return pa.array(mask)
 
 
-def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
-    """What Isaac-GR00T N1.5's LeRobotSingleDataset needs from a v2 layout."""
+def check_modality(root: Path, info: dict, decord_codecs: bool) -> dict:
+    """meta/modality.json as Isaac-GR00T's loader reads it (N1.5 LeRobotSingleDataset, N1.7 LeRobotEpisodeLoader):
+    state/action groups slice `original_key` (default observation.state / action) by [start, end) and tile it,
+    videos name video features, annotations name columns. `decord_codecs`: N1.5 decodes with decord (h264/hevc)."""
     meta = root / "meta"
     modality = json.loads((meta / "modality.json").read_text())
     features = info["features"]
@@ -663,12 +690,20 @@ def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
         names = spec["names"]
         if not ("height" in names and "width" in names and "channels" in names and "video.fps" in spec["info"]):
             fail(f"{okey}: GR00T needs names height/width/channels and info.video.fps")
-        if spec["info"]["video.codec"] not in ("h264", "hevc"):
+        if decord_codecs and spec["info"]["video.codec"] not in ("h264", "hevc"):
             fail(f"{okey}: codec {spec['info']['video.codec']} is not decodable by GR00T N1.5's decord")
     for name, a in modality.get("annotation", {}).items():
         col = a.get("original_key", f"annotation.{name}")
         if col not in features:
             fail(f"modality.json annotation.{name}: column {col} is not a feature")
+    return modality
+
+
+def check_gr00t(root: Path, info: dict, ep_len: dict, in_window: bool):
+    """What Isaac-GR00T N1.5's LeRobotSingleDataset needs from a v2 layout."""
+    meta = root / "meta"
+    features = info["features"]
+    check_modality(root, info, decord_codecs=True)
     # stats.json: every parquet column, each with exactly the keys GR00T validates, consistent with data.
     stats = json.loads((meta / "stats.json").read_text())
     tables = []

@@ -1,5 +1,6 @@
 """Stand-in GR00T inference servers, written from GR00T's wire facts (not from its code), for the adapter tests.
 
+- `ReplayStandIn`: GR00T N1.6/N1.7's `PolicyServer` serving `ReplayPolicy` (see its doc), in either array codec.
 - `StandIn`: an N1.5 server that answers with the golden messages' exact bytes (written by GR00T N1.5's own
   `MsgSerializer`, see tests/fixtures/gr00t_wire/NOTE.md).
 - `PolicyStandIn(wire=...)`: a server that runs a test-supplied policy function, speaking
@@ -35,7 +36,7 @@ import msgpack
 import numpy as np
 import zmq
 from conftest import golden
-from phone2act_gr00t.wire import ModalityConfig, packb, unpackb
+from phone2act_gr00t.wire import N16, NPY, ModalityConfig, packb, unpackb
 
 
 class _RepServer:
@@ -254,3 +255,138 @@ class PolicyStandIn(_RepServer):
         assert isinstance(text, list) and isinstance(text[0], str), "Language batch item must be a string"
         actions = self._run_policy(state, text[0])
         return [{f"action.{k}": v[None] for k, v in actions.items()}, {}]
+
+
+class ReplayStandIn(_RepServer):
+    """GR00T's `PolicyServer` serving `ReplayPolicy` (N1.6/N1.7, `run_gr00t_server.py --dataset-path`), written from
+    the behaviour read in its source (tag n1.7-release 23ace64, and main 626af89 for the msgpack-numpy codec):
+
+    - `get_action(observation, options)` validates the observation as `ReplayPolicy.check_observation` does (three
+      dict modalities; per key the same batch size, a numpy array, uint8 (B, T, H, W, 3) video and float32
+      (B, T, D) state with T the modality's number of delta indices, language a list of one-string lists), then
+      answers `[action, info]`: each action key `(B, horizon, D)` float32 from the recorded episode starting at
+      `current_step` (padded with the last action past the end, `horizon` from the action delta indices), the batch
+      size taken from the first video key, and info `{current_step, episode_length, episode_index}`; then
+      `current_step` advances by `execution_horizon`.
+    - `reset(options)` goes to `options["episode_index"]` (if given) and `options["step_index"]` (else 0), and
+      answers `{episode_index, episode_length, current_step}`.
+    - `get_modality_config` answers the modality configs; `ping`, `kill`, the token check, unknown endpoints and
+      `{"error": str(e)}` for any exception are as in `PolicyServer`.
+    - `codec`: the server reads and writes arrays in one codec only (npy: the tag; msgpack-numpy: main); arrays in
+      the other arrive as plain maps, which the observation check refuses as upstream does ("Got <class 'dict'>").
+    """
+
+    def __init__(
+        self,
+        episodes: list[dict[str, np.ndarray]],
+        *,
+        codec: str = NPY,
+        video: tuple[str, ...] = ("webcam",),
+        state: tuple[str, ...] = ("single_arm", "gripper"),
+        language_key: str = "annotation.human.task_description",
+        action_horizon: int = 16,
+        execution_horizon: int = 16,
+        api_token: str | None = None,
+    ) -> None:
+        assert execution_horizon <= action_horizon
+        self.codec = codec
+        self.episodes = episodes
+        self.episode_index = 0
+        self.current_step = 0
+        self.action_horizon = action_horizon
+        self.execution_horizon = execution_horizon
+        self.api_token = api_token
+        action_keys = tuple(episodes[0])
+        # N1.6/N1.7 send every ModalityConfig field (dataclass -> dict).
+        unset = {"sin_cos_embedding_keys": None, "mean_std_embedding_keys": None, "action_configs": None}
+        wire_config = {"wire": N16, "codec": codec, "extra": unset}
+        self.config = {
+            "video": ModalityConfig((0,), video, **wire_config),
+            "state": ModalityConfig((0,), state, **wire_config),
+            "action": ModalityConfig(tuple(range(action_horizon)), action_keys, **wire_config),
+            "language": ModalityConfig((0,), (language_key,), **wire_config),
+        }
+        self.observations: list[dict[str, Any]] = []
+        self.infos: list[dict[str, int]] = []
+        super().__init__()
+
+    @property
+    def episode_length(self) -> int:
+        return len(next(iter(self.episodes[self.episode_index].values())))
+
+    def answer(self, raw: bytes) -> bytes:
+        try:
+            req = unpackb(raw, accept=(self.codec,))
+            if self.api_token is not None and req.get("api_token") != self.api_token:
+                return packb({"error": "Unauthorized: Invalid API token"}, self.codec)
+            endpoint = req.get("endpoint", "get_action")
+            data = req.get("data", {})
+            if endpoint == "ping":
+                result: Any = {"status": "ok", "message": "Server is running"}
+            elif endpoint == "kill":
+                result = None
+            elif endpoint == "get_modality_config":
+                result = self.config
+            elif endpoint == "get_action":
+                result = self._get_action(**data)
+            elif endpoint == "reset":
+                result = self._reset(**data)
+            else:
+                raise ValueError(f"Unknown endpoint: {endpoint}")
+            return packb(result, self.codec)
+        except Exception as e:  # noqa: BLE001 - as upstream: every failure becomes an error map
+            return packb({"error": str(e)}, self.codec)
+
+    def _check_observation(self, observation: dict[str, Any]) -> None:
+        for modality in ("video", "state", "language"):
+            assert modality in observation, f"Observation must contain a '{modality}' key"
+            assert isinstance(observation[modality], dict), (
+                f"Observation '{modality}' must be a dictionary. Got {type(observation[modality])}")
+        batch = -1
+        for modality, dtype, ndim in (("video", np.uint8, 5), ("state", np.float32, 3)):
+            horizon = len(self.config[modality].delta_indices)
+            for key in self.config[modality].modality_keys:
+                assert key in observation[modality], f"{modality.title()} key '{key}' must be in observation"
+                value = observation[modality][key]
+                if batch == -1:
+                    batch = len(value)
+                assert len(value) == batch, f"{modality.title()} key '{key}' must have batch size {batch}"
+                assert isinstance(value, np.ndarray), (
+                    f"{modality.title()} key '{key}' must be a numpy array. Got {type(value)}")
+                assert value.dtype == dtype, f"{modality.title()} key '{key}' must be of type {dtype}"
+                assert value.ndim == ndim, f"{modality.title()} key '{key}' must have {ndim} dimensions"
+                assert value.shape[1] == horizon, f"{modality.title()} key '{key}'s horizon must be {horizon}"
+                if modality == "video":
+                    assert value.shape[-1] == 3, f"Video key '{key}'s channel 'C' must be 3"
+        for key in self.config["language"].modality_keys:
+            text = observation["language"].get(key)
+            assert isinstance(text, list), f"Language key '{key}' must be a list. Got {type(text)}"
+            assert len(text) == batch, f"Language key '{key}' must have batch size {batch}"
+            for item in text:
+                assert isinstance(item, list) and len(item) == 1 and isinstance(item[0], str), (
+                    f"Language batch item must be a list of one string. Got {item!r}")
+
+    def _get_action(self, observation: dict[str, Any] | None = None,
+                    options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+        self._check_observation(observation or {})
+        self.observations.append(observation or {})
+        batch = observation["video"][self.config["video"].modality_keys[0]].shape[0]
+        chunk = {}
+        for key, actions in self.episodes[self.episode_index].items():
+            rows = actions[self.current_step:self.current_step + self.action_horizon]
+            if len(rows) < self.action_horizon:  # past the end: the last action, repeated
+                pad = np.repeat(actions[-1:], self.action_horizon - len(rows), axis=0)
+                rows = np.concatenate([rows, pad]) if len(rows) else pad
+            chunk[key] = np.tile(rows.astype(np.float32)[None], (batch, 1, 1))
+        info = {"current_step": self.current_step, "episode_length": self.episode_length,
+                "episode_index": self.episode_index}
+        self.infos.append(info)
+        self.current_step += self.execution_horizon
+        return chunk, info
+
+    def _reset(self, options: dict[str, Any] | None = None) -> dict[str, int]:
+        options = options or {}
+        self.episode_index = options.get("episode_index", self.episode_index)
+        self.current_step = options.get("step_index", 0)
+        return {"episode_index": self.episode_index, "episode_length": self.episode_length,
+                "current_step": self.current_step}

@@ -1,6 +1,6 @@
 """The GR00T adapter end to end: real phone2act server (sim arms) <-> adapter <-> stand-in GR00T servers.
 
-N1.5 (golden bytes and a live stand-in), N1.6, absolute and delta arms, a bimanual embodiment, the task
+N1.5 (golden bytes and a live stand-in), N1.6, N1.7 (GR00T's ReplayPolicy server, both codecs), absolute and delta arms, a bimanual embodiment, the task
 instruction, and the errors a user sees from the command line (late policy, pickle-era server, wrong dialect).
 """
 
@@ -15,12 +15,15 @@ import time
 import numpy as np
 import pytest
 from conftest import REPO, SIM_ARM, Server, free_port, wait_until
-from gr00t_standin import PolicyStandIn, StandIn
+from gr00t_standin import PolicyStandIn, ReplayStandIn, StandIn
 from phone2act import ABSOLUTE_EE, DELTA_EE, IMAGE_RGB8, Client, Phone2ActError, pose_tuple
 from phone2act.v1 import common_pb2
 from phone2act_gr00t import (
+    MSGPACK_NUMPY,
     N15,
     N16,
+    N17,
+    NPY,
     ChunkShapeError,
     Embodiment,
     Gr00tAdapter,
@@ -399,7 +402,8 @@ def test_command_line_names_a_pickle_era_server(gserver: Server, stream: bool) -
         out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--task", TASK)
     assert out.returncode == 2, out.stdout + out.stderr
     assert "this GR00T server uses the pre-2025-09-10 pickle wire format" in out.stderr
-    assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in out.stderr
+    assert ("Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62), N1.6 (release commit 4e62473) or N1.7 (tag "
+            "n1.7-release 23ace64, and main 626af89 (msgpack-numpy))") in out.stderr
     assert "Traceback" not in out.stderr and "ExtraData" not in out.stderr
 
 
@@ -436,3 +440,64 @@ def test_command_line_errors_are_sentences(gserver: Server) -> None:
         assert out.returncode == 1 and "no task instruction: pass --task" in out.stderr, out.stderr
         assert standin.observations == []
         assert "Traceback" not in out.stderr
+
+
+# --- N1.7: GR00T's PolicyServer serving ReplayPolicy, the tag's codec and main's ------------------------------------
+
+# A recorded 40-step so100 episode of relative actions as ReplayPolicy would load it: within each 16-step chunk the
+# arm moves 1 mm a step from the observation (2 * SCALE), and each chunk is offset by its index (0.5 mm), so that
+# which chunk arrived shows in the values while no step jumps past the gate's jump filter.
+REPLAYED = {
+    "single_arm": np.array([[2 * (k % 16) + k // 16 + 0.1 * j for j in range(5)] for k in range(40)], np.float32),
+    "gripper": np.zeros((40, 1), np.float32),
+}
+
+
+@pytest.mark.parametrize("codec", [NPY, MSGPACK_NUMPY])
+def test_n17_replay_server_drives_the_sim_arm_chunk_after_chunk(gserver: Server, codec: str) -> None:
+    """Both N1.7 builds (the n1.7-release tag: N1.6's wire; main: msgpack-numpy) replay a recorded episode
+    into the sim arm through the real phone2act server: detected, then two chunks, each the episode's next 16
+    steps, the second one played to its last target."""
+    with ReplayStandIn([REPLAYED], codec=codec) as standin, Client(gserver.target) as c:
+        client = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        wire, config = client.detect_wire()
+        assert (wire, client.codec) == ((N16, NPY) if codec == NPY else (N17, MSGPACK_NUMPY))
+        with c.policy_session(["main"], observation_rate_hz=20, image_encoding=IMAGE_RGB8, cameras=["webcam"],
+                              policy_name=f"gr00t-{wire}") as session:
+            emb = Embodiment.so100(session.layouts["main"], camera="webcam", action_scale=SCALE)
+            adapter = Gr00tAdapter(session, client, emb.check_against(config, wire), wire=wire, task=TASK,
+                                   step_period_s=PERIOD)
+            first = adapter.step()
+            np.testing.assert_allclose(first.steps["main"][:, :5], REPLAYED["single_arm"][:16] * SCALE, atol=1e-9)
+            obs = session.next_observation()
+            p0 = np.array(pose_tuple(obs.arms[0].robot_from_ee)[0])
+            second = adapter.step(obs)
+            np.testing.assert_allclose(second.steps["main"][:, :5], REPLAYED["single_arm"][16:32] * SCALE,
+                                       atol=1e-9)
+            assert [i["current_step"] for i in standin.infos] == [0, 16]
+            # What the server validated is the observation phone2act sent: batched, float32, one frame.
+            sent = standin.observations[-1]
+            assert sent["video"]["webcam"].shape == (1, 1, 48, 64, 3)
+            np.testing.assert_allclose(sent["state"]["single_arm"][0, 0], obs.arms[0].state[:5], rtol=1e-6)
+            assert sent["language"] == {"annotation.human.task_description": [[TASK]]}
+            final = p0 + SCALE * REPLAYED["single_arm"][31, :3]
+            # The chunk's 16 steps of PERIOD, then 3 s for the sim arm to settle within 2 mm of its last target (it
+            # tracks in well under a second; the margin is for a loaded 2-core machine).
+            assert wait_until(lambda: math.dist(position(c, "main"), final) < 2e-3, 16 * PERIOD + 3.0), (
+                position(c, "main"), final)
+        client.close()
+
+
+def test_n17_command_line_detects_the_msgpack_numpy_build(gserver: Server) -> None:
+    with ReplayStandIn([REPLAYED], codec=MSGPACK_NUMPY) as standin:
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--config", "so100",
+                      "--camera", "webcam", "--step-period", "0.15", "--chunks", "2", "--task", TASK)
+        assert out.returncode == 0, out.stderr
+        assert "chunks 2, timeouts 0, errors 0" in out.stdout
+        assert "speaks n1.7 (msgpack-numpy arrays)" in out.stderr, out.stderr
+        assert [i["current_step"] for i in standin.infos] == [0, 16]
+        # Forced to the other codec: the server's own refusal, and what to run instead.
+        out = run_cli("--server", gserver.target, "--gr00t", standin.endpoint, "--config", "so100",
+                      "--gr00t-codec", "npy", "--camera", "webcam", "--chunks", "1", "--task", TASK)
+        assert out.returncode == 2, out.stdout + out.stderr
+        assert "Got <class 'dict'>" in out.stderr and "run with --gr00t-codec msgpack-numpy" in out.stderr

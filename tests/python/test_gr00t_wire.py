@@ -1,7 +1,7 @@
 """The GR00T wire codec, dialect detection and embodiment mapping (no phone2act server needed).
 
-N1.5 against the golden bytes GR00T N1.5 wrote; N1.5 and N1.6 against the stand-in servers; the pickle-era
-server's bytes refused with a message naming it.
+N1.5 against the golden bytes GR00T N1.5 wrote, N1.7 against those its tag and its main branch wrote (both codecs);
+N1.5, N1.6 and N1.7 against the stand-in servers; the pickle-era server's bytes refused with a message naming it.
 """
 
 from __future__ import annotations
@@ -13,13 +13,16 @@ import msgpack
 import numpy as np
 import pytest
 from conftest import golden
-from gr00t_standin import PolicyStandIn, StandIn, torch_save_like
+from gr00t_standin import PolicyStandIn, ReplayStandIn, StandIn, torch_save_like
 from phone2act import ABSOLUTE_EE, DELTA_EE, ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 from phone2act_gr00t import (
+    MSGPACK_NUMPY,
     N15,
     N16,
     N16_SIM,
+    N17,
+    NPY,
     ActionModeError,
     ChunkShapeError,
     Embodiment,
@@ -288,7 +291,8 @@ def test_pickle_era_server_is_named_not_a_msgpack_traceback(stream: bool) -> Non
             c.detect_wire()
         msg = str(err.value)
         assert "pre-2025-09-10 pickle wire format" in msg
-        assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in msg
+        assert ("Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62), N1.6 (release commit 4e62473) or N1.7 (tag "
+            "n1.7-release 23ace64, and main 626af89 (msgpack-numpy))") in msg
         assert "ExtraData" not in msg
         c.close()
     # What msgpack alone makes of these bytes: the bare traceback this replaces.
@@ -304,7 +308,8 @@ def test_june_2025_server_answering_bare_error_is_named() -> None:
             c.detect_wire()
         msg = str(err.value)
         assert 'bare b"ERROR"' in msg and "pre-2025-09-10 pickle wire format" in msg, msg
-        assert "Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62) or N1.6 (release commit 4e62473)" in msg
+        assert ("Upgrade it to GR00T N1.5 (tag n1.5-release, 4af2b62), N1.6 (release commit 4e62473) or N1.7 (tag "
+            "n1.7-release 23ace64, and main 626af89 (msgpack-numpy))") in msg
         assert "not a GR00T msgpack message" not in msg
         c.close()
 
@@ -367,3 +372,99 @@ def test_npy_payload_is_a_plain_npy_file() -> None:
     npy = raw["action.single_arm"]["as_npy"]
     assert npy[:6] == b"\x93NUMPY" and (len(npy) - 80 * 4) % 64 == 0
     assert np.load(io.BytesIO(npy)).shape == (16, 5)
+
+
+# --- N1.7: the n1.7-release tag (N1.6's wire) and GR00T main (msgpack-numpy), golden bytes from both -------------
+
+N17_NAMES = ["request_ping", "response_ping", "request_get_modality_config", "response_get_modality_config",
+             "request_get_action", "response_get_action", "request_reset", "response_reset", "response_error"]
+N17_BUILDS = {"tag": NPY, "main": MSGPACK_NUMPY}
+
+
+def golden_n17(build: str, name: str) -> bytes:
+    return golden(f"../gr00t_wire_n17/{build}/{name}.msgpack")
+
+
+@pytest.mark.parametrize("build", sorted(N17_BUILDS))
+@pytest.mark.parametrize("name", N17_NAMES)
+def test_n17_golden_messages_round_trip_byte_exact(build: str, name: str) -> None:
+    raw = golden_n17(build, name)
+    hexed = golden(f"../gr00t_wire_n17/{build}/{name}.hex").decode().split()
+    assert bytes.fromhex("".join(hexed)) == raw, "the .hex and .msgpack goldens disagree"
+    assert packb(unpackb(raw), N17_BUILDS[build]) == raw
+
+
+def test_the_n17_tag_speaks_n16s_wire_and_main_does_not() -> None:
+    # The tag's request is what N1.6's codec writes; main's arrays are msgpack-numpy maps with bin keys.
+    tag, main = golden_n17("tag", "request_get_action"), golden_n17("main", "request_get_action")
+    assert b"__ndarray_class__" in tag and b"__ndarray_class__" not in main
+    plain = msgpack.unpackb(main)
+    arr = plain["data"]["observation"]["state"]["single_arm"]
+    assert arr[b"nd"] is True and arr[b"type"] == "<f4" and arr[b"kind"] == b"" and arr[b"shape"] == [1, 1, 5]
+    # Each build's arrays reach the other as plain maps, never as arrays: the codec must match the server.
+    assert isinstance(unpackb(main, accept=(NPY,))["data"]["observation"]["state"]["single_arm"], dict)
+    assert isinstance(unpackb(tag, accept=(MSGPACK_NUMPY,))["data"]["observation"]["state"]["single_arm"], dict)
+
+
+@pytest.mark.parametrize("build", sorted(N17_BUILDS))
+def test_n17_request_built_from_an_observation_is_the_golden_request(build: str) -> None:
+    emb = Embodiment.so100(LAYOUT, camera="webcam")
+    obs = observation_like_golden()
+    codec = N17_BUILDS[build]
+    assert request("get_action", emb.request_data(obs, obs.task, N17), codec=codec) == golden_n17(
+        build, "request_get_action")
+    assert request("ping", codec=codec) == golden_n17(build, "request_ping")
+    assert request("get_modality_config", codec=codec) == golden_n17(build, "request_get_modality_config")
+
+
+@pytest.mark.parametrize("build", sorted(N17_BUILDS))
+def test_n17_golden_answer_becomes_a_full_chunk_and_its_config_names_the_codec(build: str) -> None:
+    answer = unpackb(golden_n17(build, "response_get_action"))
+    assert answer[1] == {"current_step": 0, "episode_length": 40, "episode_index": 0}
+    steps = Embodiment.so100(LAYOUT, camera="webcam", action_scale=0.001).chunk_steps(answer, LAYOUT, wire=N17)
+    np.testing.assert_allclose(steps[:, :5], np.arange(80, dtype=np.float64).reshape(16, 5) * 0.001, atol=1e-9)
+    config = unpackb(golden_n17(build, "response_get_modality_config"))
+    assert {c.codec for c in config.values()} == {N17_BUILDS[build]}
+    assert config["action"].modality_keys == ("single_arm", "gripper")
+    assert config["action"].extra["action_configs"][0]["rep"] == "ABSOLUTE"
+
+
+def test_msgpack_numpy_object_arrays_are_refused_both_ways() -> None:
+    with pytest.raises(TypeError, match="refusing"):
+        packb({"a": np.array([{"x": 1}], dtype=object)}, MSGPACK_NUMPY)
+    forged = msgpack.packb({b"nd": True, b"type": "|O", b"kind": b"O", b"shape": [1], b"data": b"\x80\x04N."})
+    with pytest.raises(Gr00tProtocolError):
+        decode_reply(forged, "get_action", "tcp://test")
+
+
+@pytest.mark.parametrize("codec", [NPY, MSGPACK_NUMPY])
+def test_detection_follows_the_config_marker_and_the_replay_stand_in_replays(codec: str) -> None:
+    actions = {"single_arm": np.arange(200, dtype=np.float32).reshape(40, 5), "gripper": np.zeros((40, 1))}
+    with ReplayStandIn([actions], codec=codec) as standin:
+        client = Gr00tClient(standin.endpoint, timeout_s=2.0)
+        wire, config = client.detect_wire()
+        assert (wire, client.codec) == ((N16, NPY) if codec == NPY else (N17, MSGPACK_NUMPY))
+        emb = Embodiment.so100(LAYOUT, camera="webcam").check_against(config, wire)
+        data = emb.request_data(observation_like_golden(), "pick the red cube", wire)
+        first, second = client.get_action(data), client.get_action(data)
+        np.testing.assert_array_equal(first[0]["single_arm"][0], actions["single_arm"][:16])
+        np.testing.assert_array_equal(second[0]["single_arm"][0], actions["single_arm"][16:32])
+        assert second[1]["current_step"] == 16
+        # Past the episode's end the last action repeats; reset goes back to step 0.
+        third = client.get_action(data)
+        np.testing.assert_array_equal(third[0]["single_arm"][0, 8:], np.repeat(actions["single_arm"][-1:], 8, 0))
+        assert client.call("reset", {"options": None}) == {"episode_index": 0, "episode_length": 40,
+                                                           "current_step": 0}
+        client.close()
+
+
+def test_a_forced_codec_the_server_does_not_read_is_named() -> None:
+    actions = {"single_arm": np.zeros((20, 5), np.float32), "gripper": np.zeros((20, 1), np.float32)}
+    with ReplayStandIn([actions], codec=MSGPACK_NUMPY) as standin:
+        client = Gr00tClient(standin.endpoint, timeout_s=2.0, codec=NPY)
+        wire, config = client.detect_wire()
+        assert client.codec == NPY, "a forced codec stays"
+        data = Embodiment.so100(LAYOUT, camera="webcam").request_data(observation_like_golden(), "t", wire)
+        with pytest.raises(Gr00tError, match="must be a numpy array. Got <class 'dict'>"):
+            client.get_action(data)
+        client.close()

@@ -1,4 +1,4 @@
-"""GR00T adapter for phone2act (N1.5 and N1.6 wire): observations out to a GR00T server, action chunks back in."""
+"""GR00T adapter for phone2act (N1.5, N1.6 and N1.7 wire): observations out to a GR00T server, action chunks back in."""
 
 from phone2act_gr00t.adapter import AdapterStats, Gr00tAdapter, MissingTaskError, StepResult
 from phone2act_gr00t.embodiment import (
@@ -12,9 +12,13 @@ from phone2act_gr00t.embodiment import (
 )
 from phone2act_gr00t.modes import ActionModeError, action_mode_of
 from phone2act_gr00t.wire import (
+    MSGPACK_NUMPY,
     N15,
     N16,
     N16_SIM,
+    N17,
+    N17_SIM,
+    NPY,
     Gr00tClient,
     Gr00tError,
     Gr00tProtocolError,
@@ -26,9 +30,13 @@ from phone2act_gr00t.wire import (
 )
 
 __all__ = [
+    "MSGPACK_NUMPY",
     "N15",
     "N16",
     "N16_SIM",
+    "N17",
+    "N17_SIM",
+    "NPY",
     "ActionGroup",
     "ActionModeError",
     "AdapterStats",

@@ -9,9 +9,13 @@ import sys
 from phone2act import IMAGE_NONE, IMAGE_RGB8, Client, Phone2ActError
 
 from phone2act_gr00t import (
+    MSGPACK_NUMPY,
     N15,
     N16,
     N16_SIM,
+    N17,
+    N17_SIM,
+    NPY,
     ActionModeError,
     ChunkShapeError,
     Embodiment,
@@ -32,9 +36,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--token", default=None, help="phone2act bearer token")
     p.add_argument("--gr00t", default="tcp://127.0.0.1:5555", help="GR00T inference server (ZeroMQ)")
     p.add_argument("--gr00t-token", default=None, help="api_token of the GR00T server")
-    p.add_argument("--gr00t-version", choices=["auto", N15, N16, N16_SIM], default="auto",
-                   help="GR00T wire dialect; auto asks the server's get_modality_config (n1.6-sim: an N1.6 server "
-                        "started with --use-sim-policy-wrapper)")
+    p.add_argument("--gr00t-version", choices=["auto", N15, N16, N16_SIM, N17, N17_SIM], default="auto",
+                   help="GR00T wire dialect; auto asks the server's get_modality_config (n1.6-sim / n1.7-sim: a "
+                        "server started with --use-sim-policy-wrapper; n1.7 speaks N1.6's shapes)")
+    p.add_argument("--gr00t-codec", choices=["auto", NPY, MSGPACK_NUMPY], default="auto",
+                   help="how arrays travel; auto follows the server's get_modality_config (msgpack-numpy: GR00T main "
+                        "since 2026-05-26, the N1.7 General Release; npy: N1.5, N1.6 and the n1.7-release tag)")
     p.add_argument("--arm", action="append", default=[],
                    help="arm to drive (repeat for bimanual, in the dataset's order: --arm left --arm right)")
     p.add_argument("--camera", action="append", default=[], help="camera to send as video <camera> (repeat)")
@@ -52,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     arms = args.arm or ["main"]
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
 
-    gr00t = Gr00tClient(args.gr00t, timeout_s=args.timeout, api_token=args.gr00t_token)
+    gr00t = Gr00tClient(args.gr00t, timeout_s=args.timeout, api_token=args.gr00t_token, codec=args.gr00t_codec)
     try:
         if args.gr00t_version == "auto":
             wire, modality = gr00t.detect_wire()
@@ -63,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     except (Gr00tTimeout, Gr00tError) as e:
         print(f"phone2act_gr00t: {e}", file=sys.stderr)
         return 2
-    logging.info("GR00T server at %s speaks %s", args.gr00t, wire)
+    logging.info("GR00T server at %s speaks %s (%s arrays)", args.gr00t, wire, gr00t.codec)
     try:
         with Client(args.server, token=args.token) as client, client.policy_session(
             arms, observation_rate_hz=1.0 / args.step_period,

@@ -23,13 +23,19 @@ from phone2act_gr00t.embodiment import ChunkShapeError, Embodiment, NonFiniteAct
 from phone2act_gr00t.modes import action_mode_of
 from phone2act_gr00t.wire import (
     CHECKED_AGAINST,
+    MSGPACK_NUMPY,
     N15,
     N16,
+    N16_SIM,
+    N17,
+    N17_SIM,
+    NPY,
     WIRE_VERSIONS,
     Gr00tClient,
     Gr00tError,
     Gr00tProtocolError,
     Gr00tTimeout,
+    shapes_of,
 )
 
 log = logging.getLogger("phone2act_gr00t")
@@ -131,10 +137,19 @@ class Gr00tAdapter:
                     f"{e}. This GR00T server speaks N1.6 ({CHECKED_AGAINST[N16]}): run with --gr00t-version n1.6 "
                     f"(or auto)"
                 ) from None
-            if self.wire == N16 and "must be in observation" in str(e) and ("'video." in str(e) or "'state." in str(e)):
+            if shapes_of(self.wire) == N16 and "must be in observation" in str(e) and (
+                    "'video." in str(e) or "'state." in str(e)):
                 raise Gr00tProtocolError(
-                    f"{e}. This GR00T N1.6 server runs with --use-sim-policy-wrapper (flat keys): run with "
-                    f"--gr00t-version n1.6-sim"
+                    f"{e}. This GR00T server runs with --use-sim-policy-wrapper (flat keys): run with "
+                    f"--gr00t-version {N17_SIM if self.wire == N17 else N16_SIM}"
+                ) from None
+            if "<class 'dict'>" in str(e):
+                # Our arrays reached the server as plain maps: it reads the other codec.
+                other = NPY if self.gr00t.codec == MSGPACK_NUMPY else MSGPACK_NUMPY
+                raise Gr00tProtocolError(
+                    f"{e}. This GR00T server reads arrays in the {other} codec, not {self.gr00t.codec} "
+                    f"(GR00T main since 2026-05-26 uses msgpack-numpy, the n1.7-release tag and older npy): run "
+                    f"with --gr00t-codec {other}"
                 ) from None
             raise
 

@@ -22,7 +22,7 @@ from phone2act import ArmLayout
 from phone2act.v1 import common_pb2, policy_pb2
 
 from phone2act_gr00t.modes import ABSOLUTE, DELTA, RECORDED_ABSOLUTE_AXES, is_gripper, kind_of_mode
-from phone2act_gr00t.wire import N15, N16, N16_SIM, ModalityConfig
+from phone2act_gr00t.wire import N15, N16, N16_SIM, ModalityConfig, shapes_of
 
 LANGUAGE_KEY = "annotation.human.task_description"
 
@@ -164,8 +164,9 @@ class Embodiment:
         return video, state
 
     def request_data(self, obs: policy_pb2.Observation, task: str, wire: str = N15) -> dict[str, Any]:
-        """The `get_action` data for one observation in the server's dialect (unbatched N1.5, batched N1.6)."""
+        """The `get_action` data for one observation in the server's dialect (unbatched N1.5, batched N1.6/N1.7)."""
         video, state = self.arrays(obs)
+        wire = shapes_of(wire)
         if wire == N15:
             # Key order as the upstream client sends it (video, state, language): the golden request is built so.
             data: dict[str, Any] = {f"video.{k}": v[None] for k, v in video.items()}  # (T=1, H, W, 3)
@@ -194,7 +195,7 @@ class Embodiment:
 
     def answer_groups(self, answer: Any, wire: str = N15) -> dict[str, np.ndarray]:
         """The answer's action arrays by bare group key, each (horizon, D)."""
-        if wire in (N16, N16_SIM):
+        if shapes_of(wire) in (N16, N16_SIM):
             if not isinstance(answer, (list, tuple)) or len(answer) != 2 or not isinstance(answer[0], Mapping):
                 raise ChunkShapeError(f"a GR00T N1.6 answer is [action, info]; got {type(answer).__name__}")
             answer = answer[0]

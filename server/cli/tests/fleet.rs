@@ -305,6 +305,9 @@ fn push_appends_missing_episodes_and_refuses_a_different_dataset() {
     };
     let first_meta = first.iter().position(|p| !bulk(p)).unwrap();
     assert!(first[first_meta..].iter().all(|p| !bulk(p)), "{first:?}");
+    // GR00T's layout file goes up with the replaceable metadata, after the files it describes.
+    let modality = first.iter().position(|p| p.ends_with("meta/modality.json"));
+    assert!(modality.is_some_and(|m| m >= first_meta), "{first:?}");
     // Appending: only episode 1's files and the metadata that changed go up; episode 0's never again.
     let offset = log_len();
     let (ok, out, err) = push(&a, url);

@@ -199,6 +199,11 @@ fn three_stations_merge_into_one_dataset_that_lerobot_loads_and_its_own_aggregat
             })
             .collect();
     assert_eq!(who, expect, "each episode keeps its station, operator and source");
+    assert_eq!(
+        std::fs::read(merged.join("meta/modality.json")).unwrap(),
+        std::fs::read(a.join("meta/modality.json")).unwrap(),
+        "GR00T's modality.json, the same in every input, carried over"
+    );
 
     let agg = dir.path().join("lerobot-aggregate");
     if let Some((ok, report)) = lerobot_check(&[&merged, &a, &b, &c, Path::new("--lerobot-aggregate"), &agg])
@@ -216,9 +221,27 @@ fn inputs_that_differ_are_refused_by_name_and_nothing_is_written() {
     record(&base, "st-a", 20, &["front", "wrist"], &["pick"], 0.3);
     record(&slow, "st-b", 10, &["front", "wrist"], &["pick"], 0.3);
     record(&one_cam, "st-c", 20, &["front"], &["pick"], 0.3);
+    // GR00T's modality.json must be the same in every input: a station configured with other groups (here its
+    // gripper named apart) is refused, and so is one without the file, each with what to do.
+    let regrouped = dir.path().join("regrouped");
+    record(&regrouped, "st-d", 20, &["front", "wrist"], &["pick"], 0.3);
+    let path = regrouped.join("meta/modality.json");
+    let mut m = read_json(&path);
+    let g = m["action"]["main_gripper"].clone();
+    m["action"].as_object_mut().unwrap().remove("main_gripper");
+    m["action"]["gripper"] = g;
+    std::fs::write(&path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+    let without = dir.path().join("without");
+    record(&without, "st-e", 20, &["front", "wrist"], &["pick"], 0.3);
+    std::fs::remove_file(without.join("meta/modality.json")).unwrap();
     let out = dir.path().join("out");
     let before = files_under(dir.path());
-    for (other, needle) in [(&slow, "fps"), (&one_cam, "observation.images.wrist")] {
+    for (other, needle) in [
+        (&slow, "fps"),
+        (&one_cam, "observation.images.wrist"),
+        (&regrouped, "their meta/modality.json differ"),
+        (&without, "only one of them has a meta/modality.json"),
+    ] {
         let o = phone2act(&["dataset", "merge", s(&base), s(other), "--out", s(&out)]);
         assert!(!o.status.success(), "{}", text(&o));
         assert!(

@@ -9,10 +9,10 @@ use std::path::PathBuf;
 /// The on-disk LeRobot layout (spelled as its `codebase_version` in configuration files).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Format {
-    /// LeRobot v3.0 (lerobot >= 0.4): episodes share chunked files.
+    /// LeRobot v3.0 (lerobot >= 0.4): episodes share chunked files; `meta/modality.json` rides along for GR00T.
     #[serde(rename = "v3.0")]
     V30,
-    /// LeRobot v2.1 (lerobot 0.3.x, GR00T N1.5): one file per episode, plus `meta/modality.json`.
+    /// LeRobot v2.1 (lerobot 0.3.x, GR00T's own loader): one file per episode, plus `meta/modality.json`.
     #[serde(rename = "v2.1")]
     V21,
 }

@@ -496,9 +496,10 @@ pub fn verify(root: &Path) -> Report {
             }
             Err(_) => report.problems.push("meta/tasks.jsonl is missing".to_owned()),
         }
-        if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
-            check_modality(&text, features, &mut report);
-        }
+    }
+    // GR00T's layout file, in either format (phone2act writes it into both; lerobot ignores it).
+    if let Ok(text) = std::fs::read_to_string(root.join("meta/modality.json")) {
+        check_modality(&text, features, &mut report);
     }
     if episode_meta.len() as u64 != report.episodes {
         report.problems.push(format!(
@@ -712,6 +713,33 @@ fn check_modality(text: &str, features: &serde_json::Map<String, Value>, report:
             }
         }
     }
+    // GR00T's loader reads `video.<name>` from the feature `original_key` names, and an annotation from the
+    // column its `original_key` names: a key the dataset lacks fails there, at training time.
+    for (group, want_video) in [("video", true), ("annotation", false)] {
+        let Some(entries) = modality[group].as_object() else {
+            continue;
+        };
+        for (name, entry) in entries {
+            let Some(original) = entry["original_key"].as_str() else {
+                report
+                    .problems
+                    .push(format!("meta/modality.json {group}.{name} has no original_key"));
+                continue;
+            };
+            let found = features.get(original);
+            let is_video = found.is_some_and(|f| f["dtype"] == "video" || f["dtype"] == "image");
+            if found.is_none() || is_video != want_video {
+                let what = if want_video {
+                    "video feature"
+                } else {
+                    "data column"
+                };
+                report.problems.push(format!(
+                    "meta/modality.json {group}.{name} names {original:?}, which is not a {what} of info.json"
+                ));
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -796,5 +824,35 @@ mod tests {
             "{:?}",
             report.problems
         );
+    }
+
+    #[test]
+    fn a_v30_modality_json_is_checked_against_the_features() {
+        let dir = tempfile::tempdir().unwrap();
+        copy_dir(&golden("lerobot_sample_v30"), dir.path());
+        let path = dir.path().join("meta/modality.json");
+        let good = serde_json::json!({
+            "state": {"arm": {"start": 0, "end": 5}, "gripper": {"start": 5, "end": 6}},
+            "action": {"arm": {"start": 0, "end": 6, "absolute": true}},
+            "video": {"front": {"original_key": "observation.images.front"}},
+            "annotation": {"human.task_description": {"original_key": "task_index"}},
+        });
+        std::fs::write(&path, good.to_string()).unwrap();
+        let report = verify(dir.path());
+        assert!(report.problems.is_empty(), "{:?}", report.problems);
+
+        let mut bad = good;
+        bad["action"]["arm"]["end"] = serde_json::json!(7);
+        bad["video"]["top"] = serde_json::json!({"original_key": "observation.images.top"});
+        bad["annotation"]["human.success"] = serde_json::json!({"original_key": "next.success"});
+        std::fs::write(&path, bad.to_string()).unwrap();
+        let text = verify(dir.path()).problems.join("\n");
+        for want in [
+            "meta/modality.json action.arm = [0, 7) does not fit action of width 6",
+            "meta/modality.json video.top names \"observation.images.top\", which is not a video feature",
+            "meta/modality.json annotation.human.success names \"next.success\", which is not a data column",
+        ] {
+            assert!(text.contains(want), "{want}: {text}");
+        }
     }
 }

@@ -100,6 +100,29 @@ fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
     out
 }
 
+/// GR00T's `meta/modality.json` of the test spec's one arm (`main`: 12 state values, 6 delta axes and a gripper).
+fn check_modality(root: &Path, camera: &str) {
+    let modality = read_json(&root.join("meta/modality.json"));
+    assert_eq!(modality["state"]["main_arm"], json!({"start": 0, "end": 12}));
+    assert_eq!(
+        modality["action"]["main_gripper"],
+        json!({"start": 6, "end": 7, "absolute": true})
+    );
+    assert_eq!(
+        modality["action"]["main_arm"],
+        json!({"start": 0, "end": 6, "absolute": false}),
+        "a delta group is relative: GR00T pads it with zero past the episode's end"
+    );
+    assert_eq!(
+        modality["video"][camera]["original_key"],
+        format!("observation.images.{camera}")
+    );
+    assert_eq!(
+        modality["annotation"]["human.task_description"]["original_key"],
+        "task_index"
+    );
+}
+
 #[test]
 fn v30_records_resumes_and_appends() {
     let dir = tempfile::tempdir().unwrap();
@@ -148,6 +171,10 @@ fn v30_records_resumes_and_appends() {
     let prov = read_json(&root.join("meta/phone2act_provenance.json"));
     assert_eq!(prov["episodes"].as_array().unwrap().len(), 3);
     assert_eq!(prov["config"]["test"], true);
+    // GR00T's layout file rides along in v3.0 too, the same as v2.1 writes it.
+    check_modality(&root, "wrist");
+    let report = phone2act_recorder::verify::verify(&root);
+    assert!(report.problems.is_empty(), "{:?}", report.problems);
     assert!(!root.join(".phone2act-staging").exists());
     publish_for_conformance(
         "recorder-v30-resume",
@@ -173,21 +200,7 @@ fn v21_gr00t_dataset_has_modality_and_stats() {
         info["features"]["observation.images.webcam"]["info"]["video.codec"],
         "h264"
     );
-    let modality = read_json(&root.join("meta/modality.json"));
-    assert_eq!(modality["state"]["main_arm"], json!({"start": 0, "end": 12}));
-    assert_eq!(
-        modality["action"]["main_gripper"],
-        json!({"start": 6, "end": 7, "absolute": true})
-    );
-    assert_eq!(
-        modality["action"]["main_arm"],
-        json!({"start": 0, "end": 6, "absolute": false}),
-        "a delta group is relative: GR00T pads it with zero past the episode's end"
-    );
-    assert_eq!(
-        modality["video"]["webcam"]["original_key"],
-        "observation.images.webcam"
-    );
+    check_modality(&root, "webcam");
     let stats = read_json(&root.join("meta/stats.json"));
     for col in [
         "observation.state",

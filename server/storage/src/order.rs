@@ -15,6 +15,8 @@ pub fn rank(rel: &str) -> u8 {
         _ if rel.starts_with("meta/episodes/") => 2,
         _ if rel.starts_with("data/") => 3,
         // phone2act's sidecars (events, quantiles, provenance), ignored by lerobot.
+        // (`meta/stats.json`, GR00T's `meta/modality.json` and v2.1's `episodes_stats.jsonl` fall through to 5:
+        // after the data they describe, before `info.json`, the one file that counts episodes.)
         _ if rel.starts_with("meta/phone2act") => 6,
         _ => 5,
     }
@@ -73,6 +75,7 @@ mod tests {
         let mut v: Vec<String> = [
             "meta/info.json",
             "meta/stats.json",
+            "meta/modality.json",
             "meta/episodes.jsonl",
             "data/chunk-000/episode_000000.parquet",
             "meta/phone2act_provenance.json",
@@ -92,6 +95,7 @@ mod tests {
                 "meta/episodes/chunk-000/file-000.parquet",
                 "data/chunk-000/episode_000000.parquet",
                 "meta/episodes.jsonl",
+                "meta/modality.json",
                 "meta/stats.json",
                 "meta/phone2act/events/episode_000000.jsonl",
                 "meta/phone2act_provenance.json",

@@ -111,6 +111,8 @@ struct Input {
     meta_files: Vec<PathBuf>,
     provenance: Option<Provenance>,
     stats: Value,
+    /// GR00T's `meta/modality.json`, when the input carries one.
+    modality: Option<Value>,
 }
 
 fn bad(input: &str, detail: impl Into<String>) -> MergeError {
@@ -238,6 +240,12 @@ impl Input {
             .ok()
             .and_then(|b| serde_json::from_slice::<Provenance>(&b).ok());
         let stats = read_json(&root.join("meta/stats.json")).unwrap_or(Value::Null);
+        let modality_path = root.join("meta/modality.json");
+        let modality = if modality_path.exists() {
+            Some(read_json(&modality_path).map_err(|e| bad(&label, format!("meta/modality.json: {e}")))?)
+        } else {
+            None
+        };
         Ok(Input {
             data_files: parquet_files(&root.join("data")),
             meta_files,
@@ -249,6 +257,7 @@ impl Input {
             episodes,
             provenance,
             stats,
+            modality,
         })
     }
 
@@ -380,6 +389,12 @@ fn check_compatible(inputs: &[Input]) -> Result<SchemaRef, MergeError> {
                 other.label, first.label
             )));
         }
+        if let Some(d) = modality_difference(first.modality.as_ref(), other.modality.as_ref()) {
+            return Err(MergeError::Incompatible(format!(
+                "{} and {}: {d}",
+                other.label, first.label
+            )));
+        }
         for f in &other.data_files {
             let s = data_schema_of(f)?;
             if columns(&s) != columns(&first_schema) {
@@ -395,6 +410,25 @@ fn check_compatible(inputs: &[Input]) -> Result<SchemaRef, MergeError> {
         }
     }
     Ok(first_schema)
+}
+
+/// Why two inputs' `meta/modality.json` cannot be one output's, or None when they agree (both the same, or
+/// both absent). Equal features do not make equal modality files (the body-part groups and which action
+/// slices are absolute come from each station's configuration), so a merge never guesses one for all.
+pub(super) fn modality_difference(first: Option<&Value>, other: Option<&Value>) -> Option<String> {
+    match (first, other) {
+        (Some(a), Some(b)) if a != b => Some(
+            "their meta/modality.json differ (GR00T reads one layout of state and action per dataset; \
+             merge datasets recorded with the same arm and modality configuration)"
+                .into(),
+        ),
+        (Some(_), None) | (None, Some(_)) => Some(
+            "only one of them has a meta/modality.json (GR00T's loader needs it for every episode; copy \
+             the other's meta/modality.json into it if both were recorded with the same configuration)"
+                .into(),
+        ),
+        _ => None,
+    }
 }
 
 /// A numeric column of the data files whose statistics the merge recomputes.
@@ -986,6 +1020,10 @@ fn write_merged(
     report.tasks = tasks.len();
 
     parquet_io::write_tasks(&dst.join("meta/tasks.parquet"), &tasks)?;
+    if let Some(m) = &first.modality {
+        let path = dst.join("meta/modality.json");
+        fs::write(&path, pretty(m)).map_err(|e| RecorderError::io(&path, e))?;
+    }
 
     // Cameras: lerobot's count-weighted aggregate of each input's dataset stats.
     for key in &keys {

@@ -188,9 +188,9 @@ pub(super) fn open_all(inputs: &[MergeInput]) -> Result<Vec<InputV21>, MergeErro
                 other.label, first.label
             )));
         }
-        if other.modality != first.modality {
+        if let Some(d) = super::merge::modality_difference(first.modality.as_ref(), other.modality.as_ref()) {
             return Err(MergeError::Incompatible(format!(
-                "{} has a different meta/modality.json from {} (GR00T reads one layout of state and action)",
+                "{} and {}: {d}",
                 other.label, first.label
             )));
         }

@@ -1,10 +1,11 @@
 //! The metadata both layouts share: `info.json` (with the feature definitions), `stats.json`, and the
 //! statistics of the default columns.
 
+use super::journal::Staging;
 use super::{Layout, timestamp_s};
 use crate::error::RecorderError;
 use crate::quantiles::QuantileStore;
-use crate::spec::{DatasetSpec, VideoSettings};
+use crate::spec::{DatasetSpec, ModalityGroup, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, StatKind};
 use indexmap::IndexMap;
 use serde::Serialize;
@@ -206,6 +207,84 @@ pub(super) fn default_feature_columns(
         ("index", ix),
         ("task_index", ti),
     ]
+}
+
+/// GR00T's `meta/modality.json`: which slices of state and action form each body part, and the camera keys.
+/// Both formats carry it (GR00T's own loader, and LeRobot's GR00T training, find the body parts there); it
+/// depends only on the spec, so every save writes the same bytes.
+pub(super) fn modality_json(spec: &DatasetSpec) -> Value {
+    let mut state = serde_json::Map::new();
+    let mut action = serde_json::Map::new();
+    let groups = if spec.modality.is_empty() {
+        vec![ModalityGroup {
+            name: "arm".into(),
+            state_range: 0..spec.state_names.len(),
+            action_range: 0..spec.action_names.len(),
+            action_absolute: true,
+        }]
+    } else {
+        spec.modality.clone()
+    };
+    for g in &groups {
+        if !g.state_range.is_empty() {
+            state.insert(
+                g.name.clone(),
+                json!({"start": g.state_range.start, "end": g.state_range.end}),
+            );
+        }
+        if !g.action_range.is_empty() {
+            action.insert(
+                g.name.clone(),
+                json!({
+                    "start": g.action_range.start,
+                    "end": g.action_range.end,
+                    "absolute": g.action_absolute,
+                }),
+            );
+        }
+    }
+    let video: serde_json::Map<String, Value> = spec
+        .cameras
+        .iter()
+        .map(|c| (c.name.clone(), json!({"original_key": c.key()})))
+        .collect();
+    let mut annotation = serde_json::Map::new();
+    annotation.insert(
+        "human.task_description".into(),
+        json!({"original_key": "task_index"}),
+    );
+    if spec.intervention {
+        // GR00T resolves `annotation.<key>` through `original_key` to the parquet column; a data config
+        // that does not name it ignores it.
+        annotation.insert(
+            "human.intervention".into(),
+            json!({"original_key": crate::parquet_io::INTERVENTION_FEATURE}),
+        );
+    }
+    if spec.success {
+        // The outcome the operator gave at Stop (or the scene's flag), for data configs that filter or weight
+        // episodes by it.
+        annotation.insert(
+            "human.success".into(),
+            json!({"original_key": crate::parquet_io::SUCCESS_FEATURE}),
+        );
+    }
+    json!({
+        "state": state,
+        "action": action,
+        "video": video,
+        "annotation": annotation,
+    })
+}
+
+/// Writes `meta/modality.json` into a save's staging and queues it with the other metadata (before
+/// `info.json`, like every file of the save).
+pub(super) fn stage_modality(spec: &DatasetSpec, staging: &mut Staging) -> Result<(), RecorderError> {
+    staging.write(
+        "modality.json",
+        &pretty(&modality_json(spec)),
+        "meta/modality.json",
+    )
 }
 
 #[cfg(test)]

@@ -7,12 +7,12 @@
 //! `<root>/.phone2act-staging/`, which no reader looks at. Saving = closing those files, writing the new
 //! metadata files into staging too, fsyncing, writing a rename journal, and renaming everything into place
 //! in an order in which every intermediate state still loads in lerobot (v3.0: videos, tasks, episode
-//! metadata, data, then `info.json` last). v2.1 needs its data file and the `episodes.jsonl` line to appear
+//! metadata, data, `stats.json` and GR00T's `modality.json`, then `info.json` last). v2.1 needs its data file and the `episodes.jsonl` line to appear
 //! together; they are renamed back to back (a window of two syscalls) and `open` replays the journal if a
 //! crash hit between them. `open` also deletes whatever an interrupted recording left in staging.
 //!
-//! Rooms: [`journal`] (staging and the rename journal), [`meta`] (`info.json`, `stats.json`), and one
-//! [`Layout`] per format ([`v30`], [`v21`] with GR00T's `modality.json`), chosen once when the dataset opens.
+//! Rooms: [`journal`] (staging and the rename journal), [`meta`] (`info.json`, `stats.json`, GR00T's
+//! `modality.json`), and one [`Layout`] per format ([`v30`], [`v21`]), chosen once when the dataset opens.
 
 mod journal;
 mod merge;

@@ -1,12 +1,13 @@
-//! LeRobot v2.1 with GR00T N1.5's `meta/modality.json`: one data file and one video per camera for each
-//! episode, and JSON-lines metadata (`tasks.jsonl`, `episodes.jsonl`, `episodes_stats.jsonl`) that every
-//! save rewrites whole into staging and renames over the old file.
+//! LeRobot v2.1, the layout GR00T's own loader reads (`meta/modality.json` comes from [`super::meta`]): one
+//! data file and one video per camera for each episode, and JSON-lines metadata (`tasks.jsonl`,
+//! `episodes.jsonl`, `episodes_stats.jsonl`) that every save rewrites whole into staging and renames over the
+//! old file.
 
 use super::journal::Staging;
-use super::meta::pretty;
+use super::meta::stage_modality;
 use super::{CHUNKS_SIZE, Layout, Saving, corrupt};
 use crate::error::RecorderError;
-use crate::spec::{DatasetSpec, ModalityGroup};
+use crate::spec::DatasetSpec;
 use crate::stats::FeatureStats;
 use indexmap::IndexMap;
 use serde::Serialize;
@@ -142,11 +143,7 @@ impl Layout for V21 {
         es.push('\n');
         staging.write("episodes_stats.jsonl", es.as_bytes(), "meta/episodes_stats.jsonl")?;
         staging.write("stats.json", ep.stats_json, "meta/stats.json")?;
-        staging.write(
-            "modality.json",
-            &pretty(&modality_json(ep.spec)),
-            "meta/modality.json",
-        )?;
+        stage_modality(ep.spec, staging)?;
         self.pending = Some((el, es));
         Ok(())
     }
@@ -157,70 +154,4 @@ impl Layout for V21 {
             self.episodes_stats_jsonl = es;
         }
     }
-}
-
-/// GR00T's `meta/modality.json`: which slices of state and action form each body part, and the camera keys.
-fn modality_json(spec: &DatasetSpec) -> Value {
-    let mut state = serde_json::Map::new();
-    let mut action = serde_json::Map::new();
-    let groups = if spec.modality.is_empty() {
-        vec![ModalityGroup {
-            name: "arm".into(),
-            state_range: 0..spec.state_names.len(),
-            action_range: 0..spec.action_names.len(),
-            action_absolute: true,
-        }]
-    } else {
-        spec.modality.clone()
-    };
-    for g in &groups {
-        if !g.state_range.is_empty() {
-            state.insert(
-                g.name.clone(),
-                json!({"start": g.state_range.start, "end": g.state_range.end}),
-            );
-        }
-        if !g.action_range.is_empty() {
-            action.insert(
-                g.name.clone(),
-                json!({
-                    "start": g.action_range.start,
-                    "end": g.action_range.end,
-                    "absolute": g.action_absolute,
-                }),
-            );
-        }
-    }
-    let video: serde_json::Map<String, Value> = spec
-        .cameras
-        .iter()
-        .map(|c| (c.name.clone(), json!({"original_key": c.key()})))
-        .collect();
-    let mut annotation = serde_json::Map::new();
-    annotation.insert(
-        "human.task_description".into(),
-        json!({"original_key": "task_index"}),
-    );
-    if spec.intervention {
-        // GR00T resolves `annotation.<key>` through `original_key` to the parquet column; a data config
-        // that does not name it ignores it.
-        annotation.insert(
-            "human.intervention".into(),
-            json!({"original_key": crate::parquet_io::INTERVENTION_FEATURE}),
-        );
-    }
-    if spec.success {
-        // The outcome the operator gave at Stop (or the scene's flag), for data configs that filter or weight
-        // episodes by it.
-        annotation.insert(
-            "human.success".into(),
-            json!({"original_key": crate::parquet_io::SUCCESS_FEATURE}),
-        );
-    }
-    json!({
-        "state": state,
-        "action": action,
-        "video": video,
-        "annotation": annotation,
-    })
 }

@@ -208,7 +208,10 @@ impl Layout for V30 {
             staging.path("data.parquet"),
             staging.dest(file_path("data", dfile, "parquet")),
         );
-        staging.write("stats.json", ep.stats_json, "meta/stats.json")
+        staging.write("stats.json", ep.stats_json, "meta/stats.json")?;
+        // GR00T's body-part layout, so that one v3.0 dataset also serves LeRobot's GR00T training and
+        // GR00T's own loader; lerobot ignores the file.
+        super::meta::stage_modality(ep.spec, staging)
     }
 
     fn committed(&mut self) {
