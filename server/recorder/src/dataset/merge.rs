@@ -1102,10 +1102,15 @@ pub(super) fn carry_episode(
     dst: &Path,
 ) -> Result<super::EpisodeSummary, MergeError> {
     let (index, length, task, new_index) = episode;
+    let same = |e: &&super::EpisodeSummary| e.index == index && e.length_frames == length;
+    // Episodes are listed in index order, so the lookup is usually direct; a merge of thousands of episodes
+    // would otherwise scan the list once per episode.
     let known = provenance.and_then(|p| {
-        p.episodes
-            .iter()
-            .find(|e| e.index == index && e.length_frames == length)
+        usize::try_from(index)
+            .ok()
+            .and_then(|i| p.episodes.get(i))
+            .filter(same)
+            .or_else(|| p.episodes.iter().find(same))
     });
     let mut summary = known.cloned().unwrap_or_else(|| super::EpisodeSummary {
         length_frames: length,
@@ -1188,11 +1193,7 @@ pub(super) fn write_stats_and_provenance(
     if let Some(p) = path.parent() {
         fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
     }
-    fs::write(
-        &path,
-        pretty(&serde_json::to_value(&provenance).unwrap_or(Value::Null)),
-    )
-    .map_err(|e| RecorderError::io(&path, e))?;
+    super::meta::write_pretty(&path, &provenance).map_err(|e| RecorderError::io(&path, e))?;
     Ok(())
 }
 
