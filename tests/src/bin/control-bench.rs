@@ -6,7 +6,7 @@
 //! server on loopback as fast as it can (when `PHONE2ACT_MOTO_SERVER` names one).
 //!
 //! Run: `PHONE2ACT_MOTO_SERVER=$(tests/scripts/s3-server.sh) cargo run --release -p phone2act-tests --bin
-//! control-bench [-- --seconds 10]`
+//! control-bench [-- --seconds 10] [--cameras 640x480@20]`
 
 use anyhow::Context as _;
 use phone2act_sdk::proto as v1;
@@ -56,19 +56,55 @@ const PHONES: usize = 8;
 const POLICIES: usize = 4;
 const CAMERAS: usize = 3;
 
+/// The full load's cameras: `--cameras WxH@FPS`, by default 320x240@30 (three streaming encoders that fit
+/// next to everything else on a 2-core machine); `--cameras 640x480@20` is the recorder's documented load
+/// (docs/benchmarks.md#recorder). The episode is recorded at the cameras' rate.
+#[derive(Clone, Copy, Debug)]
+struct CameraLoad {
+    width: u32,
+    height: u32,
+    fps: u32,
+}
+
+static CAMERA_LOAD: std::sync::OnceLock<CameraLoad> = std::sync::OnceLock::new();
+
+fn camera_load() -> CameraLoad {
+    *CAMERA_LOAD.get_or_init(|| CameraLoad {
+        width: 320,
+        height: 240,
+        fps: 30,
+    })
+}
+
+fn parse_camera_load(s: &str) -> anyhow::Result<CameraLoad> {
+    let parse = || -> Option<CameraLoad> {
+        let (size, fps) = s.split_once('@')?;
+        let (w, h) = size.split_once('x')?;
+        Some(CameraLoad {
+            width: w.parse().ok()?,
+            height: h.parse().ok()?,
+            fps: fps.parse().ok()?,
+        })
+    };
+    parse()
+        .filter(|c| c.width > 0 && c.height > 0 && (1..=120).contains(&c.fps))
+        .with_context(|| format!("--cameras takes WxH@FPS, such as 640x480@20, not {s:?}"))
+}
+
 fn full_load_config(root: &std::path::Path, storage: &str) -> String {
     let arms = (0..PHONES)
         .map(|i| format!("phone{i}"))
         .chain((0..POLICIES).map(|i| format!("policy{i}")))
         .map(|name| format!("[[arms]]\nname = \"{name}\"\nbridge = \"sim\"\n\n"));
-    // 320x240 at 30 fps: three streaming encoders that fit next to everything else on a 2-core machine.
+    let CameraLoad { width, height, fps } = camera_load();
     let cameras = (0..CAMERAS).map(|i| {
         format!(
-            "[[cameras]]\nname = \"cam{i}\"\nkind = \"test_pattern\"\nwidth = 320\nheight = 240\nfps = 30\n\n"
+            "[[cameras]]\nname = \"cam{i}\"\nkind = \"test_pattern\"\nwidth = {width}\nheight = {height}\nfps = \
+             {fps}\n\n"
         )
     });
     arms.chain(cameras).collect::<String>()
-        + &format!("[recorder]\nroot = \"{}\"\nfps = 30\n\n", root.display())
+        + &format!("[recorder]\nroot = \"{}\"\nfps = {fps}\n\n", root.display())
         + storage
 }
 
@@ -177,6 +213,10 @@ fn main() -> anyhow::Result<()> {
         .transpose()
         .context("--seconds takes a number")?
         .unwrap_or(10.0);
+    if let Some(load) = std::env::args().skip_while(|a| a != "--cameras").nth(1) {
+        let load = parse_camera_load(&load)?;
+        CAMERA_LOAD.set(load).ok();
+    }
     let server = BenchServer::start(CONFIG)?;
     let (app, url) = (Arc::clone(&server.app), server.url.clone());
 
@@ -184,7 +224,10 @@ fn main() -> anyhow::Result<()> {
     let client_rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    println!("phone2act control-path benchmark ({seconds} s per phase, release build expected)");
+    println!(
+        "phone2act control-path benchmark ({seconds} s per phase, release build expected; full load's cameras {:?})",
+        camera_load()
+    );
     let (sent_l, sent_r, chunks) = client_rt.block_on(async {
         let client = Client::connect(&url, None).await?;
         tokio::time::sleep(Duration::from_millis(300)).await;
