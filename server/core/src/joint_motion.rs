@@ -71,11 +71,6 @@ const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
 
-/// Most commands [`JointStage::destination`] plays to find where a stage behind its target settles: at the
-/// longest step time ([`crate::joint_limit::MAX_STEP_S`], 20 ms) 20 s of motion, more than any joint needs
-/// to cross its range at the slowest speed a stage is given (a remote bridge's 1 rad/s).
-const MAX_SETTLE_COMMANDS: usize = 1000;
-
 /// `[arms.<name>.joint_limits]`: per-joint speed limits of an arm.
 #[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
@@ -172,8 +167,6 @@ pub struct JointStage<const N: usize> {
     turn_axis: Option<Vector3<f64>>,
     counters: JointCounters,
     behind: bool,
-    /// The target of the last command (none after a reset): what a stage behind still moves toward.
-    target: Option<Isometry3<f64>>,
 }
 
 /// The SO-101's joint stage.
@@ -232,7 +225,6 @@ impl<const N: usize> JointStage<N> {
             turn_axis: None,
             counters: JointCounters::default(),
             behind: false,
-            target: None,
         })
     }
 
@@ -247,7 +239,6 @@ impl<const N: usize> JointStage<N> {
         }
         self.turn_axis = None;
         self.behind = false;
-        self.target = None;
     }
 
     /// The joints last commanded (or reset to).
@@ -258,29 +249,6 @@ impl<const N: usize> JointStage<N> {
     /// Time of the last command (or reset), s.
     pub fn commanded_time_s(&self) -> f64 {
         self.limiter.last_time_s()
-    }
-
-    /// The joints this stage settles at if its target holds: the joints last commanded when it is not
-    /// [`Self::behind`], otherwise those it reaches by solving the same target again each
-    /// [`crate::joint_limit::MAX_STEP_S`] until it is no longer behind (on a copy; this stage is unchanged).
-    /// Unlike the joints commanded, where a stage behind its target has got to depends on when its commands
-    /// were issued; where it goes does not: for a target the arm can reach (the forward kinematics of joints,
-    /// as a joint action commands), it is the target's joints on the branch the stage follows.
-    pub fn destination(&self) -> Option<[f64; N]> {
-        let commanded = self.commanded()?;
-        let Some(target) = self.target.filter(|_| self.behind) else {
-            return Some(commanded);
-        };
-        let mut settling = self.clone();
-        let mut time_s = settling.commanded_time_s();
-        for _ in 0..MAX_SETTLE_COMMANDS {
-            time_s += settling.limiter.max_step_s();
-            settling.plan(&target, time_s);
-            if !settling.behind {
-                break;
-            }
-        }
-        settling.commanded()
     }
 
     /// True while the last command did not reach its target (the limiter shortened it, or the orientation
@@ -335,7 +303,6 @@ impl<const N: usize> JointStage<N> {
                 invalid_input: true,
             };
         }
-        self.target = Some(*target);
         let (axis, wanted_rad) = self.turn_toward(&from.rotation, &target.rotation);
         let mut aim_rad = wanted_rad.min(self.aim_speed_rad_s * dt).min(MAX_AIM_STEP_RAD);
         // The turn the chosen solve aimed at: less than the period allows when the joint limits halved it, none
@@ -486,11 +453,6 @@ impl ArmJointStage {
     /// See [`JointStage::commanded_time_s`].
     pub fn commanded_time_s(&self) -> f64 {
         each_stage!(self, s => s.commanded_time_s())
-    }
-
-    /// See [`JointStage::destination`].
-    pub fn destination(&self) -> Option<Vec<f64>> {
-        each_stage!(self, s => s.destination().map(|q| q.to_vec()))
     }
 
     /// See [`JointStage::behind`].
@@ -647,64 +609,6 @@ mod tests {
         assert!(
             done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-2,
             "{done:?}"
-        );
-    }
-
-    /// Where a stage settles does not depend on when its commands come: the same targets (forward kinematics
-    /// of joints, as joint actions command), each solved again every 20 ms until the stage is no longer
-    /// behind, or late (50-90 ms apart, as a starved thread issues them, each step limited to 20 ms of motion)
-    /// with one 2 ms catch-up each, leave the two stages at different joints but with the same destination,
-    /// the target's joints; and finding it changes nothing.
-    #[test]
-    fn the_destination_of_a_reachable_target_does_not_depend_on_command_timing() {
-        let k = So101Kinematics::new();
-        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
-        let (mut on_time, mut late) = (stage(), stage());
-        on_time.reset(&start, 0.0);
-        late.reset(&start, 0.0);
-        let (mut t_on_time, mut t_late) = (0.0, 0.0);
-        let mut apart = 0.0f64;
-        for i in 1..=20 {
-            let s = f64::from(i) / 20.0;
-            // A turn of the wrist with a little motion, as the teleoperated episodes make: 0.1 rad a command for
-            // the wrist roll, more than the 0.094 rad 20 ms allow.
-            let joints = [0.05 * s, -0.4 + 0.03 * s, 0.6 - 0.02 * s, 0.9 + 0.02 * s, 2.0 * s];
-            let target = k.forward(&joints);
-            for _ in 0..10 {
-                t_on_time += PERIOD_S;
-                on_time.plan(&target, t_on_time);
-                if !on_time.behind() {
-                    break;
-                }
-            }
-            t_late += 0.05 + 0.01 * f64::from(i % 5);
-            late.plan(&target, t_late);
-            late.plan(&target, t_late + 0.002);
-            apart = apart.max(largest_step_ratio(
-                &on_time.commanded().unwrap(),
-                &late.commanded().unwrap(),
-                1.0,
-            ));
-            let before = late.clone();
-            for d in [on_time.destination().unwrap(), late.destination().unwrap()] {
-                let off = d
-                    .iter()
-                    .zip(&joints)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
-                // The solver's convergence (it stops within 1e-4 rad of orientation).
-                assert!(
-                    off < 2e-4,
-                    "command {i}: destination {d:?} is {off} rad from {joints:?}"
-                );
-            }
-            assert_eq!(late.commanded(), before.commanded());
-            assert_eq!(late.behind(), before.behind());
-            assert_eq!(late.counters(), before.counters());
-        }
-        assert!(
-            apart * STS3215_MAX_VELOCITY_RAD_S > 0.05,
-            "the late stage lags the other ({apart}): this test lost its point"
         );
     }
 
