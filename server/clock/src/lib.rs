@@ -17,6 +17,11 @@ pub fn monotonic_ns() -> i64 {
     i64::try_from(epoch.elapsed().as_nanos()).unwrap_or(i64::MAX)
 }
 
+/// [`monotonic_ns`] in seconds: the time the pure core is handed.
+pub fn monotonic_s() -> f64 {
+    monotonic_ns() as f64 * 1e-9
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -31,6 +31,10 @@ pub struct Reading<'a> {
     pub joint_positions_rad: &'a [f64],
     pub robot_from_ee: &'a Isometry3<f64>,
     pub gripper_position: f64,
+    /// Server monotonic time of the measurement, ns.
+    pub capture_time_ns: i64,
+    /// The scene's success flag (false for arms without a scene).
+    pub task_success: bool,
 }
 
 /// What the arbiter was doing when a sample's action was read: the recorder derives the episode's events
@@ -393,6 +397,8 @@ mod tests {
             joint_positions_rad: &JOINTS_RAD,
             robot_from_ee: &measured,
             gripper_position: 0.2,
+            capture_time_ns: 1_000_000_000,
+            task_success: false,
         };
         let mut seed = None;
         let s = vectors.sample(&reading, &a, None, &mut seed).unwrap();
@@ -437,6 +443,8 @@ mod tests {
             joint_positions_rad: &JOINTS_RAD,
             robot_from_ee: &measured,
             gripper_position: 0.0,
+            capture_time_ns: 1_000_000_000,
+            task_success: false,
         };
 
         // Without a joint stage: solved from the measured joints, and the solution seeds the next.

@@ -27,7 +27,9 @@
 
 use crate::config::ConfigError;
 use crate::joint_limit::JointRateLimiter;
-use crate::kinematics::{CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, So101Kinematics};
+use crate::kinematics::{
+    CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, So101Kinematics,
+};
 use nalgebra::{Isometry3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -70,6 +72,21 @@ const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
+
+/// Largest distance between the robot's reported tool position and the joint model's position of its reported
+/// joints for the server to drive the arm through the model: 5 mm, well above the model's rounding (the CR5
+/// URDF gives its lengths to the millimetre) and far below what a wrong base frame, tool or joint zero gives.
+pub const MODEL_MATCH_M: f64 = 5e-3;
+/// The same for the orientation: 0.05 rad (about 3°).
+pub const MODEL_MATCH_RAD: f64 = 0.05;
+
+/// A robot's reported tool pose off the joint model's pose of its reported joints (see
+/// [`ArmJointStage::model_mismatch`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelMismatch {
+    pub off_m: f64,
+    pub off_rad: f64,
+}
 
 /// `[arms.<name>.joint_limits]`: per-joint speed limits of an arm.
 #[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
@@ -496,6 +513,30 @@ impl ArmJointStage {
         self.max_velocity_rad_s().len()
     }
 
+    /// True if this stage can drive a bridge with these joints: an SO-101 stage the SO-101's by name (its
+    /// kinematics are the SO-101's), any other stage as many joints as it has.
+    pub fn fits(&self, joint_names: &[String]) -> bool {
+        match self {
+            Self::So101(_) => joint_names == SO101_ARM_JOINT_NAMES,
+            other => joint_names.len() == other.joints(),
+        }
+    }
+
+    /// How far `robot_from_ee`, the tool pose a robot reports, is from this model's pose of the joints it
+    /// reports, when more than [`MODEL_MATCH_M`] or [`MODEL_MATCH_RAD`] (a controller whose base frame, tool or
+    /// joint zeros differ from the model would be driven somewhere else than asked). None when they agree or
+    /// the joints are not this stage's width.
+    pub fn model_mismatch(
+        &self,
+        joints_rad: &[f64],
+        robot_from_ee: &Isometry3<f64>,
+    ) -> Option<ModelMismatch> {
+        let model = self.forward(joints_rad)?;
+        let off_m = (model.translation.vector - robot_from_ee.translation.vector).norm();
+        let off_rad = model.rotation.angle_to(&robot_from_ee.rotation);
+        (off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD).then_some(ModelMismatch { off_m, off_rad })
+    }
+
     /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
     pub fn forward(&self, joints_rad: &[f64]) -> Option<Isometry3<f64>> {
         each_stage!(self, s => to_joints(joints_rad).map(|q| s.kinematics.forward(&q)))
@@ -532,6 +573,37 @@ mod tests {
     /// solver chasing the whole target from the previous solution flips branch on the way (the old path: more
     /// than a second's worth of a servo's travel in one 20 ms frame); the stage never exceeds the limit and
     /// keeps the position.
+    #[test]
+    fn a_stage_fits_its_own_joints_and_names_a_model_that_disagrees_with_the_robot() {
+        let so101 = ArmJointStage::So101(stage());
+        let names = |n: &[&str]| n.iter().map(|&s| s.to_owned()).collect::<Vec<_>>();
+        assert!(so101.fits(&names(&SO101_ARM_JOINT_NAMES)));
+        assert!(
+            !so101.fits(&names(&["a", "b", "c", "d", "e"])),
+            "five joints, not the SO-101's"
+        );
+        let cr5 = ArmJointStage::Cr5(Cr5JointStage::new(vec![1.0; CR5_DOF]).unwrap());
+        assert!(cr5.fits(&names(&["j1", "j2", "j3", "j4", "j5", "j6"])));
+        assert!(!cr5.fits(&names(&SO101_ARM_JOINT_NAMES)));
+
+        let joints = [0.1, -0.4, 0.6, 0.3, -0.2];
+        let model = So101Kinematics::new().forward(&joints);
+        assert_eq!(so101.model_mismatch(&joints, &model), None);
+        // Within the tolerance: a millimetre and a hundredth of a radian.
+        let near = Isometry3::translation(0.001, 0.0, 0.0)
+            * model
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.01);
+        assert_eq!(so101.model_mismatch(&joints, &near), None);
+        let shifted = Isometry3::translation(0.0, 0.0, 0.01) * model;
+        let off = so101.model_mismatch(&joints, &shifted).unwrap();
+        assert!((off.off_m - 0.01).abs() < 1e-12 && off.off_rad < 1e-9, "{off:?}");
+        let turned = model * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.1);
+        let off = so101.model_mismatch(&joints, &turned).unwrap();
+        assert!((off.off_rad - 0.1).abs() < 1e-9, "{off:?}");
+        // Joints of another width are not this model's to judge.
+        assert_eq!(so101.model_mismatch(&joints[..4], &shifted), None);
+    }
+
     #[test]
     fn a_full_turn_about_the_vertical_neither_jumps_nor_moves_the_tool() {
         let k = So101Kinematics::new();
