@@ -430,7 +430,7 @@ impl Arbiter {
         let stride = plan.len().div_ceil(max_points);
         let mut picked: Vec<usize> = (0..plan.len()).step_by(stride).collect();
         // Where the plan ends matters most to the operator: it is always shown.
-        if last % stride != 0 {
+        if !last.is_multiple_of(stride) {
             if picked.len() == max_points {
                 picked.pop();
             }
@@ -1533,7 +1533,7 @@ mod tests {
             let last = plan.len() - 1;
             let stride = plan.len().div_ceil(max_points);
             let mut picked: Vec<&ChunkStep> = plan.iter().step_by(stride).collect();
-            if last % stride != 0 {
+            if !last.is_multiple_of(stride) {
                 if picked.len() == max_points {
                     picked.pop();
                 }

@@ -238,7 +238,7 @@ impl ArmState {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::arbiter::Counters;
+    use crate::arbiter::{Counters, PlanPreview};
     use crate::chunk::{ActionChunk, ChunkConfig, ChunkStep};
     use crate::config::TeleopConfig;
     use crate::joint_motion::So101JointStage;
@@ -497,7 +497,7 @@ mod tests {
         assert_eq!(s.counters, Counters::default());
         assert_eq!(s.joint_targets_rad, JOINTS_RAD.to_vec(), "the stage's start");
         assert_eq!(s.joint_targets_time_ns, NS);
-        assert_eq!(s.plan_preview, Default::default());
+        assert_eq!(s.plan_preview, PlanPreview::default());
 
         let robot = robot_at(&pose, NS);
         claim(&mut state, &robot, 1.0);
