@@ -1085,21 +1085,7 @@ mod tests {
     }
 
     fn chunk(anchor_s: f64, targets: &[Isometry3<f64>]) -> Input {
-        Input::Chunk {
-            session: POLICY,
-            chunk: ActionChunk {
-                steps: targets
-                    .iter()
-                    .map(|&robot_from_target| ChunkStep {
-                        robot_from_target,
-                        gripper: 0.5,
-                    })
-                    .collect(),
-                anchor_time_s: anchor_s,
-                step_period_s: 0.1,
-            },
-            observed_s: anchor_s,
-        }
+        crate::test_support::chunk_input(POLICY, anchor_s, targets)
     }
 
     /// An arbiter with a bound, disengaged phone, driven by a policy from `home()` since t = 1.

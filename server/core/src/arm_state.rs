@@ -239,7 +239,7 @@ impl ArmState {
 mod tests {
     use super::*;
     use crate::arbiter::{Counters, PlanPreview};
-    use crate::chunk::{ActionChunk, ChunkConfig, ChunkStep};
+    use crate::chunk::ChunkConfig;
     use crate::config::TeleopConfig;
     use crate::joint_motion::So101JointStage;
     use crate::kinematics::{SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, So101Kinematics};
@@ -294,21 +294,7 @@ mod tests {
     }
 
     fn chunk(targets: &[Isometry3<f64>], anchor_s: f64) -> Input {
-        Input::Chunk {
-            session: POLICY,
-            chunk: ActionChunk {
-                steps: targets
-                    .iter()
-                    .map(|&robot_from_target| ChunkStep {
-                        robot_from_target,
-                        gripper: 0.5,
-                    })
-                    .collect(),
-                anchor_time_s: anchor_s,
-                step_period_s: 0.1,
-            },
-            observed_s: anchor_s,
-        }
+        crate::test_support::chunk_input(POLICY, anchor_s, targets)
     }
 
     #[test]

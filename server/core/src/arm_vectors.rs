@@ -213,7 +213,7 @@ pub fn activity(arbiter: &Arbiter, joints: Option<&ArmJointStage>) -> Activity {
 mod tests {
     use super::*;
     use crate::arbiter::{BridgeHealth, Input, Measured, Robot};
-    use crate::chunk::{ActionChunk, ChunkConfig};
+    use crate::chunk::ChunkConfig;
     use crate::config::TeleopConfig;
     use crate::joint_motion::So101JointStage;
     use crate::kinematics::SO101_ARM_JOINT_NAMES;
@@ -257,23 +257,8 @@ mod tests {
             silence_timeout_s: 0.5,
         };
         a.handle(claim, &robot, 1.0).unwrap();
-        let chunk = ActionChunk {
-            steps: targets
-                .iter()
-                .map(|&robot_from_target| ChunkStep {
-                    robot_from_target,
-                    gripper: 0.5,
-                })
-                .collect(),
-            anchor_time_s: 1.0,
-            step_period_s: 0.1,
-        };
         a.handle(
-            Input::Chunk {
-                session: POLICY,
-                chunk,
-                observed_s: 1.0,
-            },
+            crate::test_support::chunk_input(POLICY, 1.0, targets),
             &robot,
             1.0,
         )

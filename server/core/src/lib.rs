@@ -20,6 +20,8 @@ pub mod layout;
 pub mod planner;
 pub mod pose;
 pub mod teleop;
+#[cfg(test)]
+mod test_support;
 
 pub use arbiter::{
     Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
