@@ -1,5 +1,5 @@
-//! Arm controllers: one per configured arm, the shell around its [`ArmState`] (the arbiter's source
-//! arbitration, the joint stage and what is computed from them, in `phone2act_core::arm_state`). The shell
+//! Arm controllers: one per configured arm, the shell around its [`ArmControl`] (the arbiter's source
+//! arbitration, the joint stage and what is computed from them, in `phone2act_core::arm_control`). The shell
 //! reads the bridge and the clock, hands the state one input at a time under a lock, and carries out what it
 //! returns: commands go to [`Bridge::send`] in order, inputs to the flight log, a revoked policy session is
 //! told, and the tick task is woken when the arm needs ticks.
@@ -15,11 +15,11 @@ use parking_lot::Mutex;
 use phone2act_bridges::sim::SceneState;
 use phone2act_bridges::{Bridge, BridgeError, Feedback};
 use phone2act_clock::{monotonic_ns, monotonic_s};
-use phone2act_core::arm_state::robot;
+use phone2act_core::arm_control::robot;
 use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
 use phone2act_core::{
-    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmJointStage, ArmLayout, ArmNames, ArmSnapshot,
-    ArmState, ArmVectors, ChunkConfig, Command, Driver, Effects, FlightEntry, FlightHeader, Input, Issue,
+    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmControl, ArmJointStage, ArmLayout, ArmNames,
+    ArmSnapshot, ArmVectors, ChunkConfig, Command, Driver, Effects, FlightEntry, FlightHeader, Input, Issue,
     LayoutError, Outcome, ReplaceReport, Robot, Sample, TeleopConfig, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
@@ -95,7 +95,7 @@ pub enum ArmError {
 
 #[derive(Debug)]
 struct Inner {
-    state: ArmState,
+    control: ArmControl,
     /// The owning policy session's event sink (the arbiter knows only its id).
     policy_sink: Option<(u64, Arc<dyn RevocationSink>)>,
     /// The flight recorder, when on: every input handed to the arbiter, in order, under this lock.
@@ -172,7 +172,7 @@ impl ArmController {
             action_mode,
             kinematics,
             inner: Mutex::new(Inner {
-                state: ArmState::new(arbiter),
+                control: ArmControl::new(arbiter),
                 policy_sink: None,
                 flight: None,
             }),
@@ -192,7 +192,7 @@ impl ArmController {
         teleop: &TeleopConfig,
         chunk: &ChunkConfig,
     ) -> Result<Self, ArmError> {
-        let (measured, gripper) = self.inner.lock().state.arbiter().target();
+        let (measured, gripper) = self.inner.lock().control.arbiter().target();
         let header = FlightHeader::new(&self.name, teleop, chunk, measured, gripper);
         let log = FlightLogWriter::create(dir, &header, max_bytes).map_err(|source| ArmError::FlightLog {
             arm: self.name.clone(),
@@ -220,7 +220,7 @@ impl ArmController {
         } else {
             tracing::warn!(arm = %self.name, "no feedback at start: the joint model was not checked against the robot");
         }
-        self.inner.lock().state.replace_joint_stage(Some(stage));
+        self.inner.lock().control.replace_joint_stage(Some(stage));
         Ok(self)
     }
 
@@ -228,14 +228,14 @@ impl ArmController {
     /// joint model it declared, or none). A new stage starts from the next measured joints, so the first
     /// command after an attach is limited from where that robot is. Returns the stage it replaced.
     pub fn replace_joint_stage(&self, stage: Option<ArmJointStage>) -> Option<ArmJointStage> {
-        self.inner.lock().state.replace_joint_stage(stage)
+        self.inner.lock().control.replace_joint_stage(stage)
     }
 
     /// Refuses feedback whose reported tool pose disagrees with the arm's joint model's pose of its reported
     /// joints (the check [`Self::with_joint_stage`] makes at start, for a stage put in place later). Ok
     /// without a joint stage or for joints of another width.
     pub fn check_joint_model(&self, feedback: &Feedback) -> Result<(), ArmError> {
-        match self.inner.lock().state.joint_stage() {
+        match self.inner.lock().control.joint_stage() {
             Some(stage) => self.model_matches(stage, feedback),
             None => Ok(()),
         }
@@ -310,9 +310,9 @@ impl ArmController {
         now: f64,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
     ) -> Result<Handled, ArbiterError> {
-        let need_before = inner.state.tick_need();
+        let need_before = inner.control.tick_need();
         let logged = inner.flight.is_some().then(|| input.clone());
-        let result = inner.state.handle(input, robot, measured_joints, now);
+        let result = inner.control.handle(input, robot, measured_joints, now);
         if let (Some(input), Some(log)) = (logged, inner.flight.as_mut()) {
             log.record(FlightEntry {
                 now_s: now,
@@ -328,7 +328,7 @@ impl ArmController {
         let mut command_time_ns = None;
         // Sent under the lock, so the bridge sees commands in `seq` order.
         for c in handled.commands() {
-            command_time_ns = Some(self.send_locked(&mut inner.state, c));
+            command_time_ns = Some(self.send_locked(&mut inner.control, c));
         }
         let effects = handled.effects;
         let sink = effects.revoked.as_ref().and_then(|r| {
@@ -337,7 +337,7 @@ impl ArmController {
                 .take_if(|(session, _)| *session == r.session)
                 .map(|(_, sink)| sink)
         });
-        if inner.state.tick_need() != need_before {
+        if inner.control.tick_need() != need_before {
             self.wake.notify_one();
         }
         Ok(Handled {
@@ -349,9 +349,9 @@ impl ArmController {
 
     /// Hands one command to the bridge, with its joints when this arm has a joint stage. Returns the issue
     /// time.
-    fn send_locked(&self, state: &mut ArmState, command: &Command) -> i64 {
+    fn send_locked(&self, control: &mut ArmControl, command: &Command) -> i64 {
         let issue_time_ns = monotonic_ns();
-        match state.issue(command, issue_time_ns as f64 * 1e-9) {
+        match control.issue(command, issue_time_ns as f64 * 1e-9) {
             Issue::Held => {
                 tracing::warn!(arm = %self.name, seq = command.seq, "no measured joints to limit from: command held");
             }
@@ -462,7 +462,7 @@ impl ArmController {
         mode: ActionMode,
     ) -> (Vec<Vec<f64>>, f64) {
         // Copied under the lock, converted (inverse kinematics for joint steps) after it.
-        let (plan, period_s) = self.inner.lock().state.arbiter().policy_plan_from(from_s);
+        let (plan, period_s) = self.inner.lock().control.arbiter().policy_plan_from(from_s);
         if plan.is_empty() {
             return (Vec::new(), 0.0);
         }
@@ -480,7 +480,7 @@ impl ArmController {
         let now = monotonic_s();
         self.apply(Input::PolicyLoading { session }, now)
             .map_err(|e| self.refused(e))?;
-        let deadline_s = self.inner.lock().state.arbiter().policy_loading_until();
+        let deadline_s = self.inner.lock().control.arbiter().policy_loading_until();
         Ok(deadline_s.map_or(0.0, |d| (d - now).max(0.0)))
     }
 
@@ -547,7 +547,7 @@ impl ArmController {
                 .map_err(|e| self.bridge_error(e));
         }
         if home_arm {
-            inner.state.arbiter().may_home().map_err(|e| self.refused(e))?;
+            inner.control.arbiter().may_home().map_err(|e| self.refused(e))?;
         }
         let state = self
             .bridge
@@ -559,7 +559,7 @@ impl ArmController {
                 gripper: feedback.gripper_position,
             };
             let now = monotonic_s();
-            inner.state.teleported(&feedback.joint_positions_rad, now);
+            inner.control.teleported(&feedback.joint_positions_rad, now);
             // Nobody drives (checked above under this lock): the arbiter accepts, sends nothing, revokes nobody.
             let handled = self
                 .handle_locked(
@@ -598,12 +598,12 @@ impl ArmController {
 
     /// How soon the arm needs a tick.
     fn tick_need(&self) -> TickNeed {
-        self.inner.lock().state.tick_need()
+        self.inner.lock().control.tick_need()
     }
 
     /// Who drives the arm now (what a full [`Self::snapshot`] would say, without building one).
     pub fn driver(&self) -> Driver {
-        self.inner.lock().state.arbiter().driver()
+        self.inner.lock().control.arbiter().driver()
     }
 
     /// A snapshot for the API.
@@ -620,7 +620,7 @@ impl ArmController {
         let reading = feedback.as_ref().map(Feedback::reading);
         self.inner
             .lock()
-            .state
+            .control
             .snapshot(&names, health, reading.as_ref(), warning, now_ns)
     }
 
@@ -639,7 +639,7 @@ impl ArmController {
         } = self
             .inner
             .lock()
-            .state
+            .control
             .sample(&self.vectors(), &feedback.reading())?;
         Some(ArmSample {
             state,

@@ -3,7 +3,7 @@
 //! everything here is deterministic and property-testable.
 
 pub mod arbiter;
-pub mod arm_state;
+pub mod arm_control;
 pub mod arm_vectors;
 pub mod chunk;
 pub mod config;
@@ -28,7 +28,7 @@ pub use arbiter::{
     Input, Measured, NotReady, Owner, PREVIEW_MAX_POINTS, PlanPreview, Revocation, Robot, TeleopButton,
     TeleopRound, TickNeed,
 };
-pub use arm_state::{ArmNames, ArmState, Handled, Issue};
+pub use arm_control::{ArmControl, ArmNames, Handled, Issue};
 pub use arm_vectors::{Activity, ArmVectors, Reading, Sample, StepError};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};

@@ -55,7 +55,7 @@ pub struct Handled {
 }
 
 impl Handled {
-    /// The commands to hand to the bridge, in order (each through [`ArmState::issue`]).
+    /// The commands to hand to the bridge, in order (each through [`ArmControl::issue`]).
     pub fn commands(&self) -> impl Iterator<Item = &Command> {
         self.effects.commands.iter().chain(&self.catch_up)
     }
@@ -73,7 +73,7 @@ pub enum Issue {
 
 /// One arm's state under its controller's lock.
 #[derive(Debug)]
-pub struct ArmState {
+pub struct ArmControl {
     arbiter: Arbiter,
     /// Arms whose kinematics the server knows (sim, so101, dobot): every command's joints are solved and
     /// rate-limited here, once; the bridge drives to them and the recorder records them.
@@ -85,7 +85,7 @@ pub struct ArmState {
     last_seq: u64,
 }
 
-impl ArmState {
+impl ArmControl {
     pub fn new(arbiter: Arbiter) -> Self {
         Self {
             arbiter,
@@ -274,9 +274,9 @@ mod tests {
     }
 
     /// An arm at `home()` with an SO-101 joint stage this slow (rad/s), started from `JOINTS_RAD` at t = 1.
-    fn arm_with_stage(max_velocity_rad_s: f64) -> ArmState {
+    fn arm_with_stage(max_velocity_rad_s: f64) -> ArmControl {
         let arbiter = Arbiter::new(&TeleopConfig::default(), ChunkConfig::default(), home(), 0.0).unwrap();
-        let mut state = ArmState::new(arbiter);
+        let mut state = ArmControl::new(arbiter);
         let mut stage =
             ArmJointStage::So101(So101JointStage::new(vec![max_velocity_rad_s; SO101_ARM_DOF], 1.0).unwrap());
         stage.reset(&JOINTS_RAD, 1.0);
@@ -284,7 +284,7 @@ mod tests {
         state
     }
 
-    fn claim(state: &mut ArmState, robot: &Robot, now_s: f64) {
+    fn claim(state: &mut ArmControl, robot: &Robot, now_s: f64) {
         let claim = Input::ClaimPolicy {
             session: POLICY,
             name: "p".into(),
@@ -440,7 +440,7 @@ mod tests {
         };
         // Without a stage the recorded joint action seeds the next: the seed is kept between samples.
         let arbiter = Arbiter::new(&TeleopConfig::default(), ChunkConfig::default(), home(), 0.0).unwrap();
-        let mut state = ArmState::new(arbiter);
+        let mut state = ArmControl::new(arbiter);
         let pose = home();
         let sample = state.sample(&vectors, &reading(&pose, NS)).unwrap();
         assert!(state.joint_seed.is_some());
