@@ -103,7 +103,7 @@ struct Inner {
 }
 
 /// One input handled under the lock, with what is left to do once it is released.
-struct Handled {
+struct AfterUnlock {
     effects: Effects,
     /// Server time the last command was handed to the bridge.
     command_time_ns: Option<i64>,
@@ -309,7 +309,7 @@ impl ArmController {
         measured_joints: Option<&[f64]>,
         now: f64,
         sink: Option<(u64, Arc<dyn RevocationSink>)>,
-    ) -> Result<Handled, ArbiterError> {
+    ) -> Result<AfterUnlock, ArbiterError> {
         let need_before = inner.control.tick_need();
         let logged = inner.flight.is_some().then(|| input.clone());
         let result = inner.control.handle(input, robot, measured_joints, now);
@@ -340,7 +340,7 @@ impl ArmController {
         if inner.control.tick_need() != need_before {
             self.wake.notify_one();
         }
-        Ok(Handled {
+        Ok(AfterUnlock {
             effects,
             command_time_ns,
             revoked: sink,
@@ -368,8 +368,8 @@ impl ArmController {
 
     /// Tells a revoked policy session that it lost the arm (without the lock: the sink must not be called
     /// under it). Returns the effects and the time the last command was handed to the bridge.
-    fn finish(&self, handled: Handled) -> (Effects, Option<i64>) {
-        let Handled {
+    fn finish(&self, handled: AfterUnlock) -> (Effects, Option<i64>) {
+        let AfterUnlock {
             effects,
             command_time_ns,
             revoked,
