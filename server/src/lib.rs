@@ -5,6 +5,7 @@
 pub mod app;
 pub mod arm;
 pub mod config;
+pub mod control_stats;
 pub mod episode_timing;
 pub mod flight_log;
 pub mod policy_session;

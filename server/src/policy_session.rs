@@ -3,10 +3,10 @@
 //! observation and scheduling a chunk. The `Policy` service adapter only validates and converts around this.
 
 use crate::app::{App, LookupError};
-use crate::arm::{ArmController, ArmError, RevocationSink, now_s};
+use crate::arm::{ArmController, ArmError, RevocationSink};
 use nalgebra::Isometry3;
 use parking_lot::Mutex;
-use phone2act_clock::monotonic_ns;
+use phone2act_clock::{monotonic_ns, monotonic_s};
 use phone2act_core::{ActionMode, ReplaceReport};
 use phone2act_recorder::jpeg::JpegError;
 use std::collections::{HashMap, VecDeque};
@@ -440,13 +440,13 @@ impl PolicySessions {
             let sample = arm
                 .state_and_action()
                 .ok_or_else(|| PolicyError::NoFeedback(chunk.arm.to_owned()))?;
-            (now_s(), sample.robot_from_ee)
+            (monotonic_s(), sample.robot_from_ee)
         } else {
             let anchored = session.anchor(chunk.observation_id, chunk.arm)?;
             session
                 .delay
                 .lock()
-                .note(now_s() - anchored.0, chunk.step_period_s);
+                .note(monotonic_s() - anchored.0, chunk.step_period_s);
             anchored
         };
         // Kept steps: the replaced plan plays their windows; this chunk starts at its step `keep_steps`,

@@ -66,6 +66,30 @@ pub enum Health {
     Disconnected(String),
 }
 
+impl Feedback {
+    /// This feedback as the pure core reads it (the arm's snapshot, its recorded sample).
+    pub fn reading(&self) -> phone2act_core::Reading<'_> {
+        phone2act_core::Reading {
+            joint_positions_rad: &self.joint_positions_rad,
+            robot_from_ee: &self.robot_from_ee,
+            gripper_position: self.gripper_position,
+            capture_time_ns: self.capture_time_ns,
+            task_success: self.task_success,
+        }
+    }
+}
+
+impl From<Health> for phone2act_core::BridgeHealth {
+    fn from(health: Health) -> Self {
+        match health {
+            Health::Ready => Self::Ready,
+            Health::Connecting => Self::Connecting,
+            Health::Error(m) => Self::Error(m),
+            Health::Disconnected(m) => Self::Disconnected(m),
+        }
+    }
+}
+
 /// Out-of-band requests.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Control {

@@ -17,9 +17,26 @@ pub fn monotonic_ns() -> i64 {
     i64::try_from(epoch.elapsed().as_nanos()).unwrap_or(i64::MAX)
 }
 
+/// [`monotonic_ns`] in seconds: the time the pure core is handed.
+pub fn monotonic_s() -> f64 {
+    monotonic_ns() as f64 * 1e-9
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn seconds_are_the_same_clock_as_nanoseconds() {
+        let before_ns = monotonic_ns();
+        let s = monotonic_s();
+        let after_ns = monotonic_ns();
+        // f64 holds the nanoseconds of a process younger than 104 days exactly; a read in between lies between.
+        assert!(
+            before_ns as f64 * 1e-9 <= s && s <= after_ns as f64 * 1e-9,
+            "{before_ns} {s} {after_ns}"
+        );
+    }
 
     #[test]
     fn readings_move_forward_by_the_time_that_passed_on_every_thread() {

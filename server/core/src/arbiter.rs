@@ -24,7 +24,7 @@
 //! Pure: no clock reads, no I/O. The caller passes the bridge's state ([`Robot`]) and the time, and carries
 //! out the returned [`Effects`] (send these commands in order, tell that policy session it lost the arm).
 
-use crate::chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
+use crate::chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, Plan, ReplaceReport};
 use crate::config::{ConfigError, TeleopConfig};
 use crate::gate::{GateDecision, GateVerdict, SafetyGate};
 use crate::gripper::GripperCommand;
@@ -417,40 +417,52 @@ impl Arbiter {
     }
 
     /// What the driving policy is about to do from `from_s` on: its plan's remaining steps, thinned to at most
-    /// `max_points` (evenly, keeping the first and the last). Empty while no policy plan plays.
+    /// `max_points` (evenly, keeping the first and the last). Empty while no policy plan plays. Only the
+    /// points shown are read from the plan (a snapshot takes one for every phone feedback).
     pub fn plan_preview(&self, from_s: f64, max_points: usize) -> PlanPreview {
-        let (plan, period_s) = self.policy_plan_from(from_s);
-        if plan.is_empty() || max_points == 0 {
+        let Some(plan) = self.policy_plan(from_s).filter(|p| !p.is_empty()) else {
+            return PlanPreview::default();
+        };
+        if max_points == 0 {
             return PlanPreview::default();
         }
         let last = plan.len() - 1;
         let stride = plan.len().div_ceil(max_points);
-        let mut picked: Vec<&ChunkStep> = plan.iter().step_by(stride).collect();
+        let mut picked: Vec<usize> = (0..plan.len()).step_by(stride).collect();
         // Where the plan ends matters most to the operator: it is always shown.
-        if last % stride != 0 {
+        if !last.is_multiple_of(stride) {
             if picked.len() == max_points {
                 picked.pop();
             }
-            picked.push(&plan[last]);
+            picked.push(last);
         }
+        let (positions_m, grippers) = picked
+            .into_iter()
+            .filter_map(|k| plan.get(k))
+            .map(|s| -> ([f64; 3], f64) {
+                (
+                    s.robot_from_target.translation.vector.into(),
+                    s.gripper.clamp(0.0, 1.0),
+                )
+            })
+            .unzip();
         PlanPreview {
-            positions_m: picked
-                .iter()
-                .map(|s| s.robot_from_target.translation.vector.into())
-                .collect(),
-            grippers: picked.iter().map(|s| s.gripper.clamp(0.0, 1.0)).collect(),
-            point_period_s: period_s * stride as f64,
+            positions_m,
+            grippers,
+            point_period_s: plan.period_s() * stride as f64,
         }
     }
 
     /// While a policy drives: its plan from `from_s` on, on the grid of its current step (see
-    /// [`ChunkExecutor::plan_from`]); empty otherwise.
+    /// [`ChunkExecutor::plan`]); None otherwise.
+    pub fn policy_plan(&self, from_s: f64) -> Option<Plan<'_>> {
+        (self.driver == Driver::Policy).then(|| self.executor.plan(from_s))
+    }
+
+    /// [`Self::policy_plan`]'s steps, copied, and its period; empty (and period 0) while no policy drives.
     pub fn policy_plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
-        if self.driver == Driver::Policy {
-            self.executor.plan_from(from_s)
-        } else {
-            (Vec::new(), 0.0)
-        }
+        self.policy_plan(from_s)
+            .map_or((Vec::new(), 0.0), |plan| (plan.iter().collect(), plan.period_s()))
     }
 
     /// While the owning policy loads: the time its loading deadline passes (then the arm is released).
@@ -1080,21 +1092,7 @@ mod tests {
     }
 
     fn chunk(anchor_s: f64, targets: &[Isometry3<f64>]) -> Input {
-        Input::Chunk {
-            session: POLICY,
-            chunk: ActionChunk {
-                steps: targets
-                    .iter()
-                    .map(|&robot_from_target| ChunkStep {
-                        robot_from_target,
-                        gripper: 0.5,
-                    })
-                    .collect(),
-                anchor_time_s: anchor_s,
-                step_period_s: 0.1,
-            },
-            observed_s: anchor_s,
-        }
+        crate::test_support::chunk_input(POLICY, anchor_s, targets)
     }
 
     /// An arbiter with a bound, disengaged phone, driven by a policy from `home()` since t = 1.
@@ -1515,6 +1513,51 @@ mod tests {
             PlanPreview::default(),
             "the plan is over"
         );
+    }
+
+    /// The preview reads only the points it shows; it shows what thinning the whole copied plan shows, for
+    /// plans of every length up to 3 × 16 points and every point budget up to 17, read mid-step.
+    #[test]
+    fn the_preview_picks_the_same_points_as_thinning_the_copied_plan() {
+        fn thinned(plan: &[ChunkStep], period_s: f64, max_points: usize) -> PlanPreview {
+            if plan.is_empty() || max_points == 0 {
+                return PlanPreview::default();
+            }
+            let last = plan.len() - 1;
+            let stride = plan.len().div_ceil(max_points);
+            let mut picked: Vec<&ChunkStep> = plan.iter().step_by(stride).collect();
+            if !last.is_multiple_of(stride) {
+                if picked.len() == max_points {
+                    picked.pop();
+                }
+                picked.push(&plan[last]);
+            }
+            PlanPreview {
+                positions_m: picked
+                    .iter()
+                    .map(|s| s.robot_from_target.translation.vector.into())
+                    .collect(),
+                grippers: picked.iter().map(|s| s.gripper.clamp(0.0, 1.0)).collect(),
+                point_period_s: period_s * stride as f64,
+            }
+        }
+        for len in 1..=48u32 {
+            let (mut a, robot) = phone_bound_policy_driving();
+            let targets: Vec<_> = (0..len)
+                .map(|k| at(0.25 + 0.001 * f64::from(k), 0.0, 0.2))
+                .collect();
+            a.handle(chunk(1.0, &targets), &robot, 1.0).unwrap();
+            let from_s = 1.03;
+            let (plan, period_s) = a.policy_plan_from(from_s);
+            assert_eq!(plan.len(), len as usize);
+            for max_points in 0..=17 {
+                assert_eq!(
+                    a.plan_preview(from_s, max_points),
+                    thinned(&plan, period_s, max_points),
+                    "{len} steps, {max_points} points"
+                );
+            }
+        }
     }
 
     #[test]

@@ -31,6 +31,10 @@ pub struct Reading<'a> {
     pub joint_positions_rad: &'a [f64],
     pub robot_from_ee: &'a Isometry3<f64>,
     pub gripper_position: f64,
+    /// Server monotonic time of the measurement, ns.
+    pub capture_time_ns: i64,
+    /// The scene's success flag (false for arms without a scene).
+    pub task_success: bool,
 }
 
 /// What the arbiter was doing when a sample's action was read: the recorder derives the episode's events
@@ -209,7 +213,7 @@ pub fn activity(arbiter: &Arbiter, joints: Option<&ArmJointStage>) -> Activity {
 mod tests {
     use super::*;
     use crate::arbiter::{BridgeHealth, Input, Measured, Robot};
-    use crate::chunk::{ActionChunk, ChunkConfig};
+    use crate::chunk::ChunkConfig;
     use crate::config::TeleopConfig;
     use crate::joint_motion::So101JointStage;
     use crate::kinematics::SO101_ARM_JOINT_NAMES;
@@ -253,23 +257,8 @@ mod tests {
             silence_timeout_s: 0.5,
         };
         a.handle(claim, &robot, 1.0).unwrap();
-        let chunk = ActionChunk {
-            steps: targets
-                .iter()
-                .map(|&robot_from_target| ChunkStep {
-                    robot_from_target,
-                    gripper: 0.5,
-                })
-                .collect(),
-            anchor_time_s: 1.0,
-            step_period_s: 0.1,
-        };
         a.handle(
-            Input::Chunk {
-                session: POLICY,
-                chunk,
-                observed_s: 1.0,
-            },
+            crate::test_support::chunk_input(POLICY, 1.0, targets),
             &robot,
             1.0,
         )
@@ -393,6 +382,8 @@ mod tests {
             joint_positions_rad: &JOINTS_RAD,
             robot_from_ee: &measured,
             gripper_position: 0.2,
+            capture_time_ns: 1_000_000_000,
+            task_success: false,
         };
         let mut seed = None;
         let s = vectors.sample(&reading, &a, None, &mut seed).unwrap();
@@ -437,6 +428,8 @@ mod tests {
             joint_positions_rad: &JOINTS_RAD,
             robot_from_ee: &measured,
             gripper_position: 0.0,
+            capture_time_ns: 1_000_000_000,
+            task_success: false,
         };
 
         // Without a joint stage: solved from the measured joints, and the solution seeds the next.

@@ -150,6 +150,52 @@ struct TimedStep {
     step: ChunkStep,
 }
 
+/// A policy's plan from one instant on, read from the schedule in place (see [`ChunkExecutor::plan`]): a
+/// display picks a few of its steps without copying the rest.
+#[derive(Debug, Clone, Copy)]
+pub struct Plan<'a> {
+    executor: &'a ChunkExecutor,
+    from_s: f64,
+    period_s: f64,
+    len: usize,
+}
+
+impl<'a> Plan<'a> {
+    /// Number of steps.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Time between two steps, s (0 when empty).
+    pub fn period_s(&self) -> f64 {
+        self.period_s
+    }
+
+    /// Step `k` (None from [`Self::len`] on).
+    pub fn get(&self, k: usize) -> Option<ChunkStep> {
+        if k < self.len {
+            self.executor.target_at(self.time_s(k))
+        } else {
+            None
+        }
+    }
+
+    /// The steps in order.
+    pub fn iter(&self) -> impl Iterator<Item = ChunkStep> + 'a {
+        let plan = *self;
+        (0..plan.len).filter_map(move |k| plan.get(k))
+    }
+
+    /// When step `k` plays (multiplied, not accumulated, as the schedule's windows are).
+    fn time_s(&self, k: usize) -> f64 {
+        self.from_s + k as f64 * self.period_s
+    }
+}
+
 /// The running schedule of one arm under policy control.
 #[derive(Debug, Clone)]
 pub struct ChunkExecutor {
@@ -188,14 +234,20 @@ impl ChunkExecutor {
     /// The plan from `from_s` on, on the time grid of the step playing then: the step at `from_s + k · period`
     /// for k = 0, 1, … while the schedule lasts (at most `max_steps`), and that period. Empty when nothing
     /// plays at `from_s`. What a real-time-chunking policy is told is still to come (see `ActionChunk`'s
-    /// `keep_steps` on the wire).
-    pub fn plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
+    /// `keep_steps` on the wire). Read in place: nothing is copied until a step is asked for.
+    pub fn plan(&self, from_s: f64) -> Plan<'_> {
+        let mut plan = Plan {
+            executor: self,
+            from_s,
+            period_s: 0.0,
+            len: 0,
+        };
         let i = self.schedule.partition_point(|s| s.start_s <= from_s);
         let Some(current) = i.checked_sub(1).and_then(|i| self.schedule.get(i)) else {
-            return (Vec::new(), 0.0);
+            return plan;
         };
         if from_s >= current.end_s {
-            return (Vec::new(), 0.0);
+            return plan;
         }
         // A blended or truncated step is shorter; the first full window of the chunk gives its period.
         let period_s = self.schedule[i - 1..]
@@ -203,12 +255,19 @@ impl ChunkExecutor {
             .map(|s| s.end_s - s.start_s)
             .fold(0.0, f64::max);
         if period_s <= 0.0 {
-            return (Vec::new(), 0.0);
+            return plan;
         }
-        let steps = (0..self.config.max_steps)
-            .map_while(|k| self.target_at(from_s + k as f64 * period_s))
-            .collect();
-        (steps, period_s)
+        plan.period_s = period_s;
+        plan.len = (0..self.config.max_steps)
+            .take_while(|&k| self.target_at(plan.time_s(k)).is_some())
+            .count();
+        plan
+    }
+
+    /// [`Self::plan`]'s steps, copied, and its period.
+    pub fn plan_from(&self, from_s: f64) -> (Vec<ChunkStep>, f64) {
+        let plan = self.plan(from_s);
+        (plan.iter().collect(), plan.period_s())
     }
 
     /// Replaces the rest of the schedule with `chunk`, aligned by time (see the module documentation).
@@ -417,6 +476,26 @@ mod tests {
             assert!(new == x_at(&e, t) || new == x_at(&e, t - 0.1), "{t}: {new:?}");
         }
         assert_eq!(x_at(&again, 1.56), Some(0.5));
+    }
+
+    #[test]
+    fn a_plan_read_in_place_ends_at_the_first_gap_and_has_nothing_past_its_end() {
+        let mut e = ChunkExecutor::new(ChunkConfig::default()).unwrap();
+        assert!(
+            e.plan(1.0).is_empty() && e.plan(1.0).period_s() == 0.0,
+            "nothing playing"
+        );
+        e.replace(chunk(&[0.0, 0.1, 0.2], 1.0, 0.1), 1.0).unwrap();
+        // Anchored 0.1 s after the first chunk ends: nothing plays in between.
+        e.replace(chunk(&[0.5, 0.6], 1.4, 0.1), 1.0).unwrap();
+        let plan = e.plan(1.05);
+        assert_eq!(plan.len(), 3, "the gap at 1.3 ends the plan");
+        let xs: Vec<f64> = plan.iter().map(|s| s.robot_from_target.translation.x).collect();
+        assert_eq!(xs, [0.0, 0.1, 0.2]);
+        assert_eq!(plan.get(2).map(|s| s.robot_from_target.translation.x), Some(0.2));
+        assert_eq!(plan.get(3), None);
+        assert_eq!(e.plan_from(1.05), (plan.iter().collect(), plan.period_s()));
+        assert!(!e.plan(f64::NAN).iter().any(|_| true), "no time, no plan");
     }
 
     #[test]

@@ -59,8 +59,9 @@ pub enum Outcome {
 }
 
 impl Outcome {
-    /// The outcome of [`Arbiter::handle`]'s result.
-    pub fn of(result: &Result<Effects, ArbiterError>) -> Self {
+    /// The outcome of [`Arbiter::handle`]'s result (borrowed, so a caller that goes on with the effects keeps
+    /// them).
+    pub fn of(result: Result<&Effects, &ArbiterError>) -> Self {
         match result {
             Ok(effects) => Self::Applied(effects.clone()),
             Err(e) => Self::Refused(e.to_string()),
@@ -153,9 +154,9 @@ impl Replayer {
         let index = self.counts.inputs;
         self.counts.inputs += 1;
         let replayed = Outcome::of(
-            &self
-                .arbiter
-                .handle(entry.input.clone(), &entry.robot, entry.now_s),
+            self.arbiter
+                .handle(entry.input.clone(), &entry.robot, entry.now_s)
+                .as_ref(),
         );
         match &replayed {
             Outcome::Applied(fx) => {
@@ -423,7 +424,7 @@ mod tests {
             .into_iter()
             .map(|(now_s, input)| {
                 let robot = ready(now_s);
-                let outcome = Outcome::of(&arbiter.handle(input.clone(), &robot, now_s));
+                let outcome = Outcome::of(arbiter.handle(input.clone(), &robot, now_s).as_ref());
                 FlightEntry {
                     now_s,
                     input,

@@ -27,7 +27,9 @@
 
 use crate::config::ConfigError;
 use crate::joint_limit::JointRateLimiter;
-use crate::kinematics::{CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, So101Kinematics};
+use crate::kinematics::{
+    CR5_DOF, ChainKinematics, Cr5Kinematics, IkWeights, SO101_ARM_DOF, SO101_ARM_JOINT_NAMES, So101Kinematics,
+};
 use nalgebra::{Isometry3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -71,10 +73,20 @@ const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
 
-/// Most commands [`JointStage::destination`] plays to find where a stage behind its target settles: at the
-/// longest step time ([`crate::joint_limit::MAX_STEP_S`], 20 ms) 20 s of motion, more than any joint needs
-/// to cross its range at the slowest speed a stage is given (a remote bridge's 1 rad/s).
-const MAX_SETTLE_COMMANDS: usize = 1000;
+/// Largest distance between the robot's reported tool position and the joint model's position of its reported
+/// joints for the server to drive the arm through the model: 5 mm, well above the model's rounding (the CR5
+/// URDF gives its lengths to the millimetre) and far below what a wrong base frame, tool or joint zero gives.
+pub const MODEL_MATCH_M: f64 = 5e-3;
+/// The same for the orientation: 0.05 rad (about 3°).
+pub const MODEL_MATCH_RAD: f64 = 0.05;
+
+/// A robot's reported tool pose off the joint model's pose of its reported joints (see
+/// [`ArmJointStage::model_mismatch`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelMismatch {
+    pub off_m: f64,
+    pub off_rad: f64,
+}
 
 /// `[arms.<name>.joint_limits]`: per-joint speed limits of an arm.
 #[derive(Debug, Clone, PartialEq, Default, Deserialize, Serialize)]
@@ -173,8 +185,6 @@ pub struct JointStage<const N: usize> {
     turn_axis: Option<Vector3<f64>>,
     counters: JointCounters,
     behind: bool,
-    /// The target of the last command (none after a reset): what a stage behind still moves toward.
-    target: Option<Isometry3<f64>>,
 }
 
 /// The SO-101's joint stage.
@@ -233,7 +243,6 @@ impl<const N: usize> JointStage<N> {
             turn_axis: None,
             counters: JointCounters::default(),
             behind: false,
-            target: None,
         })
     }
 
@@ -248,7 +257,6 @@ impl<const N: usize> JointStage<N> {
         }
         self.turn_axis = None;
         self.behind = false;
-        self.target = None;
     }
 
     /// The joints last commanded (or reset to).
@@ -259,29 +267,6 @@ impl<const N: usize> JointStage<N> {
     /// Time of the last command (or reset), s.
     pub fn commanded_time_s(&self) -> f64 {
         self.limiter.last_time_s()
-    }
-
-    /// The joints this stage settles at if its target holds: the joints last commanded when it is not
-    /// [`Self::behind`], otherwise those it reaches by solving the same target again each
-    /// [`crate::joint_limit::MAX_STEP_S`] until it is no longer behind (on a copy; this stage is unchanged).
-    /// Unlike the joints commanded, where a stage behind its target has got to depends on when its commands
-    /// were issued; where it goes does not: for a target the arm can reach (the forward kinematics of joints,
-    /// as a joint action commands), it is the target's joints on the branch the stage follows.
-    pub fn destination(&self) -> Option<[f64; N]> {
-        let commanded = self.commanded()?;
-        let Some(target) = self.target.filter(|_| self.behind) else {
-            return Some(commanded);
-        };
-        let mut settling = self.clone();
-        let mut time_s = settling.commanded_time_s();
-        for _ in 0..MAX_SETTLE_COMMANDS {
-            time_s += settling.limiter.max_step_s();
-            settling.plan(&target, time_s);
-            if !settling.behind {
-                break;
-            }
-        }
-        settling.commanded()
     }
 
     /// True while the last command did not reach its target (the limiter shortened it, or the orientation
@@ -336,7 +321,6 @@ impl<const N: usize> JointStage<N> {
                 invalid_input: true,
             };
         }
-        self.target = Some(*target);
         let (axis, wanted_rad) = self.turn_toward(&from.rotation, &target.rotation);
         let mut aim_rad = wanted_rad.min(self.aim_speed_rad_s * dt).min(MAX_AIM_STEP_RAD);
         // The turn the chosen solve aimed at: less than the period allows when the joint limits halved it, none
@@ -494,11 +478,6 @@ impl ArmJointStage {
         each_stage!(self, s => s.commanded_time_s())
     }
 
-    /// See [`JointStage::destination`].
-    pub fn destination(&self) -> Option<Vec<f64>> {
-        each_stage!(self, s => s.destination().map(|q| q.to_vec()))
-    }
-
     /// See [`JointStage::behind`].
     pub fn behind(&self) -> bool {
         each_stage!(self, s => s.behind())
@@ -540,6 +519,30 @@ impl ArmJointStage {
         self.max_velocity_rad_s().len()
     }
 
+    /// True if this stage can drive a bridge with these joints: an SO-101 stage the SO-101's by name (its
+    /// kinematics are the SO-101's), any other stage as many joints as it has.
+    pub fn fits(&self, joint_names: &[String]) -> bool {
+        match self {
+            Self::So101(_) => joint_names == SO101_ARM_JOINT_NAMES,
+            other => joint_names.len() == other.joints(),
+        }
+    }
+
+    /// How far `robot_from_ee`, the tool pose a robot reports, is from this model's pose of the joints it
+    /// reports, when more than [`MODEL_MATCH_M`] or [`MODEL_MATCH_RAD`] (a controller whose base frame, tool or
+    /// joint zeros differ from the model would be driven somewhere else than asked). None when they agree or
+    /// the joints are not this stage's width.
+    pub fn model_mismatch(
+        &self,
+        joints_rad: &[f64],
+        robot_from_ee: &Isometry3<f64>,
+    ) -> Option<ModelMismatch> {
+        let model = self.forward(joints_rad)?;
+        let off_m = (model.translation.vector - robot_from_ee.translation.vector).norm();
+        let off_rad = model.rotation.angle_to(&robot_from_ee.rotation);
+        (off_m > MODEL_MATCH_M || off_rad > MODEL_MATCH_RAD).then_some(ModelMismatch { off_m, off_rad })
+    }
+
     /// The tool pose of `joints_rad` in this arm's model; `None` for a vector of another length.
     pub fn forward(&self, joints_rad: &[f64]) -> Option<Isometry3<f64>> {
         each_stage!(self, s => to_joints(joints_rad).map(|q| s.kinematics.forward(&q)))
@@ -576,6 +579,37 @@ mod tests {
     /// solver chasing the whole target from the previous solution flips branch on the way (the old path: more
     /// than a second's worth of a servo's travel in one 20 ms frame); the stage never exceeds the limit and
     /// keeps the position.
+    #[test]
+    fn a_stage_fits_its_own_joints_and_names_a_model_that_disagrees_with_the_robot() {
+        let so101 = ArmJointStage::So101(stage());
+        let names = |n: &[&str]| n.iter().map(|&s| s.to_owned()).collect::<Vec<_>>();
+        assert!(so101.fits(&names(&SO101_ARM_JOINT_NAMES)));
+        assert!(
+            !so101.fits(&names(&["a", "b", "c", "d", "e"])),
+            "five joints, not the SO-101's"
+        );
+        let cr5 = ArmJointStage::Cr5(Cr5JointStage::new(vec![1.0; CR5_DOF]).unwrap());
+        assert!(cr5.fits(&names(&["j1", "j2", "j3", "j4", "j5", "j6"])));
+        assert!(!cr5.fits(&names(&SO101_ARM_JOINT_NAMES)));
+
+        let joints = [0.1, -0.4, 0.6, 0.3, -0.2];
+        let model = So101Kinematics::new().forward(&joints);
+        assert_eq!(so101.model_mismatch(&joints, &model), None);
+        // Within the tolerance: a millimetre and a hundredth of a radian.
+        let near = Isometry3::translation(0.001, 0.0, 0.0)
+            * model
+            * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.01);
+        assert_eq!(so101.model_mismatch(&joints, &near), None);
+        let shifted = Isometry3::translation(0.0, 0.0, 0.01) * model;
+        let off = so101.model_mismatch(&joints, &shifted).unwrap();
+        assert!((off.off_m - 0.01).abs() < 1e-12 && off.off_rad < 1e-9, "{off:?}");
+        let turned = model * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.1);
+        let off = so101.model_mismatch(&joints, &turned).unwrap();
+        assert!((off.off_rad - 0.1).abs() < 1e-9, "{off:?}");
+        // Joints of another width are not this model's to judge.
+        assert_eq!(so101.model_mismatch(&joints[..4], &shifted), None);
+    }
+
     #[test]
     fn a_full_turn_about_the_vertical_neither_jumps_nor_moves_the_tool() {
         let k = So101Kinematics::new();
@@ -653,64 +687,6 @@ mod tests {
         assert!(
             done.position_error_m < 1e-4 && done.orientation_error_rad < 1e-2,
             "{done:?}"
-        );
-    }
-
-    /// Where a stage settles does not depend on when its commands come: the same targets (forward kinematics
-    /// of joints, as joint actions command), each solved again every 20 ms until the stage is no longer
-    /// behind, or late (50-90 ms apart, as a starved thread issues them, each step limited to 20 ms of motion)
-    /// with one 2 ms catch-up each, leave the two stages at different joints but with the same destination,
-    /// the target's joints; and finding it changes nothing.
-    #[test]
-    fn the_destination_of_a_reachable_target_does_not_depend_on_command_timing() {
-        let k = So101Kinematics::new();
-        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
-        let (mut on_time, mut late) = (stage(), stage());
-        on_time.reset(&start, 0.0);
-        late.reset(&start, 0.0);
-        let (mut t_on_time, mut t_late) = (0.0, 0.0);
-        let mut apart = 0.0f64;
-        for i in 1..=20 {
-            let s = f64::from(i) / 20.0;
-            // A turn of the wrist with a little motion, as the teleoperated episodes make: 0.1 rad a command for
-            // the wrist roll, more than the 0.094 rad 20 ms allow.
-            let joints = [0.05 * s, -0.4 + 0.03 * s, 0.6 - 0.02 * s, 0.9 + 0.02 * s, 2.0 * s];
-            let target = k.forward(&joints);
-            for _ in 0..10 {
-                t_on_time += PERIOD_S;
-                on_time.plan(&target, t_on_time);
-                if !on_time.behind() {
-                    break;
-                }
-            }
-            t_late += 0.05 + 0.01 * f64::from(i % 5);
-            late.plan(&target, t_late);
-            late.plan(&target, t_late + 0.002);
-            apart = apart.max(largest_step_ratio(
-                &on_time.commanded().unwrap(),
-                &late.commanded().unwrap(),
-                1.0,
-            ));
-            let before = late.clone();
-            for d in [on_time.destination().unwrap(), late.destination().unwrap()] {
-                let off = d
-                    .iter()
-                    .zip(&joints)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
-                // The solver's convergence (it stops within 1e-4 rad of orientation).
-                assert!(
-                    off < 2e-4,
-                    "command {i}: destination {d:?} is {off} rad from {joints:?}"
-                );
-            }
-            assert_eq!(late.commanded(), before.commanded());
-            assert_eq!(late.behind(), before.behind());
-            assert_eq!(late.counters(), before.counters());
-        }
-        assert!(
-            apart * STS3215_MAX_VELOCITY_RAD_S > 0.05,
-            "the late stage lags the other ({apart}): this test lost its point"
         );
     }
 

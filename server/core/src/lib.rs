@@ -3,6 +3,7 @@
 //! everything here is deterministic and property-testable.
 
 pub mod arbiter;
+pub mod arm_control;
 pub mod arm_vectors;
 pub mod chunk;
 pub mod config;
@@ -14,16 +15,20 @@ pub mod joint_limit;
 pub mod joint_model;
 pub mod joint_motion;
 pub mod kinematics;
+pub mod latency;
 pub mod layout;
 pub mod planner;
 pub mod pose;
 pub mod teleop;
+#[cfg(test)]
+mod test_support;
 
 pub use arbiter::{
     Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
     Input, Measured, NotReady, Owner, PREVIEW_MAX_POINTS, PlanPreview, Revocation, Robot, TeleopButton,
     TeleopRound, TickNeed,
 };
+pub use arm_control::{ArmControl, ArmNames, Handled, Issue};
 pub use arm_vectors::{Activity, ArmVectors, Reading, Sample, StepError};
 pub use chunk::{ActionChunk, ChunkConfig, ChunkError, ChunkExecutor, ChunkStep, ReplaceReport};
 pub use config::{AxisPreset, ConfigError, GateConfig, GripperConfig, MappingConfig, TeleopConfig};
@@ -35,8 +40,10 @@ pub use gate::{GateDecision, GateVerdict, SafetyGate};
 pub use gripper::{Gripper, GripperCommand, GripperError};
 pub use joint_limit::{JointRateLimiter, LimitedStep};
 pub use joint_motion::{
-    ArmJointStage, Cr5JointStage, JointCounters, JointLimitConfig, JointStage, PlannedJoints, So101JointStage,
+    ArmJointStage, Cr5JointStage, JointCounters, JointLimitConfig, JointStage, MODEL_MATCH_M,
+    MODEL_MATCH_RAD, ModelMismatch, PlannedJoints, So101JointStage,
 };
+pub use latency::LatencyRing;
 pub use layout::{
     ACTION_WIDTH, ActionMode, ArmLayout, LayoutError, LerobotSo101Units, RELATIVE_STEP_WIDTH,
     absolute_action, joint_action, relative_step, step_from_target, target_from_joint_step, target_from_step,

@@ -283,7 +283,7 @@ pub fn observation(app: &App, o: Observation) -> v1::Observation {
             .map(|a| v1::ArmObservation {
                 owner: app
                     .arm(&a.arm)
-                    .map_or(0, |arm| v1::ControlSource::from(arm.snapshot().driver) as i32),
+                    .map_or(0, |arm| v1::ControlSource::from(arm.driver()) as i32),
                 robot_from_ee: Some(pose_to_proto(&a.robot_from_ee)),
                 arm: a.arm,
                 state: a.state,

@@ -120,7 +120,8 @@ impl Teleop for TeleopService {
                         break;
                     }
                 };
-                arm.note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
+                arm.stats()
+                    .note_round(batch_len, outcome.command_time_ns.map(|t| t - receive_ns));
                 let mut error = outcome.error;
                 for record in records {
                     let done = RecordAction::try_from(&record)

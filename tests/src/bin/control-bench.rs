@@ -192,7 +192,7 @@ async fn ended_because(session: &mut phone2act_sdk::TeleopSession, e: phone2act_
 fn report<S: AsRef<str>>(name: &str, app: &App, arms: &[S]) {
     let mut all = Vec::new();
     for arm in arms {
-        let (mut v, _) = app.arm(arm.as_ref()).expect("arm").latencies_ns();
+        let (mut v, _) = app.arm(arm.as_ref()).expect("arm").stats().latencies_ns();
         all.append(&mut v);
     }
     all.sort_unstable();
@@ -232,7 +232,7 @@ fn main() -> anyhow::Result<()> {
         let client = Client::connect(&url, None).await?;
         tokio::time::sleep(Duration::from_millis(300)).await;
         for arm in ["left", "right", "aux"] {
-            app.arm(arm).expect("arm").reset_latencies();
+            app.arm(arm).expect("arm").stats().reset_latencies();
         }
         let (l, r, p) = tokio::join!(
             phone(client.clone(), "left".into(), 60.0, seconds),
@@ -249,8 +249,8 @@ fn main() -> anyhow::Result<()> {
     println!("  phone samples sent: {sent_l} + {sent_r}; policy chunks pushed: {chunks}");
 
     // Throughput: one phone streaming as fast as the transport allows.
-    app.arm("left").expect("arm").reset_latencies();
-    let before = app.arm("left").expect("arm").samples_received();
+    app.arm("left").expect("arm").stats().reset_latencies();
+    let before = app.arm("left").expect("arm").stats().samples_received();
     let started = Instant::now();
     let sent = client_rt.block_on(async {
         let client = Client::connect(&url, None).await?;
@@ -283,12 +283,12 @@ fn main() -> anyhow::Result<()> {
         anyhow::Ok(sent)
     })?;
     let elapsed = started.elapsed().as_secs_f64();
-    let received = app.arm("left").expect("arm").samples_received() - before;
+    let received = app.arm("left").expect("arm").stats().samples_received() - before;
     report("sample → bridge under flood (1 phone)", &app, &["left"]);
     println!(
         "  sustained: {:.0} samples/s received ({sent} sent), {:.0} planned commands/s",
         received as f64 / elapsed,
-        app.arm("left").expect("arm").latencies_ns().1 as f64 / elapsed
+        app.arm("left").expect("arm").stats().latencies_ns().1 as f64 / elapsed
     );
     server.stop();
     let root = std::env::temp_dir().join("phone2act-control-bench-full");
@@ -377,7 +377,7 @@ fn full_load(
         control.episodes().start("control-bench full load").await?;
         tokio::time::sleep(Duration::from_millis(300)).await;
         for arm in &phones {
-            app.arm(arm).expect("arm").reset_latencies();
+            app.arm(arm).expect("arm").stats().reset_latencies();
         }
         during(&control.episodes().list().await?);
         let mut clients = tokio::task::JoinSet::new();
