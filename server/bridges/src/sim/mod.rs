@@ -117,8 +117,7 @@ fn run(shared: &Shared, period: Duration) {
     while !shared.stop.load(Ordering::Acquire) {
         let now = Instant::now();
         if now >= next_tick {
-            let feedback = catch_up(shared, &mut batch, true);
-            *shared.feedback.lock() = feedback;
+            catch_up(shared, &mut batch, true);
             next_tick += period;
             if now > next_tick + period * MAX_TICK_BACKLOG {
                 next_tick = now + period;
@@ -132,12 +131,12 @@ fn run(shared: &Shared, period: Duration) {
 }
 
 /// Puts every queued command in force at its issue time and, on a tick, advances the world to the present
-/// and returns its feedback.
+/// and publishes its feedback.
 ///
 /// The queue is drained and the present read with the world locked, so a command is either in this batch
 /// or was stamped after the present this batch advances to: the world never runs past a command it has not
 /// seen, unless its sender is preempted between stamping it and handing it over.
-fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Feedback> {
+fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) {
     let present_ns = {
         let _world = shared.world.lock();
         shared.commands.drain_into(batch);
@@ -173,11 +172,13 @@ fn catch_up(shared: &Shared, batch: &mut Vec<Command>, tick: bool) -> Option<Fee
             _ => {}
         }
     }
-    tick.then(|| {
+    if tick {
+        // Published under the world lock, as a scene reset publishes its own: stored after the lock was
+        // released, a tick's feedback could overwrite a reset that came in between with the world before it.
         let mut world = shared.world.lock();
         world.advance_to_ns(present_ns);
-        world.feedback(present_ns)
-    })
+        *shared.feedback.lock() = Some(world.feedback(present_ns));
+    }
 }
 
 impl Bridge for SimBridge {
