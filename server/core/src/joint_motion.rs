@@ -41,10 +41,10 @@ use std::f64::consts::PI;
 /// behind them unseen.
 pub const STS3215_MAX_VELOCITY_RAD_S: f64 = 4.7;
 
-/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6, the figure usually quoted for the CR5. Not
-/// confirmed against a Dobot data sheet (the user guide pages reachable here do not state it, and Dobot's URDF,
-/// `Dobot-Arm/DOBOT_6Axis_ROS2_V4` `cr5_robot.urdf`, gives `velocity="0"`); the controller limits `ServoJ`
-/// itself too (docs/joint-limits.md).
+/// Largest speed of a Dobot CR5 joint, rad/s: 180°/s for J1–J6, as Dobot's own MoveIt configuration for the
+/// CR5 gives it (`Dobot-Arm/DOBOT_6Axis_ROS2_V4` `cr5_moveit/config/joint_limits.yaml`: `max_velocity: 3.14`
+/// for every joint). No data sheet reachable here states it (Dobot's URDF gives `velocity="0"`); the
+/// controller limits `ServoJ` itself too (docs/joint-limits.md).
 pub const CR5_MAX_VELOCITY_RAD_S: f64 = PI;
 
 /// Joint speed assumed for a remote bridge, whose robot the server does not know: 1 rad/s (57°/s), below
