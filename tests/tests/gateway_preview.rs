@@ -473,6 +473,21 @@ impl Drop for BenchGateway {
     }
 }
 
+/// Runs `f`'s future on a new thread with a single-threaded runtime of its own, as a separate process would.
+fn on_own_thread<T, F>(f: impl FnOnce() -> F + Send + 'static) -> std::thread::JoinHandle<T>
+where
+    T: Send + 'static,
+    F: std::future::Future<Output = T>,
+{
+    std::thread::spawn(move || {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(f())
+    })
+}
+
 /// Starts a rosbridge-only gateway; with `images_on_control`, its image fetches run on its control runtime.
 async fn bench_gateway(server: &TestServer, deploy: Deploy, images_on_control: bool) -> BenchGateway {
     use phone2act_gateway::{Gateway, GatewayConfig, Listeners};
@@ -515,21 +530,15 @@ async fn bench_gateway(server: &TestServer, deploy: Deploy, images_on_control: b
         Deploy::Standalone => {
             let url = server.url();
             let (addr_tx, addr_rx) = std::sync::mpsc::channel();
-            let thread = std::thread::spawn(move || {
-                let runtime = tokio::runtime::Builder::new_current_thread()
-                    .enable_all()
-                    .build()
-                    .unwrap();
-                runtime.block_on(async move {
-                    let listeners = Listeners {
-                        rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
-                        https: None,
-                    };
-                    let gateway = Gateway::with_listeners(config, &url, None, listeners).unwrap();
-                    let (addr, run) = start(gateway);
-                    addr_tx.send(addr).unwrap();
-                    let _ = run.await;
-                });
+            let thread = on_own_thread(move || async move {
+                let listeners = Listeners {
+                    rosbridge: Some(tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap()),
+                    https: None,
+                };
+                let gateway = Gateway::with_listeners(config, &url, None, listeners).unwrap();
+                let (addr, run) = start(gateway);
+                addr_tx.send(addr).unwrap();
+                let _ = run.await;
             });
             BenchGateway {
                 addr: addr_rx.recv().unwrap(),
@@ -642,36 +651,30 @@ async fn rosbridge_round_trip_with_an_image_topic_on_the_video_or_the_control_ru
         gateways.push(control);
     }
     // The client on a thread and runtime of its own, like a phone: it takes no CPU from the gateway's runtime.
-    let client = std::thread::spawn(move || {
-        let runtime = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap();
-        runtime.block_on(async move {
-            let mut measured = Vec::new();
-            for (name, addr, images) in rows {
-                let tcp = TcpStream::connect(addr).await.unwrap();
-                tcp.set_nodelay(true).unwrap();
-                let ws = tokio_tungstenite::client_async(format!("ws://{addr}/"), tcp)
-                    .await
-                    .unwrap()
-                    .0;
-                measured.push(Row {
-                    name,
-                    ws,
-                    images,
-                    round_trips_ns: Vec::new(),
-                    images_seen: 0,
-                    calls: 0,
-                });
+    let client = on_own_thread(move || async move {
+        let mut measured = Vec::new();
+        for (name, addr, images) in rows {
+            let tcp = TcpStream::connect(addr).await.unwrap();
+            tcp.set_nodelay(true).unwrap();
+            let ws = tokio_tungstenite::client_async(format!("ws://{addr}/"), tcp)
+                .await
+                .unwrap()
+                .0;
+            measured.push(Row {
+                name,
+                ws,
+                images,
+                round_trips_ns: Vec::new(),
+                images_seen: 0,
+                calls: 0,
+            });
+        }
+        for _ in 0..ROUNDS {
+            for row in &mut measured {
+                row.slice(CALLS_PER_SLICE).await;
             }
-            for _ in 0..ROUNDS {
-                for row in &mut measured {
-                    row.slice(CALLS_PER_SLICE).await;
-                }
-            }
-            measured
-        })
+        }
+        measured
     });
     let measured = tokio::task::spawn_blocking(move || client.join().unwrap())
         .await
