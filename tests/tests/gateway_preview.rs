@@ -331,7 +331,7 @@ impl App {
         self.stamp_ns += 20_000_000;
         self.poses += 1;
         self.send(app_pose(self.stamp_ns, p)).await;
-        if self.poses % 5 == 0 {
+        if self.poses.is_multiple_of(5) {
             self.calls += 1;
             self.send(get_time(self.calls)).await;
         }
