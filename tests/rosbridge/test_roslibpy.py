@@ -280,6 +280,42 @@ class Suite:
         image.load()
         assert image.format == "JPEG" and image.size == (640, 480), (image.format, image.size)
 
+    def test_an_image_subscription_does_not_hold_up_control(self):
+        """With the camera topic subscribed on the same connection, poses still move the arm and service calls
+        are answered, and the images keep coming meanwhile."""
+        images = Latest(self.ros, "/cameras/front/image/compressed", "sensor_msgs/msg/CompressedImage")
+        get_time = roslibpy.Service(self.ros, "/rosapi/get_time", "rosapi/GetTime")
+        try:
+            images.wait(lambda m: True, timeout=20.0, what="a first image")
+            # After the pause since the last test the server re-indexes on the first pose (staleness): hold the
+            # phone still first, then read where the target is.
+            here = (0.0, 0.0, -0.07)
+            self.stream({"left": here}, 0.3)
+            start = position(self.target["left"].wait(lambda m: True, what="a target"))
+            before = images.count
+            # 4 cm up (+Y) at 2 mm per message (50 Hz), a service call every 10th message, then held.
+            for i in range(1, 21):
+                self.stream({"left": (here[0], here[1] + 0.002 * i, here[2])}, 0.0)
+                if i % 10 == 0:
+                    # Blocking, 10 s: one round trip on loopback, answered between the images.
+                    answer = get_time.call(roslibpy.ServiceRequest(), timeout=10)
+                    assert "time" in answer, answer
+            goal_phone = (here[0], here[1] + 0.04, here[2])
+            deadline = time.monotonic() + 10
+            while abs(dist(position(self.target["left"].get()), start) - 0.04) >= 0.006:
+                assert time.monotonic() < deadline, (
+                    f"left target {position(self.target['left'].get())} not 4 cm from {start} with the camera subscribed"
+                )
+                self.stream({"left": goal_phone}, 0.02)
+            # 3 more images: at the topic's 10 Hz a second or less; the wait's 20 s covers a loaded machine.
+            images.wait(lambda m: images.count >= before + 3, timeout=20.0, what="images while driving")
+            msg = images.get()
+            image = Image.open(io.BytesIO(base64.b64decode(msg["data"])))
+            image.load()
+            assert image.format == "JPEG" and image.size == (640, 480), (image.format, image.size)
+        finally:
+            images.topic.unsubscribe()
+
     def test_unknown_topic_gets_an_error_status(self):
         """A client that asked for status messages (set_level) is told why a subscription gets nothing."""
         ros = roslibpy.Ros(host="127.0.0.1", port=self.port)
@@ -331,6 +367,7 @@ def main():
         suite.test_joint_states_for_each_arm_in_radians,
         suite.test_tf_has_each_arms_end_effector_in_its_base_frame,
         suite.test_camera_images_arrive_as_compressed_jpeg,
+        suite.test_an_image_subscription_does_not_hold_up_control,
         suite.test_unknown_topic_gets_an_error_status,
     ]
     passed = failed = 0

@@ -8,6 +8,9 @@
 //! The phone page's camera preview has its own slot of one frame (latest wins) beside that queue: the writer
 //! sends it only when no control message is waiting and the page has acknowledged the previous frame, so at
 //! most one preview frame is ever on the link and feedback never waits behind a queue of images.
+//!
+//! rosbridge's camera images (base64 text, tens of kB each) go through an [`ImageLane`] beside the queue for the
+//! same reason: one waiting image per topic, the newest winning, sent only when no control message waits.
 
 use crate::session::SessionEvent;
 use axum::body::Bytes;
@@ -15,6 +18,7 @@ use axum::extract::ws::{CloseFrame, Message, WebSocket, close_code};
 use futures_util::{SinkExt, StreamExt};
 use parking_lot::Mutex;
 use phone2act_proto::v1::SystemStatus;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -112,6 +116,79 @@ impl PreviewSlot {
     }
 }
 
+/// One socket's rosbridge camera images waiting to go out: at most one per topic (a newer image replaces an
+/// unsent one), sent in the order their topics first waited, and only when the control queue is empty. Each
+/// subscription puts with the generation [`ImageLane::open`] gave it, so an image fetched after its
+/// subscription ended is never sent.
+#[derive(Debug, Default)]
+pub(crate) struct ImageLane {
+    state: Mutex<LaneState>,
+    changed: Notify,
+}
+
+#[derive(Debug, Default)]
+struct LaneState {
+    /// The last generation handed out.
+    generation: u64,
+    /// The generation of each open topic.
+    open: Vec<(String, u64)>,
+    /// Text frames waiting, one per topic.
+    waiting: VecDeque<(String, String)>,
+}
+
+impl LaneState {
+    fn drop_waiting(&mut self, topic: &str) {
+        self.waiting.retain(|(t, _)| t != topic);
+    }
+}
+
+impl ImageLane {
+    /// Opens (or reopens) `topic`; its images are put with the generation returned. An image of the topic's
+    /// previous opening that has not gone out yet is dropped.
+    pub(crate) fn open(&self, topic: &str) -> u64 {
+        let mut state = self.state.lock();
+        state.generation += 1;
+        let generation = state.generation;
+        state.open.retain(|(t, _)| t != topic);
+        state.open.push((topic.to_owned(), generation));
+        state.drop_waiting(topic);
+        generation
+    }
+
+    /// Closes `topic`: its waiting image is dropped and no image of it is accepted any more.
+    pub(crate) fn close(&self, topic: &str) {
+        let mut state = self.state.lock();
+        state.open.retain(|(t, _)| t != topic);
+        state.drop_waiting(topic);
+    }
+
+    /// Offers `text` for `topic`, replacing its image not sent yet; false (and nothing stored) once that
+    /// opening of the topic was closed or replaced.
+    pub(crate) fn put(&self, topic: &str, generation: u64, text: String) -> bool {
+        let mut state = self.state.lock();
+        if !state.open.iter().any(|(t, g)| t == topic && *g == generation) {
+            return false;
+        }
+        match state.waiting.iter_mut().find(|(t, _)| t == topic) {
+            Some(slot) => slot.1 = text,
+            None => state.waiting.push_back((topic.to_owned(), text)),
+        }
+        drop(state);
+        self.changed.notify_one();
+        true
+    }
+
+    /// True while an image of `topic` waits: the socket is slower than the topic's rate, and fetching another
+    /// now would only replace it.
+    pub(crate) fn is_waiting(&self, topic: &str) -> bool {
+        self.state.lock().waiting.iter().any(|(t, _)| t == topic)
+    }
+
+    fn take(&self) -> Option<String> {
+        self.state.lock().waiting.pop_front().map(|(_, text)| text)
+    }
+}
+
 /// What a protocol does with the socket's input.
 pub(crate) trait Handler: Send {
     /// One text message within the size limit.
@@ -136,12 +213,18 @@ pub(crate) struct Wiring {
     pub status_events: mpsc::Sender<Box<SystemStatus>>,
     /// The camera preview's frame slot (only the phone page fills it).
     pub preview: Arc<PreviewSlot>,
+    /// The camera images of rosbridge subscriptions.
+    pub images: Arc<ImageLane>,
 }
 
 /// Writes control messages as they come and, when none is waiting, the preview frame if the page took the
-/// last one; ends after a close frame or a failed write.
-async fn write_loop<S>(mut sink: S, mut out_rx: mpsc::Receiver<Message>, preview: Arc<PreviewSlot>)
-where
+/// last one, then the camera images waiting; ends after a close frame or a failed write.
+async fn write_loop<S>(
+    mut sink: S,
+    mut out_rx: mpsc::Receiver<Message>,
+    preview: Arc<PreviewSlot>,
+    images: Arc<ImageLane>,
+) where
     S: futures_util::Sink<Message> + Unpin,
 {
     loop {
@@ -151,6 +234,8 @@ where
             Err(mpsc::error::TryRecvError::Empty) => {
                 if let Some(jpeg) = preview.take_sendable() {
                     Message::Binary(jpeg)
+                } else if let Some(text) = images.take() {
+                    Message::Text(text.into())
                 } else {
                     tokio::select! {
                         msg = out_rx.recv() => match msg {
@@ -158,6 +243,7 @@ where
                             None => break,
                         },
                         () = preview.changed.notified() => continue,
+                        () = images.changed.notified() => continue,
                     }
                 }
             }
@@ -183,7 +269,8 @@ pub(crate) async fn run<H, F>(
     let (sink, mut stream) = socket.split();
     let (out_tx, out_rx) = mpsc::channel::<Message>(OUT_QUEUE);
     let preview = Arc::new(PreviewSlot::default());
-    let writer = tokio::spawn(write_loop(sink, out_rx, preview.clone()));
+    let images = Arc::new(ImageLane::default());
+    let writer = tokio::spawn(write_loop(sink, out_rx, preview.clone(), images.clone()));
     let (session_tx, mut session_rx) = mpsc::channel(64);
     let (status_tx, mut status_rx) = mpsc::channel(4);
     let out = Out(out_tx);
@@ -192,6 +279,7 @@ pub(crate) async fn run<H, F>(
         session_events: session_tx,
         status_events: status_tx,
         preview,
+        images,
     });
     let mut last_heard = Instant::now();
     let mut ping = tokio::time::interval(PING_INTERVAL);
@@ -290,6 +378,41 @@ mod tests {
         assert_eq!(slot.take_sendable(), None);
         slot.put(current, Bytes::from_static(b"fresh"));
         assert_eq!(slot.take_sendable().as_deref(), Some(&b"fresh"[..]));
+    }
+
+    #[test]
+    fn the_image_lane_keeps_the_newest_image_per_topic_in_the_order_topics_waited() {
+        let lane = ImageLane::default();
+        let front = lane.open("/front");
+        let wrist = lane.open("/wrist");
+        assert!(lane.put("/wrist", wrist, "wrist 1".into()));
+        assert!(lane.put("/front", front, "front 1".into()));
+        assert!(lane.put("/wrist", wrist, "wrist 2".into()));
+        assert!(lane.is_waiting("/front") && lane.is_waiting("/wrist"));
+        assert_eq!(lane.take().as_deref(), Some("wrist 2"));
+        assert_eq!(lane.take().as_deref(), Some("front 1"));
+        assert_eq!(lane.take(), None);
+        assert!(!lane.is_waiting("/front"));
+    }
+
+    #[test]
+    fn a_closed_or_reopened_topic_sends_nothing_of_its_old_subscription() {
+        let lane = ImageLane::default();
+        let old = lane.open("/front");
+        assert!(lane.put("/front", old, "waiting".into()));
+        lane.close("/front");
+        assert_eq!(lane.take(), None, "closing drops the waiting image");
+        assert!(
+            !lane.put("/front", old, "late".into()),
+            "a fetch that ends after the close"
+        );
+        let new = lane.open("/front");
+        assert!(
+            !lane.put("/front", old, "late".into()),
+            "still refused after a new subscription"
+        );
+        assert!(lane.put("/front", new, "fresh".into()));
+        assert_eq!(lane.take().as_deref(), Some("fresh"));
     }
 
     #[test]

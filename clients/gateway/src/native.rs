@@ -332,7 +332,7 @@ impl Handler for PageHandler {
             Ok(PageMsg::Preview(request)) => match request.check() {
                 Ok(params) => {
                     self.stop_preview();
-                    let (runtime, upstream) = self.shared.video.background(&self.shared.upstream);
+                    let (runtime, upstream) = self.shared.camera_runtime();
                     self.preview = Some(web_preview::spawn(
                         &runtime,
                         upstream,

@@ -2,12 +2,16 @@
 //! namespace names; subscriptions to the feedback topics, `/joint_states` and `/tf` are served from
 //! `System.WatchStatus`, camera topics from `Policy.GetObservation` (see `ros_topics`).
 //!
+//! Camera images never run on the control path's runtime: each image topic's poller fetches and encodes
+//! (JPEG to base64 JSON, tens of kB) on the video runtime with its own connection to the server, and hands
+//! the text to the socket's [`ImageLane`], which sends it only when no control message waits.
+//!
 //! Errors go back as `{"op":"status","level":"error",...}` (with the message's `id`) to clients that asked for
 //! them with `set_level` (or to every client when `rosbridge_status_level` says so). rosbridge never sends
 //! `status`, and roslibpy raises on an op it has no handler for, so unasked status would break such clients.
 
 use crate::config::TopicRole;
-use crate::conn::{Handler, Out, Wiring};
+use crate::conn::{Handler, ImageLane, Wiring};
 use crate::feedback::{arm_json, pose_parts, recording_json};
 use crate::ros_topics::{self, Builtin};
 use crate::rosbridge::{self, Op, StatusLevel, WireError};
@@ -52,14 +56,22 @@ struct Subscription {
     throttle: Duration,
     last_sent: Option<Instant>,
     /// The camera poller behind an image topic, stopped when the last subscriber leaves.
-    poller: Option<JoinHandle<()>>,
+    poller: Option<CameraPoller>,
 }
 
-impl Drop for Subscription {
+/// An image topic's poller task and its place in the socket's image lane; dropping it stops both.
+#[derive(Debug)]
+struct CameraPoller {
+    task: JoinHandle<()>,
+    lane: Arc<ImageLane>,
+    topic: String,
+}
+
+impl Drop for CameraPoller {
     fn drop(&mut self) {
-        if let Some(p) = self.poller.take() {
-            p.abort();
-        }
+        self.task.abort();
+        // The task may be mid-fetch on the video thread: closing the topic makes its late image be refused.
+        self.lane.close(&self.topic);
     }
 }
 
@@ -172,12 +184,16 @@ impl RosbridgeHandler {
                 match camera {
                     Some(name) => {
                         // A new throttle takes effect by restarting the poller.
-                        if let Some(p) = sub.poller.take() {
-                            p.abort();
-                        }
+                        sub.poller = None;
+                        let (runtime, upstream) = if self.shared.images_on_control_runtime {
+                            (tokio::runtime::Handle::current(), self.shared.upstream.clone())
+                        } else {
+                            self.shared.camera_runtime()
+                        };
                         sub.poller = Some(spawn_camera_poller(
-                            self.shared.upstream.clone(),
-                            self.wiring.out.clone(),
+                            &runtime,
+                            upstream,
+                            self.wiring.images.clone(),
                             topic,
                             name,
                             throttle,
@@ -450,33 +466,47 @@ fn wall_now_ns() -> i64 {
         .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
 }
 
-/// Fetches one camera's JPEG through `Policy.GetObservation` (read-only: it takes no control) every
-/// `throttle` (at least `MIN_CAMERA_PERIOD`) and publishes it, until aborted by the last unsubscribe.
+/// Fetches one camera's JPEG through `Policy.GetObservation` (read-only: it takes no control) on `runtime`
+/// through `upstream` (the video runtime's connection), encodes it as a rosbridge message there and puts it
+/// in `lane`, at most once per `throttle` (at least `MIN_CAMERA_PERIOD`), until dropped with the last
+/// unsubscribe. No fetch while the topic's last image still waits: a slow reader lowers the rate instead of
+/// costing fetches that would only replace each other.
 fn spawn_camera_poller(
+    runtime: &tokio::runtime::Handle,
     upstream: Upstream,
-    out: Out,
+    lane: Arc<ImageLane>,
     topic: String,
     camera: String,
     throttle: Duration,
-) -> JoinHandle<()> {
+) -> CameraPoller {
     let period = throttle.max(MIN_CAMERA_PERIOD);
-    tokio::spawn(async move {
-        let mut warned = false;
-        loop {
-            match upstream.camera_jpeg(&camera).await {
-                Ok(Some(jpeg)) => {
-                    let msg = ros_topics::compressed_image(&camera, &jpeg, wall_now_ns());
-                    out.text(rosbridge::publish(&topic, msg));
+    let generation = lane.open(&topic);
+    let task = runtime.spawn({
+        let (lane, topic) = (lane.clone(), topic.clone());
+        async move {
+            let mut warned = false;
+            loop {
+                if !lane.is_waiting(&topic) {
+                    match upstream.camera_jpeg(&camera).await {
+                        Ok(Some(jpeg)) => {
+                            let msg = ros_topics::compressed_image(&camera, &jpeg, wall_now_ns());
+                            if !lane.put(&topic, generation, rosbridge::publish(&topic, msg)) {
+                                return;
+                            }
+                        }
+                        Err(status) if !warned => {
+                            warned = true;
+                            tracing::warn!(camera, %status, "rosbridge: camera image unavailable");
+                        }
+                        Ok(None) | Err(_) => {}
+                    }
                 }
-                Err(status) if !warned => {
-                    warned = true;
-                    tracing::warn!(camera, %status, "rosbridge: camera image unavailable");
-                }
-                Ok(None) | Err(_) => {}
+                // After the fetch, so that images are stamped at least `period` apart whatever a fetch takes.
+                tokio::time::sleep(period).await;
             }
-            tokio::time::sleep(period).await;
         }
-    })
+    });
+    CameraPoller { task, lane, topic }
 }
 
 fn check_type(topic: &str, role: TopicRole, msg_type: &str) -> Result<(), WireError> {

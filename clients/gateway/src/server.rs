@@ -171,6 +171,7 @@ impl Gateway {
             holders: Holders::default(),
             rosbridge_port: rosbridge_addr.map(|a| a.port()),
             video,
+            images_on_control_runtime: false,
             connections: AtomicU64::new(1),
             shutdown,
         });
@@ -181,6 +182,16 @@ impl Gateway {
             https,
             info,
         })
+    }
+
+    /// Fetches and encodes rosbridge camera images on the runtime the gateway runs on, as the control path,
+    /// instead of the video runtime: the placement before the video runtime took that work, kept only so that
+    /// a benchmark can compare both in one run.
+    #[cfg(feature = "mock")]
+    pub fn fetch_images_on_control_runtime(&mut self) {
+        if let Some(shared) = Arc::get_mut(&mut self.shared) {
+            shared.images_on_control_runtime = true;
+        }
     }
 
     /// Addresses, URL and token.

@@ -20,13 +20,22 @@ pub(crate) struct Shared {
     pub holders: Holders,
     /// The port rosbridge really listens on (the page names it for the Phone2Act app), if served.
     pub rosbridge_port: Option<u16>,
-    /// The cameras' WebRTC feeds for the pages' live video.
+    /// The cameras' WebRTC feeds for the pages' live video; its runtime also runs the other camera work.
     pub(crate) video: crate::webrtc::VideoHub,
+    /// Run the rosbridge camera images' fetches on the control path's runtime instead of the video's: only
+    /// for measuring what the video runtime spares the control path (see [`crate::Gateway`]).
+    pub(crate) images_on_control_runtime: bool,
     pub(crate) connections: AtomicU64,
     pub(crate) shutdown: watch::Receiver<bool>,
 }
 
 impl Shared {
+    /// Where camera work of the sockets runs (the page's preview, rosbridge's image topics): the video
+    /// runtime and its own connection to the server, off the control path's thread.
+    pub(crate) fn camera_runtime(&self) -> (tokio::runtime::Handle, crate::upstream::Upstream) {
+        self.video.background(&self.upstream)
+    }
+
     /// A fresh id for a socket.
     pub(crate) fn next_connection(&self) -> u64 {
         self.connections.fetch_add(1, Ordering::Relaxed)

@@ -4,8 +4,8 @@
 //! - Signalling rides the page's own authenticated socket (`{"type":"video_offer","camera":…,"sdp":…}` →
 //!   `{"type":"video_answer","sdp":…}`), so only a page with the pairing token gets video, as for control.
 //! - Video never runs on the control path's thread: the feeds and viewers (and the JPEG preview's fetches, see
-//!   `web_preview`) run on a runtime of their own (one thread, `video-io`) with a connection of their own to the
-//!   server, and the encoder on a thread per camera;
+//!   `web_preview`, and rosbridge's image topics, see `rosbridge_conn`) run on a runtime of their own (one
+//!   thread, `video-io`) with a connection of their own to the server, and the encoder on a thread per camera;
 //!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
 //!   path's threads get the CPU first and the video is what slows down.
 //! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
@@ -252,8 +252,8 @@ impl VideoHub {
         Ok((io.handle.clone(), io.upstream.clone()))
     }
 
-    /// Where other camera work of the pages runs (the JPEG preview's fetches): the video runtime and its
-    /// connection, or, if its thread cannot start, the caller's runtime and connection.
+    /// Where other camera work of the sockets runs (the JPEG preview's fetches, rosbridge's image topics): the
+    /// video runtime and its connection, or, if its thread cannot start, the caller's runtime and connection.
     pub(crate) fn background(&self, upstream: &Upstream) -> (tokio::runtime::Handle, Upstream) {
         self.io(upstream).unwrap_or_else(|e| {
             tracing::warn!("camera work stays on the control thread: {e}");

@@ -7,6 +7,11 @@
 //! measured twice: standalone (own thread and runtime, gRPC over loopback TCP, as `phone2act-gateway`) and
 //! embedded (on the server's runtime, gRPC in-process through `Client::in_process`, as `phone2act serve`).
 //!
+//! The paths take turns: each one's time is split into `--rounds` slices, measured one after another path's, so
+//! that a stall of a shared machine falls on every path alike instead of on whichever path it happened to meet
+//! (on 2 shared cores such stalls decided whether a path's p99 met its target; `--rounds 1` measures each path
+//! in one piece).
+//!
 //! `cargo run --release -p phone2act-gateway --features mock --bin gateway-bench -- --phones 2 --rate-hz 60 --seconds 20`
 
 use anyhow::{Context, Result};
@@ -29,9 +34,15 @@ struct Args {
     /// Messages per second per phone.
     #[arg(long, default_value_t = 60.0)]
     rate_hz: f64,
-    /// Measured duration per protocol (after a 1 s warm-up).
+    /// Measured duration per path, over all rounds (each slice after a 1 s warm-up).
     #[arg(long, default_value_t = 20.0)]
     seconds: f64,
+    /// Slices per path, the paths taking turns.
+    #[arg(long, default_value_t = 5)]
+    rounds: usize,
+    /// Also print each slice's row (to see which slice a path's tail came from).
+    #[arg(long)]
+    per_slice: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -58,8 +69,8 @@ fn percentile(sorted: &[i64], p: f64) -> f64 {
     sorted[idx] as f64 / 1000.0
 }
 
-/// One table row: count and p50/p90/p99/max of `ns` in microseconds.
-fn print_row(name: &str, mut ns: Vec<i64>) {
+/// One table row: count and p50/p90/p99/max of `ns` in microseconds; returns p50 and p99.
+fn print_row(name: &str, mut ns: Vec<i64>) -> (f64, f64) {
     ns.sort_unstable();
     println!(
         "{name:<28} {:>7} {:>9.1} {:>9.1} {:>9.1} {:>9.1}",
@@ -69,53 +80,86 @@ fn print_row(name: &str, mut ns: Vec<i64>) {
         percentile(&ns, 0.99),
         percentile(&ns, 1.0)
     );
+    (percentile(&ns, 0.50), percentile(&ns, 0.99))
+}
+
+/// The paths measured, in the order they take turns.
+const PATHS: [(Path, Gw); 5] = [
+    (Path::DirectGrpc, Gw::Standalone),
+    (Path::Rosbridge, Gw::Standalone),
+    (Path::Page, Gw::Standalone),
+    (Path::Rosbridge, Gw::Embedded),
+    (Path::Page, Gw::Embedded),
+];
+
+fn path_name(path: Path, gw: Gw) -> &'static str {
+    match (path, gw) {
+        (Path::DirectGrpc, _) => "direct gRPC (no gateway)",
+        (Path::Rosbridge, Gw::Standalone) => "rosbridge → gateway → TCP",
+        (Path::Page, Gw::Standalone) => "page wss → gateway → TCP",
+        (Path::Rosbridge, Gw::Embedded) => "rosbridge → embedded gateway",
+        (Path::Page, Gw::Embedded) => "page wss → embedded gateway",
+    }
 }
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    {
-        println!(
-            "gateway-bench: {} phones x {} Hz, {} s per path, release={}, {} CPUs",
-            args.phones,
-            args.rate_hz,
-            args.seconds,
-            !cfg!(debug_assertions),
-            std::thread::available_parallelism().map_or(0, std::num::NonZero::get)
-        );
-        println!(
-            "{:<28} {:>7} {:>9} {:>9} {:>9} {:>9}",
-            "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
-        );
-        let mut round_trips = Vec::new();
-        for (path, gw) in [
-            (Path::DirectGrpc, Gw::Standalone),
-            (Path::Rosbridge, Gw::Standalone),
-            (Path::Page, Gw::Standalone),
-            (Path::Rosbridge, Gw::Embedded),
-            (Path::Page, Gw::Embedded),
-        ] {
-            let (lat, rtt) = run(path, gw, &args)?;
-            match (path, gw) {
-                (Path::DirectGrpc, _) => round_trips.insert(0, ("direct gRPC round trip", rtt)),
-                (Path::Page, Gw::Standalone) => round_trips.push(("page round trip, standalone", rtt)),
-                (Path::Page, Gw::Embedded) => round_trips.push(("page round trip, embedded", rtt)),
-                (Path::Rosbridge, _) => {}
+    anyhow::ensure!(args.rounds > 0, "--rounds must be at least 1");
+    println!(
+        "gateway-bench: {} phones x {} Hz, {} s per path in {} rounds, release={}, {} CPUs",
+        args.phones,
+        args.rate_hz,
+        args.seconds,
+        args.rounds,
+        !cfg!(debug_assertions),
+        std::thread::available_parallelism().map_or(0, std::num::NonZero::get)
+    );
+    let slice_s = args.seconds / args.rounds as f64;
+    let mut latencies = vec![Vec::new(); PATHS.len()];
+    let mut round_trips = vec![Vec::new(); PATHS.len()];
+    for _ in 0..args.rounds {
+        for (i, (path, gw)) in PATHS.into_iter().enumerate() {
+            let (lat, rtt) = run(path, gw, &args, slice_s)?;
+            if args.per_slice {
+                print_row(path_name(path, gw), lat.clone());
             }
-            let name = match (path, gw) {
-                (Path::DirectGrpc, _) => "direct gRPC (no gateway)",
-                (Path::Rosbridge, Gw::Standalone) => "rosbridge → gateway → TCP",
-                (Path::Page, Gw::Standalone) => "page wss → gateway → TCP",
-                (Path::Rosbridge, Gw::Embedded) => "rosbridge → embedded gateway",
-                (Path::Page, Gw::Embedded) => "page wss → embedded gateway",
-            };
-            print_row(name, lat);
+            latencies[i].extend(lat);
+            round_trips[i].extend(rtt);
         }
-        // What the phone page shows as its latency: sample sent → its feedback back at the phone.
-        for (name, rtt) in round_trips {
-            print_row(name, rtt);
-        }
-        Ok(())
     }
+    println!(
+        "{:<28} {:>7} {:>9} {:>9} {:>9} {:>9}",
+        "path", "samples", "p50 µs", "p90 µs", "p99 µs", "max µs"
+    );
+    let mut p50_p99 = Vec::new();
+    for ((path, gw), lat) in PATHS.into_iter().zip(latencies) {
+        p50_p99.push(print_row(path_name(path, gw), lat));
+    }
+    // What the phone page shows as its latency: sample sent → its feedback back at the phone.
+    for ((path, gw), rtt) in PATHS.into_iter().zip(round_trips) {
+        let name = match (path, gw) {
+            (Path::DirectGrpc, _) => "direct gRPC round trip",
+            (Path::Page, Gw::Standalone) => "page round trip, standalone",
+            (Path::Page, Gw::Embedded) => "page round trip, embedded",
+            (Path::Rosbridge, _) => continue,
+        };
+        print_row(name, rtt);
+    }
+    // The embedded gateway's share: its rows against the direct row of the same run.
+    let (direct_p50, direct_p99) = p50_p99[0];
+    for (i, (path, gw)) in PATHS.into_iter().enumerate() {
+        if gw == Gw::Embedded {
+            let (p50, p99) = p50_p99[i];
+            println!(
+                "{:<28} p50 {:+6.0} µs, p99 {:+6.0} µs over direct gRPC (p99 within 100 µs: {})",
+                path_name(path, gw),
+                p50 - direct_p50,
+                p99 - direct_p99,
+                if p99 - direct_p99 <= 100.0 { "yes" } else { "no" }
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Runs `f` on a new thread with its own single-threaded runtime, like a separate process would have (the
@@ -157,11 +201,11 @@ async fn gateway_task(
         .await;
 }
 
-/// One measurement: the mock server, the gateway (standalone: on its own thread and runtime; embedded: on the
-/// server's) and the phones each on their own thread and runtime. Returns the one-way latencies (phone send →
+/// One slice of `seconds`: the mock server, the gateway (standalone: on its own thread and runtime; embedded: on
+/// the server's) and the phones each on their own thread and runtime. Returns the one-way latencies (phone send →
 /// sample at the server) and, for the page, the round trips (phone send → feedback for that sample back at
 /// the phone), both after a 1 s warm-up.
-fn run(path: Path, gw: Gw, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
+fn run(path: Path, gw: Gw, args: &Args, seconds: f64) -> Result<(Vec<i64>, Vec<i64>)> {
     let epoch = Instant::now();
     let arms: Vec<String> = (0..args.phones).map(|i| format!("arm{i}")).collect();
     let dir = std::env::temp_dir().join(format!("phone2act-gateway-bench-{}", std::process::id()));
@@ -218,7 +262,7 @@ fn run(path: Path, gw: Gw, args: &Args) -> Result<(Vec<i64>, Vec<i64>)> {
 
     // "Phones".
     let period = Duration::from_secs_f64(1.0 / args.rate_hz);
-    let total = Duration::from_secs_f64(args.seconds + 1.0);
+    let total = Duration::from_secs_f64(seconds + 1.0);
     let url = mock.url();
     let phone_arms = arms.clone();
     let phones = on_thread("phones", move || {
