@@ -27,10 +27,14 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::Notify;
 
-/// Where a policy session hears that it lost an arm. Called after the arm's lock is released; must not
-/// block (the control path calls it).
+/// Where a policy session hears that it lost an arm, or that the operator took it or handed it back. Called
+/// after the arm's lock is released; must not block (the control path calls it).
 pub trait RevocationSink: Send + Sync + std::fmt::Debug {
     fn revoked(&self, arm: &str, reason: &str);
+    /// The operator took the arm: the session waits, keeping it reserved.
+    fn paused(&self, _arm: &str, _reason: &str) {}
+    /// The operator handed the arm back to the waiting session.
+    fn resumed(&self, _arm: &str) {}
 }
 
 /// What one teleop round did.
@@ -109,6 +113,8 @@ struct AfterUnlock {
     command_time_ns: Option<i64>,
     /// The revoked policy session's sink, to be told without the lock.
     revoked: Option<Arc<dyn RevocationSink>>,
+    /// The sink of the session the operator took the arm from or handed it back to.
+    turned: Option<Arc<dyn RevocationSink>>,
 }
 
 /// One arm.
@@ -331,6 +337,13 @@ impl ArmController {
             command_time_ns = Some(self.send_locked(&mut inner.control, c));
         }
         let effects = handled.effects;
+        let turned = effects.turn.as_ref().and_then(|t| {
+            inner
+                .policy_sink
+                .as_ref()
+                .filter(|(session, _)| *session == t.session)
+                .map(|(_, sink)| Arc::clone(sink))
+        });
         let sink = effects.revoked.as_ref().and_then(|r| {
             inner
                 .policy_sink
@@ -344,6 +357,7 @@ impl ArmController {
             effects,
             command_time_ns,
             revoked: sink,
+            turned,
         })
     }
 
@@ -373,7 +387,17 @@ impl ArmController {
             effects,
             command_time_ns,
             revoked,
+            turned,
         } = handled;
+        if let (Some(sink), Some(t)) = (turned, &effects.turn) {
+            if t.resumed {
+                tracing::info!(arm = %self.name, session = t.session, "arm handed back to the waiting policy");
+                sink.resumed(&self.name);
+            } else {
+                tracing::info!(arm = %self.name, session = t.session, "operator took the arm; the policy waits");
+                sink.paused(&self.name, "the operator took the arm; it waits for a hand-back");
+            }
+        }
         if let (Some(sink), Some(r)) = (revoked, &effects.revoked) {
             tracing::info!(arm = %self.name, policy = ?r.policy, reason = %r.reason, "policy control revoked");
             sink.revoked(&self.name, &r.reason);

@@ -164,11 +164,20 @@ def test_a_taken_over_policy_waits_and_the_phone_hands_the_arm_back(server: Serv
         with c.teleop("main", take_over=True) as phone:
             fb = phone.wait_feedback(phone.clutch(True, (0.0, 0.0, 0.0)))
             assert fb.arm_state.waiting_policy_id.startswith("py-policy:")
+            # The session hears it (ControlPaused), sent as the clutch is handled; 10 s covers a stalled machine.
+            ev = s.next_event(timeout_s=10.0)
+            while ev.WhichOneof("event") != "paused":
+                ev = s.next_event(timeout_s=10.0)
+            assert ev.paused.arm == "main" and s.waiting == {"main"}
             with pytest.raises(FailedPrecondition, match="waits for the operator to hand the arm back"):
                 s.push("main", [[0.0] * 7], 0.1)
             fb = phone.wait_feedback(phone.hand_back())
             assert not fb.error and fb.arm_state.owner == common_pb2.CONTROL_SOURCE_POLICY
             assert not fb.arm_state.waiting_policy_id
+            ev = s.next_event(timeout_s=10.0)
+            while ev.WhichOneof("event") != "resumed":
+                ev = s.next_event(timeout_s=10.0)
+            assert ev.resumed.arm == "main" and s.waiting == set()
             # A chunk anchored on the arm's pose at its arrival (observation 0) answers a fresh observation.
             assert s.push("main", [[0.0] * 7] * 3, 0.1).steps_scheduled >= 1
             # Nothing waits any more: a second hand-back is refused in the feedback and changes nothing.

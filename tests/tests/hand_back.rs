@@ -59,6 +59,24 @@ async fn observation_after(policy: &mut PolicySession, after_ns: i64) -> v1::Obs
     .expect("a fresh observation")
 }
 
+/// The next take-over or hand-back event on the session, skipping observations and chunk verdicts.
+async fn next_turn(policy: &mut PolicySession) -> v1::policy_event::Event {
+    // Sent as the input is handled, a few milliseconds away; 10 s covers a stalled machine.
+    tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            match policy.next_event().await.unwrap() {
+                Some(e @ (v1::policy_event::Event::Paused(_) | v1::policy_event::Event::Resumed(_))) => {
+                    return e;
+                }
+                Some(_) => {}
+                None => panic!("the session ended"),
+            }
+        }
+    })
+    .await
+    .expect("a take-over or hand-back event")
+}
+
 /// Waits until the measured pose stops moving (two reads 100 ms apart within 0.2 mm); returns it.
 async fn settled(client: &Client) -> [f64; 3] {
     let mut last = sim_pose_of(client, "main").await;
@@ -147,6 +165,12 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         state.plan_preview.is_none(),
         "no plan plays while the policy waits"
     );
+    // The session is told, rather than left to learn it from refused chunks.
+    let paused = next_turn(&mut policy).await;
+    assert!(
+        matches!(&paused, v1::policy_event::Event::Paused(p) if p.arm == "main" && p.reason.contains("hand-back")),
+        "{paused:?}"
+    );
     // Its chunks are refused with the reason, and do not move the arm: the phone holds still, so does the arm.
     let held = settled(&client).await;
     let obs = observation_after(&mut policy, 0).await;
@@ -192,6 +216,11 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     let seq = phone.hand_back().await.unwrap();
     let fb = phone.feedback_for(seq).await.unwrap();
     assert!(fb.error.is_empty(), "{}", fb.error);
+    let resumed = next_turn(&mut policy).await;
+    assert!(
+        matches!(&resumed, v1::policy_event::Event::Resumed(r) if r.arm == "main"),
+        "{resumed:?}"
+    );
     let handed_back_ns = fb.server_send_time_ns;
     let state = fb.arm_state.unwrap();
     assert_eq!(state.owner(), v1::ControlSource::Policy);

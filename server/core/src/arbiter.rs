@@ -229,6 +229,14 @@ pub struct Revocation {
     pub reason: String,
 }
 
+/// The operator took the arm from a policy session, or handed it back: the session is to be told.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PolicyTurn {
+    pub session: u64,
+    /// True for a hand-back, false for a take-over.
+    pub resumed: bool,
+}
+
 /// What the caller must do after one input.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Effects {
@@ -244,6 +252,9 @@ pub struct Effects {
     pub phone_error: String,
     /// What a chunk did to the schedule.
     pub chunk: Option<ReplaceReport>,
+    /// The policy session to tell that it waits, or drives again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub turn: Option<PolicyTurn>,
 }
 
 /// How soon the arbiter needs a [`Input::Tick`].
@@ -760,6 +771,10 @@ impl Arbiter {
         if step.engaged {
             if self.driver == Driver::Policy {
                 self.pause_policy();
+                fx.turn = self.policy.as_ref().map(|o| PolicyTurn {
+                    session: o.session,
+                    resumed: false,
+                });
             }
             self.driver = Driver::Teleop;
             // Without a command (no pose at the press) the arm keeps holding the last target it was sent.
@@ -820,6 +835,10 @@ impl Arbiter {
             owner.handed_back_s = Some(now);
             owner.last_chunk_s = now;
             owner.loading_deadline_s = None;
+            fx.turn = Some(PolicyTurn {
+                session: owner.session,
+                resumed: true,
+            });
         }
         self.counters.handed_back += 1;
         fx.reindexed = true;
@@ -1387,6 +1406,42 @@ mod tests {
         let corrected = fx.commands.last().expect("the phone drives").robot_from_target;
         assert!((corrected.translation.vector - engaged_at.translation.vector).norm() > 0.019);
         (a, corrected)
+    }
+
+    /// The session hears both turns: it waits from the take-over, drives again from the hand-back.
+    #[test]
+    fn a_take_over_and_a_hand_back_tell_the_policy_session() {
+        let (mut a, robot) = phone_bound_policy_driving();
+        a.handle(chunk(1.0, &[at(0.26, 0.0, 0.2); 10]), &robot, 1.0)
+            .unwrap();
+        let fx = a
+            .handle(engage(Isometry3::identity()), &ready(home(), 1.05), 1.05)
+            .unwrap();
+        let paused = PolicyTurn {
+            session: POLICY,
+            resumed: false,
+        };
+        assert_eq!(fx.turn, Some(paused));
+        // Engaging again while the phone already drives is no new turn.
+        let fx = a
+            .handle(engage(Isometry3::identity()), &ready(home(), 1.06), 1.06)
+            .unwrap();
+        assert_eq!(fx.turn, None);
+        let fx = a.handle(hand_back(), &ready(home(), 2.0), 2.0).unwrap();
+        assert_eq!(
+            fx.turn,
+            Some(PolicyTurn {
+                session: POLICY,
+                resumed: true,
+            })
+        );
+        // A phone with no policy behind it engages without a turn.
+        let mut b = arbiter();
+        b.handle(bind_phone(), &ready(home(), 1.0), 1.0).unwrap();
+        let fx = b
+            .handle(engage(Isometry3::identity()), &ready(home(), 1.1), 1.1)
+            .unwrap();
+        assert_eq!(fx.turn, None);
     }
 
     #[test]

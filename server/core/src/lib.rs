@@ -25,8 +25,8 @@ mod test_support;
 
 pub use arbiter::{
     Arbiter, ArbiterError, ArmSnapshot, BridgeHealth, Command, Counters, Driver, Effects, FEEDBACK_MAX_AGE_S,
-    Input, Measured, NotReady, Owner, PREVIEW_MAX_POINTS, PlanPreview, Revocation, Robot, TeleopButton,
-    TeleopRound, TickNeed,
+    Input, Measured, NotReady, Owner, PREVIEW_MAX_POINTS, PlanPreview, PolicyTurn, Revocation, Robot,
+    TeleopButton, TeleopRound, TickNeed,
 };
 pub use arm_control::{ArmControl, ArmNames, Handled, Issue};
 pub use arm_vectors::{Activity, ArmVectors, Reading, Sample, StepError};

@@ -141,6 +141,19 @@ impl RevocationSink for Events {
             reason: reason.to_owned(),
         }));
     }
+
+    fn paused(&self, arm: &str, reason: &str) {
+        self.notify(v1::policy_event::Event::Paused(v1::ControlPaused {
+            arm: arm.to_owned(),
+            reason: reason.to_owned(),
+        }));
+    }
+
+    fn resumed(&self, arm: &str) {
+        self.notify(v1::policy_event::Event::Resumed(v1::ControlResumed {
+            arm: arm.to_owned(),
+        }));
+    }
 }
 
 fn send_observation(sessions: &PolicySessions, session: &PolicySession, events: &Events) {

@@ -301,6 +301,9 @@ class AsyncPolicySession:
         self.events: asyncio.Queue[policy_pb2.PolicyEvent] = asyncio.Queue(maxsize=10_000)
         self.granted: policy_pb2.ControlGranted | None = None
         self.revoked: policy_pb2.ControlRevoked | None = None
+        # Arms the operator took from this session (`ControlPaused`) and has not handed back yet
+        # (`ControlResumed`): chunks for them are refused meanwhile.
+        self.waiting: set[str] = set()
         self._error: Phone2ActError | None = None
         self._reader: asyncio.Task[None] | None = None
         self.session_id = ""
@@ -343,6 +346,11 @@ class AsyncPolicySession:
                         self.granted = ev.granted
                     elif kind == "revoked":
                         self.revoked = ev.revoked
+                        self.waiting.discard(ev.revoked.arm)
+                    elif kind == "paused":
+                        self.waiting.add(ev.paused.arm)
+                    elif kind == "resumed":
+                        self.waiting.discard(ev.resumed.arm)
                     if self.events.full():
                         self.events.get_nowait()
                     self.events.put_nowait(ev)

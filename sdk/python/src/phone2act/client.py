@@ -300,7 +300,9 @@ class PolicySession(_Session):
     - `push(...)`: send a chunk with the unary `Policy.PushChunk`, so a bad chunk raises at once
       (`InvalidArgument` carries the server's reason, e.g. the expected width).
     - `push_on_stream(...)`: send on the session stream; the answer arrives as an event.
-    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, accepted, rejected, loading).
+    - `next_event()`: the next `PolicyEvent` other than an observation (granted, revoked, paused, resumed,
+      accepted, rejected, loading).
+    - `waiting`: arms the operator took with the clutch (`ControlPaused`) and has not handed back.
     """
 
     def __init__(self, session: aio.AsyncPolicySession) -> None:
@@ -315,6 +317,11 @@ class PolicySession(_Session):
     @property
     def revoked(self) -> policy_pb2.ControlRevoked | None:
         return self._a.revoked
+
+    @property
+    def waiting(self) -> set[str]:
+        """Arms the operator took from this session and has not handed back yet."""
+        return set(self._a.waiting)
 
     def next_observation(self, timeout_s: float = 5.0) -> policy_pb2.Observation:
         """The newest observation not yet returned; waits for one up to `timeout_s`."""
