@@ -668,7 +668,12 @@ impl Recorder {
             return Err(RecorderError::NothingBuffered);
         };
         let gop = self.shared.gop;
-        let cut = (ring.next.saturating_sub(keep) / gop * gop).max(ring.first.div_ceil(gop) * gop);
+        let mut cut = (ring.next.saturating_sub(keep) / gop * gop).max(ring.first.div_ceil(gop) * gop);
+        let limit = self.shared.frame_limit.load(Ordering::Relaxed);
+        if limit > 0 && ring.next - cut.min(ring.next) > limit {
+            // Never more than an episode may hold (`episode_time_s`).
+            cut = (ring.next - limit).div_ceil(gop) * gop;
+        }
         if cut >= ring.next {
             t.ring = Some(ring);
             return Err(RecorderError::NothingBuffered);

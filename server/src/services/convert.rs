@@ -38,6 +38,9 @@ pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingSta
         upload_summary: String::new(),
         remaining_s: None,
         resetting: false,
+        highlight_s: s.highlight_s,
+        highlight_buffered_s: s.highlight_buffered_s,
+        highlight_video_bytes: s.highlight_video_bytes,
     }
 }
 
