@@ -366,7 +366,7 @@
       const kept = typeof r.highlight_buffered_s === 'number' ? r.highlight_buffered_s : 0;
       hl.hidden = !(r.highlight_s > 0);
       hl.disabled = live || kept <= 0;
-      hl.textContent = `⟲ SAVE LAST ${Math.floor(kept)} s`;
+      hl.textContent = `⟲ SAVE LAST ${kept.toFixed(1)} s`;
       // Storage upload of the saved episodes (empty when the server has no [storage]).
       if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
