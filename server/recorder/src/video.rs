@@ -101,13 +101,15 @@ impl PacketRing {
         self.bytes += packet.size();
         let newest = packet.pts().unwrap_or(0);
         self.packets.push_back(packet);
-        // Drop everything before the newest key frame that still leaves `keep_frames` frames behind it.
+        // Drop everything before the newest key frame that still leaves `keep_frames` frames behind it (the
+        // packets are in frame order, so only a prefix can qualify).
         let cut = self
             .packets
             .iter()
             .enumerate()
             .skip(1)
-            .filter(|(_, p)| p.is_key() && newest + 1 - p.pts().unwrap_or(0) >= self.keep_frames as i64)
+            .take_while(|(_, p)| newest + 1 - p.pts().unwrap_or(0) >= self.keep_frames as i64)
+            .filter(|(_, p)| p.is_key())
             .map(|(i, _)| i)
             .last();
         if let Some(cut) = cut {
@@ -548,6 +550,9 @@ pub struct EncoderThread {
     failed: Arc<AtomicBool>,
     /// Bytes of encoded video a ring thread keeps.
     kept_bytes: Arc<AtomicU64>,
+    /// A ring thread's frames keeps at most, and the numbers of its newest dropped frames: an episode started
+    /// from the ring counts only its own (see [`EncoderThread::attach`]).
+    ring_drops: Option<parking_lot::Mutex<(u64, std::collections::VecDeque<u64>)>>,
     handle: Option<JoinHandle<Result<EncodeReport, RecorderError>>>,
 }
 
@@ -577,13 +582,15 @@ impl EncoderThread {
         queue_frames: usize,
         keep_frames: u64,
     ) -> Result<Self, RecorderError> {
-        Self::spawn_with(
+        let mut thread = Self::spawn_with(
             camera,
             Output::Ring { keep_frames },
             (width, height, fps),
             settings,
             queue_frames,
-        )
+        )?;
+        thread.ring_drops = Some(parking_lot::Mutex::new((keep_frames, std::collections::VecDeque::new())));
+        Ok(thread)
     }
 
     fn spawn_with(
@@ -639,14 +646,19 @@ impl EncoderThread {
             dropped,
             failed,
             kept_bytes,
+            ring_drops: None,
             handle: Some(handle),
         })
     }
 
     /// Makes a ring thread's kept frames from `first_frame` on (a multiple of the GOP) the start of `path`;
-    /// frames queued after this are numbered from the file's frame 0. Blocks while the queue is full (it drains
-    /// at encoder speed).
-    pub fn attach(&self, path: PathBuf, first_frame: u64) {
+    /// frames queued after this are numbered from the file's frame 0, and [`EncoderThread::dropped`] counts the
+    /// file's frames only. Blocks while the queue is full (it drains at encoder speed).
+    pub fn attach(&mut self, path: PathBuf, first_frame: u64) {
+        if let Some(drops) = self.ring_drops.take() {
+            let kept = drops.lock().1.iter().filter(|i| **i >= first_frame).count();
+            self.dropped.store(kept as u64, Ordering::Relaxed);
+        }
         let _ = self.tx.send(Msg::Attach { path, first_frame });
     }
 
@@ -661,6 +673,14 @@ impl EncoderThread {
             Ok(()) => true,
             Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
                 self.dropped.fetch_add(1, Ordering::Relaxed);
+                if let Some(drops) = &self.ring_drops {
+                    let mut drops = drops.lock();
+                    let keep = drops.0;
+                    drops.1.push_back(index);
+                    while drops.1.front().is_some_and(|i| *i + keep < index) {
+                        drops.1.pop_front();
+                    }
+                }
                 false
             }
         }
@@ -896,6 +916,52 @@ mod tests {
                     assert!((snapped_s - k as f64 / f64::from(fps)) * f64::from(fps) < 0.01);
                 }
             }
+        }
+    }
+
+    /// A ring encoder keeps its newest frames from a key frame, and a file started from one of its frames
+    /// numbered a multiple of the GOP holds that frame and every later one, from 0; a frame not kept, and a
+    /// frame that is not a key frame, are refused rather than written as a video that cannot start there.
+    #[test]
+    fn a_ring_encoder_starts_a_file_at_a_kept_key_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        for codec in ["av1", "h264"] {
+            let settings = VideoSettings::parse(Some(codec), Format::V30).unwrap();
+            let frame = |i: u64| vec![(i * 11 % 200) as u8; 64 * 64 * 3];
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            // At least 10 frames behind the newest packet out of the encoder, which lags the newest frame in
+            // (x264's lookahead holds about ten at this size).
+            let oldest = enc.oldest_kept().unwrap();
+            assert!((12..=30).contains(&oldest), "{codec}: oldest kept {oldest}");
+            assert!(enc.kept_bytes() > 0);
+            let path = dir.path().join(format!("{codec}-old.mp4"));
+            let err = enc.attach(&path, oldest - 2).unwrap_err().to_string();
+            assert!(err.contains("no longer kept"), "{codec}: {err}");
+
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            let path = dir.path().join(format!("{codec}-odd.mp4"));
+            let err = enc.attach(&path, 33).unwrap_err().to_string();
+            assert!(err.contains("not a key frame"), "{codec}: {err}");
+
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            let path = dir.path().join(format!("{codec}.mp4"));
+            enc.attach(&path, 32).unwrap();
+            for i in 40..45 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            assert_eq!(enc.finish().unwrap(), 13, "{codec}: frames 32..45");
+            let keys = key_flags(&path);
+            assert_eq!(keys.len(), 13, "{codec}");
+            assert!(keys[0], "{codec}: the file starts at a key frame");
         }
     }
 

@@ -418,7 +418,7 @@ impl Dataset {
             )));
         }
         self.begin_with(task, |staging| {
-            for (encoder, key) in ring.iter().zip(&keys) {
+            for (encoder, key) in ring.iter_mut().zip(&keys) {
                 encoder.attach(staging.join(format!("{key}.mp4")), first_frame);
             }
             Ok(std::mem::take(ring))
