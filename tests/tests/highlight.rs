@@ -24,11 +24,7 @@ const WAIT: Duration = Duration::from_secs(60);
 async fn buffered_at_least(client: &Client, seconds: f64) -> bool {
     wait_until(WAIT, || {
         let mut e = client.episodes();
-        async move {
-            e.status()
-                .await
-                .is_ok_and(|s| s.highlight_buffered_s >= seconds)
-        }
+        async move { e.status().await.is_ok_and(|s| s.highlight_buffered_s >= seconds) }
     })
     .await
 }
@@ -71,7 +67,11 @@ async fn move_arm(client: &Client) {
 fn read_back(root: &Path, index: u64) -> Vec<Vec<f64>> {
     let ep = read_episode(root, index).unwrap();
     let n = ep.frame_index.len();
-    assert_eq!(ep.frame_index, (0..n as i64).collect::<Vec<_>>(), "episode {index}");
+    assert_eq!(
+        ep.frame_index,
+        (0..n as i64).collect::<Vec<_>>(),
+        "episode {index}"
+    );
     assert_eq!(ep.vectors.len(), 2);
     assert!(ep.vectors.iter().all(|v| v.rows.len() == n));
     assert_eq!(ep.videos.len(), 1, "the sim's camera");
@@ -169,7 +169,10 @@ async fn the_last_seconds_are_saved_from_the_api_the_phone_and_as_a_live_start()
     let last = actions.last().unwrap();
     assert!(actions[actions.len() - 5..].iter().all(|a| a == last));
     let events = std::fs::read_to_string(root.join(phone2act_recorder::events::events_path(0))).unwrap();
-    assert!(events.contains("clutch"), "the clutch is in the episode's events: {events}");
+    assert!(
+        events.contains("clutch"),
+        "the clutch is in the episode's events: {events}"
+    );
 
     // 2. From the phone's record button (the page's {"record":"highlight"}).
     assert!(buffered_at_least(&client, 1.0).await, "the ring starts again");
@@ -208,7 +211,10 @@ async fn the_last_seconds_are_saved_from_the_api_the_phone_and_as_a_live_start()
         .await
         .unwrap_err()
         .to_string();
-    assert!(err.contains("FailedPrecondition") && err.contains("being recorded"), "{err}");
+    assert!(
+        err.contains("FailedPrecondition") && err.contains("being recorded"),
+        "{err}"
+    );
     assert!(
         wait_until(WAIT, || {
             let mut e = client.episodes();
@@ -244,6 +250,9 @@ async fn without_highlight_s_the_request_says_how_to_turn_it_on() {
         .await
         .unwrap_err()
         .to_string();
-    assert!(err.contains("FailedPrecondition") && err.contains("highlight_s"), "{err}");
+    assert!(
+        err.contains("FailedPrecondition") && err.contains("highlight_s"),
+        "{err}"
+    );
     server.shutdown().await.unwrap();
 }

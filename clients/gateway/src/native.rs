@@ -137,7 +137,11 @@ fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
                 return Ok(buttons::save_highlight(task, outcome()?));
             }
             Some("discard") => record_command::Kind::Discard,
-            _ => return Err(format!("record must be start, stop, highlight or discard, got {r}")),
+            _ => {
+                return Err(format!(
+                    "record must be start, stop, highlight or discard, got {r}"
+                ));
+            }
         };
         Ok(buttons::record(kind, task))
     } else {

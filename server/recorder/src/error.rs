@@ -42,7 +42,9 @@ pub enum RecorderError {
         "an episode is being recorded (episode {0}): it already holds these seconds; stop it to save it, or discard it"
     )]
     HighlightWhileRecording(u64),
-    #[error("nothing buffered yet: the recorder keeps the last seconds only once every source has sent a sample")]
+    #[error(
+        "nothing buffered yet: the recorder keeps the last seconds only once every source has sent a sample"
+    )]
     NothingBuffered,
     #[error("video encoder for camera {camera}: {detail}")]
     Video { camera: String, detail: String },

@@ -16,10 +16,10 @@
 use crate::camera::{Frame, FrameSlot};
 use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter, FrameFlags};
 use crate::error::RecorderError;
-use crate::video::EncoderThread;
 use crate::events::{ArmActivity, EventKind};
 use crate::spec::DatasetSpec;
 use crate::timeline::{Pick, TickClock, TimedRing, Timing, judge};
+use crate::video::EncoderThread;
 use parking_lot::{Condvar, Mutex};
 use phone2act_clock::monotonic_ns;
 use serde::Serialize;
@@ -1084,4 +1084,3 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
         }
     }
 }
-

@@ -262,7 +262,15 @@ impl VideoEncoder {
                 return Err(e);
             }
         };
-        Ok(Self::with_sink(encoder, Sink::File(sink), path, width, height, fps, settings))
+        Ok(Self::with_sink(
+            encoder,
+            Sink::File(sink),
+            path,
+            width,
+            height,
+            fps,
+            settings,
+        ))
     }
 
     /// An encoder for `width`x`height` at `fps` that writes no file: it keeps the packets of (at least) its
@@ -329,7 +337,10 @@ impl VideoEncoder {
         if oldest.is_some_and(|p| p > first_frame as i64) {
             return Err(RecorderError::Video {
                 camera: path.display().to_string(),
-                detail: format!("frame {first_frame} is no longer kept (the oldest is {})", oldest.unwrap_or(0)),
+                detail: format!(
+                    "frame {first_frame} is no longer kept (the oldest is {})",
+                    oldest.unwrap_or(0)
+                ),
             });
         }
         let encoder = self.encoder.as_ref().expect("the encoder lives until drop");
@@ -345,7 +356,11 @@ impl VideoEncoder {
     /// The oldest frame number a ring keeps (its first packet's), if any.
     pub fn oldest_kept(&self) -> Option<u64> {
         match &self.sink {
-            Sink::Ring(ring) => ring.packets.front().and_then(Packet::pts).map(|p| p.max(0) as u64),
+            Sink::Ring(ring) => ring
+                .packets
+                .front()
+                .and_then(Packet::pts)
+                .map(|p| p.max(0) as u64),
             Sink::File(_) => None,
         }
     }
@@ -528,10 +543,18 @@ pub struct EncodeReport {
 }
 
 enum Msg {
-    Frame { index: u64, frame: Frame },
+    Frame {
+        index: u64,
+        frame: Frame,
+    },
     /// A ring encoder starts its episode's file at this frame (see [`EncoderThread::attach`]).
-    Attach { path: PathBuf, first_frame: u64 },
-    Finish { total_frames: u64 },
+    Attach {
+        path: PathBuf,
+        first_frame: u64,
+    },
+    Finish {
+        total_frames: u64,
+    },
 }
 
 /// What an encoder thread writes until told otherwise.
@@ -567,7 +590,13 @@ impl EncoderThread {
         settings: VideoSettings,
         queue_frames: usize,
     ) -> Result<Self, RecorderError> {
-        Self::spawn_with(camera, Output::File(path), (width, height, fps), settings, queue_frames)
+        Self::spawn_with(
+            camera,
+            Output::File(path),
+            (width, height, fps),
+            settings,
+            queue_frames,
+        )
     }
 
     /// Starts a thread that encodes frames for `camera` and keeps the newest `keep_frames` of them encoded (see
@@ -589,7 +618,10 @@ impl EncoderThread {
             settings,
             queue_frames,
         )?;
-        thread.ring_drops = Some(parking_lot::Mutex::new((keep_frames, std::collections::VecDeque::new())));
+        thread.ring_drops = Some(parking_lot::Mutex::new((
+            keep_frames,
+            std::collections::VecDeque::new(),
+        )));
         Ok(thread)
     }
 

@@ -51,7 +51,11 @@ fn check_episode(root: &Path, index: u64) -> u64 {
         for row in phone2act_recorder::parquet_io::read_rows(&file).unwrap() {
             if row.episode_index == index as i64 {
                 let k = u64::try_from(row.frame_index).unwrap();
-                assert_eq!(row.timestamp.to_bits(), timestamp_s(k, FPS).to_bits(), "frame {k}");
+                assert_eq!(
+                    row.timestamp.to_bits(),
+                    timestamp_s(k, FPS).to_bits(),
+                    "frame {k}"
+                );
             }
         }
     }
@@ -93,14 +97,19 @@ fn highlights(format: Format, codec: Option<&str>, name: &str) {
     rec.set_highlight(Some(KEEP_S));
     assert!((rec.status().highlight_s - KEEP_S).abs() < 1e-9);
     let keep = (KEEP_S * f64::from(FPS)) as u64;
-    wait_for(&rec, WAIT, "the ring to fill", |s| s.highlight_buffered_s >= KEEP_S);
+    wait_for(&rec, WAIT, "the ring to fill", |s| {
+        s.highlight_buffered_s >= KEEP_S
+    });
     // Past full: the oldest ticks are evicted from here on (the episode must still start at a key frame).
     std::thread::sleep(Duration::from_millis(700));
     let status = rec.status();
     assert!(status.highlight_video_bytes > 0, "{status:?}");
 
     // 1. Saved at once, with the operator's outcome.
-    let first = saved(rec.save_highlight("the last two seconds", "ana", false, Some(true)).unwrap());
+    let first = saved(
+        rec.save_highlight("the last two seconds", "ana", false, Some(true))
+            .unwrap(),
+    );
     assert_eq!(first.index, 0);
     // From the oldest kept tick at a multiple of the GOP (2): N·fps frames, or one more.
     assert!(
@@ -113,8 +122,13 @@ fn highlights(format: Format, codec: Option<&str>, name: &str) {
     assert_eq!(check_episode(&root, 0), first.length_frames);
 
     // 2. The ring starts again; kept and then recorded on (LeRobot's behaviour) until Stop.
-    wait_for(&rec, WAIT, "the ring to fill again", |s| s.highlight_buffered_s >= KEEP_S);
-    let Highlight::Recording(status) = rec.save_highlight("kept and recorded on", "", true, None).unwrap() else {
+    wait_for(&rec, WAIT, "the ring to fill again", |s| {
+        s.highlight_buffered_s >= KEEP_S
+    });
+    let Highlight::Recording(status) = rec
+        .save_highlight("kept and recorded on", "", true, None)
+        .unwrap()
+    else {
         panic!("expected a recording");
     };
     assert!(status.frames_recorded >= keep, "{status:?}");
@@ -124,13 +138,17 @@ fn highlights(format: Format, codec: Option<&str>, name: &str) {
         rec.save_highlight("again", "", false, None),
         Err(RecorderError::HighlightWhileRecording(1))
     ));
-    wait_for(&rec, WAIT, "frames past the kept ones", |s| s.frames_recorded >= keep + 30);
+    wait_for(&rec, WAIT, "frames past the kept ones", |s| {
+        s.frames_recorded >= keep + 30
+    });
     let second = rec.stop_episode().unwrap();
     assert!(second.length_frames >= keep + 30);
     assert_eq!(check_episode(&root, 1), second.length_frames);
 
     // 3. A stale source empties the ring: a saved episode never spans a gap.
-    wait_for(&rec, WAIT, "the ring after the stop", |s| s.highlight_buffered_s > 0.0);
+    wait_for(&rec, WAIT, "the ring after the stop", |s| {
+        s.highlight_buffered_s > 0.0
+    });
     *robot.silent.lock() = true;
     wait_for(&rec, WAIT, "the ring to empty", |s| s.highlight_buffered_s == 0.0);
     assert!(matches!(

@@ -400,7 +400,8 @@ fn highlight_child(keep_s: f64, idle_s: f64, codec: &str, ncams: usize, fps: u32
         "kept_video_mb": status.highlight_video_bytes as f64 / 1e6});
     if keep_s > 0.0 {
         let t0 = Instant::now();
-        let phone2act_recorder::Highlight::Saved(s) = rec.save_highlight("benchmark", "", false, None)? else {
+        let phone2act_recorder::Highlight::Saved(s) = rec.save_highlight("benchmark", "", false, None)?
+        else {
             return Err("the kept seconds were not saved".into());
         };
         out["save_ms"] = serde_json::json!(t0.elapsed().as_secs_f64() * 1e3);
@@ -465,7 +466,11 @@ fn highlight_memory(o: &Opts) -> Res<()> {
             let num = |k: &str| v[k].as_f64().map_or("-".to_owned(), |x| format!("{x:.0}"));
             println!(
                 "| {load} | {} | {idle_s} | {:.1} | {:.1} | {:.0} | {} | {} | {} | {} | {} |",
-                if keep_s > 0.0 { format!("{keep_s}") } else { "off".into() },
+                if keep_s > 0.0 {
+                    format!("{keep_s}")
+                } else {
+                    "off".into()
+                },
                 v["kept_s"].as_f64().unwrap_or(0.0),
                 v["kept_video_mb"].as_f64().unwrap_or(0.0),
                 v["peak_rss_mb"].as_f64().unwrap_or(0.0),
