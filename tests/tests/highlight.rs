@@ -10,7 +10,9 @@ use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::readback::read_episode;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
-use phone2act_tests::{TestServer, default_config, keep_for_conformance_expecting, wait_until};
+use phone2act_tests::{
+    TestServer, data_files, default_config, keep_for_conformance_expecting, wait_until,
+};
 use serde_json::json;
 use std::path::Path;
 use std::time::Duration;
@@ -75,10 +77,8 @@ fn read_back(root: &Path, index: u64) -> Vec<Vec<f64>> {
     assert_eq!(ep.vectors.len(), 2);
     assert!(ep.vectors.iter().all(|v| v.rows.len() == n));
     assert_eq!(ep.videos.len(), 1, "the sim's camera");
-    let mut files = Vec::new();
-    collect(&root.join("data"), &mut files);
     let mut stamps = Vec::new();
-    for f in files {
+    for f in data_files(&root.join("data")) {
         for row in read_rows(&f).unwrap() {
             if row.episode_index == index as i64 {
                 stamps.push((row.frame_index, row.timestamp));
@@ -91,16 +91,6 @@ fn read_back(root: &Path, index: u64) -> Vec<Vec<f64>> {
         assert_eq!(t.to_bits(), timestamp_s(k as u64, FPS).to_bits(), "frame {k}");
     }
     ep.vectors[1].rows.clone()
-}
-
-fn collect(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        if e.file_type().unwrap().is_dir() {
-            collect(&e.path(), out);
-        } else if e.path().extension().is_some_and(|x| x == "parquet") {
-            out.push(e.path());
-        }
-    }
 }
 
 fn distance(a: &[f64], b: &[f64]) -> f64 {

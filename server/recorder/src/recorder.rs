@@ -174,6 +174,31 @@ struct RingRow {
     late: Option<String>,
 }
 
+impl Active {
+    fn new(
+        writer: EpisodeWriter,
+        first_tick: u64,
+        start_unix_ns: i64,
+        last_seq: Vec<Option<u64>>,
+        operator: &str,
+    ) -> Self {
+        Active {
+            writer,
+            first_tick,
+            held: 0,
+            paused: 0,
+            paused_run: 0,
+            pause_why: String::new(),
+            late: 0,
+            start_unix_ns,
+            last_robot_ns: None,
+            last_seq,
+            error: None,
+            operator: operator.trim().to_owned(),
+        }
+    }
+}
+
 struct TickState {
     active: Option<Active>,
     ring: Option<Ring>,
@@ -389,20 +414,13 @@ impl Recorder {
         tracing::info!(episode = writer.index, task = %writer.task, "recording started");
         // The first tick not yet written: the tick thread writes tick i only once `settle_s` has passed it.
         let first_tick = self.shared.clock.first_at_or_after(monotonic_ns());
-        t.active = Some(Active {
-            last_seq: vec![None; self.shared.cameras.len()],
+        t.active = Some(Active::new(
             writer,
             first_tick,
-            held: 0,
-            paused: 0,
-            paused_run: 0,
-            pause_why: String::new(),
-            late: 0,
-            start_unix_ns: unix_ns(),
-            last_robot_ns: None,
-            error: None,
-            operator: operator.trim().to_owned(),
-        });
+            unix_ns(),
+            vec![None; self.shared.cameras.len()],
+            operator,
+        ));
         t.phase = Phase::Recording;
         t.warning = None;
         bump(&self.shared, &mut t);
@@ -688,20 +706,14 @@ impl Recorder {
         let from = (cut - ring.first) as usize;
         let first_tick = ring.rows[from].tick;
         let since_first_ns = monotonic_ns() - self.shared.clock.time_ns(first_tick);
-        let mut active = Active {
+        let mut active = Active::new(
             writer,
             first_tick,
-            held: 0,
-            paused: 0,
-            paused_run: 0,
-            pause_why: String::new(),
-            late: 0,
-            start_unix_ns: unix_ns() - since_first_ns.max(0),
-            last_robot_ns: ring.last_robot_ns,
-            last_seq: ring.last_seq.clone(),
-            error: None,
-            operator: operator.trim().to_owned(),
-        };
+            unix_ns() - since_first_ns.max(0),
+            ring.last_seq.clone(),
+            operator,
+        );
+        active.last_robot_ns = ring.last_robot_ns;
         for row in ring.rows.drain(from..) {
             active.held += u64::from(row.held);
             let mut pushed = Ok(());

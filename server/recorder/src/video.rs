@@ -348,7 +348,7 @@ impl VideoEncoder {
         for packet in packets {
             sink.write(packet, self.encoder_tb, path)?;
         }
-        self.path = path.to_owned();
+        path.clone_into(&mut self.path);
         self.sink = Sink::File(sink);
         Ok(())
     }

@@ -56,7 +56,7 @@ fn check(root: &Path) {
     assert!(report.ok(), "{}", report.problems.join("\n"));
     assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let mut data = Vec::new();
-    collect(&root.join("data"), &mut data);
+    common::parquet_files(&root.join("data"), &mut data);
     assert!(!data.is_empty());
     for file in data {
         for row in read_rows(&file).unwrap() {
@@ -67,16 +67,6 @@ fn check(root: &Path) {
                 "frame {k}"
             );
             timestamp_pairs(row.timestamp, k, FPS).unwrap();
-        }
-    }
-}
-
-fn collect(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        if e.file_type().unwrap().is_dir() {
-            collect(&e.path(), out);
-        } else if e.path().extension().is_some_and(|x| x == "parquet") {
-            out.push(e.path());
         }
     }
 }

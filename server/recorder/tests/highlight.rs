@@ -46,7 +46,7 @@ fn check_episode(root: &Path, index: u64) -> u64 {
         assert_eq!(video_frames(&v.path), n, "episode {index}: {}", v.path.display());
     }
     let mut data = Vec::new();
-    collect(&root.join("data"), &mut data);
+    common::parquet_files(&root.join("data"), &mut data);
     for file in data {
         for row in phone2act_recorder::parquet_io::read_rows(&file).unwrap() {
             if row.episode_index == index as i64 {
@@ -60,16 +60,6 @@ fn check_episode(root: &Path, index: u64) -> u64 {
         }
     }
     n
-}
-
-fn collect(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        if e.file_type().unwrap().is_dir() {
-            collect(&e.path(), out);
-        } else if e.path().extension().is_some_and(|x| x == "parquet") {
-            out.push(e.path());
-        }
-    }
 }
 
 fn saved(h: Highlight) -> phone2act_recorder::EpisodeSummary {

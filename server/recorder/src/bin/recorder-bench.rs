@@ -332,6 +332,18 @@ fn rss_child(secs: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     Ok(())
 }
 
+/// Runs this benchmark as a child with `args` and returns the JSON line it prints last, or what it said on
+/// stderr when it printed none.
+fn child_json(exe: &Path, args: &[&str]) -> Res<Result<serde_json::Value, String>> {
+    let out = Command::new(exe).args(args).env("SVT_LOG", "1").output()?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .ok_or_else(|| String::from_utf8_lossy(&out.stderr).trim().to_owned()))
+}
+
 fn memory_and_save(o: &Opts) -> Res<()> {
     println!(
         "\n## memory and save latency (640x480 cameras; one process per episode, peak RSS of that process)"
@@ -350,22 +362,16 @@ fn memory_and_save(o: &Opts) -> Res<()> {
     }
     for (codec, ncams, fps, lengths) in runs {
         for secs in lengths {
-            let out = Command::new(&exe)
-                .args(["--rss-episode", secs, codec, &ncams.to_string(), &fps.to_string()])
-                .env("SVT_LOG", "1")
-                .output()?;
-            let text = String::from_utf8_lossy(&out.stdout);
             let load = format!("{ncams} x {codec} @ {fps} fps");
-            let Some(v) = text
-                .lines()
-                .last()
-                .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-            else {
-                println!(
-                    "| {load} | {secs} s | failed: {} |",
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-                continue;
+            let v = match child_json(
+                &exe,
+                &["--rss-episode", secs, codec, &ncams.to_string(), &fps.to_string()],
+            )? {
+                Ok(v) => v,
+                Err(e) => {
+                    println!("| {load} | {secs} s | failed: {e} |");
+                    continue;
+                }
             };
             println!(
                 "| {load} | {secs} s | {} | {} | {:.0} | {:.0} |",
@@ -440,28 +446,20 @@ fn highlight_memory(o: &Opts) -> Res<()> {
     for (codec, ncams, fps, keeps) in runs {
         let load = format!("{ncams} x {codec} @ {fps} fps");
         for (keep_s, idle_s) in keeps {
-            let out = Command::new(&exe)
-                .args([
-                    "--rss-highlight",
-                    &keep_s.to_string(),
-                    &idle_s.to_string(),
-                    codec,
-                    &ncams.to_string(),
-                    &fps.to_string(),
-                ])
-                .env("SVT_LOG", "1")
-                .output()?;
-            let text = String::from_utf8_lossy(&out.stdout);
-            let Some(v) = text
-                .lines()
-                .last()
-                .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-            else {
-                println!(
-                    "| {load} | {keep_s} | {idle_s} | failed: {} |",
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-                continue;
+            let args = [
+                "--rss-highlight",
+                &keep_s.to_string(),
+                &idle_s.to_string(),
+                codec,
+                &ncams.to_string(),
+                &fps.to_string(),
+            ];
+            let v = match child_json(&exe, &args)? {
+                Ok(v) => v,
+                Err(e) => {
+                    println!("| {load} | {keep_s} | {idle_s} | failed: {e} |");
+                    continue;
+                }
             };
             let num = |k: &str| v[k].as_f64().map_or("-".to_owned(), |x| format!("{x:.0}"));
             println!(

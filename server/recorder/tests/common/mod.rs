@@ -172,3 +172,14 @@ pub(crate) fn distinct_camera(
     )
     .unwrap()
 }
+
+/// The parquet files under `dir`, recursively.
+pub(crate) fn parquet_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        if e.file_type().unwrap().is_dir() {
+            parquet_files(&e.path(), out);
+        } else if e.path().extension().is_some_and(|x| x == "parquet") {
+            out.push(e.path());
+        }
+    }
+}
