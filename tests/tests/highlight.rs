@@ -10,9 +10,7 @@ use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::readback::read_episode;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
-use phone2act_tests::{
-    TestServer, data_files, default_config, keep_for_conformance_expecting, wait_until,
-};
+use phone2act_tests::{TestServer, data_files, default_config, keep_for_conformance_expecting, wait_until};
 use serde_json::json;
 use std::path::Path;
 use std::time::Duration;
@@ -21,7 +19,7 @@ const KEEP_S: f64 = 3.0;
 const FPS: u32 = 20;
 /// Waits are for a few seconds of recorder ticks; a tick written late is still written (never skipped), so
 /// only a stalled server takes this long, even beside parallel builds on two cores.
-const WAIT: Duration = Duration::from_secs(60);
+const WAIT: Duration = Duration::from_mins(1);
 
 async fn buffered_at_least(client: &Client, seconds: f64) -> bool {
     wait_until(WAIT, || {
@@ -107,7 +105,7 @@ async fn the_last_seconds_are_saved_from_the_api_the_phone_and_as_a_live_start()
     let client = server.client().await.unwrap();
     let mut episodes = client.episodes();
     let status = episodes.status().await.unwrap();
-    assert_eq!(status.highlight_s, KEEP_S);
+    assert!((status.highlight_s - KEEP_S).abs() < 1e-9, "{status:?}");
     assert_eq!(status.phase(), v1::RecordingPhase::Idle);
 
     // 1. The operator moves the arm without recording, then saves the last 3 s through the API.
@@ -234,7 +232,7 @@ async fn without_highlight_s_the_request_says_how_to_turn_it_on() {
     let server = TestServer::start(default_config(dir.path())).await.unwrap();
     let client = server.client().await.unwrap();
     let mut episodes = client.episodes();
-    assert_eq!(episodes.status().await.unwrap().highlight_s, 0.0);
+    assert!(episodes.status().await.unwrap().highlight_s.abs() < 1e-9, "off");
     let err = episodes
         .save_highlight("anything", v1::EpisodeOutcome::Unspecified)
         .await

@@ -351,7 +351,11 @@ mod tests {
         };
         let wire = recording_status(&status, &config);
         assert_eq!(
-            (wire.highlight_s, wire.highlight_buffered_s, wire.highlight_video_bytes),
+            (
+                wire.highlight_s,
+                wire.highlight_buffered_s,
+                wire.highlight_video_bytes
+            ),
             (10.0, 4.5, 123)
         );
         assert_eq!(

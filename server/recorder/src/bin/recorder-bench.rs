@@ -424,6 +424,9 @@ fn highlight_child(keep_s: f64, idle_s: f64, codec: &str, ncams: usize, fps: u32
     Ok(())
 }
 
+/// Runs of the highlight section: codec, cameras, fps, and each run's `highlight_s` (0: off) and idle seconds.
+type HighlightRuns = Vec<(&'static str, usize, u32, Vec<(f64, f64)>)>;
+
 /// Peak RSS of an idle recorder with the last seconds kept (`highlight_s`) and without, and the episode saved
 /// from them.
 fn highlight_memory(o: &Opts) -> Res<()> {
@@ -435,7 +438,7 @@ fn highlight_memory(o: &Opts) -> Res<()> {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let exe = std::env::current_exe()?;
-    let mut runs: Vec<(&str, usize, u32, Vec<(f64, f64)>)> = vec![
+    let mut runs: HighlightRuns = vec![
         ("av1", 2, 20, vec![(0.0, 20.0), (10.0, 20.0), (60.0, 70.0)]),
         ("av1", 3, 20, vec![(0.0, 20.0), (10.0, 20.0)]),
         ("h264", 3, 30, vec![(0.0, 20.0), (10.0, 20.0), (60.0, 70.0)]),
