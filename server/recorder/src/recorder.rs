@@ -474,11 +474,22 @@ impl Recorder {
     /// [`Recorder::stop_episode_with`] under the dataset lock `ds`.
     fn stop_locked(
         &self,
-        mut ds: parking_lot::MutexGuard<'_, Dataset>,
+        ds: parking_lot::MutexGuard<'_, Dataset>,
         success: Option<bool>,
         t0: std::time::Instant,
     ) -> Result<EpisodeSummary, RecorderError> {
-        let mut active = self.take_active()?;
+        let active = self.take_active()?;
+        self.save_active(ds, active, success, t0)
+    }
+
+    /// Saves `active`, taken from the tick state (phase `Saving`), under the dataset lock `ds`.
+    fn save_active(
+        &self,
+        mut ds: parking_lot::MutexGuard<'_, Dataset>,
+        mut active: Active,
+        success: Option<bool>,
+        t0: std::time::Instant,
+    ) -> Result<EpisodeSummary, RecorderError> {
         if let Some(v) = success {
             active.writer.set_last_success(v);
         }
@@ -735,16 +746,21 @@ impl Recorder {
             frames = active.writer.frames(),
             "recording started from the last seconds kept"
         );
+        t.warning = None;
+        if !keep_recording {
+            // Saved as kept: no tick after the request joins it.
+            t.phase = Phase::Saving;
+            bump(&self.shared, &mut t);
+            drop(t);
+            self.set_sampling(false);
+            return self.save_active(ds, active, success, t0).map(Highlight::Saved);
+        }
         t.active = Some(active);
         t.phase = Phase::Recording;
-        t.warning = None;
         bump(&self.shared, &mut t);
         drop(t);
-        if keep_recording {
-            drop(ds);
-            return Ok(Highlight::Recording(self.status()));
-        }
-        self.stop_locked(ds, success, t0).map(Highlight::Saved)
+        drop(ds);
+        Ok(Highlight::Recording(self.status()))
     }
 
     /// Saved episodes.
