@@ -170,6 +170,21 @@ fn open_recorder(root: &Path, l: &Load) -> Res<(Recorder, Vec<CaptureThread>)> {
     Ok((rec, threads))
 }
 
+impl<'a> Load<'a> {
+    /// `ncams` 640x480 cameras of `codec` (`av1` in a v3.0 dataset, others in v2.1) at `fps` for `secs`.
+    fn vga(codec: &'a str, ncams: usize, fps: u32, secs: f64) -> Self {
+        let format = if codec == "av1" { Format::V30 } else { Format::V21 };
+        Load {
+            codec,
+            format,
+            ncams,
+            size: (640, 480),
+            fps,
+            secs,
+        }
+    }
+}
+
 fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
     let (fps, secs) = (l.fps, l.secs);
     let (rec, threads) = open_recorder(root, l)?;
@@ -313,15 +328,7 @@ fn peak_rss_mb() -> f64 {
 /// Child process: one episode of `secs` with `ncams` cameras 640x480 at `fps`.
 fn rss_child(secs: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     let dir = tempfile_dir("rss")?;
-    let format = if codec == "av1" { Format::V30 } else { Format::V21 };
-    let load = Load {
-        codec,
-        format,
-        ncams,
-        size: (640, 480),
-        fps,
-        secs,
-    };
+    let load = Load::vga(codec, ncams, fps, secs);
     let r = record_once(&dir.join("ds"), &load)?;
     println!(
         "{}",
@@ -389,15 +396,7 @@ fn memory_and_save(o: &Opts) -> Res<()> {
 /// seconds saved as an episode.
 fn highlight_child(keep_s: f64, idle_s: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     let dir = tempfile_dir("highlight")?;
-    let format = if codec == "av1" { Format::V30 } else { Format::V21 };
-    let load = Load {
-        codec,
-        format,
-        ncams,
-        size: (640, 480),
-        fps,
-        secs: idle_s,
-    };
+    let load = Load::vga(codec, ncams, fps, idle_s);
     let (rec, threads) = open_recorder(&dir.join("ds"), &load)?;
     rec.set_highlight((keep_s > 0.0).then_some(keep_s));
     std::thread::sleep(Duration::from_secs_f64(idle_s));
