@@ -361,6 +361,12 @@
       const live = r.phase === 'recording' || r.phase === 'paused';
       $('rec-success').disabled = !live;
       $('rec-failure').disabled = !live;
+      // `[recorder] highlight_s`: while idle the recorder keeps the last seconds; the button saves them.
+      const hl = $('rec-highlight');
+      const kept = typeof r.highlight_buffered_s === 'number' ? r.highlight_buffered_s : 0;
+      hl.hidden = !(r.highlight_s > 0);
+      hl.disabled = live || kept <= 0;
+      hl.textContent = `⟲ SAVE LAST ${kept.toFixed(1)} s`;
       // Storage upload of the saved episodes (empty when the server has no [storage]).
       if (r.upload) rec.textContent += ` · upload: ${r.upload}`;
     }
@@ -604,6 +610,13 @@
     buttons([{ record: 'start', task }]);
   });
   $('rec-stop').addEventListener('click', () => buttons([{ record: 'stop' }]));
+  // The last seconds the recorder kept while idle, saved as an episode of the task (LeRobot's `highlight`).
+  $('rec-highlight').addEventListener('click', () => {
+    const task = $('task').value.trim();
+    if (!task) { notice('Type the task first (it is stored with every frame of the episode).'); $('task').focus(); return; }
+    localStorage.setItem('phone2act.task', task);
+    buttons([{ record: 'highlight', task }]);
+  });
   // The operator's verdict, given as the episode is saved: kept in its provenance, and `next.success` of its
   // last frame in a dataset that records the column (docs/datasets.md).
   $('rec-success').addEventListener('click', () => buttons([{ record: 'stop', outcome: 'success' }]));

@@ -79,6 +79,17 @@ pub fn record_discard() -> v1::ButtonEvent {
     record(v1::record_command::Kind::Discard, "")
 }
 
+/// Save the last seconds the recorder kept while idle as an episode of `task`, with the operator's outcome.
+pub fn save_highlight(task: &str, outcome: v1::EpisodeOutcome) -> v1::ButtonEvent {
+    v1::ButtonEvent {
+        event: Some(v1::button_event::Event::Record(v1::RecordCommand {
+            kind: v1::record_command::Kind::SaveHighlight as i32,
+            task: task.to_owned(),
+            outcome: outcome as i32,
+        })),
+    }
+}
+
 /// A record command of `kind` (`task` matters for a start only).
 pub fn record(kind: v1::record_command::Kind, task: &str) -> v1::ButtonEvent {
     v1::ButtonEvent {

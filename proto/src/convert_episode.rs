@@ -14,6 +14,9 @@ pub enum RecordAction<'a> {
     Stop { success: Option<bool> },
     /// Stop and throw away the episode in progress.
     Discard,
+    /// Save the last seconds the recorder kept while idle as an episode of this task, with the operator's
+    /// outcome.
+    SaveHighlight { task: &'a str, success: Option<bool> },
 }
 
 impl<'a> TryFrom<&'a v1::RecordCommand> for RecordAction<'a> {
@@ -26,6 +29,10 @@ impl<'a> TryFrom<&'a v1::RecordCommand> for RecordAction<'a> {
                 success: outcome_success(command.outcome)?,
             }),
             Ok(v1::record_command::Kind::Discard) => Ok(Self::Discard),
+            Ok(v1::record_command::Kind::SaveHighlight) => Ok(Self::SaveHighlight {
+                task: &command.task,
+                success: outcome_success(command.outcome)?,
+            }),
             Ok(v1::record_command::Kind::Unspecified) | Err(_) => Err(ConvertError::UnknownEnum {
                 what: "record command",
                 value: command.kind,
@@ -94,6 +101,14 @@ mod tests {
             "unknown episode outcome 9"
         );
         assert_eq!(action(buttons::record_discard()).unwrap(), "Discard");
+        assert_eq!(
+            action(buttons::save_highlight("pick", v1::EpisodeOutcome::Unspecified)).unwrap(),
+            r#"SaveHighlight { task: "pick", success: None }"#
+        );
+        assert_eq!(
+            action(buttons::save_highlight("pick", v1::EpisodeOutcome::Failure)).unwrap(),
+            r#"SaveHighlight { task: "pick", success: Some(false) }"#
+        );
         let bad = v1::RecordCommand {
             kind: 42,
             ..v1::RecordCommand::default()

@@ -318,6 +318,7 @@ impl App {
             .collect();
         let recorder = Recorder::open(spec, source, slots).map_err(RecordingError::from)?;
         recorder.set_frame_limit(config.recorder.frame_limit());
+        recorder.set_highlight(config.recorder.highlight().map_err(RecordingError::Config)?);
         let episode_timing = crate::recording::EpisodeTiming::new(
             config.recorder.episode_limits().map_err(RecordingError::Config)?,
         );
@@ -461,6 +462,9 @@ impl App {
                     RecordAction::Start { task } => r.start_episode(task).map(drop),
                     RecordAction::Stop { success } => r.stop_episode_with(success).map(drop),
                     RecordAction::Discard => r.discard_episode().map(drop),
+                    RecordAction::SaveHighlight { task, success } => {
+                        r.save_highlight(task, "", false, success).map(drop)
+                    }
                 }
                 .map_err(RecordingError::from)
             })

@@ -302,6 +302,12 @@ pub struct RecorderConfig {
     /// record loop goes on to its next episode). Needs `reset_time_s` (0 for none).
     #[serde(default)]
     pub start_next_after_reset: bool,
+    /// While no episode is recorded, keep the last this many seconds (every camera's video, encoded, and the
+    /// synced rows) so that the operator can save them as an episode after the fact (LeRobot's `highlight`
+    /// ring buffer; `Episodes.SaveHighlight`, the phone's SAVE LAST button, `phone2act episode highlight`).
+    /// Unset: off. Costs what an episode in progress costs (one encoder per camera) all the time.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub highlight_s: Option<f64>,
 }
 
 impl Default for RecorderConfig {
@@ -317,12 +323,16 @@ impl Default for RecorderConfig {
             episode_time_s: None,
             reset_time_s: None,
             start_next_after_reset: false,
+            highlight_s: None,
         }
     }
 }
 
 /// Longest episode time limit and reset period accepted (a day): a longer one is a typo.
 pub const MAX_EPISODE_TIMING_S: f64 = 86_400.0;
+
+/// Longest `highlight_s` accepted (10 minutes): the encoded video is kept in memory (see docs/datasets.md).
+pub const MAX_HIGHLIGHT_S: f64 = 600.0;
 
 impl RecorderConfig {
     /// The episode time limit and reset period, checked (see `phone2act_core::episode_clock`).
@@ -348,6 +358,17 @@ impl RecorderConfig {
             reset_time_s,
             auto_start: self.start_next_after_reset,
         })
+    }
+
+    /// `highlight_s`, checked: at least one frame, at most [`MAX_HIGHLIGHT_S`].
+    pub fn highlight(&self) -> Result<Option<f64>, String> {
+        let min_s = 1.0 / self.fps.max(1.0);
+        match self.highlight_s {
+            Some(s) if !(s.is_finite() && (min_s..=MAX_HIGHLIGHT_S).contains(&s)) => Err(format!(
+                "recorder.highlight_s must be in {min_s}..={MAX_HIGHLIGHT_S} s, got {s}"
+            )),
+            v => Ok(v),
+        }
     }
 
     /// Frames an episode holds at most under `episode_time_s`.
@@ -541,6 +562,7 @@ impl Config {
             ));
         }
         self.recorder.episode_limits()?;
+        self.recorder.highlight()?;
         self.check_root()?;
         let cameras: Vec<_> = self
             .cameras
@@ -1292,6 +1314,20 @@ mod tests {
     }
 
     #[test]
+    fn highlight_seconds_are_checked() {
+        assert_eq!(with_env(SIM, &[]).unwrap().recorder.highlight_s, None);
+        let c = with_env(SIM, &[("PHONE2ACT_RECORDER__HIGHLIGHT_S", "15")]).unwrap();
+        assert_eq!(c.recorder.highlight(), Ok(Some(15.0)));
+        assert!(c.to_redacted_toml().unwrap().contains("highlight_s = 15.0"));
+        for value in ["0", "-1", "nan", "601"] {
+            let err = with_env(SIM, &[("PHONE2ACT_RECORDER__HIGHLIGHT_S", value)])
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("recorder.highlight_s must be in"), "{value}: {err}");
+        }
+    }
+
+    #[test]
     fn storage_is_optional_checked_and_overridable_from_the_environment() {
         assert!(with_env(SIM, &[]).unwrap().storage.is_none());
         let c = with_env(
@@ -1769,6 +1805,7 @@ arm = "a"
 video_codec = "libx264"
 episode_time_s = 30.0
 reset_time_s = 10.0
+highlight_s = 10.0
 [storage]
 url = "s3://b/p"
 endpoint = "http://127.0.0.1:9000"

@@ -3,7 +3,8 @@
 # and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
 # controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms, and the live
 # video on a panel in the immersive session); live video
-# against control, and on a throttled link, in test_video.mjs; the recording habits in test_habits.mjs; a policy
+# against control, and on a throttled link, in test_video.mjs; the recording habits (outcome buttons, countdown,
+# SAVE LAST) in test_habits.mjs; a policy
 # session's plan preview and the hand-back in test_handback.mjs. Installs
 # what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
 set -euo pipefail
@@ -57,6 +58,14 @@ if [[ "$suites" == *habits* ]]; then
     source "$HERE/../rosbridge/stack.sh"
     cd "$HERE"
     node --experimental-websocket --no-warnings test_habits.mjs countdown
+  ) || rc=1
+  (
+    STACK_HTTPS=1
+    # The last seconds kept while idle, saved with the page's SAVE LAST button.
+    export HIGHLIGHT_S=2 PHONE2ACT_RECORDER__HIGHLIGHT_S=2
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_habits.mjs highlight
   ) || rc=1
 fi
 if [[ "$suites" == *handback* ]]; then

@@ -1,7 +1,8 @@
 // Recording habits on the phone page (issue 27). `node test_habits.mjs outcome`: the operator saves an episode
 // as a success or a failure with the page's outcome buttons. `node test_habits.mjs countdown` (a server with
 // [recorder] episode_time_s, reset_time_s and start_next_after_reset, see run.sh): the page counts the episode
-// and the reset period down and cues their transitions. Checked on the server side through independent paths:
+// and the reset period down and cues their transitions. `node test_habits.mjs highlight` (a server with
+// [recorder] highlight_s = 2): the SAVE LAST button saves the last seconds the recorder kept while idle. Checked on the server side through independent paths:
 // the status topic (rosbridge) and the dataset on disk. Prints "habits: N passed, M failed".
 import { readFileSync } from 'node:fs';
 import { join } from 'node:path';
@@ -51,6 +52,7 @@ await check('the outcome buttons are off while nothing is recorded', async () =>
   await server.until((s) => s.arm === 'main' && s.recording, 'status of main');
   assert(await page.isDisabled('#rec-success'), 'SUCCESS is enabled while idle');
   assert(await page.isDisabled('#rec-failure'), 'FAILURE is enabled while idle');
+  assert(await page.isHidden('#rec-highlight'), 'SAVE LAST is shown by a server that keeps nothing');
 });
 
 await check('SUCCESS saves the episode marked as a success', async () => {
@@ -116,6 +118,41 @@ if (suite === 'countdown') {
     await page.click('#rec-discard');
     await server.until((s) => s.recording.phase === 'idle' && !s.recording.resetting, 'idle after the discard', 30000);
     await waitPage(page, () => document.querySelector('#countdown').hidden, 'the countdown hidden when idle');
+  });
+}
+
+if (suite === 'highlight') {
+  const keepS = Number(process.env.HIGHLIGHT_S);
+  await check('SAVE LAST saves the last seconds kept while idle as an episode', async () => {
+    await waitPage(page, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
+    await page.click('#start-ar');
+    await server.until((s) => s.recording && s.recording.highlight_s === keepS, 'the server keeps the last seconds');
+    // The button says how much is kept, and is live once something is.
+    await page.evaluate((k) => { window.__keepS = k.toFixed(1); }, keepS);
+    await waitPage(page, () => !document.querySelector('#rec-highlight').hidden
+      && !document.querySelector('#rec-highlight').disabled
+      && document.querySelector('#rec-highlight').textContent.includes(`SAVE LAST ${window.__keepS} s`),
+    'SAVE LAST with the seconds kept', 30000);
+    await page.fill('#task', 'the last two seconds');
+    await page.click('#rec-highlight');
+    await server.until((s) => s.recording.saved === 1 && s.recording.phase === 'idle', 'the kept seconds saved', 60000);
+    // From the oldest kept tick at a multiple of the video GOP (2): N·fps frames, or one more.
+    const info = JSON.parse(readFileSync(join(STACK_DIR, 'dataset', 'meta', 'info.json'), 'utf8'));
+    const want = Math.round(keepS * info.fps);
+    assert(info.total_episodes === 1 && info.total_frames >= want && info.total_frames <= want + 1,
+      `${info.total_episodes} episodes, ${info.total_frames} frames for ${keepS} s at ${info.fps} fps`);
+    await page.screenshot({ path: join(OUT_DIR, 'phone-page-highlight.png'), fullPage: true });
+  });
+
+  await check('SAVE LAST is off while an episode records (it holds these seconds itself)', async () => {
+    await page.click('#rec-start');
+    await server.until((s) => s.recording.phase === 'recording', 'recording to start');
+    await waitPage(page, () => document.querySelector('#rec-highlight').disabled, 'SAVE LAST disabled while recording');
+    await page.click('#rec-discard');
+    await server.until((s) => s.recording.phase === 'idle', 'idle after the discard', 30000);
+    // The recorder keeps the last seconds again once idle.
+    await waitPage(page, () => !document.querySelector('#rec-highlight').disabled, 'SAVE LAST live again', 30000);
+    assert(!(await pageState(page, () => window.phone2act.errors.length)), 'the page reported errors');
   });
 }
 

@@ -123,6 +123,20 @@ where
     false
 }
 
+/// The parquet files under `dir`, recursively, sorted.
+pub fn data_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        if e.file_type().is_ok_and(|t| t.is_dir()) {
+            out.extend(data_files(&e.path()));
+        } else if e.path().extension().is_some_and(|x| x == "parquet") {
+            out.push(e.path());
+        }
+    }
+    out.sort();
+    out
+}
+
 /// Copies a dataset a test produced to `$PHONE2ACT_CONFORMANCE_DIR/<name>` so the conformance suite loads
 /// it with the real lerobot library. Does nothing when the variable is unset.
 pub fn keep_for_conformance(name: &str, dataset: &std::path::Path) {

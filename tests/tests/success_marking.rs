@@ -8,9 +8,8 @@ use phone2act_sdk::proto as v1;
 use phone2act_server::Config;
 use phone2act_server::config::DatasetFormat;
 use phone2act_tests::bridge::{self, upstream};
-use phone2act_tests::{TestServer, keep_for_conformance_expecting, wait_until};
+use phone2act_tests::{TestServer, data_files, keep_for_conformance_expecting, wait_until};
 use serde_json::{Value, json};
-use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 const CONFIG: &str = r#"
@@ -63,19 +62,6 @@ async fn attach_bridge(server: &TestServer) -> tokio::task::JoinHandle<()> {
         }
         drain.abort();
     })
-}
-
-fn data_files(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        if e.file_type().unwrap().is_dir() {
-            out.extend(data_files(&e.path()));
-        } else if e.path().extension().is_some_and(|x| x == "parquet") {
-            out.push(e.path());
-        }
-    }
-    out.sort();
-    out
 }
 
 async fn outcomes(format: DatasetFormat, conformance_name: &str) {

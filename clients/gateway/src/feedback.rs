@@ -72,6 +72,9 @@ pub fn recording_json(rec: Option<&RecordingStatus>) -> Value {
         // `[recorder] episode_time_s` / `reset_time_s`: the countdown (null when no limit applies).
         "remaining_s": rec.remaining_s,
         "resetting": rec.resetting,
+        // `[recorder] highlight_s`: the seconds kept while idle, and how many are kept now (0 when off).
+        "highlight_s": rec.highlight_s,
+        "highlight_buffered_s": rec.highlight_buffered_s,
     })
 }
 

@@ -209,7 +209,7 @@ impl Mock {
                         recording.phase = RecordingPhase::Recording.into();
                         recording.task.clone_from(&r.task);
                     }
-                    record_command::Kind::Stop => {
+                    record_command::Kind::Stop | record_command::Kind::SaveHighlight => {
                         recording = RecordingStatus {
                             episodes_saved: recording.episodes_saved + 1,
                             ..idle()

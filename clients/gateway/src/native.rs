@@ -7,7 +7,8 @@
 //! - `{"type":"sample","seq":1,"t_ns":…,"pose":{"p":[x,y,z],"q":[x,y,z,w]},"tracking":"tracking","buttons":[…]}`
 //!   with buttons `{"clutch":"engage"|"disengage"|"toggle"}`, `{"gripper":"toggle"}` or `{"gripper":0.4}`,
 //!   `{"record":"start","task":"…"}`, `{"record":"stop"}` (with `"outcome":"success"` or `"failure"`, the
-//!   operator's verdict on the episode), `{"record":"discard"}`.
+//!   operator's verdict on the episode), `{"record":"discard"}`, `{"record":"highlight","task":"…"}` (save the
+//!   last seconds the recorder kept while idle as an episode, optionally with an `"outcome"`).
 //!
 //! - `{"type":"video_offer","camera":"front","sdp":"…","host":"192.168.1.20"}` asks for the camera's live
 //!   WebRTC video (see `webrtc`; `host` is where the page reached the gateway), `{"type":"video_off"}` ends it;
@@ -110,27 +111,37 @@ fn parse_button(v: &Value) -> Result<ButtonEvent, String> {
         }
     } else if let Some(r) = v.get("record") {
         let task = v.get("task").and_then(Value::as_str).unwrap_or_default();
+        let check_task = |what: &str| {
+            if task.trim().is_empty() {
+                return Err(format!("record {what} needs a task"));
+            }
+            if task.len() > MAX_TASK_BYTES {
+                return Err(format!("task text is longer than {MAX_TASK_BYTES} bytes"));
+            }
+            Ok(())
+        };
+        let outcome = || match v.get("outcome").map(|o| (o, o.as_str())) {
+            None => Ok(EpisodeOutcome::Unspecified),
+            Some((_, Some("success"))) => Ok(EpisodeOutcome::Success),
+            Some((_, Some("failure"))) => Ok(EpisodeOutcome::Failure),
+            Some((o, _)) => Err(format!("outcome must be success or failure, got {o}")),
+        };
         let kind = match r.as_str() {
             Some("start") => {
-                if task.trim().is_empty() {
-                    return Err("record start needs a task".into());
-                }
-                if task.len() > MAX_TASK_BYTES {
-                    return Err(format!("task text is longer than {MAX_TASK_BYTES} bytes"));
-                }
+                check_task("start")?;
                 record_command::Kind::Start
             }
-            Some("stop") => {
-                let outcome = match v.get("outcome").map(|o| (o, o.as_str())) {
-                    None => EpisodeOutcome::Unspecified,
-                    Some((_, Some("success"))) => EpisodeOutcome::Success,
-                    Some((_, Some("failure"))) => EpisodeOutcome::Failure,
-                    Some((o, _)) => return Err(format!("outcome must be success or failure, got {o}")),
-                };
-                return Ok(buttons::record_stop_with(outcome));
+            Some("stop") => return Ok(buttons::record_stop_with(outcome()?)),
+            Some("highlight") => {
+                check_task("highlight")?;
+                return Ok(buttons::save_highlight(task, outcome()?));
             }
             Some("discard") => record_command::Kind::Discard,
-            _ => return Err(format!("record must be start, stop or discard, got {r}")),
+            _ => {
+                return Err(format!(
+                    "record must be start, stop, highlight or discard, got {r}"
+                ));
+            }
         };
         Ok(buttons::record(kind, task))
     } else {

@@ -1,4 +1,4 @@
-//! The Episodes service: start, stop, discard, list, watch.
+//! The Episodes service: start, stop, discard, save the last seconds, list, watch.
 
 use crate::{AuthChannel, Client, Error, Result};
 use phone2act_proto::v1;
@@ -84,6 +84,30 @@ impl EpisodesApi {
             .into_inner()
             .status
             .ok_or_else(|| Error::Protocol("Rerecord answered without status".into()))
+    }
+
+    /// Saves the last seconds the recorder kept while idle (`[recorder] highlight_s`, LeRobot's `highlight`) as
+    /// an episode of `task`, with the operator's outcome; returns once it is committed (`episode` is set).
+    pub async fn save_highlight(
+        &mut self,
+        task: &str,
+        outcome: v1::EpisodeOutcome,
+    ) -> Result<v1::SaveHighlightResponse> {
+        self.save_highlight_with(v1::SaveHighlightRequest {
+            task: task.to_owned(),
+            outcome: outcome.into(),
+            ..v1::SaveHighlightRequest::default()
+        })
+        .await
+    }
+
+    /// [`EpisodesApi::save_highlight`] with every field of the request: `operator`, and `keep_recording` (the
+    /// kept seconds begin the episode in progress, which records on until [`EpisodesApi::stop`]).
+    pub async fn save_highlight_with(
+        &mut self,
+        request: v1::SaveHighlightRequest,
+    ) -> Result<v1::SaveHighlightResponse> {
+        Ok(self.inner.save_highlight(request).await?.into_inner())
     }
 
     /// Saved episodes.

@@ -111,6 +111,26 @@ enum EpisodeAction {
     },
     /// Stop and throw away the episode in progress.
     Discard,
+    /// Save the last seconds the server kept while idle (`[recorder] highlight_s`, LeRobot's `highlight`) as
+    /// an episode; refused while an episode is recorded.
+    Highlight {
+        /// Task text stored with every frame.
+        #[arg(long)]
+        task: String,
+        /// Who recorded it (kept in the episode's provenance).
+        #[arg(long, env = "PHONE2ACT_OPERATOR", default_value = "")]
+        operator: String,
+        /// The episode succeeded.
+        #[arg(long, conflicts_with_all = ["failure", "keep_recording"])]
+        success: bool,
+        /// The episode failed.
+        #[arg(long, conflicts_with = "keep_recording")]
+        failure: bool,
+        /// Do not save yet: the kept seconds begin the episode in progress, which records on until
+        /// `episode stop`.
+        #[arg(long)]
+        keep_recording: bool,
+    },
     /// Throw away the episode in progress and start again (same task unless --task).
     Rerecord {
         #[arg(long, default_value = "")]
@@ -455,6 +475,15 @@ fn outcome_suffix(outcome: v1::EpisodeOutcome) -> &'static str {
     }
 }
 
+/// The operator's outcome from `--success` / `--failure`.
+fn outcome_of(success: bool, failure: bool) -> v1::EpisodeOutcome {
+    match (success, failure) {
+        (true, _) => v1::EpisodeOutcome::Success,
+        (_, true) => v1::EpisodeOutcome::Failure,
+        _ => v1::EpisodeOutcome::Unspecified,
+    }
+}
+
 fn real_main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
@@ -467,11 +496,7 @@ fn real_main() -> anyhow::Result<()> {
                     outln!("recording episode {} ({:?})", s.episode_index, s.task);
                 }
                 EpisodeAction::Stop { success, failure } => {
-                    let outcome = match (success, failure) {
-                        (true, _) => v1::EpisodeOutcome::Success,
-                        (_, true) => v1::EpisodeOutcome::Failure,
-                        _ => v1::EpisodeOutcome::Unspecified,
-                    };
+                    let outcome = outcome_of(success, failure);
                     let r = episodes.stop_with(outcome).await?;
                     let ep = r.episode.unwrap_or_default();
                     outln!(
@@ -485,6 +510,40 @@ fn real_main() -> anyhow::Result<()> {
                     );
                 }
                 EpisodeAction::Discard => outln!("discarded {} frames", episodes.discard().await?),
+                EpisodeAction::Highlight {
+                    task,
+                    operator,
+                    success,
+                    failure,
+                    keep_recording,
+                } => {
+                    let r = episodes
+                        .save_highlight_with(v1::SaveHighlightRequest {
+                            task,
+                            operator,
+                            keep_recording,
+                            outcome: outcome_of(success, failure).into(),
+                        })
+                        .await?;
+                    match (r.episode, r.status) {
+                        (Some(ep), _) => outln!(
+                            "saved the last {:.2} s as episode {}: {} frames, task {:?}{} (save took {:.0} ms)",
+                            ep.duration_s,
+                            ep.episode_index,
+                            ep.length_frames,
+                            ep.task,
+                            outcome_suffix(ep.outcome()),
+                            r.save_latency_s * 1000.0
+                        ),
+                        (None, Some(s)) => outln!(
+                            "recording episode {} ({:?}) from the last {:.2} s; `episode stop` saves it",
+                            s.episode_index,
+                            s.task,
+                            s.duration_s
+                        ),
+                        (None, None) => anyhow::bail!("SaveHighlight answered with neither episode nor status"),
+                    }
+                }
                 EpisodeAction::Rerecord { task } => {
                     let s = episodes.rerecord(&task).await?;
                     outln!("re-recording episode {} ({:?})", s.episode_index, s.task);

@@ -34,6 +34,18 @@ pub enum RecorderError {
         "no episode is being recorded, so there is nothing to re-record (saved episodes are never deleted by a re-record; use Start)"
     )]
     NothingToRerecord,
+    #[error(
+        "saving the last seconds is off: set [recorder] highlight_s to the seconds the recorder keeps while idle"
+    )]
+    HighlightOff,
+    #[error(
+        "an episode is being recorded (episode {0}): it already holds these seconds; stop it to save it, or discard it"
+    )]
+    HighlightWhileRecording(u64),
+    #[error(
+        "nothing buffered yet: the recorder keeps the last seconds only once every source has sent a sample"
+    )]
+    NothingBuffered,
     #[error("video encoder for camera {camera}: {detail}")]
     Video { camera: String, detail: String },
     #[error(

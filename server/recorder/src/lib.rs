@@ -26,5 +26,5 @@ pub mod video;
 
 pub use dataset::{Dataset, EpisodeSummary};
 pub use error::RecorderError;
-pub use recorder::{Phase, Recorder, RecorderStatus, RobotSample, RobotSource, SyncConfig};
+pub use recorder::{Highlight, Phase, Recorder, RecorderStatus, RobotSample, RobotSource, SyncConfig};
 pub use spec::{CameraSpec, DatasetSpec, Format, ModalityGroup, VideoSettings};

@@ -19,9 +19,11 @@ use crate::error::RecorderError;
 use crate::events::{ArmActivity, EventKind};
 use crate::spec::DatasetSpec;
 use crate::timeline::{Pick, TickClock, TimedRing, Timing, judge};
+use crate::video::EncoderThread;
 use parking_lot::{Condvar, Mutex};
 use phone2act_clock::monotonic_ns;
 use serde::Serialize;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
@@ -74,8 +76,24 @@ pub struct RecorderStatus {
     pub episodes_saved: u64,
     pub warning: Option<String>,
     pub fps: u32,
+    /// Seconds the recorder keeps while idle for [`Recorder::save_highlight`] (`[recorder] highlight_s`); 0 when
+    /// off.
+    pub highlight_s: f64,
+    /// Seconds it holds now (less than `highlight_s` right after it starts or after a source went stale).
+    pub highlight_buffered_s: f64,
+    /// Encoded video bytes it holds now, all cameras.
+    pub highlight_video_bytes: u64,
     /// Increases on every change; see [`Recorder::watch`].
     pub version: u64,
+}
+
+/// What [`Recorder::save_highlight`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Highlight {
+    /// The kept seconds were saved as an episode.
+    Saved(EpisodeSummary),
+    /// The kept seconds start the episode now recorded; Stop saves it.
+    Recording(RecorderStatus),
 }
 
 /// Sync gate settings.
@@ -130,8 +148,60 @@ struct Active {
     operator: String,
 }
 
+/// What the recorder keeps while idle when `[recorder] highlight_s` is set (LeRobot's `highlight` ring buffer):
+/// the newest rows and, per camera, an encoder thread that keeps the newest frames encoded (see
+/// [`EncoderThread::spawn_ring`]). [`Recorder::save_highlight`] makes them the start of an episode.
+struct Ring {
+    encoders: Vec<EncoderThread>,
+    rows: VecDeque<RingRow>,
+    /// The ring frame number of `rows[0]` (frames are numbered from 0 when the ring starts, as the encoders
+    /// number them).
+    first: u64,
+    /// The ring frame number of the next row.
+    next: u64,
+    /// The first tick the ring records.
+    first_tick: u64,
+    last_robot_ns: Option<i64>,
+    last_seq: Vec<Option<u64>>,
+}
+
+/// One tick the ring kept, with what an episode's writer needs to record it as its own.
+struct RingRow {
+    tick: u64,
+    sample: RobotSample,
+    held: bool,
+    /// Why the tick is late, if it is (see [`crate::timeline`]).
+    late: Option<String>,
+}
+
+impl Active {
+    fn new(
+        writer: EpisodeWriter,
+        first_tick: u64,
+        start_unix_ns: i64,
+        last_seq: Vec<Option<u64>>,
+        operator: &str,
+    ) -> Self {
+        Active {
+            writer,
+            first_tick,
+            held: 0,
+            paused: 0,
+            paused_run: 0,
+            pause_why: String::new(),
+            late: 0,
+            start_unix_ns,
+            last_robot_ns: None,
+            last_seq,
+            error: None,
+            operator: operator.trim().to_owned(),
+        }
+    }
+}
+
 struct TickState {
     active: Option<Active>,
+    ring: Option<Ring>,
     phase: Phase,
     warning: Option<String>,
     version: u64,
@@ -159,6 +229,12 @@ struct Shared {
     /// Frames an episode holds at most (0: no limit); ticks past it are not written, so an episode saved at
     /// its time limit has exactly the limit's frames whenever the save comes.
     frame_limit: std::sync::atomic::AtomicU64,
+    /// Frames the ring keeps while idle (0: no ring; see [`Recorder::set_highlight`]).
+    highlight_frames: std::sync::atomic::AtomicU64,
+    /// The state and action lengths of the dataset.
+    dims: (usize, usize),
+    /// The GOP of the dataset's videos: a ring's saved episode starts at a multiple of it.
+    gop: u64,
 }
 
 /// Told about every committed episode, on the recorder's thread and under its dataset lock (so before the
@@ -218,13 +294,16 @@ impl Recorder {
         }
         let fps = spec.fps;
         let camera_names = spec.cameras.iter().map(|c| c.name.clone()).collect();
+        let dims = (spec.state_names.len(), spec.action_names.len());
         let mut dataset = Dataset::open(spec)?;
+        let gop = u64::from(dataset.video_settings().gop.max(1));
         dataset.set_sync_provenance(serde_json::to_value(&sync).unwrap_or_default());
         let saved = dataset.total_episodes();
         let shared = Arc::new(Shared {
             dataset: Mutex::new(dataset),
             tick: Mutex::new(TickState {
                 active: None,
+                ring: None,
                 phase: Phase::Idle,
                 warning: None,
                 version: 0,
@@ -243,6 +322,9 @@ impl Recorder {
             sync,
             commit_hook: Mutex::new(None),
             frame_limit: std::sync::atomic::AtomicU64::new(0),
+            highlight_frames: std::sync::atomic::AtomicU64::new(0),
+            dims,
+            gop,
         });
         let s2 = Arc::clone(&shared);
         let thread = std::thread::Builder::new()
@@ -282,6 +364,8 @@ impl Recorder {
 
     /// Starts recording an episode of `task` by `operator` (recorded in the episode's provenance).
     pub fn start_episode_by(&self, task: &str, operator: &str) -> Result<RecorderStatus, RecorderError> {
+        // An episode records these seconds itself: the ring stops (and starts again when it ends).
+        self.stop_ring();
         // Parked cameras start drawing now, all at once; each first frame is then waited for here (not under
         // the tick lock), so that frame 0 has a frame captured before it.
         for slot in &self.shared.cameras {
@@ -316,6 +400,7 @@ impl Recorder {
             Err(e) => {
                 drop(ds);
                 self.set_sampling(self.shared.tick.lock().active.is_some());
+                self.start_ring();
                 return Err(e);
             }
         };
@@ -329,20 +414,13 @@ impl Recorder {
         tracing::info!(episode = writer.index, task = %writer.task, "recording started");
         // The first tick not yet written: the tick thread writes tick i only once `settle_s` has passed it.
         let first_tick = self.shared.clock.first_at_or_after(monotonic_ns());
-        t.active = Some(Active {
-            last_seq: vec![None; self.shared.cameras.len()],
+        t.active = Some(Active::new(
             writer,
             first_tick,
-            held: 0,
-            paused: 0,
-            paused_run: 0,
-            pause_why: String::new(),
-            late: 0,
-            start_unix_ns: unix_ns(),
-            last_robot_ns: None,
-            error: None,
-            operator: operator.trim().to_owned(),
-        });
+            unix_ns(),
+            vec![None; self.shared.cameras.len()],
+            operator,
+        ));
         t.phase = Phase::Recording;
         t.warning = None;
         bump(&self.shared, &mut t);
@@ -374,6 +452,8 @@ impl Recorder {
         t.phase = Phase::Idle;
         t.warning = warning;
         bump(&self.shared, &mut t);
+        drop(t);
+        self.start_ring();
     }
 
     /// Stops recording and saves the episode. Returns when it is committed to disk.
@@ -387,8 +467,29 @@ impl Recorder {
     /// was sampled (a scene's success flag, false without one). Returns when it is committed to disk.
     pub fn stop_episode_with(&self, success: Option<bool>) -> Result<EpisodeSummary, RecorderError> {
         let t0 = std::time::Instant::now();
-        let mut ds = self.shared.dataset.lock();
-        let mut active = self.take_active()?;
+        let ds = self.shared.dataset.lock();
+        self.stop_locked(ds, success, t0)
+    }
+
+    /// [`Recorder::stop_episode_with`] under the dataset lock `ds`.
+    fn stop_locked(
+        &self,
+        ds: parking_lot::MutexGuard<'_, Dataset>,
+        success: Option<bool>,
+        t0: std::time::Instant,
+    ) -> Result<EpisodeSummary, RecorderError> {
+        let active = self.take_active()?;
+        self.save_active(ds, active, success, t0)
+    }
+
+    /// Saves `active`, taken from the tick state (phase `Saving`), under the dataset lock `ds`.
+    fn save_active(
+        &self,
+        mut ds: parking_lot::MutexGuard<'_, Dataset>,
+        mut active: Active,
+        success: Option<bool>,
+        t0: std::time::Instant,
+    ) -> Result<EpisodeSummary, RecorderError> {
         if let Some(v) = success {
             active.writer.set_last_success(v);
         }
@@ -482,6 +583,186 @@ impl Recorder {
         self.start_episode(&task.unwrap_or(current))
     }
 
+    /// Keeps the last `seconds` while idle (LeRobot's `highlight`, `[recorder] highlight_s`), for
+    /// [`Recorder::save_highlight`]; `None` or 0 turns it off. The ring runs whenever no episode is recorded:
+    /// one encoder thread per camera (the memory and CPU of an episode in progress) and the newest rows.
+    pub fn set_highlight(&self, seconds: Option<f64>) {
+        let frames = seconds
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .map_or(0, |s| (s * f64::from(self.shared.fps)).round().max(1.0) as u64);
+        self.shared.highlight_frames.store(frames, Ordering::Relaxed);
+        self.stop_ring();
+        self.start_ring();
+    }
+
+    /// Starts the ring if it is on, nothing is recorded and it is not running.
+    fn start_ring(&self) {
+        let keep = self.shared.highlight_frames.load(Ordering::Relaxed);
+        if keep == 0 || self.shared.stop.load(Ordering::Relaxed) {
+            return;
+        }
+        {
+            let t = self.shared.tick.lock();
+            if t.active.is_some() || t.ring.is_some() {
+                return;
+            }
+        }
+        let encoders = {
+            let ds = self.shared.dataset.lock();
+            let spec = ds.spec();
+            spec.cameras
+                .iter()
+                .map(|c| {
+                    EncoderThread::spawn_ring(
+                        &c.name,
+                        c.width,
+                        c.height,
+                        spec.fps,
+                        ds.video_settings().clone(),
+                        self.shared.sync.queue_frames,
+                        keep + self.shared.gop,
+                    )
+                })
+                .collect::<Result<Vec<_>, _>>()
+        };
+        let encoders = match encoders {
+            Ok(e) => e,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot keep the last seconds");
+                let mut t = self.shared.tick.lock();
+                t.warning = Some(format!("cannot keep the last seconds: {e}"));
+                bump(&self.shared, &mut t);
+                return;
+            }
+        };
+        for slot in &self.shared.cameras {
+            slot.touch();
+        }
+        self.set_sampling(true);
+        let mut t = self.shared.tick.lock();
+        if t.active.is_some() || t.ring.is_some() {
+            drop(t);
+            drop(encoders);
+            return;
+        }
+        t.ring = Some(Ring {
+            last_seq: vec![None; encoders.len()],
+            encoders,
+            rows: VecDeque::new(),
+            first: 0,
+            next: 0,
+            first_tick: self.shared.clock.first_at_or_after(monotonic_ns()),
+            last_robot_ns: None,
+        });
+        bump(&self.shared, &mut t);
+    }
+
+    /// Stops the ring, throwing away what it keeps.
+    fn stop_ring(&self) {
+        let ring = self.shared.tick.lock().ring.take();
+        // Outside the lock: the encoder threads are joined.
+        drop(ring);
+    }
+
+    /// Saves the last seconds the recorder kept while idle (`[recorder] highlight_s`, LeRobot's `highlight`) as
+    /// episode `total_episodes` of `task` by `operator`: frame 0 is the oldest kept tick at a multiple of the
+    /// video GOP (so the episode holds between `highlight_s` and `highlight_s` plus a GOP of frames, or all the
+    /// ring holds when it holds less), and it is an episode like any other: timestamps from 0, the executed
+    /// actions, the events of its frames. With `keep_recording` it stays the episode in progress (LeRobot's
+    /// behaviour: it records on until Stop, which saves it); otherwise it is saved now with the operator's
+    /// `success`, and the ring starts again.
+    ///
+    /// Refused while an episode is recorded (it holds these seconds itself), when the ring is off, and when it
+    /// holds nothing yet (a source has not sent since it started, or was stale). A save that fails (a full disk)
+    /// loses the kept seconds and keeps every episode saved before.
+    pub fn save_highlight(
+        &self,
+        task: &str,
+        operator: &str,
+        keep_recording: bool,
+        success: Option<bool>,
+    ) -> Result<Highlight, RecorderError> {
+        let t0 = std::time::Instant::now();
+        let task = crate::dataset::check_task(task)?.to_owned();
+        let keep = self.shared.highlight_frames.load(Ordering::Relaxed);
+        if keep == 0 {
+            return Err(RecorderError::HighlightOff);
+        }
+        let mut ds = self.shared.dataset.lock();
+        let mut t = self.shared.tick.lock();
+        if let Some(a) = &t.active {
+            return Err(RecorderError::HighlightWhileRecording(a.writer.index));
+        }
+        let Some(mut ring) = t.ring.take() else {
+            return Err(RecorderError::NothingBuffered);
+        };
+        let gop = self.shared.gop;
+        let mut cut = (ring.next.saturating_sub(keep) / gop * gop).max(ring.first.div_ceil(gop) * gop);
+        let limit = self.shared.frame_limit.load(Ordering::Relaxed);
+        if limit > 0 && ring.next - cut.min(ring.next) > limit {
+            // Never more than an episode may hold (`episode_time_s`).
+            cut = (ring.next - limit).div_ceil(gop) * gop;
+        }
+        if cut >= ring.next {
+            t.ring = Some(ring);
+            return Err(RecorderError::NothingBuffered);
+        }
+        let writer = match ds.begin_episode_from_ring(&task, &mut ring.encoders, cut) {
+            Ok(w) => w,
+            Err(e) => {
+                t.ring = Some(ring);
+                return Err(e);
+            }
+        };
+        let from = (cut - ring.first) as usize;
+        let first_tick = ring.rows[from].tick;
+        let since_first_ns = monotonic_ns() - self.shared.clock.time_ns(first_tick);
+        let mut active = Active::new(
+            writer,
+            first_tick,
+            unix_ns() - since_first_ns.max(0),
+            ring.last_seq.clone(),
+            operator,
+        );
+        active.last_robot_ns = ring.last_robot_ns;
+        for row in ring.rows.drain(from..) {
+            active.held += u64::from(row.held);
+            let mut pushed = Ok(());
+            if let Some(why) = row.late {
+                active.late += 1;
+                pushed = active.writer.note_timeline(EventKind::LateTick, 1, why);
+            }
+            let s = row.sample;
+            let pushed = pushed
+                .and_then(|()| active.writer.note_activity(&s.arms))
+                .and_then(|()| active.writer.push_row(&s.state, &s.action, flags_of(&s)));
+            if let Err(e) = pushed {
+                active.error = Some(e);
+                break;
+            }
+        }
+        tracing::info!(
+            episode = active.writer.index,
+            frames = active.writer.frames(),
+            "recording started from the last seconds kept"
+        );
+        t.warning = None;
+        if !keep_recording {
+            // Saved as kept: no tick after the request joins it.
+            t.phase = Phase::Saving;
+            bump(&self.shared, &mut t);
+            drop(t);
+            self.set_sampling(false);
+            return self.save_active(ds, active, success, t0).map(Highlight::Saved);
+        }
+        t.active = Some(active);
+        t.phase = Phase::Recording;
+        bump(&self.shared, &mut t);
+        drop(t);
+        drop(ds);
+        Ok(Highlight::Recording(self.status()))
+    }
+
     /// Saved episodes.
     pub fn episodes(&self) -> Vec<EpisodeSummary> {
         self.shared.dataset.lock().episodes()
@@ -521,6 +802,8 @@ impl Recorder {
         if let Some(h) = self.sampler.take() {
             let _ = h.join();
         }
+        let ring = self.shared.tick.lock().ring.take();
+        drop(ring);
         let active = self.shared.tick.lock().active.take();
         if let Some(a) = active {
             self.shared.dataset.lock().abort_episode(a.writer);
@@ -568,6 +851,15 @@ fn status_of(shared: &Shared, t: &TickState) -> RecorderStatus {
         episodes_saved: t.saved,
         warning: t.warning.clone(),
         fps,
+        highlight_s: shared.highlight_frames.load(Ordering::Relaxed) as f64 / f64::from(fps),
+        highlight_buffered_s: t.ring.as_ref().map_or(0.0, |r| {
+            let keep = shared.highlight_frames.load(Ordering::Relaxed);
+            (r.rows.len() as u64).min(keep) as f64 / f64::from(fps)
+        }),
+        highlight_video_bytes: t
+            .ring
+            .as_ref()
+            .map_or(0, |r| r.encoders.iter().map(EncoderThread::kept_bytes).sum()),
         version: t.version,
     }
 }
@@ -636,19 +928,20 @@ fn picked<T: Clone>(pick: &Pick<'_, T>) -> Option<T> {
     }
 }
 
-fn tick(shared: &Shared, t: &mut TickState, index: u64) {
-    let Some(a) = &mut t.active else { return };
-    if a.error.is_some() || index < a.first_tick {
-        return;
-    }
-    let limit = shared.frame_limit.load(Ordering::Relaxed);
-    if limit > 0 && a.writer.frames() >= limit {
-        return;
-    }
-    let tick_ns = shared.clock.time_ns(index);
+/// The robot sample and camera frames of one tick, and how they were judged.
+struct Gathered {
+    /// Why the tick cannot be recorded.
+    stale: Option<String>,
+    /// The sources captured farther from the tick than the sample tolerance.
+    late: Vec<String>,
+    sample: Option<RobotSample>,
+    frames: Vec<Option<Frame>>,
+}
+
+fn gather(shared: &Shared, tick_ns: i64) -> Gathered {
     let tol_ns = (shared.sync.sample_tolerance_s * 1e9) as i64;
     let hold_ns = (shared.sync.hold_tolerance_s * 1e9) as i64;
-    let dims = (a.writer_state_dims(), a.writer_action_dims());
+    let dims = shared.dims;
     let mut stale: Option<String> = None;
     let mut late = Vec::new();
     let (timing, sample) = {
@@ -681,6 +974,79 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
         timing_note(&format!("camera {name}"), timing, &mut stale, &mut late);
         frames.push(frame);
     }
+    Gathered {
+        stale,
+        late,
+        sample,
+        frames,
+    }
+}
+
+/// A frame's flags as recorded.
+fn flags_of(s: &RobotSample) -> FrameFlags {
+    FrameFlags {
+        success: s.success,
+        // LeRobot's DAgger `intervention`: a person drove (the clutch was in on) at least one arm.
+        intervention: s.arms.iter().any(|arm| arm.arbiter.engaged),
+    }
+}
+
+/// A tick while idle with the ring on: kept as the ring's next row, its frames queued to the ring's encoders.
+/// A stale source empties the ring (a saved episode never spans a gap: its time would jump).
+fn ring_tick(shared: &Shared, t: &mut TickState, index: u64) {
+    let keep = shared.highlight_frames.load(Ordering::Relaxed);
+    let Some(r) = &mut t.ring else { return };
+    if index < r.first_tick {
+        return;
+    }
+    let g = gather(shared, shared.clock.time_ns(index));
+    if g.stale.is_some() {
+        r.rows.clear();
+        r.first = r.next;
+        return;
+    }
+    let Some(sample) = g.sample else { return };
+    let mut held = r.last_robot_ns == Some(sample.capture_time_ns);
+    r.last_robot_ns = Some(sample.capture_time_ns);
+    for (i, f) in g.frames.into_iter().enumerate() {
+        let Some(f) = f else { continue };
+        held |= r.last_seq[i] == Some(f.seq);
+        r.last_seq[i] = Some(f.seq);
+        r.encoders[i].push(r.next, f);
+    }
+    r.rows.push_back(RingRow {
+        tick: index,
+        sample,
+        held,
+        late: (!g.late.is_empty()).then(|| g.late.join(", ")),
+    });
+    r.next += 1;
+    // A GOP more than asked: the saved episode starts at a key frame at or before the oldest asked-for tick.
+    while r.rows.len() as u64 > keep + shared.gop {
+        r.rows.pop_front();
+        r.first += 1;
+    }
+}
+
+fn tick(shared: &Shared, t: &mut TickState, index: u64) {
+    if t.active.is_none() {
+        ring_tick(shared, t, index);
+        return;
+    }
+    let Some(a) = &mut t.active else { return };
+    if a.error.is_some() || index < a.first_tick {
+        return;
+    }
+    let limit = shared.frame_limit.load(Ordering::Relaxed);
+    if limit > 0 && a.writer.frames() >= limit {
+        return;
+    }
+    let Gathered {
+        stale,
+        late,
+        sample,
+        frames,
+    } = gather(shared, shared.clock.time_ns(index));
     if let Some(why) = stale {
         a.paused += 1;
         a.paused_run += 1;
@@ -728,14 +1094,7 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
     }
     let pushed = pushed
         .and_then(|()| a.writer.note_activity(&s.arms))
-        .and_then(|()| {
-            let flags = FrameFlags {
-                success: s.success,
-                // LeRobot's DAgger `intervention`: a person drove (the clutch was in on) at least one arm.
-                intervention: s.arms.iter().any(|arm| arm.arbiter.engaged),
-            };
-            a.writer.push_row(&s.state, &s.action, flags)
-        });
+        .and_then(|()| a.writer.push_row(&s.state, &s.action, flags_of(&s)));
     if let Err(e) = pushed {
         let msg = format!("recording failed, the episode cannot be saved: {e}");
         tracing::error!("{msg}");
@@ -751,14 +1110,5 @@ fn tick(shared: &Shared, t: &mut TickState, index: u64) {
             t.warning = Some(msg);
             bump(shared, t);
         }
-    }
-}
-
-impl Active {
-    fn writer_state_dims(&self) -> usize {
-        self.writer.state_dims()
-    }
-    fn writer_action_dims(&self) -> usize {
-        self.writer.action_dims()
     }
 }

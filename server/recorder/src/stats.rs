@@ -417,6 +417,16 @@ impl ImageStats {
         self.frames += 1;
     }
 
+    /// Adds the frames `other` sampled.
+    pub fn merge(&mut self, other: &ImageStats) {
+        for (mine, theirs) in self.hist.iter_mut().zip(&other.hist) {
+            for (m, t) in mine.iter_mut().zip(theirs) {
+                *m += t;
+            }
+        }
+        self.frames += other.frames;
+    }
+
     /// Stats in 0..1, `count` = sampled frames.
     pub fn finish(&self) -> FeatureStats {
         let mut s = FeatureStats {

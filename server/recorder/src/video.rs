@@ -47,10 +47,11 @@ pub fn init_ffmpeg() {
     });
 }
 
-/// A synchronous encoder writing one mp4. Opened with the first frame: SVT-AV1 hangs when an encoder that
-/// never received a frame is flushed, so an encoder without frames must never exist.
+/// A synchronous encoder writing one mp4, or keeping its newest packets in memory (a ring: see
+/// [`VideoEncoder::ring`]) until [`VideoEncoder::attach`] starts the mp4 from one of them. Opened with the first
+/// frame: SVT-AV1 hangs when an encoder that never received a frame is flushed, so an encoder without frames
+/// must never exist.
 pub struct VideoEncoder {
-    octx: format::context::Output,
     /// Always `Some` until dropped; an `Option` so that [`Drop`] can free it under [`CODEC_LOCK`].
     encoder: Option<encoder::Video>,
     eof_sent: bool,
@@ -58,14 +59,65 @@ pub struct VideoEncoder {
     rgb: VideoFrame,
     yuv: VideoFrame,
     encoder_tb: Rational,
-    stream_tb: Rational,
+    fps: u32,
+    gop: u32,
     frames: u64,
     width: u32,
     height: u32,
+    /// The mp4 (or, for a ring, the camera) named in errors.
     path: PathBuf,
     packet: Packet,
-    /// The newest encoded packet, not yet written (see [`VideoEncoder::finish`]).
+    sink: Sink,
+}
+
+/// Where an encoder's packets go.
+enum Sink {
+    File(FileSink),
+    Ring(PacketRing),
+}
+
+/// An mp4 being written, one packet late (the last one is only known at the flush, see
+/// [`VideoEncoder::finish`]).
+struct FileSink {
+    octx: format::context::Output,
+    stream_tb: Rational,
+    /// The encoder's frame number that is the file's frame 0 (not 0 for a file started from a ring).
+    first_frame: u64,
+    /// Whether a packet was written: the first must be the key frame of `first_frame`.
+    started: bool,
     held: Option<Packet>,
+}
+
+/// The newest encoded packets of a ring encoder, oldest first, starting at a key frame; at least `keep_frames`
+/// frames once that many were encoded, at most `keep_frames` plus a GOP.
+struct PacketRing {
+    packets: std::collections::VecDeque<Packet>,
+    keep_frames: u64,
+    bytes: usize,
+}
+
+impl PacketRing {
+    fn push(&mut self, packet: Packet) {
+        self.bytes += packet.size();
+        let newest = packet.pts().unwrap_or(0);
+        self.packets.push_back(packet);
+        // Drop everything before the newest key frame that still leaves `keep_frames` frames behind it (the
+        // packets are in frame order, so only a prefix can qualify).
+        let cut = self
+            .packets
+            .iter()
+            .enumerate()
+            .skip(1)
+            .take_while(|(_, p)| newest + 1 - p.pts().unwrap_or(0) >= self.keep_frames as i64)
+            .filter(|(_, p)| p.is_key())
+            .map(|(i, _)| i)
+            .last();
+        if let Some(cut) = cut {
+            for p in self.packets.drain(..cut) {
+                self.bytes -= p.size();
+            }
+        }
+    }
 }
 
 fn ff_err(path: &Path, what: &str, e: ffmpeg::Error) -> RecorderError {
@@ -82,6 +134,116 @@ fn ff_err(path: &Path, what: &str, e: ffmpeg::Error) -> RecorderError {
     }
 }
 
+fn open_codec(
+    path: &Path,
+    width: u32,
+    height: u32,
+    fps: u32,
+    settings: &VideoSettings,
+) -> Result<encoder::Video, RecorderError> {
+    init_ffmpeg();
+    let codec_impl = encoder::find_by_name(&settings.encoder).ok_or_else(|| RecorderError::Video {
+        camera: path.display().to_string(),
+        detail: format!(
+            "FFmpeg has no {} encoder (install an FFmpeg built with it)",
+            settings.encoder
+        ),
+    })?;
+    let mut enc = codec::context::Context::new_with_codec(codec_impl)
+        .encoder()
+        .video()
+        .map_err(|e| ff_err(path, "video encoder for", e))?;
+    enc.set_width(width);
+    enc.set_height(height);
+    enc.set_format(Pixel::YUV420P);
+    enc.set_time_base(Rational::new(1, fps as i32));
+    enc.set_frame_rate(Some(Rational::new(fps as i32, 1)));
+    enc.set_gop(settings.gop);
+    if settings.encoder != "libsvtav1" {
+        // With a GOP of 2, B-frames save nothing, and their reordering makes torchcodec's approximate
+        // seek (lerobot's default decoder) fail on an episode's last frame. They also add flush latency.
+        enc.set_max_b_frames(0);
+    }
+    // The output is always an mp4, whose muxer wants the codec's headers out of band.
+    enc.set_flags(codec::Flags::GLOBAL_HEADER);
+    let mut opts = Dictionary::new();
+    opts.set("crf", &settings.crf.to_string());
+    if let Some(p) = &settings.preset {
+        opts.set("preset", p);
+    }
+    for (k, v) in &settings.extra {
+        opts.set(k, v);
+    }
+    let guard = CODEC_LOCK.lock();
+    let encoder = enc
+        .open_with(opts)
+        .map_err(|e| ff_err(path, "cannot open encoder for", e));
+    drop(guard);
+    encoder
+}
+
+impl FileSink {
+    /// Creates `path` with a stream of `encoder`'s parameters and writes its header.
+    fn create(
+        path: &Path,
+        encoder: &encoder::Video,
+        fps: u32,
+        first_frame: u64,
+    ) -> Result<FileSink, RecorderError> {
+        let encoder_tb = Rational::new(1, fps as i32);
+        let mut octx = format::output_as(&path, "mp4").map_err(|e| ff_err(path, "cannot create", e))?;
+        let codec_impl = encoder::find(encoder.id());
+        let mut ost = octx
+            .add_stream(codec_impl)
+            .map_err(|e| ff_err(path, "cannot add stream to", e))?;
+        ost.set_parameters(encoder);
+        ost.set_time_base(encoder_tb);
+        ost.set_rate(Rational::new(fps as i32, 1));
+        ost.set_avg_frame_rate(Rational::new(fps as i32, 1));
+        octx.write_header()
+            .map_err(|e| ff_err(path, "cannot write header of", e))?;
+        // The muxer picks its own time base (mp4: 1/15360 at 30 fps); read it after write_header.
+        let stream_tb = octx.stream(0).map_or(encoder_tb, |s| s.time_base());
+        Ok(FileSink {
+            octx,
+            stream_tb,
+            first_frame,
+            started: false,
+            held: None,
+        })
+    }
+
+    /// Writes the packet before `packet` (in the encoder's time base), shifted to the file's frame 0; a packet
+    /// of a frame before the file's first is left out.
+    fn write(&mut self, mut packet: Packet, encoder_tb: Rational, path: &Path) -> Result<(), RecorderError> {
+        let first = self.first_frame as i64;
+        let pts = packet.pts().unwrap_or(0);
+        if pts < first {
+            return Ok(());
+        }
+        if !self.started {
+            if pts != first || !packet.is_key() {
+                return Err(RecorderError::Video {
+                    camera: path.display().to_string(),
+                    detail: format!(
+                        "frame {first} is not a key frame (the video cannot start there): the encoder does not keep its GOP"
+                    ),
+                });
+            }
+            self.started = true;
+        }
+        packet.set_pts(Some(pts - first));
+        packet.set_dts(packet.dts().map(|d| d - first));
+        packet.rescale_ts(encoder_tb, self.stream_tb);
+        if let Some(previous) = self.held.replace(packet) {
+            previous
+                .write_interleaved(&mut self.octx)
+                .map_err(|e| ff_err(path, "cannot write", e))?;
+        }
+        Ok(())
+    }
+}
+
 impl VideoEncoder {
     /// Creates `path` and an encoder for `width`x`height` at `fps`.
     pub fn create(
@@ -91,83 +253,132 @@ impl VideoEncoder {
         fps: u32,
         settings: &VideoSettings,
     ) -> Result<Self, RecorderError> {
-        init_ffmpeg();
-        let codec_impl = encoder::find_by_name(&settings.encoder).ok_or_else(|| RecorderError::Video {
-            camera: path.display().to_string(),
-            detail: format!(
-                "FFmpeg has no {} encoder (install an FFmpeg built with it)",
-                settings.encoder
-            ),
-        })?;
-        let mut octx = format::output_as(&path, "mp4").map_err(|e| ff_err(path, "cannot create", e))?;
-        let global_header = octx.format().flags().contains(format::Flags::GLOBAL_HEADER);
-        let encoder_tb = Rational::new(1, fps as i32);
-        let mut enc = codec::context::Context::new_with_codec(codec_impl)
-            .encoder()
-            .video()
-            .map_err(|e| ff_err(path, "video encoder for", e))?;
-        enc.set_width(width);
-        enc.set_height(height);
-        enc.set_format(Pixel::YUV420P);
-        enc.set_time_base(encoder_tb);
-        enc.set_frame_rate(Some(Rational::new(fps as i32, 1)));
-        enc.set_gop(settings.gop);
-        if settings.encoder != "libsvtav1" {
-            // With a GOP of 2, B-frames save nothing, and their reordering makes torchcodec's approximate
-            // seek (lerobot's default decoder) fail on an episode's last frame. They also add flush latency.
-            enc.set_max_b_frames(0);
-        }
-        if global_header {
-            enc.set_flags(codec::Flags::GLOBAL_HEADER);
-        }
-        let mut opts = Dictionary::new();
-        opts.set("crf", &settings.crf.to_string());
-        if let Some(p) = &settings.preset {
-            opts.set("preset", p);
-        }
-        for (k, v) in &settings.extra {
-            opts.set(k, v);
-        }
-        let guard = CODEC_LOCK.lock();
-        let encoder = enc
-            .open_with(opts)
-            .map_err(|e| ff_err(path, "cannot open encoder for", e));
-        drop(guard);
-        let encoder = encoder?;
-        let header = (|| {
-            let mut ost = octx
-                .add_stream(codec_impl)
-                .map_err(|e| ff_err(path, "cannot add stream to", e))?;
-            ost.set_parameters(&encoder);
-            ost.set_time_base(encoder_tb);
-            ost.set_rate(Rational::new(fps as i32, 1));
-            ost.set_avg_frame_rate(Rational::new(fps as i32, 1));
-            octx.write_header()
-                .map_err(|e| ff_err(path, "cannot write header of", e))
-        })();
-        if let Err(e) = header {
-            // A full disk at the first frame: the encoder has no frame yet and must not be freed as is.
-            discard_encoder(encoder, 0, width, height);
-            return Err(e);
-        }
-        // The muxer picks its own time base (mp4: 1/15360 at 30 fps); read it after write_header.
-        let stream_tb = octx.stream(0).map_or(encoder_tb, |s| s.time_base());
-        Ok(VideoEncoder {
-            octx,
+        let encoder = open_codec(path, width, height, fps, settings)?;
+        let sink = match FileSink::create(path, &encoder, fps, 0) {
+            Ok(sink) => sink,
+            Err(e) => {
+                // A full disk at the first frame: the encoder has no frame yet and must not be freed as is.
+                discard_encoder(encoder, 0, width, height);
+                return Err(e);
+            }
+        };
+        Ok(Self::with_sink(
+            encoder,
+            Sink::File(sink),
+            path,
+            width,
+            height,
+            fps,
+            settings,
+        ))
+    }
+
+    /// An encoder for `width`x`height` at `fps` that writes no file: it keeps the packets of (at least) its
+    /// newest `keep_frames` frames, from a key frame, until [`VideoEncoder::attach`]. Every frame whose number
+    /// is a multiple of the GOP is made a key frame, so that any such frame can start a video and every camera
+    /// of a recorder has its key frames at the same numbers. `camera` names it in errors.
+    pub fn ring(
+        camera: &str,
+        width: u32,
+        height: u32,
+        fps: u32,
+        settings: &VideoSettings,
+        keep_frames: u64,
+    ) -> Result<Self, RecorderError> {
+        let path = Path::new(camera);
+        let encoder = open_codec(path, width, height, fps, settings)?;
+        let sink = Sink::Ring(PacketRing {
+            packets: std::collections::VecDeque::new(),
+            keep_frames: keep_frames.max(1),
+            bytes: 0,
+        });
+        Ok(Self::with_sink(encoder, sink, path, width, height, fps, settings))
+    }
+
+    fn with_sink(
+        encoder: encoder::Video,
+        sink: Sink,
+        path: &Path,
+        width: u32,
+        height: u32,
+        fps: u32,
+        settings: &VideoSettings,
+    ) -> Self {
+        VideoEncoder {
             encoder: Some(encoder),
             eof_sent: false,
             scaler: None,
             rgb: VideoFrame::new(Pixel::RGB24, width, height),
             yuv: VideoFrame::new(Pixel::YUV420P, width, height),
-            encoder_tb,
-            stream_tb,
+            encoder_tb: Rational::new(1, fps as i32),
+            fps,
+            gop: settings.gop.max(1),
             frames: 0,
             width,
             height,
             path: path.to_owned(),
             packet: Packet::empty(),
-            held: None,
-        })
+            sink,
+        }
+    }
+
+    /// Starts writing `path` from frame `first_frame` of a ring encoder (a multiple of the GOP, not older than
+    /// the ring keeps): its kept packets from that frame are written now, and every later one as it comes.
+    /// The file's frame 0 is `first_frame`. An encoder already writing a file refuses.
+    pub fn attach(&mut self, path: &Path, first_frame: u64) -> Result<(), RecorderError> {
+        let Sink::Ring(ring) = &mut self.sink else {
+            return Err(RecorderError::Video {
+                camera: path.display().to_string(),
+                detail: "the encoder already writes a file".into(),
+            });
+        };
+        let packets = std::mem::take(&mut ring.packets);
+        let oldest = packets.front().and_then(Packet::pts);
+        if oldest.is_some_and(|p| p > first_frame as i64) {
+            return Err(RecorderError::Video {
+                camera: path.display().to_string(),
+                detail: format!(
+                    "frame {first_frame} is no longer kept (the oldest is {})",
+                    oldest.unwrap_or(0)
+                ),
+            });
+        }
+        let encoder = self.encoder.as_ref().expect("the encoder lives until drop");
+        let mut sink = FileSink::create(path, encoder, self.fps, first_frame)?;
+        for packet in packets {
+            sink.write(packet, self.encoder_tb, path)?;
+        }
+        path.clone_into(&mut self.path);
+        self.sink = Sink::File(sink);
+        Ok(())
+    }
+
+    /// The oldest frame number a ring keeps (its first packet's), if any.
+    pub fn oldest_kept(&self) -> Option<u64> {
+        match &self.sink {
+            Sink::Ring(ring) => ring
+                .packets
+                .front()
+                .and_then(Packet::pts)
+                .map(|p| p.max(0) as u64),
+            Sink::File(_) => None,
+        }
+    }
+
+    /// Bytes of encoded video a ring keeps (0 for an encoder writing a file).
+    pub fn kept_bytes(&self) -> usize {
+        match &self.sink {
+            Sink::Ring(ring) => ring.bytes,
+            Sink::File(_) => 0,
+        }
+    }
+
+    /// Frames of the file: encoded since its frame 0.
+    pub fn file_frames(&self) -> u64 {
+        match &self.sink {
+            Sink::File(f) => self.frames.saturating_sub(f.first_frame),
+            Sink::Ring(_) => 0,
+        }
     }
 
     /// Frames encoded so far.
@@ -218,6 +429,9 @@ impl VideoEncoder {
                 .map_err(|e| ff_err(&self.path, "cannot convert frames for", e))?;
         }
         self.yuv.set_pts(Some(self.frames as i64));
+        if matches!(self.sink, Sink::Ring(_)) && self.frames.is_multiple_of(u64::from(self.gop)) {
+            self.yuv.set_kind(ffmpeg::picture::Type::I);
+        }
         self.encoder
             .as_mut()
             .expect("the encoder lives until drop")
@@ -239,26 +453,28 @@ impl VideoEncoder {
             self.packet.set_stream(0);
             // Every frame lasts exactly one period; without it the mp4 loses the last frame's duration.
             self.packet.set_duration(1);
-            self.packet.rescale_ts(self.encoder_tb, self.stream_tb);
-            // Written one packet late: the last one is only known at the flush (see `finish`).
             let packet = std::mem::replace(&mut self.packet, Packet::empty());
-            if let Some(previous) = self.held.replace(packet) {
-                previous
-                    .write_interleaved(&mut self.octx)
-                    .map_err(|e| ff_err(&self.path, "cannot write", e))?;
+            match &mut self.sink {
+                Sink::File(file) => file.write(packet, self.encoder_tb, &self.path)?,
+                Sink::Ring(ring) => ring.push(packet),
             }
         }
         Ok(())
     }
 
-    /// Flushes the encoder and writes the mp4 trailer; returns the number of frames.
+    /// Flushes the encoder and writes the mp4 trailer; returns the number of frames of the file (a ring that
+    /// was never attached writes nothing and returns 0).
     pub fn finish(mut self) -> Result<u64, RecorderError> {
         self.eof_sent = true;
         self.enc()
             .send_eof()
             .map_err(|e| ff_err(&self.path, "cannot flush", e))?;
         self.drain()?;
-        if let Some(mut last) = self.held.take() {
+        let frames = self.file_frames();
+        let Sink::File(file) = &mut self.sink else {
+            return Ok(0);
+        };
+        if let Some(mut last) = file.held.take() {
             // The last frame lasts one tick of the stream's time base longer than a period (65 µs at 30 fps).
             // Readers derive the average rate as frames / duration; with the exact duration float64 can put it
             // an ulp above fps (22 frames at 30 fps give 30.000000000000004), and GR00T N1.6, which snaps
@@ -268,16 +484,16 @@ impl VideoEncoder {
             // refusal threshold) up to 156 fps. A single frame needs none (frame 0 snaps to 0 at any rate), and
             // with it the stream's guessed rate would be the one duration's, 19.96 at 20 fps, which lerobot's
             // aggregate reads as 19 fps and refuses to join with the dataset's other videos.
-            if self.frames > 1 {
+            if frames > 1 {
                 last.set_duration(last.duration() + 1);
             }
-            last.write_interleaved(&mut self.octx)
+            last.write_interleaved(&mut file.octx)
                 .map_err(|e| ff_err(&self.path, "cannot write", e))?;
         }
-        self.octx
+        file.octx
             .write_trailer()
             .map_err(|e| ff_err(&self.path, "cannot finish", e))?;
-        Ok(self.frames)
+        Ok(frames)
     }
 }
 
@@ -327,8 +543,26 @@ pub struct EncodeReport {
 }
 
 enum Msg {
-    Frame { index: u64, frame: Frame },
-    Finish { total_frames: u64 },
+    Frame {
+        index: u64,
+        frame: Frame,
+    },
+    /// A ring encoder starts its episode's file at this frame (see [`EncoderThread::attach`]).
+    Attach {
+        path: PathBuf,
+        first_frame: u64,
+    },
+    Finish {
+        total_frames: u64,
+    },
+}
+
+/// What an encoder thread writes until told otherwise.
+enum Output {
+    /// An episode's mp4.
+    File(PathBuf),
+    /// Nothing: the newest `keep_frames` frames are kept encoded until an [`Msg::Attach`].
+    Ring { keep_frames: u64 },
 }
 
 /// A camera's encoder thread and the sending end of its bounded queue.
@@ -337,6 +571,11 @@ pub struct EncoderThread {
     tx: SyncSender<Msg>,
     dropped: Arc<AtomicU64>,
     failed: Arc<AtomicBool>,
+    /// Bytes of encoded video a ring thread keeps.
+    kept_bytes: Arc<AtomicU64>,
+    /// A ring thread's frames keeps at most, and the numbers of its newest dropped frames: an episode started
+    /// from the ring counts only its own (see [`EncoderThread::attach`]).
+    ring_drops: Option<parking_lot::Mutex<(u64, std::collections::VecDeque<u64>)>>,
     handle: Option<JoinHandle<Result<EncodeReport, RecorderError>>>,
 }
 
@@ -351,25 +590,73 @@ impl EncoderThread {
         settings: VideoSettings,
         queue_frames: usize,
     ) -> Result<Self, RecorderError> {
+        Self::spawn_with(
+            camera,
+            Output::File(path),
+            (width, height, fps),
+            settings,
+            queue_frames,
+        )
+    }
+
+    /// Starts a thread that encodes frames for `camera` and keeps the newest `keep_frames` of them encoded (see
+    /// [`VideoEncoder::ring`]) until [`EncoderThread::attach`] makes them the start of an episode's mp4.
+    /// Frames are numbered from 0 by the ring until then.
+    pub fn spawn_ring(
+        camera: &str,
+        width: u32,
+        height: u32,
+        fps: u32,
+        settings: VideoSettings,
+        queue_frames: usize,
+        keep_frames: u64,
+    ) -> Result<Self, RecorderError> {
+        let mut thread = Self::spawn_with(
+            camera,
+            Output::Ring { keep_frames },
+            (width, height, fps),
+            settings,
+            queue_frames,
+        )?;
+        thread.ring_drops = Some(parking_lot::Mutex::new((
+            keep_frames,
+            std::collections::VecDeque::new(),
+        )));
+        Ok(thread)
+    }
+
+    fn spawn_with(
+        camera: &str,
+        output: Output,
+        (width, height, fps): (u32, u32, u32),
+        settings: VideoSettings,
+        queue_frames: usize,
+    ) -> Result<Self, RecorderError> {
         let (tx, rx) = sync_channel(queue_frames.max(1));
         let dropped = Arc::new(AtomicU64::new(0));
         let failed = Arc::new(AtomicBool::new(false));
-        let (cam, drop2, fail2) = (camera.to_owned(), Arc::clone(&dropped), Arc::clone(&failed));
+        let kept_bytes = Arc::new(AtomicU64::new(0));
+        let (cam, drop2, fail2, kept2) = (
+            camera.to_owned(),
+            Arc::clone(&dropped),
+            Arc::clone(&failed),
+            Arc::clone(&kept_bytes),
+        );
         let handle = std::thread::Builder::new()
             .name(format!("encode-{camera}"))
             .spawn(move || {
                 let mut finish_seen = false;
-                let r = encode_loop(
-                    &cam,
-                    &path,
+                let mut job = EncodeJob {
+                    camera: &cam,
+                    output,
                     width,
                     height,
                     fps,
-                    &settings,
-                    &rx,
-                    &drop2,
-                    &mut finish_seen,
-                );
+                    settings: &settings,
+                    dropped: &drop2,
+                    kept_bytes: &kept2,
+                };
+                let r = job.run(&rx, &mut finish_seen);
                 if r.is_err() {
                     fail2.store(true, Ordering::Relaxed);
                     // Keep draining so the tick thread never blocks on a dead encoder, until told to finish.
@@ -378,7 +665,7 @@ impl EncoderThread {
                     while !finish_seen {
                         match rx.recv() {
                             Ok(Msg::Finish { .. }) | Err(_) => finish_seen = true,
-                            Ok(Msg::Frame { .. }) => {}
+                            Ok(Msg::Frame { .. } | Msg::Attach { .. }) => {}
                         }
                     }
                 }
@@ -390,8 +677,26 @@ impl EncoderThread {
             tx,
             dropped,
             failed,
+            kept_bytes,
+            ring_drops: None,
             handle: Some(handle),
         })
+    }
+
+    /// Makes a ring thread's kept frames from `first_frame` on (a multiple of the GOP) the start of `path`;
+    /// frames queued after this are numbered from the file's frame 0, and [`EncoderThread::dropped`] counts the
+    /// file's frames only. Blocks while the queue is full (it drains at encoder speed).
+    pub fn attach(&mut self, path: PathBuf, first_frame: u64) {
+        if let Some(drops) = self.ring_drops.take() {
+            let kept = drops.lock().1.iter().filter(|i| **i >= first_frame).count();
+            self.dropped.store(kept as u64, Ordering::Relaxed);
+        }
+        let _ = self.tx.send(Msg::Attach { path, first_frame });
+    }
+
+    /// Bytes of encoded video a ring thread keeps.
+    pub fn kept_bytes(&self) -> u64 {
+        self.kept_bytes.load(Ordering::Relaxed)
     }
 
     /// Queues frame `index` without blocking; returns false (and counts a drop) when the queue is full.
@@ -400,6 +705,14 @@ impl EncoderThread {
             Ok(()) => true,
             Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
                 self.dropped.fetch_add(1, Ordering::Relaxed);
+                if let Some(drops) = &self.ring_drops {
+                    let mut drops = drops.lock();
+                    let keep = drops.0;
+                    drops.1.push_back(index);
+                    while drops.1.front().is_some_and(|i| *i + keep < index) {
+                        drops.1.pop_front();
+                    }
+                }
                 false
             }
         }
@@ -450,77 +763,131 @@ impl Drop for EncoderThread {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn encode_loop(
-    camera: &str,
-    path: &Path,
+/// What an encoder thread runs.
+struct EncodeJob<'a> {
+    camera: &'a str,
+    output: Output,
     width: u32,
     height: u32,
     fps: u32,
-    settings: &VideoSettings,
-    rx: &Receiver<Msg>,
-    dropped: &AtomicU64,
-    finish_seen: &mut bool,
-) -> Result<EncodeReport, RecorderError> {
-    let mut enc: Option<VideoEncoder> = None;
-    let mut last: Option<Frame> = None;
-    let mut stats = ImageStats::new(fps);
-    let with_camera = |e: RecorderError| match e {
-        RecorderError::Video { detail, .. } => RecorderError::Video {
-            camera: camera.to_owned(),
-            detail,
-        },
-        other => other,
-    };
-    let total = loop {
-        let Ok(msg) = rx.recv() else {
-            *finish_seen = true;
-            break 0;
-        };
-        match msg {
-            Msg::Frame { index, frame } => {
-                let e = match &mut enc {
-                    Some(e) => e,
-                    None => enc.insert(
-                        VideoEncoder::create(path, width, height, fps, settings).map_err(with_camera)?,
-                    ),
-                };
-                // Frames lost to a full queue become repeats of the previous one: one video frame per row.
-                while e.frames() < index {
-                    let f = last.as_ref().unwrap_or(&frame);
-                    e.push_rgb(&f.rgb, f.width, f.height).map_err(with_camera)?;
-                }
-                if e.frames() == index {
-                    e.push_rgb(&frame.rgb, frame.width, frame.height)
-                        .map_err(with_camera)?;
-                    stats.observe(index, &frame);
-                }
-                last = Some(frame);
+    settings: &'a VideoSettings,
+    dropped: &'a AtomicU64,
+    kept_bytes: &'a AtomicU64,
+}
+
+impl EncodeJob<'_> {
+    fn with_camera(&self, e: RecorderError) -> RecorderError {
+        match e {
+            RecorderError::Video { detail, .. } => RecorderError::Video {
+                camera: self.camera.to_owned(),
+                detail,
+            },
+            other => other,
+        }
+    }
+
+    fn open(&self) -> Result<VideoEncoder, RecorderError> {
+        let (w, h, fps) = (self.width, self.height, self.fps);
+        match &self.output {
+            Output::File(path) => VideoEncoder::create(path, w, h, fps, self.settings),
+            Output::Ring { keep_frames } => {
+                VideoEncoder::ring(self.camera, w, h, fps, self.settings, *keep_frames)
             }
-            Msg::Finish { total_frames } => {
+        }
+        .map_err(|e| self.with_camera(e))
+    }
+
+    fn run(&mut self, rx: &Receiver<Msg>, finish_seen: &mut bool) -> Result<EncodeReport, RecorderError> {
+        let mut enc: Option<VideoEncoder> = None;
+        let mut last: Option<Frame> = None;
+        let mut stats = ImageStats::new(self.fps);
+        // A ring's sampled frames, by frame number, until its file starts: one per second (see `ImageStats`).
+        let mut ring_stats: std::collections::VecDeque<(u64, ImageStats)> = std::collections::VecDeque::new();
+        // The encoder's frame number of the file's frame 0.
+        let mut base = 0;
+        let total = loop {
+            let Ok(msg) = rx.recv() else {
                 *finish_seen = true;
-                break total_frames;
-            }
-        }
-    };
-    let frames = match enc {
-        Some(mut e) => {
-            if let Some(f) = &last {
-                while e.frames() < total {
-                    e.push_rgb(&f.rgb, f.width, f.height).map_err(with_camera)?;
+                break 0;
+            };
+            match msg {
+                Msg::Frame { index, frame } => {
+                    let e = match &mut enc {
+                        Some(e) => e,
+                        None => enc.insert(self.open()?),
+                    };
+                    let at = base + index;
+                    // Frames lost to a full queue become repeats of the previous one: one video frame per row.
+                    while e.frames() < at {
+                        let f = last.as_ref().unwrap_or(&frame);
+                        e.push_rgb(&f.rgb, f.width, f.height)
+                            .map_err(|e| self.with_camera(e))?;
+                    }
+                    if e.frames() == at {
+                        e.push_rgb(&frame.rgb, frame.width, frame.height)
+                            .map_err(|e| self.with_camera(e))?;
+                        if matches!(self.output, Output::Ring { .. }) {
+                            if index.is_multiple_of(u64::from(self.fps.max(1))) {
+                                let mut one = ImageStats::new(self.fps);
+                                one.observe(0, &frame);
+                                ring_stats.push_back((index, one));
+                            }
+                            let oldest = e.oldest_kept().unwrap_or(0);
+                            while ring_stats.front().is_some_and(|(i, _)| *i < oldest) {
+                                ring_stats.pop_front();
+                            }
+                            self.kept_bytes.store(e.kept_bytes() as u64, Ordering::Relaxed);
+                        } else {
+                            stats.observe(index, &frame);
+                        }
+                    }
+                    last = Some(frame);
+                }
+                Msg::Attach { path, first_frame } => {
+                    if let Some(e) = &mut enc {
+                        e.attach(&path, first_frame).map_err(|e| self.with_camera(e))?;
+                        base = first_frame;
+                    } else {
+                        // No frame reached the ring (all dropped): the file starts with the next frame, and the
+                        // frames before it repeat it.
+                        base = 0;
+                    }
+                    for (_, s) in ring_stats.drain(..).filter(|(i, _)| *i >= first_frame) {
+                        stats.merge(&s);
+                    }
+                    self.kept_bytes.store(0, Ordering::Relaxed);
+                    self.output = Output::File(path);
+                }
+                Msg::Finish { total_frames } => {
+                    *finish_seen = true;
+                    break total_frames;
                 }
             }
-            e.finish().map_err(with_camera)?
-        }
-        None => 0,
-    };
-    Ok(EncodeReport {
-        camera: camera.to_owned(),
-        path: path.to_owned(),
-        frames,
-        dropped: dropped.load(Ordering::Relaxed),
-        image_stats: stats,
-    })
+        };
+        let frames = match enc {
+            Some(mut e) => {
+                if let Some(f) = &last {
+                    while e.frames() < base + total {
+                        e.push_rgb(&f.rgb, f.width, f.height)
+                            .map_err(|e| self.with_camera(e))?;
+                    }
+                }
+                e.finish().map_err(|e| self.with_camera(e))?
+            }
+            None => 0,
+        };
+        let path = match &self.output {
+            Output::File(path) => path.clone(),
+            Output::Ring { .. } => PathBuf::new(),
+        };
+        Ok(EncodeReport {
+            camera: self.camera.to_owned(),
+            path,
+            frames,
+            dropped: self.dropped.load(Ordering::Relaxed),
+            image_stats: stats,
+        })
+    }
 }
 
 #[cfg(test)]
@@ -581,6 +948,52 @@ mod tests {
                     assert!((snapped_s - k as f64 / f64::from(fps)) * f64::from(fps) < 0.01);
                 }
             }
+        }
+    }
+
+    /// A ring encoder keeps its newest frames from a key frame, and a file started from one of its frames
+    /// numbered a multiple of the GOP holds that frame and every later one, from 0; a frame not kept, and a
+    /// frame that is not a key frame, are refused rather than written as a video that cannot start there.
+    #[test]
+    fn a_ring_encoder_starts_a_file_at_a_kept_key_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        for codec in ["av1", "h264"] {
+            let settings = VideoSettings::parse(Some(codec), Format::V30).unwrap();
+            let frame = |i: u64| vec![(i * 11 % 200) as u8; 64 * 64 * 3];
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            // At least 10 frames behind the newest packet out of the encoder, which lags the newest frame in
+            // (x264's lookahead holds about ten at this size).
+            let oldest = enc.oldest_kept().unwrap();
+            assert!((12..=30).contains(&oldest), "{codec}: oldest kept {oldest}");
+            assert!(enc.kept_bytes() > 0);
+            let path = dir.path().join(format!("{codec}-old.mp4"));
+            let err = enc.attach(&path, oldest - 2).unwrap_err().to_string();
+            assert!(err.contains("no longer kept"), "{codec}: {err}");
+
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            let path = dir.path().join(format!("{codec}-odd.mp4"));
+            let err = enc.attach(&path, 33).unwrap_err().to_string();
+            assert!(err.contains("not a key frame"), "{codec}: {err}");
+
+            let mut enc = VideoEncoder::ring("cam", 64, 64, 20, &settings, 10).unwrap();
+            for i in 0..40 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            let path = dir.path().join(format!("{codec}.mp4"));
+            enc.attach(&path, 32).unwrap();
+            for i in 40..45 {
+                enc.push_rgb(&frame(i), 64, 64).unwrap();
+            }
+            assert_eq!(enc.finish().unwrap(), 13, "{codec}: frames 32..45");
+            let keys = key_flags(&path);
+            assert_eq!(keys.len(), 13, "{codec}");
+            assert!(keys[0], "{codec}: the file starts at a key frame");
         }
     }
 

@@ -5,7 +5,7 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, spec, wait_for};
-use phone2act_recorder::camera::{FrameSlot, spawn_generated};
+use phone2act_recorder::camera::FrameSlot;
 use phone2act_recorder::dataset::{timestamp_pairs, timestamp_s};
 use phone2act_recorder::parquet_io::read_rows;
 use phone2act_recorder::{Format, Recorder};
@@ -18,29 +18,8 @@ const SIZE: (u32, u32) = (96, 64);
 /// 20 fps: the rate at which the nearest float32 to k/fps falls below it most often (39 % of frames).
 const FPS: u32 = 20;
 
-/// A camera three times faster than the recorder whose frames differ everywhere: the grey level steps by 37
-/// per frame and a bar moves, so a reader that returns a neighbouring frame differs in every pixel.
 fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_recorder::camera::CaptureThread {
-    spawn_generated(
-        "pairing",
-        SIZE.0,
-        SIZE.1,
-        f64::from(FPS * 3),
-        |seq, buf| {
-            let (w, h) = (SIZE.0 as usize, SIZE.1 as usize);
-            let grey = ((seq * 37) % 200 + 28) as u8;
-            buf.clear();
-            buf.resize(w * h * 3, grey);
-            let bar = (seq as usize * 7) % w;
-            for y in 0..h {
-                for x in bar..(bar + 6).min(w) {
-                    buf[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[255, 0, 0]);
-                }
-            }
-        },
-        Arc::clone(slot),
-    )
-    .unwrap()
+    common::distinct_camera(slot, SIZE, FPS)
 }
 
 fn record(root: &Path, format: Format, codec: Option<&str>, episodes: &[u64]) -> u64 {
@@ -77,7 +56,7 @@ fn check(root: &Path) {
     assert!(report.ok(), "{}", report.problems.join("\n"));
     assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let mut data = Vec::new();
-    collect(&root.join("data"), &mut data);
+    common::parquet_files(&root.join("data"), &mut data);
     assert!(!data.is_empty());
     for file in data {
         for row in read_rows(&file).unwrap() {
@@ -88,16 +67,6 @@ fn check(root: &Path) {
                 "frame {k}"
             );
             timestamp_pairs(row.timestamp, k, FPS).unwrap();
-        }
-    }
-}
-
-fn collect(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        if e.file_type().unwrap().is_dir() {
-            collect(&e.path(), out);
-        } else if e.path().extension().is_some_and(|x| x == "parquet") {
-            out.push(e.path());
         }
     }
 }

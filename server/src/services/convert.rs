@@ -38,6 +38,9 @@ pub fn recording_status(s: &RecorderStatus, config: &Config) -> v1::RecordingSta
         upload_summary: String::new(),
         remaining_s: None,
         resetting: false,
+        highlight_s: s.highlight_s,
+        highlight_buffered_s: s.highlight_buffered_s,
+        highlight_video_bytes: s.highlight_video_bytes,
     }
 }
 
@@ -341,9 +344,20 @@ mod tests {
             episodes_saved: 4,
             warning: None,
             fps: 20,
+            highlight_s: 10.0,
+            highlight_buffered_s: 4.5,
+            highlight_video_bytes: 123,
             version: 9,
         };
         let wire = recording_status(&status, &config);
+        assert_eq!(
+            (
+                wire.highlight_s,
+                wire.highlight_buffered_s,
+                wire.highlight_video_bytes
+            ),
+            (10.0, 4.5, 123)
+        );
         assert_eq!(
             (
                 wire.held_ticks,

@@ -11,6 +11,7 @@ use crate::services::error::RequestError;
 use phone2act_proto::convert_episode::outcome_success;
 use phone2act_proto::v1;
 use phone2act_proto::v1::episodes_server::Episodes;
+use phone2act_recorder::Highlight;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Instant;
@@ -32,6 +33,18 @@ impl EpisodesService {
 /// Longest operator name kept in provenance.
 const MAX_OPERATOR_BYTES: usize = 128;
 
+fn check_operator(operator: &str) -> Result<(), Status> {
+    if operator.len() > MAX_OPERATOR_BYTES {
+        return Err(RequestError::TooLong {
+            field: "operator",
+            len: operator.len(),
+            limit: MAX_OPERATOR_BYTES,
+        }
+        .into());
+    }
+    Ok(())
+}
+
 type StatusStream = Pin<Box<dyn Stream<Item = Result<v1::RecordingStatus, Status>> + Send>>;
 
 #[tonic::async_trait]
@@ -41,14 +54,7 @@ impl Episodes for EpisodesService {
         request: Request<v1::StartEpisodeRequest>,
     ) -> Result<Response<v1::StartEpisodeResponse>, Status> {
         let v1::StartEpisodeRequest { task, operator } = request.into_inner();
-        if operator.len() > MAX_OPERATOR_BYTES {
-            return Err(RequestError::TooLong {
-                field: "operator",
-                len: operator.len(),
-                limit: MAX_OPERATOR_BYTES,
-            }
-            .into());
-        }
+        check_operator(&operator)?;
         let app = &self.app;
         let status = blocking(|| {
             app.with_recorder(|r| r.start_episode_by(&task, &operator).map_err(RecordingError::from))
@@ -124,6 +130,42 @@ impl Episodes for EpisodesService {
         _: Request<v1::EpisodeStatusRequest>,
     ) -> Result<Response<v1::RecordingStatus>, Status> {
         Ok(Response::new(current_recording_status(&self.app)))
+    }
+
+    async fn save_highlight(
+        &self,
+        request: Request<v1::SaveHighlightRequest>,
+    ) -> Result<Response<v1::SaveHighlightResponse>, Status> {
+        let started = Instant::now();
+        let v1::SaveHighlightRequest {
+            task,
+            operator,
+            keep_recording,
+            outcome,
+        } = request.into_inner();
+        check_operator(&operator)?;
+        // An unknown outcome is refused before anything is taken from the ring.
+        let success = outcome_success(outcome).map_err(|e| RequestError::Refused(format!("outcome: {e}")))?;
+        let app = &self.app;
+        let done = blocking(|| {
+            app.with_recorder(|r| {
+                r.save_highlight(&task, &operator, keep_recording, success)
+                    .map_err(RecordingError::from)
+            })
+        })?;
+        let episode = match done {
+            Highlight::Saved(summary) => Some(episode(&summary)),
+            Highlight::Recording(_) => None,
+        };
+        Ok(Response::new(v1::SaveHighlightResponse {
+            save_latency_s: if episode.is_some() {
+                started.elapsed().as_secs_f64()
+            } else {
+                0.0
+            },
+            episode,
+            status: Some(current_recording_status(app)),
+        }))
     }
 
     type WatchStream = StatusStream;

@@ -177,6 +177,9 @@ fn recorder_status(e: &RecorderError, message: String) -> Status {
         RecorderError::AlreadyRecording(_)
         | RecorderError::NotRecording
         | RecorderError::NothingToRerecord
+        | RecorderError::HighlightOff
+        | RecorderError::HighlightWhileRecording(_)
+        | RecorderError::NothingBuffered
         | RecorderError::FpsMismatch { .. }
         | RecorderError::FormatMismatch { .. }
         | RecorderError::FeatureMismatch { .. }

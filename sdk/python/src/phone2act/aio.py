@@ -264,6 +264,19 @@ class AsyncEpisodes:
         r = await self._c._call("Episodes.Discard", self._stub.Discard, episodes_pb2.DiscardEpisodeRequest())
         return int(r.frames_discarded)
 
+    async def save_highlight(
+        self, task: str, operator: str = "", success: bool | None = None, keep_recording: bool = False
+    ) -> episodes_pb2.SaveHighlightResponse:
+        """Save the last seconds the recorder kept while idle (the server's `[recorder] highlight_s`, LeRobot's
+        `highlight`) as an episode of `task`; returns when it is on disk (`.episode`). `success` is the
+        operator's outcome, as in `stop`. With `keep_recording` the kept seconds begin the episode in progress
+        instead (`.status`), which records on until `stop`. Refused (`FAILED_PRECONDITION`) when the server keeps
+        nothing, and while an episode is recorded."""
+        request = episodes_pb2.SaveHighlightRequest(
+            task=task, operator=operator, keep_recording=keep_recording, outcome=_outcome(success)
+        )
+        return await self._c._call("Episodes.SaveHighlight", self._stub.SaveHighlight, request)
+
     async def rerecord(self, task: str = "") -> common_pb2.RecordingStatus:
         req = episodes_pb2.RerecordEpisodeRequest(task=task)
         return (await self._c._call("Episodes.Rerecord", self._stub.Rerecord, req)).status

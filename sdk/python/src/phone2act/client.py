@@ -212,6 +212,12 @@ class Episodes:
     def rerecord(self, task: str = "") -> common_pb2.RecordingStatus:
         return _run(self._a.rerecord(task))
 
+    def save_highlight(
+        self, task: str, operator: str = "", success: bool | None = None, keep_recording: bool = False
+    ) -> episodes_pb2.SaveHighlightResponse:
+        """Save the last seconds the server kept while idle as an episode (see `AsyncEpisodes.save_highlight`)."""
+        return _run(self._a.save_highlight(task, operator, success, keep_recording))
+
     def list(self) -> list[episodes_pb2.EpisodeInfo]:
         return _run(self._a.list())
 

@@ -2,7 +2,7 @@
 //! save latency for long episodes, and encode speed side by side with lerobot's own encoder.
 //!
 //! Run in release: `cargo run --release -p phone2act-recorder --bin recorder-bench -- [--quick]
-//! [--long-s 600] [--load-s 10] [--only load,memory,encode]`. Cameras are FFmpeg `testsrc2` through
+//! [--long-s 600] [--load-s 10] [--only load,memory,encode,highlight]`. Cameras are FFmpeg `testsrc2` through
 //! libavdevice (the V4L2 capture path), the robot is synthetic. Each memory run is a child process so its
 //! peak RSS is its own.
 
@@ -48,6 +48,17 @@ fn run() -> Res<()> {
         let arg = |k: usize| args.get(i + k).ok_or(usage);
         return rss_child(arg(1)?.parse()?, arg(2)?, arg(3)?.parse()?, arg(4)?.parse()?);
     }
+    if let Some(i) = args.iter().position(|a| a == "--rss-highlight") {
+        let usage = "--rss-highlight KEEP_S IDLE_S CODEC CAMERAS FPS";
+        let arg = |k: usize| args.get(i + k).ok_or(usage);
+        return highlight_child(
+            arg(1)?.parse()?,
+            arg(2)?.parse()?,
+            arg(3)?,
+            arg(4)?.parse()?,
+            arg(5)?.parse()?,
+        );
+    }
     let quick = args.iter().any(|a| a == "--quick");
     let val = |flag: &str| {
         args.iter()
@@ -67,9 +78,11 @@ fn run() -> Res<()> {
     if let Some(bad) = opts
         .only
         .iter()
-        .find(|s| !["load", "memory", "encode"].contains(&s.as_str()))
+        .find(|s| !["load", "memory", "encode", "highlight"].contains(&s.as_str()))
     {
-        return Err(format!("--only takes load, memory, encode (comma-separated), not {bad:?}").into());
+        return Err(
+            format!("--only takes load, memory, encode, highlight (comma-separated), not {bad:?}").into(),
+        );
     }
     println!(
         "# phone2act recorder benchmark ({} cores, release build)",
@@ -80,6 +93,9 @@ fn run() -> Res<()> {
     }
     if opts.runs("memory") {
         memory_and_save(&opts)?;
+    }
+    if opts.runs("highlight") {
+        highlight_memory(&opts)?;
     }
     if opts.runs("encode") {
         encode_speed(&opts)?;
@@ -130,8 +146,9 @@ struct Load<'a> {
     secs: f64,
 }
 
-fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
-    let (format, codec, fps, secs) = (l.format, l.codec, l.fps, l.secs);
+/// A recorder over `l`'s cameras (running) and the synthetic robot, its cameras' first frames delivered.
+fn open_recorder(root: &Path, l: &Load) -> Res<(Recorder, Vec<CaptureThread>)> {
+    let (format, codec, fps) = (l.format, l.codec, l.fps);
     let (slots, specs, threads) = cameras(l.ncams, l.size.0, l.size.1, fps)?;
     let spec = DatasetSpec {
         root: root.to_owned(),
@@ -150,6 +167,27 @@ fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
     let rec = Recorder::open(spec, Arc::new(SyntheticRobot), slots)?;
     // Let the cameras deliver a first frame.
     std::thread::sleep(Duration::from_millis(300));
+    Ok((rec, threads))
+}
+
+impl<'a> Load<'a> {
+    /// `ncams` 640x480 cameras of `codec` (`av1` in a v3.0 dataset, others in v2.1) at `fps` for `secs`.
+    fn vga(codec: &'a str, ncams: usize, fps: u32, secs: f64) -> Self {
+        let format = if codec == "av1" { Format::V30 } else { Format::V21 };
+        Load {
+            codec,
+            format,
+            ncams,
+            size: (640, 480),
+            fps,
+            secs,
+        }
+    }
+}
+
+fn record_once(root: &Path, l: &Load) -> Res<Outcome> {
+    let (fps, secs) = (l.fps, l.secs);
+    let (rec, threads) = open_recorder(root, l)?;
     rec.start_episode("benchmark")?;
     let t0 = Instant::now();
     std::thread::sleep(Duration::from_secs_f64(secs));
@@ -290,15 +328,7 @@ fn peak_rss_mb() -> f64 {
 /// Child process: one episode of `secs` with `ncams` cameras 640x480 at `fps`.
 fn rss_child(secs: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     let dir = tempfile_dir("rss")?;
-    let format = if codec == "av1" { Format::V30 } else { Format::V21 };
-    let load = Load {
-        codec,
-        format,
-        ncams,
-        size: (640, 480),
-        fps,
-        secs,
-    };
+    let load = Load::vga(codec, ncams, fps, secs);
     let r = record_once(&dir.join("ds"), &load)?;
     println!(
         "{}",
@@ -307,6 +337,18 @@ fn rss_child(secs: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
     );
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+/// Runs this benchmark as a child with `args` and returns the JSON line it prints last, or what it said on
+/// stderr when it printed none.
+fn child_json(exe: &Path, args: &[&str]) -> Res<Result<serde_json::Value, String>> {
+    let out = Command::new(exe).args(args).env("SVT_LOG", "1").output()?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text
+        .lines()
+        .last()
+        .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .ok_or_else(|| String::from_utf8_lossy(&out.stderr).trim().to_owned()))
 }
 
 fn memory_and_save(o: &Opts) -> Res<()> {
@@ -327,22 +369,16 @@ fn memory_and_save(o: &Opts) -> Res<()> {
     }
     for (codec, ncams, fps, lengths) in runs {
         for secs in lengths {
-            let out = Command::new(&exe)
-                .args(["--rss-episode", secs, codec, &ncams.to_string(), &fps.to_string()])
-                .env("SVT_LOG", "1")
-                .output()?;
-            let text = String::from_utf8_lossy(&out.stdout);
             let load = format!("{ncams} x {codec} @ {fps} fps");
-            let Some(v) = text
-                .lines()
-                .last()
-                .and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-            else {
-                println!(
-                    "| {load} | {secs} s | failed: {} |",
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-                continue;
+            let v = match child_json(
+                &exe,
+                &["--rss-episode", secs, codec, &ncams.to_string(), &fps.to_string()],
+            )? {
+                Ok(v) => v,
+                Err(e) => {
+                    println!("| {load} | {secs} s | failed: {e} |");
+                    continue;
+                }
             };
             println!(
                 "| {load} | {secs} s | {} | {} | {:.0} | {:.0} |",
@@ -350,6 +386,99 @@ fn memory_and_save(o: &Opts) -> Res<()> {
                 v["dropped"],
                 v["peak_rss_mb"].as_f64().unwrap_or(0.0),
                 v["save_ms"].as_f64().unwrap_or(0.0)
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Child process: idle for `idle_s` with `[recorder] highlight_s = keep_s` (0: off), then (when on) the kept
+/// seconds saved as an episode.
+fn highlight_child(keep_s: f64, idle_s: f64, codec: &str, ncams: usize, fps: u32) -> Res<()> {
+    let dir = tempfile_dir("highlight")?;
+    let load = Load::vga(codec, ncams, fps, idle_s);
+    let (rec, threads) = open_recorder(&dir.join("ds"), &load)?;
+    rec.set_highlight((keep_s > 0.0).then_some(keep_s));
+    std::thread::sleep(Duration::from_secs_f64(idle_s));
+    let status = rec.status();
+    let mut out = serde_json::json!({"kept_s": status.highlight_buffered_s,
+        "kept_video_mb": status.highlight_video_bytes as f64 / 1e6});
+    if keep_s > 0.0 {
+        let t0 = Instant::now();
+        let phone2act_recorder::Highlight::Saved(s) = rec.save_highlight("benchmark", "", false, None)?
+        else {
+            return Err("the kept seconds were not saved".into());
+        };
+        out["save_ms"] = serde_json::json!(t0.elapsed().as_secs_f64() * 1e3);
+        out["frames"] = serde_json::json!(s.length_frames);
+        out["dropped"] = serde_json::json!(s.dropped_frames);
+        out["late"] = serde_json::json!(s.late_ticks);
+        out["paused"] = serde_json::json!(s.paused_ticks);
+    }
+    out["peak_rss_mb"] = serde_json::json!(peak_rss_mb());
+    rec.close()?;
+    drop(threads);
+    println!("{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(())
+}
+
+/// Runs of the highlight section: codec, cameras, fps, and each run's `highlight_s` (0: off) and idle seconds.
+type HighlightRuns = Vec<(&'static str, usize, u32, Vec<(f64, f64)>)>;
+
+/// Peak RSS of an idle recorder with the last seconds kept (`highlight_s`) and without, and the episode saved
+/// from them.
+fn highlight_memory(o: &Opts) -> Res<()> {
+    println!(
+        "\n## keeping the last seconds while idle (640x480 cameras; one process per run, peak RSS of that process)"
+    );
+    println!(
+        "| load | highlight_s | idle s | kept s | kept video MB | peak RSS MB | saved frames | dropped | late | paused | save ms |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    let exe = std::env::current_exe()?;
+    let mut runs: HighlightRuns = vec![
+        ("av1", 2, 20, vec![(0.0, 20.0), (10.0, 20.0), (60.0, 70.0)]),
+        ("av1", 3, 20, vec![(0.0, 20.0), (10.0, 20.0)]),
+        ("h264", 3, 30, vec![(0.0, 20.0), (10.0, 20.0), (60.0, 70.0)]),
+    ];
+    if o.quick {
+        runs = vec![("av1", 2, 20, vec![(0.0, 10.0), (5.0, 10.0)])];
+    }
+    for (codec, ncams, fps, keeps) in runs {
+        let load = format!("{ncams} x {codec} @ {fps} fps");
+        for (keep_s, idle_s) in keeps {
+            let args = [
+                "--rss-highlight",
+                &keep_s.to_string(),
+                &idle_s.to_string(),
+                codec,
+                &ncams.to_string(),
+                &fps.to_string(),
+            ];
+            let v = match child_json(&exe, &args)? {
+                Ok(v) => v,
+                Err(e) => {
+                    println!("| {load} | {keep_s} | {idle_s} | failed: {e} |");
+                    continue;
+                }
+            };
+            let num = |k: &str| v[k].as_f64().map_or("-".to_owned(), |x| format!("{x:.0}"));
+            println!(
+                "| {load} | {} | {idle_s} | {:.1} | {:.1} | {:.0} | {} | {} | {} | {} | {} |",
+                if keep_s > 0.0 {
+                    format!("{keep_s}")
+                } else {
+                    "off".into()
+                },
+                v["kept_s"].as_f64().unwrap_or(0.0),
+                v["kept_video_mb"].as_f64().unwrap_or(0.0),
+                v["peak_rss_mb"].as_f64().unwrap_or(0.0),
+                num("frames"),
+                num("dropped"),
+                num("late"),
+                num("paused"),
+                num("save_ms"),
             );
         }
     }

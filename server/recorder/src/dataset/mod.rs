@@ -32,7 +32,7 @@ use crate::events::{ArmActivity, EventWriter, events_path};
 use crate::fsutil::write_atomic;
 use crate::parquet_io::{DataWriter, INTERVENTION_FEATURE, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
-use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
+use crate::spec::{CameraSpec, DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
 use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
 use crate::video::{EncodeReport, EncoderThread};
 use journal::Staging;
@@ -381,6 +381,55 @@ impl Dataset {
 
     /// Starts writing episode `total_episodes` into staging.
     pub fn begin_episode(&mut self, task: &str, queue_frames: usize) -> Result<EpisodeWriter, RecorderError> {
+        let (spec, video) = (self.spec.clone(), self.video.clone());
+        self.begin_with(task, |staging| {
+            spec.cameras
+                .iter()
+                .map(|c| {
+                    EncoderThread::spawn(
+                        &c.name,
+                        staging.join(format!("{}.mp4", c.key())),
+                        c.width,
+                        c.height,
+                        spec.fps,
+                        video.clone(),
+                        queue_frames,
+                    )
+                })
+                .collect()
+        })
+    }
+
+    /// Starts writing episode `total_episodes` into staging with the video a recorder's ring encoders keep
+    /// from their frame `first_frame` (see [`EncoderThread::spawn_ring`]), one per camera in `spec.cameras`
+    /// order. The encoders are taken only when the episode starts; on an error they stay in `ring`.
+    pub fn begin_episode_from_ring(
+        &mut self,
+        task: &str,
+        ring: &mut Vec<EncoderThread>,
+        first_frame: u64,
+    ) -> Result<EpisodeWriter, RecorderError> {
+        let keys: Vec<String> = self.spec.cameras.iter().map(CameraSpec::key).collect();
+        if ring.len() != keys.len() {
+            return Err(RecorderError::InvalidSpec(format!(
+                "{} ring encoders for {} cameras",
+                ring.len(),
+                keys.len()
+            )));
+        }
+        self.begin_with(task, |staging| {
+            for (encoder, key) in ring.iter_mut().zip(&keys) {
+                encoder.attach(staging.join(format!("{key}.mp4")), first_frame);
+            }
+            Ok(std::mem::take(ring))
+        })
+    }
+
+    fn begin_with(
+        &mut self,
+        task: &str,
+        encoders: impl FnOnce(&Path) -> Result<Vec<EncoderThread>, RecorderError>,
+    ) -> Result<EpisodeWriter, RecorderError> {
         let task = check_task(task)?;
         let staging = journal::fresh_staging(&self.spec.root)?;
         let data = DataWriter::create(
@@ -390,18 +439,8 @@ impl Dataset {
             self.spec.format == Format::V30,
             self.spec.flag_columns(),
         )?;
-        let mut encoders = Vec::new();
-        for c in &self.spec.cameras {
-            encoders.push(EncoderThread::spawn(
-                &c.name,
-                staging.join(format!("{}.mp4", c.key())),
-                c.width,
-                c.height,
-                self.spec.fps,
-                self.video.clone(),
-                queue_frames,
-            )?);
-        }
+        let events = EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?;
+        let encoders = encoders(&staging)?;
         Ok(EpisodeWriter {
             index: self.total_episodes,
             task: task.to_owned(),
@@ -421,7 +460,7 @@ impl Dataset {
             last_flags: None,
             frames: 0,
             fps: self.spec.fps,
-            events: EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?,
+            events,
             staging,
         })
     }

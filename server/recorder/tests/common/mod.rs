@@ -143,3 +143,43 @@ pub(crate) fn lerobot_check(dirs: &[PathBuf], v21: bool) -> Option<(bool, String
     let text = String::from_utf8_lossy(&out.stdout).to_string();
     Some((out.status.success(), text))
 }
+
+/// A camera three times faster than a recorder at `fps` whose frames differ everywhere: the grey level steps
+/// by 37 per frame and a bar moves, so a reader that returns a neighbouring frame differs in every pixel.
+pub(crate) fn distinct_camera(
+    slot: &std::sync::Arc<phone2act_recorder::camera::FrameSlot>,
+    size: (u32, u32),
+    fps: u32,
+) -> phone2act_recorder::camera::CaptureThread {
+    phone2act_recorder::camera::spawn_generated(
+        "pairing",
+        size.0,
+        size.1,
+        f64::from(fps * 3),
+        move |seq, buf| {
+            let (w, h) = (size.0 as usize, size.1 as usize);
+            let grey = ((seq * 37) % 200 + 28) as u8;
+            buf.clear();
+            buf.resize(w * h * 3, grey);
+            let bar = (seq as usize * 7) % w;
+            for y in 0..h {
+                for x in bar..(bar + 6).min(w) {
+                    buf[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[255, 0, 0]);
+                }
+            }
+        },
+        std::sync::Arc::clone(slot),
+    )
+    .unwrap()
+}
+
+/// The parquet files under `dir`, recursively.
+pub(crate) fn parquet_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        if e.file_type().unwrap().is_dir() {
+            parquet_files(&e.path(), out);
+        } else if e.path().extension().is_some_and(|x| x == "parquet") {
+            out.push(e.path());
+        }
+    }
+}
