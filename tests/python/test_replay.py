@@ -18,6 +18,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -134,3 +135,42 @@ def test_command_line_replay(server: Server, recorded: int) -> None:
     # The bounds of test_replay_reproduces_the_recorded_trajectory, for the same reasons.
     assert float(m.group(1)) < 0.05 and float(m.group(2)) < 0.05, out.stdout
     assert float(m.group(3)) < 2.0 and float(m.group(4)) < 1.0, out.stdout
+
+
+def test_a_replay_waits_while_the_operator_corrects_and_goes_on_after_the_hand_back(
+    server: Server, recorded: int
+) -> None:
+    original = load_episode(server.root, recorded)
+    chunk_started = threading.Event()
+    operator_done: list[str] = []
+
+    def operator() -> None:
+        # A second client, as a phone is: it takes the arm 1 s into the replay's chunk, moves it 1 cm and hands
+        # it back. 30 s covers a stalled machine's approach to the start pose.
+        if not chunk_started.wait(30.0):
+            return
+        time.sleep(1.0)
+        with Client(server.target) as phone, phone.teleop("main") as t:
+            fb = t.wait_feedback(t.clutch(True, PHONE0))
+            assert fb.arm_state.waiting_policy_id.startswith("replay:"), fb
+            for i in range(1, 11):
+                t.send((PHONE0[0], PHONE0[1] + 0.001 * i, PHONE0[2]), quat_from_rpy(0.0, 0.0, 0.0))
+                time.sleep(0.02)
+            t.wait_feedback(t.clutch(False))
+            fb = t.wait_feedback(t.hand_back())
+            operator_done.append(fb.error)
+
+    helper = threading.Thread(target=operator, daemon=True)
+    helper.start()
+    with Client(server.target) as c:
+        r = replay(c, original, upsample=4, on_start=chunk_started.set)
+        helper.join(timeout=30.0)
+        assert operator_done == [""], operator_done
+        assert r.resumed == 1, r
+        # The rest of the episode played after the hand-back: the arm ends where the original ended (its last
+        # target, held 0.5 s; the sim's 50 ms lag settles within that), not where the operator left it.
+        end = c.list_arms()[0].robot_from_ee
+    last = original.ee_pose()[-1]
+    gap_m = float(np.linalg.norm(np.array([end.position_m.x, end.position_m.y, end.position_m.z]) - last[:3]))
+    print(f"\nreplay resumed after a correction; ends {gap_m * 1e3:.2f} mm from the original's end")
+    assert gap_m < 2e-3, gap_m
