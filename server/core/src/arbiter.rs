@@ -608,6 +608,9 @@ impl Arbiter {
         self.seq += 1;
         self.target = target;
         self.gripper_target = gripper;
+        // The phone's gripper is the arm's: whoever sent this, the phone's next toggle or take-over continues
+        // from it, never from a setting of its own that a policy has since overridden.
+        self.teleop.adopt_gripper(gripper);
         self.counters.sent += 1;
         fx.commands.push(Command {
             seq: self.seq,
@@ -698,13 +701,13 @@ impl Arbiter {
                         fx.phone_error = format!("the arm {}", ArbiterError::NotReady(why.clone()));
                         continue;
                     }
-                    if self.driver != Driver::Policy {
-                        self.teleop.adopt_gripper(self.gripper_target);
+                    // The gripper follows the phone only while the phone drives or nobody does. A press while a
+                    // policy drives changes nothing, not even the phone's setting: a take-over would send it.
+                    if self.driver == Driver::Policy {
+                        continue;
                     }
                     match self.teleop.gripper(command) {
-                        // The gripper follows the phone only while the phone drives or nobody does.
-                        Ok(gripper) if self.driver != Driver::Policy => self.send(self.target, gripper, fx),
-                        Ok(_) => {}
+                        Ok(gripper) => self.send(self.target, gripper, fx),
                         Err(e) => fx.phone_error = e.to_string(),
                     }
                 }
@@ -761,9 +764,6 @@ impl Arbiter {
         if engaging && let Some(why) = not_ready {
             fx.phone_error = format!("the arm {}, not engaging", ArbiterError::NotReady(why.clone()));
             return;
-        }
-        if engaging && self.driver != Driver::Teleop {
-            self.teleop.adopt_gripper(self.gripper_target);
         }
         let step = self
             .teleop
@@ -2198,6 +2198,15 @@ mod tests {
         a.handle(chunk(1.0, &[home(); 3]), &robot, 1.0).unwrap();
         a.handle(Input::Tick, &robot, 1.05).unwrap();
         assert!((a.target().1 - 0.5).abs() < 1e-12);
+        // A press while the policy drives is not kept for later.
+        let fx = a
+            .handle(
+                round(None, vec![TeleopButton::Gripper(GripperCommand::Set(0.0))]),
+                &robot,
+                1.06,
+            )
+            .unwrap();
+        assert!(fx.commands.is_empty(), "{fx:?}");
         let phone = at(0.5, 0.5, 0.5);
         let fx = a.handle(engage(phone), &ready(home(), 1.1), 1.1).unwrap();
         for c in &fx.commands {
