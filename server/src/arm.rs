@@ -4,6 +4,8 @@
 //! returns: commands go to [`Bridge::send`] in order, inputs to the flight log, a revoked policy session is
 //! told, and the tick task is woken when the arm needs ticks.
 //!
+//! Building a controller from its configuration is in `setup`, its refusals in `error`, the tick task in `ticks`.
+//!
 //! The critical section is a `parking_lot::Mutex` (it does not poison: see the `inner` field) held for
 //! microseconds and never across an `.await`, so the control path is a straight function call from the gRPC
 //! handler to the bridge (which never blocks).
@@ -16,15 +18,13 @@ use phone2act_bridges::sim::SceneState;
 use phone2act_bridges::{Bridge, BridgeError, Feedback};
 use phone2act_clock::{monotonic_ns, monotonic_s};
 use phone2act_core::arm_control::robot;
-use phone2act_core::kinematics::{SO101_ARM_JOINT_NAMES, So101Kinematics};
+use phone2act_core::kinematics::So101Kinematics;
 use phone2act_core::{
-    ActionChunk, ActionMode, Arbiter, ArbiterError, ArmControl, ArmJointStage, ArmLayout, ArmNames,
-    ArmSnapshot, ArmVectors, ChunkConfig, Command, Driver, Effects, FlightEntry, FlightHeader, Input, Issue,
-    LayoutError, Outcome, ReplaceReport, Robot, Sample, TeleopConfig, TeleopRound, TickNeed,
+    ActionChunk, ActionMode, ArbiterError, ArmControl, ArmLayout, ArmNames, ArmSnapshot, ArmVectors, Command,
+    Driver, Effects, FlightEntry, Input, Issue, Outcome, ReplaceReport, Robot, Sample, TeleopRound, TickNeed,
 };
 use phone2act_recorder::events::ArmActivity;
 use std::sync::Arc;
-use std::time::Duration;
 use tokio::sync::Notify;
 
 /// Where a policy session hears that it lost an arm, or that the operator took it or handed it back. Called
@@ -44,57 +44,6 @@ pub struct TeleopOutcome {
     pub error: String,
     /// Server time the last command (if any) was handed to the bridge.
     pub command_time_ns: Option<i64>,
-}
-
-/// Errors of an arm controller: building it, and inputs it refused (a refusal changes nothing).
-#[derive(Debug, thiserror::Error)]
-pub enum ArmError {
-    #[error("arm {arm}: {source}")]
-    Config {
-        arm: String,
-        #[source]
-        source: phone2act_core::ConfigError,
-    },
-    #[error(
-        "arm {arm}: action_mode = \"joint\" needs SO-101 kinematics (bridge joints {joints:?}); use \"relative\" or \"absolute\""
-    )]
-    JointModeUnsupported { arm: String, joints: Vec<String> },
-    #[error(
-        "arm {arm}: dataset_layout = \"lerobot_so101\" needs an SO-101 (sim or so101 bridge) with action_mode = \"joint\""
-    )]
-    LerobotLayoutUnsupported { arm: String },
-    #[error("arm {arm}: {source}")]
-    FlightLog {
-        arm: String,
-        #[source]
-        source: crate::flight_log::FlightLogError,
-    },
-    #[error("arm {arm}: joint limits are enforced in the server only for SO-101 and Dobot CR5 joints")]
-    JointStageUnsupported { arm: String },
-    #[error(
-        "arm {arm}: the robot's reported tool pose is {off_mm:.1} mm and {off_deg:.1}° from the joint model's pose of its reported joints; joint limits cannot be enforced with this model"
-    )]
-    JointModelMismatch { arm: String, off_mm: f64, off_deg: f64 },
-    #[error("arm {arm:?} {source}")]
-    Refused {
-        arm: String,
-        #[source]
-        source: ArbiterError,
-    },
-    #[error("arm {arm:?} step {step}: {source}")]
-    InvalidStep {
-        arm: String,
-        step: usize,
-        #[source]
-        source: LayoutError,
-    },
-    /// The bridge refused (a scene request to an arm without a scene is [`BridgeError::Unsupported`]).
-    #[error("arm {arm:?}: {source}")]
-    Bridge {
-        arm: String,
-        #[source]
-        source: BridgeError,
-    },
 }
 
 #[derive(Debug)]
@@ -144,133 +93,6 @@ impl std::fmt::Debug for ArmController {
 }
 
 impl ArmController {
-    /// A controller for `bridge`, starting from the robot's measured pose (or `fallback` before feedback).
-    pub fn new(
-        name: &str,
-        kind: &'static str,
-        bridge: Arc<dyn Bridge>,
-        teleop: &TeleopConfig,
-        chunk: &ChunkConfig,
-        action_mode: ActionMode,
-        fallback: Isometry3<f64>,
-    ) -> Result<Self, ArmError> {
-        let feedback = bridge.feedback();
-        let measured = feedback.as_ref().map_or(fallback, |f| f.robot_from_ee);
-        let gripper = feedback.as_ref().map_or(0.0, |f| f.gripper_position);
-        let layout = ArmLayout::new(bridge.joint_names().to_vec());
-        let kinematics = (bridge.joint_names() == SO101_ARM_JOINT_NAMES).then(So101Kinematics::new);
-        if action_mode == ActionMode::Joint && kinematics.is_none() {
-            return Err(ArmError::JointModeUnsupported {
-                arm: name.to_owned(),
-                joints: bridge.joint_names().to_vec(),
-            });
-        }
-        let arbiter =
-            Arbiter::new(teleop, chunk.clone(), measured, gripper).map_err(|source| ArmError::Config {
-                arm: name.to_owned(),
-                source,
-            })?;
-        Ok(Self {
-            name: name.to_owned(),
-            kind,
-            bridge,
-            layout,
-            action_mode,
-            kinematics,
-            inner: Mutex::new(Inner {
-                control: ArmControl::new(arbiter),
-                policy_sink: None,
-                flight: None,
-            }),
-            wake: Notify::new(),
-            stats: ControlStats::default(),
-        })
-    }
-
-    /// Logs every input of this arm's arbiter from now on to a new file in `dir` (see
-    /// [`crate::flight_log`]), its header made of the `teleop` and `chunk` settings the arm was built with and
-    /// the pose and gripper the arbiter holds. Called before the arm takes any input (so that pose is the one
-    /// it started from, and the log replays from its start).
-    pub fn with_flight_log(
-        self,
-        dir: &std::path::Path,
-        max_bytes: u64,
-        teleop: &TeleopConfig,
-        chunk: &ChunkConfig,
-    ) -> Result<Self, ArmError> {
-        let (measured, gripper) = self.inner.lock().control.arbiter().target();
-        let header = FlightHeader::new(&self.name, teleop, chunk, measured, gripper);
-        let log = FlightLogWriter::create(dir, &header, max_bytes).map_err(|source| ArmError::FlightLog {
-            arm: self.name.clone(),
-            source,
-        })?;
-        tracing::info!(arm = %self.name, path = %log.path().display(), "flight log on");
-        self.inner.lock().flight = Some(log);
-        Ok(self)
-    }
-
-    /// Solves this arm's commands in the server with `stage` (an SO-101's or a CR5's): each target once,
-    /// seeded with the joints last commanded, through the stage's joint speed limits. See
-    /// `phone2act_core::joint_motion`. Refused for a bridge whose joints are not the stage's, and when the
-    /// robot's own tool pose disagrees with the model's pose of its reported joints (a controller whose base
-    /// frame, tool or joint zeros differ from the model would be driven somewhere else than asked).
-    pub fn with_joint_stage(self, mut stage: ArmJointStage) -> Result<Self, ArmError> {
-        if !stage.fits(self.bridge.joint_names()) {
-            return Err(ArmError::JointStageUnsupported {
-                arm: self.name.clone(),
-            });
-        }
-        if let Some(feedback) = self.bridge.feedback() {
-            self.model_matches(&stage, &feedback)?;
-            stage.reset(&feedback.joint_positions_rad, monotonic_s());
-        } else {
-            tracing::warn!(arm = %self.name, "no feedback at start: the joint model was not checked against the robot");
-        }
-        self.inner.lock().control.replace_joint_stage(Some(stage));
-        Ok(self)
-    }
-
-    /// Puts `stage` in place of the arm's joint stage (for a remote bridge, at every attach: the stage of the
-    /// joint model it declared, or none). A new stage starts from the next measured joints, so the first
-    /// command after an attach is limited from where that robot is. Returns the stage it replaced.
-    pub fn replace_joint_stage(&self, stage: Option<ArmJointStage>) -> Option<ArmJointStage> {
-        self.inner.lock().control.replace_joint_stage(stage)
-    }
-
-    /// Refuses feedback whose reported tool pose disagrees with the arm's joint model's pose of its reported
-    /// joints (the check [`Self::with_joint_stage`] makes at start, for a stage put in place later). Ok
-    /// without a joint stage or for joints of another width.
-    pub fn check_joint_model(&self, feedback: &Feedback) -> Result<(), ArmError> {
-        match self.inner.lock().control.joint_stage() {
-            Some(stage) => self.model_matches(stage, feedback),
-            None => Ok(()),
-        }
-    }
-
-    /// See `ArmJointStage::model_mismatch`.
-    fn model_matches(&self, stage: &ArmJointStage, feedback: &Feedback) -> Result<(), ArmError> {
-        match stage.model_mismatch(&feedback.joint_positions_rad, &feedback.robot_from_ee) {
-            None => Ok(()),
-            Some(off) => Err(ArmError::JointModelMismatch {
-                arm: self.name.clone(),
-                off_mm: off.off_m * 1e3,
-                off_deg: off.off_rad.to_degrees(),
-            }),
-        }
-    }
-
-    /// Switches the arm's state and joint actions to lerobot `so101_follower` names and units (see
-    /// `phone2act_core::LerobotSo101Units`). Joint arms with SO-101 kinematics only.
-    pub fn with_lerobot_so101(mut self, units: phone2act_core::LerobotSo101Units) -> Result<Self, ArmError> {
-        if self.action_mode != ActionMode::Joint || self.kinematics.is_none() {
-            return Err(ArmError::LerobotLayoutUnsupported {
-                arm: self.name.clone(),
-            });
-        }
-        self.layout = self.layout.with_lerobot_so101(units);
-        Ok(self)
-    }
-
     /// The bridge's feedback and state, read once for one input.
     fn read_bridge(&self) -> (Option<Feedback>, Robot) {
         let feedback = self.bridge.feedback();
@@ -697,69 +519,12 @@ pub struct ArmSample {
     pub activity: ArmActivity,
 }
 
-/// Runs every arm's tick task until shutdown.
-pub async fn run_ticks(
-    arms: Vec<Arc<ArmController>>,
-    rate_hz: f64,
-    shutdown: tokio::sync::watch::Receiver<bool>,
-) {
-    let period = Duration::from_secs_f64(1.0 / rate_hz);
-    let tasks: Vec<_> = arms
-        .into_iter()
-        .map(|arm| tokio::spawn(tick_arm(arm, period, shutdown.clone())))
-        .collect();
-    for task in tasks {
-        let _ = task.await;
-    }
-}
+mod error;
+mod setup;
+mod ticks;
 
-/// Ticks one arm only while its arbiter has work: at `period` while a chunk plays, a phone drives or the joint
-/// stage catches up; once at the arbiter's deadline while a policy owns the arm between chunks (its silence
-/// timeout or loading deadline), or earlier if an input changes what the arbiter needs; and not at all when
-/// idle (it sleeps until an input wakes it).
-async fn tick_arm(
-    arm: Arc<ArmController>,
-    period: Duration,
-    mut shutdown: tokio::sync::watch::Receiver<bool>,
-) {
-    let mut ticker = tokio::time::interval(period);
-    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    loop {
-        // `notify_one` keeps a permit when nobody waits, so a wake between reading the need and waiting
-        // below is not lost.
-        match arm.tick_need() {
-            TickNeed::Periodic => {
-                tokio::select! {
-                    _ = ticker.tick() => {}
-                    () = crate::runtime::stopped(&mut shutdown) => return,
-                }
-            }
-            TickNeed::At(deadline_s) => {
-                // The arbiter's rules are "later than" the deadline; the timer's millisecond rounding up gets
-                // there, and a tick that comes too early only finds the same deadline again.
-                let left_s = deadline_s - monotonic_s();
-                let wait = Duration::try_from_secs_f64(left_s).unwrap_or(if left_s > 0.0 {
-                    Duration::MAX
-                } else {
-                    Duration::ZERO
-                });
-                tokio::select! {
-                    () = tokio::time::sleep(wait) => {}
-                    // An input changed the need (a chunk, a new deadline, a release): read it again.
-                    () = arm.wake.notified() => continue,
-                    () = crate::runtime::stopped(&mut shutdown) => return,
-                }
-            }
-            TickNeed::Idle => {
-                tokio::select! {
-                    () = arm.wake.notified() => {}
-                    () = crate::runtime::stopped(&mut shutdown) => return,
-                }
-            }
-        }
-        arm.tick(monotonic_s());
-    }
-}
+pub use error::ArmError;
+pub use ticks::run_ticks;
 
 #[cfg(test)]
 mod tests;

@@ -4,7 +4,7 @@ use super::*;
 use phone2act_bridges::Health;
 use phone2act_bridges::sim::{SimBridge, SimConfig};
 use phone2act_core::BridgeHealth;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 #[derive(Debug)]
 struct Nobody;
