@@ -1,5 +1,6 @@
 // The phone during a policy session (issue 27): a scripted policy session (tests/src/bin/policy-script.rs, a
-// real Policy.Session over gRPC) drives the arm; the page previews its plan (the path and gripper of the rest
+// real Policy.Session over gRPC) says it is loading (the page says so, the arm holds), then drives the arm; the
+// page previews its plan (the path and gripper of the rest
 // of its chunk), the operator takes the arm with the clutch, the page names the waiting policy and offers one
 // hand-back button, which gives the arm back without moving it. Checked against the chunks the script pushed
 // and, on the server side, through the status topic (rosbridge). Prints "handback: N passed, M failed".
@@ -80,6 +81,21 @@ await page.click('#start-ar');
 await waitPage(page, () => window.phone2act.feedbackCount > 10, 'feedback');
 const policy = new Policy();
 assert((await policy.next()).event === 'ready', 'the policy session did not open');
+
+await check('while the policy loads the page says so and the arm holds', async () => {
+  await server.until((s) => s.owner === 'policy' && s.policy === NAME, 'the policy owning the arm');
+  const before = server.status;
+  const accepted = await policy.send({ cmd: 'loading' });
+  assert(accepted.event === 'loading' && accepted.error === '' && accepted.arms.includes('main')
+    && accepted.remaining_s > 0, `loading not accepted: ${JSON.stringify(accepted)}`);
+  await waitPageWith((name) => document.querySelector('#st-clutch').textContent
+    .includes(`policy ${name} loading (robot holds)`), NAME, 'the page saying the policy loads');
+  await server.until((s) => s.policy_loading === true, 'the status saying the policy loads');
+  assert(await page.isHidden('#hand-back'), 'a hand-back is offered while the policy loads');
+  // Loading sends nothing: the arm holds where it was (the count can only stay put on a correct server).
+  assert(server.status.sent === before.sent, `${server.status.sent - before.sent} commands while loading`);
+  assert(dist(server.status.ee_m, before.ee_m) < 0.002, `the arm moved: ${before.ee_m} -> ${server.status.ee_m}`);
+});
 
 let first;
 await check('the page previews what the driving policy is about to do', async () => {

@@ -6,7 +6,9 @@
 //!
 //! In: `{"cmd":"chunk","steps":40,"period_s":0.1,"dx_m":0.06,"gripper_end":0.8}` pushes relative steps walking
 //! `dx_m` along +x (rotation held, the gripper ramping from 0 to `gripper_end`) answering a fresh observation
-//! (one that arrived after the command), or with `"observation":"marked"` the one `{"cmd":"mark"}` kept.
+//! (one that arrived after the command), or with `"observation":"marked"` the one `{"cmd":"mark"}` kept;
+//! `{"cmd":"loading"}` says the policy is loading (answered `{"event":"loading","arms":[..],"remaining_s":..,
+//! "error":".."}`).
 //! Out: `{"event":"ready"}`, then per chunk `{"event":"accepted"|"rejected","observation_id":..,
 //! "targets_m":[[x,y,z],..],"grippers":[..],"reason":".."}` (the targets the steps command: the observation's
 //! position plus each step's offset).
@@ -41,14 +43,32 @@ fn say(v: &Value) {
     let _ = out.flush();
 }
 
-/// Reads the session's events, keeping the newest observation in `latest`, until the stream ends.
-async fn observe(mut session: PolicySession, latest: watch::Sender<Option<v1::Observation>>) {
-    while let Ok(Some(event)) = session.next_event().await {
+/// Reads the session's events, keeping the newest observation in `latest`, until the stream ends; sends the
+/// loading messages `loading` asks for (the session's sender lives here, beside its events).
+async fn observe(
+    mut session: PolicySession,
+    latest: watch::Sender<Option<v1::Observation>>,
+    mut loading: mpsc::Receiver<()>,
+) {
+    loop {
+        let event = tokio::select! {
+            event = session.next_event() => event,
+            Some(()) = loading.recv() => {
+                if let Err(e) = session.loading().await {
+                    say(&json!({"event": "error", "reason": e.to_string()}));
+                }
+                continue;
+            }
+        };
+        let Ok(Some(event)) = event else { break };
         match event {
             v1::policy_event::Event::Observation(obs) => {
                 let _ = latest.send(Some(obs));
             }
             v1::policy_event::Event::Revoked(r) => say(&json!({"event": "revoked", "reason": r.reason})),
+            v1::policy_event::Event::Loading(l) => say(&json!({
+                "event": "loading", "arms": l.arms, "remaining_s": l.remaining_s, "error": l.error,
+            })),
             _ => {}
         }
     }
@@ -74,7 +94,8 @@ async fn main() -> anyhow::Result<()> {
     let session = client.policy(hello).await.context("opening the policy session")?;
     let session_id = session.ready().session_id.clone();
     let (latest_tx, mut latest) = watch::channel(None);
-    tokio::spawn(observe(session, latest_tx));
+    let (loading_tx, loading_rx) = mpsc::channel::<()>(1);
+    tokio::spawn(observe(session, latest_tx, loading_rx));
     say(&json!({"event": "ready"}));
 
     let mut marked: Option<v1::Observation> = None;
@@ -98,6 +119,10 @@ async fn main() -> anyhow::Result<()> {
             latest.borrow_and_update().clone().context("no observation")
         };
         match cmd["cmd"].as_str() {
+            Some("loading") => {
+                // Answered by the session's `LoadingAccepted` event, from the reading task.
+                loading_tx.send(()).await.context("the session ended")?;
+            }
             Some("mark") => {
                 marked = Some(fresh.await?);
                 say(&json!({"event": "marked"}));
