@@ -9,6 +9,7 @@ The same planner, replayed open loop from a training scene's plan on another sce
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -121,10 +122,11 @@ def reset_scene(client, arm: str, seed: int) -> None:
 
 def record_demos(bridge, args) -> dict:
     """`args.demos` successful episodes from seeds `args.seed`, ... (failures discarded and counted)."""
-    from phone2act import Client
+    from phone2act import Client, FailedPrecondition
 
     saved, failed, seeds = 0, 0, []
     seed = args.seed
+    not_ready = 0
     with Client(bridge.target, token=bridge.token) as c:
         while saved < args.demos:
             reset_scene(c, bridge.arm, seed)
@@ -133,7 +135,18 @@ def record_demos(bridge, args) -> dict:
                 start_p, start_r = bridge.world.ee_pose()
                 steps = plan_for_layout(bridge.world, layout, start_p, start_r, args.fps)
             c.episodes.start(args.task, operator="scripted-demo")
-            ok = drive_plan(c, bridge.arm, steps, args.fps, args.episode_time_s)
+            try:
+                ok = drive_plan(c, bridge.arm, steps, args.fps, args.episode_time_s)
+            except FailedPrecondition as e:
+                # The server refused the arm (its feedback went stale: this process was starved on a loaded
+                # machine). Not the plan's failure: the same seed again, a few times at most.
+                c.episodes.discard()
+                not_ready += 1
+                print(f"demo seed {seed}: arm not ready ({e}); retrying", flush=True)
+                if not_ready > 5:
+                    raise
+                time.sleep(1.0)
+                continue
             if ok:
                 c.episodes.stop()
                 saved += 1
