@@ -300,3 +300,79 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
         ("main", POLICY)
     );
 }
+
+/// A policy that stops reading its stream (a long inference) still hears the take-over that happened
+/// meanwhile: its observations (full RGB frames here, so the stream's buffers fill within a second) are
+/// latest-only, while the take-over is queued. Before, events went into one short queue that a backlog of
+/// observations filled, and the `ControlPaused` sent into a full queue was lost.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_policy_that_stops_reading_still_hears_the_take_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = TestServer::start(default_config(dir.path())).await.unwrap();
+    let client = server.client().await.unwrap();
+    // The sim reports its first pose within a few bridge periods; a claim needs it (10 s: a stalled machine).
+    assert!(
+        wait_until(Duration::from_secs(10), || async {
+            arm_state(&client, "main").await.robot_from_ee.is_some()
+        })
+        .await
+    );
+    let hello = v1::PolicyHello {
+        image_encoding: v1::ImageEncoding::Rgb8 as i32,
+        ..phone2act_tests::policy_hello(&["main"], POLICY, 60.0)
+    };
+    let mut policy = client.policy(hello).await.unwrap();
+    // The camera's first frame comes within a few of its 15 fps periods; 10 s covers a stalled machine.
+    let obs = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            let obs = policy.next_observation().await.unwrap();
+            if obs.frames.iter().any(|f| f.data.len() >= 320 * 240 * 3) {
+                return obs;
+            }
+        }
+    })
+    .await
+    .expect("observations with full frames");
+    policy
+        .push_chunk_checked(&client, chunk(obs.observation_id, 40, 0.02, 0.0))
+        .await
+        .unwrap();
+
+    // The policy "infers" for 3 s without reading: 60 observations of 230 kB, more than the stream's
+    // HTTP/2 window and every queue on the way hold. Then the operator takes the arm.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
+    let fb = press(
+        &mut phone,
+        phone_pose(0.0, 0.0, 0.0),
+        vec![buttons::clutch_engage()],
+    )
+    .await;
+    assert!(fb.error.is_empty(), "{}", fb.error);
+    assert_eq!(fb.arm_state.unwrap().owner(), v1::ControlSource::Teleop);
+    tokio::time::sleep(Duration::from_secs(1)).await;
+
+    // Reading again, the take-over comes after at most the few observations already on their way.
+    let mut observations_first = 0;
+    let paused = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            match policy.next_event().await.unwrap() {
+                Some(v1::policy_event::Event::Observation(_)) => observations_first += 1,
+                Some(e @ v1::policy_event::Event::Paused(_)) => return e,
+                Some(_) => {}
+                None => panic!("the session ended"),
+            }
+        }
+    })
+    .await
+    .unwrap_or_else(|_| panic!("no ControlPaused: lost while the policy did not read"));
+    assert!(
+        matches!(&paused, v1::policy_event::Event::Paused(p) if p.arm == "main"),
+        "{paused:?}"
+    );
+    // What was buffered before the take-over: the stream's window (2 MB, about 9 frames) and two slots.
+    assert!(
+        observations_first < 20,
+        "{observations_first} stale observations before the take-over"
+    );
+}

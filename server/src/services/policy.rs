@@ -12,7 +12,7 @@ use phone2act_proto::v1::policy_server::Policy;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -121,14 +121,64 @@ fn push(
     })
 }
 
-/// The session's event queue, shared with the arm controllers (revocations).
+/// How many events other than observations may wait for a session that does not read its stream: chunk
+/// verdicts, take-overs, hand-backs, revocations and loading answers, which a policy must not miss. They come a
+/// few a second at most, so a session that falls this far behind has stopped reading for many seconds.
+const EVENT_QUEUE: usize = 64;
+
+/// The session's events, shared with the arm controllers (revocations, take-overs, hand-backs). Observations
+/// are latest-only: a policy that is busy inferring gets the newest one when it reads again, not a backlog of
+/// stale ones. Every other event is queued in order, so falling behind on observations never costs a
+/// `ControlPaused` or a `ControlRevoked`.
 #[derive(Debug, Clone)]
-struct Events(mpsc::Sender<v1::PolicyEvent>);
+struct Events {
+    queue: mpsc::Sender<v1::PolicyEvent>,
+    observation: watch::Sender<Option<v1::Observation>>,
+}
 
 impl Events {
-    /// Latest wins: a policy that is busy inferring misses an event rather than queueing it.
     fn notify(&self, event: v1::policy_event::Event) {
-        let _ = self.0.try_send(event.into());
+        match event {
+            v1::policy_event::Event::Observation(obs) => {
+                self.observation.send_replace(Some(obs));
+            }
+            other => {
+                if self.queue.try_send(other.into()).is_err() {
+                    tracing::warn!(
+                        "a policy session has not read its stream for a long time: an event was dropped"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// Forwards a session's events to its stream: queued events first, in order, then the newest observation.
+async fn forward_events(
+    mut queue: mpsc::Receiver<v1::PolicyEvent>,
+    mut observation: watch::Receiver<Option<v1::Observation>>,
+    out: mpsc::Sender<Result<v1::PolicyEvent, Status>>,
+) {
+    loop {
+        let event = tokio::select! {
+            biased;
+            queued = queue.recv() => match queued {
+                Some(event) => event,
+                None => break,
+            },
+            changed = observation.changed() => {
+                if changed.is_err() {
+                    break;
+                }
+                match observation.borrow_and_update().clone() {
+                    Some(obs) => v1::policy_event::Event::Observation(obs).into(),
+                    None => continue,
+                }
+            }
+        };
+        if out.send(Ok(event)).await.is_err() {
+            break;
+        }
     }
 }
 
@@ -190,9 +240,13 @@ impl Policy for PolicyService {
         let rate_hz = hello.observation_rate_hz;
         let request = session_request(hello)?;
         let control = request.request_control;
-        let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(16);
+        let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(EVENT_QUEUE);
+        let (observation_tx, observation_rx) = watch::channel(None);
         let sessions = Arc::clone(&self.sessions);
-        let events = Events(tx.clone());
+        let events = Events {
+            queue: tx.clone(),
+            observation: observation_tx,
+        };
         let session = sessions.open(request, Arc::new(events.clone()))?;
         let app = sessions.app();
         let ready = v1::SessionReady {
@@ -221,17 +275,10 @@ impl Policy for PolicyService {
         // Debug formatting escapes control characters: a policy name cannot forge log lines.
         tracing::info!(session = session.id(), policy = ?session.name(), arms = ?session.arms(), control, "policy session opened");
 
-        let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(16);
-        // Forward events; the events channel is shared with the arm controllers (revocations).
-        let forward_tx = out_tx.clone();
-        let mut events_rx = rx;
-        tokio::spawn(async move {
-            while let Some(e) = events_rx.recv().await {
-                if forward_tx.send(Ok(e)).await.is_err() {
-                    break;
-                }
-            }
-        });
+        // Two slots: what waits for a lagging reader waits in `forward_events`' queue and observation slot, where
+        // an observation is replaced by a newer one, not here.
+        let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(2);
+        tokio::spawn(forward_events(rx, observation_rx, out_tx.clone()));
         let mut shutdown = app.shutdown_signal();
         tokio::spawn(async move {
             let mut ticker = tokio::time::interval(Duration::from_secs_f64(if rate_hz > 0.0 {
