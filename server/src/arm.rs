@@ -383,23 +383,23 @@ impl ArmController {
     /// refuses it while a source drives; afterwards the arm holds the homed pose and both sources re-index
     /// from it, so a phone or policy that takes the arm next starts where the arm now is.
     pub fn reset_scene(&self, seed: Option<u64>, home_arm: bool) -> Result<SceneState, ArmError> {
-        // Held across the reset so that no source can start driving between the check and the teleport.
-        let mut inner = self.inner.lock();
-        // An arm without a scene says so whoever drives it; its refusal changes nothing.
-        if let Err(BridgeError::Unsupported(_)) = self.bridge.scene() {
+        // Re-drawing the objects leaves the arm where it is, so the arm's lock stays free for its sources while a
+        // remote bridge takes its time (up to its answer limit). An arm without a scene says so whoever drives
+        // it; its refusal changes nothing.
+        if !home_arm || matches!(self.bridge.scene(), Err(BridgeError::Unsupported(_))) {
             return self
                 .bridge
                 .reset_scene(seed, home_arm)
                 .map_err(|e| self.bridge_error(e));
         }
-        if home_arm {
-            inner.control.arbiter().may_home().map_err(|e| self.refused(e))?;
-        }
+        // A teleport: held across it so that no source can start driving between the check and the teleport.
+        let mut inner = self.inner.lock();
+        inner.control.arbiter().may_home().map_err(|e| self.refused(e))?;
         let state = self
             .bridge
             .reset_scene(seed, home_arm)
             .map_err(|e| self.bridge_error(e))?;
-        if home_arm && let Some(feedback) = self.bridge.feedback() {
+        if let Some(feedback) = self.bridge.feedback() {
             let robot = robot(self.bridge.health().into(), Some(&feedback.reading()));
             let homed = Input::Homed {
                 gripper: feedback.gripper_position,

@@ -361,3 +361,115 @@ async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
         [(Some(5), true), (Some(6), false)]
     );
 }
+
+/// A remote bridge may take its time to re-draw its scene (up to the server's 10 s answer limit). Meanwhile the
+/// arm's sources are served: a phone driving the arm is answered while the bridge still holds the reset. The
+/// bridge here answers only after the phone's round came back, so an arm locked across the wait would leave
+/// the round waiting for the reset's 10 s timeout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slow_remote_scene_reset_does_not_hold_up_the_phone() {
+    let (_dir, server, channel) = start().await;
+    let client = server.client().await.unwrap();
+    let hello = v1::BridgeHello {
+        arm: "ext".into(),
+        joint_names: vec!["a".into(), "b".into(), "c".into()],
+        has_scene: true,
+        ..v1::BridgeHello::default()
+    };
+    let (tx, mut down) = bridge::attach(channel, hello, 16).await.unwrap();
+    assert!(matches!(
+        down.next().await.unwrap().unwrap().message,
+        Some(v1::bridge_downstream::Message::Welcome(_))
+    ));
+    let start = v1::Pose::from_parts([0.2, 0.05, 0.1], [0.0, 0.0, 0.0, 1.0]);
+    let scene = |request_id: u64| {
+        upstream(v1::bridge_upstream::Message::Scene(v1::BridgeScene {
+            state: Some(v1::SceneState {
+                seed: request_id,
+                ball_position_m: Some(v1::Vec3::new(0.2, 0.0, 0.02)),
+                ball_state: v1::BallState::Resting as i32,
+                ball_radius_m: 0.012,
+                basket_position_m: Some(v1::Vec3::new(0.25, 0.1, 0.0)),
+                basket_radius_m: 0.045,
+                basket_height_m: 0.035,
+                ..v1::SceneState::default()
+            }),
+            reset_request_id: request_id,
+            error: String::new(),
+        }))
+    };
+    tx.send(scene(0)).await.unwrap();
+    // The bridge: fresh feedback every 20 ms (the arm stays ready), and the reset's answer only when told.
+    let (answer_now, mut answer) = tokio::sync::oneshot::channel::<()>();
+    let (reset_seen, seen) = tokio::sync::oneshot::channel::<u64>();
+    let bridge_tx = tx.clone();
+    let bridge = tokio::spawn(async move {
+        let mut reset_seen = Some(reset_seen);
+        let mut pending = None;
+        let mut ticker = tokio::time::interval(Duration::from_millis(20));
+        loop {
+            tokio::select! {
+                _ = ticker.tick() => {
+                    bridge_tx.send(feedback(start, 0)).await.unwrap();
+                }
+                msg = down.next() => match msg {
+                    Some(Ok(v1::BridgeDownstream { message: Some(v1::bridge_downstream::Message::SceneReset(r)) })) => {
+                        pending = Some(r.request_id);
+                        if let Some(s) = reset_seen.take() {
+                            s.send(r.request_id).unwrap();
+                        }
+                    }
+                    Some(Ok(_)) => {}
+                    _ => return,
+                },
+                Ok(()) = &mut answer, if pending.is_some() => {
+                    bridge_tx.send(scene(pending.take().unwrap())).await.unwrap();
+                }
+            }
+        }
+    });
+    // The arm is ready once its feedback is in (10 s covers a stalled machine).
+    assert!(
+        phone2act_tests::wait_until(Duration::from_secs(10), || async {
+            phone2act_tests::arm_state(&client, "ext")
+                .await
+                .robot_from_ee
+                .is_some()
+        })
+        .await
+    );
+    let mut phone = client.teleop("ext", TeleopOptions::default()).await.unwrap();
+    let pose = v1::Pose::from_parts([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]);
+    let seq = phone
+        .send_pose(pose, vec![buttons::clutch_engage()], 0)
+        .await
+        .unwrap();
+    phone.feedback_for(seq).await.unwrap();
+
+    let mut scenes = client.scene();
+    let reset = tokio::spawn(async move { scenes.reset("ext", Some(3), false).await });
+    let request_id = seen.await.unwrap();
+    // The reset waits for the bridge. A phone round now must not wait for it: 5 s is far beyond a round's few
+    // milliseconds on a loaded machine and well under the reset's 10 s limit that a locked arm would wait for.
+    let moved = v1::Pose::from_parts([0.0, 0.01, 0.0], [0.0, 0.0, 0.0, 1.0]);
+    // (Timed with a clock read too: a server blocked on the arm would block this runtime's timers with it.)
+    let started = std::time::Instant::now();
+    let round = tokio::time::timeout(Duration::from_secs(5), async {
+        let seq = phone.send_pose(moved, vec![], 0).await.unwrap();
+        phone.feedback_for(seq).await.unwrap()
+    })
+    .await
+    .expect("the phone's round waited for the scene reset");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "the phone's round took {:?}: it waited for the scene reset",
+        started.elapsed()
+    );
+    assert!(round.error.is_empty(), "{}", round.error);
+    assert!(!reset.is_finished(), "the bridge has not answered the reset yet");
+    answer_now.send(()).unwrap();
+    // The bridge's answer (its scene reports the request it answers as its seed) is the reset's.
+    let state = reset.await.unwrap().unwrap();
+    assert_eq!(state.seed, request_id);
+    bridge.abort();
+}
