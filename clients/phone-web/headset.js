@@ -325,6 +325,7 @@
       this.feedbackCount = 0;
       this.last = null;
       this.rtts = [];
+      this.rttLog = []; // [performance.now(), round trip ms] of the last 1000 feedback messages (for tests)
       this.claims = 0;
       this.tracking = 'not seen';
       this.closed = false;
@@ -386,6 +387,8 @@
           if (rtt >= 0 && rtt < 10000) {
             this.rtts.push(rtt);
             if (this.rtts.length > 100) this.rtts.shift();
+            this.rttLog.push([performance.now(), rtt]);
+            if (this.rttLog.length > 1000) this.rttLog.shift();
           }
         }
         if (msg.recording) this.recPhase = msg.recording.phase;

@@ -229,15 +229,17 @@ await check('A starts and saves an episode, B held discards one', async () => {
 });
 
 // Round trips and feedback of both controllers' sockets, and the video panel's counters.
-const headsetNow = () => page.evaluate(() => {
+const headsetNow = (sinceMs = Infinity) => page.evaluate((since) => {
   const hs = window.phone2act.headset;
   return {
-    rtts: Object.values(hs.hands).flatMap((h) => h.rtts.slice(-60)),
+    at: performance.now(),
+    // Round trips of feedback that arrived after `since` (page clock).
+    rtts: Object.values(hs.hands).flatMap((h) => h.rttLog.filter(([t]) => t > since).map(([, ms]) => ms)),
     feedback: Object.values(hs.hands).reduce((n, h) => n + h.feedbackCount, 0),
     uploads: hs.video.uploads, drawn: hs.video.drawn, glErrors: hs.video.glErrors, g2g: hs.video.g2g.length,
     shown: hs.video.shown,
   };
-});
+}, sinceMs);
 const median = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.floor(s.length / 2)]; };
 const p95 = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.min(s.length - 1, Math.floor(0.95 * s.length))]; };
 
@@ -289,7 +291,7 @@ await check('the live video is drawn on a panel in the headset, and control keep
     await setPanel(state !== 'hidden');
     const a = await headsetNow();
     await sleep(3000);
-    const b = await headsetNow();
+    const b = await headsetNow(a.at);
     // Both controllers stream at the emulator's frame rate: 3 s give hundreds of feedback messages on an idle
     // machine; 50 says control kept going.
     assert(b.feedback - a.feedback >= 50, `control nearly stopped (${state}): ${b.feedback - a.feedback} feedback in 3 s`);

@@ -637,9 +637,16 @@ async fn run_viewer(
                     }
                     need_key = false;
                     let rtp_90k = u64::try_from(frame.capture_unix_ns).unwrap_or(0) / 100_000 * 9;
+                    // str0m stamps each packet it sends with the time of its last input, and the estimator
+                    // compares those stamps with the page's arrival times. Its clock is moved to now first: the
+                    // frame's packets go out now, and stamped with the last input before it (a feedback or a
+                    // timer, up to tens of milliseconds earlier, more on a busy machine) they looked delayed in
+                    // the network by the difference, which the estimator read as a growing queue.
+                    let now = Instant::now();
+                    rtc.handle_input(Input::Timeout(now)).map_err(|e| e.to_string())?;
                     if let Some(writer) = rtc.writer(mid) {
                         writer
-                            .write(params.pt(), Instant::now(), MediaTime::from_90khz(rtp_90k), frame.data.clone())
+                            .write(params.pt(), now, MediaTime::from_90khz(rtp_90k), frame.data.clone())
                             .map_err(|e| e.to_string())?;
                     }
                     if let Some(mut ch) = channel.and_then(|id| rtc.channel(id)) {
