@@ -133,8 +133,8 @@
     return null;
   }
 
-  // Uploads `el` into the panel's texture: storage is allocated at a new size only, otherwise overwritten.
-  // RGBA, the format Chromium copies a video frame into without repacking it.
+  // Uploads `el` into the panel's texture (RGBA): storage is allocated at a new size only, otherwise
+  // overwritten.
   function upload(gl, el, width, height) {
     if (width !== pv.texW || height !== pv.texH) {
       gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, el);
@@ -148,8 +148,8 @@
 
   // Draws the live video's newest frame on the panel, in every view of this XR frame. Nothing here waits for the
   // GPU: WebGL's commands are queued, and an error check (a synchronous round trip to the GPU process, which
-  // held the page's thread, and the controllers' feedback behind it, every frame) is made only on the first
-  // draw after the texture's storage changed.
+  // holds the page's thread, and the controllers' feedback behind it, while it waits) is made only on the
+  // first draw after the texture's storage changed.
   function drawVideo(frame, layer) {
     const gl = hs.gl;
     const v = app.video;
@@ -226,7 +226,6 @@
     return typeof window.XRMediaBinding === 'function' && !!session.renderState
       && Array.isArray(session.renderState.layers);
   }
-  hs.mediaLayersOffered = mediaLayersOffered;
 
   // A WebGL context and layer for the panel (the JPEG preview; the live video too where there are no media
   // layers).
@@ -242,8 +241,8 @@
 
   // In a session with media layers, what the operator sees: the live video as a media quad layer once it has a
   // picture (its size gives the quad's height), the JPEG preview on the WebGL panel where the page fell back to
-  // it, or nothing (a cleared WebGL layer) while the operator hid the video. The headset's compositor draws the media layer from the
-  // video itself: the page uploads and draws nothing for it.
+  // it, or nothing (a cleared WebGL layer) while the operator hid the video. The headset's compositor draws the
+  // media layer from the video itself: the page uploads and draws nothing for it.
   function updateLayers(session) {
     const v = app.video;
     const video = $('video');
@@ -262,12 +261,11 @@
             height: (PANEL.widthM * video.videoHeight) / video.videoWidth,
           });
         } catch (e) {
-          // Not granted after all (no layers feature): the WebGL panel, as in a browser without layers.
+          // Not granted after all: the WebGL panel on the WebGL layer the session already shows, as in a
+          // browser without layers.
           console.warn('no media layer, the video goes on a WebGL panel', e);
           pv.mode = 'panel';
           pv.layer = null;
-          const layer = glLayer(session);
-          session.updateRenderState(layer ? { layers: [], baseLayer: layer } : { layers: [] });
           return;
         }
         session.updateRenderState({ layers: [pv.layer] });
@@ -275,7 +273,7 @@
         // The WebGL layer (cleared, or the preview on the panel): a session with no layer gets no frames, and
         // the controllers' samples go out in the frames.
         pv.layer = null;
-        session.updateRenderState({ layers: [hs.glLayer] });
+        session.updateRenderState({ layers: hs.glLayer ? [hs.glLayer] : [] });
       }
       pv.showing = want;
     }
@@ -531,12 +529,8 @@
       if (!seen.has(handedness)) hand.missing();
     }
     // Drawn after the samples went out: a slow texture upload never holds a pose back.
-    let layer = null;
-    if (pv.mode === 'layer') {
-      updateLayers(session);
-      if (pv.showing !== 'video') layer = hs.glLayer;
-    }
-    if (pv.mode === 'panel') layer = session.renderState && session.renderState.baseLayer;
+    if (pv.mode === 'layer') updateLayers(session);
+    const layer = pv.mode === 'layer' && pv.showing === 'video' ? null : hs.glLayer;
     if (layer && hs.gl) {
       // Transparent clear: in immersive-ar the passthrough shows through.
       hs.gl.bindFramebuffer(hs.gl.FRAMEBUFFER, layer.framebuffer);
@@ -579,14 +573,17 @@
     try {
       const layer = glLayer(session);
       if (layer && pv.mode === 'layer') {
-        session.updateRenderState({ layers: [layer] });
-        pv.showing = 'none';
-      } else if (layer) {
-        session.updateRenderState({ baseLayer: layer });
+        try {
+          session.updateRenderState({ layers: [layer] });
+          pv.showing = 'none';
+        } catch (e) {
+          // A session without the layers feature refuses a layers list: the panel as a base layer.
+          pv.mode = 'panel';
+        }
       }
+      if (layer && pv.mode === 'panel') session.updateRenderState({ baseLayer: layer });
     } catch (e) {
       console.warn('no WebGL layer', e);
-      pv.mode = 'panel';
     }
     hs.refSpace = await session.requestReferenceSpace('local');
     // The page's own socket lets go of its arm; the controllers' sockets claim theirs.

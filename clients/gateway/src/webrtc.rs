@@ -15,7 +15,8 @@
 //!   and waits for a keyframe.
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
 //!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
-//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
+//!   capture time (90 kHz), after moving str0m's clock to the present (it stamps the packets it sends with
+//!   its clock, and congestion control compares those stamps with the page's arrival times), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
 //!   channel so that the page can show glass-to-glass latency (its clock offset comes from `clock` round trips
 //!   on the control socket) and the bitrate.
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
