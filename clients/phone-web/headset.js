@@ -5,9 +5,12 @@
 //   lower face button (A / X) = start recording, or save while recording;
 //   upper face button (B / Y) held for 1 s while recording = discard.
 // Which controller drives which arm comes from the gateway's `welcome` (`[gateway.controllers]`).
-// The live video (video.js, started with the session where the gateway offers it) is drawn on a panel in the
-// scene, above eye level and ahead, so that the controllers held in front of the chest stay in view; where
-// WebRTC cannot connect, the JPEG preview the page falls back to is drawn there instead.
+// The live video (video.js, started with the session where the gateway offers it) hangs in the scene above eye
+// level and ahead, so that the controllers held in front of the chest stay in view: where the browser has the
+// WebXR layers API's media binding (Quest Browser) as a media quad layer, which the headset's compositor draws
+// from the video itself; elsewhere as a WebGL panel, the video uploaded as a texture once per new frame. Where
+// WebRTC cannot connect, the JPEG preview the page falls back to is drawn on the WebGL panel instead. A
+// thumbstick press hides or shows the video.
 // Loaded after app.js; uses its state (window.phone2act) for the token, the arm list and the task field.
 'use strict';
 
@@ -15,7 +18,7 @@
   const app = window.phone2act;
   const $ = (id) => document.getElementById(id);
   // xr-standard gamepad mapping (WebXR Gamepads Module): the indices every tracked controller shares.
-  const BUTTON = { trigger: 0, squeeze: 1, lower: 4, upper: 5 };
+  const BUTTON = { trigger: 0, squeeze: 1, thumbstick: 3, lower: 4, upper: 5 };
   const DISCARD_HOLD_MS = 1000;
   // A hello refused because our own released stream still holds the arm is retried this many times, 300 ms
   // apart; any other holder keeps its arm.
@@ -42,16 +45,25 @@
   // new texture is uploaded at most this often.
   const UPLOAD_EVERY_MS = 33;
   const pv = {
+    shown: true, // the operator's choice (thumbstick press)
+    mode: null, // 'layer' (a media quad layer) or 'panel' (WebGL), once the session chose
+    layer: null, // the media quad layer, where there is one
+    layerFrames: 0, // XR frames with the media layer in the session's layers
     uploads: 0, // texture uploads (one per video frame shown)
     previewUploads: 0, // uploads of the JPEG preview's image, where the page fell back to it
     previewLoads: 0,
     lastPreviewLoads: 0,
     drawn: 0, // XR frames with the panel drawn
-    glErrors: 0, // XR frames whose drawing WebGL refused
+    glErrors: 0, // error checks that found WebGL refusing a panel draw
+    glChecks: 0,
     g2g: [], // glass to glass at upload: capture on the gateway's clock to the panel's frame, ms
     startedVideo: false,
     lastFrames: -1,
+    lastDecoded: -1,
     lastUploadMs: 0,
+    texW: 0,
+    texH: 0,
+    checkGl: false, // the next draw asks WebGL for errors (a round trip to the GPU process: not every frame)
     gl: null,
     prog: null,
     buf: null,
@@ -101,9 +113,43 @@
     };
     pv.prog = prog;
     pv.gl = gl;
+    pv.texW = 0;
+    pv.texH = 0;
   }
 
-  // Draws the live video's newest frame on the panel, in every view of this XR frame.
+  // Whether the video element shows a frame not yet uploaded. The page's frame callback counts the frames it
+  // shows; where no callback comes (a headset browser may not composite the page while immersive), the
+  // element's count of decoded frames tells, checked at most every UPLOAD_EVERY_MS.
+  function newVideoFrame(video, v, now) {
+    if (v.frames !== pv.lastFrames) return 'shown';
+    if (now - v.lastFrameAt <= 500 || now - pv.lastUploadMs < UPLOAD_EVERY_MS) return null;
+    const q = video.getVideoPlaybackQuality ? video.getVideoPlaybackQuality() : null;
+    const decoded = q ? q.totalVideoFrames : -1;
+    // Without a count, the picture is taken as new at most every UPLOAD_EVERY_MS.
+    if (decoded === -1 || decoded !== pv.lastDecoded) {
+      pv.lastDecoded = decoded;
+      return 'decoded';
+    }
+    return null;
+  }
+
+  // Uploads `el` into the panel's texture (RGBA): storage is allocated at a new size only, otherwise
+  // overwritten.
+  function upload(gl, el, width, height) {
+    if (width !== pv.texW || height !== pv.texH) {
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, el);
+      pv.texW = width;
+      pv.texH = height;
+      pv.checkGl = true;
+    } else {
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, gl.RGBA, gl.UNSIGNED_BYTE, el);
+    }
+  }
+
+  // Draws the live video's newest frame on the panel, in every view of this XR frame. Nothing here waits for the
+  // GPU: WebGL's commands are queued, and an error check (a synchronous round trip to the GPU process, which
+  // holds the page's thread, and the controllers' feedback behind it, while it waits) is made only on the
+  // first draw after the texture's storage changed.
   function drawVideo(frame, layer) {
     const gl = hs.gl;
     const v = app.video;
@@ -113,7 +159,7 @@
     let el = null;
     if (v && v.pc && video && video.readyState >= 2 && video.videoWidth) el = video;
     else if (app.preview && app.preview.want && img && img.complete && img.naturalWidth) el = img;
-    if (!gl || !el) return;
+    if (!gl || !el || !pv.shown) return;
     if (pv.gl !== gl) {
       try {
         panelSetup(gl);
@@ -125,26 +171,25 @@
     }
     gl.bindTexture(gl.TEXTURE_2D, pv.tex);
     const now = performance.now();
-    // A new frame from the page's frame callback, or, where the page is not composited while immersive (no
-    // callbacks), whatever the video shows now, at most every UPLOAD_EVERY_MS.
     if (el === img) {
       if (pv.previewLoads !== pv.lastPreviewLoads) {
-        gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, img);
+        upload(gl, img, img.naturalWidth, img.naturalHeight);
         pv.previewUploads += 1;
         pv.lastPreviewLoads = pv.previewLoads;
       }
-    }
-    const fresh = el === video && v.frames !== pv.lastFrames;
-    if (el === video && (fresh || (now - pv.lastUploadMs >= UPLOAD_EVERY_MS && now - v.lastFrameAt > 500))) {
-      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, video);
-      pv.uploads += 1;
-      pv.lastUploadMs = now;
-      // Glass to glass of a frame the page showed (its capture time is known), on the panel from this frame.
-      if (fresh && v.lastCaptureMs !== null && v.offsetMs !== null) {
-        pv.g2g.push(v.pageUnixMs() + v.offsetMs - v.lastCaptureMs);
-        if (pv.g2g.length > 300) pv.g2g.shift();
+    } else {
+      const fresh = newVideoFrame(video, v, now);
+      if (fresh) {
+        upload(gl, video, video.videoWidth, video.videoHeight);
+        pv.uploads += 1;
+        pv.lastUploadMs = now;
+        // Glass to glass of a frame the page showed (its capture time is known), on the panel from this frame.
+        if (fresh === 'shown' && v.lastCaptureMs !== null && v.offsetMs !== null) {
+          pv.g2g.push(v.pageUnixMs() + v.offsetMs - v.lastCaptureMs);
+          if (pv.g2g.length > 300) pv.g2g.shift();
+        }
+        pv.lastFrames = v.frames;
       }
-      pv.lastFrames = v.frames;
     }
     const pose = frame.getViewerPose(hs.refSpace);
     if (!pose) return;
@@ -165,8 +210,74 @@
       gl.uniformMatrix4fv(pv.loc.view, false, view.transform.inverse.matrix);
       gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
     }
-    if (gl.getError() !== gl.NO_ERROR) pv.glErrors += 1;
+    if (pv.checkGl) {
+      pv.checkGl = false;
+      pv.glChecks += 1;
+      if (gl.getError() !== gl.NO_ERROR) pv.glErrors += 1;
+    }
     pv.drawn += 1;
+  }
+
+  // ---- the live video as a media quad layer (WebXR layers API), where the browser has one -----------------
+
+  // The browser offers media layers: XRMediaBinding, and a session render state with a `layers` list (a
+  // session without the layers feature refuses to create one, and the panel takes over then).
+  function mediaLayersOffered(session) {
+    return typeof window.XRMediaBinding === 'function' && !!session.renderState
+      && Array.isArray(session.renderState.layers);
+  }
+
+  // A WebGL context and layer for the panel (the JPEG preview; the live video too where there are no media
+  // layers).
+  function glLayer(session) {
+    if (!hs.glLayer) {
+      const gl = document.createElement('canvas').getContext('webgl', { xrCompatible: true, alpha: true });
+      if (!gl || !window.XRWebGLLayer) return null;
+      hs.gl = gl;
+      hs.glLayer = new XRWebGLLayer(session, gl);
+    }
+    return hs.glLayer;
+  }
+
+  // In a session with media layers, what the operator sees: the live video as a media quad layer once it has a
+  // picture (its size gives the quad's height), the JPEG preview on the WebGL panel where the page fell back to
+  // it, or nothing (a cleared WebGL layer) while the operator hid the video. The headset's compositor draws the
+  // media layer from the video itself: the page uploads and draws nothing for it.
+  function updateLayers(session) {
+    const v = app.video;
+    const video = $('video');
+    const img = $('preview');
+    let want = 'none';
+    if (pv.shown && v && v.pc && video && video.videoWidth > 0) want = 'video';
+    else if (pv.shown && app.preview && app.preview.want && img && img.complete && img.naturalWidth) want = 'preview';
+    if (want !== pv.showing) {
+      if (want === 'video') {
+        try {
+          pv.layer = new XRMediaBinding(session).createQuadLayer(video, {
+            space: hs.refSpace,
+            layout: 'mono',
+            transform: new XRRigidTransform({ x: 0, y: PANEL.upM, z: -PANEL.aheadM }),
+            width: PANEL.widthM,
+            height: (PANEL.widthM * video.videoHeight) / video.videoWidth,
+          });
+        } catch (e) {
+          // Not granted after all: the WebGL panel on the WebGL layer the session already shows, as in a
+          // browser without layers.
+          console.warn('no media layer, the video goes on a WebGL panel', e);
+          pv.mode = 'panel';
+          pv.layer = null;
+          return;
+        }
+        session.updateRenderState({ layers: [pv.layer] });
+      } else {
+        // The WebGL layer (cleared, or the preview on the panel): a session with no layer gets no frames, and
+        // the controllers' samples go out in the frames.
+        pv.layer = null;
+        session.updateRenderState({ layers: hs.glLayer ? [hs.glLayer] : [] });
+      }
+      pv.showing = want;
+    }
+    if (pv.layer) pv.layerFrames += 1;
   }
 
   // Controller -> arm: the gateway's map when it has one, else each controller drives the arm of its own name
@@ -205,12 +316,14 @@
       this.engaged = false;
       this.gripperSent = null; // the trigger value last sent; null until the first frame sees the trigger
       this.lower = false;
+      this.stick = false;
       this.upperSince = 0;
       this.discardSent = false;
       this.recPhase = null;
       this.feedbackCount = 0;
       this.last = null;
       this.rtts = [];
+      this.rttLog = []; // [performance.now(), round trip ms] of the last 1000 feedback messages (for tests)
       this.claims = 0;
       this.tracking = 'not seen';
       this.closed = false;
@@ -272,6 +385,8 @@
           if (rtt >= 0 && rtt < 10000) {
             this.rtts.push(rtt);
             if (this.rtts.length > 100) this.rtts.shift();
+            this.rttLog.push([performance.now(), rtt]);
+            if (this.rttLog.length > 1000) this.rttLog.shift();
           }
         }
         if (msg.recording) this.recPhase = msg.recording.phase;
@@ -287,6 +402,10 @@
       const buttons = [];
       const b = (i) => (pad && pad.buttons[i]) || { pressed: false, value: 0 };
       const trigger = Math.min(1, Math.max(0, b(BUTTON.trigger).value));
+      // A thumbstick press hides the video (an unobstructed view of the robot) or shows it again.
+      const stick = b(BUTTON.thumbstick).pressed;
+      if (stick && !this.stick) pv.shown = !pv.shown;
+      this.stick = stick;
       // Nothing goes out before the arm is claimed: the gateway would give a pose-less socket the default arm.
       if (!this.open) {
         if (this.gripperSent === null) this.gripperSent = trigger;
@@ -410,7 +529,8 @@
       if (!seen.has(handedness)) hand.missing();
     }
     // Drawn after the samples went out: a slow texture upload never holds a pose back.
-    const layer = session.renderState && session.renderState.baseLayer;
+    if (pv.mode === 'layer') updateLayers(session);
+    const layer = pv.mode === 'layer' && pv.showing === 'video' ? null : hs.glLayer;
     if (layer && hs.gl) {
       // Transparent clear: in immersive-ar the passthrough shows through.
       hs.gl.bindFramebuffer(hs.gl.FRAMEBUFFER, layer.framebuffer);
@@ -434,7 +554,9 @@
     const mode = hs.supported.ar ? 'immersive-ar' : 'immersive-vr';
     let session;
     try {
-      session = await navigator.xr.requestSession(mode, { requiredFeatures: ['local'] });
+      // The layers feature where the browser has media layers: the video then goes to the compositor as is.
+      const optionalFeatures = typeof window.XRMediaBinding === 'function' ? ['layers'] : [];
+      session = await navigator.xr.requestSession(mode, { requiredFeatures: ['local'], optionalFeatures });
     } catch (e) {
       hs.notice = `Could not start the headset session: ${e.message || e}`;
       render();
@@ -443,12 +565,23 @@
     hs.session = session;
     hs.mode = mode;
     hs.notice = '';
+    hs.gl = null;
+    hs.glLayer = null;
+    pv.layer = null;
+    pv.showing = null;
+    pv.mode = mediaLayersOffered(session) ? 'layer' : 'panel';
     try {
-      const gl = document.createElement('canvas').getContext('webgl', { xrCompatible: true, alpha: true });
-      if (gl && window.XRWebGLLayer) {
-        hs.gl = gl;
-        session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+      const layer = glLayer(session);
+      if (layer && pv.mode === 'layer') {
+        try {
+          session.updateRenderState({ layers: [layer] });
+          pv.showing = 'none';
+        } catch (e) {
+          // A session without the layers feature refuses a layers list: the panel as a base layer.
+          pv.mode = 'panel';
+        }
       }
+      if (layer && pv.mode === 'panel') session.updateRenderState({ baseLayer: layer });
     } catch (e) {
       console.warn('no WebGL layer', e);
     }

@@ -3,7 +3,8 @@
 # and the gateway (built with cargo). The phone path gets WebXR from a test shim (test_page.mjs, one arm); headset
 # controllers and iPhone browser apps get it from Meta's emulator iwer (test_headset.mjs, two arms, and the live
 # video on a panel in the immersive session); live video
-# against control, and on a throttled link, in test_video.mjs; the recording habits (outcome buttons, countdown,
+# against control, on a throttled link and through the gateway's stalls, in test_video.mjs, and [gateway.video] (off; a
+# camera scaled down) in test_video_config.mjs; the recording habits (outcome buttons, countdown,
 # SAVE LAST) in test_habits.mjs; a policy
 # session's plan preview and the hand-back in test_handback.mjs. Installs
 # what is missing (apt chromium, npm ci). Prints "N passed, M failed" per suite and exits non-zero on failure.
@@ -84,8 +85,25 @@ if [[ "$suites" == *video* ]]; then
   (
     STACK_HTTPS=1
     source "$HERE/../rosbridge/stack.sh"
+    # The stall check stops and resumes the gateway this stack started (by its pid).
+    export GATEWAY_PID
     cd "$HERE"
     node --experimental-websocket --no-warnings test_video.mjs
+  ) || rc=1
+  # [gateway.video] against the page: the video turned off, and a camera larger than the size limit.
+  (
+    STACK_HTTPS=1
+    STACK_GATEWAY_CONFIG="$HERE/video-off-gateway.toml"
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_video_config.mjs off
+  ) || rc=1
+  (
+    STACK_HTTPS=1
+    STACK_CONFIG="$HERE/camera-1080p.toml"
+    source "$HERE/../rosbridge/stack.sh"
+    cd "$HERE"
+    node --experimental-websocket --no-warnings test_video_config.mjs scaled
   ) || rc=1
 fi
 exit $rc

@@ -20,14 +20,16 @@ const DRIVES = { left: 'right', right: 'left' };
 // controllers) or 'iphone-ar' (an iPhone user agent, immersive-ar only, no controllers: what a WebXR browser
 // app on iOS offers). The test moves things with window.__move(target, [dx, dy, dz], ms), target being 'left',
 // 'right' (controllers) or 'device' (the headset or phone itself): linear, in small steps, like a hand.
-async function xrPage(device) {
+// `layers` installs the runtime with iwer's WebXR layers polyfill (Meta's webxr-layers-polyfill, which iwer ships):
+// XRMediaBinding and media quad layers, composited by the polyfill in WebGL.
+async function xrPage(device, { layers = false } = {}) {
   const context = await browser.newContext({
     ignoreHTTPSErrors: true,
     userAgent: device === 'iphone-ar' ? IPHONE_UA : undefined,
     viewport: { width: 412, height: 915 },
   });
   await context.addInitScript({ path: IWER });
-  await context.addInitScript(([kind, ua]) => {
+  await context.addInitScript(([kind, ua, polyfillLayers]) => {
     const config = kind === 'iphone-ar'
       ? { ...IWER.metaQuest3, name: 'iPhone with a WebXR browser app (emulated)', controllerConfig: undefined,
         supportedSessionModes: ['inline', 'immersive-ar'], userAgent: ua }
@@ -38,7 +40,7 @@ async function xrPage(device) {
     canvasContainer.style.pointerEvents = 'none';
     const dev = new IWER.XRDevice(config, { canvasContainer });
     // Chromium has a navigator.xr of its own (with no device behind it): the emulator replaces it.
-    dev.installRuntime({ forceInstall: true });
+    dev.installRuntime({ forceInstall: true, polyfillLayers });
     // iwer 2.5.0 marks every pose but the viewer's as emulatedPosition; a Quest's Touch controllers are tracked
     // in 6 DoF and report false (the page sends an emulated position as "limited" tracking, and the arm holds).
     Object.defineProperty(window.XRPose.prototype, 'emulatedPosition', { configurable: true, get: () => false });
@@ -55,10 +57,11 @@ async function xrPage(device) {
       }, STEP_MS);
     });
     window.__button = (hand, id, value) => dev.controllers[hand].updateButtonValue(id, value);
-  }, [device, IPHONE_UA]);
+  }, [device, IPHONE_UA, layers]);
   const page = await context.newPage();
   page.on('dialog', (d) => d.accept());
   page.on('pageerror', (e) => console.log(`page error: ${e.message}`));
+  page.on('console', (m) => { if (m.type() === 'error') console.log(`page error: ${m.text()}`); });
   await page.goto(`${BASE}/?token=${encodeURIComponent(PAIRING_TOKEN)}`);
   return { context, page };
 }
@@ -226,14 +229,17 @@ await check('A starts and saves an episode, B held discards one', async () => {
 });
 
 // Round trips and feedback of both controllers' sockets, and the video panel's counters.
-const headsetNow = () => page.evaluate(() => {
+const headsetNow = (sinceMs = Infinity) => page.evaluate((since) => {
   const hs = window.phone2act.headset;
   return {
-    rtts: Object.values(hs.hands).flatMap((h) => h.rtts.slice(-60)),
+    at: performance.now(),
+    // Round trips of feedback that arrived after `since` (page clock).
+    rtts: Object.values(hs.hands).flatMap((h) => h.rttLog.filter(([t]) => t > since).map(([, ms]) => ms)),
     feedback: Object.values(hs.hands).reduce((n, h) => n + h.feedbackCount, 0),
     uploads: hs.video.uploads, drawn: hs.video.drawn, glErrors: hs.video.glErrors, g2g: hs.video.g2g.length,
+    shown: hs.video.shown,
   };
-});
+}, sinceMs);
 const median = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.floor(s.length / 2)]; };
 const p95 = (xs) => { const s = xs.slice().sort((a, b) => a - b); return s[Math.min(s.length - 1, Math.floor(0.95 * s.length))]; };
 
@@ -264,43 +270,53 @@ await check('the live video is drawn on a panel in the headset, and control keep
       throw new Error(`${e2.message}; ${await panelState()}`);
     }
   }
-  const windows = { on: [], off: [] };
+  // Emulated by iwer without layers: no XRMediaBinding, so the video is on the WebGL panel.
+  assert(await pageState(page, () => window.phone2act.headset.video.mode) === 'panel',
+    `a browser without media layers got ${await pageState(page, () => window.phone2act.headset.video.mode)}`);
+  // Video off, video on with the panel hidden (thumbstick press: the video still decoded, nothing uploaded or
+  // drawn), video on with the panel: 3 s each, in two rounds, so that the machine's other load falls on all.
+  const windows = { off: [], hidden: [], panel: [] };
   const frames = { on: 0, drawn: 0, s: 0 };
-  // Video on, off, on: 3 s each, alternating so that the machine's other load falls on both.
-  for (const on of [true, false, true]) {
-    if (on && !(await page.isChecked('#video-on'))) {
+  const setPanel = async (shown) => {
+    if ((await headsetNow()).shown !== shown) await press('right', 'thumbstick');
+    await waitPage(page, `window.phone2act.headset.video.shown === ${shown}`, `the panel ${shown ? 'shown' : 'hidden'}`, 5000);
+  };
+  for (const state of ['off', 'hidden', 'panel', 'off', 'panel', 'hidden']) {
+    if (state !== 'off' && !(await page.isChecked('#video-on'))) {
       await page.check('#video-on');
       await waitPage(page, () => window.phone2act.video.frames >= 1, 'the video back', 20000);
-    } else if (!on) {
+    } else if (state === 'off') {
       await page.uncheck('#video-on');
     }
+    await setPanel(state !== 'hidden');
     const a = await headsetNow();
     await sleep(3000);
-    const b = await headsetNow();
+    const b = await headsetNow(a.at);
     // Both controllers stream at the emulator's frame rate: 3 s give hundreds of feedback messages on an idle
     // machine; 50 says control kept going.
-    assert(b.feedback - a.feedback >= 50, `control nearly stopped with the video ${on ? 'on' : 'off'}: ${b.feedback - a.feedback} feedback in 3 s`);
-    windows[on ? 'on' : 'off'].push(...b.rtts);
-    if (on) {
+    assert(b.feedback - a.feedback >= 50, `control nearly stopped (${state}): ${b.feedback - a.feedback} feedback in 3 s`);
+    windows[state].push(...b.rtts);
+    if (state === 'panel') {
       frames.on += b.uploads - a.uploads;
       frames.drawn += b.drawn - a.drawn;
       frames.s += 3;
       assert(b.uploads - a.uploads >= 5, `only ${b.uploads - a.uploads} video frames reached the panel in 3 s`);
     } else {
-      assert(b.uploads === a.uploads, 'frames reached the panel with the video off');
+      assert(b.uploads === a.uploads && b.drawn === a.drawn, `the panel was uploaded or drawn (${state})`);
     }
     assert(b.glErrors === 0, `WebGL refused ${b.glErrors} panel draws`);
   }
+  assert(await pageState(page, () => window.phone2act.headset.video.glChecks) >= 1, 'WebGL errors were never checked');
   const g2g = await page.evaluate(() => window.phone2act.headset.video.g2g.slice());
   assert(g2g.length >= 5, `glass to glass known for only ${g2g.length} panel frames`);
   console.log(`  headset panel: ${(frames.on / frames.s).toFixed(1)} video frames/s uploaded, ${(frames.drawn / frames.s).toFixed(0)} XR frames/s drawn; `
     + `glass to glass p50 ${median(g2g).toFixed(0)} ms, p95 ${p95(g2g).toFixed(0)} ms (${g2g.length})`);
-  console.log(`  controllers' control round trip: video on p50 ${median(windows.on).toFixed(1)} ms, p95 ${p95(windows.on).toFixed(1)} ms; `
-    + `off p50 ${median(windows.off).toFixed(1)} ms, p95 ${p95(windows.off).toFixed(1)} ms`);
+  const fmt = (xs) => `p50 ${median(xs).toFixed(1)} ms, p95 ${p95(xs).toFixed(1)} ms`;
+  console.log(`  controllers' control round trip: video off ${fmt(windows.off)}; video on, panel hidden ${fmt(windows.hidden)}; `
+    + `video on, panel shown ${fmt(windows.panel)}`);
   // Not a latency bound (the machine is shared): control stalled behind the video would show as a median of
-  // seconds. The p95 is printed, not checked: in the emulator (software WebGL, the page's one thread uploading
-  // each frame) it reached 1.0 s at a load average of 24 while the median stayed under 10 ms.
-  assert(median(windows.on) < 250, `control round trip median ${median(windows.on).toFixed(0)} ms with the video on`);
+  // seconds. The p95 is printed, not checked: the machine's own stalls reach the page in every window.
+  assert(median(windows.panel) < 250, `control round trip median ${median(windows.panel).toFixed(0)} ms with the panel`);
 });
 
 await check('ending the headset session hands the arm back to the page', async () => {
@@ -317,6 +333,78 @@ await check('ending the headset session hands the arm back to the page', async (
   assert(!(await pageState(page, () => window.phone2act.video.want)), 'the video the session started is still on');
 });
 await questContext.close();
+
+await check('with the WebXR layers API the video is a media quad layer, and the page uploads nothing', async () => {
+  // iwer's layers polyfill gives XRMediaBinding; it composites the layer itself in WebGL (a copy of the video
+  // each frame), as no headset does, so this checks how the page uses the API, not what the layer costs.
+  const { context, page: p } = await xrPage('quest3', { layers: true });
+  try {
+    await waitPage(p, () => window.phone2act && window.phone2act.sessionOpen, 'session open');
+    await waitPage(p, () => !document.querySelector('#start-headset').hidden, 'the Start headset button');
+    await p.click('#start-headset');
+    await waitPage(p, () => {
+      const h = window.phone2act.headset.hands;
+      return h.left && h.left.open && h.right && h.right.open && h.left.feedbackCount > 10;
+    }, 'both controllers to drive their arms');
+    assert(await pageState(p, () => window.phone2act.headset.video.mode) === 'layer', 'media layers offered, but not used');
+    // Up to 20 s for the first frame (ICE, DTLS and a keyframe on a loaded machine), as above.
+    try {
+      await waitPage(p, () => window.phone2act.headset.video.layerFrames >= 30, 'the video in a media layer', 20000);
+    } catch (e) {
+      const why = await p.evaluate(() => {
+        const { video: v, headset: { video: pv, frames } } = window.phone2act;
+        return `video ${v.state}, ${v.frames} frames, fallbacks ${v.fallbacks} (${v.reason}); XR frames ${frames}, showing ${pv.showing}, mode ${pv.mode}`;
+      });
+      throw new Error(`${e.message}; ${why}`);
+    }
+    const state = await p.evaluate(() => {
+      const { headset: hs } = window.phone2act;
+      const layers = hs.session.renderState.layers;
+      const q = layers[0];
+      return {
+        layers: layers.length, quad: q === hs.video.layer, media: q.media === document.querySelector('#video'),
+        width: q.width, height: q.height, y: q.transform.position.y, z: q.transform.position.z,
+        videoW: document.querySelector('#video').videoWidth, videoH: document.querySelector('#video').videoHeight,
+        uploads: hs.video.uploads, drawn: hs.video.drawn,
+      };
+    });
+    assert(state.layers === 1 && state.quad && state.media, `render state layers: ${JSON.stringify(state)}`);
+    assert(Math.abs(state.width - 1.2) < 1e-6 && Math.abs(state.height - (1.2 * state.videoH) / state.videoW) < 1e-6
+      && Math.abs(state.y - 0.35) < 1e-6 && Math.abs(state.z + 1.6) < 1e-6, `the quad is not where the panel goes: ${JSON.stringify(state)}`);
+    assert(state.uploads === 0 && state.drawn === 0, `the page uploaded or drew the video itself: ${JSON.stringify(state)}`);
+    // Control runs beside it.
+    const f0 = await p.evaluate(() => Object.values(window.phone2act.headset.hands).reduce((n, h) => n + h.feedbackCount, 0));
+    await sleep(1000);
+    const f1 = await p.evaluate(() => Object.values(window.phone2act.headset.hands).reduce((n, h) => n + h.feedbackCount, 0));
+    assert(f1 - f0 >= 15, `control nearly stopped beside the media layer: ${f1 - f0} feedback in 1 s`);
+    // A thumbstick press takes the layer away (a cleared WebGL layer keeps the frames coming), another brings it
+    // back.
+    await p.evaluate(() => window.__button('right', 'thumbstick', 1));
+    await waitPage(p, () => {
+      const { headset: hs } = window.phone2act;
+      const l = hs.session.renderState.layers;
+      return l.length === 1 && l[0] === hs.glLayer && !hs.video.layer;
+    }, 'the layer hidden', 5000);
+    const frames0 = await p.evaluate(() => window.phone2act.headset.frames);
+    await sleep(300);
+    assert(await p.evaluate((n) => window.phone2act.headset.frames > n, frames0), 'no XR frames with the video hidden');
+    await p.evaluate(() => window.__button('right', 'thumbstick', 0));
+    await sleep(150);
+    await p.evaluate(() => window.__button('right', 'thumbstick', 1));
+    await waitPage(p, () => {
+      const { headset: hs } = window.phone2act;
+      const l = hs.session.renderState.layers;
+      return l.length === 1 && hs.video.layer && l[0] === hs.video.layer;
+    }, 'the layer back', 5000);
+    await p.evaluate(() => window.__button('right', 'thumbstick', 0));
+    console.log(`  media quad layer: ${state.width.toFixed(2)} x ${state.height.toFixed(2)} m for a ${state.videoW}x${state.videoH} video, `
+      + `${f1 - f0} feedback in 1 s beside it`);
+    await p.evaluate(() => window.phone2act.headset.stop());
+    await waitPage(p, () => !window.phone2act.headsetActive && window.phone2act.sessionOpen, 'the page socket to claim its arm again');
+  } finally {
+    await context.close();
+  }
+});
 
 await check('an iPhone user agent with WebXR immersive-ar (a WebXR browser app) drives the arm', async () => {
   const { context, page: p } = await xrPage('iphone-ar');

@@ -116,7 +116,14 @@ impl Upstream {
         };
         let sent_at = SystemTime::now();
         let started = Instant::now();
-        let observation = self.policy().get_observation(request).await?.into_inner();
+        // A raw frame of a large camera exceeds tonic's 4 MiB default (1920x1080 RGB is 6.2 MB); the largest
+        // camera the server takes, 7680x4320, is 99.5 MB.
+        let observation = self
+            .policy()
+            .max_decoding_message_size(128 << 20)
+            .get_observation(request)
+            .await?
+            .into_inner();
         let rpc: Duration = started.elapsed();
         Ok(observation
             .frames

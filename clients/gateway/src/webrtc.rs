@@ -15,7 +15,8 @@
 //!   and waits for a keyframe.
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
 //!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
-//!   capture time (90 kHz), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
+//!   capture time (90 kHz), after moving str0m's clock to the present (it stamps the packets it sends with
+//!   its clock, and congestion control compares those stamps with the page's arrival times), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
 //!   channel so that the page can show glass-to-glass latency (its clock offset comes from `clock` round trips
 //!   on the control socket) and the bitrate.
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
@@ -637,9 +638,16 @@ async fn run_viewer(
                     }
                     need_key = false;
                     let rtp_90k = u64::try_from(frame.capture_unix_ns).unwrap_or(0) / 100_000 * 9;
+                    // str0m stamps each packet it sends with the time of its last input, and the estimator
+                    // compares those stamps with the page's arrival times. Its clock is moved to now first: the
+                    // frame's packets go out now, and stamped with the last input before it (a feedback or a
+                    // timer, up to tens of milliseconds earlier, more on a busy machine) they looked delayed in
+                    // the network by the difference, which the estimator read as a growing queue.
+                    let now = Instant::now();
+                    rtc.handle_input(Input::Timeout(now)).map_err(|e| e.to_string())?;
                     if let Some(writer) = rtc.writer(mid) {
                         writer
-                            .write(params.pt(), Instant::now(), MediaTime::from_90khz(rtp_90k), frame.data.clone())
+                            .write(params.pt(), now, MediaTime::from_90khz(rtp_90k), frame.data.clone())
                             .map_err(|e| e.to_string())?;
                     }
                     if let Some(mut ch) = channel.and_then(|id| rtc.channel(id)) {
