@@ -22,7 +22,7 @@ use phone2act_core::{
     ArmSnapshot, ArmVectors, ChunkConfig, Command, Driver, Effects, FlightEntry, FlightHeader, Input, Issue,
     LayoutError, Outcome, ReplaceReport, Robot, Sample, TeleopConfig, TeleopRound, TickNeed,
 };
-use phone2act_recorder::events::ArmActivity;
+use phone2act_dataset::events::ArmActivity;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::Notify;

@@ -3,10 +3,9 @@
 
 use parking_lot::Mutex;
 use phone2act_clock::monotonic_ns;
+use phone2act_dataset::{CameraSpec, DatasetSpec, Format};
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{
-    CameraSpec, DatasetSpec, Format, Recorder, RecorderStatus, RobotSample, RobotSource,
-};
+use phone2act_recorder::{Recorder, RecorderStatus, RobotSample, RobotSource};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
