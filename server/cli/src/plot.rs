@@ -291,7 +291,7 @@ fn camera_strip(episode: &Episode, out: &mut String) -> anyhow::Result<usize> {
             html_escape(&video.key)
         );
         for (&i, frame) in picks.iter().zip(&decoded) {
-            let jpeg = phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, 85)
+            let jpeg = phone2act_capture::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, 85)
                 .context("cannot encode a frame as JPEG")?;
             let frame_index = episode.frame_index[i];
             let _ = writeln!(

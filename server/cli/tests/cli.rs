@@ -458,7 +458,7 @@ fn plotted_frames(html: &str) -> Vec<(u32, u32)> {
             let bytes = base64::engine::general_purpose::STANDARD
                 .decode(&rest[..rest.find('"').unwrap()])
                 .unwrap();
-            let frame = phone2act_recorder::jpeg::decode_jpeg(&bytes).unwrap();
+            let frame = phone2act_capture::jpeg::decode_jpeg(&bytes).unwrap();
             (frame.width, frame.height)
         })
         .collect()

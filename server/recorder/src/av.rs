@@ -3,12 +3,12 @@
 //! a frame that does not fit in the queue is counted as dropped and replaced in the video by a repeat of
 //! the previous frame, so the video keeps exactly one frame per parquet row.
 
-use crate::camera::Frame;
 use ffmpeg_next as ffmpeg;
 use ffmpeg_next::format::Pixel;
 use ffmpeg_next::software::scaling;
 use ffmpeg_next::util::frame::video::Video as VideoFrame;
 use ffmpeg_next::{Dictionary, Packet, Rational, codec, encoder, format};
+use phone2act_capture::camera::Frame;
 use phone2act_dataset::av::{CODEC_LOCK, init_ffmpeg};
 use phone2act_dataset::dataset::EncodeReport;
 use phone2act_dataset::error::RecorderError;

@@ -4,15 +4,9 @@
 //! its crash-safe commit and the reading side are `phone2act-dataset`'s; the cameras are `phone2act-capture`'s.
 
 pub mod av;
-pub mod avcapture;
-pub mod camera;
 pub mod episode;
-pub mod jpeg;
-pub mod live;
 pub mod memory;
-pub mod priority;
 pub mod recorder;
 pub mod synthetic;
-pub mod timeline;
 
 pub use recorder::{Highlight, Phase, Recorder, RecorderStatus, RobotSample, RobotSource, SyncConfig};

@@ -1,7 +1,7 @@
 //! The recorder: a tick thread on a fixed grid at the dataset fps on the monotonic clock, and a sampler
 //! thread that keeps the robot's recent samples with their capture times. Frame i of an episode is the tick
 //! at `first_tick + i / fps`: it holds the robot sample and each camera's frame captured at or before that
-//! instant (see [`crate::timeline`]), whenever the tick thread gets to write it, so a late wake-up writes the
+//! instant (see [`phone2act_capture::timeline`]), whenever the tick thread gets to write it, so a late wake-up writes the
 //! ticks it missed each at its own time. `timestamp` follows `frame_index` (see
 //! [`phone2act_dataset::dataset::timestamp_s`]).
 //!
@@ -14,10 +14,10 @@
 //! the dataset) is counted as held.
 
 use crate::av::EncoderThread;
-use crate::camera::{Frame, FrameSlot};
 use crate::episode::Episode;
-use crate::timeline::{Pick, TickClock, TimedRing, Timing, judge};
 use parking_lot::{Condvar, Mutex};
+use phone2act_capture::camera::{Frame, FrameSlot};
+use phone2act_capture::timeline::{Pick, TickClock, TimedRing, Timing, judge};
 use phone2act_clock::monotonic_ns;
 use phone2act_dataset::dataset::{Dataset, EpisodeSummary, FrameFlags};
 use phone2act_dataset::error::RecorderError;
@@ -171,7 +171,7 @@ struct RingRow {
     tick: u64,
     sample: RobotSample,
     held: bool,
-    /// Why the tick is late, if it is (see [`crate::timeline`]).
+    /// Why the tick is late, if it is (see [`phone2act_capture::timeline`]).
     late: Option<String>,
 }
 

@@ -6,8 +6,8 @@
 mod common;
 
 use common::{ManualRobot, copy_dir, read_json, spec, wait_for};
+use phone2act_capture::camera::{Frame, FrameSlot};
 use phone2act_dataset::Format;
-use phone2act_recorder::camera::{Frame, FrameSlot};
 use phone2act_recorder::{Phase, Recorder};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -5,11 +5,11 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, spec, wait_for};
+use phone2act_capture::camera::FrameSlot;
 use phone2act_dataset::Format;
 use phone2act_dataset::dataset::{timestamp_pairs, timestamp_s};
 use phone2act_dataset::parquet_io::read_rows;
 use phone2act_recorder::Recorder;
-use phone2act_recorder::camera::FrameSlot;
 use serde_json::json;
 use std::path::Path;
 use std::sync::Arc;
@@ -19,7 +19,7 @@ const SIZE: (u32, u32) = (96, 64);
 /// 20 fps: the rate at which the nearest float32 to k/fps falls below it most often (39 % of frames).
 const FPS: u32 = 20;
 
-fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_recorder::camera::CaptureThread {
+fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_capture::camera::CaptureThread {
     common::distinct_camera(slot, SIZE, FPS)
 }
 

@@ -6,10 +6,10 @@
 mod common;
 
 use common::{ManualRobot, distinct_camera, publish_for_conformance, spec, wait_for};
+use phone2act_capture::camera::FrameSlot;
 use phone2act_dataset::dataset::timestamp_s;
 use phone2act_dataset::readback::read_episode;
 use phone2act_dataset::{Format, RecorderError};
-use phone2act_recorder::camera::FrameSlot;
 use phone2act_recorder::{Highlight, Recorder};
 use serde_json::json;
 use std::path::Path;

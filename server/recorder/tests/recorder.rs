@@ -4,10 +4,10 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, read_json, spec, wait_for};
+use phone2act_capture::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_dataset::events::EventKind;
 use phone2act_dataset::parquet_io::read_rows;
 use phone2act_dataset::{Format, RecorderError};
-use phone2act_recorder::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::{Phase, Recorder};
 use serde_json::json;
 use std::path::Path;
@@ -19,7 +19,7 @@ const T: Duration = Duration::from_secs(20);
 struct Rig {
     robot: Arc<ManualRobot>,
     slots: Vec<(String, Arc<FrameSlot>)>,
-    cams: Vec<phone2act_recorder::camera::CaptureThread>,
+    cams: Vec<phone2act_capture::camera::CaptureThread>,
 }
 
 fn rig(names: &[&str], size: (u32, u32), cam_fps: f64) -> Rig {

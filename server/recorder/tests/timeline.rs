@@ -15,11 +15,11 @@ mod common;
 
 use common::spec;
 use parking_lot::Mutex;
+use phone2act_capture::camera::{FrameSlot, spawn_generated};
 use phone2act_clock::monotonic_ns;
 use phone2act_dataset::Format;
 use phone2act_dataset::events::{EventKind, read_events};
 use phone2act_dataset::parquet_io::read_rows;
-use phone2act_recorder::camera::{FrameSlot, spawn_generated};
 use phone2act_recorder::synthetic::SyntheticRobot;
 use phone2act_recorder::{Recorder, RobotSample, RobotSource, SyncConfig};
 use std::collections::BTreeMap;
