@@ -9,9 +9,9 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use parking_lot::{Mutex, RwLock};
 use phone2act_bridges::Bridge;
 use phone2act_bridges::remote::RemoteBridge;
+use phone2act_capture::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_clock::monotonic_ns;
 use phone2act_proto::convert_episode::RecordAction;
-use phone2act_recorder::camera::{CaptureThread, FrameSlot, spawn_generated, spawn_test_pattern};
 use phone2act_recorder::recorder::{Recorder, RecorderStatus};
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -286,7 +286,7 @@ impl App {
                 }
                 CameraKind::V4l2 => {
                     let device = cam.device.as_deref().unwrap_or_default();
-                    let av = phone2act_recorder::avcapture::AvCaptureConfig::v4l2(
+                    let av = phone2act_capture::av::device::AvCaptureConfig::v4l2(
                         device,
                         cam.width,
                         cam.height,
@@ -294,7 +294,7 @@ impl App {
                         cam.mjpeg,
                     );
                     Some(
-                        phone2act_recorder::avcapture::spawn_av_capture(&cam.name, av, Arc::clone(&slot))
+                        phone2act_capture::av::device::spawn_av_capture(&cam.name, av, Arc::clone(&slot))
                             .map_err(|e| cam_err(format!("{device}: {e}")))?,
                     )
                 }

@@ -23,7 +23,7 @@ use phone2act_core::{
     ActionChunk, ActionMode, ArbiterError, ArmControl, ArmLayout, ArmNames, ArmSnapshot, ArmVectors, Command,
     Driver, Effects, FlightEntry, Input, Issue, Outcome, ReplaceReport, Robot, Sample, TeleopRound, TickNeed,
 };
-use phone2act_recorder::events::ArmActivity;
+use phone2act_dataset::events::ArmActivity;
 use std::sync::Arc;
 use tokio::sync::Notify;
 

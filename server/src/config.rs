@@ -241,7 +241,7 @@ fn default_camera_fps() -> f64 {
 }
 
 /// Dataset format written by the recorder (`"v3.0"` or `"v2.1"` in the file): the recorder's own enum.
-pub use phone2act_recorder::spec::Format as DatasetFormat;
+pub use phone2act_dataset::spec::Format as DatasetFormat;
 
 /// The flight recorder: every input of every arm's arbiter, with its time, logged to one file per arm and
 /// server run, for `phone2act replay-log`.
@@ -567,13 +567,13 @@ impl Config {
         let cameras: Vec<_> = self
             .cameras
             .iter()
-            .map(|c| phone2act_recorder::spec::CameraSpec {
+            .map(|c| phone2act_dataset::spec::CameraSpec {
                 name: c.name.clone(),
                 width: c.width,
                 height: c.height,
             })
             .collect();
-        phone2act_recorder::spec::check_cameras(
+        phone2act_dataset::spec::check_cameras(
             &cameras,
             self.recorder.video_codec.as_deref(),
             self.recorder.format,

@@ -5,7 +5,7 @@ use crate::app::App;
 use crate::recording::RecordingError;
 use phone2act_clock::monotonic_ns;
 use phone2act_core::episode_clock::Step;
-use phone2act_recorder::error::RecorderError;
+use phone2act_dataset::error::RecorderError;
 use std::sync::Arc;
 use std::time::Duration;
 

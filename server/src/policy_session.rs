@@ -6,9 +6,9 @@ use crate::app::{App, LookupError};
 use crate::arm::{ArmController, ArmError, RevocationSink};
 use nalgebra::Isometry3;
 use parking_lot::Mutex;
+use phone2act_capture::jpeg::JpegError;
 use phone2act_clock::{monotonic_ns, monotonic_s};
 use phone2act_core::{ActionMode, ReplaceReport};
-use phone2act_recorder::jpeg::JpegError;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -356,7 +356,7 @@ impl PolicySessions {
                     continue;
                 };
                 let data = if let FrameEncoding::Jpeg { quality } = encoding {
-                    phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, quality)
+                    phone2act_capture::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, quality)
                         .map_err(|source| PolicyError::Jpeg {
                             camera: cam.config().name.clone(),
                             source,

@@ -6,9 +6,9 @@ use crate::arm::ArmController;
 use crate::config::Config;
 use parking_lot::Mutex;
 use phone2act_core::episode_clock::{EpisodeClock, EpisodeLimits, Observed, Step};
-use phone2act_recorder::error::RecorderError;
+use phone2act_dataset::error::RecorderError;
+use phone2act_dataset::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use phone2act_recorder::recorder::{Phase, RecorderStatus, RobotSample, RobotSource};
-use phone2act_recorder::spec::{CameraSpec, DatasetSpec, ModalityGroup};
 use std::sync::Arc;
 
 /// Why a recording request failed.

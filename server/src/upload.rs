@@ -2,7 +2,7 @@
 //! `<prefix>/<station_id>/`), and the commit hook that queues every committed episode for it.
 
 use crate::config::Config;
-use phone2act_recorder::EpisodeSummary;
+use phone2act_dataset::EpisodeSummary;
 use phone2act_recorder::recorder::CommitHook;
 use phone2act_storage::remote::RemoteOptions;
 use phone2act_storage::{Credentials, Remote, StorageError, StorageUrl, Uploader};

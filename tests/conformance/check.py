@@ -32,7 +32,7 @@ def fail(msg):
 
 
 # The recorder's quantile sketch keeps every value up to this many per column (SKETCH_LEVEL_CAPACITY in
-# server/recorder/src/stats.rs) and guarantees a rank error of at most RANK_ERROR of the rows beyond.
+# server/dataset/src/stats.rs) and guarantees a rank error of at most RANK_ERROR of the rows beyond.
 SKETCH_EXACT_ROWS = 4096
 RANK_ERROR = 0.005
 QUANTILE_KEYS = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}

@@ -6,7 +6,9 @@ Reads from ARCHITECTURE.md, so the document and the check cannot drift apart:
   - the third-party rules ("reached only through", "never reached from"; on the resolved graph);
   - the known exceptions, which are reported but not failed, and fail once they no longer exist;
   - every workspace crate builds with the workspace lints (`[lints] workspace = true` in its Cargo.toml), so
-    no crate escapes the pedantic lints or `unsafe_code = "deny"`.
+    no crate escapes the pedantic lints or `unsafe_code = "deny"`;
+  - FFmpeg behind one module per crate: in a crate's sources (library and binaries), only its `av` module
+    (`src/av.rs` or `src/av/`) names `ffmpeg_next`, so the rest of the crate sees FFmpeg through it.
 
 Usage: tests/scripts/check-deps.py [--metadata FILE --no-deps-metadata FILE]
 (the two files, `cargo metadata --format-version 1` with and without --no-deps, replace running cargo).
@@ -83,6 +85,27 @@ def reachable(graph, start, skip=frozenset()):
     return seen
 
 
+FFMPEG = re.compile(r"\bffmpeg_next\b")
+COMMENT = re.compile(r"//.*")
+
+
+def ffmpeg_outside_av(no_deps_meta):
+    """`path:line` of every mention of `ffmpeg_next` (outside comments) in a crate's `src/` but not in its `av`
+    module (`src/av.rs`, `src/av/`)."""
+    found = []
+    for package in sorted(no_deps_meta["packages"], key=lambda p: p["name"]):
+        src = pathlib.Path(package["manifest_path"]).parent / "src"
+        for path in sorted(src.rglob("*.rs")):
+            inside = path.relative_to(src).parts
+            if inside[0] in ("av.rs", "av"):
+                continue
+            for number, line in enumerate(path.read_text().splitlines(), 1):
+                if FFMPEG.search(COMMENT.sub("", line)):
+                    shown = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
+                    found.append((package["name"], f"{shown}:{number}"))
+    return found
+
+
 def check(allowed, rules, exceptions, no_deps_meta, meta):
     errors, used_exceptions = [], set()
     members = sorted({p["name"] for p in no_deps_meta["packages"]})
@@ -111,6 +134,11 @@ def check(allowed, rules, exceptions, no_deps_meta, meta):
                 f"{package['name']}: {manifest.relative_to(ROOT) if manifest.is_relative_to(ROOT) else manifest} "
                 f"has no `[lints] workspace = true`: every crate builds with the workspace lints"
             )
+    for name, where in ffmpeg_outside_av(no_deps_meta):
+        errors.append(
+            f"{name}: {where} names ffmpeg_next outside the crate's `av` module (src/av.rs or src/av/), "
+            f"the one place each crate reaches FFmpeg"
+        )
     for source, target in sorted(exceptions - used_exceptions):
         errors.append(
             f"known exception {source} -> {target} no longer exists: remove it from ARCHITECTURE.md"

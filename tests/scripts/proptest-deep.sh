@@ -8,6 +8,6 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 unset PROPTEST_RNG_SEED
 export PROPTEST_CASES="${1:-20000}"
-cargo test --release -p phone2act-core -p phone2act-recorder -p phone2act-proto --lib
+cargo test --release -p phone2act-core -p phone2act-dataset -p phone2act-proto --lib
 cargo test --release -p phone2act-core --test gimbal_lock
 cargo test --release -p phone2act-tests --test fuzz_parsers

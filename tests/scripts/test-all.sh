@@ -12,7 +12,7 @@ cargo clippy --workspace --all-targets --quiet -- -D warnings
 tests/scripts/lint-proto.sh
 tests/scripts/check-deps.py
 # No import cycle between the modules of any crate (the script prints the graph when it finds one).
-for src in server/src server/cli/src server/core/src server/recorder/src server/bridges/src server/clock/src server/storage/src \
+for src in server/src server/cli/src server/core/src server/dataset/src server/capture/src server/recorder/src server/bridges/src server/clock/src server/storage/src \
   proto/src sdk/rust/src clients/gateway/src; do
   tests/scripts/check-module-cycles.py "$src" >/dev/null || tests/scripts/check-module-cycles.py "$src"
 done

@@ -9,8 +9,8 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use phone2act_core::ArmLayout;
 use phone2act_core::layout::{pose_from_state_tail, relative_step, rotation_from_rot6d};
 use phone2act_core::pose::pose_distance;
-use phone2act_recorder::events::EventKind;
-use phone2act_recorder::parquet_io::read_rows;
+use phone2act_dataset::events::EventKind;
+use phone2act_dataset::parquet_io::read_rows;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
 use phone2act_server::Config;
@@ -98,7 +98,7 @@ fn load(root: &Path) -> Episode {
     }
     let mut rows: Vec<_> = files.iter().flat_map(|f| read_rows(f).unwrap()).collect();
     rows.sort_by_key(|r| r.index);
-    let events = phone2act_recorder::events::read_events(root, 0)
+    let events = phone2act_dataset::events::read_events(root, 0)
         .unwrap()
         .unwrap_or_default();
     let mut limited = vec![false; rows.len()];

@@ -4,8 +4,8 @@
 //! column `intervention` at every frame, the events sidecar says which arm and which policy, and the
 //! episode's provenance names the policy.
 
-use phone2act_recorder::events::{EpisodeEvent, EventKind, read_events};
-use phone2act_recorder::parquet_io::{Row, read_rows};
+use phone2act_dataset::events::{EpisodeEvent, EventKind, read_events};
+use phone2act_dataset::parquet_io::{Row, read_rows};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, PolicySession, TeleopOptions, TeleopSession, buttons};
 use phone2act_server::config::DatasetFormat;

@@ -109,7 +109,7 @@ async fn remote_is_consistent(remote: &Remote, cameras: usize) -> Result<(), Str
 async fn pull_and_verify(remote: &Remote, dest: &Path, episodes: u64) {
     let n = phone2act_storage::pull(remote, dest).await.unwrap();
     assert_eq!(n, episodes);
-    let report = phone2act_recorder::verify::verify(dest);
+    let report = phone2act_dataset::verify::verify(dest);
     assert!(report.ok(), "{:?}", report.problems);
     assert_eq!(report.episodes, episodes);
 }
@@ -200,7 +200,7 @@ async fn wrong_credentials_and_a_missing_bucket_fail_clearly_and_complete_once_f
     assert!(!err.contains("not-the-secret"), "{err}");
     assert!(list.storage.unwrap().last_error.contains("access denied"));
     server.shutdown().await.unwrap();
-    assert!(phone2act_recorder::verify::verify(&root).ok());
+    assert!(phone2act_dataset::verify::verify(&root).ok());
 
     // Right key, missing bucket: the same episode (from the journal) now fails on the bucket.
     let right = moto.credentials_file(dir.path(), None);

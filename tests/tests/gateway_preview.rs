@@ -112,7 +112,7 @@ async fn only_the_asking_socket_gets_preview_frames_at_most_max_fps() {
     assert_eq!(on[0]["state"], "on");
     assert_eq!(on[0]["width"], 160);
     assert_eq!(first.frames.len(), 1, "no preview frame: {:?}", first.texts);
-    let frame = phone2act_recorder::jpeg::decode_jpeg(&first.frames[0].1).unwrap();
+    let frame = phone2act_capture::jpeg::decode_jpeg(&first.frames[0].1).unwrap();
     // 320x240 shrunk to fit 160 px: half of each side, the camera's aspect kept.
     assert_eq!((frame.width, frame.height), (160, 120));
 
@@ -405,7 +405,7 @@ async fn a_rosbridge_image_topic_keeps_coming_while_the_same_socket_drives_the_a
         images()
     );
     for jpeg in &got.lock().images {
-        let frame = phone2act_recorder::jpeg::decode_jpeg(jpeg).unwrap();
+        let frame = phone2act_capture::jpeg::decode_jpeg(jpeg).unwrap();
         assert_eq!((frame.width, frame.height), (320, 240));
     }
     // Every service call was answered, in order, between the images.

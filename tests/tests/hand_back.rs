@@ -6,7 +6,7 @@
 //! drives from where the operator left the arm. Along the way the arm's status previews the policy's plan,
 //! and the episode's events record the hand-back.
 
-use phone2act_recorder::events::{EventKind, read_events};
+use phone2act_dataset::events::{EventKind, read_events};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, PolicySession, TeleopOptions, TeleopSession, buttons};
 use phone2act_tests::{TestServer, arm_state, default_config, pos, sim_pose_of, wait_until};

@@ -6,7 +6,7 @@ use phone2act_bridges::dobot::emulator::{DobotEmulator, EmulatorConfig};
 use phone2act_bridges::feetech::FeetechEmulator;
 use phone2act_bridges::feetech::protocol::alarm;
 use phone2act_bridges::so101::calibration::Calibration;
-use phone2act_recorder::events::{EventKind, read_events};
+use phone2act_dataset::events::{EventKind, read_events};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{TeleopOptions, buttons};
 use phone2act_server::Config;

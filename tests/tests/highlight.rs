@@ -5,9 +5,9 @@
 //! timestamps contiguous from 0, one video frame per row (`verify`), the phone's motion in its actions and the
 //! clutch in its events. The dataset goes to the lerobot conformance run.
 
-use phone2act_recorder::dataset::timestamp_s;
-use phone2act_recorder::parquet_io::read_rows;
-use phone2act_recorder::readback::read_episode;
+use phone2act_dataset::dataset::timestamp_s;
+use phone2act_dataset::parquet_io::read_rows;
+use phone2act_dataset::readback::read_episode;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
 use phone2act_tests::{TestServer, data_files, default_config, keep_for_conformance_expecting, wait_until};
@@ -156,7 +156,7 @@ async fn the_last_seconds_are_saved_from_the_api_the_phone_and_as_a_live_start()
     assert!(moved > 0.02, "actions moved {moved}");
     let last = actions.last().unwrap();
     assert!(actions[actions.len() - 5..].iter().all(|a| a == last));
-    let events = std::fs::read_to_string(root.join(phone2act_recorder::events::events_path(0))).unwrap();
+    let events = std::fs::read_to_string(root.join(phone2act_dataset::events::events_path(0))).unwrap();
     assert!(
         events.contains("clutch"),
         "the clutch is in the episode's events: {events}"
@@ -215,7 +215,7 @@ async fn the_last_seconds_are_saved_from_the_api_the_phone_and_as_a_live_start()
     assert_eq!(stopped.operator, "ana");
     assert_eq!(read_back(&root, 2).len() as u64, stopped.length_frames);
 
-    let report = phone2act_recorder::verify::verify(&root);
+    let report = phone2act_dataset::verify::verify(&root);
     assert!(report.ok(), "{}", report.problems.join("\n"));
     server.shutdown().await.unwrap();
     keep_for_conformance_expecting(

@@ -14,7 +14,7 @@ use phone2act_core::joint_motion::STS3215_MAX_VELOCITY_RAD_S;
 use phone2act_core::kinematics::So101Kinematics;
 use phone2act_core::layout::{absolute_action, pose_from_state_tail, relative_step};
 use phone2act_core::{ActionMode, ArmLayout, AxisPreset};
-use phone2act_recorder::parquet_io::read_rows;
+use phone2act_dataset::parquet_io::read_rows;
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, TeleopOptions, buttons};
 use phone2act_tests::{TestServer, arm_state, default_config};
@@ -110,7 +110,7 @@ fn recorded_jumps(root: &Path) -> (f64, f64) {
         }
     }
     rows.sort_by_key(|r| r.index);
-    let largest = |of: &dyn Fn(&phone2act_recorder::parquet_io::Row) -> &[f32]| {
+    let largest = |of: &dyn Fn(&phone2act_dataset::parquet_io::Row) -> &[f32]| {
         rows.windows(2)
             .map(|w| {
                 (0..5)

@@ -2,12 +2,12 @@
 //! operator driving it through `Teleop.Stream` as a phone does, episodes saved only when the ball ends in
 //! the basket, and the dataset read back.
 
-use phone2act_recorder::parquet_io::read_rows;
+use phone2act_dataset::parquet_io::read_rows;
 use phone2act_tests::operator::{self, OperatorOptions};
 use phone2act_tests::{TestServer, default_config, keep_for_conformance};
 
 /// Every frame row of the dataset at `root`, read back with the recorder's own parquet reader.
-fn dataset_rows(root: &std::path::Path) -> Vec<phone2act_recorder::parquet_io::Row> {
+fn dataset_rows(root: &std::path::Path) -> Vec<phone2act_dataset::parquet_io::Row> {
     let mut files: Vec<_> = std::fs::read_dir(root.join("data/chunk-000"))
         .unwrap()
         .map(|e| e.unwrap().path())

@@ -573,6 +573,6 @@ async fn a_full_disk_during_saves_never_locks_the_server() {
         .await
         .expect("the server shuts down")
         .unwrap();
-    let report = phone2act_recorder::verify::verify(&root);
+    let report = phone2act_dataset::verify::verify(&root);
     assert!(report.ok(), "{:?}", report.problems);
 }

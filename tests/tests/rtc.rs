@@ -4,7 +4,7 @@
 //! without a jump when it uses those inputs, and with the full disagreement as a jump when it does not. The
 //! commanded targets are read back from the recorded dataset's actions.
 
-use phone2act_recorder::parquet_io::{Row, read_rows};
+use phone2act_dataset::parquet_io::{Row, read_rows};
 use phone2act_sdk::proto as v1;
 use phone2act_sdk::{Client, PolicySession};
 use phone2act_tests::{TestServer, default_config};

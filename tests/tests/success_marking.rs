@@ -3,7 +3,7 @@
 //! value, every other frame is false, and the outcome is kept in the episode's provenance and listed. Both
 //! dataset formats; the datasets go to the lerobot conformance run, which checks the values lerobot reads.
 
-use phone2act_recorder::parquet_io::read_rows;
+use phone2act_dataset::parquet_io::read_rows;
 use phone2act_sdk::proto as v1;
 use phone2act_server::Config;
 use phone2act_server::config::DatasetFormat;

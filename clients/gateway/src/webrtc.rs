@@ -9,7 +9,7 @@
 //!   both threads run at a lower scheduling priority (nice +10 on Linux), so on a busy machine the control
 //!   path's threads get the CPU first and the video is what slows down.
 //! - Per camera one feed task fetches the newest raw frame from the server (`Policy.GetObservation`, RGB) and
-//!   hands it to its encoder thread (`phone2act_recorder::live`) through a slot of one frame, the newest
+//!   hands it to its encoder thread (`phone2act_capture::av::live`) through a slot of one frame, the newest
 //!   winning: an encoder that falls behind skips frames, it never queues them. Each frame is encoded once and
 //!   published on a broadcast channel. A viewer that falls behind loses the oldest frames (the channel's lag)
 //!   and waits for a keyframe.
@@ -36,8 +36,8 @@ use crate::config::VideoConfig;
 use crate::conn::Out;
 use crate::upstream::{Upstream, unix_ns};
 use parking_lot::Mutex;
+use phone2act_capture::av::live::H264Encoder;
 use phone2act_proto::v1::ImageEncoding;
-use phone2act_recorder::live::H264Encoder;
 use serde_json::json;
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
@@ -65,7 +65,7 @@ const LINK_SHARE: f64 = 0.85;
 /// A new target within this fraction of the encoder's bitrate is not worth a rate-control change.
 const RETARGET_FRACTION: f64 = 0.1;
 /// How much less CPU priority the video's threads get than the control path's (nice steps).
-const VIDEO_NICE: i32 = phone2act_recorder::priority::BACKGROUND_NICE;
+const VIDEO_NICE: i32 = phone2act_capture::priority::BACKGROUND_NICE;
 /// A viewer that has seen nothing from its page for this long (no ICE keep-alive) is over.
 const VIEWER_IDLE: Duration = Duration::from_secs(30);
 
@@ -195,7 +195,7 @@ fn start_io(upstream: &Upstream) -> Result<VideoIo, String> {
 
 /// Lowers the calling thread's CPU priority (threads it starts inherit it).
 fn lower_priority() {
-    phone2act_recorder::priority::lower_current_thread(VIDEO_NICE);
+    phone2act_capture::priority::lower_current_thread(VIDEO_NICE);
 }
 
 /// The cameras' feeds, shared by every page socket.

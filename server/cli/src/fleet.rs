@@ -73,10 +73,10 @@ pub(crate) fn pull(url: &str, dir: &Path, args: &RemoteArgs) -> anyhow::Result<S
 #[derive(clap::Args, Debug)]
 pub(crate) struct SizeArgs {
     /// Largest data file, in MB (lerobot's default).
-    #[arg(long, default_value_t = phone2act_recorder::dataset::DEFAULT_DATA_FILE_SIZE_MB)]
+    #[arg(long, default_value_t = phone2act_dataset::dataset::DEFAULT_DATA_FILE_SIZE_MB)]
     data_file_size_mb: f64,
     /// Largest video file, in MB (lerobot's default).
-    #[arg(long, default_value_t = phone2act_recorder::dataset::DEFAULT_VIDEO_FILE_SIZE_MB)]
+    #[arg(long, default_value_t = phone2act_dataset::dataset::DEFAULT_VIDEO_FILE_SIZE_MB)]
     video_file_size_mb: f64,
 }
 
@@ -164,17 +164,17 @@ pub(crate) fn merge(
         } else {
             std::path::PathBuf::from(src)
         };
-        inputs.push(phone2act_recorder::dataset::MergeInput {
+        inputs.push(phone2act_dataset::dataset::MergeInput {
             root,
             label: src.clone(),
         });
     }
     let dest = local_out.clone().unwrap_or_else(|| scratch.0.join("out"));
-    let opts = phone2act_recorder::dataset::MergeOptions {
+    let opts = phone2act_dataset::dataset::MergeOptions {
         data_file_size_mb: sizes.data_file_size_mb,
         video_file_size_mb: sizes.video_file_size_mb,
     };
-    let r = phone2act_recorder::dataset::merge(&inputs, &dest, &opts)?;
+    let r = phone2act_dataset::dataset::merge(&inputs, &dest, &opts)?;
     if local_out.is_none() {
         let remote = remote(out, args)?;
         runtime()?

@@ -259,7 +259,7 @@ fn log_filter(var: impl Fn(&str) -> Option<String>) -> tracing_subscriber::EnvFi
 
 fn main() -> std::process::ExitCode {
     // Before any thread exists: it sets an environment variable.
-    phone2act_recorder::video::quiet_encoder_library_logs();
+    phone2act_recorder::av::quiet_encoder_library_logs();
     phone2act_recorder::memory::limit_malloc_arenas();
     tracing_subscriber::fmt()
         .with_env_filter(log_filter(|name| std::env::var(name).ok()))
@@ -424,7 +424,7 @@ fn dataset_info(path: &std::path::Path, name: &str) -> anyhow::Result<()> {
         }
     }
     // Per episode, from the data rows themselves (so a dataset lerobot wrote reads the same).
-    let report = phone2act_recorder::verify::verify(path);
+    let report = phone2act_dataset::verify::verify(path);
     let fps = info.get("fps").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
     if !report.per_episode.is_empty() {
         outln!("episode  frames  duration_s  success  task");
@@ -643,7 +643,7 @@ fn real_main() -> anyhow::Result<()> {
             action: DatasetAction::Verify { path, remote },
         } => {
             let local = fleet::local_copy(&path, &remote)?;
-            let report = phone2act_recorder::verify::verify(local.path());
+            let report = phone2act_dataset::verify::verify(local.path());
             for warning in &report.warnings {
                 outln!("warning: {warning}");
             }

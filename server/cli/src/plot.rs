@@ -6,8 +6,8 @@
 
 use anyhow::Context as _;
 use base64::Engine as _;
-use phone2act_recorder::events::{EpisodeEvent, EventKind, events_path, read_events};
-use phone2act_recorder::readback::{Episode, read_episode};
+use phone2act_dataset::events::{EpisodeEvent, EventKind, events_path, read_events};
+use phone2act_dataset::readback::{Episode, read_episode};
 use plotters::prelude::*;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -283,7 +283,7 @@ fn camera_strip(episode: &Episode, out: &mut String) -> anyhow::Result<usize> {
             .iter()
             .map(|&i| video.from_s + episode.frame_index[i] as f64 / episode.fps)
             .collect();
-        let decoded = phone2act_recorder::decode::frames_at(&video.path, &times, FRAME_WIDTH_PX)
+        let decoded = phone2act_dataset::av::decode::frames_at(&video.path, &times, FRAME_WIDTH_PX)
             .with_context(|| format!("cannot read the frames of camera {}", video.key))?;
         let _ = writeln!(
             out,
@@ -291,7 +291,7 @@ fn camera_strip(episode: &Episode, out: &mut String) -> anyhow::Result<usize> {
             html_escape(&video.key)
         );
         for (&i, frame) in picks.iter().zip(&decoded) {
-            let jpeg = phone2act_recorder::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, 85)
+            let jpeg = phone2act_capture::jpeg::encode_jpeg(&frame.rgb, frame.width, frame.height, 85)
                 .context("cannot encode a frame as JPEG")?;
             let frame_index = episode.frame_index[i];
             let _ = writeln!(
@@ -316,7 +316,7 @@ fn camera_strip(episode: &Episode, out: &mut String) -> anyhow::Result<usize> {
 pub(crate) fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Result<PathBuf> {
     let episode = read_episode(root, index)?;
     let events = read_events(root, index)?;
-    let written_by_phone2act = root.join(phone2act_recorder::dataset::PROVENANCE_FILE).is_file();
+    let written_by_phone2act = root.join(phone2act_dataset::dataset::PROVENANCE_FILE).is_file();
     let times_s: Vec<f64> = episode
         .frame_index
         .iter()
@@ -332,10 +332,10 @@ pub(crate) fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Res
     arms.dedup();
     let vector = |key: &str| episode.vectors.iter().find(|v| v.key == key);
     let (state, action) = (vector("observation.state"), vector("action"));
-    let names = |v: Option<&phone2act_recorder::readback::VectorFeature>| {
+    let names = |v: Option<&phone2act_dataset::readback::VectorFeature>| {
         v.map(|v| v.names.clone()).unwrap_or_default()
     };
-    let column = |v: &phone2act_recorder::readback::VectorFeature, i: usize| -> Vec<f64> {
+    let column = |v: &phone2act_dataset::readback::VectorFeature, i: usize| -> Vec<f64> {
         v.rows
             .iter()
             .map(|r| r.get(i).copied().unwrap_or(f64::NAN))
@@ -436,7 +436,7 @@ pub(crate) fn plot(root: &Path, index: u64, out: Option<PathBuf>) -> anyhow::Res
         let panel_spans: Vec<(String, f64, f64)> = spans.iter().filter(|s| ours(&s.0)).cloned().collect();
         let svg = panel_svg(&times_s, &refs, &panel_marks, &panel_spans, &units)
             .with_context(|| format!("cannot draw the panel of {}", panel.title))?;
-        let attr = |v: Option<&phone2act_recorder::readback::VectorFeature>, i: Option<usize>| {
+        let attr = |v: Option<&phone2act_dataset::readback::VectorFeature>, i: Option<usize>| {
             i.and_then(|i| Some(html_escape(&v?.names[i])))
                 .unwrap_or_default()
         };

@@ -458,7 +458,7 @@ fn plotted_frames(html: &str) -> Vec<(u32, u32)> {
             let bytes = base64::engine::general_purpose::STANDARD
                 .decode(&rest[..rest.find('"').unwrap()])
                 .unwrap();
-            let frame = phone2act_recorder::jpeg::decode_jpeg(&bytes).unwrap();
+            let frame = phone2act_capture::jpeg::decode_jpeg(&bytes).unwrap();
             (frame.width, frame.height)
         })
         .collect()
@@ -483,7 +483,7 @@ fn plot(args: &[&str], dir: &std::path::Path) -> (bool, String, String) {
 /// action agrees with, and `dataset plot` draws a panel per dimension, the events, and camera frames.
 #[test]
 fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
-    use phone2act_recorder::events::EventKind;
+    use phone2act_dataset::events::EventKind;
     use phone2act_sdk::buttons;
     use phone2act_sdk::proto as v1;
     let dir = tempfile::tempdir().unwrap();
@@ -555,7 +555,7 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
     // timeline events, which depend on how fast this machine renders the camera, and the joint-limit events,
     // which depend on how fast the phone's 1 cm steps follow each other: a step per round trip is faster
     // than the arm's joints may follow, on a fast machine more so).
-    let all_events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    let all_events = phone2act_dataset::events::read_events(&ds, 0).unwrap().unwrap();
     let events: Vec<_> = all_events
         .iter()
         .filter(|e| {
@@ -589,7 +589,7 @@ fn a_teleoperated_episode_is_plotted_with_its_clutch_and_gate_events() {
     // sends faster than the recorder ticks). A marker late by even one frame would put a moving frame
     // before it. (One early cannot be told from the action: the clutch may engage a frame before the first
     // step; `events::tests` pin the exact frame of a change.)
-    let episode = phone2act_recorder::readback::read_episode(&ds, 0).unwrap();
+    let episode = phone2act_dataset::readback::read_episode(&ds, 0).unwrap();
     let action = &episode.vectors.iter().find(|v| v.key == "action").unwrap().rows;
     let x = episode.vectors[1].names.iter().position(|n| n == "x").unwrap();
     let still = |from: usize, to: usize| action[from..to].iter().all(|a| a == &action[from]);
@@ -754,7 +754,7 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
     let ds = dir.path().join("ds");
     // Nobody touched the clutch: a sidecar with no arm events (not a missing one). The recorder's own
     // timeline events depend on how fast this machine renders the camera.
-    let events = phone2act_recorder::events::read_events(&ds, 0).unwrap().unwrap();
+    let events = phone2act_dataset::events::read_events(&ds, 0).unwrap().unwrap();
     assert!(events.iter().all(|e| e.arm.is_empty()), "{events:?}");
     let (ok, out, err) = plot(&["ds", "--episode", "0"], dir.path());
     assert!(ok, "{err}");
@@ -768,7 +768,7 @@ fn a_v21_episode_of_ours_plots_and_verifies_with_its_sidecar() {
         events.len()
     )));
     assert!(!panel_attr(&html, "data-state").is_empty());
-    let frames = phone2act_recorder::readback::read_episode(&ds, 0)
+    let frames = phone2act_dataset::readback::read_episode(&ds, 0)
         .unwrap()
         .frame_index
         .len();

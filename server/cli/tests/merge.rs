@@ -7,9 +7,10 @@
 //! Timing: recording sleeps for the episodes' length (real time at the dataset fps); nothing here asserts a
 //! duration, so a loaded machine makes these tests slower, not red.
 
-use phone2act_recorder::camera::{FrameSlot, spawn_test_pattern};
+use phone2act_capture::camera::{FrameSlot, spawn_test_pattern};
+use phone2act_dataset::{CameraSpec, DatasetSpec, Format};
+use phone2act_recorder::Recorder;
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{CameraSpec, DatasetSpec, Format, Recorder};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

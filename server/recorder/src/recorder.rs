@@ -1,9 +1,9 @@
 //! The recorder: a tick thread on a fixed grid at the dataset fps on the monotonic clock, and a sampler
 //! thread that keeps the robot's recent samples with their capture times. Frame i of an episode is the tick
 //! at `first_tick + i / fps`: it holds the robot sample and each camera's frame captured at or before that
-//! instant (see [`crate::timeline`]), whenever the tick thread gets to write it, so a late wake-up writes the
+//! instant (see [`phone2act_capture::timeline`]), whenever the tick thread gets to write it, so a late wake-up writes the
 //! ticks it missed each at its own time. `timestamp` follows `frame_index` (see
-//! [`crate::dataset::timestamp_s`]).
+//! [`phone2act_dataset::dataset::timestamp_s`]).
 //!
 //! What could not be kept at its time is counted. A tick whose sample was captured farther from it than
 //! `sample_tolerance_s` is still written (skipping it would shift every later frame off its time) and
@@ -13,15 +13,16 @@
 //! the episode's time jumps. A tick that reuses the previous tick's sample of a source (a camera slower than
 //! the dataset) is counted as held.
 
-use crate::camera::{Frame, FrameSlot};
-use crate::dataset::{Dataset, EpisodeSummary, EpisodeWriter, FrameFlags};
-use crate::error::RecorderError;
-use crate::events::{ArmActivity, EventKind};
-use crate::spec::DatasetSpec;
-use crate::timeline::{Pick, TickClock, TimedRing, Timing, judge};
-use crate::video::EncoderThread;
+use crate::av::EncoderThread;
+use crate::episode::Episode;
 use parking_lot::{Condvar, Mutex};
+use phone2act_capture::camera::{Frame, FrameSlot};
+use phone2act_capture::timeline::{Pick, TickClock, TimedRing, Timing, judge};
 use phone2act_clock::monotonic_ns;
+use phone2act_dataset::dataset::{Dataset, EpisodeSummary, FrameFlags};
+use phone2act_dataset::error::RecorderError;
+use phone2act_dataset::events::{ArmActivity, EventKind};
+use phone2act_dataset::spec::DatasetSpec;
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -132,7 +133,7 @@ impl SyncConfig {
 }
 
 struct Active {
-    writer: EpisodeWriter,
+    writer: Episode,
     /// The tick that is the episode's frame 0.
     first_tick: u64,
     held: u64,
@@ -170,13 +171,13 @@ struct RingRow {
     tick: u64,
     sample: RobotSample,
     held: bool,
-    /// Why the tick is late, if it is (see [`crate::timeline`]).
+    /// Why the tick is late, if it is (see [`phone2act_capture::timeline`]).
     late: Option<String>,
 }
 
 impl Active {
     fn new(
-        writer: EpisodeWriter,
+        writer: Episode,
         first_tick: u64,
         start_unix_ns: i64,
         last_seq: Vec<Option<u64>>,
@@ -395,7 +396,7 @@ impl Recorder {
                 return Err(RecorderError::AlreadyRecording(a.writer.index));
             }
         }
-        let writer = match ds.begin_episode(task, self.shared.sync.queue_frames) {
+        let writer = match Episode::begin(&mut ds, task, self.shared.sync.queue_frames) {
             Ok(w) => w,
             Err(e) => {
                 drop(ds);
@@ -507,7 +508,7 @@ impl Recorder {
         };
         if let Some(e) = active.error {
             let index = active.writer.index;
-            ds.abort_episode(active.writer);
+            active.writer.abort(&mut ds);
             drop(ds);
             let msg = format!("episode {index} was not saved: {e}");
             tracing::error!("{msg}");
@@ -516,12 +517,12 @@ impl Recorder {
         }
         if active.writer.frames() == 0 {
             let index = active.writer.index;
-            ds.abort_episode(active.writer);
+            active.writer.abort(&mut ds);
             drop(ds);
             self.set_idle(Some(format!("episode {index} had no frames and was discarded")));
             return Err(RecorderError::EmptyEpisode(index));
         }
-        let r = ds.commit_episode(active.writer, summary);
+        let r = active.writer.commit(&mut ds, summary);
         if let (Ok(s), Some(hook)) = (&r, self.shared.commit_hook.lock().as_ref()) {
             hook.committed(s, ds.last_commit_files());
         }
@@ -557,7 +558,7 @@ impl Recorder {
         let mut ds = self.shared.dataset.lock();
         let active = self.take_active()?;
         let frames = active.writer.frames();
-        ds.abort_episode(active.writer);
+        active.writer.abort(&mut ds);
         drop(ds);
         self.set_idle(None);
         Ok(frames)
@@ -568,7 +569,7 @@ impl Recorder {
     /// anything is discarded when `task` is not a valid task.
     pub fn rerecord(&self, task: Option<&str>) -> Result<RecorderStatus, RecorderError> {
         let task = task
-            .map(crate::dataset::check_task)
+            .map(phone2act_dataset::dataset::check_task)
             .transpose()?
             .map(str::to_owned);
         let current = self
@@ -683,7 +684,7 @@ impl Recorder {
         success: Option<bool>,
     ) -> Result<Highlight, RecorderError> {
         let t0 = std::time::Instant::now();
-        let task = crate::dataset::check_task(task)?.to_owned();
+        let task = phone2act_dataset::dataset::check_task(task)?.to_owned();
         let keep = self.shared.highlight_frames.load(Ordering::Relaxed);
         if keep == 0 {
             return Err(RecorderError::HighlightOff);
@@ -707,7 +708,7 @@ impl Recorder {
             t.ring = Some(ring);
             return Err(RecorderError::NothingBuffered);
         }
-        let writer = match ds.begin_episode_from_ring(&task, &mut ring.encoders, cut) {
+        let writer = match Episode::begin_from_ring(&mut ds, &task, &mut ring.encoders, cut) {
             Ok(w) => w,
             Err(e) => {
                 t.ring = Some(ring);
@@ -806,7 +807,7 @@ impl Recorder {
         drop(ring);
         let active = self.shared.tick.lock().active.take();
         if let Some(a) = active {
-            self.shared.dataset.lock().abort_episode(a.writer);
+            a.writer.abort(&mut self.shared.dataset.lock());
         }
     }
 }

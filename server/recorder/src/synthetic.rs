@@ -37,15 +37,15 @@ impl SyntheticRobot {
     }
 
     /// GR00T modality groups for this layout: the pose delta is relative, the gripper target absolute.
-    pub fn modality() -> Vec<crate::spec::ModalityGroup> {
+    pub fn modality() -> Vec<phone2act_dataset::spec::ModalityGroup> {
         vec![
-            crate::spec::ModalityGroup {
+            phone2act_dataset::spec::ModalityGroup {
                 name: "main_arm".into(),
                 state_range: 0..12,
                 action_range: 0..6,
                 action_absolute: false,
             },
-            crate::spec::ModalityGroup {
+            phone2act_dataset::spec::ModalityGroup {
                 name: "main_gripper".into(),
                 state_range: 12..13,
                 action_range: 6..7,

@@ -6,8 +6,9 @@
 mod common;
 
 use common::{ManualRobot, copy_dir, read_json, spec, wait_for};
-use phone2act_recorder::camera::{Frame, FrameSlot};
-use phone2act_recorder::{Format, Phase, Recorder};
+use phone2act_capture::camera::{Frame, FrameSlot};
+use phone2act_dataset::Format;
+use phone2act_recorder::{Phase, Recorder};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, mpsc};
@@ -172,7 +173,7 @@ fn a_v21_save_that_fails_writing_its_metadata_leaves_no_duplicate_episode_line()
         assert_eq!(indices, [0, 1], "{file}: {lines}");
         let stats = std::fs::read_to_string(root.join("meta/episodes_stats.jsonl")).unwrap();
         assert_eq!(stats.lines().count(), 2, "{file}");
-        let report = phone2act_recorder::verify::verify(&root);
+        let report = phone2act_dataset::verify::verify(&root);
         assert!(report.ok(), "{file}: {:?}", report.problems);
         // And the server reopens it.
         let rec = open(&root, Format::V21, &cam, &robot);
@@ -247,7 +248,7 @@ fn a_disk_that_fills_at_any_point_of_a_save_never_locks_the_recorder() {
         let rec = Arc::try_unwrap(rec).ok().unwrap();
         assert_eq!(rec.episodes().len(), saved, "{format:?}");
         rec.close().unwrap();
-        let report = phone2act_recorder::verify::verify(&root);
+        let report = phone2act_dataset::verify::verify(&root);
         assert!(report.ok(), "{format:?}: {:?}", report.problems);
         let rec = open(&root, format, &cam, &robot);
         assert_eq!(rec.episodes().len(), saved, "{format:?}");
@@ -290,7 +291,7 @@ fn fs_available(mnt: &Path) -> u64 {
 /// save used to leave) and any disagreement between them are reported in words.
 #[test]
 fn verify_finds_duplicated_episode_indices_and_disagreeing_metadata() {
-    use phone2act_recorder::verify::verify;
+    use phone2act_dataset::verify::verify;
     let problems = |root: &Path| verify(root).problems.join("\n");
     for format in [Format::V21, Format::V30] {
         let dir = tempfile::tempdir().unwrap();

@@ -5,10 +5,11 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, spec, wait_for};
-use phone2act_recorder::camera::FrameSlot;
-use phone2act_recorder::dataset::{timestamp_pairs, timestamp_s};
-use phone2act_recorder::parquet_io::read_rows;
-use phone2act_recorder::{Format, Recorder};
+use phone2act_capture::camera::FrameSlot;
+use phone2act_dataset::Format;
+use phone2act_dataset::dataset::{timestamp_pairs, timestamp_s};
+use phone2act_dataset::parquet_io::read_rows;
+use phone2act_recorder::Recorder;
 use serde_json::json;
 use std::path::Path;
 use std::sync::Arc;
@@ -18,7 +19,7 @@ const SIZE: (u32, u32) = (96, 64);
 /// 20 fps: the rate at which the nearest float32 to k/fps falls below it most often (39 % of frames).
 const FPS: u32 = 20;
 
-fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_recorder::camera::CaptureThread {
+fn distinct_camera(slot: &Arc<FrameSlot>) -> phone2act_capture::camera::CaptureThread {
     common::distinct_camera(slot, SIZE, FPS)
 }
 
@@ -52,7 +53,7 @@ fn record_at(root: &Path, format: Format, codec: Option<&str>, episodes: &[u64],
 }
 
 fn check(root: &Path) {
-    let report = phone2act_recorder::verify::verify(root);
+    let report = phone2act_dataset::verify::verify(root);
     assert!(report.ok(), "{}", report.problems.join("\n"));
     assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let mut data = Vec::new();
@@ -122,7 +123,7 @@ fn verify_refuses_a_video_whose_frames_are_not_at_k_over_fps() {
     check(&at_20);
     let video = "videos/chunk-000/observation.images.pairing/episode_000000.mp4";
     std::fs::copy(at_30.join(video), at_20.join(video)).unwrap();
-    let report = phone2act_recorder::verify::verify(&at_20);
+    let report = phone2act_dataset::verify::verify(&at_20);
     let text = report.problems.join("\n");
     assert!(
         text.contains(

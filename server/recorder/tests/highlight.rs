@@ -6,10 +6,11 @@
 mod common;
 
 use common::{ManualRobot, distinct_camera, publish_for_conformance, spec, wait_for};
-use phone2act_recorder::camera::FrameSlot;
-use phone2act_recorder::dataset::timestamp_s;
-use phone2act_recorder::readback::read_episode;
-use phone2act_recorder::{Format, Highlight, Recorder, RecorderError};
+use phone2act_capture::camera::FrameSlot;
+use phone2act_dataset::dataset::timestamp_s;
+use phone2act_dataset::readback::read_episode;
+use phone2act_dataset::{Format, RecorderError};
+use phone2act_recorder::{Highlight, Recorder};
 use serde_json::json;
 use std::path::Path;
 use std::sync::Arc;
@@ -48,7 +49,7 @@ fn check_episode(root: &Path, index: u64) -> u64 {
     let mut data = Vec::new();
     common::parquet_files(&root.join("data"), &mut data);
     for file in data {
-        for row in phone2act_recorder::parquet_io::read_rows(&file).unwrap() {
+        for row in phone2act_dataset::parquet_io::read_rows(&file).unwrap() {
             if row.episode_index == index as i64 {
                 let k = u64::try_from(row.frame_index).unwrap();
                 assert_eq!(
@@ -62,7 +63,7 @@ fn check_episode(root: &Path, index: u64) -> u64 {
     n
 }
 
-fn saved(h: Highlight) -> phone2act_recorder::EpisodeSummary {
+fn saved(h: Highlight) -> phone2act_dataset::EpisodeSummary {
     match h {
         Highlight::Saved(s) => s,
         Highlight::Recording(s) => panic!("expected a saved episode, got a recording: {s:?}"),
@@ -176,7 +177,7 @@ fn highlights(format: Format, codec: Option<&str>, name: &str) {
     rec.close().unwrap();
     cam.stop();
 
-    let report = phone2act_recorder::verify::verify(&root);
+    let report = phone2act_dataset::verify::verify(&root);
     assert!(report.ok(), "{}", report.problems.join("\n"));
     assert!(report.warnings.is_empty(), "{:?}", report.warnings);
     let frames = first.length_frames + second.length_frames + third.length_frames + fourth.length_frames;

@@ -4,10 +4,11 @@
 mod common;
 
 use common::{ManualRobot, publish_for_conformance, read_json, spec, wait_for};
-use phone2act_recorder::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
-use phone2act_recorder::events::EventKind;
-use phone2act_recorder::parquet_io::read_rows;
-use phone2act_recorder::{Format, Phase, Recorder, RecorderError};
+use phone2act_capture::camera::{FrameSlot, spawn_generated, spawn_test_pattern};
+use phone2act_dataset::events::EventKind;
+use phone2act_dataset::parquet_io::read_rows;
+use phone2act_dataset::{Format, RecorderError};
+use phone2act_recorder::{Phase, Recorder};
 use serde_json::json;
 use std::path::Path;
 use std::sync::Arc;
@@ -18,7 +19,7 @@ const T: Duration = Duration::from_secs(20);
 struct Rig {
     robot: Arc<ManualRobot>,
     slots: Vec<(String, Arc<FrameSlot>)>,
-    cams: Vec<phone2act_recorder::camera::CaptureThread>,
+    cams: Vec<phone2act_capture::camera::CaptureThread>,
 }
 
 fn rig(names: &[&str], size: (u32, u32), cam_fps: f64) -> Rig {
@@ -46,7 +47,7 @@ fn open(root: &Path, format: Format, rig: &Rig, size: (u32, u32)) -> Recorder {
     .unwrap()
 }
 
-fn record(rec: &Recorder, task: &str, frames: u64) -> phone2act_recorder::EpisodeSummary {
+fn record(rec: &Recorder, task: &str, frames: u64) -> phone2act_dataset::EpisodeSummary {
     rec.start_episode(task).unwrap();
     wait_for(rec, T, "frames", |s| s.frames_recorded >= frames);
     rec.stop_episode().unwrap()
@@ -75,7 +76,7 @@ fn check_v30_rows(root: &Path, fps: u32) -> u64 {
             assert_eq!(r.frame_index, fi_expected);
             assert_eq!(
                 r.timestamp,
-                phone2act_recorder::dataset::timestamp_s(r.frame_index as u64, fps)
+                phone2act_dataset::dataset::timestamp_s(r.frame_index as u64, fps)
             );
             fi_expected += 1;
             index += 1;
@@ -173,7 +174,7 @@ fn v30_records_resumes_and_appends() {
     assert_eq!(prov["config"]["test"], true);
     // GR00T's layout file rides along in v3.0 too, the same as v2.1 writes it.
     check_modality(&root, "wrist");
-    let report = phone2act_recorder::verify::verify(&root);
+    let report = phone2act_dataset::verify::verify(&root);
     assert!(report.problems.is_empty(), "{:?}", report.problems);
     assert!(!root.join(".phone2act-staging").exists());
     publish_for_conformance(
@@ -381,9 +382,7 @@ fn a_stale_robot_is_held_then_pauses() {
     });
     let saved = rec.stop_episode().unwrap();
     // The sidecar says where the episode's time jumps, by how many ticks, and which frames were late.
-    let events = phone2act_recorder::events::read_events(&root, 0)
-        .unwrap()
-        .unwrap();
+    let events = phone2act_dataset::events::read_events(&root, 0).unwrap().unwrap();
     let kinds = |k| events.iter().filter(move |e| e.kind == k);
     let paused: Vec<_> = kinds(EventKind::Paused).collect();
     assert_eq!(paused.len(), 1, "{events:?}");

@@ -6,9 +6,9 @@
 mod common;
 
 use common::{lerobot_check, publish_for_conformance, read_json, spec};
-use phone2act_recorder::dataset::FrameFlags;
-use phone2act_recorder::quantiles::{QUANTILES_FILE, QuantileStore};
-use phone2act_recorder::{Dataset, EpisodeSummary, Format};
+use phone2act_dataset::dataset::FrameFlags;
+use phone2act_dataset::quantiles::{QUANTILES_FILE, QuantileStore};
+use phone2act_dataset::{Dataset, EpisodeSummary, Format};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 
@@ -39,7 +39,7 @@ fn episode_len(e: u64, long: bool) -> u64 {
 /// for whole stretches, per-episode offsets, a heavy tail, and constant dimensions.
 fn record_episode(ds: &mut Dataset, e: u64, long: bool, rng: &mut Rng) {
     let frames = episode_len(e, long);
-    let mut ep = ds.begin_episode(TASKS[(e % 2) as usize], 8).unwrap();
+    let mut ep = ds.begin_episode(TASKS[(e % 2) as usize]).unwrap();
     let offset = (e as f64 * 0.7).sin();
     for i in 0..frames {
         let t = i as f64 / frames as f64;
@@ -66,7 +66,8 @@ fn record_episode(ds: &mut Dataset, e: u64, long: bool, rng: &mut Rng) {
         });
         ep.push_row(&state, &action, FrameFlags::default()).unwrap();
     }
-    ds.commit_episode(ep, EpisodeSummary::default()).unwrap();
+    ds.commit_episode(ep, EpisodeSummary::default(), || Ok(Vec::new()))
+        .unwrap();
 }
 
 /// Writes `episodes` episodes: the first half, a reopen (the persisted sketches resume), a reopen without

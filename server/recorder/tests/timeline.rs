@@ -15,12 +15,13 @@ mod common;
 
 use common::spec;
 use parking_lot::Mutex;
+use phone2act_capture::camera::{FrameSlot, spawn_generated};
 use phone2act_clock::monotonic_ns;
-use phone2act_recorder::camera::{FrameSlot, spawn_generated};
-use phone2act_recorder::events::{EventKind, read_events};
-use phone2act_recorder::parquet_io::read_rows;
+use phone2act_dataset::Format;
+use phone2act_dataset::events::{EventKind, read_events};
+use phone2act_dataset::parquet_io::read_rows;
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{Format, Recorder, RobotSample, RobotSource, SyncConfig};
+use phone2act_recorder::{Recorder, RobotSample, RobotSource, SyncConfig};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -230,7 +231,7 @@ fn under_cpu_stress_every_frame_holds_its_own_instant_or_is_counted_late() {
     assert_eq!(rows.len() as u64, summary.length_frames);
     let video = root.join("videos/observation.images.front/chunk-000/file-000.mp4");
     let times_s: Vec<f64> = (0..rows.len()).map(|i| i as f64 / f64::from(FPS)).collect();
-    let frames = phone2act_recorder::decode::frames_at(&video, &times_s, SIZE.0).unwrap();
+    let frames = phone2act_dataset::av::decode::frames_at(&video, &times_s, SIZE.0).unwrap();
     let drawn_ns = drawn_ns.lock();
     let speed_bound = AMPLITUDE * std::f64::consts::TAU * FREQUENCY_HZ;
     let mut skipped_ticks = 0;

@@ -2,12 +2,12 @@
 
 use crate::app::App;
 use crate::services::error::RequestError;
+use phone2act_capture::camera::Frame;
+use phone2act_capture::jpeg::JpegError;
 use phone2act_clock::monotonic_ns;
 use phone2act_proto::convert_camera::{FrameError, PushedPixels, pushed_pixels};
 use phone2act_proto::v1;
 use phone2act_proto::v1::cameras_server::Cameras;
-use phone2act_recorder::camera::Frame;
-use phone2act_recorder::jpeg::JpegError;
 use std::sync::Arc;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -45,7 +45,7 @@ fn decode(frame: &v1::CameraFrame, width: u32, height: u32) -> Result<Vec<u8>, P
     match pushed_pixels(frame, width, height)? {
         PushedPixels::Rgb8(rgb) => Ok(rgb.to_vec()),
         PushedPixels::Jpeg(jpeg) => {
-            let decoded = phone2act_recorder::jpeg::decode_jpeg(jpeg)?;
+            let decoded = phone2act_capture::jpeg::decode_jpeg(jpeg)?;
             if decoded.width != width || decoded.height != height {
                 return Err(PushError::JpegSize {
                     camera: frame.camera.clone(),

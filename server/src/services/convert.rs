@@ -6,9 +6,9 @@ use crate::config::Config;
 use crate::policy_session::Observation;
 use phone2act_bridges::{Command, Control, Feedback, Health};
 use phone2act_clock::monotonic_ns;
+use phone2act_dataset::dataset::EpisodeSummary;
 use phone2act_proto::convert_arm::{arm_state_to_proto, pose_from_proto, pose_to_proto};
 use phone2act_proto::v1;
-use phone2act_recorder::dataset::EpisodeSummary;
 use phone2act_recorder::recorder::{Phase, RecorderStatus};
 use phone2act_storage::{EpisodeUpload, Uploader};
 

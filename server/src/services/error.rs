@@ -10,8 +10,8 @@ use crate::recording::RecordingError;
 use phone2act_bridges::BridgeError;
 use phone2act_bridges::remote::RemoteError;
 use phone2act_core::ArbiterError;
+use phone2act_dataset::error::RecorderError;
 use phone2act_proto::ConvertError;
-use phone2act_recorder::error::RecorderError;
 use std::time::Duration;
 use tonic::Status;
 

@@ -1,6 +1,6 @@
 //! The order in which a dataset's files become visible remotely, for uploads that are not one commit (a
 //! push, or catching up on episodes committed while storage was off): the order of the recorder's own
-//! commit (see `phone2act_recorder::dataset`), applied to whole sets of files.
+//! commit (see `phone2act_dataset::dataset`), applied to whole sets of files.
 
 use std::path::Path;
 

@@ -5,9 +5,10 @@
 //! Usage: record-demo ROOT [--format v30|v21] [--episodes N] [--seconds S] [--fps F] [--cameras K]
 //!                         [--size WxH] [--codec C] [--task TEXT]
 
-use phone2act_recorder::camera::{FrameSlot, spawn_test_pattern};
+use phone2act_capture::camera::{FrameSlot, spawn_test_pattern};
+use phone2act_dataset::{CameraSpec, DatasetSpec, Format};
+use phone2act_recorder::Recorder;
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{CameraSpec, DatasetSpec, Format, Recorder};
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::Arc;

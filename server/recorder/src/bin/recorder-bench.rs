@@ -6,11 +6,12 @@
 //! libavdevice (the V4L2 capture path), the robot is synthetic. Each memory run is a child process so its
 //! peak RSS is its own.
 
-use phone2act_recorder::avcapture::{AvCaptureConfig, spawn_av_capture};
-use phone2act_recorder::camera::{CaptureThread, FrameSlot};
+use phone2act_capture::av::device::{AvCaptureConfig, spawn_av_capture};
+use phone2act_capture::camera::{CaptureThread, FrameSlot};
+use phone2act_dataset::{CameraSpec, DatasetSpec, Format, VideoSettings};
+use phone2act_recorder::Recorder;
+use phone2act_recorder::av::VideoEncoder;
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::video::VideoEncoder;
-use phone2act_recorder::{CameraSpec, DatasetSpec, Format, Recorder, VideoSettings};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
@@ -85,8 +86,13 @@ fn run() -> Res<()> {
         );
     }
     println!(
-        "# phone2act recorder benchmark ({} cores, release build)",
-        std::thread::available_parallelism()?
+        "# phone2act recorder benchmark ({} cores, {} build)",
+        std::thread::available_parallelism()?,
+        if cfg!(debug_assertions) {
+            "debug"
+        } else {
+            "release"
+        }
     );
     if opts.runs("load") {
         load_ladder(&opts)?;

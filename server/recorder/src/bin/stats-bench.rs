@@ -7,11 +7,11 @@
 //! Run in release: `cargo run --release -p phone2act-recorder --bin stats-bench -- [--episodes N]
 //! [--frames N] [--format v21|v30] [--dir PATH]`.
 
-use phone2act_recorder::dataset::FrameFlags;
-use phone2act_recorder::quantiles::{QUANTILES_FILE, QuantileStore};
-use phone2act_recorder::stats::{ColumnStats, StatKind};
+use phone2act_dataset::dataset::FrameFlags;
+use phone2act_dataset::quantiles::{QUANTILES_FILE, QuantileStore};
+use phone2act_dataset::stats::{ColumnStats, StatKind};
+use phone2act_dataset::{Dataset, DatasetSpec, EpisodeSummary, Format};
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{Dataset, DatasetSpec, EpisodeSummary, Format};
 use std::time::Instant;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -64,7 +64,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("episodes  frames      save_ms(median/max of last 10)  sketch_ms(median)  quantile_file_kB");
     for e in 0..episodes {
-        let mut ep = ds.begin_episode("bench", 4)?;
+        let mut ep = ds.begin_episode("bench")?;
         let mut state_c = ColumnStats::new(StatKind::Float, 13);
         let mut action_c = ColumnStats::new(StatKind::Float, 7);
         for i in 0..frames {
@@ -81,7 +81,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ep.push_row(&state, &action, FrameFlags::default())?;
         }
         let t0 = Instant::now();
-        ds.commit_episode(ep, EpisodeSummary::default())?;
+        ds.commit_episode(ep, EpisodeSummary::default(), || Ok(Vec::new()))?;
         save_ms.push(t0.elapsed().as_secs_f64() * 1e3);
         let (mut state_s, mut action_s) = (state_c.finish(), action_c.finish());
         let t1 = Instant::now();

@@ -3,10 +3,9 @@
 
 use parking_lot::Mutex;
 use phone2act_clock::monotonic_ns;
+use phone2act_dataset::{CameraSpec, DatasetSpec, Format};
 use phone2act_recorder::synthetic::SyntheticRobot;
-use phone2act_recorder::{
-    CameraSpec, DatasetSpec, Format, Recorder, RecorderStatus, RobotSample, RobotSource,
-};
+use phone2act_recorder::{Recorder, RecorderStatus, RobotSample, RobotSource};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -147,11 +146,11 @@ pub(crate) fn lerobot_check(dirs: &[PathBuf], v21: bool) -> Option<(bool, String
 /// A camera three times faster than a recorder at `fps` whose frames differ everywhere: the grey level steps
 /// by 37 per frame and a bar moves, so a reader that returns a neighbouring frame differs in every pixel.
 pub(crate) fn distinct_camera(
-    slot: &std::sync::Arc<phone2act_recorder::camera::FrameSlot>,
+    slot: &std::sync::Arc<phone2act_capture::camera::FrameSlot>,
     size: (u32, u32),
     fps: u32,
-) -> phone2act_recorder::camera::CaptureThread {
-    phone2act_recorder::camera::spawn_generated(
+) -> phone2act_capture::camera::CaptureThread {
+    phone2act_capture::camera::spawn_generated(
         "pairing",
         size.0,
         size.1,

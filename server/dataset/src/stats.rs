@@ -10,7 +10,7 @@
 //! while a column holds at most [`SKETCH_LEVEL_CAPACITY`] values, and beyond that within a rank error the
 //! sketch tracks and that stays below 0.5 % of the count for any dataset under 2^32 frames.
 
-use crate::camera::Frame;
+use crate::frame::Frame;
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 

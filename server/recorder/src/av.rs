@@ -3,26 +3,22 @@
 //! a frame that does not fit in the queue is counted as dropped and replaced in the video by a repeat of
 //! the previous frame, so the video keeps exactly one frame per parquet row.
 
-use crate::camera::Frame;
-use crate::error::RecorderError;
-use crate::spec::VideoSettings;
-use crate::stats::ImageStats;
 use ffmpeg_next as ffmpeg;
 use ffmpeg_next::format::Pixel;
 use ffmpeg_next::software::scaling;
 use ffmpeg_next::util::frame::video::Video as VideoFrame;
 use ffmpeg_next::{Dictionary, Packet, Rational, codec, encoder, format};
+use phone2act_capture::camera::Frame;
+use phone2act_dataset::av::{CODEC_LOCK, init_ffmpeg};
+use phone2act_dataset::dataset::EncodeReport;
+use phone2act_dataset::error::RecorderError;
+use phone2act_dataset::spec::VideoSettings;
+use phone2act_dataset::stats::ImageStats;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
-use std::sync::{Arc, Once};
 use std::thread::JoinHandle;
-
-/// Serialises opening and closing FFmpeg codecs and devices across threads. Encoder libraries set up
-/// process-wide tables when an instance is created (SVT-AV1 1.4 among them) and are not safe to initialise
-/// from several threads at once; a heap corruption was seen with three cameras starting together. Opening
-/// takes milliseconds, once per episode and camera, so the lock costs nothing measurable.
-pub static CODEC_LOCK: parking_lot::Mutex<()> = parking_lot::Mutex::new(());
 
 /// Keeps SVT-AV1's own log (about 20 banner lines per encoder, so per episode and camera) to errors,
 /// unless the user set `SVT_LOG`. The library reads the variable when an encoder is created; call this at
@@ -35,16 +31,6 @@ pub fn quiet_encoder_library_logs() {
         // thread reads or writes the environment concurrently.
         unsafe { std::env::set_var("SVT_LOG", "1") };
     }
-}
-
-/// Initialises FFmpeg once per process and keeps its log to errors. (SVT-AV1 logs on its own; see
-/// [`quiet_encoder_library_logs`].)
-pub fn init_ffmpeg() {
-    static INIT: Once = Once::new();
-    INIT.call_once(|| {
-        let _ = ffmpeg::init();
-        ffmpeg::util::log::set_level(ffmpeg::util::log::Level::Error);
-    });
 }
 
 /// A synchronous encoder writing one mp4, or keeping its newest packets in memory (a ring: see
@@ -531,17 +517,6 @@ fn discard_encoder(mut encoder: encoder::Video, frames: u64, width: u32, height:
     drop(guard);
 }
 
-/// What an encoder thread reports when it finishes.
-#[derive(Debug)]
-pub struct EncodeReport {
-    pub camera: String,
-    pub path: PathBuf,
-    pub frames: u64,
-    /// Frames that did not fit in the queue and were replaced by a repeat of the previous frame.
-    pub dropped: u64,
-    pub image_stats: ImageStats,
-}
-
 enum Msg {
     Frame {
         index: u64,
@@ -893,7 +868,7 @@ impl EncodeJob<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::spec::Format;
+    use phone2act_dataset::spec::Format;
 
     /// Key (sync) flags of the video packets of `path`, in file order.
     fn key_flags(path: &Path) -> Vec<bool> {
@@ -1022,6 +997,39 @@ mod tests {
             assert_eq!(keys.len(), 20, "{codec}: {keys:?}");
             let want: Vec<bool> = (0..20).map(|i| i % 2 == 0).collect();
             assert_eq!(keys, want, "{codec}: key frames at the wrong packets");
+        }
+    }
+
+    /// phone2act's own videos read back by the dataset's decoder, both defaults: AV1 and H.264, a keyframe every 2 frames (sought). Frame i is a flat grey of level 4i, so every frame found can be
+    /// told from its neighbours.
+    #[test]
+    fn our_videos_give_the_frame_asked_for_in_both_codecs() {
+        use phone2act_dataset::av::decode::frames_at;
+        use phone2act_dataset::spec::{Format, VideoSettings};
+        let dir = tempfile::tempdir().unwrap();
+        for format in [Format::V30, Format::V21] {
+            let path = dir.path().join(format!("{format:?}.mp4"));
+            let settings = VideoSettings::parse(None, format).unwrap();
+            let mut encoder = VideoEncoder::create(&path, 64, 64, 20, &settings).unwrap();
+            for i in 0..60_u8 {
+                encoder.push_rgb(&vec![4 * i; 64 * 64 * 3], 64, 64).unwrap();
+            }
+            encoder.finish().unwrap();
+            // Gaps over a second (seek or decode on), under it (decode on), backwards, and past the end.
+            let frames = [0_u8, 27, 28, 55, 12, 59];
+            let mut times: Vec<f64> = frames.iter().map(|&i| f64::from(i) / 20.0).collect();
+            times.push(20.0);
+            let got = frames_at(&path, &times, 64).unwrap();
+            for (k, frame) in got.iter().enumerate() {
+                let mean = frame.rgb.iter().map(|&v| f64::from(v)).sum::<f64>() / frame.rgb.len() as f64;
+                let want = 4.0 * f64::from(*frames.get(k).unwrap_or(&59));
+                // Neighbouring frames are 4 levels apart; a flat grey comes back within 1 (seen: 1 off).
+                assert!(
+                    (mean - want).abs() < 1.5,
+                    "{format:?} time {}: level {mean}, want {want}",
+                    times[k]
+                );
+            }
         }
     }
 }

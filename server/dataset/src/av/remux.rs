@@ -41,7 +41,7 @@ fn shape_of(path: &Path, stream: &ffmpeg::format::stream::Stream<'_>) -> Result<
 }
 
 /// An mp4 being assembled from whole files.
-pub(super) struct Concat {
+pub(crate) struct Concat {
     path: PathBuf,
     output: ffmpeg::format::context::Output,
     shape: StreamShape,
@@ -54,8 +54,8 @@ pub(super) struct Concat {
 
 impl Concat {
     /// Creates `path` with the stream parameters of `first` (which is not appended yet).
-    pub(super) fn create(path: &Path, first: &Path, fps: u32) -> Result<Self, RecorderError> {
-        crate::video::init_ffmpeg();
+    pub(crate) fn create(path: &Path, first: &Path, fps: u32) -> Result<Self, RecorderError> {
+        crate::av::init_ffmpeg();
         let input =
             ffmpeg::format::input(first).map_err(|e| video_error(first, format!("cannot open: {e}")))?;
         let stream = input
@@ -93,13 +93,13 @@ impl Concat {
     }
 
     /// Where the next appended file will start, in seconds.
-    pub(super) fn end_s(&self) -> f64 {
+    pub(crate) fn end_s(&self) -> f64 {
         self.end_ts as f64 * f64::from(self.time_base)
     }
 
     /// Appends every packet of `src`'s video stream; returns the offset (s) at which it starts. A file whose
     /// codec, size or pixel format differs from the output's is refused (one stream cannot change them).
-    pub(super) fn append(&mut self, src: &Path) -> Result<f64, RecorderError> {
+    pub(crate) fn append(&mut self, src: &Path) -> Result<f64, RecorderError> {
         let mut input =
             ffmpeg::format::input(src).map_err(|e| video_error(src, format!("cannot open: {e}")))?;
         let (index, in_tb, start_ts, shape) = {
@@ -172,7 +172,7 @@ impl Concat {
     }
 
     /// Writes the trailer (and, with faststart, moves the index to the front).
-    pub(super) fn finish(mut self) -> Result<(), RecorderError> {
+    pub(crate) fn finish(mut self) -> Result<(), RecorderError> {
         self.output
             .write_trailer()
             .map_err(|e| video_error(&self.path, format!("cannot finish: {e}")))

@@ -15,8 +15,8 @@
 //! feature, the data files' columns); the output is assembled in a hidden sibling directory and renamed into
 //! place at the end, so a refused or failed merge leaves no output at all.
 
-use super::remux::Concat;
 use super::{CHUNKS_SIZE, MergedFrom, PROVENANCE_FILE, Provenance, meta::pretty};
+use crate::av::remux::Concat;
 use crate::error::RecorderError;
 use crate::events::events_path;
 use crate::parquet_io::{self, float_values, int_column, props, stat_list};

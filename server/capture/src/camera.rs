@@ -12,18 +12,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-/// One RGB8 frame.
-#[derive(Clone, Debug)]
-pub struct Frame {
-    pub width: u32,
-    pub height: u32,
-    /// Packed RGB, row-major, `width * height * 3` bytes.
-    pub rgb: Arc<Vec<u8>>,
-    /// Capture time on the process monotonic clock.
-    pub capture_time_ns: i64,
-    /// Sequence number at the source, +1 per captured frame.
-    pub seq: u64,
-}
+pub use phone2act_dataset::frame::Frame;
 
 /// A latest-frame slot shared between a capture thread and its readers.
 ///

@@ -18,7 +18,6 @@ mod journal;
 mod merge;
 mod merge_v21;
 mod meta;
-mod remux;
 mod v21;
 mod v30;
 
@@ -32,9 +31,8 @@ use crate::events::{ArmActivity, EventWriter, events_path};
 use crate::fsutil::write_atomic;
 use crate::parquet_io::{DataWriter, INTERVENTION_FEATURE, Row, SUCCESS_FEATURE};
 use crate::quantiles::{QUANTILES_FILE, QuantileStore};
-use crate::spec::{CameraSpec, DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
-use crate::stats::{Aggregate, ColumnStats, FeatureStats, StatKind};
-use crate::video::{EncodeReport, EncoderThread};
+use crate::spec::{DatasetSpec, Format, MAX_TASK_BYTES, VideoSettings};
+use crate::stats::{Aggregate, ColumnStats, FeatureStats, ImageStats, StatKind};
 use journal::Staging;
 use meta::{Totals, pretty};
 use serde::{Deserialize, Serialize};
@@ -60,7 +58,7 @@ pub struct EpisodeSummary {
     /// Ticks not recorded because a source was stale beyond tolerance (the episode was paused).
     pub paused_ticks: u64,
     /// Frames recorded with a sample captured farther from the frame's time than the sample tolerance
-    /// (see [`crate::timeline`]); each is a `late_tick` event in the episode's sidecar.
+    /// (see the recorder's `timeline`); each is a `late_tick` event in the episode's sidecar.
     pub late_ticks: u64,
     /// Video frames that did not fit in an encoder queue (replaced by a repeat of the previous frame).
     pub dropped_frames: u64,
@@ -99,6 +97,17 @@ pub struct MergedFrom {
     /// The input as given to the merge (a path or an s3:// URL).
     pub dataset: String,
     pub episode_index: u64,
+}
+
+/// A camera's finished video of an episode, as its encoder hands it to [`Dataset::commit_episode`].
+#[derive(Debug)]
+pub struct EncodeReport {
+    pub camera: String,
+    pub path: PathBuf,
+    pub frames: u64,
+    /// Frames that did not fit in the queue and were replaced by a repeat of the previous frame.
+    pub dropped: u64,
+    pub image_stats: ImageStats,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -181,14 +190,14 @@ pub struct Dataset {
     last_commit_files: Vec<String>,
 }
 
-/// An episode being recorded into staging files.
+/// An episode's rows and events being written into staging files. Its videos are the recorder's: it encodes
+/// them into [`EpisodeWriter::video_path`] and hands them over at [`Dataset::commit_episode`].
 pub struct EpisodeWriter {
     pub index: u64,
     pub task: String,
     task_index: i64,
     first_global_index: u64,
     data: DataWriter,
-    pub(crate) encoders: Vec<EncoderThread>,
     state_stats: ColumnStats,
     action_stats: ColumnStats,
     /// The optional bool columns the dataset records (`next.success`, `intervention`), in order.
@@ -379,57 +388,8 @@ impl Dataset {
         self.provenance.sync = sync;
     }
 
-    /// Starts writing episode `total_episodes` into staging.
-    pub fn begin_episode(&mut self, task: &str, queue_frames: usize) -> Result<EpisodeWriter, RecorderError> {
-        let (spec, video) = (self.spec.clone(), self.video.clone());
-        self.begin_with(task, |staging| {
-            spec.cameras
-                .iter()
-                .map(|c| {
-                    EncoderThread::spawn(
-                        &c.name,
-                        staging.join(format!("{}.mp4", c.key())),
-                        c.width,
-                        c.height,
-                        spec.fps,
-                        video.clone(),
-                        queue_frames,
-                    )
-                })
-                .collect()
-        })
-    }
-
-    /// Starts writing episode `total_episodes` into staging with the video a recorder's ring encoders keep
-    /// from their frame `first_frame` (see [`EncoderThread::spawn_ring`]), one per camera in `spec.cameras`
-    /// order. The encoders are taken only when the episode starts; on an error they stay in `ring`.
-    pub fn begin_episode_from_ring(
-        &mut self,
-        task: &str,
-        ring: &mut Vec<EncoderThread>,
-        first_frame: u64,
-    ) -> Result<EpisodeWriter, RecorderError> {
-        let keys: Vec<String> = self.spec.cameras.iter().map(CameraSpec::key).collect();
-        if ring.len() != keys.len() {
-            return Err(RecorderError::InvalidSpec(format!(
-                "{} ring encoders for {} cameras",
-                ring.len(),
-                keys.len()
-            )));
-        }
-        self.begin_with(task, |staging| {
-            for (encoder, key) in ring.iter_mut().zip(&keys) {
-                encoder.attach(staging.join(format!("{key}.mp4")), first_frame);
-            }
-            Ok(std::mem::take(ring))
-        })
-    }
-
-    fn begin_with(
-        &mut self,
-        task: &str,
-        encoders: impl FnOnce(&Path) -> Result<Vec<EncoderThread>, RecorderError>,
-    ) -> Result<EpisodeWriter, RecorderError> {
+    /// Starts writing episode `total_episodes` into staging (its videos go to [`EpisodeWriter::video_path`]).
+    pub fn begin_episode(&mut self, task: &str) -> Result<EpisodeWriter, RecorderError> {
         let task = check_task(task)?;
         let staging = journal::fresh_staging(&self.spec.root)?;
         let data = DataWriter::create(
@@ -440,14 +400,12 @@ impl Dataset {
             self.spec.flag_columns(),
         )?;
         let events = EventWriter::create(staging.join("events.jsonl"), self.spec.fps)?;
-        let encoders = encoders(&staging)?;
         Ok(EpisodeWriter {
             index: self.total_episodes,
             task: task.to_owned(),
             task_index: self.task_index(task).0,
             first_global_index: self.total_frames,
             data,
-            encoders,
             state_stats: ColumnStats::new(StatKind::Float, self.spec.state_names.len()),
             action_stats: ColumnStats::new(StatKind::Float, self.spec.action_names.len()),
             flag_stats: self
@@ -472,15 +430,19 @@ impl Dataset {
         let _ = fs::remove_dir_all(&staging);
     }
 
-    /// Saves an episode: closes its files and commits it (see the module doc). On error the dataset keeps
-    /// its earlier episodes and the staging files are removed.
+    /// Saves an episode: closes its files and commits it (see the module doc). `videos` finishes the episode's
+    /// videos (one per camera, in `spec.cameras` order, each at its [`EpisodeWriter::video_path`]); it is called
+    /// after the parquet file is closed, so encoders told to finish beforehand flush while it closes, and not
+    /// at all for an episode without frames. On error the dataset keeps its earlier episodes and the staging
+    /// files are removed.
     pub fn commit_episode(
         &mut self,
         ep: EpisodeWriter,
         mut summary: EpisodeSummary,
+        videos: impl FnOnce() -> Result<Vec<EncodeReport>, RecorderError>,
     ) -> Result<EpisodeSummary, RecorderError> {
         let staging = ep.staging.clone();
-        let r = self.commit_inner(ep, &mut summary);
+        let r = self.commit_inner(ep, &mut summary, videos);
         if r.is_err() {
             let _ = fs::remove_dir_all(&staging);
         }
@@ -490,19 +452,11 @@ impl Dataset {
     /// Closes the episode's files and returns their encoder reports, checked against the row count.
     fn close_files(
         data: DataWriter,
-        encoders: Vec<EncoderThread>,
+        videos: impl FnOnce() -> Result<Vec<EncodeReport>, RecorderError>,
         frames: u64,
     ) -> Result<Vec<EncodeReport>, RecorderError> {
-        // Finish the encoders first (they run in parallel with the parquet close).
-        for e in &encoders {
-            e.request_finish(frames);
-        }
         let rows = data.finish()?;
-        let mut reports: Vec<Result<EncodeReport, RecorderError>> = Vec::new();
-        for e in encoders {
-            reports.push(e.join());
-        }
-        let reports: Vec<EncodeReport> = reports.into_iter().collect::<Result<_, _>>()?;
+        let reports = videos()?;
         for r in &reports {
             if r.frames != frames {
                 return Err(RecorderError::Video {
@@ -517,14 +471,18 @@ impl Dataset {
         Ok(reports)
     }
 
-    fn commit_inner(&mut self, ep: EpisodeWriter, summary: &mut EpisodeSummary) -> Result<(), RecorderError> {
+    fn commit_inner(
+        &mut self,
+        ep: EpisodeWriter,
+        summary: &mut EpisodeSummary,
+        videos: impl FnOnce() -> Result<Vec<EncodeReport>, RecorderError>,
+    ) -> Result<(), RecorderError> {
         let EpisodeWriter {
             index,
             task,
             task_index,
             first_global_index,
             data,
-            encoders,
             state_stats,
             action_stats,
             mut flag_stats,
@@ -538,11 +496,10 @@ impl Dataset {
             count_flags(&mut flag_stats, flags);
         }
         if frames == 0 {
-            drop(encoders);
             return Err(RecorderError::EmptyEpisode(index));
         }
         let t0 = std::time::Instant::now();
-        let reports = Self::close_files(data, encoders, frames)?;
+        let reports = Self::close_files(data, videos, frames)?;
         summary.policies = events.policies();
         let events = events.finish()?;
         let flush_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -780,8 +737,8 @@ pub const LEROBOT_TOLERANCE_S: f64 = 1e-4;
 
 impl EpisodeWriter {
     /// Appends frame `frames()` (state, executed action and the frame's flags as recorded) to the parquet and
-    /// the per-episode stats. Each flag is written only if the dataset records its column. Camera frames are
-    /// queued separately through [`EpisodeWriter::encoders`].
+    /// the per-episode stats. Each flag is written only if the dataset records its column. Camera frames go
+    /// to the recorder's encoders, which write [`EpisodeWriter::video_path`].
     pub fn push_row(
         &mut self,
         state: &[f64],
@@ -858,17 +815,9 @@ impl EpisodeWriter {
         self.frames
     }
 
-    /// Video frames dropped so far, all cameras.
-    pub fn dropped(&self) -> u64 {
-        self.encoders.iter().map(EncoderThread::dropped).sum()
-    }
-
-    /// The name of a camera whose encoder has failed, if any.
-    pub fn failed_camera(&self) -> Option<String> {
-        self.encoders
-            .iter()
-            .find(|e| e.failed())
-            .map(|e| e.camera().to_owned())
+    /// Where the episode's video of the camera whose feature key is `key` is written until it is committed.
+    pub fn video_path(&self, key: &str) -> PathBuf {
+        self.staging.join(format!("{key}.mp4"))
     }
 }
 

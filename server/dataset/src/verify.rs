@@ -2,6 +2,7 @@
 //! enforce and says, in words, what is wrong. Nothing is modified (unlike `Dataset::open`, which cleans up
 //! an interrupted episode), so it is safe on a dataset another process is writing.
 
+use crate::av::probe::{FrameTimes, video_duration_s, video_frame_times};
 use crate::dataset::{TimestampMismatch, timestamp_pairs};
 use crate::parquet_io::{float_column, int_column};
 use arrow_array::RecordBatch;
@@ -84,45 +85,6 @@ fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>, String> {
     reader
         .collect::<Result<Vec<_>, _>>()
         .map_err(|e| format!("{}: {e}", path.display()))
-}
-
-/// Duration of the first video stream in seconds, and its frame count when the container knows it.
-fn video_duration_s(path: &Path) -> Result<(f64, i64), String> {
-    crate::video::init_ffmpeg();
-    let input =
-        ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
-    let stream = input
-        .streams()
-        .best(ffmpeg_next::media::Type::Video)
-        .ok_or_else(|| format!("{} has no video stream", path.display()))?;
-    let tb = stream.time_base();
-    let duration_s = stream.duration() as f64 * f64::from(tb.numerator()) / f64::from(tb.denominator());
-    Ok((duration_s, stream.frames()))
-}
-
-/// A video's frame presentation times: `(pts in presentation order, time base numerator, denominator)`.
-type FrameTimes = (Vec<i64>, i64, i64);
-
-/// Presentation times of the first video stream's frames, in presentation order, as exact fractions of a
-/// second. Reads packets only (no decoding).
-fn video_frame_times(path: &Path) -> Result<FrameTimes, String> {
-    crate::video::init_ffmpeg();
-    let mut input =
-        ffmpeg_next::format::input(path).map_err(|e| format!("{} cannot be opened: {e}", path.display()))?;
-    let (index, tb) = {
-        let stream = input
-            .streams()
-            .best(ffmpeg_next::media::Type::Video)
-            .ok_or_else(|| format!("{} has no video stream", path.display()))?;
-        (stream.index(), stream.time_base())
-    };
-    let mut pts: Vec<i64> = input
-        .packets()
-        .filter(|(s, _)| s.index() == index)
-        .filter_map(|(_, p)| p.pts())
-        .collect();
-    pts.sort_unstable();
-    Ok((pts, i64::from(tb.numerator()), i64::from(tb.denominator())))
 }
 
 /// Frame k of an episode must be presented at exactly `(first + k) / fps` seconds of its file, where `first`

@@ -40,7 +40,7 @@ pub enum EventKind {
     GateRejected,
     GateClamped,
     /// The recorder's own: the frame holds a sample captured farther from its time than the tolerance (see
-    /// [`crate::timeline`]); `detail` names the sources and how far. `arm` is empty.
+    /// the recorder's `timeline`); `detail` names the sources and how far. `arm` is empty.
     LateTick,
     /// The recorder's own: `count` ticks before this frame were not recorded because a source had sent
     /// nothing within the hold tolerance, so the episode's time jumps here by `count / fps`. `arm` is empty.

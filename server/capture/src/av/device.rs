@@ -3,13 +3,13 @@
 //! thread, decodes to RGB and publishes into a [`FrameSlot`] stamped with the time the frame arrived.
 
 use crate::camera::{CaptureThread, Frame, FrameSlot};
-use crate::error::RecorderError;
-use crate::video::init_ffmpeg;
 use ffmpeg_next::format::Pixel;
 use ffmpeg_next::software::scaling;
 use ffmpeg_next::util::frame::video::Video as VideoFrame;
 use ffmpeg_next::{Dictionary, Rational, codec, format, media};
 use phone2act_clock::monotonic_ns;
+use phone2act_dataset::av::init_ffmpeg;
+use phone2act_dataset::error::RecorderError;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::sync_channel;
@@ -89,7 +89,7 @@ pub fn spawn_av_capture(
             if let Err(e) = capture(&cam, &cfg, &slot, &stop_flag, &ready_tx) {
                 // Before the device opened, the caller gets the error; after, the camera just goes
                 // stale and the recorder's freshness gate reports it.
-                if ready_tx.try_send(Err(e.clone_shallow())).is_err() {
+                if ready_tx.try_send(Err(clone_shallow(&e))).is_err() {
                     tracing::error!(camera = %cam, error = %e, "camera stopped");
                 }
             }
@@ -111,12 +111,11 @@ pub fn spawn_av_capture(
     }
 }
 
-impl RecorderError {
-    fn clone_shallow(&self) -> RecorderError {
-        match self {
-            RecorderError::Camera(a, b) => RecorderError::Camera(a.clone(), b.clone()),
-            other => RecorderError::Camera(String::new(), other.to_string()),
-        }
+/// The error as the caller gets it from the capture thread (which keeps its own for the log).
+fn clone_shallow(e: &RecorderError) -> RecorderError {
+    match e {
+        RecorderError::Camera(a, b) => RecorderError::Camera(a.clone(), b.clone()),
+        other => RecorderError::Camera(String::new(), other.to_string()),
     }
 }
 
@@ -142,7 +141,7 @@ fn capture(
     if let Some(p) = &cfg.input_format {
         opts.set("input_format", p);
     }
-    let guard = crate::video::CODEC_LOCK.lock();
+    let guard = phone2act_dataset::av::CODEC_LOCK.lock();
     let ctx =
         format::open_with(&cfg.url, &fmt, opts).map_err(|e| err(&format!("cannot open {}", cfg.url), &e))?;
     let format::context::Context::Input(mut input) = ctx else {
