@@ -154,15 +154,19 @@ async fn human_in_the_loop(format: DatasetFormat, conformance_name: &str) {
             .starts_with(&format!("{POLICY}:")),
         "the policy waits for the hand-back"
     );
-    // The correction: 3 cm along the phone's +y in 1 cm steps, each answered before the next.
-    for i in 1..=3 {
+    // The correction: 3 cm along the phone's +y streamed as a phone streams it, 1 mm a sample about every
+    // 15 ms, each answered before the next. (Steps 150 ms apart, as this once sent, let a loaded machine stretch
+    // a gap past the 0.3 s stale timeout, and the re-index after it absorbed a whole centimetre; here a stall
+    // costs at most one millimetre.)
+    for i in 1..=30 {
         let seq = phone
-            .send_pose(phone_pose(0.0, 0.01 * f64::from(i), 0.0), vec![], 0)
+            .send_pose(phone_pose(0.0, 0.001 * f64::from(i), 0.0), vec![], 0)
             .await
             .unwrap();
         phone.feedback_for(seq).await.unwrap();
-        tokio::time::sleep(Duration::from_millis(150)).await;
+        tokio::time::sleep(Duration::from_millis(15)).await;
     }
+    tokio::time::sleep(Duration::from_millis(150)).await;
     let release_sent = Instant::now();
     let seq = phone
         .send_pose(phone_pose(0.0, 0.03, 0.0), vec![buttons::clutch_disengage()], 0)
@@ -363,14 +367,16 @@ async fn a_correction_of_one_arm_of_two_is_recorded_for_that_arm_while_the_polic
         "{}",
         fb.error
     );
-    for i in 1..=3 {
+    // 3 cm streamed 1 mm a sample, as in the single-arm test (a stall then costs at most one millimetre).
+    for i in 1..=30 {
         let seq = phone
-            .send_pose(phone_pose(0.0, 0.01 * f64::from(i), 0.0), vec![], 0)
+            .send_pose(phone_pose(0.0, 0.001 * f64::from(i), 0.0), vec![], 0)
             .await
             .unwrap();
         phone.feedback_for(seq).await.unwrap();
-        tokio::time::sleep(Duration::from_millis(150)).await;
+        tokio::time::sleep(Duration::from_millis(15)).await;
     }
+    tokio::time::sleep(Duration::from_millis(150)).await;
     assert_eq!(
         arm_state(&client, "right").await.owner(),
         v1::ControlSource::Policy,
