@@ -202,6 +202,25 @@ class Suite:
         services = self.ros.get_services()
         assert "/rosapi/topics" in services, services
 
+    def test_get_time_reads_the_gateways_wall_clock(self):
+        """roslibpy's Ros.get_time() reads ROS 1's secs/nsecs; ROS 2 clients read sec/nanosec of the same answer."""
+        before = time.time()
+        t = self.ros.get_time()
+        after = time.time()
+        assert isinstance(t, roslibpy.Time), t
+        assert 0 <= t.nsecs < 1_000_000_000, t
+        # The gateway runs on this machine, so its wall clock is ours and it read it between our two readings;
+        # 1 ms covers only float rounding (a quarter of a microsecond at today's epoch seconds), not a
+        # monotonic or a millisecond clock.
+        assert before - 0.001 <= t.to_sec() <= after + 0.001, f"get_time {t.to_sec()} not within [{before}, {after}]"
+        answer = roslibpy.Service(self.ros, "/rosapi/get_time", "rosapi/GetTime").call(
+            roslibpy.ServiceRequest(), timeout=10
+        )
+        stamp = answer["time"]
+        assert (stamp["sec"], stamp["nanosec"]) == (stamp["secs"], stamp["nsecs"]), stamp
+        # A moment after the first call: 10 s covers a stalled machine, not a monotonic clock's seconds since boot.
+        assert abs(stamp["sec"] + stamp["nanosec"] * 1e-9 - time.time()) < 10.0, stamp
+
     def stamps(self, topic, msg_type, throttle_ms, count, key=lambda m: m["header"]["stamp"]):
         """Collects `count` messages of a throttled subscription; returns them and their stamps in seconds."""
         got = []
@@ -364,6 +383,7 @@ def main():
         suite.test_volume_up_toggles_the_gripper,
         suite.test_nan_pose_is_refused_and_the_connection_survives,
         suite.test_rosapi_lists_the_topics_ros_tools_expect,
+        suite.test_get_time_reads_the_gateways_wall_clock,
         suite.test_joint_states_for_each_arm_in_radians,
         suite.test_tf_has_each_arms_end_effector_in_its_base_frame,
         suite.test_camera_images_arrive_as_compressed_jpeg,

@@ -185,6 +185,17 @@ fn to_sample(
     Ok(sample)
 }
 
+/// Reads one page message. A well-formed one (every sample) is read in one pass, straight into its type; the
+/// rest goes the tolerant way ([`parse_json`], then the type), which accepts what that one refuses (the bare
+/// `NaN` of a broken page, a repeated key: the last one counts) and words the error.
+fn parse_page_msg(text: &str) -> Result<PageMsg, String> {
+    serde_json::from_str::<PageMsg>(text).or_else(|_| {
+        parse_json(text)
+            .map_err(|e| e.0)
+            .and_then(|v| serde_json::from_value::<PageMsg>(v).map_err(|e| format!("bad message: {e}")))
+    })
+}
+
 /// State of one page socket.
 pub(crate) struct PageHandler {
     shared: Arc<Shared>,
@@ -308,10 +319,7 @@ impl Drop for PageHandler {
 
 impl Handler for PageHandler {
     fn on_text(&mut self, text: &str) {
-        let msg = parse_json(text)
-            .map_err(|e| e.0)
-            .and_then(|v| serde_json::from_value::<PageMsg>(v).map_err(|e| format!("bad message: {e}")));
-        match msg {
+        match parse_page_msg(text) {
             Ok(PageMsg::Hello { arm, take_over }) => {
                 if arm.is_empty() || arm.len() > 64 {
                     self.error("arm name must be 1 to 64 characters", None);
@@ -479,6 +487,32 @@ mod tests {
             panic!()
         };
         assert_eq!(r.task, "pick the ball");
+    }
+
+    #[test]
+    fn the_one_pass_read_and_the_tolerant_one_agree() {
+        let text = r#"{"type":"sample","seq":9,"t_ns":2e9,"pose":{"p":[0.1,0.2,0.3],"q":[0,0,0,1]},"buttons":[{"clutch":"engage"}]}"#;
+        let PageMsg::Sample { seq, t_ns, pose, .. } = parse_page_msg(text).unwrap() else {
+            panic!("not a sample")
+        };
+        assert_eq!((seq, t_ns), (9, 2e9));
+        assert_eq!(pose.unwrap().p, [Some(0.1), Some(0.2), Some(0.3)]);
+        // What only the tolerant read accepts still comes through it: a repeated key (the last counts) and
+        // Python's bare NaN, which reaches `to_sample` as null and is refused there with its field named.
+        let PageMsg::Sample { seq, .. } = parse_page_msg(r#"{"type":"sample","seq":1,"seq":2}"#).unwrap()
+        else {
+            panic!("not a sample")
+        };
+        assert_eq!(seq, 2);
+        let Ok(PageMsg::Sample { pose, .. }) =
+            parse_page_msg(r#"{"type":"sample","seq":1,"pose":{"p":[NaN,0,0],"q":[0,0,0,1]}}"#)
+        else {
+            panic!("a NaN sample must parse, to be refused with a reason")
+        };
+        assert_eq!(pose.unwrap().p[0], None);
+        let bad = parse_page_msg(r#"{"type":"dance"}"#).unwrap_err();
+        assert!(bad.starts_with("bad message"), "{bad}");
+        assert!(parse_page_msg("{").unwrap_err().contains("malformed JSON"));
     }
 
     #[test]

@@ -4,8 +4,9 @@
 //!
 //! Message shapes follow ROS 2 rosbridge's JSON (stamps as `sec`/`nanosec`, `uint8[]` as base64 text);
 //! `rosapi` answers follow its `.srv` definitions (`Topics`: `topics`, `types`; `TopicType`: `type`;
-//! `Services`: `services`; `GetTime`: `time`). Stamps are wall-clock time taken when the message is built
-//! (the caller passes it in): the server's snapshot times are monotonic and mean nothing to a ROS tool.
+//! `Services`: `services`; `GetTime`: `time`, in both Time spellings for roslibpy). Stamps are wall-clock
+//! time taken when the message is built (the caller passes it in): the server's snapshot times are monotonic
+//! and mean nothing to a ROS tool.
 
 use crate::config::{TopicConfig, TopicRole};
 use crate::feedback::pose_parts;
@@ -204,6 +205,17 @@ pub(crate) fn catalogue(
     out
 }
 
+/// `GetTime`'s `time`: ROS 2's `sec`/`nanosec` (what a ROS 2 rosapi answers) and the same instant in ROS 1's
+/// `secs`/`nsecs`, which roslibpy's `Ros.get_time()` reads. A reader of one spelling skips the other pair, and
+/// a stamp sent back as it is still reads right: rosbridge (and this gateway) take a Time in either spelling.
+fn get_time_stamp(wall_ns: i64) -> Value {
+    let (sec, nanosec) = (
+        wall_ns.div_euclid(1_000_000_000),
+        wall_ns.rem_euclid(1_000_000_000),
+    );
+    json!({"sec": sec, "nanosec": nanosec, "secs": sec, "nsecs": nanosec})
+}
+
 /// The `values` of a `rosapi` call, or `None` for a service this gateway does not provide.
 pub(crate) fn rosapi_values(
     service: &str,
@@ -224,7 +236,7 @@ pub(crate) fn rosapi_values(
             json!({"type": found.map(|(_, ty)| ros2_type(ty)).unwrap_or_default()})
         }
         "/rosapi/services" => json!({"services": SERVICES}),
-        "/rosapi/get_time" => json!({"time": stamp(wall_ns)}),
+        "/rosapi/get_time" => json!({"time": get_time_stamp(wall_ns)}),
         _ => return None,
     })
 }
@@ -328,6 +340,20 @@ mod tests {
         let none = rosapi_values("/rosapi/topic_type", &json!({"topic": "/nope"}), &cat, 0).unwrap();
         assert_eq!(none, json!({"type": ""}));
         assert!(rosapi_values("/rosapi/nodes", &Value::Null, &cat, 0).is_none());
+    }
+
+    #[test]
+    fn get_time_answers_in_both_ros_spellings_of_the_same_instant() {
+        let v = rosapi_values("/rosapi/get_time", &Value::Null, &[], 1_700_000_000_250_000_000).unwrap();
+        assert_eq!(
+            v["time"],
+            json!({"sec": 1_700_000_000_i64, "nanosec": 250_000_000, "secs": 1_700_000_000_i64, "nsecs": 250_000_000})
+        );
+        // Before 1970 the nanoseconds stay in [0, 1e9) in both pairs, as `builtin_interfaces/Time` requires.
+        let v = rosapi_values("/rosapi/get_time", &Value::Null, &[], -1).unwrap();
+        assert_eq!(v["time"]["secs"], json!(-1));
+        assert_eq!(v["time"]["nsecs"], json!(999_999_999));
+        assert_eq!(v["time"]["sec"], v["time"]["secs"]);
     }
 
     #[test]

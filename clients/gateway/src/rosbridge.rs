@@ -96,16 +96,17 @@ impl StatusLevel {
 /// Parses one text frame. The error carries the `id` when one could be read, so the reply can echo it.
 pub fn parse(text: &str) -> Result<Incoming, (Option<Value>, WireError)> {
     let value = parse_json(text).map_err(|e| (None, e))?;
-    let Value::Object(obj) = value else {
+    let Value::Object(mut obj) = value else {
         return Err((
             None,
             WireError("a rosbridge message must be a JSON object".into()),
         ));
     };
-    let id = obj.get("id").cloned();
-    parse_op(&obj)
-        .map(|op| Incoming { id: id.clone(), op })
-        .map_err(|e| (id, e))
+    let id = obj.remove("id");
+    match parse_op(obj, id.as_ref()) {
+        Ok(op) => Ok(Incoming { id, op }),
+        Err(e) => Err((id, e)),
+    }
 }
 
 /// Parses JSON, accepting the bare `NaN`/`Infinity` tokens Python's `json` emits so that the error can say
@@ -182,13 +183,15 @@ fn opt_str(obj: &Map<String, Value>, key: &str) -> Option<String> {
     obj.get(key).and_then(Value::as_str).map(str::to_owned)
 }
 
-fn parse_op(obj: &Map<String, Value>) -> Result<Op, WireError> {
-    let op = match obj.get("op") {
-        Some(Value::String(op)) => op.as_str(),
+/// `obj` is taken apart rather than copied: a published message moves into the [`Op`] as it was parsed.
+fn parse_op(mut obj: Map<String, Value>, id: Option<&Value>) -> Result<Op, WireError> {
+    let op = match obj.remove("op") {
+        Some(Value::String(op)) => op,
         Some(_) => return err("field 'op' must be a string"),
         None => return err("missing field 'op'"),
     };
-    Ok(match op {
+    let obj = &mut obj;
+    Ok(match op.as_str() {
         "advertise" => Op::Advertise {
             topic: normalize_topic(str_field(obj, "topic")?)?,
             msg_type: normalize_type(str_field(obj, "type")?)?,
@@ -200,25 +203,25 @@ fn parse_op(obj: &Map<String, Value>) -> Result<Op, WireError> {
             topic: normalize_topic(str_field(obj, "topic")?)?,
             // Not in the spec, but the Phone2Act app sends it; rosbridge ignores it, we use it as a check.
             msg_type: opt_str(obj, "type").map(|t| normalize_type(&t)).transpose()?,
-            msg: match obj.get("msg") {
+            msg: match obj.remove("msg") {
                 None => Value::Object(Map::new()),
-                Some(v @ Value::Object(_)) => v.clone(),
+                Some(v @ Value::Object(_)) => v,
                 Some(_) => return err("field 'msg' must be a JSON object"),
             },
         },
         "subscribe" => Op::Subscribe {
             topic: normalize_topic(str_field(obj, "topic")?)?,
-            sub_id: obj.get("id").map(id_text),
+            sub_id: id.map(id_text),
             msg_type: opt_str(obj, "type").map(|t| normalize_type(&t)).transpose()?,
             throttle_rate_ms: obj.get("throttle_rate").and_then(Value::as_u64).unwrap_or(0),
         },
         "unsubscribe" => Op::Unsubscribe {
             topic: normalize_topic(str_field(obj, "topic")?)?,
-            sub_id: obj.get("id").map(id_text),
+            sub_id: id.map(id_text),
         },
         "call_service" => Op::CallService {
             service: str_field(obj, "service")?.to_owned(),
-            args: obj.get("args").cloned().unwrap_or(Value::Null),
+            args: obj.remove("args").unwrap_or(Value::Null),
         },
         "set_level" => Op::SetLevel {
             level: StatusLevel::parse(str_field(obj, "level")?)

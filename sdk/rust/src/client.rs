@@ -123,7 +123,6 @@ impl Client {
         Self::on_channel(channel, options.token.as_deref())
     }
 
-    /// A client of a server in the same process, over an in-memory pipe instead of a socket (no TCP, no
     /// A client of a server in the same process, with no network stack in between: each call goes straight to
     /// the server's router (the same services and the same token check as over TCP, no HTTP/2 framing, no
     /// socket), messages still encoded as on the wire. Give the returned [`LocalIncoming`] to the server;
