@@ -15,8 +15,8 @@
 //! feature, the data files' columns); the output is assembled in a hidden sibling directory and renamed into
 //! place at the end, so a refused or failed merge leaves no output at all.
 
-use super::remux::Concat;
 use super::merge_stream::{InputProvenance, ParquetRows, ProvenanceHead, ProvenanceSpool, parquet_files};
+use super::remux::Concat;
 use super::{CHUNKS_SIZE, MergedFrom, PROVENANCE_FILE, Provenance, meta::pretty};
 use crate::error::RecorderError;
 use crate::events::events_path;
@@ -99,7 +99,13 @@ struct SourceEpisode {
 
 impl SourceEpisode {
     /// The episode of row `r` of a `meta/episodes` batch.
-    fn of_row(b: &RecordBatch, r: usize, keys: &[String], chunks: u64, label: &str) -> Result<Self, MergeError> {
+    fn of_row(
+        b: &RecordBatch,
+        r: usize,
+        keys: &[String],
+        chunks: u64,
+        label: &str,
+    ) -> Result<Self, MergeError> {
         let int = |name: &str| -> Option<i64> {
             b.column_by_name(name)?
                 .as_primitive_opt::<arrow_array::types::Int64Type>()
@@ -107,7 +113,8 @@ impl SourceEpisode {
         };
         let idx = int("episode_index").ok_or_else(|| bad(label, "meta/episodes has no episode_index"))?;
         let len = int("length").ok_or_else(|| bad(label, "meta/episodes has no length"))?;
-        let from = int("dataset_from_index").ok_or_else(|| bad(label, "meta/episodes has no dataset_from_index"))?;
+        let from =
+            int("dataset_from_index").ok_or_else(|| bad(label, "meta/episodes has no dataset_from_index"))?;
         let mut videos = BTreeMap::new();
         for k in keys {
             let chunk = int(&format!("videos/{k}/chunk_index"));
@@ -716,7 +723,12 @@ impl VideoOut {
             .is_none_or(|(_, _, bytes)| *bytes > 0.0 && bytes + size >= self.limit_bytes);
         if roll {
             self.finish()?;
-            let path = dst.join(file_rel(&format!("videos/{}", self.key), self.next, input.chunks, "mp4"));
+            let path = dst.join(file_rel(
+                &format!("videos/{}", self.key),
+                self.next,
+                input.chunks,
+                "mp4",
+            ));
             if let Some(p) = path.parent() {
                 fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
             }
@@ -1193,6 +1205,10 @@ pub(super) fn write_stats_and_provenance(
     spool.finish(&provenance, &path)?;
     Ok(())
 }
+
+#[cfg(test)]
+#[path = "merge_equivalence.rs"]
+mod equivalence;
 
 #[cfg(test)]
 mod tests {

@@ -8,8 +8,8 @@ use crate::error::RecorderError;
 use crate::stats::Aggregate;
 use arrow_array::RecordBatch;
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
-use serde::de::{self, DeserializeSeed, Deserializer, IgnoredAny, MapAccess, SeqAccess, Visitor};
 use serde::Deserialize;
+use serde::de::{self, DeserializeSeed, Deserializer, IgnoredAny, MapAccess, SeqAccess, Visitor};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::fs::{self, File};
@@ -219,7 +219,11 @@ impl InputProvenance {
 
     /// The entry of episode `index` if its length is `length`. Episodes are asked for in index order, so a
     /// list in index order is read once, front to back.
-    pub(super) fn episode(&mut self, index: u64, length: u64) -> Result<Option<EpisodeSummary>, RecorderError> {
+    pub(super) fn episode(
+        &mut self,
+        index: u64,
+        length: u64,
+    ) -> Result<Option<EpisodeSummary>, RecorderError> {
         let same = |e: &&EpisodeSummary| e.index == index && e.length_frames == length;
         if let Some(list) = &self.unordered {
             return Ok(usize::try_from(index)
@@ -398,12 +402,11 @@ impl ProvenanceSpool {
     /// Writes `provenance` (whose `episodes` are empty) to `to` pretty-printed, with the spooled entries as
     /// its `episodes`, the same bytes as printing it with every entry in its list; removes the spool.
     pub(super) fn finish(self, provenance: &Provenance, to: &Path) -> Result<(), RecorderError> {
-        let ProvenanceSpool {
-            path,
-            out,
-            entries,
-        } = self;
-        drop(out.into_inner().map_err(|e| RecorderError::io(&path, e.into_error()))?);
+        let ProvenanceSpool { path, out, entries } = self;
+        drop(
+            out.into_inner()
+                .map_err(|e| RecorderError::io(&path, e.into_error()))?,
+        );
         debug_assert!(provenance.episodes.is_empty());
         let text = pretty(provenance);
         // Top-level keys are the only ones after a newline and exactly four spaces.
@@ -446,7 +449,11 @@ mod tests {
             task: format!("task \"{i}\"\nwith a newline"),
             length_frames: 10 + i,
             duration_s: 0.1 * i as f64 + 1.0 / 3.0,
-            policies: if i % 2 == 0 { vec!["pi0".into(), "act".into()] } else { Vec::new() },
+            policies: if i % 2 == 0 {
+                vec!["pi0".into(), "act".into()]
+            } else {
+                Vec::new()
+            },
             success: (i % 3 == 0).then_some(true),
             merged_from: Some(MergedFrom {
                 dataset: "s3://b/station-1".into(),
@@ -519,6 +526,9 @@ mod tests {
             assert_eq!(p.episode(2, 999).unwrap(), None, "a length that differs");
         }
         fs::write(&path, "{\"software\": 1}").unwrap();
-        assert!(InputProvenance::open(&path).is_none(), "a file Provenance does not parse is none");
+        assert!(
+            InputProvenance::open(&path).is_none(),
+            "a file Provenance does not parse is none"
+        );
     }
 }

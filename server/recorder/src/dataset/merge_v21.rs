@@ -44,7 +44,11 @@ pub(super) struct InputV21 {
 enum EpisodeStats {
     None,
     /// One line per episode in index order: read along with the episodes. `next` is the line it gives next.
-    InOrder { path: PathBuf, lines: Option<JsonLines>, next: u64 },
+    InOrder {
+        path: PathBuf,
+        lines: Option<JsonLines>,
+        next: u64,
+    },
     /// Any other file (no lerobot writer makes one) is read whole, as a map.
     Unordered(BTreeMap<u64, Value>),
 }
@@ -218,7 +222,6 @@ impl InputV21 {
             e / self.chunks
         ))
     }
-
 }
 
 /// Opens and checks every input against the first (before anything is written).
