@@ -449,12 +449,12 @@ mod tests {
             task: format!("task \"{i}\"\nwith a newline"),
             length_frames: 10 + i,
             duration_s: 0.1 * i as f64 + 1.0 / 3.0,
-            policies: if i % 2 == 0 {
+            policies: if i.is_multiple_of(2) {
                 vec!["pi0".into(), "act".into()]
             } else {
                 Vec::new()
             },
-            success: (i % 3 == 0).then_some(true),
+            success: i.is_multiple_of(3).then_some(true),
             merged_from: Some(MergedFrom {
                 dataset: "s3://b/station-1".into(),
                 episode_index: i,
@@ -518,7 +518,7 @@ mod tests {
             let list = serde_json::from_str::<Provenance>(&text).unwrap().episodes;
             let mut p = InputProvenance::open(&path).unwrap();
             assert_eq!(p.station(), "");
-            for i in (0..210).filter(|i| i % 5 != 4) {
+            for i in (0..210u64).filter(|i| !(i + 1).is_multiple_of(5)) {
                 let want = list.iter().find(|e| e.index == i).cloned();
                 let length = want.as_ref().map_or(10 + i, |e| e.length_frames);
                 assert_eq!(p.episode(i, length).unwrap(), want, "episode {i}");
