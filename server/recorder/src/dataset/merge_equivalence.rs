@@ -1,54 +1,80 @@
 //! The streaming merge against the whole-list reading it replaced: each input's episode metadata, data rows
 //! and provenance are read whole here, the merged metadata, statistics and provenance are worked out from
 //! them as a merge that holds every episode would, and the merge's output must be exactly that, for v3.0
-//! (several output files, so rows roll over) and v2.1, on three inputs: one plain, one without a provenance
-//! sidecar, one that is itself a merge (its entries keep where they first came from).
+//! (several output files, so rows roll over) and v2.1, on three inputs made from lerobot's sample dataset: one
+//! with a provenance sidecar, one without, one that is itself a merge (its entries keep where they first came
+//! from).
 //!
-//! Timing: recording sleeps for the episodes' length; nothing asserts a duration.
 
 use super::*;
-use crate::camera::{FrameSlot, spawn_test_pattern};
-use crate::synthetic::SyntheticRobot;
-use crate::{CameraSpec, DatasetSpec, EpisodeSummary, Format, Recorder};
-use std::time::Duration;
+use crate::{EpisodeSummary, Format};
 
-fn record(format: Format, root: &Path, station: &str, tasks: &[&str]) {
-    let slot = Arc::new(FrameSlot::default());
-    let _camera = spawn_test_pattern("front", 64, 64, 20.0, Arc::clone(&slot)).unwrap();
-    let spec = DatasetSpec {
-        root: root.to_owned(),
-        format,
-        fps: 20,
-        robot_type: "phone2act_sim".into(),
-        video_codec: None,
-        state_names: SyntheticRobot::state_names(),
-        action_names: SyntheticRobot::action_names(),
-        cameras: vec![CameraSpec {
-            name: "front".into(),
-            width: 64,
-            height: 64,
-        }],
-        modality: SyntheticRobot::modality(),
-        success: false,
-        intervention: false,
-        provenance: json!({"station_id": station}),
-    };
-    let rec = Recorder::open(spec, Arc::new(SyntheticRobot), vec![("front".into(), slot)]).unwrap();
-    for task in tasks {
-        rec.start_episode_by(task, &format!("operator-of-{station}"))
-            .unwrap();
-        std::thread::sleep(Duration::from_secs_f64(0.3));
-        rec.stop_episode().unwrap();
+const CAMERAS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
+
+fn copy_dir(src: &Path, dst: &Path) {
+    fs::create_dir_all(dst).unwrap();
+    for e in fs::read_dir(src).unwrap().flatten() {
+        let to = dst.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &to);
+        } else {
+            fs::copy(e.path(), &to).unwrap();
+        }
     }
-    rec.close().unwrap();
 }
 
-/// Three inputs of `format`: `a` plain, `b` without its provenance sidecar, `c` a merge of a recording.
+/// Three inputs from lerobot's own sample dataset (three episodes, two cameras, several episodes per file):
+/// `a` with a provenance sidecar naming its station and operator, `b` without one, `c` a merge of the sample
+/// (its entries keep where they first came from).
 fn inputs(format: Format, dir: &Path) -> Vec<MergeInput> {
-    record(format, &dir.join("a"), "st-a", &["pick", "place", "pick"]);
-    record(format, &dir.join("b"), "st-b", &["pour", "pick"]);
-    fs::remove_file(dir.join("b").join(PROVENANCE_FILE)).unwrap();
-    record(format, &dir.join("c0"), "st-c", &["wipe", "pour"]);
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join(match format {
+        Format::V30 => "../../tests/fixtures/lerobot_sample_v30",
+        Format::V21 => "../../tests/fixtures/lerobot_sample_v21",
+    });
+    for n in ["a", "b", "c0"] {
+        copy_dir(&fixture, &dir.join(n));
+    }
+    let lengths: Vec<u64> = if format == Format::V30 {
+        all_rows(&dir.join("a"), "meta/episodes")
+            .iter()
+            .flat_map(|b| int_column(b, "length").unwrap())
+            .map(|l| l as u64)
+            .collect()
+    } else {
+        fs::read_to_string(dir.join("a/meta/episodes.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<Value>(l).unwrap()["length"]
+                    .as_u64()
+                    .unwrap()
+            })
+            .collect()
+    };
+    let provenance = Provenance {
+        software: "phone2act-recorder".into(),
+        version: "0".into(),
+        format: "v3.0".into(),
+        video: json!({"codec": "av1"}),
+        config: json!({"station_id": "st-a"}),
+        sync: Value::Null,
+        episodes: lengths
+            .iter()
+            .enumerate()
+            .map(|(i, l)| EpisodeSummary {
+                index: i as u64,
+                length_frames: *l,
+                duration_s: *l as f64 / 3.0,
+                operator: "ana".into(),
+                task: "from the sidecar".into(),
+                ..EpisodeSummary::default()
+            })
+            .collect(),
+        stats: BTreeMap::new(),
+    };
+    let path = dir.join("a").join(PROVENANCE_FILE);
+    fs::create_dir_all(path.parent().unwrap()).unwrap();
+    fs::write(&path, pretty(&provenance)).unwrap();
     let c0 = MergeInput {
         root: dir.join("c0"),
         label: "s3://bucket/st-c".into(),
@@ -73,13 +99,16 @@ fn expected_entry(input: &MergeInput, index: u64, length: u64, task: String, new
     let prov: Option<Provenance> = fs::read(input.root.join(PROVENANCE_FILE))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok());
+    let fps = read_json(&input.root.join("meta/info.json")).unwrap()["fps"]
+        .as_f64()
+        .unwrap();
     let same = |e: &&EpisodeSummary| e.index == index && e.length_frames == length;
     let mut e = prov
         .as_ref()
         .and_then(|p| p.episodes.iter().find(same).cloned())
         .unwrap_or_else(|| EpisodeSummary {
             length_frames: length,
-            duration_s: length as f64 / 20.0,
+            duration_s: length as f64 / fps,
             task,
             ..EpisodeSummary::default()
         });
@@ -180,7 +209,7 @@ fn v30_streaming_merge_writes_what_the_whole_lists_give() {
         video_file_size_mb: 0.02,
     };
     let report = merge(&inputs, &dst, &opts).unwrap();
-    assert_eq!(report.episodes, 7);
+    assert_eq!(report.episodes, 9);
     assert!(report.files_out > 4, "{report:?}");
 
     let out_meta = all_rows(&dst, "meta/episodes");
@@ -188,7 +217,7 @@ fn v30_streaming_merge_writes_what_the_whole_lists_give() {
         .iter()
         .flat_map(|b| (0..b.num_rows()).map(|r| b.slice(r, 1)))
         .collect();
-    assert_eq!(out_rows.len(), 7);
+    assert_eq!(out_rows.len(), 9);
     let mut tasks: Vec<String> = Vec::new();
     let (mut new, mut frames) = (0u64, 0u64);
     let mut data_by_episode = Vec::new();
@@ -226,21 +255,22 @@ fn v30_streaming_merge_writes_what_the_whole_lists_give() {
             ));
             let written = episode_rows(&parquet_io::read_batches(&data_file).unwrap(), new);
             assert_same_rows(&written, &rows, new);
-            let key = "observation.images.front";
-            let video = dst.join(format!(
-                "videos/{key}/chunk-{:03}/file-{:03}.mp4",
-                meta_column(out, &format!("videos/{key}/chunk_index")),
-                meta_column(out, &format!("videos/{key}/file_index"))
-            ));
-            assert!(video.exists(), "{}", video.display());
-            let span = |r: &RecordBatch| {
-                float_at(r, &format!("videos/{key}/to_timestamp"), 0).unwrap()
-                    - float_at(r, &format!("videos/{key}/from_timestamp"), 0).unwrap()
-            };
-            assert!(
-                (span(out) - span(&src)).abs() < 1e-9,
-                "episode {new}'s video span"
-            );
+            for key in CAMERAS {
+                let video = dst.join(format!(
+                    "videos/{key}/chunk-{:03}/file-{:03}.mp4",
+                    meta_column(out, &format!("videos/{key}/chunk_index")),
+                    meta_column(out, &format!("videos/{key}/file_index"))
+                ));
+                assert!(video.exists(), "{}", video.display());
+                let span = |r: &RecordBatch| {
+                    float_at(r, &format!("videos/{key}/to_timestamp"), 0).unwrap()
+                        - float_at(r, &format!("videos/{key}/from_timestamp"), 0).unwrap()
+                };
+                assert!(
+                    (span(out) - span(&src)).abs() < 1e-9,
+                    "episode {new}'s video span"
+                );
+            }
 
             // The rest of the row: the source's, with its indices, places and renumbered stats replaced.
             let mut expect = src.clone();
@@ -253,7 +283,10 @@ fn v30_streaming_merge_writes_what_the_whole_lists_give() {
             ] {
                 expect = set_column(&expect, c, Arc::clone(out.column_by_name(c).unwrap()));
             }
-            for c in ["chunk_index", "file_index", "from_timestamp", "to_timestamp"] {
+            for (key, c) in CAMERAS
+                .iter()
+                .flat_map(|k| ["chunk_index", "file_index", "from_timestamp", "to_timestamp"].map(|c| (k, c)))
+            {
                 let c = format!("videos/{key}/{c}");
                 expect = set_column(&expect, &c, Arc::clone(out.column_by_name(&c).unwrap()));
             }
@@ -288,19 +321,27 @@ fn v30_streaming_merge_writes_what_the_whole_lists_give() {
     );
 
     let mut cameras = BTreeMap::new();
-    let mut agg = Aggregate::default();
-    for input in &inputs {
-        let s = read_json(&input.root.join("meta/stats.json")).unwrap();
-        agg.add(&image_stats_from_json(&s["observation.images.front"]).unwrap());
+    for key in CAMERAS {
+        let mut agg = Aggregate::default();
+        for input in &inputs {
+            let s = read_json(&input.root.join("meta/stats.json")).unwrap();
+            agg.add(&image_stats_from_json(&s[key]).unwrap());
+        }
+        cameras.insert(key.to_owned(), agg);
     }
-    cameras.insert("observation.images.front".to_owned(), agg);
     assert_eq!(
         read_json(&dst.join("meta/stats.json")).unwrap(),
         expected_stats(&data_by_episode, FeatureStats::to_json_v30, cameras)
     );
     let merged = merged_provenance(&dst);
     assert_eq!(merged.episodes, as_read(&provenance));
-    assert_eq!(merged.episodes[0].station_id, "st-a");
+    assert_eq!(
+        (
+            merged.episodes[0].station_id.as_str(),
+            merged.episodes[0].operator.as_str()
+        ),
+        ("st-a", "ana")
+    );
     assert_eq!(merged.episodes[3].station_id, "", "b has no sidecar");
     assert_eq!(
         merged.episodes[6].merged_from.as_ref().unwrap().dataset,
@@ -315,7 +356,7 @@ fn v21_streaming_merge_writes_what_the_whole_lists_give() {
     let inputs = inputs(Format::V21, dir.path());
     let dst = dir.path().join("merged");
     let report = merge(&inputs, &dst, &MergeOptions::default()).unwrap();
-    assert_eq!(report.episodes, 7);
+    assert_eq!(report.episodes, 9);
 
     let lines = |root: &Path, rel: &str| -> Vec<Value> {
         fs::read_to_string(root.join(rel))
