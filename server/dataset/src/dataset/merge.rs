@@ -15,6 +15,7 @@
 //! feature, the data files' columns); the output is assembled in a hidden sibling directory and renamed into
 //! place at the end, so a refused or failed merge leaves no output at all.
 
+use super::merge_stream::{InputProvenance, ParquetRows, ProvenanceHead, ProvenanceSpool, parquet_files};
 use super::{CHUNKS_SIZE, MergedFrom, PROVENANCE_FILE, Provenance, meta::pretty};
 use crate::av::remux::Concat;
 use crate::error::RecorderError;
@@ -29,7 +30,7 @@ use indexmap::IndexMap;
 use parquet::arrow::ArrowWriter;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use serde_json::{Value, json};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::fs::{self, File};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -87,29 +88,65 @@ pub struct MergeReport {
     pub files_out: u64,
 }
 
-/// Where one episode's files are in its source dataset.
+/// Where one episode's files are in its source dataset (one episode's worth, read from its metadata row).
 struct SourceEpisode {
     index: u64,
     length: u64,
     from: u64,
     /// Per camera: chunk * CHUNKS + file, from_timestamp, to_timestamp.
     videos: BTreeMap<String, (u64, f64, f64)>,
-    /// Where its row of `meta/episodes` is (file in `Input::meta_files`, batch, row), read again when the
-    /// merged metadata is written: holding every episode's row (a batch of a hundred-odd stats columns each)
-    /// would grow the merge's memory with the number of episodes.
-    meta_at: (usize, usize, usize),
 }
 
+impl SourceEpisode {
+    /// The episode of row `r` of a `meta/episodes` batch.
+    fn of_row(
+        b: &RecordBatch,
+        r: usize,
+        keys: &[String],
+        chunks: u64,
+        label: &str,
+    ) -> Result<Self, MergeError> {
+        let int = |name: &str| -> Option<i64> {
+            b.column_by_name(name)?
+                .as_primitive_opt::<arrow_array::types::Int64Type>()
+                .map(|a| if a.is_null(r) { -1 } else { a.value(r) })
+        };
+        let idx = int("episode_index").ok_or_else(|| bad(label, "meta/episodes has no episode_index"))?;
+        let len = int("length").ok_or_else(|| bad(label, "meta/episodes has no length"))?;
+        let from =
+            int("dataset_from_index").ok_or_else(|| bad(label, "meta/episodes has no dataset_from_index"))?;
+        let mut videos = BTreeMap::new();
+        for k in keys {
+            let chunk = int(&format!("videos/{k}/chunk_index"));
+            let file = int(&format!("videos/{k}/file_index"));
+            let (Some(chunk), Some(file)) = (chunk, file) else {
+                return Err(bad(label, format!("meta/episodes has no videos/{k} columns")));
+            };
+            let from_s = float_at(b, &format!("videos/{k}/from_timestamp"), r).unwrap_or(0.0);
+            let to_s = float_at(b, &format!("videos/{k}/to_timestamp"), r).unwrap_or(0.0);
+            let n = u64::try_from(chunk).unwrap_or(0) * chunks + u64::try_from(file).unwrap_or(0);
+            videos.insert(k.clone(), (n, from_s, to_s));
+        }
+        Ok(SourceEpisode {
+            index: u64::try_from(idx).map_err(|_| bad(label, "negative episode_index"))?,
+            length: u64::try_from(len).map_err(|_| bad(label, "negative length"))?,
+            from: u64::try_from(from).map_err(|_| bad(label, "negative dataset_from_index"))?,
+            videos,
+        })
+    }
+}
+
+/// An input dataset. Its episodes are not held: `meta/episodes` is checked once at open and read again, a
+/// batch at a time, as the merge reaches each episode.
 struct Input {
     label: String,
     root: PathBuf,
     info: IndexMap<String, Value>,
     chunks: u64,
     tasks: Vec<String>,
-    episodes: Vec<SourceEpisode>,
-    data_files: Vec<PathBuf>,
-    meta_files: Vec<PathBuf>,
-    provenance: Option<Provenance>,
+    episode_count: u64,
+    frame_count: u64,
+    provenance: Option<InputProvenance>,
     stats: Value,
     /// GR00T's `meta/modality.json`, when the input carries one.
     modality: Option<Value>,
@@ -117,19 +154,6 @@ struct Input {
 
 fn bad(input: &str, detail: impl Into<String>) -> MergeError {
     MergeError::BadInput(input.to_owned(), detail.into())
-}
-
-fn parquet_files(dir: &Path) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for chunk in fs::read_dir(dir).into_iter().flatten().flatten() {
-        for f in fs::read_dir(chunk.path()).into_iter().flatten().flatten() {
-            if f.path().extension().is_some_and(|e| e == "parquet") {
-                out.push(f.path());
-            }
-        }
-    }
-    out.sort();
-    out
 }
 
 fn read_json(path: &Path) -> Result<Value, RecorderError> {
@@ -141,10 +165,8 @@ fn read_json(path: &Path) -> Result<Value, RecorderError> {
 }
 
 fn float_at(batch: &RecordBatch, name: &str, row: usize) -> Option<f64> {
-    batch
-        .column_by_name(name)
-        .and_then(float_values)
-        .and_then(|v| v.get(row).copied())
+    let col = batch.column_by_name(name)?;
+    float_values(&col.slice(row, 1)).and_then(|v| v.first().copied())
 }
 
 impl Input {
@@ -176,69 +198,33 @@ impl Input {
             .unwrap_or(CHUNKS_SIZE)
             .max(1);
         let tasks = parquet_io::read_tasks(&root.join("meta/tasks.parquet"))?;
-        let mut episodes = Vec::new();
+        // Every row of meta/episodes is checked here, before anything is written, and only counted: the
+        // merge reads each row again when it reaches the episode.
         let keys: Vec<String> = video_keys(&info);
-        let meta_files = parquet_files(&root.join("meta/episodes"));
-        for (fi, f) in meta_files.iter().enumerate() {
-            for (bi, b) in parquet_io::read_batches(f)?.into_iter().enumerate() {
-                let idx = int_column(&b, "episode_index")
-                    .ok_or_else(|| bad(&label, "meta/episodes has no episode_index"))?;
-                let len =
-                    int_column(&b, "length").ok_or_else(|| bad(&label, "meta/episodes has no length"))?;
-                let from = int_column(&b, "dataset_from_index")
-                    .ok_or_else(|| bad(&label, "meta/episodes has no dataset_from_index"))?;
-                for r in 0..b.num_rows() {
-                    let mut videos = BTreeMap::new();
-                    for k in &keys {
-                        let chunk = int_column(&b, &format!("videos/{k}/chunk_index"));
-                        let file = int_column(&b, &format!("videos/{k}/file_index"));
-                        let (Some(chunk), Some(file)) = (chunk, file) else {
-                            return Err(bad(&label, format!("meta/episodes has no videos/{k} columns")));
-                        };
-                        let from_s = float_at(&b, &format!("videos/{k}/from_timestamp"), r).unwrap_or(0.0);
-                        let to_s = float_at(&b, &format!("videos/{k}/to_timestamp"), r).unwrap_or(0.0);
-                        let n = u64::try_from(chunk[r]).unwrap_or(0) * chunks
-                            + u64::try_from(file[r]).unwrap_or(0);
-                        videos.insert(k.clone(), (n, from_s, to_s));
-                    }
-                    episodes.push(SourceEpisode {
-                        index: u64::try_from(idx[r]).map_err(|_| bad(&label, "negative episode_index"))?,
-                        length: u64::try_from(len[r]).map_err(|_| bad(&label, "negative length"))?,
-                        from: u64::try_from(from[r])
-                            .map_err(|_| bad(&label, "negative dataset_from_index"))?,
-                        videos,
-                        meta_at: (fi, bi, r),
-                    });
-                }
-            }
-        }
-        episodes.sort_by_key(|e| e.index);
-        let total = info.get("total_episodes").and_then(Value::as_u64).unwrap_or(0);
-        let mut frames = 0;
-        for (i, e) in episodes.iter().enumerate() {
-            if e.index != i as u64 || e.from != frames {
+        let mut rows = ParquetRows::new(parquet_files(&root.join("meta/episodes")));
+        let (mut episode_count, mut frame_count) = (0u64, 0u64);
+        while let Some((b, r)) = rows.next_row()? {
+            let e = SourceEpisode::of_row(&b, r, &keys, chunks, &label)?;
+            if e.index != episode_count || e.from != frame_count {
                 return Err(bad(
                     &label,
                     format!(
-                        "episodes are not numbered 0..n with contiguous rows (episode {} at position {i}, rows from {} where {frames} was expected)",
+                        "episodes are not numbered 0..n with contiguous rows (episode {} at position {episode_count}, rows from {} where {frame_count} was expected)",
                         e.index, e.from
                     ),
                 ));
             }
-            frames += e.length;
+            episode_count += 1;
+            frame_count += e.length;
         }
-        if episodes.len() as u64 != total {
+        let total = info.get("total_episodes").and_then(Value::as_u64).unwrap_or(0);
+        if episode_count != total {
             return Err(bad(
                 &label,
-                format!(
-                    "info.json counts {total} episodes, meta/episodes lists {}",
-                    episodes.len()
-                ),
+                format!("info.json counts {total} episodes, meta/episodes lists {episode_count}"),
             ));
         }
-        let provenance = fs::read(root.join(PROVENANCE_FILE))
-            .ok()
-            .and_then(|b| serde_json::from_slice::<Provenance>(&b).ok());
+        let provenance = InputProvenance::open(&root.join(PROVENANCE_FILE));
         let stats = read_json(&root.join("meta/stats.json")).unwrap_or(Value::Null);
         let modality_path = root.join("meta/modality.json");
         let modality = if modality_path.exists() {
@@ -247,14 +233,13 @@ impl Input {
             None
         };
         Ok(Input {
-            data_files: parquet_files(&root.join("data")),
-            meta_files,
             label,
             root,
             info,
             chunks,
             tasks,
-            episodes,
+            episode_count,
+            frame_count,
             provenance,
             stats,
             modality,
@@ -265,27 +250,13 @@ impl Input {
         self.info.get("fps").and_then(Value::as_u64).unwrap_or(0)
     }
 
-    fn frames(&self) -> u64 {
-        self.episodes.iter().map(|e| e.length).sum()
+    fn data_files(&self) -> impl Iterator<Item = PathBuf> + use<> {
+        parquet_files(&self.root.join("data"))
     }
 
-    /// The `meta/episodes` row of `episode`, reading its file only when `cache` holds another one (episodes
-    /// are in file order, so each file is read once).
-    fn meta_row(
-        &self,
-        episode: &SourceEpisode,
-        cache: &mut Option<(usize, Vec<RecordBatch>)>,
-    ) -> Result<RecordBatch, MergeError> {
-        let (file, batch, row) = episode.meta_at;
-        if cache.as_ref().is_none_or(|(f, _)| *f != file) {
-            *cache = Some((file, parquet_io::read_batches(&self.meta_files[file])?));
-        }
-        let batches = &cache.as_ref().expect("just filled").1;
-        let b = batches
-            .get(batch)
-            .filter(|b| row < b.num_rows())
-            .ok_or_else(|| bad(&self.label, "meta/episodes changed during the merge"))?;
-        Ok(b.slice(row, 1))
+    /// The rows of `meta/episodes`, in file order (which [`Input::open`] checked is episode order).
+    fn meta_rows(&self) -> ParquetRows<impl Iterator<Item = PathBuf> + use<>> {
+        ParquetRows::new(parquet_files(&self.root.join("meta/episodes")))
     }
 
     fn video_path(&self, key: &str, n: u64) -> PathBuf {
@@ -363,8 +334,8 @@ pub(super) fn columns(schema: &Schema) -> Vec<String> {
 
 fn check_compatible(inputs: &[Input]) -> Result<SchemaRef, MergeError> {
     let first = &inputs[0];
-    let first_schema = match first.data_files.first() {
-        Some(f) => data_schema_of(f)?,
+    let first_schema = match first.data_files().next() {
+        Some(f) => data_schema_of(&f)?,
         None => return Err(bad(&first.label, "no data files")),
     };
     for other in inputs {
@@ -395,8 +366,8 @@ fn check_compatible(inputs: &[Input]) -> Result<SchemaRef, MergeError> {
                 other.label, first.label
             )));
         }
-        for f in &other.data_files {
-            let s = data_schema_of(f)?;
+        for f in other.data_files() {
+            let s = data_schema_of(&f)?;
             if columns(&s) != columns(&first_schema) {
                 return Err(MergeError::Incompatible(format!(
                     "{} ({}) has columns {:?}, {} has {:?}",
@@ -714,13 +685,71 @@ fn version_of(input: &MergeInput) -> Result<String, MergeError> {
     Ok(info["codebase_version"].as_str().unwrap_or("?").to_owned())
 }
 
-/// Where an output episode's rows and videos went.
-struct Placed {
-    data_file: u64,
-    /// Per camera: output file, offset (s) of its source file there.
-    videos: BTreeMap<String, (u64, f64)>,
-    /// Recomputed stats of the renumbered columns.
-    renumbered: Vec<(String, FeatureStats)>,
+/// One camera's videos in the output: each source file appended whole, in input and episode order, into the
+/// open output file, and a new one started when it would reach the size limit (lerobot's rule). What it holds
+/// is one open output file (whose muxer index is bounded by the size limit) and the last source file's place.
+struct VideoOut {
+    key: String,
+    limit_bytes: f64,
+    /// Output file number, its muxer, bytes appended.
+    current: Option<(u64, Concat, f64)>,
+    next: u64,
+    /// The source file appended last ((input, file number)) and where it went (output file, its offset in s).
+    last: Option<((usize, u64), (u64, f64))>,
+}
+
+impl VideoOut {
+    /// Where source file `n` of input `i` is in the output (output file, offset in s), appending it if the
+    /// previous episode was in another file.
+    fn place(
+        &mut self,
+        (i, input): (usize, &Input),
+        n: u64,
+        dst: &Path,
+        fps: u32,
+        report: &mut MergeReport,
+    ) -> Result<(u64, f64), MergeError> {
+        if let Some((source, place)) = self.last
+            && source == (i, n)
+        {
+            return Ok(place);
+        }
+        let src = input.video_path(&self.key, n);
+        let size = fs::metadata(&src).map_err(|e| RecorderError::io(&src, e))?.len() as f64;
+        report.files_in += 1;
+        let roll = self
+            .current
+            .as_ref()
+            .is_none_or(|(_, _, bytes)| *bytes > 0.0 && bytes + size >= self.limit_bytes);
+        if roll {
+            self.finish()?;
+            let path = dst.join(file_rel(
+                &format!("videos/{}", self.key),
+                self.next,
+                input.chunks,
+                "mp4",
+            ));
+            if let Some(p) = path.parent() {
+                fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
+            }
+            self.current = Some((self.next, Concat::create(&path, &src, fps)?, 0.0));
+            self.next += 1;
+            report.files_out += 1;
+        }
+        let (out_n, concat, bytes) = self.current.as_mut().expect("a file is open");
+        let offset_s = concat.append(&src)?;
+        *bytes += size;
+        let place = (*out_n, offset_s);
+        self.last = Some(((i, n), place));
+        Ok(place)
+    }
+
+    fn finish(&mut self) -> Result<(), MergeError> {
+        if let Some((_, c, _)) = self.current.take() {
+            c.finish()?;
+        }
+        Ok(())
+    }
 }
 
 /// Merges `inputs` into a new dataset at `out` (which must not exist, or be empty). With one input this is
@@ -734,7 +763,7 @@ pub fn merge(inputs: &[MergeInput], out: &Path, opts: &MergeOptions) -> Result<M
     }
     // Every input is read and checked before anything is written.
     let v21 = version_of(&inputs[0])? == "v2.1";
-    let (opened, opened_v21) = if v21 {
+    let (mut opened, mut opened_v21) = if v21 {
         (Vec::new(), super::merge_v21::open_all(inputs)?)
     } else {
         let opened: Vec<Input> = inputs.iter().map(Input::open).collect::<Result<_, _>>()?;
@@ -756,8 +785,8 @@ pub fn merge(inputs: &[MergeInput], out: &Path, opts: &MergeOptions) -> Result<M
     let tmp = parent.join(format!(".{name}.merging-{}", std::process::id()));
     let _ = fs::remove_dir_all(&tmp);
     let result = match &data_schema {
-        Some(schema) => write_merged(&opened, &tmp, schema, opts),
-        None => super::merge_v21::write(&opened_v21, &tmp),
+        Some(schema) => write_merged(&mut opened, &tmp, schema, opts),
+        None => super::merge_v21::write(&mut opened_v21, &tmp),
     };
     match result {
         Ok(report) => {
@@ -774,23 +803,30 @@ pub fn merge(inputs: &[MergeInput], out: &Path, opts: &MergeOptions) -> Result<M
     }
 }
 
+/// The output's files, written in one pass over the inputs' episodes. Held in memory, whatever the number of
+/// episodes: the task table, one data file of each input (bounded by the input's data file size limit), one
+/// `meta/episodes` record batch of each input (the reader's batch), the open output files (data and metadata
+/// writers, which keep their row groups' metadata until they close: bounded by the output's file size limits
+/// and by `META_GROUP_ROWS`; one video muxer per camera), the statistics (a few numbers per column, and
+/// quantile sketches that grow with the logarithm of the frame count). Each episode's provenance entry goes to
+/// a spool file in the output directory.
 #[allow(clippy::too_many_lines)] // one pass over the inputs, in the order the output's files need
 fn write_merged(
-    inputs: &[Input],
+    inputs: &mut [Input],
     dst: &Path,
     data_schema: &SchemaRef,
     opts: &MergeOptions,
 ) -> Result<MergeReport, MergeError> {
-    let first = &inputs[0];
-    let fps = u32::try_from(first.fps()).unwrap_or(0);
-    let chunks = first.chunks;
-    let keys = video_keys(&first.info);
+    let fps = u32::try_from(inputs[0].fps()).unwrap_or(0);
+    let chunks = inputs[0].chunks;
+    let keys = video_keys(&inputs[0].info);
     let mut report = MergeReport::default();
+    fs::create_dir_all(dst.join("meta")).map_err(|e| RecorderError::io(dst.join("meta"), e))?;
 
     // Tasks: first appearance wins its index.
     let mut tasks: Vec<String> = Vec::new();
     let mut task_maps: Vec<Vec<i64>> = Vec::new();
-    for input in inputs {
+    for input in inputs.iter() {
         let map = input
             .tasks
             .iter()
@@ -805,48 +841,20 @@ fn write_merged(
         task_maps.push(map);
     }
 
-    // Videos: each source file appended whole, in input and file order; a new output file when the current
-    // one would reach the size limit (lerobot's rule).
-    let mut video_place: HashMap<(usize, String, u64), (u64, f64)> = HashMap::new();
-    for key in &keys {
-        let limit = opts.video_file_size_mb * 1e6;
-        let mut current: Option<(u64, Concat, f64)> = None;
-        let mut next = 0u64;
-        for (i, input) in inputs.iter().enumerate() {
-            let mut files: Vec<u64> = input.episodes.iter().map(|e| e.videos[key].0).collect();
-            files.dedup();
-            for n in files {
-                let src = input.video_path(key, n);
-                let size = fs::metadata(&src).map_err(|e| RecorderError::io(&src, e))?.len() as f64;
-                report.files_in += 1;
-                let roll = current
-                    .as_ref()
-                    .is_none_or(|(_, _, bytes)| *bytes > 0.0 && bytes + size >= limit);
-                if roll {
-                    if let Some((_, c, _)) = current.take() {
-                        c.finish()?;
-                    }
-                    let path = dst.join(file_rel(&format!("videos/{key}"), next, chunks, "mp4"));
-                    if let Some(p) = path.parent() {
-                        fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
-                    }
-                    current = Some((next, Concat::create(&path, &src, fps)?, 0.0));
-                    next += 1;
-                    report.files_out += 1;
-                }
-                let (out_n, concat, bytes) = current.as_mut().expect("a file is open");
-                let offset_s = concat.append(&src)?;
-                *bytes += size;
-                video_place.insert((i, key.clone(), n), (*out_n, offset_s));
-            }
-        }
-        if let Some((_, c, _)) = current.take() {
-            c.finish()?;
-        }
-    }
-
-    // Data: rows copied episode by episode with episode_index, index and task_index rewritten; statistics
-    // of every numeric column gathered on the way.
+    // Per episode, in input and episode order: its data rows copied with episode_index, index and task_index
+    // rewritten (statistics of every numeric column gathered on the way), its videos' source files appended,
+    // its metadata row written with its locations, indices and renumbered stats replaced, its provenance
+    // entry spooled.
+    let mut videos: Vec<VideoOut> = keys
+        .iter()
+        .map(|key| VideoOut {
+            key: key.clone(),
+            limit_bytes: opts.video_file_size_mb * 1e6,
+            current: None,
+            next: 0,
+            last: None,
+        })
+        .collect();
     let numeric = numeric_columns(data_schema);
     let mut data = RollingWriter::new(
         dst,
@@ -856,16 +864,19 @@ fn write_merged(
         Arc::clone(data_schema),
         1,
     );
+    let mut meta: Option<RollingWriter> = None;
+    let mut spool = ProvenanceSpool::create(dst)?;
     let mut aggregates: BTreeMap<String, Aggregate> = BTreeMap::new();
     let mut quantiles = QuantileStore::default();
-    let mut placed: Vec<Vec<Placed>> = Vec::new();
     let (mut episode_offset, mut frame_offset) = (0u64, 0u64);
-    for (i, input) in inputs.iter().enumerate() {
-        let mut input_placed: Vec<Option<Placed>> = (0..input.episodes.len()).map(|_| None).collect();
-        for f in &input.data_files {
+    for (i, input) in inputs.iter_mut().enumerate() {
+        report.files_in += parquet_files(&input.root.join("meta/episodes")).count() as u64;
+        let mut meta_rows = input.meta_rows();
+        let mut next_episode = 0u64;
+        for f in input.data_files() {
             report.files_in += 1;
-            let file_bytes = fs::metadata(f).map_err(|e| RecorderError::io(f, e))?.len() as f64;
-            let batches = parquet_io::read_batches(f)?;
+            let file_bytes = fs::metadata(&f).map_err(|e| RecorderError::io(&f, e))?.len() as f64;
+            let batches = parquet_io::read_batches(&f)?;
             let file_rows: usize = batches.iter().map(RecordBatch::num_rows).sum();
             let batch =
                 arrow_select::concat::concat_batches(&batches[0].schema(), &batches).map_err(|e| {
@@ -874,6 +885,7 @@ fn write_merged(
                         detail: e.to_string(),
                     }
                 })?;
+            drop(batches);
             let episodes = int_column(&batch, "episode_index")
                 .ok_or_else(|| bad(&input.label, "a data file has no episode_index"))?;
             let mut start = 0;
@@ -883,15 +895,39 @@ fn write_merged(
                     .iter()
                     .position(|e| *e != old)
                     .map_or(episodes.len(), |p| start + p);
-                let src = input
-                    .episodes
-                    .get(usize::try_from(old).unwrap_or(usize::MAX))
-                    .ok_or_else(|| {
-                        bad(
-                            &input.label,
-                            format!("rows of episode {old}, which meta/episodes does not list"),
-                        )
-                    })?;
+                let old_index = u64::try_from(old).unwrap_or(u64::MAX);
+                if old_index >= input.episode_count {
+                    return Err(bad(
+                        &input.label,
+                        format!("rows of episode {old}, which meta/episodes does not list"),
+                    ));
+                }
+                if old_index < next_episode {
+                    return Err(bad(
+                        &input.label,
+                        format!("the rows of episode {old} are not contiguous"),
+                    ));
+                }
+                if old_index > next_episode {
+                    // The merge writes each episode's metadata as its rows pass, so the rows must come in
+                    // episode order (as every lerobot writer puts them).
+                    return Err(bad(
+                        &input.label,
+                        format!(
+                            "episode {next_episode} has no rows before episode {old}'s (the data files must hold the episodes in order)"
+                        ),
+                    ));
+                }
+                let (source_batch, r) = meta_rows
+                    .next_row()?
+                    .ok_or_else(|| bad(&input.label, "meta/episodes changed during the merge"))?;
+                let src = SourceEpisode::of_row(&source_batch, r, &keys, chunks, &input.label)?;
+                if src.index != old_index {
+                    return Err(bad(&input.label, "meta/episodes changed during the merge"));
+                }
+                let source_row = source_batch.slice(r, 1);
+                drop(source_batch);
+
                 let new_ep = episode_offset + src.index;
                 let rows = batch.slice(start, end - start);
                 let n = rows.num_rows();
@@ -918,107 +954,91 @@ fn write_merged(
                         renumbered.push((k.clone(), s));
                     }
                 }
-                let videos = src
-                    .videos
-                    .iter()
-                    .map(|(k, (vn, _, _))| (k.clone(), video_place[&(i, k.clone(), *vn)]))
-                    .collect();
-                let slot = &mut input_placed[usize::try_from(src.index).unwrap_or(usize::MAX)];
-                if slot.is_some() {
-                    return Err(bad(
-                        &input.label,
-                        format!("the rows of episode {old} are not contiguous"),
-                    ));
+
+                let from = frame_offset + src.from;
+                let mut row = source_row.clone();
+                row = set_column(&row, "episode_index", one_int(new_ep));
+                row = set_column(&row, "data/chunk_index", one_int(data_file / chunks));
+                row = set_column(&row, "data/file_index", one_int(data_file % chunks));
+                row = set_column(&row, "dataset_from_index", one_int(from));
+                row = set_column(&row, "dataset_to_index", one_int(from + src.length));
+                for (k, (source_n, from_s, to_s)) in &src.videos {
+                    let video = videos
+                        .iter_mut()
+                        .find(|v| &v.key == k)
+                        .expect("the episode's cameras are the features' videos");
+                    let (vn, offset_s) = video.place((i, &*input), *source_n, dst, fps, &mut report)?;
+                    row = set_column(&row, &format!("videos/{k}/chunk_index"), one_int(vn / chunks));
+                    row = set_column(&row, &format!("videos/{k}/file_index"), one_int(vn % chunks));
+                    row = set_column(
+                        &row,
+                        &format!("videos/{k}/from_timestamp"),
+                        Arc::new(Float64Array::from(vec![offset_s + from_s])),
+                    );
+                    row = set_column(
+                        &row,
+                        &format!("videos/{k}/to_timestamp"),
+                        Arc::new(Float64Array::from(vec![offset_s + to_s])),
+                    );
                 }
-                *slot = Some(Placed {
-                    data_file,
-                    videos,
-                    renumbered,
+                for (name, s) in &renumbered {
+                    row = set_stats(&row, name, s);
+                }
+                let meta = meta.get_or_insert_with(|| {
+                    RollingWriter::new(
+                        dst,
+                        "meta/episodes",
+                        chunks,
+                        opts.data_file_size_mb,
+                        source_row.schema(),
+                        META_GROUP_ROWS,
+                    )
                 });
+                // 2 kB a row is generous for the metadata of one episode; only the roll-over uses it.
+                let estimate = 2e3 + row.get_array_memory_size() as f64 / 8.0;
+                let mn = meta.file_for(estimate, &row.schema())?;
+                row = set_column(&row, "meta/episodes/chunk_index", one_int(mn / chunks));
+                row = set_column(&row, "meta/episodes/file_index", one_int(mn % chunks));
+                meta.write(&row, estimate)?;
+
+                let task = parquet_io::episode_task(&source_row, 0);
+                let known = match &mut input.provenance {
+                    Some(p) => p.episode(src.index, src.length)?,
+                    None => None,
+                };
+                let station = input.provenance.as_ref().map(InputProvenance::station);
+                spool.push(&carry_episode(
+                    &input.label,
+                    &input.root,
+                    (known, station),
+                    (src.index, src.length, task, new_ep),
+                    fps,
+                    dst,
+                )?)?;
+                next_episode += 1;
                 start = end;
             }
         }
-        let input_placed: Vec<Placed> = input_placed
-            .into_iter()
-            .enumerate()
-            .map(|(e, p)| p.ok_or_else(|| bad(&input.label, format!("episode {e} has no rows"))))
-            .collect::<Result<_, _>>()?;
-        placed.push(input_placed);
-        episode_offset += input.episodes.len() as u64;
-        frame_offset += input.frames();
+        if next_episode < input.episode_count {
+            return Err(bad(&input.label, format!("episode {next_episode} has no rows")));
+        }
+        episode_offset += input.episode_count;
+        frame_offset += input.frame_count;
+    }
+    for v in &mut videos {
+        v.finish()?;
     }
     data.close()?;
     report.files_out += data.next;
-
-    // Episode metadata: each source row with its locations, indices and renumbered stats replaced.
-    let first_row_schema = first.meta_row(&first.episodes[0], &mut None)?.schema();
-    let mut meta = RollingWriter::new(
-        dst,
-        "meta/episodes",
-        chunks,
-        opts.data_file_size_mb,
-        first_row_schema,
-        META_GROUP_ROWS,
-    );
-    let (mut episode_offset, mut frame_offset) = (0u64, 0u64);
-    let mut episodes_prov = Vec::new();
-    for (i, input) in inputs.iter().enumerate() {
-        report.files_in += parquet_files(&input.root.join("meta/episodes")).len() as u64;
-        let mut cache = None;
-        for (src, place) in input.episodes.iter().zip(&placed[i]) {
-            let new_ep = episode_offset + src.index;
-            let from = frame_offset + src.from;
-            let source_row = input.meta_row(src, &mut cache)?;
-            let mut row = source_row.clone();
-            row = set_column(&row, "episode_index", one_int(new_ep));
-            row = set_column(&row, "data/chunk_index", one_int(place.data_file / chunks));
-            row = set_column(&row, "data/file_index", one_int(place.data_file % chunks));
-            row = set_column(&row, "dataset_from_index", one_int(from));
-            row = set_column(&row, "dataset_to_index", one_int(from + src.length));
-            for (k, (vn, offset_s)) in &place.videos {
-                let (_, from_s, to_s) = src.videos[k];
-                row = set_column(&row, &format!("videos/{k}/chunk_index"), one_int(vn / chunks));
-                row = set_column(&row, &format!("videos/{k}/file_index"), one_int(vn % chunks));
-                row = set_column(
-                    &row,
-                    &format!("videos/{k}/from_timestamp"),
-                    Arc::new(Float64Array::from(vec![offset_s + from_s])),
-                );
-                row = set_column(
-                    &row,
-                    &format!("videos/{k}/to_timestamp"),
-                    Arc::new(Float64Array::from(vec![offset_s + to_s])),
-                );
-            }
-            for (name, s) in &place.renumbered {
-                row = set_stats(&row, name, s);
-            }
-            // 2 kB a row is generous for the metadata of one episode; only the roll-over uses it.
-            let estimate = 2e3 + row.get_array_memory_size() as f64 / 8.0;
-            let n = meta.file_for(estimate, &row.schema())?;
-            row = set_column(&row, "meta/episodes/chunk_index", one_int(n / chunks));
-            row = set_column(&row, "meta/episodes/file_index", one_int(n % chunks));
-            meta.write(&row, estimate)?;
-
-            let task = parquet_io::episode_task(&source_row, 0);
-            episodes_prov.push(carry_episode(
-                &input.label,
-                &input.root,
-                input.provenance.as_ref(),
-                (src.index, src.length, task, new_ep),
-                fps,
-                dst,
-            )?);
-        }
-        episode_offset += input.episodes.len() as u64;
-        frame_offset += input.frames();
+    if let Some(mut meta) = meta {
+        meta.close()?;
+        report.files_out += meta.next;
     }
-    meta.close()?;
-    report.files_out += meta.next;
     report.episodes = episode_offset;
     report.frames = frame_offset;
     report.tasks = tasks.len();
 
+    let first = &inputs[0];
     parquet_io::write_tasks(&dst.join("meta/tasks.parquet"), &tasks)?;
     if let Some(m) = &first.modality {
         let path = dst.join("meta/modality.json");
@@ -1029,7 +1049,7 @@ fn write_merged(
     for key in &keys {
         let mut agg = Aggregate::default();
         let mut all = true;
-        for input in inputs {
+        for input in inputs.iter() {
             match image_stats_from_json(&input.stats[key]) {
                 Some(s) => agg.add(&s),
                 None => all = false,
@@ -1041,7 +1061,7 @@ fn write_merged(
     }
     let sources: Vec<Value> = inputs
         .iter()
-        .map(|i| json!({"dataset": i.label, "episodes": i.episodes.len(), "frames": i.frames()}))
+        .map(|i| json!({"dataset": i.label, "episodes": i.episode_count, "frames": i.frame_count}))
         .collect();
     write_stats_and_provenance(
         dst,
@@ -1050,10 +1070,10 @@ fn write_merged(
             quantiles: &quantiles,
             stats_json: FeatureStats::to_json_v30,
         },
-        first.provenance.as_ref(),
+        first.provenance.as_ref().map(|p| &p.head),
         &sources,
         "v3.0",
-        episodes_prov,
+        spool,
     )?;
 
     // info.json last, from the first input's, with the totals and the shard sizes of the output.
@@ -1092,39 +1112,28 @@ fn size_json(mb: f64) -> Value {
 }
 
 /// An input episode's provenance entry in the output (its station, operator and source kept), and its events
-/// sidecar copied under the new index. `episode` is (source index, length, tasks, new index).
+/// sidecar copied under the new index. `known` is the input's own entry for it and `station` the input's
+/// configured station, when it has a provenance sidecar; `episode` is (source index, length, tasks, new
+/// index).
 pub(super) fn carry_episode(
     label: &str,
     root: &Path,
-    provenance: Option<&Provenance>,
+    (known, station): (Option<super::EpisodeSummary>, Option<&str>),
     episode: (u64, u64, String, u64),
     fps: u32,
     dst: &Path,
 ) -> Result<super::EpisodeSummary, MergeError> {
     let (index, length, task, new_index) = episode;
-    let same = |e: &&super::EpisodeSummary| e.index == index && e.length_frames == length;
-    // Episodes are listed in index order, so the lookup is usually direct; a merge of thousands of episodes
-    // would otherwise scan the list once per episode.
-    let known = provenance.and_then(|p| {
-        usize::try_from(index)
-            .ok()
-            .and_then(|i| p.episodes.get(i))
-            .filter(same)
-            .or_else(|| p.episodes.iter().find(same))
-    });
-    let mut summary = known.cloned().unwrap_or_else(|| super::EpisodeSummary {
+    let mut summary = known.unwrap_or_else(|| super::EpisodeSummary {
         length_frames: length,
         duration_s: length as f64 / f64::from(fps.max(1)),
         task,
         ..super::EpisodeSummary::default()
     });
     if summary.station_id.is_empty()
-        && let Some(p) = provenance
+        && let Some(station) = station
     {
-        p.config["station_id"]
-            .as_str()
-            .unwrap_or_default()
-            .clone_into(&mut summary.station_id);
+        station.clone_into(&mut summary.station_id);
     }
     // An episode merged twice keeps the dataset it was first recorded in.
     if summary.merged_from.is_none() {
@@ -1153,8 +1162,8 @@ pub(super) struct MergedStats<'a> {
 }
 
 /// The merged dataset's `meta/stats.json` (each aggregate finished with its quantiles, in the format's JSON)
-/// and the sketches beside it; then its provenance sidecar: the inputs, every episode's entry, the running
-/// aggregates (so a recorder can resume the merged dataset without re-reading it).
+/// and the sketches beside it; then its provenance sidecar: the inputs, every episode's entry (from `spool`),
+/// the running aggregates (so a recorder can resume the merged dataset without re-reading it).
 pub(super) fn write_stats_and_provenance(
     dst: &Path,
     MergedStats {
@@ -1162,10 +1171,10 @@ pub(super) fn write_stats_and_provenance(
         quantiles,
         stats_json,
     }: MergedStats<'_>,
-    first: Option<&Provenance>,
+    first: Option<&ProvenanceHead>,
     sources: &[Value],
     format: &str,
-    episodes: Vec<super::EpisodeSummary>,
+    spool: ProvenanceSpool,
 ) -> Result<(), MergeError> {
     let mut stats = serde_json::Map::new();
     for (k, a) in &aggregates {
@@ -1186,16 +1195,20 @@ pub(super) fn write_stats_and_provenance(
         video: base.video,
         config: json!({"merged_from": sources}),
         sync: base.sync,
-        episodes,
+        episodes: Vec::new(),
         stats: aggregates,
     };
     let path = dst.join(PROVENANCE_FILE);
     if let Some(p) = path.parent() {
         fs::create_dir_all(p).map_err(|e| RecorderError::io(p, e))?;
     }
-    super::meta::write_pretty(&path, &provenance).map_err(|e| RecorderError::io(&path, e))?;
+    spool.finish(&provenance, &path)?;
     Ok(())
 }
+
+#[cfg(test)]
+#[path = "merge_equivalence.rs"]
+mod equivalence;
 
 #[cfg(test)]
 mod tests {

@@ -9,7 +9,8 @@ use super::merge::{
     MergeError, MergeInput, MergeReport, MergedStats, carry_episode, column_stats, columns, data_schema_of,
     feature_difference, numeric_columns, renumber_rows, write_info, write_stats_and_provenance,
 };
-use super::{CHUNKS_SIZE, PROVENANCE_FILE, Provenance, meta::pretty};
+use super::merge_stream::{InputProvenance, JsonLines, ProvenanceSpool};
+use super::{CHUNKS_SIZE, PROVENANCE_FILE, meta::pretty};
 use crate::error::RecorderError;
 use crate::parquet_io::{self, props};
 use crate::quantiles::QuantileStore;
@@ -20,20 +21,99 @@ use parquet::arrow::ArrowWriter;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
 use std::fs::{self, File};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
+/// An input dataset. Its episode lines are not held: `episodes.jsonl` and `episodes_stats.jsonl` are checked
+/// once at open and read again, a line at a time, as the merge reaches each episode.
 pub(super) struct InputV21 {
     label: String,
     root: PathBuf,
     info: IndexMap<String, Value>,
     chunks: u64,
     tasks: Vec<String>,
-    /// `episodes.jsonl` lines, by episode index.
-    episodes: Vec<Value>,
-    /// `episodes_stats.jsonl`'s `stats` per episode index (absent for an episode without a line).
-    episode_stats: BTreeMap<u64, Value>,
+    episode_count: u64,
+    frame_count: u64,
+    episode_stats: EpisodeStats,
     modality: Option<Value>,
-    provenance: Option<Provenance>,
+    provenance: Option<InputProvenance>,
+}
+
+/// `episodes_stats.jsonl`'s `stats` per episode index. A file that is missing or has a line that is not JSON
+/// gives none (every episode's stats then start empty).
+enum EpisodeStats {
+    None,
+    /// One line per episode in index order: read along with the episodes. `next` is the line it gives next.
+    InOrder {
+        path: PathBuf,
+        lines: Option<JsonLines>,
+        next: u64,
+    },
+    /// Any other file (no lerobot writer makes one) is read whole, as a map.
+    Unordered(BTreeMap<u64, Value>),
+}
+
+impl EpisodeStats {
+    fn open(path: &Path) -> Result<Self, MergeError> {
+        let Ok(mut lines) = JsonLines::open(path) else {
+            return Ok(EpisodeStats::None);
+        };
+        let mut in_order = true;
+        let mut position = 0u64;
+        while let Some(v) = lines.next_value()? {
+            let Ok(v) = v else {
+                return Ok(EpisodeStats::None);
+            };
+            in_order &= v["episode_index"].as_u64() == Some(position);
+            position += 1;
+        }
+        if in_order {
+            return Ok(EpisodeStats::InOrder {
+                path: path.to_owned(),
+                lines: None,
+                next: 0,
+            });
+        }
+        let mut map = BTreeMap::new();
+        let mut lines = JsonLines::open(path)?;
+        while let Some(v) = lines.next_value()? {
+            let Ok(v) = v else {
+                return Ok(EpisodeStats::None);
+            };
+            if let Some(i) = v["episode_index"].as_u64() {
+                map.insert(i, v["stats"].clone());
+            }
+        }
+        Ok(EpisodeStats::Unordered(map))
+    }
+
+    /// The stats of episode `e` (asked in index order), `{}` when the file has none for it.
+    fn take(&mut self, e: u64) -> Result<Value, MergeError> {
+        let found = match self {
+            EpisodeStats::None => None,
+            EpisodeStats::Unordered(map) => map.get(&e).cloned(),
+            EpisodeStats::InOrder { path, lines, next } => {
+                if e < *next {
+                    *lines = None;
+                    *next = 0;
+                }
+                if lines.is_none() {
+                    *lines = Some(JsonLines::open(path)?);
+                }
+                let lines = lines.as_mut().expect("just opened");
+                let mut found = None;
+                while *next <= e {
+                    let Some(v) = lines.next_value()? else { break };
+                    if *next == e {
+                        found = v.ok().map(|v| v["stats"].clone());
+                    }
+                    *next += 1;
+                }
+                found
+            }
+        };
+        Ok(found.unwrap_or_else(|| json!({})))
+    }
 }
 
 fn bad(input: &str, detail: impl Into<String>) -> MergeError {
@@ -47,6 +127,15 @@ fn jsonl(root: &Path, rel: &str, label: &str) -> Result<Vec<Value>, MergeError> 
         .filter(|l| !l.trim().is_empty())
         .map(|l| serde_json::from_str(l).map_err(|e| bad(label, format!("{rel}: {e}"))))
         .collect()
+}
+
+/// The next line of `meta/episodes.jsonl`, parsed (`rel` names it in errors).
+fn next_episode_line(lines: &mut JsonLines, label: &str) -> Result<Option<Value>, MergeError> {
+    match lines.next_value()? {
+        Some(Ok(v)) => Ok(Some(v)),
+        Some(Err(e)) => Err(bad(label, format!("meta/episodes.jsonl: {e}"))),
+        None => Ok(None),
+    }
 }
 
 impl InputV21 {
@@ -80,44 +169,40 @@ impl InputV21 {
             })
             .collect();
         tasks.sort();
-        let mut episodes = jsonl(&root, "meta/episodes.jsonl", &label)?;
-        episodes.sort_by_key(|v| v["episode_index"].as_u64().unwrap_or(u64::MAX));
-        for (i, e) in episodes.iter().enumerate() {
-            if e["episode_index"].as_u64() != Some(i as u64) {
+        // Every episode line is checked here, before anything is written, and only counted: the merge reads
+        // each line again when it reaches the episode.
+        let mut lines = JsonLines::open(&root.join("meta/episodes.jsonl"))?;
+        let (mut episode_count, mut frame_count) = (0u64, 0u64);
+        while let Some(e) = next_episode_line(&mut lines, &label)? {
+            if e["episode_index"].as_u64() != Some(episode_count) {
                 return Err(bad(
                     &label,
-                    format!("meta/episodes.jsonl does not number episodes 0..n (line {i}: {e})"),
+                    format!("meta/episodes.jsonl does not number episodes 0..n (line {episode_count}: {e})"),
                 ));
             }
+            episode_count += 1;
+            frame_count += e["length"].as_u64().unwrap_or(0);
         }
         let total = info.get("total_episodes").and_then(Value::as_u64).unwrap_or(0);
-        if episodes.len() as u64 != total {
+        if episode_count != total {
             return Err(bad(
                 &label,
-                format!(
-                    "info.json counts {total} episodes, meta/episodes.jsonl lists {}",
-                    episodes.len()
-                ),
+                format!("info.json counts {total} episodes, meta/episodes.jsonl lists {episode_count}"),
             ));
         }
-        let episode_stats = jsonl(&root, "meta/episodes_stats.jsonl", &label)
-            .unwrap_or_default()
-            .into_iter()
-            .filter_map(|v| Some((v["episode_index"].as_u64()?, v["stats"].clone())))
-            .collect();
+        let episode_stats = EpisodeStats::open(&root.join("meta/episodes_stats.jsonl"))?;
         let modality = fs::read(root.join("meta/modality.json"))
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok());
-        let provenance = fs::read(root.join(PROVENANCE_FILE))
-            .ok()
-            .and_then(|b| serde_json::from_slice::<Provenance>(&b).ok());
+        let provenance = InputProvenance::open(&root.join(PROVENANCE_FILE));
         Ok(InputV21 {
             label,
             root,
             info,
             chunks,
             tasks: tasks.into_iter().map(|t| t.1).collect(),
-            episodes,
+            episode_count,
+            frame_count,
             episode_stats,
             modality,
             provenance,
@@ -137,21 +222,13 @@ impl InputV21 {
             e / self.chunks
         ))
     }
-
-    fn length(&self, e: usize) -> u64 {
-        self.episodes[e]["length"].as_u64().unwrap_or(0)
-    }
-
-    fn frames(&self) -> u64 {
-        (0..self.episodes.len()).map(|e| self.length(e)).sum()
-    }
 }
 
 /// Opens and checks every input against the first (before anything is written).
 pub(super) fn open_all(inputs: &[MergeInput]) -> Result<Vec<InputV21>, MergeError> {
     let opened: Vec<InputV21> = inputs.iter().map(InputV21::open).collect::<Result<_, _>>()?;
     let first = &opened[0];
-    let Some(first_file) = (!first.episodes.is_empty()).then(|| first.data_path(0)) else {
+    let Some(first_file) = (first.episode_count > 0).then(|| first.data_path(0)) else {
         return Err(bad(&first.label, "no episodes"));
     };
     let first_columns = columns(&*data_schema_of(&first_file)?);
@@ -194,7 +271,7 @@ pub(super) fn open_all(inputs: &[MergeInput]) -> Result<Vec<InputV21>, MergeErro
                 other.label, first.label
             )));
         }
-        for e in 0..other.episodes.len() as u64 {
+        for e in 0..other.episode_count {
             let cols = columns(&*data_schema_of(&other.data_path(e))?);
             if cols != first_columns {
                 return Err(MergeError::Incompatible(format!(
@@ -227,12 +304,42 @@ fn write_json_lines(path: &Path, lines: &[Value]) -> Result<(), RecorderError> {
     fs::write(path, text).map_err(|e| RecorderError::io(path, e))
 }
 
+/// A JSON-lines file of the output, written a line at a time.
+struct LinesOut {
+    path: PathBuf,
+    out: BufWriter<File>,
+}
+
+impl LinesOut {
+    fn create(path: PathBuf) -> Result<Self, RecorderError> {
+        let file = File::create(&path).map_err(|e| RecorderError::io(&path, e))?;
+        Ok(LinesOut {
+            path,
+            out: BufWriter::new(file),
+        })
+    }
+
+    fn push(&mut self, v: &Value) -> Result<(), RecorderError> {
+        serde_json::to_writer(&mut self.out, v)
+            .map_err(std::io::Error::other)
+            .and_then(|()| self.out.write_all(b"\n"))
+            .map_err(|e| RecorderError::io(&self.path, e))
+    }
+
+    fn close(mut self) -> Result<(), RecorderError> {
+        self.out.flush().map_err(|e| RecorderError::io(&self.path, e))
+    }
+}
+
+/// The output, in one pass over the inputs' episodes. Held in memory, whatever the number of episodes: the
+/// task table, one episode's rows and lines, the statistics (a few numbers per column, and quantile sketches
+/// that grow with the logarithm of the frame count). `episodes.jsonl` and `episodes_stats.jsonl` are written
+/// a line at a time; each episode's provenance entry goes to a spool file in the output directory.
 #[allow(clippy::too_many_lines)] // one pass over the inputs' episodes
-pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, MergeError> {
-    let first = &inputs[0];
-    let fps = u32::try_from(first.info.get("fps").and_then(Value::as_u64).unwrap_or(0)).unwrap_or(0);
-    let chunks = first.chunks;
-    let keys: Vec<String> = first
+pub(super) fn write(inputs: &mut [InputV21], dst: &Path) -> Result<MergeReport, MergeError> {
+    let fps = u32::try_from(inputs[0].info.get("fps").and_then(Value::as_u64).unwrap_or(0)).unwrap_or(0);
+    let chunks = inputs[0].chunks;
+    let keys: Vec<String> = inputs[0]
         .info
         .get("features")
         .and_then(Value::as_object)
@@ -247,10 +354,12 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
     let mut tasks: Vec<String> = Vec::new();
     let mut aggregates: BTreeMap<String, Aggregate> = BTreeMap::new();
     let mut quantiles = QuantileStore::default();
-    let (mut episodes_jsonl, mut stats_jsonl, mut provenance) = (Vec::new(), Vec::new(), Vec::new());
     let (mut episode_offset, mut frame_offset) = (0u64, 0u64);
     fs::create_dir_all(dst.join("meta")).map_err(|e| RecorderError::io(dst.join("meta"), e))?;
-    for input in inputs {
+    let mut episodes_jsonl = LinesOut::create(dst.join("meta/episodes.jsonl"))?;
+    let mut stats_jsonl = LinesOut::create(dst.join("meta/episodes_stats.jsonl"))?;
+    let mut provenance = ProvenanceSpool::create(dst)?;
+    for input in inputs.iter_mut() {
         let map: Vec<i64> = input
             .tasks
             .iter()
@@ -261,9 +370,14 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
                 }) as i64
             })
             .collect();
-        for e in 0..input.episodes.len() {
-            let old = e as u64;
+        let mut lines = JsonLines::open(&input.root.join("meta/episodes.jsonl"))?;
+        for old in 0..input.episode_count {
+            let e = old;
             let new = episode_offset + old;
+            let mut line = next_episode_line(&mut lines, &input.label)?
+                .filter(|l| l["episode_index"].as_u64() == Some(old))
+                .ok_or_else(|| bad(&input.label, "meta/episodes.jsonl changed during the merge"))?;
+            let length = line["length"].as_u64().unwrap_or(0);
             let src = input.data_path(old);
             let batches = parquet_io::read_batches(&src)?;
             let schema = batches
@@ -301,11 +415,7 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
             }
             let refs: Vec<(&str, &ColumnStats)> = cols.iter().map(|(k, c)| (k.as_str(), c)).collect();
             quantiles.add_episode(n as u64, &refs);
-            let mut stats = input
-                .episode_stats
-                .get(&old)
-                .cloned()
-                .unwrap_or_else(|| json!({}));
+            let mut stats = input.episode_stats.take(old)?;
             for (k, c) in &cols {
                 let s = c.finish();
                 aggregates.entry(k.clone()).or_default().add(&s);
@@ -313,10 +423,16 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
                     stats[k.as_str()] = s.to_json_v21();
                 }
             }
-            stats_jsonl.push(json!({"episode_index": new, "stats": stats}));
-            let mut line = input.episodes[e].clone();
+            stats_jsonl.push(&json!({"episode_index": new, "stats": stats}))?;
+            let task = line["tasks"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter_map(Value::as_str)
+                .collect::<Vec<_>>()
+                .join("; ");
             line["episode_index"] = json!(new);
-            episodes_jsonl.push(line);
+            episodes_jsonl.push(&line)?;
 
             for key in &keys {
                 let from = input.video_path(key, old);
@@ -328,44 +444,43 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
                 report.files_in += 1;
                 report.files_out += 1;
             }
-            let task = input.episodes[e]["tasks"]
-                .as_array()
-                .into_iter()
-                .flatten()
-                .filter_map(Value::as_str)
-                .collect::<Vec<_>>()
-                .join("; ");
-            provenance.push(carry_episode(
+            let known = match &mut input.provenance {
+                Some(p) => p.episode(old, length)?,
+                None => None,
+            };
+            let station = input.provenance.as_ref().map(InputProvenance::station);
+            provenance.push(&carry_episode(
                 &input.label,
                 &input.root,
-                input.provenance.as_ref(),
-                (old, input.length(e), task, new),
+                (known, station),
+                (old, length, task, new),
                 fps,
                 dst,
-            )?);
+            )?)?;
         }
-        episode_offset += input.episodes.len() as u64;
-        frame_offset += input.frames();
+        episode_offset += input.episode_count;
+        frame_offset += input.frame_count;
     }
+    episodes_jsonl.close()?;
+    stats_jsonl.close()?;
     report.episodes = episode_offset;
     report.frames = frame_offset;
     report.tasks = tasks.len();
 
+    let first = &inputs[0];
     let task_lines: Vec<Value> = tasks
         .iter()
         .enumerate()
         .map(|(i, t)| json!({"task_index": i, "task": t}))
         .collect();
     write_json_lines(&dst.join("meta/tasks.jsonl"), &task_lines)?;
-    write_json_lines(&dst.join("meta/episodes.jsonl"), &episodes_jsonl)?;
-    write_json_lines(&dst.join("meta/episodes_stats.jsonl"), &stats_jsonl)?;
     if let Some(m) = &first.modality {
         fs::write(dst.join("meta/modality.json"), pretty(m))
             .map_err(|e| RecorderError::io(dst.join("meta/modality.json"), e))?;
     }
     let sources: Vec<Value> = inputs
         .iter()
-        .map(|i| json!({"dataset": i.label, "episodes": i.episodes.len(), "frames": i.frames()}))
+        .map(|i| json!({"dataset": i.label, "episodes": i.episode_count, "frames": i.frame_count}))
         .collect();
     // GR00T's stats.json: mean, std, min, max, q01, q99 of every numeric column.
     write_stats_and_provenance(
@@ -375,7 +490,7 @@ pub(super) fn write(inputs: &[InputV21], dst: &Path) -> Result<MergeReport, Merg
             quantiles: &quantiles,
             stats_json: FeatureStats::to_json_gr00t,
         },
-        first.provenance.as_ref(),
+        first.provenance.as_ref().map(|p| &p.head),
         &sources,
         "v2.1",
         provenance,

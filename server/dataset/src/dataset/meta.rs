@@ -16,17 +16,6 @@ use std::path::Path;
 const DEFAULT_FEATURES: [&str; 5] = ["timestamp", "frame_index", "episode_index", "index", "task_index"];
 
 /// Pretty JSON with lerobot's four-space indent.
-/// [`pretty`] straight into the file at `path`: a merged dataset's provenance lists every episode, and
-/// neither a JSON tree nor the whole text of it is held in memory on the way out.
-pub(super) fn write_pretty<T: Serialize + ?Sized>(path: &std::path::Path, v: &T) -> std::io::Result<()> {
-    use std::io::Write as _;
-    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
-    let fmt = serde_json::ser::PrettyFormatter::with_indent(b"    ");
-    let mut ser = serde_json::Serializer::with_formatter(&mut out, fmt);
-    v.serialize(&mut ser).map_err(std::io::Error::other)?;
-    out.flush()
-}
-
 pub(super) fn pretty<T: Serialize + ?Sized>(v: &T) -> Vec<u8> {
     let mut out = Vec::new();
     let fmt = serde_json::ser::PrettyFormatter::with_indent(b"    ");

@@ -16,6 +16,7 @@
 
 mod journal;
 mod merge;
+mod merge_stream;
 mod merge_v21;
 mod meta;
 mod v21;
