@@ -301,7 +301,7 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
                         name: str = "Policy API, chunks") -> PathResult:
     """`blank`: the camera image is replaced by a black one (the blind baseline, trained on black frames)."""
     import numpy as np
-    from phone2act import IMAGE_RGB8, Client, InvalidArgument
+    from phone2act import IMAGE_RGB8, Client, FailedPrecondition, InvalidArgument
     from phone2act.v1 import policy_pb2
 
     policy = ChunkPolicy(model)
@@ -320,6 +320,7 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
             reset_scene(c, seed)
             ok = False
             accepted = 0
+            lost = ""
             t0 = time.monotonic()
             # Observations stream at the control rate and the newest is taken, so a chunk starts from a fresh
             # one; each chunk is anchored on the observation it answers (the executor plays step k at observation
@@ -344,17 +345,26 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
                         late += 1
                         tqdm.write(f"seed {seed}: chunk refused ({e}); taking a newer observation")
                         continue
+                    except FailedPrecondition as e:
+                        # The server took the arm from the session (its rules: a robot not ready, a silence):
+                        # the trial ends there as a failure, and the record says why.
+                        lost = str(e)
+                        tqdm.write(f"seed {seed}: control lost ({e}); trial ends")
+                        break
                     accepted += 1
                     if scene_success(c):
                         ok = True
                         break
                     time.sleep(max(0.0, received + args.n_action_steps * period_s - time.monotonic()))
             ok = ok or scene_success(c)
-            if accepted == 0:
+            if accepted == 0 and not lost:
                 raise RuntimeError(f"seed {seed}: the server accepted no chunk in {args.episode_time_s} s")
             result.trials += 1
             result.successes += int(ok)
-            result.per_trial.append({"seed": seed, "success": ok, "seconds": time.monotonic() - t0})
+            trial = {"seed": seed, "success": ok, "seconds": time.monotonic() - t0}
+            if lost:
+                trial["control_lost"] = lost
+            result.per_trial.append(trial)
     result.seconds = time.monotonic() - start
     result.late_chunks = late
     return result
