@@ -101,18 +101,25 @@ async fn press(
     phone.feedback_for(seq).await.unwrap()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
+/// The embedded default's server on a temporary dataset directory, once its simulated arm reports a pose
+/// (a claim needs one).
+async fn sim_server() -> (tempfile::TempDir, TestServer, Client) {
     let dir = tempfile::tempdir().unwrap();
     let server = TestServer::start(default_config(dir.path())).await.unwrap();
     let client = server.client().await.unwrap();
-    // The sim reports its first pose within a few bridge periods; a claim needs it (10 s: a stalled machine).
+    // The sim reports its first pose within a few bridge periods (10 s: a stalled machine).
     assert!(
         wait_until(Duration::from_secs(10), || async {
             arm_state(&client, "main").await.robot_from_ee.is_some()
         })
         .await
     );
+    (dir, server, client)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
+    let (dir, server, client) = sim_server().await;
     let mut policy = client
         .policy(phone2act_tests::policy_hello(&["main"], POLICY, 5.0))
         .await
@@ -307,16 +314,7 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
 /// observations filled, and the `ControlPaused` sent into a full queue was lost.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_policy_that_stops_reading_still_hears_the_take_over() {
-    let dir = tempfile::tempdir().unwrap();
-    let server = TestServer::start(default_config(dir.path())).await.unwrap();
-    let client = server.client().await.unwrap();
-    // The sim reports its first pose within a few bridge periods; a claim needs it (10 s: a stalled machine).
-    assert!(
-        wait_until(Duration::from_secs(10), || async {
-            arm_state(&client, "main").await.robot_from_ee.is_some()
-        })
-        .await
-    );
+    let (_dir, _server, client) = sim_server().await;
     let hello = v1::PolicyHello {
         image_encoding: v1::ImageEncoding::Rgb8 as i32,
         ..phone2act_tests::policy_hello(&["main"], POLICY, 60.0)

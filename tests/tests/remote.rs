@@ -263,6 +263,27 @@ async fn pushed_frames_fill_a_remote_camera_and_bad_frames_are_refused() {
     server.shutdown().await.unwrap();
 }
 
+/// Attaches a bridge for "ext" that declares a scene; returns its streams once welcomed.
+async fn attach_with_scene(
+    channel: tonic::transport::Channel,
+) -> (
+    tokio::sync::mpsc::Sender<v1::BridgeUpstream>,
+    tonic::Streaming<v1::BridgeDownstream>,
+) {
+    let hello = v1::BridgeHello {
+        arm: "ext".into(),
+        joint_names: vec!["a".into(), "b".into(), "c".into()],
+        has_scene: true,
+        ..v1::BridgeHello::default()
+    };
+    let (tx, mut down) = bridge::attach(channel, hello, 16).await.unwrap();
+    assert!(matches!(
+        down.next().await.unwrap().unwrap().message,
+        Some(v1::bridge_downstream::Message::Welcome(_))
+    ));
+    (tx, down)
+}
+
 /// A remote bridge that declares a scene answers Scene.Get and Scene.Reset over its own stream, as the
 /// built-in simulator answers them in process.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -296,17 +317,7 @@ async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
             error: error.into(),
         }))
     };
-    let hello = v1::BridgeHello {
-        arm: "ext".into(),
-        joint_names: vec!["a".into(), "b".into(), "c".into()],
-        has_scene: true,
-        ..v1::BridgeHello::default()
-    };
-    let (tx, mut down) = bridge::attach(channel, hello, 16).await.unwrap();
-    assert!(matches!(
-        down.next().await.unwrap().unwrap().message,
-        Some(v1::bridge_downstream::Message::Welcome(_))
-    ));
+    let (tx, mut down) = attach_with_scene(channel).await;
     let start = v1::Pose::from_parts([0.2, 0.05, 0.1], [0.0, 0.0, 0.0, 1.0]);
     tx.send(feedback(start, 0)).await.unwrap();
     tx.send(scene_report(state(0, false), 0, "")).await.unwrap();
@@ -370,17 +381,7 @@ async fn a_remote_bridge_with_a_scene_answers_the_scene_api() {
 async fn a_slow_remote_scene_reset_does_not_hold_up_the_phone() {
     let (_dir, server, channel) = start().await;
     let client = server.client().await.unwrap();
-    let hello = v1::BridgeHello {
-        arm: "ext".into(),
-        joint_names: vec!["a".into(), "b".into(), "c".into()],
-        has_scene: true,
-        ..v1::BridgeHello::default()
-    };
-    let (tx, mut down) = bridge::attach(channel, hello, 16).await.unwrap();
-    assert!(matches!(
-        down.next().await.unwrap().unwrap().message,
-        Some(v1::bridge_downstream::Message::Welcome(_))
-    ));
+    let (tx, mut down) = attach_with_scene(channel).await;
     let start = v1::Pose::from_parts([0.2, 0.05, 0.1], [0.0, 0.0, 0.0, 1.0]);
     let scene = |request_id: u64| {
         upstream(v1::bridge_upstream::Message::Scene(v1::BridgeScene {
