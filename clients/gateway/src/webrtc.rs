@@ -16,9 +16,10 @@
 //! - Per viewer one task drives a [`str0m::Rtc`] (sans-IO: this module owns the UDP socket and the clock) as
 //!   an ICE-lite peer on a host candidate, writes each access unit with its RTP time taken from the frame's
 //!   capture time (90 kHz), after moving str0m's clock to the present (it stamps the packets it sends with
-//!   its clock, and congestion control compares those stamps with the page's arrival times), and sends `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data
-//!   channel so that the page can show glass-to-glass latency (its clock offset comes from `clock` round trips
-//!   on the control socket) and the bitrate.
+//!   its clock, and congestion control compares those stamps with the page's arrival times), and sends
+//!   `{"rtp":…,"capture_unix_ms":…,"bitrate_bps":…}` on the page's data channel so that the page can show
+//!   glass-to-glass latency (its clock offset comes from `clock` round trips on the control socket) and the
+//!   bitrate.
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
 //!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
 //!   `[gateway.video]`'s `min_bitrate_kbps`..`max_bitrate_kbps`), so a slow link gets fewer bits instead of a
