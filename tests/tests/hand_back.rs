@@ -101,6 +101,22 @@ async fn press(
     phone.feedback_for(seq).await.unwrap()
 }
 
+/// A phone that engages the clutch at its origin on "main", taking the arm; returns it and the arm's state it
+/// was answered with (the phone drives).
+async fn take_over(client: &Client) -> (TeleopSession, v1::ArmState) {
+    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
+    let fb = press(
+        &mut phone,
+        phone_pose(0.0, 0.0, 0.0),
+        vec![buttons::clutch_engage()],
+    )
+    .await;
+    assert!(fb.error.is_empty(), "{}", fb.error);
+    let state = fb.arm_state.unwrap();
+    assert_eq!(state.owner(), v1::ControlSource::Teleop);
+    (phone, state)
+}
+
 /// The embedded default's server on a temporary dataset directory, once its simulated arm reports a pose
 /// (a claim needs one).
 async fn sim_server() -> (tempfile::TempDir, TestServer, Client) {
@@ -154,16 +170,7 @@ async fn a_taken_over_policy_waits_and_a_hand_back_holds_until_a_fresh_chunk() {
     );
 
     // The operator takes over with the clutch: the policy waits instead of losing the arm.
-    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-    let fb = press(
-        &mut phone,
-        phone_pose(0.0, 0.0, 0.0),
-        vec![buttons::clutch_engage()],
-    )
-    .await;
-    assert!(fb.error.is_empty(), "{}", fb.error);
-    let state = fb.arm_state.unwrap();
-    assert_eq!(state.owner(), v1::ControlSource::Teleop);
+    let (mut phone, state) = take_over(&client).await;
     assert!(
         state.waiting_policy_id.starts_with(&format!("{POLICY}:")),
         "{state:?}"
@@ -339,15 +346,8 @@ async fn a_policy_that_stops_reading_still_hears_the_take_over() {
     // The policy "infers" for 3 s without reading: 60 observations of 230 kB, more than the stream's
     // HTTP/2 window and every queue on the way hold. Then the operator takes the arm.
     tokio::time::sleep(Duration::from_secs(3)).await;
-    let mut phone = client.teleop("main", TeleopOptions::default()).await.unwrap();
-    let fb = press(
-        &mut phone,
-        phone_pose(0.0, 0.0, 0.0),
-        vec![buttons::clutch_engage()],
-    )
-    .await;
-    assert!(fb.error.is_empty(), "{}", fb.error);
-    assert_eq!(fb.arm_state.unwrap().owner(), v1::ControlSource::Teleop);
+    let (_phone, _) = take_over(&client).await;
+    // (The phone stays bound, holding the arm, to the end of the test.)
     tokio::time::sleep(Duration::from_secs(1)).await;
 
     // Reading again, the take-over comes after at most the few observations already on their way.
