@@ -12,7 +12,7 @@ use phone2act_proto::v1::policy_server::Policy;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -133,14 +133,22 @@ const EVENT_QUEUE: usize = 64;
 #[derive(Debug, Clone)]
 struct Events {
     queue: mpsc::Sender<v1::PolicyEvent>,
-    observation: watch::Sender<Option<v1::Observation>>,
+    observation: Arc<ObservationSlot>,
+}
+
+/// The newest observation not yet forwarded. Taken out by the forwarder, not copied: with images it is large.
+#[derive(Debug, Default)]
+struct ObservationSlot {
+    newest: parking_lot::Mutex<Option<v1::Observation>>,
+    filled: tokio::sync::Notify,
 }
 
 impl Events {
     fn notify(&self, event: v1::policy_event::Event) {
         match event {
             v1::policy_event::Event::Observation(obs) => {
-                self.observation.send_replace(Some(obs));
+                *self.observation.newest.lock() = Some(obs);
+                self.observation.filled.notify_one();
             }
             other => {
                 if self.queue.try_send(other.into()).is_err() {
@@ -154,9 +162,10 @@ impl Events {
 }
 
 /// Forwards a session's events to its stream: queued events first, in order, then the newest observation.
+/// It ends when every holder of the session's [`Events`] has let go (the queue closes) or the stream is gone.
 async fn forward_events(
     mut queue: mpsc::Receiver<v1::PolicyEvent>,
-    mut observation: watch::Receiver<Option<v1::Observation>>,
+    observation: Arc<ObservationSlot>,
     out: mpsc::Sender<Result<v1::PolicyEvent, Status>>,
 ) {
     loop {
@@ -166,11 +175,9 @@ async fn forward_events(
                 Some(event) => event,
                 None => break,
             },
-            changed = observation.changed() => {
-                if changed.is_err() {
-                    break;
-                }
-                match observation.borrow_and_update().clone() {
+            () = observation.filled.notified() => {
+                // A permit left by an observation already forwarded finds the slot empty.
+                match observation.newest.lock().take() {
                     Some(obs) => v1::policy_event::Event::Observation(obs).into(),
                     None => continue,
                 }
@@ -241,11 +248,11 @@ impl Policy for PolicyService {
         let request = session_request(hello)?;
         let control = request.request_control;
         let (tx, rx) = mpsc::channel::<v1::PolicyEvent>(EVENT_QUEUE);
-        let (observation_tx, observation_rx) = watch::channel(None);
+        let observation = Arc::new(ObservationSlot::default());
         let sessions = Arc::clone(&self.sessions);
         let events = Events {
             queue: tx.clone(),
-            observation: observation_tx,
+            observation: Arc::clone(&observation),
         };
         let session = sessions.open(request, Arc::new(events.clone()))?;
         let app = sessions.app();
@@ -278,7 +285,7 @@ impl Policy for PolicyService {
         // Two slots: what waits for a lagging reader waits in `forward_events`' queue and observation slot, where
         // an observation is replaced by a newer one, not here.
         let (out_tx, out_rx) = mpsc::channel::<Result<v1::PolicyEvent, Status>>(2);
-        tokio::spawn(forward_events(rx, observation_rx, out_tx.clone()));
+        tokio::spawn(forward_events(rx, observation, out_tx.clone()));
         let mut shutdown = app.shutdown_signal();
         tokio::spawn(async move {
             let mut ticker = tokio::time::interval(Duration::from_secs_f64(if rate_hz > 0.0 {
