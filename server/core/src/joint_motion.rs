@@ -73,6 +73,12 @@ const CATCH_UP_GAIN_RAD: f64 = 1e-3;
 /// A commanded joint move smaller than this (rad) means the arm has arrived.
 const SETTLED_RAD: f64 = 1e-6;
 
+/// A command allowed less motion time than this (s) tells nothing about whether the arm has arrived or still
+/// gains on its target: two commands handed out in one pass of the control loop (a late tick playing two
+/// chunk steps) are microseconds apart, and the second moves nothing because no time passed, not because the
+/// arm is there. A quarter of the 500 Hz tick period, so every tick is judged.
+const JUDGED_STEP_S: f64 = 5e-4;
+
 /// Largest distance between the robot's reported tool position and the joint model's position of its reported
 /// joints for the server to drive the arm through the model: 5 mm, well above the model's rounding (the CR5
 /// URDF gives its lengths to the millimetre) and far below what a wrong base frame, tool or joint zero gives.
@@ -387,7 +393,12 @@ impl<const N: usize> JointStage<N> {
         let started_rad = target.rotation.angle_to(&from.rotation);
         let gaining =
             orientation_error_rad < started_rad - CATCH_UP_GAIN_RAD * dt / self.limiter.max_step_s();
-        self.behind = step.limited || (capped && moved > SETTLED_RAD && (!missed || gaining));
+        self.behind = if dt < JUDGED_STEP_S {
+            // Too short to judge: whatever is left stays to do, and the next tick judges it.
+            step.limited || capped
+        } else {
+            step.limited || (capped && moved > SETTLED_RAD && (!missed || gaining))
+        };
         // An aim cut short by the time since the last command is a speed limit too, and the one that binds a
         // command issued soon after a late one: the command holds joints short of the target's, which a
         // dataset that records this command must say. An aim cut short at an orientation the arm cannot
@@ -746,6 +757,42 @@ mod tests {
         }
     }
 
+    /// A late tick plays two chunk steps, handed out microseconds apart: the second command moves nothing because
+    /// no time passed. That must not stop the stage short of its target. It did: the second command counted as
+    /// "arrived" (no motion), no tick followed, and the arm stayed where the first command left it (a 0.45 rad
+    /// turn stopped after 0.01 rad on a loaded machine).
+    #[test]
+    fn a_command_microseconds_after_another_does_not_stop_the_stage() {
+        let k = So101Kinematics::new();
+        let start = [0.0, -0.4, 0.6, 0.9, 0.0];
+        let goal = [0.8, 0.2, 0.1, 0.5, 1.0];
+        let target = k.forward(&goal);
+        for gap_s in [0.0, 1e-9, 1e-6, 1e-4] {
+            let mut s = stage();
+            s.reset(&start, 0.0);
+            let mut t = 0.0;
+            for _ in 0..400 {
+                t += PERIOD_S;
+                s.plan(&target, t);
+                s.plan(&target, t + gap_s);
+                t += gap_s;
+                if !s.behind() {
+                    break;
+                }
+            }
+            let reached = s.commanded().unwrap();
+            let off = reached
+                .iter()
+                .zip(&goal)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                off < 1e-3,
+                "gap {gap_s} s: stopped at {reached:?}, {off} rad from {goal:?}"
+            );
+        }
+    }
+
     #[test]
     fn no_time_no_motion_and_a_non_finite_target_holds() {
         let k = So101Kinematics::new();
@@ -754,18 +801,21 @@ mod tests {
         s.reset(&start, 1.0);
         let moved = Isometry3::translation(0.01, 0.0, 0.0) * k.forward(&start);
         assert_eq!(s.plan(&moved, 1.0).joints_rad, start);
-        // Nor for a turn: the arm holds and is not behind (nothing moved, so nothing is left to catch up on).
+        // Nor for a turn: the arm holds, and the turn is still to do (no time passed, so nothing says it cannot
+        // be done): the stage stays behind, and the next tick turns.
         let turned = Isometry3::from_parts(
             k.forward(&start).translation,
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3) * k.forward(&start).rotation,
         );
         assert_eq!(s.plan(&turned, 1.0).joints_rad, start);
-        assert!(!s.behind());
+        assert!(s.behind());
+        let turning = s.plan(&turned, 1.0 + PERIOD_S).joints_rad;
+        assert_ne!(turning, start);
         let bad = Isometry3::translation(f64::NAN, 0.0, 0.0);
         let p = s.plan(&bad, 2.0);
         assert!(p.invalid_input);
-        assert_eq!(p.joints_rad, start);
-        assert_eq!(s.commanded(), Some(start));
+        assert_eq!(p.joints_rad, turning);
+        assert_eq!(s.commanded(), Some(turning));
     }
 
     #[test]
