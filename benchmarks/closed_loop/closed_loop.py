@@ -124,7 +124,7 @@ class Server:
         cfg.write_text(config)
         self.log_path = workdir / "server.log"
         # The embedded phone gateway listens on fixed ports; nothing here needs it.
-        env = dict(os.environ, SVT_LOG="1", RUST_LOG=os.environ.get("RUST_LOG", "warn"),
+        env = dict(os.environ, SVT_LOG="1", RUST_LOG=os.environ.get("RUST_LOG", "info"),
                    PHONE2ACT_GATEWAY__ENABLED="false")
         self.proc = subprocess.Popen([str(binary), "serve", "--config", str(cfg)], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, text=True, env=env)
@@ -269,11 +269,13 @@ def train(args, dataset_root: Path, out: Path, name: str = "train") -> tuple[Pat
 class ChunkPolicy:
     """The trained policy behind lerobot's own pre- and post-processors, returning whole action chunks."""
 
-    def __init__(self, model: Path) -> None:
+    def __init__(self, model: Path, threads: int) -> None:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies import get_policy_class, make_pre_post_processors
 
+        # As in training (see `main`): threads beyond the free cores spin against the simulator.
+        torch.set_num_threads(threads)
         cfg = PreTrainedConfig.from_pretrained(model)
         cfg.device = "cpu"
         self.policy = get_policy_class(cfg.type).from_pretrained(model, config=cfg)
@@ -304,7 +306,7 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
     from phone2act import IMAGE_RGB8, Client, FailedPrecondition, InvalidArgument
     from phone2act.v1 import policy_pb2
 
-    policy = ChunkPolicy(model)
+    policy = ChunkPolicy(model, args.torch_threads)
     # The first inference is far slower than the rest (lazy initialisation in torch); run before a session
     # opens, it cannot outlast the session's silence timeout on a loaded machine.
     features = policy.policy.config.input_features
@@ -532,6 +534,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--chunk-size", type=int, default=20)
     p.add_argument("--n-action-steps", type=int, default=10)
     p.add_argument("--num-workers", type=int, default=1)
+    p.add_argument("--torch-threads", type=int, default=max(1, (os.cpu_count() or 1) - 1),
+                   help="threads torch computes with, in lerobot-train and in the evaluation's inference (default: "
+                        "one fewer than the cores, since the server and the simulator keep running beside them)")
     return p.parse_args(argv)
 
 
@@ -541,6 +546,11 @@ PATHS = ("api", "plugin", "async", "blind", "replay", "shifted")
 def main(argv: list[str]) -> int:
     global TASK
     args = parse_args(argv)
+    # Torch's OpenMP threads wait for each other spinning: one more thread than the cores left free by the
+    # simulator (which renders and steps all the time) made each training step about 10 times slower here (2
+    # threads beside the MuJoCo bridge on 2 cores: 3 s a step; 1 thread: 0.3 s). Every torch here reads it:
+    # lerobot-train, lerobot-rollout, the async policy server and this process's inference.
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(args.torch_threads)
     physics = args.sim == "physics"
     paths = (args.paths or "api,plugin,blind,replay").split(",")
     unknown = [p for p in paths if p not in PATHS]
