@@ -220,6 +220,7 @@ def record_demos(args, server: Server, token: str, log_dir: Path) -> dict:
 
 
 def train(args, dataset_root: Path, out: Path, name: str = "train") -> tuple[Path, float, int]:
+    """Trains while no simulator runs: torch gets every core (see `main`)."""
     train_dir = out / name
     shutil.rmtree(train_dir, ignore_errors=True)
     cmd = [
@@ -244,7 +245,8 @@ def train(args, dataset_root: Path, out: Path, name: str = "train") -> tuple[Pat
     log_path = out / f"{name}.log"
     start = time.monotonic()
     with log_path.open("w") as log, tqdm(total=args.train_steps, desc=name, unit="step") as bar:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        env = dict(os.environ, OMP_NUM_THREADS=str(train_threads(args)), MKL_NUM_THREADS=str(train_threads(args)))
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         assert proc.stdout is not None
         for line in proc.stdout:
             log.write(line)
@@ -274,7 +276,7 @@ class ChunkPolicy:
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies import get_policy_class, make_pre_post_processors
 
-        # As in training (see `main`): threads beyond the free cores spin against the simulator.
+        # Threads beyond the cores the simulator leaves free spin against it (see `eval_threads`).
         torch.set_num_threads(threads)
         cfg = PreTrainedConfig.from_pretrained(model)
         cfg.device = "cpu"
@@ -306,7 +308,7 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
     from phone2act import IMAGE_RGB8, Client, FailedPrecondition, InvalidArgument
     from phone2act.v1 import policy_pb2
 
-    policy = ChunkPolicy(model, args.torch_threads)
+    policy = ChunkPolicy(model, eval_threads(args))
     # The first inference is far slower than the rest (lazy initialisation in torch); run before a session
     # opens, it cannot outlast the session's silence timeout on a loaded machine.
     features = policy.policy.config.input_features
@@ -534,10 +536,23 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--chunk-size", type=int, default=20)
     p.add_argument("--n-action-steps", type=int, default=10)
     p.add_argument("--num-workers", type=int, default=1)
-    p.add_argument("--torch-threads", type=int, default=max(1, (os.cpu_count() or 1) - 1),
-                   help="threads torch computes with, in lerobot-train and in the evaluation's inference (default: "
-                        "one fewer than the cores, since the server and the simulator keep running beside them)")
+    p.add_argument("--torch-threads", type=int, default=0,
+                   help="threads torch computes with (default: every core for training, which runs with no "
+                        "simulator; one fewer for the evaluation's inference, which runs beside it)")
     return p.parse_args(argv)
+
+
+# Torch's OpenMP threads wait for each other spinning: more threads than the cores the simulator leaves free (it
+# renders and steps all the time) made each training step about 10 times slower here (2 threads beside the
+# MuJoCo bridge on 2 cores: 3 s a step; 1 thread: 0.3 s; 2 threads alone: 0.22 s).
+
+
+def train_threads(args) -> int:
+    return args.torch_threads or (os.cpu_count() or 1)
+
+
+def eval_threads(args) -> int:
+    return args.torch_threads or max(1, (os.cpu_count() or 1) - 1)
 
 
 PATHS = ("api", "plugin", "async", "blind", "replay", "shifted")
@@ -546,11 +561,9 @@ PATHS = ("api", "plugin", "async", "blind", "replay", "shifted")
 def main(argv: list[str]) -> int:
     global TASK
     args = parse_args(argv)
-    # Torch's OpenMP threads wait for each other spinning: one more thread than the cores left free by the
-    # simulator (which renders and steps all the time) made each training step about 10 times slower here (2
-    # threads beside the MuJoCo bridge on 2 cores: 3 s a step; 1 thread: 0.3 s). Every torch here reads it:
-    # lerobot-train, lerobot-rollout, the async policy server and this process's inference.
-    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(args.torch_threads)
+    # Read by every torch of the evaluation: lerobot-rollout, the async policy server and this process's
+    # inference (see `eval_threads`); `train` sets its own.
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(eval_threads(args))
     physics = args.sim == "physics"
     paths = (args.paths or "api,plugin,blind,replay").split(",")
     unknown = [p for p in paths if p not in PATHS]
@@ -627,27 +640,30 @@ def main(argv: list[str]) -> int:
                              **baselines.distance_summary(seeds, train_seeds, start_of, tolerance_m, workspace_m)}
         extra["train_seeds"] = train_seeds
         print(f"held-out starts: {json.dumps(extra['held_out'])}")
-        if physics:
-            bridge = physics_task.BridgeProcess(server.target, token, ARM, CAMERA, args.image_px, args.fps,
-                                                out / "bridge-eval.log")
-        else:
-            starts_client.close()
         extra["models"] = {"policy": model_checksum(model)} if model else {}
-        results = []
-        if "replay" in paths:
-            results.append(baselines.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
-                                                     PathResult("nearest demonstration, replayed"), start_of))
+        # Every training before the simulator starts (see `train`).
         if "blind" in paths:
             blind_root = baselines.blank_dataset(dataset_root, out / "dataset-blind")
             blind_model, _, _ = train(args, blind_root, out, name="train-blind")
             extra["models"]["blind"] = model_checksum(blind_model)
-            results.append(evaluate_policy_api(args, server, token, blind_model, seeds, blank=True,
-                                               name="blind (black images), Policy API"))
         if "shifted" in paths:
             lag = round(args.shift_ms / 1000 * args.fps)
             shifted_root = baselines.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
             shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
             extra["models"]["shifted"] = model_checksum(shifted_model)
+        if physics:
+            bridge = physics_task.BridgeProcess(server.target, token, ARM, CAMERA, args.image_px, args.fps,
+                                                out / "bridge-eval.log")
+        else:
+            starts_client.close()
+        results = []
+        if "replay" in paths:
+            results.append(baselines.evaluate_replay(args, server, token, ARM, dataset_root, train_seeds, seeds,
+                                                     PathResult("nearest demonstration, replayed"), start_of))
+        if "blind" in paths:
+            results.append(evaluate_policy_api(args, server, token, blind_model, seeds, blank=True,
+                                               name="blind (black images), Policy API"))
+        if "shifted" in paths:
             results.append(evaluate_policy_api(args, server, token, shifted_model, seeds,
                                                name=f"ablation: actions {lag} frames late, Policy API"))
         if "api" in paths:
