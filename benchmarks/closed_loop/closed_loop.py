@@ -494,6 +494,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--operator", type=Path, help="the scripted operator binary (not needed with --dataset)")
     p.add_argument("--dataset", type=Path, help="reuse demonstrations recorded before instead of recording")
     p.add_argument("--model", type=Path, help="evaluate this trained policy instead of training one")
+    p.add_argument("--blind-model", type=Path,
+                   help="evaluate this blind baseline (trained on the dataset's frames blanked) instead of training one")
+    p.add_argument("--shifted-model", type=Path,
+                   help="evaluate this ablation model (trained on the actions shifted by --shift-ms) instead of "
+                        "training one")
     p.add_argument("--demos", type=int, default=100)
     p.add_argument("--seed", type=int, default=0, help="first training seed")
     p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
@@ -642,14 +647,20 @@ def main(argv: list[str]) -> int:
         print(f"held-out starts: {json.dumps(extra['held_out'])}")
         extra["models"] = {"policy": model_checksum(model)} if model else {}
         # Every training before the simulator starts (see `train`).
+        lag = round(args.shift_ms / 1000 * args.fps)
         if "blind" in paths:
-            blind_root = baselines.blank_dataset(dataset_root, out / "dataset-blind")
-            blind_model, _, _ = train(args, blind_root, out, name="train-blind")
+            if args.blind_model:
+                blind_model = args.blind_model
+            else:
+                blind_root = baselines.blank_dataset(dataset_root, out / "dataset-blind")
+                blind_model, _, _ = train(args, blind_root, out, name="train-blind")
             extra["models"]["blind"] = model_checksum(blind_model)
         if "shifted" in paths:
-            lag = round(args.shift_ms / 1000 * args.fps)
-            shifted_root = baselines.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
-            shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
+            if args.shifted_model:
+                shifted_model = args.shifted_model
+            else:
+                shifted_root = baselines.shifted_dataset(dataset_root, out / "dataset-shifted", lag)
+                shifted_model, _, _ = train(args, shifted_root, out, name="train-shifted")
             extra["models"]["shifted"] = model_checksum(shifted_model)
         if physics:
             bridge = physics_task.BridgeProcess(server.target, token, ARM, CAMERA, args.image_px, args.fps,
