@@ -79,6 +79,9 @@ struct RemoteScene {
     last_request_id: u64,
     /// The newest answer: the request it answers and the scene, or the bridge's reason for failing.
     answer: Option<(u64, Result<SceneState, String>)>,
+    /// A reset that homes the arm, asked for and not answered yet: the bridge places the arm at home in one
+    /// step, which its joints' speeds must not be judged by.
+    homing: Option<u64>,
 }
 
 #[derive(Debug)]
@@ -347,6 +350,9 @@ impl Bridge for RemoteBridge {
             seed,
             home_arm,
         });
+        if home_arm {
+            state.scene.homing = Some(request_id);
+        }
         self.shared.changed.notify_all();
         let deadline = Instant::now() + SCENE_RESET_TIMEOUT;
         loop {
@@ -366,6 +372,9 @@ impl Bridge for RemoteBridge {
             }
             if self.shared.changed.wait_until(&mut state, deadline).timed_out() {
                 state.scene.pending.retain(|r| r.request_id != request_id);
+                if state.scene.homing == Some(request_id) {
+                    state.scene.homing = None;
+                }
                 return Err(BridgeError::Protocol(format!(
                     "arm {}: the remote bridge did not answer the scene reset within {} s",
                     self.arm,
@@ -473,10 +482,15 @@ impl AttachHandle {
             feedback.task_success = scene.task_success;
         }
         let time_s = feedback.capture_time_ns as f64 * 1e-9;
-        let over = state
-            .speed_watch
-            .as_mut()
-            .and_then(|w| Some((w.observe(&feedback.joint_positions_rad, time_s)?, w.overspeeds)));
+        let homing = state.scene.homing.is_some();
+        let over = state.speed_watch.as_mut().and_then(|w| {
+            if homing {
+                // The arm may be placed at home before the answer comes: its jump is not a speed.
+                w.restart();
+                return None;
+            }
+            Some((w.observe(&feedback.joint_positions_rad, time_s)?, w.overspeeds))
+        });
         if let Some((o, count)) = over {
             let name = self
                 .shared
@@ -525,6 +539,13 @@ impl AttachHandle {
         }
         if answers != 0 {
             state.scene.answer = Some((answers, error.map_or_else(|| Ok(scene.clone()), Err)));
+            if state.scene.homing == Some(answers) {
+                state.scene.homing = None;
+                // Judged again from the next sample, at home.
+                if let Some(w) = state.speed_watch.as_mut() {
+                    w.restart();
+                }
+            }
         }
         state.scene.state = Some(scene);
         drop(state);
@@ -551,6 +572,7 @@ impl AttachHandle {
         state.command = None;
         state.controls.clear();
         state.scene.pending.clear();
+        state.scene.homing = None;
         state.feedback = None;
         state.health = Health::Disconnected("remote bridge detached".into());
         drop(state);
@@ -879,5 +901,75 @@ mod tests {
             "{warning}"
         );
         assert!(remote.watch_joint_speeds(vec![f64::NAN]).is_err());
+    }
+
+    /// A simulator's homing reset places the arm at home in one step: that jump is not a joint speed, whether
+    /// the bridge reports the new pose before or after answering the reset. The same jump without a reset is
+    /// counted.
+    #[test]
+    fn a_homing_reset_is_not_measured_as_a_joint_speed() {
+        let remote = RemoteBridge::with_joint_names("arm", names());
+        remote.watch_joint_speeds(vec![1.0, 1.0, 1.0]).unwrap();
+        let handle = Arc::new(remote.attach(names(), true).unwrap());
+        handle.declare_scene().unwrap();
+        handle.publish_scene(scene(0, false), 0, None).unwrap();
+        let at = |t_s: f64, q: [f64; 3]| Feedback {
+            capture_time_ns: (t_s * 1e9) as i64,
+            ..feedback(q.to_vec())
+        };
+        // Away from home, at rest; then homed (1.5 rad on j1 in one 10 ms step) by two resets: the first
+        // bridge reports home before its answer, the second after.
+        for i in 0..20 {
+            handle
+                .publish_feedback(at(f64::from(i) * 0.01, [1.5, 0.0, 0.0]))
+                .unwrap();
+        }
+        let mut t_s = 0.2;
+        for home_before_answer in [true, false] {
+            let bridge_side = Arc::clone(&handle);
+            let start_s = t_s;
+            let side = std::thread::spawn(move || {
+                let Ok(Some(Downstream::SceneReset(r))) = bridge_side.next(Duration::from_secs(10)) else {
+                    panic!("expected a scene reset");
+                };
+                assert!(r.home_arm);
+                let mut t = start_s;
+                let mut report = |q: [f64; 3]| {
+                    for _ in 0..10 {
+                        t += 0.01;
+                        bridge_side.publish_feedback(at(t, q)).unwrap();
+                    }
+                };
+                if home_before_answer {
+                    report([0.0; 3]);
+                    bridge_side
+                        .publish_scene(scene(1, false), r.request_id, None)
+                        .unwrap();
+                } else {
+                    bridge_side
+                        .publish_scene(scene(1, false), r.request_id, None)
+                        .unwrap();
+                    report([0.0; 3]);
+                }
+                report([0.0; 3]);
+                t
+            });
+            remote.reset_scene(Some(1), true).unwrap();
+            t_s = side.join().unwrap();
+            // Away again for the second reset, as a policy would leave it (within the limit: 1 rad/s).
+            for i in 1..=150 {
+                t_s += 0.01;
+                handle
+                    .publish_feedback(at(t_s, [f64::from(i) * 0.01, 0.0, 0.0]))
+                    .unwrap();
+            }
+        }
+        assert_eq!((remote.joint_overspeeds(), remote.warning()), (0, None));
+        // The same jump with no reset is a speed.
+        for _ in 0..10 {
+            t_s += 0.01;
+            handle.publish_feedback(at(t_s, [0.0; 3])).unwrap();
+        }
+        assert!(remote.joint_overspeeds() > 0);
     }
 }

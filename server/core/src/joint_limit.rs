@@ -357,6 +357,13 @@ impl JointSpeedWatch {
         })
     }
 
+    /// Forgets the samples measured so far (the count stays): the next sample starts a new window. For a
+    /// robot moved by something other than its joints' motion, such as a simulator's reset placing the arm.
+    pub fn restart(&mut self) {
+        self.anchor = None;
+        self.recent.clear();
+    }
+
     /// Takes the joints measured at `time_s`. Returns the fastest joint over its limit (by the ratio of speed to
     /// limit), measured against a sample at least [`SPEED_WINDOW_S`] older, and counts it. A sample of another
     /// width, not finite, or not later than the previous one starts the watch again.
