@@ -23,7 +23,8 @@
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
 //!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
 //!   `[gateway.video]`'s `min_bitrate_kbps`..`max_bitrate_kbps`), so a slow link gets fewer bits instead of a
-//!   queue that would also hold up the control socket's packets.
+//!   queue that would also hold up the control socket's packets. x264 is given that rate spread over the frames
+//!   it actually encodes (see `Cadence`), so that a busy machine's fewer frames still carry it.
 //! - `[gateway.video]` ([`VideoConfig`]) also caps the frame rate, the picture's size (a larger camera is scaled
 //!   down in the encoder's colour conversion) and the number of viewers, or turns the video off.
 //! - A page on this very machine (its socket comes from the address the viewer's UDP socket is bound to) has no
@@ -410,20 +411,19 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
             encoder_fps = frame.fps;
         }
         let target = cadence.encoder_bps(link, encoder_fps, divisor);
-        let enc = match reuse {
-            Some(e) => e,
-            None => {
-                let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
-                let out = feed.config.sent_size(frame.width, frame.height);
-                match H264Encoder::scaled(frame.width, frame.height, out, frame.fps, bitrate) {
-                    Ok(e) => {
-                        aimed_bps = link;
-                        e
-                    }
-                    Err(e) => {
-                        tracing::warn!("video of camera {camera}: {e}");
-                        return;
-                    }
+        let enc = if let Some(e) = reuse {
+            e
+        } else {
+            let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
+            let out = feed.config.sent_size(frame.width, frame.height);
+            match H264Encoder::scaled(frame.width, frame.height, out, frame.fps, bitrate) {
+                Ok(e) => {
+                    aimed_bps = link;
+                    e
+                }
+                Err(e) => {
+                    tracing::warn!("video of camera {camera}: {e}");
+                    return;
                 }
             }
         };
