@@ -14,8 +14,11 @@ import { createSocket } from 'node:dgram';
 import { join } from 'node:path';
 import { Worker } from 'node:worker_threads';
 import {
-  BASE, HTTPS_PORT, PAIRING_TOKEN, assert, check, finish, here, launch, sleep, waitPage,
+  BASE, HTTPS_PORT, PAIRING_TOKEN, assert, check as harnessCheck, finish, here, launch, sleep, waitPage,
 } from './harness.mjs';
+
+// VIDEO_ONLY=text runs only the checks whose name contains it (repeated measurements of one check).
+const check = (name, fn) => (!process.env.VIDEO_ONLY || name.includes(process.env.VIDEO_ONLY) ? harnessCheck(name, fn) : null);
 
 const browser = await launch();
 
@@ -36,6 +39,25 @@ const fmt = (xs) => `p50 ${q(xs, 0.5).toFixed(1)} ms, p95 ${q(xs, 0.95).toFixed(
 const rttsSince = (page, sinceMs) => page.evaluate((t) => window.phone2act.rttLog.filter(([at]) => at > t).map(([, ms]) => ms), sinceMs);
 const pageNow = (page) => page.evaluate(() => performance.now());
 const videoFrames = (page) => page.evaluate(() => window.phone2act.video.frames);
+// The page's receive statistics of the video (Chromium's inbound-rtp): NACKs and PLIs it sent, keyframes decoded.
+const inboundStats = (page) => page.evaluate(async () => {
+  const { pc } = window.phone2act.video;
+  if (!pc) return {};
+  let found = {};
+  (await pc.getStats()).forEach((r) => { if (r.type === 'inbound-rtp' && r.kind === 'video') found = r; });
+  return {
+    nack: found.nackCount || 0, pli: found.pliCount || 0, keyframes: found.keyFramesDecoded || 0,
+    rtxBytes: found.retransmittedBytesReceived || 0, lost: found.packetsLost || 0,
+  };
+});
+// kbit/s of each kind of traffic the link carried towards the page between two snapshots of `link.byKind`.
+const KINDS = ['video', 'rtx', 'padding', 'rtcp', 'dtls', 'stun', 'other', 'control'];
+function kindKbps(from, to, ms) {
+  const out = {};
+  for (const k of KINDS) out[k] = (((to[k] || 0) - (from[k] || 0)) * 8) / ms;
+  return out;
+}
+const fmtKinds = (kb) => KINDS.filter((k) => kb[k] >= 0.5).map((k) => `${k} ${kb[k].toFixed(0)}`).join(', ');
 
 // Busy threads beside the test (VIDEO_CPU_HOGS=2 loads both cores of the test machine).
 function cpuHogs(n) {
@@ -126,7 +148,11 @@ await check('glass to glass of the WebRTC video and of the JPEG preview, one run
 // The relay's address towards the gateway: another loopback address, which the gateway takes for another machine.
 const RELAY_IP = '127.0.0.2';
 async function throttledLink() {
-  const link = { bps: Infinity, bufferMs: 300, queue: [], queuedBytes: 0, dropped: 0, sentBytes: 0, maxWaitMs: 0, sockets: new Set() };
+  const link = {
+    bps: Infinity, bufferMs: 300, queue: [], queuedBytes: 0, dropped: 0, sentBytes: 0, maxWaitMs: 0, sockets: new Set(),
+    // Bytes delivered towards the page by kind (see `classify`), and the RTP payload types of the answer.
+    byKind: {}, droppedByKind: {}, pts: { video: new Set(), rtx: new Set() },
+  };
   let pumping = null;
   const pump = () => {
     pumping = null;
@@ -136,19 +162,24 @@ async function throttledLink() {
       const item = link.queue.shift();
       link.queuedBytes -= item.bytes;
       link.sentBytes += item.bytes;
+      link.byKind[item.kind] = (link.byKind[item.kind] || 0) + item.bytes;
       item.send();
     }
     if (link.queue.length) pumping = setTimeout(pump, Math.max(0, link.queue[0].at - performance.now()));
   };
   // Departure times follow the link's rate from the last queued item: FIFO, so TCP bytes stay in order.
-  link.enqueue = (bytes, send, droppable) => {
+  link.enqueue = (bytes, send, droppable, kind) => {
     if (link.closed) return;
     const now = performance.now();
     const last = link.queue.length ? link.queue[link.queue.length - 1].at : now;
     const at = Number.isFinite(link.bps) ? Math.max(now, last) + (bytes * 8 * 1000) / link.bps : now;
-    if (droppable && at - now > link.bufferMs) { link.dropped += 1; return; }
+    if (droppable && at - now > link.bufferMs) {
+      link.dropped += 1;
+      link.droppedByKind[kind] = (link.droppedByKind[kind] || 0) + 1;
+      return;
+    }
     link.maxWaitMs = Math.max(link.maxWaitMs, at - now);
-    link.queue.push({ at, bytes, send });
+    link.queue.push({ at, bytes, send, kind });
     link.queuedBytes += bytes;
     if (!pumping) pumping = setTimeout(pump, Math.max(0, at - now));
   };
@@ -156,9 +187,9 @@ async function throttledLink() {
     const gateway = connect({ port: Number(HTTPS_PORT), host: '127.0.0.1', localAddress: RELAY_IP });
     for (const s of [client, gateway]) link.sockets.add(s);
     client.on('data', (chunk) => gateway.write(chunk));
-    gateway.on('data', (chunk) => link.enqueue(chunk.length, () => client.write(chunk), false));
+    gateway.on('data', (chunk) => link.enqueue(chunk.length, () => client.write(chunk), false, 'control'));
     client.on('close', () => gateway.destroy());
-    gateway.on('close', () => link.enqueue(0, () => client.destroy(), false));
+    gateway.on('close', () => link.enqueue(0, () => client.destroy(), false, 'control'));
     client.on('error', () => gateway.destroy());
     gateway.on('error', () => client.destroy());
   });
@@ -179,8 +210,31 @@ async function throttledLink() {
   link.toGateway.on('message', (msg) => {
     if (!pageAddr) return;
     const to = pageAddr;
-    link.enqueue(msg.length + 28, () => link.toPage.send(msg, to.port, to.address), true);
+    link.enqueue(msg.length + 28, () => link.toPage.send(msg, to.port, to.address), true, link.classify(msg));
   });
+  // What a datagram from the gateway is, from its clear-text first bytes (RFC 7983 demultiplexing; SRTP leaves the
+  // RTP header in the clear): STUN, DTLS (the handshake and the data channel's SCTP), RTCP (packet types 192-223),
+  // or RTP by payload type, a packet with the padding bit set counting as padding (str0m's padding and probes
+  // are padding-only packets on the RTX stream, or, for larger requests, old video packets resent on it).
+  link.classify = (msg) => {
+    const b0 = msg[0];
+    if (b0 <= 3) return 'stun';
+    if (b0 >= 20 && b0 <= 63) return 'dtls';
+    if (b0 < 128 || b0 > 191 || msg.length < 12) return 'other';
+    if (msg[1] >= 192 && msg[1] <= 223) return 'rtcp';
+    if (b0 & 0x20) return 'padding';
+    const pt = msg[1] & 0x7f;
+    if (link.pts.video.has(pt)) return 'video';
+    if (link.pts.rtx.has(pt)) return 'rtx';
+    return 'other';
+  };
+  // The answer's payload types: H.264 is the video, rtx its resends.
+  link.learnAnswer = (sdp) => {
+    for (const [, pt, codec] of sdp.matchAll(/a=rtpmap:(\d+) ([\w-]+)\//g)) {
+      if (/^H264$/i.test(codec)) link.pts.video.add(Number(pt));
+      if (/^rtx$/i.test(codec)) link.pts.rtx.add(Number(pt));
+    }
+  };
   link.close = () => {
     link.closed = true;
     clearTimeout(pumping);
@@ -199,13 +253,13 @@ async function relayedPage(link) {
     const set = RTCPeerConnection.prototype.setRemoteDescription;
     RTCPeerConnection.prototype.setRemoteDescription = async function patched(d) {
       const m = /a=candidate:\\S+ \\d+ \\S+ \\d+ \\S+ (\\d+)/.exec(d.sdp);
-      if (m) await window.__videoTarget(Number(m[1]));
+      if (m) await window.__videoTarget(Number(m[1]), d.sdp);
       const sdp = d.sdp.replace(/(a=candidate:\\S+ \\d+ \\S+ \\d+ \\S+ )\\d+/g, '$1${link.udpPort}');
       return set.call(this, { type: d.type, sdp });
     };
   })();`;
   const context = await browser.newContext({ ignoreHTTPSErrors: true, viewport: { width: 412, height: 915 } });
-  await context.exposeBinding('__videoTarget', (_src, port) => { link.gatewayPort = port; });
+  await context.exposeBinding('__videoTarget', (_src, port, sdp) => { link.gatewayPort = port; link.learnAnswer(sdp); });
   await context.addInitScript({ path: join(here, 'webxr-shim.js') });
   await context.addInitScript(initScript);
   const page = await context.newPage();
@@ -232,11 +286,13 @@ await check('on a throttled link the video bitrate comes down and control does n
       'video through the relay', 20000);
     let t = await pageNow(page);
     let sent0 = link.sentBytes;
+    let kinds0 = { ...link.byKind };
     await sleep(3000);
     const before = {
       rtt: await rttsSince(page, t),
       bitrate: await page.evaluate(() => window.phone2act.video.bitrateBps),
       kbps: ((link.sentBytes - sent0) * 8) / 3000,
+      kinds: kindKbps(kinds0, link.byKind, 3000),
     };
     const kbps = Number(process.env.VIDEO_LINK_KBPS || 600);
     link.bps = kbps * 1000;
@@ -254,24 +310,51 @@ await check('on a throttled link the video bitrate comes down and control does n
     const f0 = await videoFrames(page);
     link.maxWaitMs = 0;
     const dropped0 = link.dropped;
+    const droppedKinds0 = { ...link.droppedByKind };
+    const stats0 = await inboundStats(page);
     t = await pageNow(page);
     sent0 = link.sentBytes;
+    kinds0 = { ...link.byKind };
+    const windowStart = performance.now();
     await sleep(4000);
+    const windowMs = performance.now() - windowStart;
     const after = {
-      kbps: ((link.sentBytes - sent0) * 8) / 4000,
+      kbps: ((link.sentBytes - sent0) * 8) / windowMs,
+      kinds: kindKbps(kinds0, link.byKind, windowMs),
       rtt: await rttsSince(page, t),
       bitrate: await page.evaluate(() => window.phone2act.video.bitrateBps),
       estimate: await page.evaluate(() => window.phone2act.video.linkEstimateBps),
       notes: await page.evaluate(() => window.phone2act.video.notes.map(([, b, e]) => `${(b / 1e3).toFixed(0)}/${((e || 0) / 1e3).toFixed(0)}`).filter((x, i, a) => i === 0 || x !== a[i - 1]).join(' ')),
       fps: ((await videoFrames(page)) - f0) / 4,
     };
+    const stats1 = await inboundStats(page);
+    const droppedKinds = Object.entries(link.droppedByKind).map(([k, n]) => [k, n - (droppedKinds0[k] || 0)]).filter(([, n]) => n > 0);
     console.log(`  unthrottled: bitrate ${(before.bitrate / 1e3).toFixed(0)} kbit/s, ${before.kbps.toFixed(0)} kbit/s towards the page, control ${fmt(before.rtt)}`);
     console.log(`  link at ${kbps} kbit/s (300 ms queue): bitrate under 80% of it after ${adaptedS.toFixed(1)} s; then `
       + `bitrate ${(after.bitrate / 1e3).toFixed(0)} kbit/s (link estimate ${(after.estimate / 1e3).toFixed(0)} kbit/s), `
       + `${after.fps.toFixed(1)} fps decoded, ${after.kbps.toFixed(0)} kbit/s towards the page, control ${fmt(after.rtt)}, longest queue wait ${link.maxWaitMs.toFixed(0)} ms, `
       + `${link.dropped - dropped0} datagrams dropped`);
+    // What the link carried towards the page, by kind: how much of it was the video, of all and of what the
+    // video's connection sent (everything but the control socket).
+    const connKbps = KINDS.filter((k) => k !== 'control').reduce((sum, k) => sum + after.kinds[k], 0);
+    const videoShare = connKbps > 0 ? after.kinds.video / connKbps : 0;
+    console.log(`  towards the page, kbit/s by kind: unthrottled ${fmtKinds(before.kinds)}; slow link ${fmtKinds(after.kinds)}`
+      + ` (video ${((100 * after.kinds.video) / after.kbps).toFixed(0)}% of it, ${(100 * videoShare).toFixed(0)}% of the video connection's); dropped ${droppedKinds.map(([k, n]) => `${k} ${n}`).join(', ') || 'none'};`
+      + ` page sent ${stats1.nack - stats0.nack} NACKs, ${stats1.pli - stats0.pli} PLIs, decoded ${stats1.keyframes - stats0.keyframes} keyframes`
+      + `, got ${(((stats1.rtxBytes - stats0.rtxBytes) * 8) / windowMs).toFixed(0)} kbit/s of resends`);
     if (process.env.VIDEO_VERBOSE) console.log(`  bitrate/estimate kbit/s over time: ${after.notes}`);
     if (baseline) return;
+    // Most of what the video's connection sends is the video (the control socket, 320-343 kbit/s of this link in
+    // every run, is the page's own traffic and not counted here). x264 spreads its bitrate over the camera's frame
+    // rate, so an encoder starved of frames (the CPU or the server's camera short, as on this loaded machine at
+    // 2 fps decoded) would carry a fraction of its target; the link then looks idle to str0m, which fills it with
+    // its padding (50 kbit/s) and probes: video 17 kbit/s beside 56-59 kbit/s of padding, 20-22% of the
+    // connection, in 2 of 10 runs of builds that budgeted for the camera's rate (68-89% in the other 8, where
+    // frames were not short). Spread over the frames actually encoded, the video carries its target: 70-93% of
+    // the connection in 17 runs on the same machine at load averages of 5-8, the rest RTCP (1 kbit/s), the data
+    // channel's notes (3-33 kbit/s, one a frame) and resends after losses (up to 38 kbit/s). The machine's load
+    // lowers the frame rate, which no longer lowers the video's bytes, so half holds with margin.
+    assert(videoShare >= 0.5, `the video is ${(100 * videoShare).toFixed(0)}% of its connection's bytes on the slow link: ${fmtKinds(after.kinds)}`);
     // The bitrate after settling is printed, not checked: where the CPU is short the encoder makes fewer frames
     // than the link carries, the link is then not full, and the estimate may rightly rise again.
     assert(after.rtt.length >= 20, `control nearly stopped on the slow link: ${after.rtt.length} round trips in 4 s`);

@@ -23,7 +23,8 @@
 //! - The bitrate follows the link: each viewer's str0m runs Google congestion control on the page's
 //!   transport-wide feedback (TWCC), and the encoder aims at the lowest estimate of its viewers (within
 //!   `[gateway.video]`'s `min_bitrate_kbps`..`max_bitrate_kbps`), so a slow link gets fewer bits instead of a
-//!   queue that would also hold up the control socket's packets.
+//!   queue that would also hold up the control socket's packets. x264 is given that rate spread over the frames
+//!   it actually encodes (see `Cadence`), so that a busy machine's fewer frames still carry it.
 //! - `[gateway.video]` ([`VideoConfig`]) also caps the frame rate, the picture's size (a larger camera is scaled
 //!   down in the encoder's colour conversion) and the number of viewers, or turns the video off.
 //! - A page on this very machine (its socket comes from the address the viewer's UDP socket is bound to) has no
@@ -145,6 +146,46 @@ fn frame_divisor(target_bps: u64) -> u64 {
         .iter()
         .find(|(below, _)| target_bps < *below)
         .map_or(1, |(_, n)| *n)
+}
+
+/// The spacing of the frames an encoder actually encodes, on their capture clock: an average that follows a change
+/// within about `CADENCE_WEIGHT`'s reciprocal of frames.
+#[derive(Debug, Default)]
+struct Cadence {
+    last_capture_ns: Option<i64>,
+    mean_interval_s: Option<f64>,
+}
+
+/// The weight of each new interval in `Cadence`'s average (about the last five frames).
+const CADENCE_WEIGHT: f64 = 0.2;
+
+impl Cadence {
+    fn encoded(&mut self, capture_unix_ns: i64) {
+        if let Some(last) = self.last_capture_ns
+            && capture_unix_ns > last
+        {
+            let interval_s = (capture_unix_ns - last) as f64 / 1e9;
+            self.mean_interval_s = Some(
+                self.mean_interval_s
+                    .map_or(interval_s, |m| m + CADENCE_WEIGHT * (interval_s - m)),
+            );
+        }
+        self.last_capture_ns = Some(capture_unix_ns);
+    }
+
+    /// The bitrate to give x264 so that the frames encoded at this cadence carry `link_bps` on the wire. x264
+    /// spreads its bitrate over `fps` frames a second (it is opened at the camera's rate and counts frames), so a
+    /// stream of fewer frames (ours skipped by `frame_divisor`, the CPU's or the server's missed) would carry
+    /// only that fraction of the link's rate. Before two frames the skipping of `divisor` is all there is to go by.
+    fn encoder_bps(&self, link_bps: u64, fps: u32, divisor: u64) -> u64 {
+        let fps = f64::from(fps.max(1));
+        let frames_per_encoded = match self.mean_interval_s {
+            // At least one (never more than the camera's rate), at most a frame a second.
+            Some(interval_s) => (interval_s * fps).clamp(1.0, fps),
+            None => divisor as f64,
+        };
+        (link_bps as f64 * frames_per_encoded) as u64
+    }
 }
 
 /// The video's own runtime thread and its connection to the server.
@@ -350,6 +391,11 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
     let mut encoder: Option<H264Encoder> = None;
     let mut seq = 0u64;
     let mut taken = 0u64;
+    let mut cadence = Cadence::default();
+    // The link rate the encoder's bitrate was last set for (what the frames carry on the wire).
+    let mut aimed_bps = 0;
+    // The frame rate the encoder was opened at, which its bitrate is spread over.
+    let mut encoder_fps = 0;
     while let Some(frame) = frames.take() {
         let link = feed.target_bps.load(Ordering::Acquire);
         let divisor = frame_divisor(link);
@@ -357,19 +403,27 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
         if !taken.is_multiple_of(divisor) {
             continue;
         }
-        // x264 budgets bits for the camera's rate: with frames skipped it is given that much more.
-        let target = link * divisor;
-        let enc = match encoder.take() {
-            Some(e) if e.size() == (frame.width & !1, frame.height & !1) => e,
-            _ => {
-                let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
-                let out = feed.config.sent_size(frame.width, frame.height);
-                match H264Encoder::scaled(frame.width, frame.height, out, frame.fps, bitrate) {
-                    Ok(e) => e,
-                    Err(e) => {
-                        tracing::warn!("video of camera {camera}: {e}");
-                        return;
-                    }
+        cadence.encoded(frame.capture_unix_ns);
+        let reuse = encoder
+            .take()
+            .filter(|e| e.size() == (frame.width & !1, frame.height & !1));
+        if reuse.is_none() {
+            encoder_fps = frame.fps;
+        }
+        let target = cadence.encoder_bps(link, encoder_fps, divisor);
+        let enc = if let Some(e) = reuse {
+            e
+        } else {
+            let bitrate = usize::try_from(target).unwrap_or(usize::MAX);
+            let out = feed.config.sent_size(frame.width, frame.height);
+            match H264Encoder::scaled(frame.width, frame.height, out, frame.fps, bitrate) {
+                Ok(e) => {
+                    aimed_bps = link;
+                    e
+                }
+                Err(e) => {
+                    tracing::warn!("video of camera {camera}: {e}");
+                    return;
                 }
             }
         };
@@ -378,6 +432,7 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
         if current.abs_diff(target) as f64 > current as f64 * RETARGET_FRACTION {
             tracing::debug!("video of camera {camera}: {current} -> {target} bit/s");
             enc.set_bitrate_bps(usize::try_from(target).unwrap_or(usize::MAX));
+            aimed_bps = link;
         }
         let key = feed.force_key.swap(false, Ordering::AcqRel);
         match enc.encode(&frame.rgb, frame.width, key) {
@@ -388,7 +443,7 @@ fn encode_thread(camera: &str, feed: &Feed, frames: &FrameSlot) {
                     keyframe,
                     capture_unix_ns: frame.capture_unix_ns,
                     seq,
-                    bitrate_bps: enc.bitrate_bps() as u64 / divisor,
+                    bitrate_bps: aimed_bps,
                 }));
             }
             Ok(None) => {}
@@ -765,6 +820,40 @@ mod tests {
         assert_eq!(frame_divisor(1_500_000), 1);
         assert_eq!(frame_divisor(299_999), 2);
         assert_eq!(frame_divisor(60_000), 3);
+    }
+
+    #[test]
+    fn the_encoder_is_given_the_link_rate_spread_over_the_frames_it_actually_encodes() {
+        let ms = |t: i64| t * 1_000_000;
+        let mut cadence = Cadence::default();
+        // Before two frames: only the frames skipped on purpose count.
+        assert_eq!(cadence.encoder_bps(200_000, 30, 2), 400_000);
+        cadence.encoded(ms(0));
+        assert_eq!(cadence.encoder_bps(200_000, 30, 2), 400_000);
+        // Every third frame of 30 fps (100 ms apart): x264, counting 30 a second, is given three times the link.
+        for i in 1..=20 {
+            cadence.encoded(ms(100 * i));
+        }
+        assert_eq!(cadence.encoder_bps(200_000, 30, 1), 600_000);
+        // A starved encoder that gets a frame every 500 ms: fifteen times, so each frame carries its half second.
+        for i in 1..=40 {
+            cadence.encoded(ms(2_000 + 500 * i));
+        }
+        let starved = cadence.encoder_bps(200_000, 30, 1);
+        assert!((2_990_000..=3_000_000).contains(&starved), "{starved}");
+        // Frames at the camera's rate (or faster, on a capture clock's jitter): the link's rate as it is.
+        for i in 1..=60 {
+            cadence.encoded(ms(30_000 + 20 * i));
+        }
+        assert_eq!(cadence.encoder_bps(200_000, 30, 1), 200_000);
+        // Seconds between frames: at most one frame a second's worth, the camera's rate times the link.
+        cadence.encoded(ms(60_000));
+        cadence.encoded(ms(70_000));
+        assert_eq!(cadence.encoder_bps(200_000, 30, 1), 6_000_000);
+        // A capture time that goes back is not an interval.
+        let before = cadence.mean_interval_s;
+        cadence.encoded(ms(50_000));
+        assert_eq!(cadence.mean_interval_s, before);
     }
 
     #[test]
