@@ -325,6 +325,8 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
             ok = False
             accepted = 0
             lost = ""
+            if args.record_eval:
+                c.episodes.start(TASK, operator=f"{name}, seed {seed}")
             t0 = time.monotonic()
             # Observations stream at the control rate and the newest is taken, so a chunk starts from a fresh
             # one; each chunk is anchored on the observation it answers (the executor plays step k at observation
@@ -361,11 +363,15 @@ def evaluate_policy_api(args, server: Server, token: str, model: Path, seeds: li
                         break
                     time.sleep(max(0.0, received + args.n_action_steps * period_s - time.monotonic()))
             ok = ok or scene_success(c)
+            seconds = time.monotonic() - t0
+            episode = c.episodes.stop(success=ok).episode_index if args.record_eval else None
             if accepted == 0 and not lost:
                 raise RuntimeError(f"seed {seed}: the server accepted no chunk in {args.episode_time_s} s")
             result.trials += 1
             result.successes += int(ok)
-            trial = {"seed": seed, "success": ok, "seconds": time.monotonic() - t0}
+            trial = {"seed": seed, "success": ok, "seconds": seconds}
+            if episode is not None:
+                trial["episode_index"] = episode
             if lost:
                 trial["control_lost"] = lost
             result.per_trial.append(trial)
@@ -499,6 +505,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--shifted-model", type=Path,
                    help="evaluate this ablation model (trained on the actions shifted by --shift-ms) instead of "
                         "training one")
+    p.add_argument("--record-eval", action="store_true",
+                   help="record every Policy API trial (blind and ablation included) as an episode of OUT/eval-dataset, "
+                        "with its outcome, so a failed trial can be watched; needs --dataset (the recorder writes "
+                        "the demonstrations otherwise)")
     p.add_argument("--demos", type=int, default=100)
     p.add_argument("--seed", type=int, default=0, help="first training seed")
     p.add_argument("--eval-seed", type=int, default=DEFAULT_EVAL_SEED, help="first evaluation seed")
@@ -570,6 +580,8 @@ def main(argv: list[str]) -> int:
     # inference (see `eval_threads`); `train` sets its own.
     os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(eval_threads(args))
     physics = args.sim == "physics"
+    if args.record_eval and not args.dataset:
+        raise SystemExit("--record-eval needs --dataset: without it the server records into the demonstrations")
     paths = (args.paths or "api,plugin,blind,replay").split(",")
     unknown = [p for p in paths if p not in PATHS]
     if unknown:
