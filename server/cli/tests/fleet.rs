@@ -272,7 +272,7 @@ fn push_appends_missing_episodes_and_refuses_a_different_dataset() {
     let log_len = || std::fs::read_to_string(&moto_log).unwrap().len();
 
     // Two datasets recorded by the same configuration: `a` (one episode, then two), `b` (one, other content:
-    // another task, since the sim's idle arm and synthetic camera give byte-identical episodes of equal
+    // another task, since the sim's idle arm and synthetic camera may give byte-identical episodes of equal
     // length, and on a loaded machine 700 and 900 ms of recording can come out the same number of frames).
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     let a_one = dir.path().join("a-one");
